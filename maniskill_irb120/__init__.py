@@ -1,0 +1,6 @@
+"""ABB IRB 120 + MetalWork gripper testbed for ManiSkill 3. Importing registers the agent and tasks."""
+
+__version__ = "0.1.0"
+
+from maniskill_irb120 import agents  # noqa: F401,E402  (registers irb120_metalwork)
+from maniskill_irb120 import envs  # noqa: F401,E402  (registers TableClearing-IRB120-v1)

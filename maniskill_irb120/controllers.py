@@ -1,0 +1,201 @@
+"""Controllers for the seed's action space.
+
+ManiSkill's ``PDEEPoseController`` only takes root-frame deltas on the GPU, while the seed acts in
+the tool frame: δx, δy, δz along the TCP axes and a rotation about the approach axis (TCP +x).
+``PDEEDeltaToolController`` composes the tool-frame delta itself and solves inverse kinematics with
+a batched damped-least-squares iteration on pytorch_kinematics' chain, so one code path serves
+``physx_cpu`` (num_envs=1) and ``physx_cuda`` (num_envs=N).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence, Union
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJointPosControllerConfig
+from mani_skill.utils.geometry.rotation_conversions import (
+    axis_angle_to_matrix,
+    matrix_to_axis_angle,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+)
+from mani_skill.utils.structs.types import Array
+
+from maniskill_irb120.kinematics import SerialChain
+
+
+def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    m = torch.zeros(p.shape[0], 4, 4, device=p.device, dtype=p.dtype)
+    m[:, :3, :3] = quaternion_to_matrix(q)
+    m[:, :3, 3] = p
+    m[:, 3, 3] = 1
+    return m
+
+
+class PDEEDeltaToolController(PDJointPosController):
+    """Tool-frame delta pose controller: [δx, δy, δz, δθ] with δθ about the approach axis (TCP x).
+
+    Normalised actions in [-1, 1] are clipped to that box, then scaled to ±``pos_limit`` metres
+    and ±``rot_limit`` radians. The new TCP target is ``T_ref · Δ`` with ``T_ref`` the current TCP
+    pose (or the last target with ``use_target``) and ``Δ`` the translation followed by the rotation,
+    both in the tool frame (the seed's ``multiplyTransforms(current, delta)``). A target that IK
+    cannot reach within tolerance (outside the workspace or joint limits) is not applied: that env
+    keeps its last reachable joint target and ``ik_unreachable`` is set for it.
+    """
+
+    config: "PDEEDeltaToolControllerConfig"
+
+    def _initialize_joints(self):
+        super()._initialize_joints()
+        self.chain = SerialChain(self.config.urdf_path, self.config.ee_link, device=self.device)
+        if self.chain.joint_names != list(self.config.joint_names):
+            raise ValueError(
+                f"IK chain joints {self.chain.joint_names} differ from controller joints {self.config.joint_names}"
+            )
+        self.q_low, self.q_high = self.chain.lower, self.chain.upper
+        self.ee_link = self.articulation.links_map[self.config.ee_link]
+        self.root_link = self.articulation.root
+        self.ik_unreachable = torch.zeros(self.scene.num_envs, dtype=torch.bool, device=self.device)
+        self._target_pose = None
+
+    def _initialize_action_space(self):
+        c = self.config
+        high = np.array([c.pos_limit] * 3 + [c.rot_limit], dtype=np.float32)
+        self.single_action_space = spaces.Box(-high, high, dtype=np.float32)
+
+    # --------------------------------------------------------------- kinematics
+    def ee_pose_at_base(self) -> torch.Tensor:
+        """Current TCP pose in the robot root frame as (N, 4, 4)."""
+        pose = self.root_link.pose.inv() * self.ee_link.pose
+        return _pose_matrix(pose.p, pose.q)
+
+    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Damped least squares from ``q0`` towards ``target`` (N,4,4); returns (q, converged)."""
+        c = self.config
+        q = q0.clone()
+        eye = torch.eye(6, device=q.device, dtype=q.dtype)
+        converged = torch.zeros(q.shape[0], dtype=torch.bool, device=q.device)
+        for _ in range(c.ik_iterations):
+            cur, jac = self.chain.fk_with_jacobian(q)
+            err_p = target[:, :3, 3] - cur[:, :3, 3]
+            err_r = matrix_to_axis_angle(target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2))
+            err = torch.cat([err_p, err_r], dim=1)
+            converged = (err_p.norm(dim=1) < c.ik_pos_tol) & (err_r.norm(dim=1) < c.ik_rot_tol)
+            if bool(converged.all()):
+                break
+            jjt = jac @ jac.transpose(1, 2) + (c.ik_damping**2) * eye
+            dq = (jac.transpose(1, 2) @ torch.linalg.solve(jjt, err.unsqueeze(-1))).squeeze(-1)
+            q = torch.clamp(q + dq, self.q_low, self.q_high)
+        else:
+            cur = self.chain.forward_kinematics(q)
+            err_p = target[:, :3, 3] - cur[:, :3, 3]
+            err_r = matrix_to_axis_angle(target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2))
+            converged = (err_p.norm(dim=1) < c.ik_pos_tol) & (err_r.norm(dim=1) < c.ik_rot_tol)
+        return q, converged
+
+    # --------------------------------------------------------------- control
+    def reset(self):
+        super().reset()
+        mask = self.scene._reset_mask
+        self.ik_unreachable[mask] = False
+        pose = self.ee_pose_at_base()
+        if self._target_pose is None:
+            self._target_pose = pose
+        else:
+            self._target_pose[mask] = pose[mask]
+
+    def delta_matrix(self, action: torch.Tensor) -> torch.Tensor:
+        """(N,4) scaled action -> (N,4,4) tool-frame transform: translate, then rotate about x."""
+        n = action.shape[0]
+        axis_angle = torch.zeros(n, 3, device=action.device, dtype=action.dtype)
+        axis_angle[:, 0] = action[:, 3]
+        delta = torch.zeros(n, 4, 4, device=action.device, dtype=action.dtype)
+        delta[:, :3, :3] = axis_angle_to_matrix(axis_angle)
+        delta[:, :3, 3] = action[:, :3]
+        delta[:, 3, 3] = 1
+        return delta
+
+    def set_action(self, action: Array):
+        action = self._preprocess_action(action)
+        self._step = 0
+        self._start_qpos = self.qpos
+        ref = self._target_pose if self.config.use_target else self.ee_pose_at_base()
+        target = ref @ self.delta_matrix(action)
+        q0 = self._target_qpos if self.config.use_target else self._start_qpos
+        q, ok = self.solve_ik(target, q0)
+        self.ik_unreachable = ~ok
+        okm = ok.unsqueeze(1)
+        self._target_qpos = torch.where(okm, q, self._target_qpos)
+        self._target_pose = torch.where(okm.unsqueeze(2), target, self._target_pose)
+        self.set_drive_targets(self._target_qpos)
+
+    def get_state(self) -> dict:
+        if self.config.use_target:
+            pose = self._target_pose
+            return {"target_pose": torch.cat([pose[:, :3, 3], matrix_to_quaternion(pose[:, :3, :3])], 1)}
+        return {}
+
+    def set_state(self, state: dict):
+        if self.config.use_target:
+            tp = state["target_pose"]
+            self._target_pose = _pose_matrix(tp[:, :3], tp[:, 3:])
+
+
+@dataclass
+class PDEEDeltaToolControllerConfig(PDJointPosControllerConfig):
+    lower: None = None
+    upper: None = None
+    stiffness: Union[float, Sequence[float]] = 1e4
+    damping: Union[float, Sequence[float]] = 1e3
+    pos_limit: float = 0.01
+    """metres per action along each tool axis (seed: ±1 cm)"""
+    rot_limit: float = math.radians(10.0)
+    """radians per action about the approach axis (seed: ±10°)"""
+    ee_link: str = "tcp"
+    urdf_path: str = ""
+    use_target: bool = False
+    ik_iterations: int = 6
+    ik_damping: float = 1e-3
+    ik_pos_tol: float = 2e-4
+    ik_rot_tol: float = math.radians(0.2)
+    controller_cls = PDEEDeltaToolController
+
+
+class BinaryGripperController(PDJointPosController):
+    """One continuous value drives both fingers: > 0 opens fully, <= 0 closes (the seed's ``open`` flag).
+
+    Closing targets ``closed_target`` (slightly past the closed limit) so the fingers keep squeezing
+    a held object with up to ``force_limit`` newtons each.
+    """
+
+    config: "BinaryGripperControllerConfig"
+
+    def _initialize_action_space(self):
+        self.single_action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+
+    def set_action(self, action: Array):
+        action = self._preprocess_action(action)
+        self._step = 0
+        self._start_qpos = self.qpos
+        n = len(self.joints)
+        opened = torch.full((1, n), self.config.open_target, device=self.device)
+        closed = torch.full((1, n), self.config.closed_target, device=self.device)
+        self._target_qpos = torch.where(action[:, :1] > 0, opened, closed)
+        self.set_drive_targets(self._target_qpos)
+
+
+@dataclass
+class BinaryGripperControllerConfig(PDJointPosControllerConfig):
+    lower: None = None
+    upper: None = None
+    stiffness: Union[float, Sequence[float]] = 1e4
+    damping: Union[float, Sequence[float]] = 100.0
+    force_limit: Union[float, Sequence[float]] = 40.0
+    open_target: float = 0.012
+    closed_target: float = -0.002
+    normalize_action: bool = False
+    controller_cls = BinaryGripperController
