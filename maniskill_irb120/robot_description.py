@@ -110,7 +110,7 @@ def _visual_parts() -> dict[str, list[tuple[str, tuple]]]:
                   ("orange", ("cyl", 0.028, 0.064, "x", (0.032, 0, 0)))],
         "link6": [("graphite", ("cyl", 0.02, 0.008, "x", (-0.004, 0, 0)))],
         "gripper_base": [("aluminium", ("cyl", 0.025, 0.008, "x", (0.004, 0, 0))),
-                         ("aluminium", ("box", (0.032, 0.064, 0.030), (0.024, 0, 0))),
+                         ("aluminium", ("box", (0.018, 0.064, 0.030), (0.017, 0, 0))),
                          ("rubber", ("box", (0.016, 0.026, 0.014), (0.019, 0, 0.022)))],
         "finger_left": finger(1),
         "finger_right": finger(-1),

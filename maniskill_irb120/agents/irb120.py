@@ -69,6 +69,10 @@ class IRB120Metalwork(BaseAgent):
     arm_damping = 500.0
     arm_force_limit = 800.0
 
+    gripper_stiffness = 1e3  # ~10 N squeeze on a 20 mm cube; stiffer drives chatter on the 20 g fingers
+    gripper_damping = 100.0
+    gripper_force_limit = 40.0
+
     def __init__(self, *args, hand_camera: dict | None = None, **kwargs):
         self.hand_camera_cfg = {**HAND_CAMERA, **(hand_camera or {})}
         super().__init__(*args, **kwargs)
@@ -96,7 +100,10 @@ class IRB120Metalwork(BaseAgent):
     @property
     def _controller_configs(self):
         arm_kw = dict(stiffness=self.arm_stiffness, damping=self.arm_damping, force_limit=self.arm_force_limit)
-        gripper = BinaryGripperControllerConfig(self.gripper_joint_names)
+        gripper = BinaryGripperControllerConfig(
+            self.gripper_joint_names, stiffness=self.gripper_stiffness, damping=self.gripper_damping,
+            force_limit=self.gripper_force_limit,
+        )
         tool = PDEEDeltaToolControllerConfig(
             self.arm_joint_names, ee_link=self.ee_link_name, urdf_path=self.urdf_path, **arm_kw
         )
