@@ -1,0 +1,75 @@
+"""The CPU process-vector env behaves like ManiSkillVectorEnv: batched torch, auto-reset, final_info."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from maniskill_irb120.vector import make_vec_env
+
+ENV = "TableClearing-IRB120-v1"
+
+
+@pytest.fixture(scope="module")
+def venv():
+    env = make_vec_env(ENV, 2, backend="cpu", obs_mode="state", max_episode_steps=4)
+    yield env
+    env.close()
+
+
+def test_batched_torch_interface(venv):
+    obs, info = venv.reset(seed=3)
+    assert isinstance(obs, torch.Tensor) and obs.shape[0] == 2
+    assert venv.action_space.shape == (2, 5)
+    obs, rew, term, trunc, info = venv.step(torch.zeros(2, 5))
+    assert rew.shape == (2,) and rew.dtype == torch.float32
+    assert term.dtype == torch.bool and trunc.dtype == torch.bool
+    assert "success" in info and info["success"].shape == (2,)
+    assert info["episode"]["episode_len"].tolist() == [1, 1]
+
+
+def test_auto_reset_reports_final_info_and_observation(venv):
+    obs0, _ = venv.reset(seed=5)
+    last = None
+    for _ in range(4):
+        obs, rew, term, trunc, info = venv.step(torch.zeros(2, 5))
+        if "final_info" not in info:
+            last = obs
+    assert trunc.all() or term.all()
+    assert info["_final_info"].tolist() == [True, True]
+    assert info["final_observation"].shape == obs.shape
+    assert not torch.equal(info["final_observation"], obs)  # obs is already the next episode's first
+    assert info["final_info"]["episode"]["episode_len"].tolist() == [4, 4]
+    assert "success" in info["final_info"]
+    # metrics restart with the new episode
+    obs, *_, info = venv.step(torch.zeros(2, 5))
+    assert info["episode"]["episode_len"].tolist() == [1, 1]
+
+
+def test_partial_reset_only_touches_selected_env(venv):
+    venv.reset(seed=7)
+    for _ in range(2):
+        obs, *_ = venv.step(torch.zeros(2, 5))
+    obs2, _ = venv.reset(options=dict(env_idx=torch.tensor([1])))
+    assert torch.allclose(obs2[0], obs[0])
+    assert not torch.allclose(obs2[1], obs[1])
+
+
+def test_same_seed_same_initial_state(venv):
+    a, _ = venv.reset(seed=11)
+    b, _ = venv.reset(seed=11)
+    torch.testing.assert_close(a, b)
+    assert not torch.allclose(a[0], a[1])  # workers get different seeds (seed + i)
+
+
+def test_bad_inputs(venv):
+    with pytest.raises(ValueError, match="shape"):
+        venv.step(torch.zeros(3, 5))
+    with pytest.raises(ValueError, match="backend"):
+        make_vec_env(ENV, 2, backend="tpu")
+    with pytest.raises(ValueError, match="CUDA"):
+        if not torch.cuda.is_available():
+            make_vec_env(ENV, 2, backend="gpu")
+        else:
+            raise ValueError("CUDA present: nothing to check")
