@@ -1,0 +1,591 @@
+"""PPO from pixels (or state) for TableClearing-IRB120-v1, ManiSkill-baseline style.
+
+One code path for the GPU-batched env (``physx_cuda``, e.g. ``--num-envs 512``) and the CPU
+process-vector env: both come from ``maniskill_irb120.make_vec_env`` with the same batched torch
+interface. Conventions follow ManiSkill's ``ppo_rgb.py``: GAE, clipped surrogate, advantage
+normalisation, ``normalized_dense`` reward, partial resets, separate eval envs.
+
+    python -m agents.ppo --num-envs 2 --total-timesteps 20000              # CPU workers, rgbd
+    python -m agents.ppo --obs state --num-envs 512 --backend gpu           # GPU, state
+    python -m agents.ppo --resume runs/NAME/checkpoints/latest.pt           # continue exactly
+    python -m agents.ppo --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.optim as optim
+import tyro
+from torch.distributions.normal import Normal
+
+import maniskill_irb120  # noqa: F401  (registers the env)
+from maniskill_irb120.vector import make_vec_env
+
+# events the task reports per step in info; logged as per-episode rates ("did it happen")
+EVENT_KEYS = ("success", "fail", "grasped", "dropped", "collided")
+REWARD_TERM_PREFIX = "r_"
+
+
+@dataclass
+class Args:
+    env_id: str = "TableClearing-IRB120-v1"
+    obs: Literal["rgbd", "state"] = "rgbd"
+    """rgbd: 84x84 RGB-D hand camera + proprioception; state: privileged state vector"""
+    control_mode: str = "pd_ee_delta_tool"
+    backend: Literal["auto", "gpu", "cpu"] = "auto"
+    """auto: GPU-batched physx_cuda when CUDA is available, else CPU worker processes"""
+    num_envs: int = 2
+    num_eval_envs: int = 1
+    num_steps: int = 50
+    """rollout length per env per iteration"""
+    total_timesteps: int = 100_000
+    learning_rate: float = 3e-4
+    anneal_lr: bool = False
+    gamma: float = 0.8
+    gae_lambda: float = 0.9
+    num_minibatches: int = 4
+    update_epochs: int = 4
+    norm_adv: bool = True
+    clip_coef: float = 0.2
+    clip_vloss: bool = False
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    target_kl: Optional[float] = 0.2
+    reward_scale: float = 1.0
+    reward_mode: str = "normalized_dense"
+    partial_reset: bool = True
+    eval_freq: int = 25
+    """evaluate every N iterations (0: only at the end)"""
+    num_eval_episodes: int = 4
+    eval_reconfiguration_freq: Optional[int] = 1
+    save_freq: int = 10
+    """checkpoint every N iterations (and always at the end)"""
+    seed: int = 1
+    torch_deterministic: bool = True
+    device: str = "auto"
+    exp_name: Optional[str] = None
+    runs_dir: Path = Path("runs")
+    checkpoint: Optional[Path] = None
+    """weights to evaluate (--evaluate) or to initialise from"""
+    resume: Optional[Path] = None
+    """continue a run exactly: model, optimiser, counters, RNG"""
+    evaluate: bool = False
+    capture_video: bool = True
+    wandb: bool = False
+    wandb_project: str = "maniskill_irb120"
+    comet: bool = False
+    comet_project: str = "maniskill_irb120"
+    progress: bool = True
+    env_kwargs: dict = field(default_factory=dict)
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+
+# ----------------------------------------------------------------------------- networks
+def layer_init(layer: nn.Module, std: float = np.sqrt(2), bias: float = 0.0) -> nn.Module:
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+class NatureCNN(nn.Module):
+    """The seed's 3-layer CNN over the 84x84x4 RGB-D image, plus a small MLP for proprioception."""
+
+    def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, feature_dim: int = 256):
+        super().__init__()
+        self.out_dim = 0
+        self.cnn = None
+        if image_shape is not None:
+            h, w, c = image_shape
+            self.cnn = nn.Sequential(
+                nn.Conv2d(c, 32, 8, stride=4), nn.ReLU(),
+                nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+                nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
+                nn.Flatten(),
+            )
+            with torch.no_grad():
+                n = self.cnn(torch.zeros(1, c, h, w)).shape[1]
+            self.cnn.append(nn.Linear(n, feature_dim))
+            self.cnn.append(nn.ReLU())
+            self.out_dim += feature_dim
+        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
+        self.out_dim += 256
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        feats = [self.mlp(obs["state"].float())]
+        if self.cnn is not None:
+            feats.insert(0, self.cnn(image_tensor(obs)))
+        return torch.cat(feats, dim=1)
+
+
+def image_tensor(obs: dict[str, torch.Tensor], max_depth_mm: float = 2000.0) -> torch.Tensor:
+    """(N,H,W,3) uint8 RGB + (N,H,W,1) int16 depth in mm -> (N,4,H,W) floats in [0,1]."""
+    rgb = obs["rgb"].float() / 255.0
+    depth = obs["depth"].float().clamp(0, max_depth_mm) / max_depth_mm
+    return torch.cat([rgb, depth], dim=-1).permute(0, 3, 1, 2)
+
+
+class Agent(nn.Module):
+    """Shared encoder, separate policy and value heads, state-independent log-std."""
+
+    def __init__(self, image_shape, state_dim: int, action_dim: int):
+        super().__init__()
+        self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
+        self.encoder = NatureCNN(image_shape, state_dim)
+        d = self.encoder.out_dim
+        self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
+        self.actor_mean = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(),
+                                        layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2)))
+        self.actor_logstd = nn.Parameter(torch.full((1, action_dim), -0.5))
+
+    def signature(self) -> dict:
+        return dict(image_shape=list(self.image_shape) if self.image_shape else None, state_dim=self.state_dim,
+                    action_dim=self.action_dim)
+
+    def get_value(self, obs) -> torch.Tensor:
+        return self.critic(self.encoder(obs))
+
+    def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
+        mean = self.actor_mean(self.encoder(obs))
+        if deterministic:
+            return mean
+        return Normal(mean, self.actor_logstd.expand_as(mean).exp()).sample()
+
+    def get_action_and_value(self, obs, action=None):
+        x = self.encoder(obs)
+        mean = self.actor_mean(x)
+        dist = Normal(mean, self.actor_logstd.expand_as(mean).exp())
+        if action is None:
+            action = dist.sample()
+        return action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.critic(x)
+
+
+# ----------------------------------------------------------------------------- observations
+def flatten_obs(obs) -> dict[str, torch.Tensor]:
+    """Normalise both obs layouts to a dict with 'state' (and 'rgb'/'depth' for rgbd)."""
+    if isinstance(obs, torch.Tensor):
+        return {"state": obs}
+    return obs
+
+
+def obs_to(obs: dict, device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in obs.items()}
+
+
+def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
+    from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
+    from mani_skill.utils.wrappers.record import RecordEpisode
+
+    kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=args.control_mode,
+                  reward_mode=args.reward_mode, render_mode="rgb_array", **args.env_kwargs)
+    wrappers = []
+    if args.obs == "rgbd":
+        wrappers.append(FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
+    if evaluate:
+        if args.eval_reconfiguration_freq is not None:
+            kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
+        backend = args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "inprocess")
+        if backend == "cpu":
+            backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
+            num_envs = 1
+        if video_dir is not None:
+            wrappers.append(lambda e: RecordEpisode(e, output_dir=str(video_dir), save_trajectory=False,
+                                                    max_steps_per_video=None, video_fps=20, info_on_video=False))
+        return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, ignore_terminations=False,
+                            record_metrics=True, **kwargs)
+    if not args.partial_reset:
+        raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
+    return make_vec_env(args.env_id, num_envs, backend=args.backend, wrappers=wrappers,
+                        ignore_terminations=False, record_metrics=True, **kwargs)
+
+
+def agent_for(envs, device) -> Agent:
+    space = envs.single_observation_space
+    if isinstance(space, gym.spaces.Dict):
+        rgb, depth, state = space["rgb"].shape, space["depth"].shape, space["state"].shape
+        image_shape = (rgb[0], rgb[1], rgb[2] + depth[2])
+        state_dim = state[0]
+    else:
+        image_shape, state_dim = None, space.shape[0]
+    return Agent(image_shape, state_dim, int(np.prod(envs.single_action_space.shape))).to(device)
+
+
+# ----------------------------------------------------------------------------- PPO update
+def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args) -> dict[str, float]:
+    """Clipped-surrogate epochs over minibatches of one rollout; returns the last epoch's stats."""
+    n = batch["actions"].shape[0]
+    mb = max(1, n // args.num_minibatches)
+    clipfracs, stats = [], {}
+    for _ in range(args.update_epochs):
+        perm = torch.randperm(n, device=batch["actions"].device)
+        approx_kl = torch.zeros(())
+        for start in range(0, n, mb):
+            idx = perm[start:start + mb]
+            obs = {k: v[idx] for k, v in batch["obs"].items()}
+            _, logp, entropy, value = agent.get_action_and_value(obs, batch["actions"][idx])
+            logratio = logp - batch["logprobs"][idx]
+            ratio = logratio.exp()
+            with torch.no_grad():
+                old_approx_kl = (-logratio).mean()
+                approx_kl = ((ratio - 1) - logratio).mean()
+                clipfracs.append(((ratio - 1.0).abs() > args.clip_coef).float().mean().item())
+            adv = batch["advantages"][idx]
+            if args.norm_adv:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
+            value = value.view(-1)
+            if args.clip_vloss:
+                v_clipped = batch["values"][idx] + (value - batch["values"][idx]).clamp(-args.clip_coef, args.clip_coef)
+                v_loss = 0.5 * torch.max((value - batch["returns"][idx]) ** 2,
+                                         (v_clipped - batch["returns"][idx]) ** 2).mean()
+            else:
+                v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
+            ent = entropy.mean()
+            loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+            optimizer.step()
+            stats = dict(policy_loss=pg_loss.item(), value_loss=v_loss.item(), entropy=ent.item(),
+                         old_approx_kl=old_approx_kl.item(), approx_kl=approx_kl.item(), loss=loss.item())
+        if args.target_kl is not None and approx_kl > args.target_kl:
+            break
+    stats["clipfrac"] = float(np.mean(clipfracs)) if clipfracs else 0.0
+    return stats
+
+
+def compute_gae(rewards, values, dones, next_value, next_done, final_values, args: Args):
+    """GAE with bootstrapping from the true final observation of truncated/terminated episodes."""
+    T = rewards.shape[0]
+    advantages = torch.zeros_like(rewards)
+    lastgaelam = 0
+    for t in reversed(range(T)):
+        if t == T - 1:
+            next_not_done, nextvalues = 1.0 - next_done, next_value
+        else:
+            next_not_done, nextvalues = 1.0 - dones[t + 1], values[t + 1]
+        real_next_values = next_not_done * nextvalues + final_values[t]
+        delta = rewards[t] + args.gamma * real_next_values - values[t]
+        lastgaelam = delta + args.gamma * args.gae_lambda * next_not_done * lastgaelam
+        advantages[t] = lastgaelam
+    return advantages, advantages + values
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def rng_state() -> dict:
+    s = dict(python=random.getstate(), numpy=np.random.get_state(), torch=torch.get_rng_state())
+    if torch.cuda.is_available():
+        s["cuda"] = torch.cuda.get_rng_state_all()
+    return s
+
+
+def set_rng_state(s: dict) -> None:
+    random.setstate(s["python"])
+    np.random.set_state(s["numpy"])
+    torch.set_rng_state(s["torch"])
+    if "cuda" in s and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(s["cuda"])
+
+
+def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: Args) -> None:
+    """Write to a temporary file and rename, so a crash never leaves a truncated checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(dict(model=agent.state_dict(), optimizer=optimizer.state_dict(), counters=counters,
+                    rng=rng_state(), args=json.loads(json.dumps(asdict(args), default=str)),
+                    signature=agent.signature(), format="maniskill_irb120.ppo/1"), tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, agent: Agent, args: Args) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise ValueError(f"checkpoint {path} is not a readable torch checkpoint: {e}") from e
+    if not isinstance(ckpt, dict) or ckpt.get("format") != "maniskill_irb120.ppo/1":
+        raise ValueError(f"checkpoint {path} was not written by agents.ppo (format {ckpt.get('format') if isinstance(ckpt, dict) else type(ckpt)})")
+    if ckpt["signature"] != agent.signature():
+        raise ValueError(f"checkpoint {path} does not match this run: it has {ckpt['signature']}, the env gives "
+                         f"{agent.signature()} (obs={args.obs}, env={args.env_id}, control_mode={args.control_mode})")
+    agent.load_state_dict(ckpt["model"])
+    return ckpt
+
+
+# ----------------------------------------------------------------------------- logging
+class Logger:
+    """TensorBoard always; W&B and Comet only when asked (imported lazily)."""
+
+    def __init__(self, run_dir: Path, args: Args):
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(run_dir))
+        self.tb.add_text("args", json.dumps(json.loads(json.dumps(asdict(args), default=str)), indent=1))
+        self.wandb = self.comet = None
+        config = json.loads(json.dumps(asdict(args), default=str))
+        if args.wandb:
+            import wandb
+
+            self.wandb = wandb.init(project=args.wandb_project, name=run_dir.name, config=config, dir=str(run_dir))
+        if args.comet:
+            import comet_ml
+
+            self.comet = comet_ml.Experiment(project_name=args.comet_project)
+            self.comet.set_name(run_dir.name)
+            self.comet.log_parameters(config)
+
+    def scalars(self, values: dict[str, float], step: int) -> None:
+        for k, v in values.items():
+            self.tb.add_scalar(k, v, step)
+        if self.wandb is not None:
+            self.wandb.log(values, step=step)
+        if self.comet is not None:
+            self.comet.log_metrics(values, step=step)
+
+    def close(self) -> None:
+        self.tb.close()
+        if self.wandb is not None:
+            self.wandb.finish()
+        if self.comet is not None:
+            self.comet.end()
+
+
+class EpisodeTracker:
+    """Per-env running sums of the task's reward terms and 'did it ever happen' event flags,
+    emitted per finished episode (rates of success, grasp, drop, collision; each term's return)."""
+
+    def __init__(self, num_envs: int, device):
+        self.n, self.device = num_envs, device
+        self.sums: dict[str, torch.Tensor] = {}
+        self.once: dict[str, torch.Tensor] = {}
+
+    def update(self, step_info: dict, done: torch.Tensor) -> dict[str, list[float]]:
+        done = done.to(self.device).bool()
+        for k, v in step_info.items():
+            if not isinstance(v, torch.Tensor) or v.shape[:1] != (self.n,) or v.dim() != 1:
+                continue
+            if k.startswith(REWARD_TERM_PREFIX):
+                self.sums.setdefault(k, torch.zeros(self.n, device=self.device))
+                self.sums[k] += v.to(self.device).float()
+            elif k in EVENT_KEYS:
+                self.once.setdefault(k, torch.zeros(self.n, dtype=torch.bool, device=self.device))
+                self.once[k] |= v.to(self.device).bool()
+        out: dict[str, list[float]] = defaultdict(list)
+        if not done.any():
+            return out
+        ep = step_info.get("episode", {})
+        for k in ("return", "episode_len"):
+            if k in ep:
+                out[k] += ep[k].to(self.device)[done].float().cpu().tolist()
+        for k, v in self.once.items():
+            out[f"{k}_rate"] += v[done].float().cpu().tolist()
+            v[done] = False
+        for k, v in self.sums.items():
+            out[f"return_{k}"] += v[done].cpu().tolist()
+            v[done] = 0
+        return out
+
+
+# ----------------------------------------------------------------------------- evaluation
+def evaluate(agent: Agent, envs, num_episodes: int, device) -> dict:
+    """Deterministic policy on the eval envs until ``num_episodes`` episodes finish."""
+    obs, _ = envs.reset()
+    stats: dict[str, list[float]] = defaultdict(list)
+    tracker = EpisodeTracker(envs.num_envs, "cpu")
+    finished = 0
+    while finished < num_episodes:
+        with torch.no_grad():
+            action = agent.get_action(obs_to(flatten_obs(obs), device), deterministic=True)
+        obs, rew, term, trunc, info = envs.step(action.cpu() if envs.device.type == "cpu" else action)
+        done = (term | trunc).to(torch.bool).cpu()
+        for k, v in tracker.update(info.get("final_info", info), done).items():
+            stats[k] += v
+        finished += int(done.sum())
+    summary = {f"{k}_mean": float(np.mean(v)) for k, v in stats.items()}
+    summary["episodes"] = finished
+    return summary
+
+
+# ----------------------------------------------------------------------------- main loop
+def resolve_device(args: Args) -> torch.device:
+    if args.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(args.device)
+
+
+def run_evaluation_only(args: Args) -> dict:
+    if args.checkpoint is None:
+        raise ValueError("--evaluate needs --checkpoint PATH")
+    device = resolve_device(args)
+    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval" if args.exp_name is None else args.runs_dir / args.exp_name / "eval"
+    envs = make_envs(args, args.num_eval_envs, evaluate=True, video_dir=out_dir / "videos" if args.capture_video else None)
+    agent = agent_for(envs, device)
+    load_checkpoint(args.checkpoint, agent, args)
+    agent.eval()
+    summary = evaluate(agent, envs, args.num_eval_episodes, device)
+    envs.close()
+    summary["checkpoint"] = str(args.checkpoint)
+    summary["videos"] = sorted(str(p) for p in (out_dir / "videos").glob("*.mp4")) if args.capture_video else []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary))
+    return summary
+
+
+def train(args: Args) -> dict:
+    if args.resume is not None:
+        if not Path(args.resume).is_file():
+            raise FileNotFoundError(f"--resume: checkpoint {args.resume} does not exist")
+        saved = torch.load(args.resume, map_location="cpu", weights_only=False)
+        run_dir = Path(args.resume).resolve().parent.parent
+    else:
+        saved = None
+        name = args.exp_name or f"{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
+        run_dir = args.runs_dir / name
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    device = resolve_device(args)
+
+    envs = make_envs(args, args.num_envs)
+    eval_envs = None
+    agent = agent_for(envs, device)
+    optimizer = optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+    counters = dict(global_step=0, iteration=0)
+    if saved is not None:
+        load_checkpoint(args.resume, agent, args)
+        optimizer.load_state_dict(saved["optimizer"])
+        counters = dict(saved["counters"])
+        set_rng_state(saved["rng"])
+    elif args.checkpoint is not None:
+        load_checkpoint(args.checkpoint, agent, args)
+    logger = Logger(run_dir, args)
+    ckpt_dir = run_dir / "checkpoints"
+
+    T, N = args.num_steps, args.num_envs
+    num_iterations = max(1, args.total_timesteps // args.batch_size)
+    next_obs, _ = envs.reset(seed=args.seed + counters["iteration"])
+    next_obs = obs_to(flatten_obs(next_obs), device)
+    next_done = torch.zeros(N, device=device)
+    obs_buf = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
+    actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
+    logprobs, rewards, dones, values, final_values = (torch.zeros((T, N), device=device) for _ in range(5))
+    recent: dict[str, list[float]] = defaultdict(list)
+    tracker = EpisodeTracker(N, device)
+    bar = None
+    if args.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=num_iterations * args.batch_size, initial=counters["global_step"], unit="step",
+                   dynamic_ncols=True)
+    last_eval: dict = {}
+    start_iteration = counters["iteration"]
+    while counters["iteration"] < num_iterations:
+        it = counters["iteration"] + 1
+        t0 = time.perf_counter()
+        if args.anneal_lr:
+            optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
+        agent.eval()
+        final_values.zero_()
+        sim_time = 0.0
+        for step in range(T):
+            counters["global_step"] += N
+            for k in obs_buf:
+                obs_buf[k][step] = next_obs[k]
+            dones[step] = next_done
+            with torch.no_grad():
+                action, logprob, _, value = agent.get_action_and_value(next_obs)
+            values[step] = value.flatten()
+            actions[step], logprobs[step] = action, logprob
+            ts = time.perf_counter()
+            o, reward, term, trunc, info = envs.step(action if envs.device.type == device.type else action.cpu())
+            sim_time += time.perf_counter() - ts
+            next_obs = obs_to(flatten_obs(o), device)
+            done = (term | trunc).to(device)
+            next_done = done.float()
+            rewards[step] = reward.to(device).view(-1) * args.reward_scale
+            if "final_info" in info:
+                mask = info["_final_info"].to(device)
+                fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
+                with torch.no_grad():
+                    final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
+            for k, v in tracker.update(info.get("final_info", info), done).items():
+                recent[k] += v
+        with torch.no_grad():
+            next_value = agent.get_value(next_obs).reshape(1, -1)[0]
+            advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, final_values, args)
+        batch = dict(obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in obs_buf.items()},
+                     actions=actions.reshape((-1,) + envs.single_action_space.shape),
+                     logprobs=logprobs.reshape(-1), advantages=advantages.reshape(-1),
+                     returns=returns.reshape(-1), values=values.reshape(-1))
+        agent.train()
+        tu = time.perf_counter()
+        stats = ppo_update(agent, optimizer, batch, args)
+        update_time = time.perf_counter() - tu
+        counters["iteration"] = it
+        dt = time.perf_counter() - t0
+        y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
+        var_y = np.var(y_true)
+        scalars = {f"losses/{k}": v for k, v in stats.items()}
+        scalars.update({"charts/SPS": args.batch_size / dt, "charts/learning_rate": optimizer.param_groups[0]["lr"],
+                        "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
+                        "time/rollout_s": dt - update_time, "time/sim_s": sim_time, "time/update_s": update_time})
+        if recent:
+            scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
+        logger.scalars(scalars, counters["global_step"])
+        if bar is not None:
+            bar.update(args.batch_size)
+            bar.set_postfix(SPS=f"{args.batch_size / dt:.0f}",
+                            success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-")
+        recent.clear()
+        if args.eval_freq and it % args.eval_freq == 0:
+            if eval_envs is None:
+                eval_envs = make_envs(args, args.num_eval_envs, evaluate=True,
+                                      video_dir=run_dir / "videos" if args.capture_video else None)
+            agent.eval()
+            last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
+            logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
+        if it % args.save_freq == 0 or it == num_iterations:
+            save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
+            save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
+    if bar is not None:
+        bar.close()
+    envs.close()
+    if eval_envs is not None:
+        eval_envs.close()
+    logger.close()
+    result = dict(run_dir=str(run_dir), global_step=counters["global_step"], iterations=counters["iteration"],
+                  iterations_this_run=counters["iteration"] - start_iteration, last_eval=last_eval,
+                  checkpoint=str(ckpt_dir / "latest.pt"))
+    print(json.dumps(result))
+    return result
+
+
+def main(args: Args) -> dict:
+    return run_evaluation_only(args) if args.evaluate else train(args)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

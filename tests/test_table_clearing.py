@@ -1,0 +1,347 @@
+"""TableClearing-IRB120-v1: reward terms, events, determinism, API checks and the scripted expert.
+
+Real physics on ``physx_cpu`` with num_envs=1; every scenario is driven through env.step.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import maniskill_irb120  # noqa: F401  (registers the env)
+from maniskill_irb120.envs import table_clearing as tc
+from maniskill_irb120.expert import CARRY, ENV_ID, TableClearingExpert, run_expert
+
+TERMS = tc.REWARD_TERMS
+
+
+def make(**kw):
+    kw.setdefault("obs_mode", "state")
+    return gym.make(ENV_ID, **kw)
+
+
+@pytest.fixture
+def env():
+    e = make()
+    yield e
+    e.close()
+
+
+def step(env, action):
+    obs, rew, term, trunc, info = env.step(torch.as_tensor(action, dtype=torch.float32).reshape(1, 5))
+    return obs, rew, term, trunc, info
+
+
+def expert_until(env, expert, cond, limit=200):
+    """Step the expert until ``cond(info)``; returns that step's (reward, terminated, info)."""
+    for _ in range(limit):
+        _, rew, term, _, info = step(env, expert.act())
+        if cond(info):
+            return rew, term, info
+        assert not bool(term[0]), f"episode ended early: {info}"
+    raise AssertionError("condition never met")
+
+
+def val(info, k) -> float:
+    return float(info[k][0])
+
+
+def check_sum(rew, info):
+    assert float(rew[0]) == pytest.approx(sum(val(info, k) for k in TERMS))
+
+
+# --------------------------------------------------------------------------- reward terms
+def test_time_term_every_step_and_reward_is_sum_of_terms(env):
+    env.reset(seed=0)
+    for a in ([0, 0, 0, 0, 1], [0.5, 0.3, -0.2, 0.5, -1], [-1, 0, 0, 0, 1]):
+        _, rew, _, _, info = step(env, a)
+        assert val(info, "r_time") == -1.0
+        check_sum(rew, info)
+
+
+def test_approach_plus_when_closer_minus_when_farther(env):
+    env.reset(seed=1)
+    u = env.unwrapped
+    expert = TableClearingExpert(u)
+    expert.reset()
+    _, rew, _, _, info = step(env, expert.act())  # heads for the hover point above the object
+    assert val(info, "r_approach") == 1.0
+    check_sum(rew, info)
+    _, _, _, _, info = step(env, [-1, 0, 0, 0, 1])  # backs off along the approach axis (up)
+    assert val(info, "r_approach") == -1.0
+    assert val(info, "r_carry") == 0.0  # nothing held
+
+
+def test_collision_driving_into_the_table(env):
+    env.reset(seed=0)
+    for _ in range(60):
+        _, rew, term, _, info = step(env, [1, 0, 0, 0, 1])  # straight down along the approach axis
+        if bool(info["collided"][0]):
+            break
+        assert val(info, "r_collision") == 0.0
+    assert bool(info["collided"][0]) and bool(info["fail"][0]) and bool(term[0])
+    assert val(info, "r_collision") == -1000.0
+    check_sum(rew, info)
+
+
+def test_grasp_event_then_carry_terms(env):
+    env.reset(seed=2)
+    expert = TableClearingExpert(env.unwrapped)
+    expert.reset()
+    seen_grasp = []
+    for _ in range(200):
+        _, rew, term, _, info = step(env, expert.act())
+        seen_grasp.append(val(info, "r_grasp"))
+        if bool(info["grasped"][0]):
+            break
+    assert seen_grasp[-1] == 100.0 and all(r == 0.0 for r in seen_grasp[:-1])
+    check_sum(rew, info)
+    # held: next step the grasp event does not repeat
+    _, _, _, _, info = step(env, expert.act())
+    assert bool(info["grasped"][0]) and val(info, "r_grasp") == 0.0
+    # carry towards the destination tray: +1 ...
+    rew, term, info = expert_until(env, expert, lambda i: int(expert.phase[0]) == CARRY and val(i, "r_carry") != 0)
+    assert val(info, "r_carry") == 1.0 and val(info, "r_approach") == 0.0
+    _, _, _, _, info = step(env, expert.act())
+    assert val(info, "r_carry") == 1.0
+    # ... and -1 moving away from it (world +y; the TCP's y axis is tilted by the yaw, so use the rotation)
+    u = env.unwrapped
+    rot = u.agent.tcp_pose.to_transformation_matrix()[0, :3, :3]
+    local = rot.T @ torch.tensor([0.0, 1.0, 0.0])
+    _, _, _, _, info = step(env, [*local.tolist(), 0, -1])
+    assert bool(info["grasped"][0])
+    assert val(info, "r_carry") == -1.0
+
+
+def test_drop_when_opening_mid_carry(env):
+    env.reset(seed=3)
+    expert = TableClearingExpert(env.unwrapped)
+    expert.reset()
+    expert_until(env, expert, lambda i: int(expert.phase[0]) == CARRY and bool(i["grasped"][0]))
+    for _ in range(10):
+        _, rew, term, _, info = step(env, [0, 0, 0, 0, 1])  # open in mid air over the gap
+        if bool(info["dropped"][0]):
+            break
+    assert bool(info["dropped"][0]) and val(info, "r_drop") == -200.0
+    check_sum(rew, info)
+    _, _, _, _, info = step(env, [0, 0, 0, 0, 1])
+    assert val(info, "r_drop") == 0.0  # edge, not level
+
+
+def test_delivery_success_and_terminated(env):
+    env.reset(seed=4)
+    expert = TableClearingExpert(env.unwrapped)
+    expert.reset()
+    deliveries = []
+    for _ in range(250):
+        _, rew, term, trunc, info = step(env, expert.act())
+        deliveries.append(val(info, "r_delivery"))
+        assert val(info, "r_collision") == 0.0 and val(info, "r_drop") == 0.0
+        if bool(term[0]):
+            break
+    assert bool(info["success"][0]) and bool(info["delivered"][0]) and bool(term[0])
+    assert deliveries[-1] == 200.0 and all(d == 0.0 for d in deliveries[:-1])
+    check_sum(rew, info)
+
+
+def test_sparse_and_normalized_dense_rewards():
+    for mode in ("sparse", "normalized_dense"):
+        e = make(reward_mode=mode)
+        e.reset(seed=4)
+        expert = TableClearingExpert(e.unwrapped)
+        expert.reset()
+        rewards = []
+        for _ in range(250):
+            _, rew, term, _, info = step(e, expert.act())
+            rewards.append(float(rew[0]))
+            if bool(term[0]):
+                break
+        assert bool(info["success"][0])
+        assert all(0.0 <= r <= 1.0 for r in rewards)
+        assert rewards[-1] == pytest.approx(1.0)
+        if mode == "sparse":
+            assert all(r == 0.0 for r in rewards[:-1])
+        else:
+            assert max(rewards[:-1]) < 1.0
+        e.close()
+
+
+def test_cpu_contact_pass_matches_pairwise_queries(env):
+    """The CPU single-pass contact scan agrees with ManiSkill's pairwise queries (the GPU code path)
+    through a whole expert episode (finger and scene contacts) and a collision."""
+    env.reset(seed=6)
+    u = env.unwrapped
+    expert = TableClearingExpert(u)
+    expert.reset()
+    seen = set()
+    for _ in range(250):
+        _, _, term, _, info = step(env, expert.act())
+        fast, slow = u._contact_flags_cpu(), u._contact_flags_pairwise()
+        assert [bool(x[0]) for x in fast] == [bool(x[0]) for x in slow]
+        seen.add(tuple(bool(x[0]) for x in fast))
+        if bool(term[0]):
+            break
+    assert (False, False, True) in seen and (False, True, False) in seen  # held / resting
+    env.reset(seed=6)
+    for _ in range(60):
+        _, _, term, _, info = step(env, [1, 0, 0, 0, 1])
+        if bool(term[0]):
+            break
+    fast, slow = u._contact_flags_cpu(), u._contact_flags_pairwise()
+    assert bool(fast[0][0]) and bool(slow[0][0])
+
+
+# --------------------------------------------------------------------------- scene, resets, determinism
+def test_trays_reachable_pointing_down(env):
+    """Every tray corner, 1..15 cm above the floor, at several yaws, has an IK solution."""
+    env.reset(seed=0)
+    u = env.unwrapped
+    ctrl = u.agent.arm_controller
+    q0 = u.agent.robot.get_qpos()[:, :6]
+    down = ctrl.ee_pose_at_base()[0, :3, :3]
+    targets = []
+    for (cx, cy), sx, sy, dz, yaw in itertools.product(
+        (tc.SOURCE_TRAY_XY, tc.DEST_TRAY_XY), (-1, 1), (-1, 1), (0.01, 0.05, 0.10, 0.15), (0.0, math.pi / 4, -math.pi / 4)
+    ):
+        t = torch.eye(4)
+        c, s = math.cos(yaw), math.sin(yaw)
+        t[:3, :3] = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ down
+        t[:3, 3] = torch.tensor([cx + sx * tc.TRAY_INNER / 2, cy + sy * tc.TRAY_INNER / 2, tc.TRAY_FLOOR_TOP + dz])
+        targets.append(t)
+    targets = torch.stack(targets)
+    q = q0.repeat(len(targets), 1)
+    for _ in range(10):  # the controller's IK does a few iterations per call; chain calls to converge
+        q, ok = ctrl.solve_ik(targets, q)
+    assert bool(ok.all()), targets[~ok][:, :3, 3]
+
+
+def test_object_spawn_inside_source_tray_and_seeded(env):
+    poses = {}
+    for seed in (0, 1, 0):
+        env.reset(seed=seed)
+        u = env.unwrapped
+        p = u.obj.pose.raw_pose[0].clone()
+        rel = p[:2] - torch.tensor(tc.SOURCE_TRAY_XY)
+        assert bool((rel.abs() <= tc.TRAY_INNER / 2 - tc.SPAWN_MARGIN + 1e-6).all())
+        assert float(p[2]) == pytest.approx(tc.TRAY_FLOOR_TOP + u.object_half_size, abs=1e-5)
+        if seed in poses:
+            assert torch.equal(poses[seed], p)
+        poses[seed] = p
+    assert not torch.allclose(poses[0], poses[1])
+
+
+def test_expert_trajectory_deterministic():
+    a = run_expert(2, seed=7, record=True)
+    b = run_expert(2, seed=7, record=True)
+    for ta, tb in zip(a["trajectories"], b["trajectories"]):
+        assert torch.equal(ta["actions"], tb["actions"])
+        assert torch.equal(ta["tcp"], tb["tcp"])
+        assert ta["success"] and tb["success"]
+
+
+def test_partial_reset_restores_seeded_state(env):
+    env.reset(seed=5)
+    u = env.unwrapped
+    p0 = u.obj.pose.raw_pose.clone()
+    tcp0 = u.agent.tcp_pose.p.clone()
+    for _ in range(5):
+        step(env, [1, 0.5, 0, 1, 1])
+    _, info = env.reset(seed=5, options=dict(env_idx=torch.tensor([0])))
+    assert torch.allclose(u.obj.pose.raw_pose, p0, atol=1e-6)
+    assert torch.allclose(u.agent.tcp_pose.p, tcp0, atol=1e-4)
+    _, _, _, _, info = step(env, [0, 0, 0, 0, 1])
+    assert val(info, "r_grasp") == 0.0 and val(info, "r_delivery") == 0.0
+
+
+# --------------------------------------------------------------------------- API
+def test_gymnasium_env_checker():
+    from gymnasium.utils.env_checker import check_env
+    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+
+    e = CPUGymWrapper(make())
+    # skip_close_check: that check rebuilds the env from ``env.spec``, which fails for every ManiSkill
+    # env because ManiSkill's TimeLimitWrapper is not a gymnasium RecordConstructorArgs wrapper
+    # ("TimeLimitWrapper wrapper does not inherit from RecordConstructorArgs"); close() is called below.
+    check_env(e, skip_render_check=True, skip_close_check=True)
+    e.close()
+
+
+def test_defaults_and_module_prefixed_make_in_fresh_interpreter():
+    code = (
+        "import gymnasium as gym, sys\n"
+        f"env = gym.make('maniskill_irb120:{ENV_ID}', obs_mode='state')\n"
+        "u = env.unwrapped\n"
+        "assert u.control_mode == 'pd_ee_delta_tool', u.control_mode\n"
+        "assert u.reward_mode == 'dense', u.reward_mode\n"
+        "assert u.single_action_space.shape == (5,), u.single_action_space.shape\n"
+        "assert u.obs_mode == 'state'\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
+
+
+def test_rgbd_default_obs_mode_and_hand_camera_shapes():
+    e = gym.make(ENV_ID)
+    assert e.unwrapped.obs_mode == "rgbd"
+    obs, _ = e.reset(seed=0)
+    cam = obs["sensor_data"]["hand_camera"]
+    assert cam["rgb"].shape == (1, 84, 84, 3) and cam["rgb"].dtype == torch.uint8
+    assert cam["depth"].shape == (1, 84, 84, 1)
+    assert set(obs["sensor_data"]) == {"hand_camera"}  # the policy's only camera, as in the seed
+    assert float(cam["rgb"].float().std()) > 1.0  # something is rendered
+    obs, *_ = e.step(torch.zeros(1, 5))
+    assert obs["sensor_data"]["hand_camera"]["rgb"].shape == (1, 84, 84, 3)
+    e.close()
+    e = make(render_mode="rgb_array")
+    e.reset(seed=0)
+    assert tuple(e.render().shape) == (1, 512, 512, 3)
+    e.close()
+
+
+def test_state_obs_has_privileged_fields():
+    e = make(obs_mode="state_dict")
+    obs, _ = e.reset(seed=0)
+    extra = obs["extra"]
+    for k in ("tcp_pose", "is_grasped", "obj_pose", "source_tray_pos", "dest_tray_pos", "tcp_to_obj_pos"):
+        assert k in extra, k
+    assert "gripper_opening" in obs["agent"]
+    e.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs,bad",
+    [
+        (dict(reward_mode="shiny"), "shiny"),
+        (dict(obs_mode="telepathy"), "telepathy"),
+        (dict(control_mode="pd_mind_control"), "pd_mind_control"),
+        (dict(robot_uids="panda"), "panda"),
+    ],
+)
+def test_bad_modes_raise_clear_errors(kwargs, bad):
+    kwargs.setdefault("obs_mode", "state")
+    with pytest.raises(ValueError, match=bad):
+        gym.make(ENV_ID, **kwargs)
+
+
+def test_bad_actions_raise(env):
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros(1, 4))
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(torch.tensor([[0.0, np.nan, 0, 0, 1]]))
+
+
+# --------------------------------------------------------------------------- expert
+def test_expert_success_rate():
+    res = run_expert(20, seed=1000)
+    assert res["episodes"] == 20
+    assert res["success_rate"] >= 0.9, res
+    assert res["mean_steps"] < 0.6 * 250
