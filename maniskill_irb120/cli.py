@@ -14,7 +14,27 @@ def doctor(json: bool = False) -> int:
     return main(json_output=json)
 
 
-COMMANDS = {"doctor": doctor}
+def collect_demos(episodes: int = 10, seed: int = 0, out_dir: str = "demos", name: str = "expert",
+                  obs_mode: str = "none", keep_failures: bool = False, save_video: bool = False) -> int:
+    """Record scripted-expert episodes in ManiSkill's trajectory format (h5 + json)."""
+    import json
+    from pathlib import Path
+
+    from maniskill_irb120.demos import collect_demos as collect
+
+    print(json.dumps(collect(episodes, seed, Path(out_dir), name, obs_mode, not keep_failures, save_video)))
+    return 0
+
+
+def expert(episodes: int = 100, seed: int = 0, obs_mode: str = "state") -> int:
+    """Run the scripted expert and print one JSON line (success_rate, episodes, mean_steps, ...)."""
+    from maniskill_irb120.expert import Args, main as expert_main
+
+    expert_main(Args(episodes=episodes, seed=seed, obs_mode=obs_mode))
+    return 0
+
+
+COMMANDS = {"doctor": doctor, "collect-demos": collect_demos, "expert": expert}
 
 
 def main(argv: list[str] | None = None) -> int:

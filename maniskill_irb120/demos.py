@@ -1,0 +1,65 @@
+"""Expert demonstrations in ManiSkill's trajectory format (h5 + json), via ManiSkill's RecordEpisode.
+
+The json names the env as ``maniskill_irb120:TableClearing-IRB120-v1``, so ManiSkill's own replay
+tool finds it in a fresh interpreter with no import of ours::
+
+    python -m mani_skill.trajectory.replay_trajectory --traj-path demos/expert.h5 --use-env-states
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+from mani_skill.utils.wrappers.record import RecordEpisode
+
+import maniskill_irb120  # noqa: F401
+from maniskill_irb120.expert import ENV_ID, TableClearingExpert
+
+QUALIFIED_ENV_ID = f"maniskill_irb120:{ENV_ID}"
+
+
+def collect_demos(episodes: int = 10, seed: int = 0, out_dir: Path = Path("demos"), name: str = "expert",
+                  obs_mode: str = "none", only_success: bool = True, save_video: bool = False) -> dict:
+    """Roll out the expert for seeds ``seed..seed+episodes-1`` and record each episode.
+
+    ``only_success`` drops failed episodes from the file (ManiSkill's convention for demo sets).
+    Returns the paths and counts. Raises if nothing was recorded.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    out_dir = Path(out_dir)
+    env = gym.make(ENV_ID, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", reward_mode="dense",
+                   render_mode="rgb_array" if save_video else None)
+    env = RecordEpisode(env, output_dir=str(out_dir), trajectory_name=name, save_video=save_video,
+                        save_on_reset=False, record_env_state=True, video_fps=20,
+                        source_type="motion_planning", source_desc="maniskill_irb120 scripted expert")
+    expert = TableClearingExpert(env.unwrapped)
+    kept, tried = 0, 0
+    for ep in range(episodes):
+        env.reset(seed=seed + ep)
+        expert.reset()
+        while True:
+            _, _, term, trunc, info = env.step(expert.act())
+            if bool(term[0]) or bool(trunc[0]):
+                break
+        tried += 1
+        ok = bool(info["success"][0])
+        if ok or not only_success:
+            env.flush_trajectory(save=True)
+            if save_video:
+                env.flush_video(save=True)
+            kept += 1
+        else:
+            env.flush_trajectory(save=False)
+            if save_video:
+                env.flush_video(save=False)
+    env.close()
+    h5, js = out_dir / f"{name}.h5", out_dir / f"{name}.json"
+    if kept == 0:
+        raise RuntimeError(f"no successful episode among {tried}; nothing recorded")
+    meta = json.loads(js.read_text())
+    meta["env_info"]["env_id"] = QUALIFIED_ENV_ID
+    js.write_text(json.dumps(meta, indent=2))
+    return dict(h5=str(h5), json=str(js), episodes_recorded=kept, episodes_tried=tried)
