@@ -17,11 +17,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJointPosControllerConfig
-from mani_skill.utils.geometry.rotation_conversions import (
-    axis_angle_to_matrix,
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-)
+from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion, quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
 from maniskill_irb120.kinematics import SerialChain
@@ -72,8 +68,9 @@ class PDEEDeltaToolController(PDJointPosController):
         pose = self.root_link.pose.inv() * self.ee_link.pose
         return _pose_matrix(pose.p, pose.q)
 
-    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor, fk0=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Damped least squares from ``q0`` towards ``target`` (N,4,4); returns (q, converged).
+        ``fk0``: ``chain.fk_with_jacobian(q0)`` if the caller already has it.
 
         The rotation error is the vee of the skew part of R_target·R_currentᵀ: its direction is the
         rotation axis and its norm sin(angle), which equals the angle to 1e-5 rad at the sub-degree
@@ -83,7 +80,7 @@ class PDEEDeltaToolController(PDJointPosController):
         q = q0.clone()
         eye = torch.eye(6, device=q.device, dtype=q.dtype)
         for i in range(c.ik_iterations + 1):
-            cur, jac = self.chain.fk_with_jacobian(q)
+            cur, jac = fk0 if (i == 0 and fk0 is not None) else self.chain.fk_with_jacobian(q)
             err_p = target[:, :3, 3] - cur[:, :3, 3]
             r = target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2)
             err_r = 0.5 * torch.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], 1)
@@ -112,10 +109,10 @@ class PDEEDeltaToolController(PDJointPosController):
     def delta_matrix(self, action: torch.Tensor) -> torch.Tensor:
         """(N,4) scaled action -> (N,4,4) tool-frame transform: translate, then rotate about x."""
         n = action.shape[0]
-        axis_angle = torch.zeros(n, 3, device=action.device, dtype=action.dtype)
-        axis_angle[:, 0] = action[:, 3]
+        c, s = torch.cos(action[:, 3]), torch.sin(action[:, 3])
         delta = torch.zeros(n, 4, 4, device=action.device, dtype=action.dtype)
-        delta[:, :3, :3] = axis_angle_to_matrix(axis_angle)
+        delta[:, 0, 0] = 1
+        delta[:, 1, 1], delta[:, 1, 2], delta[:, 2, 1], delta[:, 2, 2] = c, -s, s, c
         delta[:, :3, 3] = action[:, :3]
         delta[:, 3, 3] = 1
         return delta
@@ -124,10 +121,12 @@ class PDEEDeltaToolController(PDJointPosController):
         action = self._preprocess_action(action)
         self._step = 0
         self._start_qpos = self.qpos
-        ref = self._target_pose if self.config.use_target else self.ee_pose_at_base()
-        target = ref @ self.delta_matrix(action)
         q0 = self._target_qpos if self.config.use_target else self._start_qpos
-        q, ok = self.solve_ik(target, q0)
+        fk0 = self.chain.fk_with_jacobian(q0)
+        # relative mode: FK of the measured joints is the measured TCP pose (same kinematics as PhysX)
+        ref = self._target_pose if self.config.use_target else fk0[0]
+        target = ref @ self.delta_matrix(action)
+        q, ok = self.solve_ik(target, q0, fk0)
         self.ik_unreachable = ~ok
         okm = ok.unsqueeze(1)
         self._target_qpos = torch.where(okm, q, self._target_qpos)

@@ -84,19 +84,23 @@ class SerialChain:
         """Tip pose (N,4,4) in the root frame and geometric Jacobian (N,6,dof): rows [v; ω]."""
         rot = self.joint_rotations(q)
         n = q.shape[0]
-        t = self.offsets[0].expand(n, 4, 4)
+        r = self.offsets[0, :3, :3].expand(n, 3, 3)
+        p = self.offsets[0, :3, 3].expand(n, 3)
         origins, axes = [], []
         for i in range(self.dof):
             if i > 0:
-                t = t @ self.offsets[i]
-            origins.append(t[:, :3, 3])
-            axes.append(t[:, :3, :3] @ self.axes[i])
-            r = t[:, :3, :3] @ rot[:, i]
-            t = torch.cat([torch.cat([r, t[:, :3, 3:]], 2), t[:, 3:]], 1)
-        tip = t @ self.tip_offset
-        p = torch.stack(origins, 2)  # (N, 3, dof)
+                p = p + (r @ self.offsets[i, :3, 3:]).squeeze(-1)
+                r = r @ self.offsets[i, :3, :3]
+            origins.append(p)
+            axes.append(r @ self.axes[i])
+            r = r @ rot[:, i]
+        tip = torch.zeros(n, 4, 4, dtype=q.dtype, device=q.device)
+        tip[:, :3, :3] = r @ self.tip_offset[:3, :3]
+        tip[:, :3, 3] = p + (r @ self.tip_offset[:3, 3:]).squeeze(-1)
+        tip[:, 3, 3] = 1
+        o = torch.stack(origins, 2)  # (N, 3, dof)
         z = torch.stack(axes, 2)
-        jv = torch.linalg.cross(z, tip[:, :3, 3:4] - p, dim=1)
+        jv = torch.linalg.cross(z, tip[:, :3, 3:4] - o, dim=1)
         return tip, torch.cat([jv, z], 1)
 
     def forward_kinematics(self, q: torch.Tensor) -> torch.Tensor:

@@ -177,16 +177,25 @@ class IRB120Metalwork(BaseAgent):
         q = self.robot.get_qpos()[:, -2:]
         return q.sum(dim=1) + 2 * geometry()["finger_closed_half_gap"]
 
-    def is_grasping(self, object: Actor, min_force: float = 0.5, max_angle: float = 85.0) -> torch.Tensor:
-        """Both fingers push on ``object`` with at least ``min_force`` N roughly along their closing direction."""
-        lf = self.scene.get_pairwise_contact_forces(self.finger_left, object)
-        rf = self.scene.get_pairwise_contact_forces(self.finger_right, object)
-        ldir = self.finger_left.pose.to_transformation_matrix()[..., :3, 1]
-        rdir = -self.finger_right.pose.to_transformation_matrix()[..., :3, 1]
-        langle = torch.rad2deg(common.compute_angle_between(ldir, lf))
-        rangle = torch.rad2deg(common.compute_angle_between(rdir, rf))
-        lflag = (torch.linalg.norm(lf, dim=1) >= min_force) & (langle <= max_angle)
-        rflag = (torch.linalg.norm(rf, dim=1) >= min_force) & (rangle <= max_angle)
+    def is_grasping(self, object: Actor, min_force: float = 0.5, max_angle: float = 85.0,
+                    finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Both fingers push on ``object`` with at least ``min_force`` N roughly along their closing direction.
+
+        ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object`` when the
+        caller already has them (a task that scans the contact list once per step); else queried here.
+        """
+        if finger_forces is None:
+            lf = self.scene.get_pairwise_contact_forces(self.finger_left, object)
+            rf = self.scene.get_pairwise_contact_forces(self.finger_right, object)
+        else:
+            lf, rf = finger_forces
+        # both fingers slide along the TCP's y axis (left opens towards +y, right towards -y)
+        w, x, y, z = self.tcp.pose.q.unbind(-1)
+        opening = torch.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], -1)
+        cos_max = math.cos(math.radians(max_angle))
+        ln, rn = torch.linalg.norm(lf, dim=1), torch.linalg.norm(rf, dim=1)
+        lflag = (ln >= min_force) & ((lf * opening).sum(1) >= cos_max * ln)
+        rflag = (rn >= min_force) & ((-rf * opening).sum(1) >= cos_max * rn)
         return lflag & rflag
 
     def is_static(self, threshold: float = 0.2) -> torch.Tensor:

@@ -264,8 +264,11 @@ class TableClearingIRB120Env(BaseEnv):
         self._fresh[:] = False
 
     # ------------------------------------------------------------------ contacts
-    def _contact_flags(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(robot touches the scene, object touches the scene, object touches a finger), each (N,) bool.
+    def _contact_flags(self) -> tuple[torch.Tensor, ...]:
+        """Contacts of this step, all batched (N,...):
+
+        (robot touches the scene, object touches the scene, object touches a finger,
+        force on the left finger from the object (N,3), same for the right finger).
 
         The scene is the table, both trays and the ground; base_link is excluded because it stands on
         the table. GPU: ManiSkill's batched pairwise queries. CPU: one pass over PhysX's contact list
@@ -275,7 +278,7 @@ class TableClearingIRB120Env(BaseEnv):
             return self._contact_flags_pairwise()
         return self._contact_flags_cpu()
 
-    def _contact_flags_pairwise(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _contact_flags_pairwise(self) -> tuple[torch.Tensor, ...]:
         f = self.scene.get_pairwise_contact_forces
         robot_hit = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         obj_hit = torch.zeros_like(robot_hit)
@@ -283,25 +286,25 @@ class TableClearingIRB120Env(BaseEnv):
             for link in self.robot_links:
                 robot_hit |= torch.linalg.norm(f(link, a), dim=1) > CONTACT_FORCE_EPS
             obj_hit |= torch.linalg.norm(f(self.obj, a), dim=1) > CONTACT_FORCE_EPS
-        finger = torch.zeros_like(robot_hit)
-        for link in self.fingers:
-            finger |= torch.linalg.norm(f(link, self.obj), dim=1) > CONTACT_FORCE_EPS
-        return robot_hit, obj_hit, finger
+        lf, rf = f(self.fingers[0], self.obj), f(self.fingers[1], self.obj)
+        finger = (torch.linalg.norm(lf, dim=1) > CONTACT_FORCE_EPS) | (torch.linalg.norm(rf, dim=1) > CONTACT_FORCE_EPS)
+        return robot_hit, obj_hit, finger, lf, rf
 
-    def _contact_flags_cpu(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _contact_flags_cpu(self) -> tuple[torch.Tensor, ...]:
         if self._entity_kind is None:
             kind = {}
             for a in self.scene_actors:
                 kind[a._bodies[0].entity] = "scene"
             for link in self.robot_links:
                 kind[link._bodies[0].entity] = "robot"
-            for link in self.fingers:
-                kind[link._bodies[0].entity] = "finger"
+            for i, link in enumerate(self.fingers):
+                kind[link._bodies[0].entity] = f"finger{i}"
             kind[self.obj._bodies[0].entity] = "obj"
             self._entity_kind = kind
         kind = self._entity_kind
         dt = self.scene.px.timestep
-        robot_hit = obj_hit = finger = False
+        robot_hit = obj_hit = False
+        finger_force = [np.zeros(3), np.zeros(3)]
         for c in self.scene.px.get_contacts():
             k0, k1 = kind.get(c.bodies[0].entity), kind.get(c.bodies[1].entity)
             if k0 is None or k1 is None:
@@ -310,16 +313,21 @@ class TableClearingIRB120Env(BaseEnv):
             if "scene" not in pair and "obj" not in pair:
                 continue
             impulse = np.sum([p.impulse for p in c.points], axis=0) if c.points else np.zeros(3)
+            if "obj" in pair and k0 != k1 and (k0.startswith("finger") or k1.startswith("finger")):
+                # force on the finger from the object, with ManiSkill's pairwise sign convention
+                i = int((k0 if k0 != "obj" else k1)[-1])
+                finger_force[i] += impulse / dt if k0 != "obj" else -impulse / dt
+                continue
             if np.linalg.norm(impulse) / dt <= CONTACT_FORCE_EPS:
                 continue
-            if "scene" in pair and ("robot" in pair or "finger" in pair):
+            if "scene" in pair and ("robot" in pair or "finger0" in pair or "finger1" in pair):
                 robot_hit = True
             elif pair == {"obj", "scene"}:
                 obj_hit = True
-            elif pair == {"obj", "finger"}:
-                finger = True
         as_t = lambda v: torch.tensor([v], dtype=torch.bool, device=self.device)  # noqa: E731
-        return as_t(robot_hit), as_t(obj_hit), as_t(finger)
+        lf, rf = (torch.as_tensor(f, dtype=torch.float32, device=self.device)[None] for f in finger_force)
+        finger = (lf.norm(dim=1) > CONTACT_FORCE_EPS) | (rf.norm(dim=1) > CONTACT_FORCE_EPS)
+        return as_t(robot_hit), as_t(obj_hit), finger, lf, rf
 
     # ------------------------------------------------------------------ evaluation
     def _inside_dest_xy(self, p: torch.Tensor) -> torch.Tensor:
@@ -331,10 +339,10 @@ class TableClearingIRB120Env(BaseEnv):
         in ``_before_control_step``, so calling this twice gives the same answer."""
         obj_p = self.obj.pose.p
         tcp_p = self.agent.tcp_pose.p
-        robot_hit, obj_hit, finger_touch = self._contact_flags()
+        robot_hit, obj_hit, finger_touch, lf, rf = self._contact_flags()
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
-        grasped = self.agent.is_grasping(self.obj) & ~obj_hit & lifted
+        grasped = self.agent.is_grasping(self.obj, finger_forces=(lf, rf)) & ~obj_hit & lifted
         over_dest = self._inside_dest_xy(obj_p)
         delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~finger_touch
         cur = dict(
