@@ -89,6 +89,8 @@ class Args:
     comet: bool = False
     comet_project: str = "maniskill_irb120"
     progress: bool = True
+    max_wall_s: Optional[float] = None
+    """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
     env_kwargs: dict = field(default_factory=dict)
 
     @property
@@ -196,7 +198,12 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     from mani_skill.utils.wrappers.record import RecordEpisode
 
     kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=args.control_mode,
-                  reward_mode=args.reward_mode, render_mode="rgb_array", **args.env_kwargs)
+                  reward_mode=args.reward_mode, **args.env_kwargs)
+    needs_render = args.obs == "rgbd" or (evaluate and video_dir is not None)
+    if needs_render:
+        kwargs["render_mode"] = "rgb_array"
+    else:  # state-only envs skip the renderer entirely (less memory, faster steps)
+        kwargs.setdefault("render_backend", "none")
     wrappers = []
     if args.obs == "rgbd":
         wrappers.append(FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
@@ -501,8 +508,13 @@ def train(args: Args) -> dict:
         bar = tqdm(total=num_iterations * args.batch_size, initial=counters["global_step"], unit="step",
                    dynamic_ncols=True)
     last_eval: dict = {}
+    history: list[dict] = []
     start_iteration = counters["iteration"]
+    t_start = time.perf_counter()
     while counters["iteration"] < num_iterations:
+        if args.max_wall_s is not None and time.perf_counter() - t_start > args.max_wall_s:
+            save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
+            break
         it = counters["iteration"] + 1
         t0 = time.perf_counter()
         if args.anneal_lr:
@@ -555,6 +567,8 @@ def train(args: Args) -> dict:
         if recent:
             scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
         logger.scalars(scalars, counters["global_step"])
+        history.append(dict(iteration=it, global_step=counters["global_step"],
+                            wall_s=time.perf_counter() - t_start, **scalars))
         if bar is not None:
             bar.update(args.batch_size)
             bar.set_postfix(SPS=f"{args.batch_size / dt:.0f}",
@@ -580,6 +594,7 @@ def train(args: Args) -> dict:
                   iterations_this_run=counters["iteration"] - start_iteration, last_eval=last_eval,
                   checkpoint=str(ckpt_dir / "latest.pt"))
     print(json.dumps(result))
+    result["history"] = history
     return result
 
 

@@ -238,7 +238,7 @@ def fmt_row(name: str, s: dict) -> str:
 def main(args: Args) -> dict:
     global ISOLATE
     ISOLATE = not args.quick
-    steps = 20 if args.quick else args.steps
+    steps = 12 if args.quick else args.steps
     rt_steps = max(10, steps // 4)
     out: dict = dict(machine=dict(platform=platform.platform(), python=platform.python_version(),
                                   cpus=os.cpu_count(), processor=platform.processor()),

@@ -348,8 +348,9 @@ class TableClearingIRB120Env(BaseEnv):
     def evaluate(self) -> dict:
         """Events and all reward terms. Idempotent between steps: the reference state is snapshotted
         in ``_before_control_step``, so calling this twice gives the same answer."""
-        obj_p = self.obj.pose.p
-        tcp_p = self.agent.tcp_pose.p
+        # fetched once per step: observations and rewards of this step read the same poses
+        self._obj_pose, self._tcp_pose = self.obj.pose.raw_pose, self.agent.tcp_pose.raw_pose
+        obj_p, tcp_p = self._obj_pose[:, :3], self._tcp_pose[:, :3]
         robot_hit, obj_hit, finger_touch, lf, rf = self._contact_flags()
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
@@ -401,14 +402,14 @@ class TableClearingIRB120Env(BaseEnv):
 
     # ------------------------------------------------------------------ observations
     def _get_obs_extra(self, info: dict):
-        obs = dict(tcp_pose=self.agent.tcp_pose.raw_pose, is_grasped=info["grasped"])
+        obs = dict(tcp_pose=self._tcp_pose, is_grasped=info["grasped"])
         if self.obs_mode_struct.use_state:
             obs.update(
-                obj_pose=self.obj.pose.raw_pose,
+                obj_pose=self._obj_pose,
                 source_tray_pos=self.source_center,
                 dest_tray_pos=self.dest_center,
-                tcp_to_obj_pos=self.obj.pose.p - self.agent.tcp_pose.p,
-                obj_to_dest_pos=self.dest_center - self.obj.pose.p,
+                tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
+                obj_to_dest_pos=self.dest_center - self._obj_pose[:, :3],
             )
         return obs
 
@@ -419,9 +420,9 @@ class TableClearingIRB120Env(BaseEnv):
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged reward in [0, 1] for ManiSkill's PPO baseline: reach, grasp, bring over the
         destination tray, release in it (1.0). A collision scores 0."""
-        obj_p = self.obj.pose.p
+        obj_p = self._obj_pose[:, :3]
         grasped = info["grasped"].float()
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(obj_p - self.agent.tcp_pose.p, dim=1))
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(obj_p - self._tcp_pose[:, :3], dim=1))
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size
         place = 1 - torch.tanh(5 * torch.linalg.norm(goal - obj_p, dim=1))
