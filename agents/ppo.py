@@ -217,8 +217,10 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
         if video_dir is not None:
             wrappers.append(lambda e: RecordEpisode(e, output_dir=str(video_dir), save_trajectory=False,
                                                     max_steps_per_video=None, video_fps=20, info_on_video=False))
-        return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, ignore_terminations=False,
-                            record_metrics=True, **kwargs)
+        # GPU: batched eval envs reconfigure between episodes, which ManiSkillVectorEnv only allows without
+        # early-termination resets (as ManiSkill's ppo_rgb.py does); success/grasp are counted "once".
+        return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers,
+                            ignore_terminations=backend == "gpu", record_metrics=True, **kwargs)
     if not args.partial_reset:
         raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
     return make_vec_env(args.env_id, num_envs, backend=args.backend, wrappers=wrappers,
@@ -281,7 +283,7 @@ def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args
 
 
 def compute_gae(rewards, values, dones, next_value, next_done, final_values, args: Args):
-    """GAE with bootstrapping from the true final observation of truncated/terminated episodes."""
+    """GAE; ``final_values[t]`` bootstraps episodes the time limit truncated at step t (0 elsewhere)."""
     T = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
     lastgaelam = 0
@@ -539,10 +541,14 @@ def train(args: Args) -> dict:
             next_done = done.float()
             rewards[step] = reward.to(device).view(-1) * args.reward_scale
             if "final_info" in info:
-                mask = info["_final_info"].to(device)
-                fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
-                with torch.no_grad():
-                    final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
+                # bootstrap from the true next observation only where the time limit cut the episode; a
+                # termination (collision, delivery) has no future. (ManiSkill's ppo.py also bootstraps
+                # terminations, which leaves a collision worth the value of the state it happened in.)
+                mask = info["_final_info"].to(device) & trunc.to(device) & ~term.to(device)
+                if mask.any():
+                    fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
+                    with torch.no_grad():
+                        final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
             for k, v in tracker.update(info.get("final_info", info), done).items():
                 recent[k] += v
         with torch.no_grad():

@@ -42,9 +42,9 @@ class Args:
     """total wall-clock minutes for the two PPO arms (split evenly)"""
     num_envs: int = 4
     """CPU worker processes per PPO arm"""
-    bc_episodes: int = 40
+    bc_episodes: int = 100
     """expert episodes for the behaviour-cloning warm start"""
-    bc_epochs: int = 60
+    bc_epochs: int = 100
     eval_episodes: int = 20
     seed: int = 0
     out_dir: Path = Path("benchmarks/results/learning")

@@ -115,13 +115,14 @@ def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int
     return dict(times=times, resets=resets, make_s=make_s, peak_rss_mb=peak_rss_mb(), split_s=split)
 
 
-def measure_vector(env_id: str, workers: int, steps: int, seed: int) -> dict:
-    """Aggregate env steps/s of the CPU process-vector env (rgbd, random actions)."""
+def measure_vector(env_id: str, workers: int, steps: int, seed: int, obs_mode: str = "rgbd") -> dict:
+    """Aggregate env steps/s of the CPU process-vector env (random actions)."""
     import torch
 
     from maniskill_irb120.vector import make_vec_env
 
-    venv = make_vec_env(env_id, workers, backend="cpu", obs_mode="rgbd", record_metrics=False)
+    extra = dict(render_backend="none") if obs_mode == "state" else {}
+    venv = make_vec_env(env_id, workers, backend="cpu", obs_mode=obs_mode, record_metrics=False, **extra)
     venv.reset(seed=seed)
     acts = torch.from_numpy(random_actions(steps + 5, seed, 5 * workers).reshape(-1, workers, 5))
     for a in acts[:5]:
@@ -131,7 +132,7 @@ def measure_vector(env_id: str, workers: int, steps: int, seed: int) -> dict:
         venv.step(a)
     dt = time.perf_counter() - t0
     venv.close()
-    return dict(workers=workers, env_steps_per_s=steps * workers / dt, peak_rss_mb=peak_rss_mb())
+    return dict(workers=workers, obs_mode=obs_mode, env_steps_per_s=steps * workers / dt, peak_rss_mb=peak_rss_mb())
 
 
 def _burn(n: int) -> float:
@@ -223,8 +224,10 @@ class Args:
     steps: int = 300
     """timed actions per configuration (realtime mode uses a quarter)"""
     seed: int = 0
+    rounds: int = 3
+    """interleaved repetitions of the whole suite; ratios are the median over rounds (VMs drift)"""
     quick: bool = False
-    """a smoke run: few actions per configuration, no GPU sweep (< 1 min)"""
+    """a smoke run: one round, few actions per configuration, in one process, no GPU sweep (~1 min)"""
     json: Optional[Path] = None
     plot: Optional[Path] = None
     gpu_num_envs: tuple[int, ...] = (16, 64, 256, 1024, 4096)
@@ -235,28 +238,56 @@ def fmt_row(name: str, s: dict) -> str:
             f"{s['p75']:.4f} | {s['max']:.4f} | {s['steps_per_s']:.1f} |")
 
 
+def one_round(args: Args, steps: int) -> dict:
+    """Every configuration once, back to back (a round); rounds are interleaved against drift."""
+    rt_steps = max(10, steps // 4)
+    r: dict = dict(ours={}, pyb={})
+    for mode in MODES:
+        n = rt_steps if mode == "render_realtime" else steps
+        r["ours"][mode] = isolated("measure_maniskill", env_id=ENV_ID, mode=mode, steps=n, seed=args.seed)
+        r["pyb"][mode] = isolated("measure_pybullet", mode=mode, steps=n, seed=args.seed)
+    r["pick"] = isolated("measure_maniskill", env_id="PickCube-v1", mode="render", steps=steps, seed=args.seed,
+                         sensor_configs=dict(width=84, height=84))
+    r["workers"] = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed)
+                    for w in (1, 2)]
+    r["workers_state"] = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps), seed=args.seed,
+                                   obs_mode="state") for w in (1, 2)]
+    r["ceiling"] = measure_parallel_ceiling(1_000_000 if args.quick else 5_000_000)
+    rate = lambda x: len(x["times"]) / sum(x["times"])  # noqa: E731
+    r["ratios"] = dict(vs_pickcube_rgbd=rate(r["ours"]["render"]) / rate(r["pick"]),
+                       vs_pybullet_seed={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
+                       two_workers_vs_one=r["workers"][1]["env_steps_per_s"] / r["workers"][0]["env_steps_per_s"],
+                       machine_two_process_ceiling=r["ceiling"]["speedup"])
+    return r
+
+
 def main(args: Args) -> dict:
     global ISOLATE
     ISOLATE = not args.quick
     steps = 12 if args.quick else args.steps
-    rt_steps = max(10, steps // 4)
+    rounds = 1 if args.quick else args.rounds
     out: dict = dict(machine=dict(platform=platform.platform(), python=platform.python_version(),
                                   cpus=os.cpu_count(), processor=platform.processor()),
-                     date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv), steps=steps)
+                     date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv), steps=steps, rounds=rounds)
+    runs = [one_round(args, steps) for _ in range(rounds)]
+    pooled = lambda get: [t for r in runs for t in get(r)["times"]]  # noqa: E731
     ours, pyb = {}, {}
     for mode in MODES:
-        n = rt_steps if mode == "render_realtime" else steps
-        r = isolated("measure_maniskill", env_id=ENV_ID, mode=mode, steps=n, seed=args.seed)
-        ours[mode] = dict(summarize(r["times"]), peak_rss_mb=r["peak_rss_mb"], make_s=r["make_s"],
-                          split_s=r["split_s"], resets=r["resets"])
-        p = isolated("measure_pybullet", mode=mode, steps=n, seed=args.seed)
-        pyb[mode] = dict(summarize(p["times"]), peak_rss_mb=p["peak_rss_mb"], mean_substeps=p["mean_substeps"])
-    pick = isolated("measure_maniskill", env_id="PickCube-v1", mode="render", steps=steps, seed=args.seed,
-                    sensor_configs=dict(width=84, height=84))
-    pick = dict(summarize(pick["times"]), peak_rss_mb=pick["peak_rss_mb"])
-    scaling = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed)
-               for w in (1, 2)]
-    ceiling = measure_parallel_ceiling(1_000_000 if args.quick else 5_000_000)
+        split = {k: float(np.mean([r["ours"][mode]["split_s"][k] for r in runs])) for k in runs[0]["ours"][mode]["split_s"]}
+        ours[mode] = dict(summarize(pooled(lambda r: r["ours"][mode])), split_s=split,
+                          peak_rss_mb=max(r["ours"][mode]["peak_rss_mb"] for r in runs))
+        pyb[mode] = dict(summarize(pooled(lambda r: r["pyb"][mode])),
+                         peak_rss_mb=max(r["pyb"][mode]["peak_rss_mb"] for r in runs),
+                         mean_substeps=float(np.mean([r["pyb"][mode]["mean_substeps"] for r in runs])))
+    pick = dict(summarize(pooled(lambda r: r["pick"])), peak_rss_mb=max(r["pick"]["peak_rss_mb"] for r in runs))
+    workers = [dict(workers=w + 1, obs_mode=mode,
+                    env_steps_per_s=float(np.median([r[key][w]["env_steps_per_s"] for r in runs])))
+               for key, mode in (("workers", "rgbd"), ("workers_state", "state")) for w in range(2)]
+    med = lambda f: float(np.median([f(r["ratios"]) for r in runs]))  # noqa: E731
+    ratios = dict(vs_pickcube_rgbd=med(lambda x: x["vs_pickcube_rgbd"]),
+                  vs_pybullet_seed={m: med(lambda x, m=m: x["vs_pybullet_seed"][m]) for m in MODES},
+                  two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
+                  machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]))
     gpu = []
     import torch
 
@@ -267,12 +298,8 @@ def main(args: Args) -> dict:
         env_steps_per_s={m: ours[m]["steps_per_s"] for m in MODES},
         reference_steps_per_s=dict(pickcube_rgbd_84=pick["steps_per_s"],
                                    pybullet_seed={m: pyb[m]["steps_per_s"] for m in MODES}),
-        ratios=dict(vs_pickcube_rgbd=ours["render"]["steps_per_s"] / pick["steps_per_s"],
-                    vs_pybullet_seed={m: ours[m]["steps_per_s"] / pyb[m]["steps_per_s"] for m in MODES},
-                    two_workers_vs_one=scaling[1]["env_steps_per_s"] / scaling[0]["env_steps_per_s"],
-                    machine_two_process_ceiling=ceiling["speedup"]),
-        ours=ours, pybullet_seed=pyb, pickcube_rgbd_84=pick, cpu_workers=scaling, parallel_ceiling=ceiling,
-        gpu_scaling=gpu,
+        ratios=ratios, ratios_per_round=[r["ratios"] for r in runs],
+        ours=ours, pybullet_seed=pyb, pickcube_rgbd_84=pick, cpu_workers=workers, gpu_scaling=gpu,
     )
     print(markdown(out))
     if args.json:
@@ -291,13 +318,18 @@ def markdown(r: dict) -> str:
         rows.append(fmt_row(f"TableClearing-IRB120-v1 (ManiSkill) — {m}", r["ours"][m]))
         rows.append(fmt_row(f"seed loop (PyBullet) — {m}", r["pybullet_seed"][m]))
     rows.append(fmt_row("PickCube-v1 (ManiSkill) — rgbd 84x84", r["pickcube_rgbd_84"]))
-    lines = ["## Action time (Table 5.1 layout)", *rows, "", "## Ratios (same run)",
+    lines = [f"## Action time (Table 5.1 layout; {r['rounds']} interleaved rounds x {r['steps']} actions, pooled)", *rows, "",
+             "## Ratios (same run; median over rounds, per-round values in the JSON)",
              f"- TableClearing rgbd vs PickCube-v1 rgbd 84x84: {r['ratios']['vs_pickcube_rgbd']:.2f}x"]
     for m in MODES:
         lines.append(f"- TableClearing vs PyBullet seed loop, {m}: {r['ratios']['vs_pybullet_seed'][m]:.2f}x per action")
     lines.append(f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
-                 f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s); "
+                 f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s; "
+                 f"state: {r['cpu_workers'][2]['env_steps_per_s']:.1f} -> {r['cpu_workers'][3]['env_steps_per_s']:.1f}); "
                  f"this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x")
+    per_round = ", ".join(f"{x['vs_pickcube_rgbd']:.2f}" for x in r["ratios_per_round"])
+    lines.append(f"- per round, vs PickCube: {per_round}; vs PyBullet (render): "
+                 + ", ".join(f"{x['vs_pybullet_seed']['render']:.2f}" for x in r["ratios_per_round"]))
     lines += ["", "## Where an action's time goes (ManiSkill, ms per action)",
               "| mode | physics | controller (IK) | rendering | Python/other | peak RSS (MB) |", "|---|---|---|---|---|---|"]
     for m in MODES:
@@ -326,8 +358,8 @@ def plot(r: dict, path: Path) -> None:
     ax[0].set_yscale("log")
     ax[0].legend(fontsize=7)
     w = r["cpu_workers"]
-    ax[1].bar([str(v["workers"]) for v in w], [v["env_steps_per_s"] for v in w])
-    ax[1].set_xlabel("CPU worker processes (rgbd)")
+    ax[1].bar([f"{v['workers']} ({v['obs_mode']})" for v in w], [v["env_steps_per_s"] for v in w])
+    ax[1].set_xlabel("CPU worker processes")
     ax[1].set_ylabel("env steps / s")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,28 @@
+"""Benchmarks run and write well-formed JSON (smoke only: timings are never asserted in tests)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_sim_speed_quick_writes_json(tmp_path):
+    out = tmp_path / "sim_speed.json"
+    run = subprocess.run([sys.executable, str(REPO / "benchmarks" / "sim_speed.py"), "--quick", "--json", str(out),
+                          "--plot", str(tmp_path / "p.png")], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    for mode in ("render_realtime", "render", "no_render"):
+        assert r["env_steps_per_s"][mode] > 0
+        assert r["reference_steps_per_s"]["pybullet_seed"][mode] > 0
+        assert set(r["ours"][mode]) >= {"mean", "std", "min", "p25", "p50", "p75", "max", "split_s", "peak_rss_mb"}
+    assert r["reference_steps_per_s"]["pickcube_rgbd_84"] > 0
+    assert r["ratios"]["two_workers_vs_one"] > 0 and len(r["cpu_workers"]) == 4
+    assert "## Action time" in run.stdout and (tmp_path / "p.png").stat().st_size > 1000
