@@ -89,6 +89,8 @@ class Args:
     comet: bool = False
     comet_project: str = "maniskill_irb120"
     progress: bool = True
+    critic_warmup_iters: int = 0
+    """iterations that update only the value function (keeps a warm-started policy while its critic learns)"""
     max_wall_s: Optional[float] = None
     """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
     env_kwargs: dict = field(default_factory=dict)
@@ -239,8 +241,10 @@ def agent_for(envs, device) -> Agent:
 
 
 # ----------------------------------------------------------------------------- PPO update
-def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args) -> dict[str, float]:
-    """Clipped-surrogate epochs over minibatches of one rollout; returns the last epoch's stats."""
+def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args,
+               critic_only: bool = False) -> dict[str, float]:
+    """Clipped-surrogate epochs over minibatches of one rollout; returns the last epoch's stats.
+    ``critic_only``: value loss alone (the policy, its encoder included, stays as it is)."""
     n = batch["actions"].shape[0]
     mb = max(1, n // args.num_minibatches)
     clipfracs, stats = [], {}
@@ -269,21 +273,40 @@ def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args
             else:
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
             ent = entropy.mean()
-            loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
+            if critic_only:
+                value = agent.critic(agent.encoder(obs).detach()).view(-1)
+                v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
+                loss = args.vf_coef * v_loss
+            else:
+                loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
             optimizer.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
             optimizer.step()
             stats = dict(policy_loss=pg_loss.item(), value_loss=v_loss.item(), entropy=ent.item(),
                          old_approx_kl=old_approx_kl.item(), approx_kl=approx_kl.item(), loss=loss.item())
-        if args.target_kl is not None and approx_kl > args.target_kl:
+        if not critic_only and args.target_kl is not None and approx_kl > args.target_kl:
             break
     stats["clipfrac"] = float(np.mean(clipfracs)) if clipfracs else 0.0
     return stats
 
 
+def bootstrap_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
+    """Envs whose episode just ended and whose final observation's value is bootstrapped.
+
+    Truncated and successful episodes are (ManiSkill's convention: success is an absorbing max-reward
+    state; without it a staged reward pays more for holding the object than for delivering it); failed
+    ones are not: a collision has no future. ManiSkill's ppo.py bootstraps failures too.
+    """
+    done = info["_final_info"].bool()
+    fail = info["final_info"].get("fail")
+    failed = (fail.bool() if fail is not None else torch.zeros_like(done)) & term.to(done.device).bool()
+    return done & ~failed
+
+
 def compute_gae(rewards, values, dones, next_value, next_done, final_values, args: Args):
-    """GAE; ``final_values[t]`` bootstraps episodes the time limit truncated at step t (0 elsewhere)."""
+    """GAE; ``final_values[t]``: value of the final observation of an episode that ended at step t by
+    truncation or success (0 elsewhere, e.g. after a failure)."""
     T = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
     lastgaelam = 0
@@ -541,10 +564,7 @@ def train(args: Args) -> dict:
             next_done = done.float()
             rewards[step] = reward.to(device).view(-1) * args.reward_scale
             if "final_info" in info:
-                # bootstrap from the true next observation only where the time limit cut the episode; a
-                # termination (collision, delivery) has no future. (ManiSkill's ppo.py also bootstraps
-                # terminations, which leaves a collision worth the value of the state it happened in.)
-                mask = info["_final_info"].to(device) & trunc.to(device) & ~term.to(device)
+                mask = bootstrap_mask(info, term).to(device)
                 if mask.any():
                     fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
                     with torch.no_grad():
@@ -560,7 +580,7 @@ def train(args: Args) -> dict:
                      returns=returns.reshape(-1), values=values.reshape(-1))
         agent.train()
         tu = time.perf_counter()
-        stats = ppo_update(agent, optimizer, batch, args)
+        stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
         update_time = time.perf_counter() - tu
         counters["iteration"] = it
         dt = time.perf_counter() - t0

@@ -45,14 +45,18 @@ class Args:
     bc_episodes: int = 100
     """expert episodes for the behaviour-cloning warm start"""
     bc_epochs: int = 100
+    critic_warmup_iters: int = 15
+    """bc+ppo: iterations fitting only the value function before the cloned policy is updated"""
     eval_episodes: int = 20
     seed: int = 0
     out_dir: Path = Path("benchmarks/results/learning")
 
 
-def ppo_args(args: Args, name: str, minutes: float, checkpoint: Path | None = None, lr: float = 3e-4) -> PPOArgs:
+def ppo_args(args: Args, name: str, minutes: float, checkpoint: Path | None = None, lr: float = 3e-4,
+             critic_warmup_iters: int = 0) -> PPOArgs:
     return PPOArgs(obs="state", num_envs=args.num_envs, num_steps=100, num_minibatches=4, update_epochs=8,
                    learning_rate=lr, total_timesteps=10**9, max_wall_s=60 * minutes, eval_freq=0, save_freq=20,
+                   critic_warmup_iters=critic_warmup_iters,
                    seed=args.seed, exp_name=name, runs_dir=args.out_dir / "runs", checkpoint=checkpoint,
                    capture_video=False, progress=False, backend="cpu")
 
@@ -217,7 +221,8 @@ def main(args: Args) -> dict:
               final=final_eval(bc_ckpt, args.eval_episodes))
     result["bc"] = bc
     print("bc:", json.dumps(bc), flush=True)
-    warm = train(ppo_args(args, "bc_ppo", max(0.5, half - bc["seconds"] / 60), checkpoint=bc_ckpt, lr=1e-4))
+    warm = train(ppo_args(args, "bc_ppo", max(0.5, half - bc["seconds"] / 60), checkpoint=bc_ckpt, lr=1e-4,
+                          critic_warmup_iters=args.critic_warmup_iters))
     result["arms"]["bc+ppo"] = dict(curve=curve(warm["history"]), global_step=warm["global_step"],
                                     final=final_eval(Path(warm["checkpoint"]), args.eval_episodes))
     print("bc+ppo:", json.dumps(result["arms"]["bc+ppo"]["final"]), flush=True)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.ppo import Agent, Args, ppo_update, main, save_checkpoint
+from agents.ppo import Agent, Args, bootstrap_mask, ppo_update, main, save_checkpoint
 import torch.optim as optim
 
 
@@ -84,3 +84,28 @@ def test_loss_decreases_on_fixed_batch():
     opt = optim.Adam(agent.parameters(), lr=1e-3)
     losses = [ppo_update(agent, opt, batch, args)["value_loss"] for _ in range(10)]
     assert losses[-1] < 0.5 * losses[0]
+
+
+def test_bootstrap_truncations_and_successes_not_failures():
+    t, f = True, False
+    info = {"_final_info": torch.tensor([t, t, t, f]),
+            "final_info": {"fail": torch.tensor([t, f, f, f]), "success": torch.tensor([f, t, f, f])}}
+    term = torch.tensor([t, t, f, f])  # collision, delivery, time limit, still running
+    assert bootstrap_mask(info, term).tolist() == [f, t, t, f]
+
+
+def test_critic_warmup_leaves_policy_untouched():
+    torch.manual_seed(0)
+    agent = Agent(None, 20, 5)
+    obs = {"state": torch.randn(64, 20)}
+    with torch.no_grad():
+        actions, logp, _, values = agent.get_action_and_value(obs)
+    batch = dict(obs=obs, actions=actions, logprobs=logp, values=values.view(-1), advantages=torch.randn(64),
+                 returns=torch.randn(64) * 2 + 1)
+    frozen = [p.clone() for p in list(agent.actor_mean.parameters()) + list(agent.encoder.parameters())]
+    opt = optim.Adam(agent.parameters(), lr=1e-3)
+    losses = [ppo_update(agent, opt, batch, Args(update_epochs=1, num_minibatches=1), critic_only=True)["value_loss"]
+              for _ in range(10)]
+    assert losses[-1] < 0.5 * losses[0]
+    now = list(agent.actor_mean.parameters()) + list(agent.encoder.parameters())
+    assert all(torch.equal(a, b) for a, b in zip(frozen, now))
