@@ -53,6 +53,21 @@ def val(info, k) -> float:
     return float(info[k][0])
 
 
+def expert_trace(env, seed: int, term_key: str, stop, limit: int = 250):
+    """Reset to ``seed``, step the expert until ``stop(info, terminated)``; returns the expert, the values
+    of ``term_key`` at every step and the last step's (reward, terminated, info)."""
+    env.reset(seed=seed)
+    expert = TableClearingExpert(env.unwrapped)
+    expert.reset()
+    values = []
+    for _ in range(limit):
+        _, rew, term, _, info = step(env, expert.act())
+        values.append(val(info, term_key))
+        if stop(info, term):
+            break
+    return expert, values, (rew, term, info)
+
+
 def check_sum(rew, info):
     assert float(rew[0]) == pytest.approx(sum(val(info, k) for k in TERMS))
 
@@ -92,15 +107,7 @@ def test_collision_driving_into_the_table(env):
 
 
 def test_grasp_event_then_carry_terms(env):
-    env.reset(seed=2)
-    expert = TableClearingExpert(env.unwrapped)
-    expert.reset()
-    seen_grasp = []
-    for _ in range(200):
-        _, rew, term, _, info = step(env, expert.act())
-        seen_grasp.append(val(info, "r_grasp"))
-        if bool(info["grasped"][0]):
-            break
+    expert, seen_grasp, (rew, term, info) = expert_trace(env, 2, "r_grasp", lambda i, t: bool(i["grasped"][0]))
     assert seen_grasp[-1] == 100.0 and all(r == 0.0 for r in seen_grasp[:-1])
     check_sum(rew, info)
     # held: next step the grasp event does not repeat
@@ -136,16 +143,11 @@ def test_drop_when_opening_mid_carry(env):
 
 
 def test_delivery_success_and_terminated(env):
-    env.reset(seed=4)
-    expert = TableClearingExpert(env.unwrapped)
-    expert.reset()
-    deliveries = []
-    for _ in range(250):
-        _, rew, term, trunc, info = step(env, expert.act())
-        deliveries.append(val(info, "r_delivery"))
+    def stop(info, term):
         assert val(info, "r_collision") == 0.0 and val(info, "r_drop") == 0.0
-        if bool(term[0]):
-            break
+        return bool(term[0])
+
+    _, deliveries, (rew, term, info) = expert_trace(env, 4, "r_delivery", stop)
     assert bool(info["success"][0]) and bool(info["delivered"][0]) and bool(term[0])
     assert deliveries[-1] == 200.0 and all(d == 0.0 for d in deliveries[:-1])
     check_sum(rew, info)
