@@ -329,9 +329,10 @@ class SeedPyBulletEnv:
 
 
 # --------------------------------------------------------------------------- measurement
-def random_actions(n: int, seed: int) -> np.ndarray:
-    """The benchmark policy: uniform in [-1, 1]^5; the last entry is the gripper flag (> 0 open)."""
-    return np.random.default_rng(seed).uniform(-1.0, 1.0, size=(n, 5))
+def random_actions(n: int, seed: int, dim: int = 5) -> np.ndarray:
+    """The benchmark policy for every simulator (sim_speed.py uses it too): uniform in [-1, 1]^dim;
+    for this robot's 5 values the last is the gripper flag (> 0 open)."""
+    return np.random.default_rng(seed).uniform(-1.0, 1.0, size=(n, dim))
 
 
 def summarize(times) -> dict:

@@ -32,6 +32,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from pybullet_seed import random_actions  # noqa: E402  (one action policy for every simulator)
+
 ENV_ID = "TableClearing-IRB120-v1"
 MODES = ("render_realtime", "render", "no_render")
 
@@ -60,10 +62,6 @@ def _timed(obj, name: str, acc: dict, key: str) -> None:
     setattr(obj, name, wrapper)
 
 
-def random_actions(n: int, seed: int, dim: int) -> np.ndarray:
-    return np.random.default_rng(seed).uniform(-1, 1, (n, dim)).astype(np.float32)
-
-
 def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int = 10, **kwargs) -> dict:
     """Per-action wall time of one ManiSkill env on CPU, with the physics/controller/render/Python split.
 
@@ -89,7 +87,7 @@ def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int
     _timed(u.agent, "set_action", acc, "controller")
     if obs_mode != "state":
         _timed(u, "_get_obs_sensor_data", acc, "render")
-    acts = random_actions(steps + warmup, seed, env.action_space.shape[-1])
+    acts = random_actions(steps + warmup, seed, env.action_space.shape[-1]).astype(np.float32)
     dt_real = 1.0 / u.control_freq
     times, resets = [], 0
     for i, a in enumerate(acts):
@@ -124,7 +122,7 @@ def measure_vector(env_id: str, workers: int, steps: int, seed: int, obs_mode: s
     extra = dict(render_backend="none") if obs_mode == "state" else {}
     venv = make_vec_env(env_id, workers, backend="cpu", obs_mode=obs_mode, record_metrics=False, **extra)
     venv.reset(seed=seed)
-    acts = torch.from_numpy(random_actions(steps + 5, seed, 5 * workers).reshape(-1, workers, 5))
+    acts = torch.from_numpy(random_actions(steps + 5, seed, 5 * workers).astype(np.float32).reshape(-1, workers, 5))
     for a in acts[:5]:
         venv.step(a)
     t0 = time.perf_counter()

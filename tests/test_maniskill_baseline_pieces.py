@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 import gymnasium as gym
-import numpy as np
 import torch
 from mani_skill.utils import gym_utils
 from mani_skill.utils.wrappers.flatten import FlattenActionSpaceWrapper, FlattenRGBDObservationWrapper

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.ppo import Agent, Args, bootstrap_mask, ppo_update, main, save_checkpoint
+from agents.ppo import Agent, Args, bootstrap_mask, ppo_update, main
 import torch.optim as optim
 
 
