@@ -2,9 +2,10 @@
 
 ManiSkill's ``PDEEPoseController`` only takes root-frame deltas on the GPU, while the seed acts in
 the tool frame: δx, δy, δz along the TCP axes and a rotation about the approach axis (TCP +x).
-``PDEEDeltaToolController`` composes the tool-frame delta itself and solves inverse kinematics with
-a batched damped-least-squares iteration on pytorch_kinematics' chain, so one code path serves
-``physx_cpu`` (num_envs=1) and ``physx_cuda`` (num_envs=N).
+``PDEEDeltaToolController`` composes the tool-frame delta itself and solves inverse kinematics in
+batched torch, so one code path serves ``physx_cpu`` (num_envs=1) and ``physx_cuda`` (num_envs=N):
+in closed form for the IRB 120's spherical wrist (exact, one pass), or by damped least squares for
+any other serial chain.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion, quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import SerialChain
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+
+IK_SOLVERS = ("auto", "closed_form", "dls")
 
 
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -39,7 +42,9 @@ class PDEEDeltaToolController(PDJointPosController):
     pose (or the last target with ``use_target``) and ``Δ`` the translation followed by the rotation,
     both in the tool frame (the seed's ``multiplyTransforms(current, delta)``). A target that IK
     cannot reach within tolerance (outside the workspace or joint limits) is not applied: that env
-    keeps its last reachable joint target and ``ik_unreachable`` is set for it.
+    keeps its last reachable joint target and ``ik_unreachable`` is set for it. So is a target that
+    would need a joint to move faster than its URDF velocity limit (ABB's axis speeds) within one
+    control period: such jumps happen only at singularities, and a real arm could not follow them.
     """
 
     config: "PDEEDeltaToolControllerConfig"
@@ -56,6 +61,17 @@ class PDEEDeltaToolController(PDJointPosController):
         self.root_link = self.articulation.root
         self.ik_unreachable = torch.zeros(self.scene.num_envs, dtype=torch.bool, device=self.device)
         self._target_pose = None
+        self.max_joint_step = self.chain.velocity / self._control_freq
+        solver = self.config.ik_solver
+        if solver not in IK_SOLVERS:
+            raise ValueError(f"ik_solver={solver!r} is not one of {IK_SOLVERS}")
+        self.closed_form = None
+        if solver != "dls":
+            try:
+                self.closed_form = SphericalWristIK(self.chain)
+            except ValueError:
+                if solver == "closed_form":
+                    raise
 
     def _initialize_action_space(self):
         c = self.config
@@ -68,7 +84,13 @@ class PDEEDeltaToolController(PDJointPosController):
         pose = self.root_link.pose.inv() * self.ee_link.pose
         return _pose_matrix(pose.p, pose.q)
 
-    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor, fk0=None) -> tuple[torch.Tensor, torch.Tensor]:
+    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joint angles reaching ``target`` (N,4,4) from ``q0`` and whether they do (within limits)."""
+        if self.closed_form is not None:
+            return self.closed_form.solve(target, q0)
+        return self.solve_ik_dls(target, q0)
+
+    def solve_ik_dls(self, target: torch.Tensor, q0: torch.Tensor, fk0=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Damped least squares from ``q0`` towards ``target`` (N,4,4); returns (q, converged).
         ``fk0``: ``chain.fk_with_jacobian(q0)`` if the caller already has it.
 
@@ -122,11 +144,17 @@ class PDEEDeltaToolController(PDJointPosController):
         self._step = 0
         self._start_qpos = self.qpos
         q0 = self._target_qpos if self.config.use_target else self._start_qpos
-        fk0 = self.chain.fk_with_jacobian(q0)
         # relative mode: FK of the measured joints is the measured TCP pose (same kinematics as PhysX)
-        ref = self._target_pose if self.config.use_target else fk0[0]
-        target = ref @ self.delta_matrix(action)
-        q, ok = self.solve_ik(target, q0, fk0)
+        if self.closed_form is not None:
+            ref = self._target_pose if self.config.use_target else self.chain.forward_kinematics(q0)
+            target = ref @ self.delta_matrix(action)
+            q, ok = self.closed_form.solve(target, q0)
+        else:
+            fk0 = self.chain.fk_with_jacobian(q0)
+            ref = self._target_pose if self.config.use_target else fk0[0]
+            target = ref @ self.delta_matrix(action)
+            q, ok = self.solve_ik_dls(target, q0, fk0)
+        ok = ok & ((q - q0).abs() <= self.max_joint_step).all(1)
         self.ik_unreachable = ~ok
         okm = ok.unsqueeze(1)
         self._target_qpos = torch.where(okm, q, self._target_qpos)
@@ -158,6 +186,8 @@ class PDEEDeltaToolControllerConfig(PDJointPosControllerConfig):
     ee_link: str = "tcp"
     urdf_path: str = ""
     use_target: bool = False
+    ik_solver: str = "auto"
+    """"closed_form" (spherical wrist, exact), "dls" (any chain, iterative) or "auto" (closed form if it applies)"""
     ik_iterations: int = 6
     ik_damping: float = 1e-3
     ik_pos_tol: float = 2e-4

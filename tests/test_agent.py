@@ -143,6 +143,95 @@ def test_own_kinematics_matches_pytorch_kinematics():
     torch.testing.assert_close(jac, jac_ref, atol=1e-5, rtol=0)
 
 
+def test_closed_form_ik_inverts_fk_on_its_branch():
+    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+
+    chain = SerialChain(rd.urdf_path(), "tcp", dtype=torch.float64)
+    ik = SphericalWristIK(chain)
+    gen = torch.Generator().manual_seed(0)
+    q = chain.lower + (chain.upper - chain.lower) * torch.rand(2000, 6, generator=gen, dtype=torch.float64)
+    target = chain.forward_kinematics(q)
+    sol, ok = ik.solve(target, q)
+    assert bool(ok.all())
+    torch.testing.assert_close(chain.forward_kinematics(sol), target, atol=1e-9, rtol=0)
+    # with q0 = q, away from the wrist singularity, the solution on q0's branch is q itself
+    regular = torch.sin(q[:, 4]).abs() > 0.1
+    torch.testing.assert_close(sol[regular], q[regular], atol=1e-6, rtol=0)
+    # out of reach (1 m away): not ok, and q0 comes back unchanged
+    far = target[:4].clone()
+    far[:, 0, 3] += 1.0
+    sol, ok = ik.solve(far, q[:4])
+    assert not bool(ok.any()) and torch.equal(sol, q[:4])
+    with pytest.raises(ValueError, match="6 revolute joints"):
+        SphericalWristIK(SerialChain(rd.urdf_path(), "link4"))
+
+
+def test_kinematics_numpy_and_torch_backends_agree():
+    """CPU tensors run the math in numpy, CUDA tensors in torch: the same function, so both must agree."""
+    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+
+    chain = SerialChain(rd.urdf_path(), "tcp")
+    ik = SphericalWristIK(chain)
+    gen = torch.Generator().manual_seed(1)
+    q = chain.lower + (chain.upper - chain.lower) * torch.rand(64, 6, generator=gen)
+    fk_np = chain.forward_kinematics(q)
+    fk_torch = chain.fk(torch, chain.consts(torch, q), q)
+    torch.testing.assert_close(fk_np, fk_torch, atol=1e-6, rtol=0)
+    q0 = q + 0.01 * torch.randn(64, 6, generator=gen)
+    sol_np, ok_np = ik.solve(fk_np, q0)
+    sol_t, ok_t = ik._solve(torch, ik.consts(torch, q0), fk_np, q0)
+    assert sol_np.dtype == sol_t.dtype == torch.float32 and torch.equal(ok_np, ok_t)
+    torch.testing.assert_close(sol_np, sol_t, atol=1e-4, rtol=0)
+
+
+def test_closed_form_ik_crosses_the_wrist_singularity_smoothly():
+    """Through q5 = 0 the nearer wrist solution keeps q4 and q6 and lets q5 change sign, as DLS would,
+    instead of flipping both by half a turn."""
+    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+
+    chain = SerialChain(rd.urdf_path(), "tcp", dtype=torch.float64)
+    ik = SphericalWristIK(chain)
+    q0 = torch.tensor([[0.2, 0.3, 0.1, 0.4, 0.02, -0.3]], dtype=torch.float64)
+    q_goal = q0.clone()
+    q_goal[0, 4] = -0.02
+    sol, ok = ik.solve(chain.forward_kinematics(q_goal), q0)
+    assert bool(ok.all())
+    torch.testing.assert_close(sol, q_goal, atol=1e-6, rtol=0)
+
+
+def test_tool_step_needing_a_too_fast_joint_is_refused():
+    """Wrist centre 2 mm in front of axis 1: a 6 mm step back across the axis needs axis 1 to turn half a
+    turn in one 50 ms control period (ABB: 250 deg/s): refused and flagged, the arm keeps its target;
+    a 1 mm step forward is fine."""
+    from maniskill_irb120.kinematics import SphericalWristIK
+
+    env = make()
+    agent = env.unwrapped.agent
+    ctrl = agent.arm_controller
+    ik = SphericalWristIK(ctrl.chain)
+    q = torch.zeros(1, 8)
+    q[0, 2] = ik.phi - math.pi / 2  # forearm straight up: the wrist centre right above axis 2
+    q[0, 4] = 0.5
+    agent.robot.set_qpos(q)
+    agent.controller.reset()
+    tcp = ctrl.chain.forward_kinematics(q[:, :6])[0]
+    wrist_x = float((tcp[:3, 3] + tcp[:3, :3] @ ik.w_tip)[0])
+    # shift the whole arm so the wrist centre sits 2 mm in front of axis 1
+    q[0, 2] -= 0.002 / ik.L + wrist_x / ik.L
+    agent.robot.set_qpos(q)
+    agent.controller.reset()
+    before = ctrl._target_qpos.clone()
+    for dx_m, refused in ((-0.006, True), (0.001, False)):
+        tcp = ctrl.chain.forward_kinematics(agent.robot.get_qpos()[:, :6])[0]
+        tool_step = tcp[:3, :3].T @ torch.tensor([dx_m, 0.0, 0.0])  # root-frame x step, in the tool frame
+        agent.set_action(torch.cat([tool_step / 0.01, torch.zeros(1), torch.ones(1)])[None])
+        assert bool(agent.ik_unreachable[0]) is refused
+        if refused:
+            torch.testing.assert_close(ctrl._target_qpos, before)
+        else:
+            assert float((ctrl._target_qpos - before).abs().max()) < 0.05
+
+
 # ------------------------------------------------------------------ the tool-frame controller
 def test_tool_delta_moves_tcp_as_commanded():
     env = make()
@@ -273,6 +362,32 @@ def test_hand_camera_shapes_motion_and_sees_cube():
     assert depth[0].float().median().item() < first_depth - 40
 
 
+def test_forward_shader_renders_what_minimal_renders():
+    """The one-pass sensor shader is a speed-up, not a different look: along a random walk of the
+    arm, RGB and depth match ManiSkill's two-pass ``minimal`` pack."""
+    from maniskill_irb120.rendering import sensor_shader_config
+
+    envs = [gym.make("TableClearing-IRB120-v1", obs_mode="rgbd"),
+            gym.make("TableClearing-IRB120-v1", obs_mode="rgbd", sensor_configs=dict(hand_camera=dict(shader_pack="minimal")))]
+    assert envs[0].unwrapped._sensors["hand_camera"].config.shader_pack.endswith("rgbd_forward")
+    assert envs[1].unwrapped._sensors["hand_camera"].config.shader_pack == "minimal"
+    obs = [e.reset(seed=3)[0] for e in envs]
+    rng = np.random.default_rng(3)
+    for step in range(40):
+        if step % 8 == 0:
+            (fw, mn) = [o["sensor_data"]["hand_camera"] for o in obs]
+            assert fw["rgb"].dtype == torch.uint8 and fw["depth"].dtype == torch.int16
+            diff = (fw["rgb"].int() - mn["rgb"].int()).abs()
+            assert float((diff > 2).float().mean()) < 0.01, f"step {step}: {int(diff.max())} max RGB difference"
+            assert torch.equal(fw["depth"], mn["depth"])
+        a = rng.uniform(-1, 1, 5).astype(np.float32)
+        obs = [e.step(a)[0] for e in envs]
+    for e in envs:
+        e.close()
+    with pytest.raises(ValueError, match="unknown sensor shader"):
+        sensor_shader_config("phong")
+
+
 # ------------------------------------------------------------------ description, packaging, doctor
 def test_urdf_regenerates_identically(tmp_path):
     used = Path(rd.urdf_path())
@@ -298,6 +413,8 @@ def test_wheel_ships_assets(tmp_path):
     names = zipfile.ZipFile(whl).namelist()
     for f in ["irb120_metalwork.urdf.xacro", "geometry.xacro", "physics.xacro", "gripper.xacro", "macros.xacro"]:
         assert f"maniskill_irb120/assets/irb120_metalwork/{f}" in names
+    for f in ["gbuffer.vert", "gbuffer.frag"]:
+        assert f"maniskill_irb120/assets/shaders/rgbd_forward/{f}" in names
 
 
 def test_doctor_finds_render_device():

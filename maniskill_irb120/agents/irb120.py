@@ -20,6 +20,7 @@ from mani_skill.utils import common
 from mani_skill.utils.structs.actor import Actor
 
 from maniskill_irb120.controllers import BinaryGripperControllerConfig, PDEEDeltaToolControllerConfig
+from maniskill_irb120.rendering import FORWARD, sensor_shader_config
 from maniskill_irb120.robot_description import geometry, urdf_path
 
 ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
@@ -27,7 +28,9 @@ GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 
 # Hand camera per the seed: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
 # SAPIEN cameras look along their local +x with +z up, which is exactly the TCP frame's convention.
-HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0)
+# Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see rendering.py).
+HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0,
+                   shader=FORWARD)
 
 
 @register_agent()
@@ -94,6 +97,7 @@ class IRB120Metalwork(BaseAgent):
                 near=c["near"],
                 far=c["far"],
                 mount=self.robot.links_map[self.ee_link_name],
+                shader_config=sensor_shader_config(c["shader"]),
             )
         ]
 
