@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Sequence, Union
 
 import numpy as np
@@ -21,7 +22,7 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion, quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, run_batched
 
 IK_SOLVERS = ("auto", "closed_form", "dls")
 
@@ -32,6 +33,17 @@ def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     m[:, :3, 3] = p
     m[:, 3, 3] = 1
     return m
+
+
+def _set_drive_targets(ctrl: PDJointPosController, targets: torch.Tensor) -> None:
+    """ManiSkill's CPU path converts and validates each joint's target through three Python layers
+    (~12 us per joint, 8 joints per step); this hands the floats to PhysX directly. GPU: unchanged."""
+    if ctrl.scene.gpu_sim_enabled:
+        PDJointPosController.set_drive_targets(ctrl, targets)
+        return
+    row = targets[0].detach().numpy()
+    for i, joint in enumerate(ctrl.joints):
+        joint._objs[0].drive_target = row[i:i + 1]
 
 
 class PDEEDeltaToolController(PDJointPosController):
@@ -66,6 +78,7 @@ class PDEEDeltaToolController(PDJointPosController):
         if solver not in IK_SOLVERS:
             raise ValueError(f"ik_solver={solver!r} is not one of {IK_SOLVERS}")
         self.closed_form = None
+        self._consts: dict = {}
         if solver != "dls":
             try:
                 self.closed_form = SphericalWristIK(self.chain)
@@ -128,16 +141,32 @@ class PDEEDeltaToolController(PDJointPosController):
         else:
             self._target_pose[mask] = pose[mask]
 
-    def delta_matrix(self, action: torch.Tensor) -> torch.Tensor:
-        """(N,4) scaled action -> (N,4,4) tool-frame transform: translate, then rotate about x."""
-        n = action.shape[0]
-        c, s = torch.cos(action[:, 3]), torch.sin(action[:, 3])
-        delta = torch.zeros(n, 4, 4, device=action.device, dtype=action.dtype)
-        delta[:, 0, 0] = 1
-        delta[:, 1, 1], delta[:, 1, 2], delta[:, 2, 1], delta[:, 2, 2] = c, -s, s, c
-        delta[:, :3, 3] = action[:, :3]
-        delta[:, 3, 3] = 1
-        return delta
+    @staticmethod
+    def apply_tool_delta(xp, ref, action):
+        """``ref · Δ`` for (N,4,4) poses and (N,4) scaled actions, Δ = translate by action[:3] in the tool
+        frame, then rotate by action[3] about its x axis; ``xp`` is numpy or torch."""
+        r = ref[:, :3, :3]
+        c, s = xp.cos(action[:, 3:4]), xp.sin(action[:, 3:4])
+        pos = ref[:, :3, 3] + (r @ action[:, :3, None])[..., 0]
+        cols = [r[:, :, 0], c * r[:, :, 1] + s * r[:, :, 2], c * r[:, :, 2] - s * r[:, :, 1], pos]
+        return xp.concatenate([xp.stack(cols, 2), ref[:, 3:]], 1)
+
+    def _closed_form_step(self, xp, c, q0, action, target_qpos, target_pose):
+        """FK, tool delta, IK and the speed check in one pass (numpy on CPU, torch on CUDA)."""
+        ref = target_pose if self.config.use_target else SerialChain.fk(xp, c.chain, q0)
+        target = self.apply_tool_delta(xp, ref, action)
+        q, ok = SphericalWristIK._solve(xp, c.ik, target, q0)
+        ok = ok & (xp.abs(q - q0) <= c.max_step).all(1)
+        return xp.where(ok[:, None], q, target_qpos), xp.where(ok[:, None, None], target, target_pose), ok
+
+    def _step_consts(self, xp, like) -> SimpleNamespace:
+        key = (xp.__name__, str(like.dtype), str(getattr(like, "device", "cpu")))
+        if key not in self._consts:
+            conv = (lambda t: t.detach().cpu().numpy().astype(like.dtype)) if xp is np \
+                else (lambda t: t.to(device=like.device, dtype=like.dtype))
+            self._consts[key] = SimpleNamespace(chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like),
+                                                max_step=conv(self.max_joint_step))
+        return self._consts[key]
 
     def set_action(self, action: Array):
         action = self._preprocess_action(action)
@@ -146,20 +175,21 @@ class PDEEDeltaToolController(PDJointPosController):
         q0 = self._target_qpos if self.config.use_target else self._start_qpos
         # relative mode: FK of the measured joints is the measured TCP pose (same kinematics as PhysX)
         if self.closed_form is not None:
-            ref = self._target_pose if self.config.use_target else self.chain.forward_kinematics(q0)
-            target = ref @ self.delta_matrix(action)
-            q, ok = self.closed_form.solve(target, q0)
+            self._target_qpos, self._target_pose, ok = run_batched(
+                self._closed_form_step, self._step_consts, q0, action, self._target_qpos, self._target_pose)
         else:
             fk0 = self.chain.fk_with_jacobian(q0)
             ref = self._target_pose if self.config.use_target else fk0[0]
-            target = ref @ self.delta_matrix(action)
+            target = self.apply_tool_delta(torch, ref, action)
             q, ok = self.solve_ik_dls(target, q0, fk0)
-        ok = ok & ((q - q0).abs() <= self.max_joint_step).all(1)
+            ok = ok & ((q - q0).abs() <= self.max_joint_step).all(1)
+            self._target_qpos = torch.where(ok[:, None], q, self._target_qpos)
+            self._target_pose = torch.where(ok[:, None, None], target, self._target_pose)
         self.ik_unreachable = ~ok
-        okm = ok.unsqueeze(1)
-        self._target_qpos = torch.where(okm, q, self._target_qpos)
-        self._target_pose = torch.where(okm.unsqueeze(2), target, self._target_pose)
         self.set_drive_targets(self._target_qpos)
+
+    def set_drive_targets(self, targets: torch.Tensor):
+        _set_drive_targets(self, targets)
 
     def get_state(self) -> dict:
         if self.config.use_target:
@@ -215,7 +245,7 @@ class BinaryGripperController(PDJointPosController):
         opened = torch.full((1, n), self.config.open_target, device=self.device)
         closed = torch.full((1, n), self.config.closed_target, device=self.device)
         self._target_qpos = torch.where(action[:, :1] > 0, opened, closed)
-        self.set_drive_targets(self._target_qpos)
+        _set_drive_targets(self, self._target_qpos)
 
 
 @dataclass

@@ -182,6 +182,42 @@ def cache_root() -> Path:
     return Path(base) / "maniskill_irb120"
 
 
+def merged_box_mesh(boxes: list[tuple[tuple, tuple]]) -> str:
+    """OBJ file (cached, content-addressed) of several (half_size, centre) boxes as one flat-shaded mesh.
+
+    A static body built from N box visuals is N draw calls; on the CPU rasteriser each costs ~20-30 us
+    per 84x84 frame whatever its size, so a tray drawn as one mesh saves four of five.
+    """
+    lines = []
+    normals = [(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, -1), (0, 0, 1)]
+    lines += [f"vn {x} {y} {z}" for x, y, z in normals]
+    n_v = 0
+    for half, centre in boxes:
+        h, c = np.asarray(half, dtype=float), np.asarray(centre, dtype=float)
+        for axis in range(3):
+            for side in (-1, 1):
+                # the face's four corners, counter-clockwise seen from outside
+                u, v = (axis + 1) % 3, (axis + 2) % 3
+                corners = []
+                for du, dv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                    p = np.zeros(3)
+                    p[axis], p[u], p[v] = side, du, dv * side
+                    corners.append(c + p * h)
+                lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in corners]
+                vn = 2 * axis + (side > 0) + 1
+                a = n_v + 1
+                lines += [f"f {a}//{vn} {a + 1}//{vn} {a + 2}//{vn}", f"f {a}//{vn} {a + 2}//{vn} {a + 3}//{vn}"]
+                n_v += 4
+    text = "\n".join(lines) + "\n"
+    path = cache_root() / "scene_meshes" / f"boxes-{hashlib.sha256(text.encode()).hexdigest()[:16]}.obj"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)  # atomic: worker processes may race to write the same file
+    return str(path)
+
+
 def build_description(out_dir: Path, final_dir: Path | None = None) -> Path:
     """Generate meshes and URDF into ``out_dir``; the URDF names meshes under ``final_dir`` (default out_dir)."""
     write_meshes(out_dir / "meshes")
