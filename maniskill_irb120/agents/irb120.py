@@ -133,6 +133,8 @@ class IRB120Metalwork(BaseAgent):
             )
         )
 
+    _opening_map: torch.Tensor | None = None
+
     def _after_init(self):
         links = self.robot.links_map
         self.finger_left = links["finger_left"]
@@ -182,25 +184,34 @@ class IRB120Metalwork(BaseAgent):
         return q.sum(dim=1) + 2 * geometry()["finger_closed_half_gap"]
 
     def is_grasping(self, object: Actor, min_force: float = 0.5, max_angle: float = 85.0,
-                    finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+                    finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None,
+                    tcp_quat: torch.Tensor | None = None) -> torch.Tensor:
         """Both fingers push on ``object`` with at least ``min_force`` N roughly along their closing direction.
 
-        ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object`` when the
-        caller already has them (a task that scans the contact list once per step); else queried here.
+        ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object``, and
+        ``tcp_quat`` the (N,4) wxyz TCP orientation, when the caller already has them (a task that scans
+        the contact list and reads poses once per step); else queried here.
         """
         if finger_forces is None:
             lf = self.scene.get_pairwise_contact_forces(self.finger_left, object)
             rf = self.scene.get_pairwise_contact_forces(self.finger_right, object)
         else:
             lf, rf = finger_forces
-        # both fingers slide along the TCP's y axis (left opens towards +y, right towards -y)
-        w, x, y, z = self.tcp.pose.q.unbind(-1)
-        opening = torch.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], -1)
-        cos_max = math.cos(math.radians(max_angle))
-        ln, rn = torch.linalg.norm(lf, dim=1), torch.linalg.norm(rf, dim=1)
-        lflag = (ln >= min_force) & ((lf * opening).sum(1) >= cos_max * ln)
-        rflag = (rn >= min_force) & ((-rf * opening).sum(1) >= cos_max * rn)
-        return lflag & rflag
+        # both fingers slide along the TCP's y axis (left opens towards +y, right towards -y): the rotation
+        # matrix's second column, [2(xy - wz), 1 - 2(x² + z²), 2(yz + wx)], as one product of the
+        # quaternion's outer product with a constant (this runs every step; fewer small ops is faster)
+        q = self.tcp.pose.q if tcp_quat is None else tcp_quat
+        if self._opening_map is None or self._opening_map.device != q.device:
+            m = torch.zeros(4, 4, 3)
+            m[1, 2, 0], m[0, 3, 0] = 2.0, -2.0  # 2xy - 2wz
+            m[0, 0, 1], m[2, 2, 1], m[1, 1, 1], m[3, 3, 1] = 1.0, 1.0, -1.0, -1.0  # w² + y² - x² - z²
+            m[2, 3, 2], m[0, 1, 2] = 2.0, 2.0  # 2yz + 2wx
+            self._opening_map = m.reshape(16, 3).to(q.device)
+        opening = (q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ self._opening_map  # unit q: w²+x²+y²+z² = 1
+        push = torch.stack([lf, -rf], 1)  # (N, 2, 3): each finger's force, signed towards its closing direction
+        norm = torch.linalg.vector_norm(push, dim=2)
+        along = (push @ opening[:, :, None])[..., 0]
+        return ((norm >= min_force) & (along >= math.cos(math.radians(max_angle)) * norm)).all(1)
 
     def is_static(self, threshold: float = 0.2) -> torch.Tensor:
         qvel = self.robot.get_qvel()[..., :6]

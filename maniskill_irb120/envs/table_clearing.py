@@ -315,30 +315,33 @@ class TableClearingIRB120Env(BaseEnv):
         kind = self._entity_kind
         dt = self.scene.px.timestep
         robot_hit = obj_hit = False
-        finger_force = [np.zeros(3), np.zeros(3)]
+        finger_impulse = [np.zeros(3), np.zeros(3)]
+        eps_impulse_sq = (CONTACT_FORCE_EPS * dt) ** 2
         for c in self.scene.px.get_contacts():
             k0, k1 = kind.get(c.bodies[0].entity), kind.get(c.bodies[1].entity)
-            if k0 is None or k1 is None:
+            if k0 is None or k1 is None or k0 == k1:
                 continue
             pair = {k0, k1}
             if "scene" not in pair and "obj" not in pair:
                 continue
-            impulse = np.sum([p.impulse for p in c.points], axis=0) if c.points else np.zeros(3)
-            if "obj" in pair and k0 != k1 and (k0.startswith("finger") or k1.startswith("finger")):
-                # force on the finger from the object, with ManiSkill's pairwise sign convention
-                i = int((k0 if k0 != "obj" else k1)[-1])
-                finger_force[i] += impulse / dt if k0 != "obj" else -impulse / dt
+            impulse = sum(p.impulse for p in c.points) if c.points else np.zeros(3)
+            if "obj" in pair and (k0[0] == "f" or k1[0] == "f"):
+                # impulse on the finger from the object, with ManiSkill's pairwise sign convention
+                if k0 == "obj":
+                    finger_impulse[int(k1[-1])] -= impulse
+                else:
+                    finger_impulse[int(k0[-1])] += impulse
                 continue
-            if np.linalg.norm(impulse) / dt <= CONTACT_FORCE_EPS:
+            if float(impulse @ impulse) <= eps_impulse_sq:
                 continue
             if "scene" in pair and ("robot" in pair or "finger0" in pair or "finger1" in pair):
                 robot_hit = True
             elif pair == {"obj", "scene"}:
                 obj_hit = True
-        as_t = lambda v: torch.tensor([v], dtype=torch.bool, device=self.device)  # noqa: E731
-        lf, rf = (torch.as_tensor(f, dtype=torch.float32, device=self.device)[None] for f in finger_force)
-        finger = (lf.norm(dim=1) > CONTACT_FORCE_EPS) | (rf.norm(dim=1) > CONTACT_FORCE_EPS)
-        return as_t(robot_hit), as_t(obj_hit), finger, lf, rf
+        forces = torch.from_numpy(np.stack(finger_impulse).astype(np.float32) / dt).to(self.device)
+        touch = max(float(f @ f) for f in finger_impulse) > eps_impulse_sq
+        flags = torch.tensor([[robot_hit], [obj_hit], [touch]], device=self.device)
+        return flags[0], flags[1], flags[2], forces[0:1], forces[1:2]
 
     # ------------------------------------------------------------------ evaluation
     def _inside_dest_xy(self, p: torch.Tensor) -> torch.Tensor:
@@ -354,7 +357,7 @@ class TableClearingIRB120Env(BaseEnv):
         robot_hit, obj_hit, finger_touch, lf, rf = self._contact_flags()
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
-        grasped = self.agent.is_grasping(self.obj, finger_forces=(lf, rf)) & ~obj_hit & lifted
+        grasped = self.agent.is_grasping(self.obj, finger_forces=(lf, rf), tcp_quat=self._tcp_pose[:, 3:]) & ~obj_hit & lifted
         over_dest = self._inside_dest_xy(obj_p)
         delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~finger_touch
         cur = dict(
