@@ -57,8 +57,15 @@ def _make_worker_env(env_id: str, env_kwargs: dict, wrappers: Sequence[Callable]
 def _stack_final_obs(final_obs: np.ndarray, like: Any, done: np.ndarray) -> Any:
     """Gymnasium keeps final observations as an object array of per-env obs; batch the done ones."""
     if isinstance(like, dict):
-        return {k: _stack_final_obs(np.array([None if o is None else o[k] for o in final_obs], dtype=object),
-                                    like[k], done) for k in like}
+        out = {}
+        for k in like:
+            # filled element by element: np.array(list, dtype=object) would split equal-shaped arrays
+            # into an object array of scalars (always the case with one env, or all envs done at once)
+            sub = np.empty(len(final_obs), dtype=object)
+            for j, o in enumerate(final_obs):
+                sub[j] = None if o is None else o[k]
+            out[k] = _stack_final_obs(sub, like[k], done)
+        return out
     out = like.clone()
     for i in np.flatnonzero(done):
         out[i] = torch.as_tensor(np.asarray(final_obs[i]))

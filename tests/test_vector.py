@@ -43,6 +43,22 @@ def test_auto_reset_reports_final_info_and_observation(venv):
     assert info["episode"]["episode_len"].tolist() == [1, 1]
 
 
+def test_final_observation_of_dict_obs_when_every_env_ends_at_once():
+    """rgbd observations are nested dicts; with one worker every episode end is an 'all done' step."""
+    env = make_vec_env(ENV, 1, backend="cpu", obs_mode="rgbd", max_episode_steps=2)
+    try:
+        env.reset(seed=0)
+        for _ in range(2):
+            obs, rew, term, trunc, info = env.step(torch.zeros(1, 5))
+        assert bool(trunc[0] or term[0])
+        final = info["final_observation"]
+        rgb = final["sensor_data"]["hand_camera"]["rgb"]
+        assert rgb.shape == obs["sensor_data"]["hand_camera"]["rgb"].shape == (1, 84, 84, 3)
+        assert rgb.dtype == torch.uint8 and final["agent"]["qpos"].dtype == torch.float32
+    finally:
+        env.close()
+
+
 def test_partial_reset_only_touches_selected_env(venv):
     venv.reset(seed=7)
     for _ in range(2):
