@@ -241,10 +241,11 @@ class BinaryGripperController(PDJointPosController):
         action = self._preprocess_action(action)
         self._step = 0
         self._start_qpos = self.qpos
-        n = len(self.joints)
-        opened = torch.full((1, n), self.config.open_target, device=self.device)
-        closed = torch.full((1, n), self.config.closed_target, device=self.device)
-        self._target_qpos = torch.where(action[:, :1] > 0, opened, closed)
+        if getattr(self, "_levels", None) is None:
+            n = len(self.joints)
+            self._levels = (torch.full((1, n), self.config.open_target, device=self.device),
+                            torch.full((1, n), self.config.closed_target, device=self.device))
+        self._target_qpos = torch.where(action[:, :1] > 0, *self._levels)
         _set_drive_targets(self, self._target_qpos)
 
 

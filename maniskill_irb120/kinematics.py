@@ -254,24 +254,21 @@ class SphericalWristIK:
         # rows of R_3^T: (c1 c23, s1 c23, -s23), (-s1, c1, 0), (c1 s23, s1 s23, c23)
         r3t = xp.stack([c1 * c23, s1 * c23, -s23, -s1, c1, 0 * c1, c1 * s23, s1 * s23, c23], 1).reshape(-1, 3, 3)
         m = r3t @ rot @ c.r_to_t
-        # two wrist solutions (q5 > 0 and its flip); take the one nearer q0, so that passing through the
-        # wrist singularity (q5 = 0) moves q5 through zero instead of turning q4 and q6 half a turn
+        # two wrist solutions: q5 >= 0 and its flip (q4 + pi, -q5, q6 + pi); take the one nearer q0, so that
+        # passing through the wrist singularity (q5 = 0) moves q5 through zero instead of turning q4 and
+        # q6 half a turn. At the singularity only q4 + q6 is defined: keep q4 where it was.
         sb = xp.sqrt(m[:, 1, 0] ** 2 + m[:, 2, 0] ** 2)
         singular = sb < c.singular
-        best = best_cost = None
-        for sign in (1.0, -1.0):
-            q5 = xp.atan2(sign * sb, m[:, 0, 0])
-            # at the singularity only q4 + q6 is defined: keep q4 where it was
-            q4 = xp.where(singular, q0[:, 3], xp.atan2(sign * m[:, 1, 0], -sign * m[:, 2, 0]))
-            q6 = xp.where(singular, xp.atan2(m[:, 2, 1], m[:, 1, 1]) - q0[:, 3], xp.atan2(sign * m[:, 0, 1], sign * m[:, 0, 2]))
-            q6 = q6 + 2 * math.pi * xp.round((q0[:, 5] - q6) / (2 * math.pi))  # the turn nearest q0
-            wq = xp.stack([q4, q5, q6], 1)
-            out = ((wq < c.lower[3:]) | (wq > c.upper[3:])).any(1)
-            cost = xp.abs(wq - q0[:, 3:]).sum(1) + 100.0 * out
-            if best is None:
-                best, best_cost = wq, cost
-            else:
-                best = xp.where((cost < best_cost)[:, None], wq, best)
+        q4 = xp.where(singular, q0[:, 3], xp.atan2(m[:, 1, 0], -m[:, 2, 0]))
+        q5 = xp.atan2(sb, m[:, 0, 0])
+        q6 = xp.where(singular, xp.atan2(m[:, 2, 1], m[:, 1, 1]) - q0[:, 3], xp.atan2(m[:, 0, 1], m[:, 0, 2]))
+        half = xp.where(singular, 0 * q4, xp.where(q4 > 0, -math.pi + 0 * q4, math.pi + 0 * q4))
+        wq = xp.stack([xp.stack([q4, q5, q6], 1), xp.stack([q4 + half, -q5, q6 - half], 1)], 1)  # (N, 2, 3)
+        wq6 = wq[:, :, 2] + 2 * math.pi * xp.round((q0[:, 5:6] - wq[:, :, 2]) / (2 * math.pi))  # turn nearest q0
+        wq = xp.concatenate([wq[:, :, :2], wq6[:, :, None]], 2)
+        out = ((wq < c.lower[3:]) | (wq > c.upper[3:])).any(2)
+        cost = xp.abs(wq - q0[:, None, 3:]).sum(2) + 100.0 * out
+        best = xp.where((cost[:, 1] < cost[:, 0])[:, None], wq[:, 1], wq[:, 0])
         q = xp.concatenate([xp.stack([q1, q2, q3], 1), best], 1)
         ok = reachable & ((q >= c.lower) & (q <= c.upper)).all(1)
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
