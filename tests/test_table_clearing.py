@@ -298,6 +298,35 @@ def test_defaults_and_module_prefixed_make_in_fresh_interpreter():
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
 
 
+def test_render_ahead_gives_the_same_observations():
+    """The frame started before evaluate() is the frame get_obs() would have taken: same images, every
+    step and across resets, as with ManiSkill's own capture order."""
+    envs = [gym.make(ENV_ID, obs_mode="rgbd", max_episode_steps=12) for _ in range(2)]
+    envs[1].unwrapped.render_ahead = False
+    obs = [e.reset(seed=4)[0] for e in envs]
+    rng = np.random.default_rng(4)
+    captured_ahead = 0
+    orig = envs[0].unwrapped._get_obs_sensor_data
+
+    def counting(*a, **k):
+        nonlocal captured_ahead
+        captured_ahead += bool(envs[0].unwrapped._captured_ahead)
+        return orig(*a, **k)
+
+    envs[0].unwrapped._get_obs_sensor_data = counting
+    for step in range(30):
+        a = rng.uniform(-1, 1, 5).astype(np.float32)
+        out = [e.step(a) for e in envs]
+        for k in ("rgb", "depth"):
+            assert torch.equal(out[0][0]["sensor_data"]["hand_camera"][k], out[1][0]["sensor_data"]["hand_camera"][k]), (step, k)
+        if out[0][2] or out[0][3]:
+            obs = [e.reset() for e in envs]
+            assert torch.equal(obs[0][0]["sensor_data"]["hand_camera"]["rgb"], obs[1][0]["sensor_data"]["hand_camera"]["rgb"])
+    assert captured_ahead == 30  # every step's frame was started early
+    for e in envs:
+        e.close()
+
+
 def test_rgbd_default_obs_mode_and_hand_camera_shapes():
     e = gym.make(ENV_ID)
     assert e.unwrapped.obs_mode == "rgbd"

@@ -19,7 +19,7 @@ import torch
 from gymnasium.utils import seeding as gym_seeding
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.utils.observations import ALL_VISUAL_TEXTURES, parse_obs_mode_to_struct
-from mani_skill.sensors.camera import CameraConfig
+from mani_skill.sensors.camera import Camera, CameraConfig
 from mani_skill.utils import sapien_utils
 from mani_skill.utils.registration import register_env
 from mani_skill.utils.structs.actor import Actor
@@ -248,6 +248,7 @@ class TableClearingIRB120Env(BaseEnv):
         return super().reset(seed=seed, options=options)
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        self._captured_ahead = False  # a reset's observation is always captured afresh
         with torch.device(self.device):
             b = len(env_idx)
             qpos = torch.as_tensor(self.agent.keyframes["rest"].qpos, dtype=torch.float32).repeat(b, 1)
@@ -273,6 +274,37 @@ class TableClearingIRB120Env(BaseEnv):
         """The state evaluated after the last step (or reset) becomes the reference for this step."""
         self._prev = {k: v.clone() for k, v in self._cur.items()}
         self._fresh[:] = False
+
+    render_ahead: bool = True
+    _captured_ahead: bool = False
+
+    def _after_control_step(self):
+        """Start this step's camera frame now, before ``evaluate``: on the CPU the rasteriser draws it in
+        its own threads while this thread evaluates the step, and ``get_obs`` then only reads it back
+        (measured: ~1 ms less per rgbd step on 2 cores). The scene does not change in between, so the
+        images are the ones ManiSkill's capture in ``get_obs`` takes (tested). GPU sim: ManiSkill's path."""
+        if (not self.render_ahead or self.gpu_sim_enabled or not self._sensors
+                or self._obs_mode in ("state", "state_dict", "none")):
+            return
+        for obj in self._hidden_objects:
+            obj.hide_visual()
+        self.scene.update_render(update_sensors=True, update_human_render_cameras=False)
+        self.capture_sensor_data()
+        self._captured_ahead = True
+
+    def _get_obs_sensor_data(self, apply_texture_transforms: bool = True) -> dict:
+        if not self._captured_ahead:
+            return super()._get_obs_sensor_data(apply_texture_transforms)
+        # the frame is in flight: read it back without ManiSkill's update_render + capture (a second
+        # update would only mark the pictures stale); otherwise as ManiSkill 3.0.1's method does
+        self._captured_ahead = False
+        v = self.obs_mode_struct.visual
+        return {
+            name: sensor.get_obs(rgb=v.rgb, depth=v.depth, position=v.position, segmentation=v.segmentation,
+                                 normal=v.normal, albedo=v.albedo, apply_texture_transforms=apply_texture_transforms)
+            if isinstance(sensor, Camera) else sensor.get_obs()
+            for name, sensor in self.scene.sensors.items()
+        }
 
     # ------------------------------------------------------------------ contacts
     def _contact_flags(self) -> tuple[torch.Tensor, ...]:
