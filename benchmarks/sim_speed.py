@@ -67,7 +67,9 @@ def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int
 
     The split wraps ``scene.step`` (physics), ``agent.set_action`` (controller incl. IK) and
     ``_get_obs_sensor_data`` (camera capture and read-back); the rest of ``env.step`` is Python/other
-    (evaluation, reward, observation assembly). Resets are excluded from both.
+    (evaluation, reward, observation assembly). Resets are excluded from both. TableClearing starts its
+    frame right after physics (``render_ahead``), so its "rendering" is the wait for and read-back of a
+    frame drawn while ``evaluate`` ran, and the frame's start (~0.1 ms) counts as Python/other.
     """
     import gymnasium as gym
     import torch
