@@ -22,7 +22,7 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion, quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, run_batched
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, backend_consts, run_batched
 
 IK_SOLVERS = ("auto", "closed_form", "dls")
 
@@ -151,22 +151,23 @@ class PDEEDeltaToolController(PDJointPosController):
         cols = [r[:, :, 0], c * r[:, :, 1] + s * r[:, :, 2], c * r[:, :, 2] - s * r[:, :, 1], pos]
         return xp.concatenate([xp.stack(cols, 2), ref[:, 3:]], 1)
 
+    @staticmethod
+    def _accept(xp, q, ok, q0, target, target_qpos, target_pose, max_step):
+        """Apply IK solutions that exist and need no joint faster than ``max_step`` per control step;
+        elsewhere keep the last targets. Returns (joint targets, pose targets, accepted)."""
+        ok = ok & (xp.abs(q - q0) <= max_step).all(1)
+        return xp.where(ok[:, None], q, target_qpos), xp.where(ok[:, None, None], target, target_pose), ok
+
     def _closed_form_step(self, xp, c, q0, action, target_qpos, target_pose):
         """FK, tool delta, IK and the speed check in one pass (numpy on CPU, torch on CUDA)."""
         ref = target_pose if self.config.use_target else SerialChain.fk(xp, c.chain, q0)
         target = self.apply_tool_delta(xp, ref, action)
         q, ok = SphericalWristIK._solve(xp, c.ik, target, q0)
-        ok = ok & (xp.abs(q - q0) <= c.max_step).all(1)
-        return xp.where(ok[:, None], q, target_qpos), xp.where(ok[:, None, None], target, target_pose), ok
+        return self._accept(xp, q, ok, q0, target, target_qpos, target_pose, c.max_step)
 
     def _step_consts(self, xp, like) -> SimpleNamespace:
-        key = (xp.__name__, str(like.dtype), str(getattr(like, "device", "cpu")))
-        if key not in self._consts:
-            conv = (lambda t: t.detach().cpu().numpy().astype(like.dtype)) if xp is np \
-                else (lambda t: t.to(device=like.device, dtype=like.dtype))
-            self._consts[key] = SimpleNamespace(chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like),
-                                                max_step=conv(self.max_joint_step))
-        return self._consts[key]
+        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
+            chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like), max_step=conv(self.max_joint_step)))
 
     def set_action(self, action: Array):
         action = self._preprocess_action(action)
@@ -182,9 +183,8 @@ class PDEEDeltaToolController(PDJointPosController):
             ref = self._target_pose if self.config.use_target else fk0[0]
             target = self.apply_tool_delta(torch, ref, action)
             q, ok = self.solve_ik_dls(target, q0, fk0)
-            ok = ok & ((q - q0).abs() <= self.max_joint_step).all(1)
-            self._target_qpos = torch.where(ok[:, None], q, self._target_qpos)
-            self._target_pose = torch.where(ok[:, None, None], target, self._target_pose)
+            self._target_qpos, self._target_pose, ok = self._accept(
+                torch, q, ok, q0, target, self._target_qpos, self._target_pose, self.max_joint_step)
         self.ik_unreachable = ~ok
         self.set_drive_targets(self._target_qpos)
 
@@ -246,7 +246,10 @@ class BinaryGripperController(PDJointPosController):
             self._levels = (torch.full((1, n), self.config.open_target, device=self.device),
                             torch.full((1, n), self.config.closed_target, device=self.device))
         self._target_qpos = torch.where(action[:, :1] > 0, *self._levels)
-        _set_drive_targets(self, self._target_qpos)
+        self.set_drive_targets(self._target_qpos)
+
+    def set_drive_targets(self, targets: torch.Tensor):
+        _set_drive_targets(self, targets)
 
 
 @dataclass

@@ -33,6 +33,18 @@ def run_batched(fn, consts, *tensors: torch.Tensor):
     return fn(torch, consts(torch, like), *tensors)
 
 
+def backend_consts(cache: dict, xp, like, build) -> SimpleNamespace:
+    """Constants for one backend, built once per (module, dtype, device) and cached in ``cache``:
+    ``build(conv)`` gets ``conv(tensor)``, which returns that tensor as an ``xp`` array like ``like``."""
+    key = (xp.__name__, str(like.dtype), str(getattr(like, "device", "cpu")))
+    if key not in cache:
+        if xp is np:
+            cache[key] = build(lambda t: t.detach().cpu().numpy().astype(like.dtype))
+        else:
+            cache[key] = build(lambda t: t.to(device=like.device, dtype=like.dtype))
+    return cache[key]
+
+
 def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
     return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
@@ -135,18 +147,11 @@ class SerialChain:
 
     def consts(self, xp, like) -> SimpleNamespace:
         """The chain's constants as ``xp`` arrays of ``like``'s dtype (and device), cached."""
-        key = (xp.__name__, str(like.dtype), str(getattr(like, "device", "cpu")))
-        if key not in self._consts:
-            def conv(t: torch.Tensor):
-                if xp is np:
-                    return t.detach().cpu().numpy().astype(like.dtype)
-                return t.to(device=like.device, dtype=like.dtype)
-            self._consts[key] = SimpleNamespace(
-                off_r=conv(self.offsets[:, :3, :3]), off_p=conv(self.offsets[:, :3, 3]), K=conv(self.K),
-                K2=conv(self.K2), eye3=conv(torch.eye(3)), tip_r=conv(self.tip_offset[:3, :3]),
-                tip_p=conv(self.tip_offset[:3, 3]), last_row=conv(torch.tensor([[[0.0, 0.0, 0.0, 1.0]]])),
-                lower=conv(self.lower), upper=conv(self.upper), one=conv(torch.tensor(1.0)))
-        return self._consts[key]
+        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
+            off_r=conv(self.offsets[:, :3, :3]), off_p=conv(self.offsets[:, :3, 3]), K=conv(self.K),
+            K2=conv(self.K2), eye3=conv(torch.eye(3)), tip_r=conv(self.tip_offset[:3, :3]),
+            tip_p=conv(self.tip_offset[:3, 3]), last_row=conv(torch.tensor([[[0.0, 0.0, 0.0, 1.0]]])),
+            lower=conv(self.lower), upper=conv(self.upper), one=conv(torch.tensor(1.0))))
 
     @staticmethod
     def fk(xp, c: SimpleNamespace, q):
@@ -166,7 +171,7 @@ class SerialChain:
 
 
 class SphericalWristIK:
-    """Closed-form inverse kinematics of a 6R arm of the IRB 120's structure, batched in torch.
+    """Closed-form inverse kinematics of a 6R arm of the IRB 120's structure, batched (numpy or torch).
 
     Structure (checked at construction, else ``ValueError``): axis 1 vertical (z), axes 2 and 3 parallel
     (y) with no shoulder offset, axes 4-6 (x, y, x) meeting in one wrist centre, no rotations in the
@@ -212,15 +217,10 @@ class SphericalWristIK:
         self._consts: dict = {}
 
     def consts(self, xp, like) -> SimpleNamespace:
-        key = (xp.__name__, str(like.dtype), str(getattr(like, "device", "cpu")))
-        if key not in self._consts:
-            c = self.chain.consts(xp, like)
-            conv = (lambda t: t.detach().cpu().numpy().astype(like.dtype)) if xp is np \
-                else (lambda t: t.to(device=like.device, dtype=like.dtype))
-            self._consts[key] = SimpleNamespace(
-                lower=c.lower, upper=c.upper, one=c.one, w_tip=conv(self.w_tip), r_to_t=conv(self.r_to.T.contiguous()),
-                h=self.h, a2=self.a2, L=self.L, phi=self.phi, singular=self.SINGULAR)
-        return self._consts[key]
+        c = self.chain.consts(xp, like)
+        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
+            lower=c.lower, upper=c.upper, one=c.one, w_tip=conv(self.w_tip), r_to_t=conv(self.r_to.T.contiguous()),
+            h=self.h, a2=self.a2, L=self.L, phi=self.phi, singular=self.SINGULAR))
 
     def solve(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Joint angles (N,6) reaching ``target`` (N,4,4, tip in the root frame) on ``q0``'s branch, and

@@ -133,13 +133,17 @@ class IRB120Metalwork(BaseAgent):
             )
         )
 
-    _opening_map: torch.Tensor | None = None
-
     def _after_init(self):
         links = self.robot.links_map
         self.finger_left = links["finger_left"]
         self.finger_right = links["finger_right"]
         self.tcp = links[self.ee_link_name]
+        # maps a quaternion's outer product (w, x, y, z) to its rotation matrix's second column (is_grasping)
+        m = torch.zeros(4, 4, 3)
+        m[1, 2, 0], m[0, 3, 0] = 2.0, -2.0  # 2xy - 2wz
+        m[0, 0, 1], m[2, 2, 1], m[1, 1, 1], m[3, 3, 1] = 1.0, 1.0, -1.0, -1.0  # w² + y² - x² - z²
+        m[2, 3, 2], m[0, 1, 2] = 2.0, 2.0  # 2yz + 2wx
+        self._opening_map = m.reshape(16, 3).to(self.device)
 
     # ------------------------------------------------------------------ actions
     def set_action(self, action):
@@ -201,12 +205,6 @@ class IRB120Metalwork(BaseAgent):
         # matrix's second column, [2(xy - wz), 1 - 2(x² + z²), 2(yz + wx)], as one product of the
         # quaternion's outer product with a constant (this runs every step; fewer small ops is faster)
         q = self.tcp.pose.q if tcp_quat is None else tcp_quat
-        if self._opening_map is None or self._opening_map.device != q.device:
-            m = torch.zeros(4, 4, 3)
-            m[1, 2, 0], m[0, 3, 0] = 2.0, -2.0  # 2xy - 2wz
-            m[0, 0, 1], m[2, 2, 1], m[1, 1, 1], m[3, 3, 1] = 1.0, 1.0, -1.0, -1.0  # w² + y² - x² - z²
-            m[2, 3, 2], m[0, 1, 2] = 2.0, 2.0  # 2yz + 2wx
-            self._opening_map = m.reshape(16, 3).to(q.device)
         opening = (q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ self._opening_map  # unit q: w²+x²+y²+z² = 1
         push = torch.stack([lf, -rf], 1)  # (N, 2, 3): each finger's force, signed towards its closing direction
         norm = torch.linalg.vector_norm(push, dim=2)
