@@ -217,10 +217,12 @@ class SphericalWristIK:
         self._consts: dict = {}
 
     def consts(self, xp, like) -> SimpleNamespace:
-        c = self.chain.consts(xp, like)
-        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
-            lower=c.lower, upper=c.upper, one=c.one, w_tip=conv(self.w_tip), r_to_t=conv(self.r_to.T.contiguous()),
-            h=self.h, a2=self.a2, L=self.L, phi=self.phi, singular=self.SINGULAR))
+        def build(conv) -> SimpleNamespace:
+            c = self.chain.consts(xp, like)
+            return SimpleNamespace(lower=c.lower, upper=c.upper, one=c.one, w_tip=conv(self.w_tip),
+                                   r_to_t=conv(self.r_to.T.contiguous()), h=self.h, a2=self.a2, L=self.L,
+                                   phi=self.phi, singular=self.SINGULAR)
+        return backend_consts(self._consts, xp, like, build)
 
     def solve(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Joint angles (N,6) reaching ``target`` (N,4,4, tip in the root frame) on ``q0``'s branch, and
