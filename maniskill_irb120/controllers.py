@@ -18,11 +18,19 @@ from typing import Sequence, Union
 import numpy as np
 import torch
 from gymnasium import spaces
+from mani_skill.agents.controllers.pd_ee_pose import PDEEPoseController, PDEEPoseControllerConfig
 from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJointPosControllerConfig
-from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion, quaternion_to_matrix
+from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, backend_consts, run_batched
+from maniskill_irb120.kinematics import (
+    SerialChain,
+    SphericalWristIK,
+    backend_consts,
+    matrix_to_quaternion,
+    run_batched,
+)
+from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, true_reset_mask
 
 IK_SOLVERS = ("auto", "closed_form", "dls")
 
@@ -122,7 +130,8 @@ class PDEEDeltaToolController(PDJointPosController):
             # a trace below 1 means an error above 90 deg, where sin() is ambiguous: never "converged"
             converged = ((err_p.norm(dim=1) < c.ik_pos_tol) & (err_r.norm(dim=1) < c.ik_rot_tol)
                          & (r.diagonal(dim1=1, dim2=2).sum(1) > 1.0))
-            if i == c.ik_iterations or bool(converged.all()):
+            # early exit on the CPU only: on CUDA the check would wait for the GPU every iteration
+            if i == c.ik_iterations or (q.device.type == "cpu" and bool(converged.all())):
                 break
             err = torch.cat([err_p, err_r], dim=1)
             jjt = jac @ jac.transpose(1, 2) + (c.ik_damping**2) * eye
@@ -132,14 +141,15 @@ class PDEEDeltaToolController(PDJointPosController):
 
     # --------------------------------------------------------------- control
     def reset(self):
-        super().reset()
-        mask = self.scene._reset_mask
-        self.ik_unreachable[mask] = False
-        pose = self.ee_pose_at_base()
-        if self._target_pose is None:
-            self._target_pose = pose
-        else:
-            self._target_pose[mask] = pose[mask]
+        """Joint and pose targets of the envs being reset only (ManiSkill's mask is all-true by now)."""
+        with true_reset_mask(self.scene) as mask:
+            super().reset()
+            self.ik_unreachable[mask] = False
+            pose = self.ee_pose_at_base()
+            if self._target_pose is None:
+                self._target_pose = pose
+            else:
+                self._target_pose[mask] = pose[mask]
 
     @staticmethod
     def apply_tool_delta(xp, ref, action):
@@ -192,15 +202,19 @@ class PDEEDeltaToolController(PDJointPosController):
         _set_drive_targets(self, targets)
 
     def get_state(self) -> dict:
+        """With ``use_target`` the targets are the controller's memory: the pose target (p, wxyz) and the
+        joint targets its IK starts from. Part of every observation's proprioception."""
         if self.config.use_target:
             pose = self._target_pose
-            return {"target_pose": torch.cat([pose[:, :3, 3], matrix_to_quaternion(pose[:, :3, :3])], 1)}
+            return {"target_pose": torch.cat([pose[:, :3, 3], matrix_to_quaternion(pose[:, :3, :3])], 1),
+                    "target_qpos": self._target_qpos.clone()}
         return {}
 
     def set_state(self, state: dict):
         if self.config.use_target:
             tp = state["target_pose"]
             self._target_pose = _pose_matrix(tp[:, :3], tp[:, 3:])
+            self._target_qpos = state["target_qpos"].clone()
 
 
 @dataclass
@@ -225,7 +239,7 @@ class PDEEDeltaToolControllerConfig(PDJointPosControllerConfig):
     controller_cls = PDEEDeltaToolController
 
 
-class BinaryGripperController(PDJointPosController):
+class BinaryGripperController(PartialResetControllerMixin, PDJointPosController):
     """One continuous value drives both fingers: > 0 opens fully, <= 0 closes (the seed's ``open`` flag).
 
     Closing targets ``closed_target`` (slightly past the closed limit) so the fingers keep squeezing
@@ -263,3 +277,21 @@ class BinaryGripperControllerConfig(PDJointPosControllerConfig):
     closed_target: float = -0.002
     normalize_action: bool = False
     controller_cls = BinaryGripperController
+
+
+class PartialResetPDJointPosController(PartialResetControllerMixin, PDJointPosController):
+    """ManiSkill's joint position controller, resetting only the envs being reset."""
+
+
+@dataclass
+class PartialResetPDJointPosControllerConfig(PDJointPosControllerConfig):
+    controller_cls = PartialResetPDJointPosController
+
+
+class PartialResetPDEEPoseController(PartialResetControllerMixin, PDEEPoseController):
+    """ManiSkill's EE pose controller, resetting only the envs being reset."""
+
+
+@dataclass
+class PartialResetPDEEPoseControllerConfig(PDEEPoseControllerConfig):
+    controller_cls = PartialResetPDEEPoseController

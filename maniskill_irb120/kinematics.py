@@ -274,3 +274,23 @@ class SphericalWristIK:
         q = xp.concatenate([xp.stack([q1, q2, q3], 1), best], 1)
         ok = reachable & ((q >= c.lower) & (q <= c.upper)).all(1)
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
+
+
+def matrix_to_quaternion(m: torch.Tensor) -> torch.Tensor:
+    """wxyz unit quaternions (w >= 0) of (N,3,3) rotation matrices, with no host synchronisation.
+
+    ManiSkill's (pytorch3d's) version picks the best-conditioned of four candidates by boolean-mask
+    indexing, which waits for the GPU; this picks it with ``gather``. Called on every observation in
+    ``pd_ee_target_delta_tool`` (the controller state is part of the proprioception)."""
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    q_abs = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22],
+                        1).clamp_min(0).sqrt()  # 2|w|, 2|x|, 2|y|, 2|z|
+    d21, d02, d10 = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    s10, s02, s21 = m[:, 1, 0] + m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] + m[:, 1, 2]
+    a0, a1, a2, a3 = (q_abs[:, i] ** 2 for i in range(4))
+    cand = torch.stack([torch.stack(row, 1) for row in (
+        (a0, d21, d02, d10), (d21, a1, s10, s02), (d02, s10, a2, s21), (d10, s02, s21, a3))], 1)  # (N, 4, 4)
+    cand = cand / (2 * q_abs.clamp_min(0.1))[:, :, None]
+    best = q_abs.argmax(1)[:, None, None].expand(-1, 1, 4)
+    q = torch.gather(cand, 1, best)[:, 0]
+    return q * torch.where(q[:, :1] < 0, -1.0, 1.0)

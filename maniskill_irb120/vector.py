@@ -199,6 +199,12 @@ def make_vec_env(env_id: str, num_envs: int, *, backend: str = "auto", wrappers:
         raise ValueError(f"unknown backend {backend!r}; use 'auto', 'gpu', 'cpu' or 'inprocess'")
     if backend == "auto":
         backend = "gpu" if torch.cuda.is_available() else ("inprocess" if num_envs == 1 else "cpu")
+    if backend in ("gpu", "inprocess"):
+        # the backend decides the sim backend; a consistent sim_backend kwarg is accepted, others named
+        sim = "physx_cuda" if backend == "gpu" else "physx_cpu"
+        given = env_kwargs.pop("sim_backend", sim)
+        if given not in (sim, "auto", "gpu" if backend == "gpu" else "cpu"):
+            raise ValueError(f"backend={backend!r} runs {sim}, got sim_backend={given!r}")
     if backend == "gpu":
         if not torch.cuda.is_available():
             raise ValueError("backend='gpu' needs CUDA; none is available here (use backend='cpu')")

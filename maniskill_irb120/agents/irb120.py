@@ -9,17 +9,19 @@ import numpy as np
 import sapien
 import torch
 from mani_skill.agents.base_agent import BaseAgent, Keyframe
-from mani_skill.agents.controllers import (
-    PDEEPoseControllerConfig,
-    PDJointPosControllerConfig,
-    deepcopy_dict,
-)
+from mani_skill.agents.controllers import PDJointPosController, deepcopy_dict
 from mani_skill.agents.registration import register_agent
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import common
 from mani_skill.utils.structs.actor import Actor
 
-from maniskill_irb120.controllers import BinaryGripperControllerConfig, PDEEDeltaToolControllerConfig
+from maniskill_irb120.controllers import (
+    BinaryGripperController,
+    BinaryGripperControllerConfig,
+    PartialResetPDEEPoseControllerConfig,
+    PartialResetPDJointPosControllerConfig,
+    PDEEDeltaToolControllerConfig,
+)
 from maniskill_irb120.rendering import FORWARD, sensor_shader_config
 from maniskill_irb120.robot_description import geometry, urdf_path
 
@@ -31,6 +33,12 @@ GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 # Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see rendering.py).
 HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0,
                    shader=FORWARD)
+
+
+def hand_camera_shader(name: str, render_device: sapien.Device) -> str:
+    """Our one-pass pack helps the CPU rasteriser only; a GPU renders ManiSkill's ``minimal`` (same
+    images, proven under its batched camera groups) instead."""
+    return "minimal" if name == FORWARD and render_device.is_cuda() else name
 
 
 @register_agent()
@@ -97,7 +105,7 @@ class IRB120Metalwork(BaseAgent):
                 near=c["near"],
                 far=c["far"],
                 mount=self.robot.links_map[self.ee_link_name],
-                shader_config=sensor_shader_config(c["shader"]),
+                shader_config=sensor_shader_config(hand_camera_shader(c["shader"], self.scene.backend.render_device)),
             )
         ]
 
@@ -113,13 +121,13 @@ class IRB120Metalwork(BaseAgent):
         )
         tool_target = deepcopy(tool)
         tool_target.use_target = True
-        joint_pos = PDJointPosControllerConfig(
+        joint_pos = PartialResetPDJointPosControllerConfig(
             self.arm_joint_names, lower=None, upper=None, normalize_action=False, **arm_kw
         )
-        joint_delta = PDJointPosControllerConfig(
+        joint_delta = PartialResetPDJointPosControllerConfig(
             self.arm_joint_names, lower=-0.1, upper=0.1, use_delta=True, **arm_kw
         )
-        ee_delta_pose = PDEEPoseControllerConfig(
+        ee_delta_pose = PartialResetPDEEPoseControllerConfig(
             self.arm_joint_names, pos_lower=-0.1, pos_upper=0.1, rot_lower=-0.1, rot_upper=0.1,
             ee_link=self.ee_link_name, urdf_path=self.urdf_path, **arm_kw,
         )
@@ -138,6 +146,7 @@ class IRB120Metalwork(BaseAgent):
         self.finger_left = links["finger_left"]
         self.finger_right = links["finger_right"]
         self.tcp = links[self.ee_link_name]
+        self.invalid_action = torch.zeros(self.scene.num_envs, dtype=torch.bool, device=self.device)
         # maps a quaternion's outer product (w, x, y, z) to its rotation matrix's second column (is_grasping)
         m = torch.zeros(4, 4, 3)
         m[1, 2, 0], m[0, 3, 0] = 2.0, -2.0  # 2xy - 2wz
@@ -147,7 +156,9 @@ class IRB120Metalwork(BaseAgent):
 
     # ------------------------------------------------------------------ actions
     def set_action(self, action):
-        """Validate before anything reaches a controller: shape and finiteness, CPU and GPU alike."""
+        """Validate before anything reaches a controller. Shape: always. Finiteness: on the CPU a
+        ``ValueError``; on CUDA a check would wait for the GPU every step, so non-finite rows are replaced
+        by the hold action on the device and flagged in ``invalid_action`` (``info["invalid_action"]``)."""
         if self.control_mode is None:
             raise ValueError("no control mode set on the agent")
         expected = (self.scene.num_envs, self.action_space.shape[-1])
@@ -156,9 +167,32 @@ class IRB120Metalwork(BaseAgent):
             raise ValueError(
                 f"action has shape {tuple(action.shape)}, expected {expected} for control mode {self.control_mode!r}"
             )
-        if not bool(torch.isfinite(action).all()):
-            raise ValueError(f"action contains NaN or inf: {action.cpu().numpy()}")
+        if action.device.type == "cpu":
+            if not bool(torch.isfinite(action).all()):
+                raise ValueError(f"action contains NaN or inf: {action.numpy()}")
+            self.invalid_action = torch.zeros(expected[0], dtype=torch.bool)
+        else:
+            action, self.invalid_action = self.hold_nonfinite(action)
         self.controller.set_action(action)
+
+    def hold_nonfinite(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(action with each non-finite row replaced by the hold action, (N,) bool of those rows); no sync."""
+        bad = ~torch.isfinite(action).all(dim=1)
+        return torch.where(bad[:, None], self.hold_action(), action), bad
+
+    def hold_action(self) -> torch.Tensor:
+        """(N, A) action that keeps every joint target where it is: zero for delta arm modes, the current
+        joint targets for absolute ones (unnormalised in our configs), the gripper's current command."""
+        parts = []
+        for ctrl in self.controller.controllers.values():
+            n, dim = ctrl._target_qpos.shape[0], ctrl.action_space.shape[-1]
+            if isinstance(ctrl, BinaryGripperController):
+                parts.append(torch.where(ctrl._target_qpos[:, :1] > 0, 1.0, -1.0))
+            elif isinstance(ctrl, PDJointPosController) and not ctrl.config.use_delta and not ctrl.config.normalize_action:
+                parts.append(ctrl._target_qpos.clone())
+            else:
+                parts.append(torch.zeros(n, dim, device=self.device))
+        return torch.cat(parts, dim=1)
 
     @property
     def arm_controller(self):

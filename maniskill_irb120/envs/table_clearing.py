@@ -26,6 +26,7 @@ from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
+from maniskill_irb120.maniskill_compat import episode_reset, reset_mask_from_options, restore_controller_state
 from maniskill_irb120.robot_description import merged_box_mesh
 
 # --------------------------------------------------------------------------- scene geometry (metres)
@@ -218,6 +219,13 @@ class TableClearingIRB120Env(BaseEnv):
         self.robot_links = [l for l in self.agent.robot.links if l.name != "base_link"]
         self.fingers = [self.agent.finger_left, self.agent.finger_right]
         self._entity_kind = None  # CPU contact lookup, rebuilt for each new scene
+        # the contact pairs the task watches, in one fixed order: robot links (with collision shapes,
+        # base excluded) x scene, object x scene, left finger x object, right finger x object
+        touching = [l for l in self.robot_links if len(l._bodies[0].get_collision_shapes()) > 0]
+        self._contact_pairs = ([(l, a) for a in self.scene_actors for l in touching]
+                               + [(self.obj, a) for a in self.scene_actors]
+                               + [(self.fingers[0], self.obj), (self.fingers[1], self.obj)])
+        self._contact_query = None  # GPU: one impulse query for all pairs, built on first use
 
         with torch.device(self.device):
             n = self.num_envs
@@ -245,30 +253,53 @@ class TableClearingIRB120Env(BaseEnv):
         if seed is not None:
             first = int(seed[0]) if np.iterable(seed) else int(seed)
             self._np_random, self._np_random_seed = gym_seeding.np_random(first)
-        return super().reset(seed=seed, options=options)
+        if self.scene is None:  # first reset: the scene (and every env in it) is built anew
+            return super().reset(seed=seed, options=options)
+        with episode_reset(self.scene, reset_mask_from_options(self.num_envs, options, self.device)):
+            return super().reset(seed=seed, options=options)
+
+    def set_state_dict(self, state: dict, env_idx: torch.Tensor | None = None):
+        """ManiSkill's, plus the controller state it records but does not restore."""
+        super().set_state_dict(state, env_idx)
+        restore_controller_state(self, state, env_idx)
+
+    def set_state(self, state, env_idx: torch.Tensor | None = None):
+        """ManiSkill's (which goes through ``set_state_dict`` without the controller part), plus that part."""
+        super().set_state(state, env_idx)
+        restore_controller_state(self, state, env_idx)
+
+    def _episode_draws(self, env_idx: torch.Tensor) -> torch.Tensor:
+        """(b, 9) uniform [0, 1) draws per env being reset, from ManiSkill's per-env episode RNG: 6 joint
+        noises, object x, y, yaw. Always all nine, so the object's start does not depend on the noise
+        setting. On the GPU ManiSkill seeds torch with env 0's episode seed before every reset, so torch
+        draws would repeat the same start in every partial reset that leaves env 0 running."""
+        rng = self._batched_episode_rng[env_idx.cpu().numpy()]
+        return torch.as_tensor(rng.uniform(size=9), dtype=torch.float32, device=self.device).reshape(-1, 9)
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         self._captured_ahead = False  # a reset's observation is always captured afresh
+        u = self._episode_draws(env_idx)
         with torch.device(self.device):
             b = len(env_idx)
             qpos = torch.as_tensor(self.agent.keyframes["rest"].qpos, dtype=torch.float32).repeat(b, 1)
             if self.robot_init_qpos_noise > 0:
-                qpos[:, :6] += (torch.rand(b, 6) * 2 - 1) * self.robot_init_qpos_noise
+                qpos[:, :6] += (u[:, :6] * 2 - 1) * self.robot_init_qpos_noise
             self.agent.reset(qpos)
             self.agent.robot.set_pose(sapien.Pose())
 
             h = self.object_half_size
             span = TRAY_INNER / 2 - self.spawn_margin
             xyz = torch.zeros(b, 3)
-            xyz[:, :2] = (torch.rand(b, 2) * 2 - 1) * span + torch.tensor(SOURCE_TRAY_XY)
+            xyz[:, :2] = (u[:, 6:8] * 2 - 1) * span + torch.tensor(SOURCE_TRAY_XY)
             xyz[:, 2] = TRAY_FLOOR_TOP + h
-            yaw = torch.rand(b) * 2 * np.pi
+            yaw = u[:, 8] * 2 * np.pi
             q = torch.zeros(b, 4)
             q[:, 0] = torch.cos(yaw / 2)
             q[:, 3] = torch.sin(yaw / 2)
             self.obj.set_pose(Pose.create_from_pq(xyz, q))
             self.obj_start_pos[env_idx] = xyz
             self._fresh[env_idx] = True
+            self.agent.invalid_action[env_idx] = False
 
     def _before_control_step(self):
         """The state evaluated after the last step (or reset) becomes the reference for this step."""
@@ -321,17 +352,30 @@ class TableClearingIRB120Env(BaseEnv):
             return self._contact_flags_pairwise()
         return self._contact_flags_cpu()
 
+    def _pair_impulses(self) -> torch.Tensor:
+        """(P, N, 3) contact impulses of ``_contact_pairs``. GPU: one query for every pair and env (one
+        synchronisation per step instead of one per pair); CPU: ManiSkill's pairwise query per pair."""
+        if not self.gpu_sim_enabled:
+            return torch.stack([self.scene.get_pairwise_contact_impulses(a, b) for a, b in self._contact_pairs])
+        px = self.scene.px
+        if self._contact_query is None:
+            body_pairs = [bp for a, b in self._contact_pairs for bp in zip(a._bodies, b._bodies)]
+            self._contact_query = px.gpu_create_contact_pair_impulse_query(body_pairs)
+        px.gpu_query_contact_pair_impulses(self._contact_query)
+        # rows are pair-major (each pair's N envs in a row), as the body pairs were listed
+        return self._contact_query.cuda_impulses.torch().clone().view(len(self._contact_pairs), self.num_envs, 3)
+
     def _contact_flags_pairwise(self) -> tuple[torch.Tensor, ...]:
-        f = self.scene.get_pairwise_contact_forces
-        robot_hit = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
-        obj_hit = torch.zeros_like(robot_hit)
-        for a in self.scene_actors:
-            for link in self.robot_links:
-                robot_hit |= torch.linalg.norm(f(link, a), dim=1) > CONTACT_FORCE_EPS
-            obj_hit |= torch.linalg.norm(f(self.obj, a), dim=1) > CONTACT_FORCE_EPS
-        lf, rf = f(self.fingers[0], self.obj), f(self.fingers[1], self.obj)
-        finger = (torch.linalg.norm(lf, dim=1) > CONTACT_FORCE_EPS) | (torch.linalg.norm(rf, dim=1) > CONTACT_FORCE_EPS)
-        return robot_hit, obj_hit, finger, lf, rf
+        """The flags of :meth:`_contact_flags` from per-pair impulses (the GPU path; on the CPU the
+        reference the single-pass scan is tested against)."""
+        forces = self._pair_impulses() / self.scene.px.timestep
+        hit = torch.linalg.norm(forces, dim=2) > CONTACT_FORCE_EPS  # (P, N)
+        n_scene = len(self.scene_actors)
+        n_robot = len(self._contact_pairs) - n_scene - 2
+        robot_hit = hit[:n_robot].any(0)
+        obj_hit = hit[n_robot:n_robot + n_scene].any(0)
+        finger = hit[-2] | hit[-1]
+        return robot_hit, obj_hit, finger, forces[-2], forces[-1]
 
     def _contact_flags_cpu(self) -> tuple[torch.Tensor, ...]:
         if self._entity_kind is None:
@@ -412,9 +456,9 @@ class TableClearingIRB120Env(BaseEnv):
         grasp_event = grasped & ~prev["grasped"]
         dropped = prev["grasped"] & ~grasped & ~over_dest
         delivery_event = delivered & ~prev["delivered"]
-        if bool(fresh.any()):  # nothing happens "during" a reset
-            r_approach = torch.where(fresh, zeros, r_approach)
-            r_carry = torch.where(fresh, zeros, r_carry)
+        # nothing happens "during" a reset (unconditional: testing fresh.any() would wait for the GPU)
+        r_approach = torch.where(fresh, zeros, r_approach)
+        r_carry = torch.where(fresh, zeros, r_carry)
         return dict(
             success=delivered,
             fail=robot_hit,
@@ -426,6 +470,7 @@ class TableClearingIRB120Env(BaseEnv):
             object_lifted=lifted,
             object_over_dest=over_dest,
             ik_unreachable=self.agent.ik_unreachable.clone(),
+            invalid_action=self.agent.invalid_action.clone(),
             r_approach=r_approach,
             r_carry=r_carry,
             r_time=ones * R_TIME,

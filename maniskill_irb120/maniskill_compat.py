@@ -1,0 +1,131 @@
+"""Where this package relies on ManiSkill internals that are not public API (mirrors ManiSkill 3.0.1).
+
+Everything here was read against ``mani_skill`` 3.0.1 (``envs/sapien_env.py``, ``envs/scene.py``,
+``agents/controllers/*``). ``tests/test_maniskill_compat.py`` pins each assumption, so an upgrade that
+changes one fails there first, not somewhere downstream in training.
+
+Partial resets: ``BaseEnv.reset`` sets ``scene._reset_mask`` to the envs being reset while it runs
+``_initialize_episode``, then sets it back to all-true *before* it resets the controllers. Every
+controller that writes ``target[scene._reset_mask] = ...`` in ``reset()`` (ManiSkill's joint and EE
+controllers, ours) therefore resets every env's targets whenever any env resets: with
+``pd_ee_target_delta_tool`` (accumulated targets) or ``interpolate`` that corrupts running episodes on
+the GPU. The task records the true mask for the duration of its reset (:func:`episode_reset`) and
+:class:`PartialResetControllerMixin` puts it in place while a controller resets.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Iterator
+
+import torch
+
+MANISKILL_VERSION = "3.0.1"
+_MASK_ATTR = "_irb120_episode_reset_mask"
+
+
+def reset_mask_from_options(num_envs: int, options: dict | None, device) -> torch.Tensor:
+    """(N,) bool: the envs a ``reset(options=...)`` call resets (all of them without ``env_idx``)."""
+    if options is None or "env_idx" not in options:
+        return torch.ones(num_envs, dtype=torch.bool, device=device)
+    mask = torch.zeros(num_envs, dtype=torch.bool, device=device)
+    mask[torch.as_tensor(options["env_idx"], device=device).long()] = True
+    return mask
+
+
+@contextmanager
+def episode_reset(scene, mask: torch.Tensor) -> Iterator[None]:
+    """Record ``mask`` as the envs of the reset in progress on ``scene`` (see the module docstring).
+
+    A reset that reconfigures builds a new scene: that one carries no mask, and all of its envs are
+    new, which is what the fallback to ``scene._reset_mask`` (all-true then) says."""
+    setattr(scene, _MASK_ATTR, mask)
+    try:
+        yield
+    finally:
+        setattr(scene, _MASK_ATTR, None)
+
+
+def episode_reset_mask(scene) -> torch.Tensor:
+    """The envs being reset: the task's record during its reset, else ManiSkill's ``_reset_mask``."""
+    mask = getattr(scene, _MASK_ATTR, None)
+    return scene._reset_mask if mask is None else mask
+
+
+@contextmanager
+def true_reset_mask(scene) -> Iterator[torch.Tensor]:
+    """Put the envs being reset in ``scene._reset_mask`` for the block (controller resets), then restore."""
+    saved = scene._reset_mask
+    scene._reset_mask = episode_reset_mask(scene)
+    try:
+        yield scene._reset_mask
+    finally:
+        scene._reset_mask = saved
+
+
+class PartialResetControllerMixin:
+    """Resets only the envs being reset. Put it first among the bases of a ManiSkill controller class
+    that does not override ``reset`` itself; the inherited ``reset()`` then masks with the right envs."""
+
+    def reset(self) -> None:
+        with true_reset_mask(self.scene):
+            super().reset()
+
+
+def _unflatten_like(template: dict, flat: torch.Tensor) -> dict:
+    """Inverse of ManiSkill's ``common.flatten_state_dict`` for a dict of (N, k) tensors like ``template``."""
+    out, start = {}, 0
+    for key, value in template.items():
+        if isinstance(value, dict):
+            width = sum(_width(v) for v in value.values())
+            out[key] = _unflatten_like(value, flat[:, start:start + width])
+        else:
+            width = _width(value)
+            out[key] = flat[:, start:start + width]
+        start += width
+    return out
+
+
+def _width(value) -> int:
+    return sum(_width(v) for v in value.values()) if isinstance(value, dict) else int(value.shape[-1])
+
+
+def _merge_rows(current: dict, new: dict, env_idx) -> dict:
+    """``current`` with the rows ``env_idx`` replaced by ``new``'s rows (all rows when ``env_idx`` is None)."""
+    out = {}
+    for key, cur in current.items():
+        if isinstance(cur, dict):
+            out[key] = _merge_rows(cur, new[key], env_idx)
+        elif env_idx is None:
+            out[key] = torch.as_tensor(new[key], device=cur.device, dtype=cur.dtype).reshape(cur.shape).clone()
+        else:
+            merged = cur.clone()
+            merged[torch.as_tensor(env_idx, device=cur.device).long()] = torch.as_tensor(
+                new[key], device=cur.device, dtype=cur.dtype).reshape(-1, *cur.shape[1:])
+            out[key] = merged
+    return out
+
+
+def restore_controller_state(env, state, env_idx=None) -> None:
+    """Restore the controller state that ``env.get_state_dict()`` / ``get_state()`` record and ManiSkill
+    3.0.1's ``set_state_dict`` / ``set_state`` drop (e.g. ``pd_ee_target_delta_tool``'s accumulated
+    targets: without them a restored episode's next action starts from the wrong target).
+
+    ``state``: the state dict, or the flat state vector (its controller part is the tail, in
+    ``get_state_dict`` order). Rows are those of ``env_idx`` (all envs when None), as ManiSkill's."""
+    current = env.agent.get_controller_state()
+    if not current:
+        return
+    if isinstance(state, dict):
+        if "controller" not in state:
+            return
+        ctrl = state["controller"]
+    else:
+        flat = torch.as_tensor(state)
+        flat = flat[None] if flat.dim() == 1 else flat
+        raw = env._init_raw_state
+        base = sum(int(a.shape[-1]) for part in ("actors", "articulations") for a in raw[part].values())
+        if flat.shape[1] != base + _width(current):
+            return  # a state recorded without the controller part (e.g. in another control mode)
+        ctrl = _unflatten_like(current, flat[:, base:])
+    env.agent.set_controller_state(_merge_rows(current, ctrl, env_idx))
