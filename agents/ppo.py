@@ -70,7 +70,8 @@ class Args:
     eval_freq: int = 25
     """evaluate every N iterations (0: only at the end)"""
     num_eval_episodes: int = 4
-    eval_reconfiguration_freq: Optional[int] = 1
+    eval_reconfiguration_freq: Optional[int] = None
+    """rebuild the eval scene every N resets (None: never; the task samples nothing at scene load)"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
     seed: int = 1
@@ -219,8 +220,8 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
         if video_dir is not None:
             wrappers.append(lambda e: RecordEpisode(e, output_dir=str(video_dir), save_trajectory=False,
                                                     max_steps_per_video=None, video_fps=20, info_on_video=False))
-        # GPU: batched eval envs reconfigure between episodes, which ManiSkillVectorEnv only allows without
-        # early-termination resets (as ManiSkill's ppo_rgb.py does); success/grasp are counted "once".
+        # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
+        # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
         return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers,
                             ignore_terminations=backend == "gpu", record_metrics=True, **kwargs)
     if not args.partial_reset:
@@ -444,13 +445,13 @@ def evaluate(agent: Agent, envs, num_episodes: int, device) -> dict:
     """Deterministic policy on the eval envs until ``num_episodes`` episodes finish."""
     obs, _ = envs.reset()
     stats: dict[str, list[float]] = defaultdict(list)
-    tracker = EpisodeTracker(envs.num_envs, "cpu")
+    tracker = EpisodeTracker(envs.num_envs, envs.device)  # sums stay on the env's device: no per-step copies
     finished = 0
     while finished < num_episodes:
         with torch.no_grad():
             action = agent.get_action(obs_to(flatten_obs(obs), device), deterministic=True)
         obs, rew, term, trunc, info = envs.step(action.cpu() if envs.device.type == "cpu" else action)
-        done = (term | trunc).to(torch.bool).cpu()
+        done = (term | trunc).to(torch.bool)
         for k, v in tracker.update(info.get("final_info", info), done).items():
             stats[k] += v
         finished += int(done.sum())

@@ -155,28 +155,37 @@ def measure_parallel_ceiling(n: int = 5_000_000) -> dict:
     return dict(one_s=one, two_parallel_s=two, speedup=2 * one / two)
 
 
-def measure_gpu_scaling(env_id: str, num_envs: int, steps: int, seed: int) -> dict:
-    import gymnasium as gym
+def measure_batched(env_id: str, num_envs: int, steps: int, seed: int, backend: str = "gpu",
+                    obs_mode: str = "rgbd") -> dict:
+    """Batched env steps/s as training sees them: ``make_vec_env`` (ManiSkillVectorEnv, auto-reset of
+    finished envs), a fresh seeded uniform action every step. The GPU sweep; ``backend="inprocess"``
+    runs the same loop on one CPU env (how the tests check it)."""
     import torch
 
-    import maniskill_irb120  # noqa: F401
+    from maniskill_irb120 import make_vec_env
 
-    env = gym.make(env_id, num_envs=num_envs, obs_mode="rgbd", sim_backend="physx_cuda")
-    env.reset(seed=seed)
-    free0, total = torch.cuda.mem_get_info()
-    a = torch.rand((num_envs, 5), device="cuda") * 2 - 1
+    envs = make_vec_env(env_id, num_envs, backend=backend, obs_mode=obs_mode, record_metrics=True)
+    dev = envs.device
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    shape = (num_envs, *envs.single_action_space.shape)
+    action = lambda: torch.rand(shape, generator=gen, device=dev) * 2 - 1  # noqa: E731
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    envs.reset(seed=seed)
+    free0, total = torch.cuda.mem_get_info() if dev.type == "cuda" else (0, 0)
     for _ in range(5):
-        env.step(a)
-    torch.cuda.synchronize()
+        envs.step(action())
+    sync()
+    episodes = 0
     t0 = time.perf_counter()
     for _ in range(steps):
-        env.step(a)
-    torch.cuda.synchronize()
+        _, _, term, trunc, _ = envs.step(action())
+        episodes += int((term | trunc).sum())
+    sync()
     dt = time.perf_counter() - t0
-    free1, _ = torch.cuda.mem_get_info()
-    env.close()
-    return dict(num_envs=num_envs, env_steps_per_s=steps * num_envs / dt,
-                gpu_mem_used_gb=(total - min(free0, free1)) / 2**30)
+    free1 = torch.cuda.mem_get_info()[0] if dev.type == "cuda" else 0
+    envs.close()
+    return dict(num_envs=num_envs, backend=backend, obs_mode=obs_mode, env_steps_per_s=steps * num_envs / dt,
+                episodes_finished=episodes, gpu_mem_used_gb=(total - min(free0, free1)) / 2**30)
 
 
 def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
@@ -231,6 +240,10 @@ class Args:
     json: Optional[Path] = None
     plot: Optional[Path] = None
     gpu_num_envs: tuple[int, ...] = (16, 64, 256, 1024, 4096)
+    gpu_steps: int = 300
+    """timed batched steps per num_envs in the GPU sweep (auto-reset, fresh random actions each step)"""
+    gpu_only: bool = False
+    """run only the GPU sweep (skips the CPU / PyBullet suite; needs CUDA)"""
 
 
 def fmt_row(name: str, s: dict) -> str:
@@ -261,9 +274,26 @@ def one_round(args: Args, steps: int) -> dict:
     return r
 
 
+def gpu_sweep(args: Args) -> list[dict]:
+    return [isolated("measure_batched", env_id=ENV_ID, num_envs=n, steps=args.gpu_steps, seed=args.seed)
+            for n in args.gpu_num_envs]
+
+
 def main(args: Args) -> dict:
     global ISOLATE
     ISOLATE = not args.quick
+    if args.gpu_only:
+        import torch
+
+        if not torch.cuda.is_available():
+            raise SystemExit("--gpu-only needs CUDA; none is available here")
+        out = dict(date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv),
+                   device=torch.cuda.get_device_name(), gpu_scaling=gpu_sweep(args))
+        print(gpu_markdown(out["gpu_scaling"]))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(out, indent=2))
+        return out
     steps = 12 if args.quick else args.steps
     rounds = 1 if args.quick else args.rounds
     out: dict = dict(machine=dict(platform=platform.platform(), python=platform.python_version(),
@@ -288,12 +318,9 @@ def main(args: Args) -> dict:
                   vs_pybullet_seed={m: med(lambda x, m=m: x["vs_pybullet_seed"][m]) for m in MODES},
                   two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
                   machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]))
-    gpu = []
     import torch
 
-    if torch.cuda.is_available() and not args.quick:
-        for n in args.gpu_num_envs:
-            gpu.append(isolated("measure_gpu_scaling", env_id=ENV_ID, num_envs=n, steps=50, seed=args.seed))
+    gpu = gpu_sweep(args) if torch.cuda.is_available() and not args.quick else []
     out.update(
         env_steps_per_s={m: ours[m]["steps_per_s"] for m in MODES},
         reference_steps_per_s=dict(pickcube_rgbd_84=pick["steps_per_s"],
@@ -337,8 +364,15 @@ def markdown(r: dict) -> str:
         lines.append(f"| {m} | {1e3 * s['physics']:.2f} | {1e3 * s['controller']:.2f} | {1e3 * s['render']:.2f} | "
                      f"{1e3 * s['python']:.2f} | {r['ours'][m]['peak_rss_mb']:.0f} |")
     if r["gpu_scaling"]:
-        lines += ["", "## GPU (physx_cuda, rgbd)", "| num_envs | steps/s | GPU memory (GB) |", "|---|---|---|"]
-        lines += [f"| {g['num_envs']} | {g['env_steps_per_s']:.0f} | {g['gpu_mem_used_gb']:.1f} |" for g in r["gpu_scaling"]]
+        lines += ["", gpu_markdown(r["gpu_scaling"])]
+    return "\n".join(lines)
+
+
+def gpu_markdown(rows: list[dict]) -> str:
+    lines = ["## GPU (physx_cuda, rgbd, auto-reset, random actions)",
+             "| num_envs | steps/s | episodes finished | GPU memory (GB) |", "|---|---|---|---|"]
+    lines += [f"| {g['num_envs']} | {g['env_steps_per_s']:.0f} | {g['episodes_finished']} | {g['gpu_mem_used_gb']:.1f} |"
+              for g in rows]
     return "\n".join(lines)
 
 
