@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import Sequence, Union
 
 import numpy as np
@@ -23,16 +22,8 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import (
-    SerialChain,
-    SphericalWristIK,
-    backend_consts,
-    matrix_to_quaternion,
-    run_batched,
-)
+from maniskill_irb120.kinematics import ArmIK, DLSParams, SerialChain, matrix_to_quaternion
 from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, true_reset_mask
-
-IK_SOLVERS = ("auto", "closed_form", "dls")
 
 
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -71,73 +62,26 @@ class PDEEDeltaToolController(PDJointPosController):
 
     def _initialize_joints(self):
         super()._initialize_joints()
-        self.chain = SerialChain(self.config.urdf_path, self.config.ee_link, device=self.device)
-        if self.chain.joint_names != list(self.config.joint_names):
-            raise ValueError(
-                f"IK chain joints {self.chain.joint_names} differ from controller joints {self.config.joint_names}"
-            )
-        self.q_low, self.q_high = self.chain.lower, self.chain.upper
-        self.ee_link = self.articulation.links_map[self.config.ee_link]
+        c = self.config
+        self.chain = SerialChain(c.urdf_path, c.ee_link, device=self.device)
+        if self.chain.joint_names != list(c.joint_names):
+            raise ValueError(f"IK chain joints {self.chain.joint_names} differ from controller joints {c.joint_names}")
+        self.ik = ArmIK(self.chain, c.ik_solver, DLSParams(c.ik_iterations, c.ik_damping, c.ik_pos_tol, c.ik_rot_tol),
+                        max_joint_step=self.chain.velocity / self._control_freq)
+        self.ee_link = self.articulation.links_map[c.ee_link]
         self.root_link = self.articulation.root
         self.ik_unreachable = torch.zeros(self.scene.num_envs, dtype=torch.bool, device=self.device)
         self._target_pose = None
-        self.max_joint_step = self.chain.velocity / self._control_freq
-        solver = self.config.ik_solver
-        if solver not in IK_SOLVERS:
-            raise ValueError(f"ik_solver={solver!r} is not one of {IK_SOLVERS}")
-        self.closed_form = None
-        self._consts: dict = {}
-        if solver != "dls":
-            try:
-                self.closed_form = SphericalWristIK(self.chain)
-            except ValueError:
-                if solver == "closed_form":
-                    raise
 
     def _initialize_action_space(self):
         c = self.config
         high = np.array([c.pos_limit] * 3 + [c.rot_limit], dtype=np.float32)
         self.single_action_space = spaces.Box(-high, high, dtype=np.float32)
 
-    # --------------------------------------------------------------- kinematics
     def ee_pose_at_base(self) -> torch.Tensor:
         """Current TCP pose in the robot root frame as (N, 4, 4)."""
         pose = self.root_link.pose.inv() * self.ee_link.pose
         return _pose_matrix(pose.p, pose.q)
-
-    def solve_ik(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Joint angles reaching ``target`` (N,4,4) from ``q0`` and whether they do (within limits)."""
-        if self.closed_form is not None:
-            return self.closed_form.solve(target, q0)
-        return self.solve_ik_dls(target, q0)
-
-    def solve_ik_dls(self, target: torch.Tensor, q0: torch.Tensor, fk0=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Damped least squares from ``q0`` towards ``target`` (N,4,4); returns (q, converged).
-        ``fk0``: ``chain.fk_with_jacobian(q0)`` if the caller already has it.
-
-        The rotation error is the vee of the skew part of R_target·R_currentᵀ: its direction is the
-        rotation axis and its norm sin(angle), which equals the angle to 1e-5 rad at the sub-degree
-        errors IK iterates on, at a fraction of the cost of a quaternion/axis-angle round trip.
-        """
-        c = self.config
-        q = q0.clone()
-        eye = torch.eye(6, device=q.device, dtype=q.dtype)
-        for i in range(c.ik_iterations + 1):
-            cur, jac = fk0 if (i == 0 and fk0 is not None) else self.chain.fk_with_jacobian(q)
-            err_p = target[:, :3, 3] - cur[:, :3, 3]
-            r = target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2)
-            err_r = 0.5 * torch.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], 1)
-            # a trace below 1 means an error above 90 deg, where sin() is ambiguous: never "converged"
-            converged = ((err_p.norm(dim=1) < c.ik_pos_tol) & (err_r.norm(dim=1) < c.ik_rot_tol)
-                         & (r.diagonal(dim1=1, dim2=2).sum(1) > 1.0))
-            # early exit on the CPU only: on CUDA the check would wait for the GPU every iteration
-            if i == c.ik_iterations or (q.device.type == "cpu" and bool(converged.all())):
-                break
-            err = torch.cat([err_p, err_r], dim=1)
-            jjt = jac @ jac.transpose(1, 2) + (c.ik_damping**2) * eye
-            dq = (jac.transpose(1, 2) @ torch.linalg.solve(jjt, err.unsqueeze(-1))).squeeze(-1)
-            q = torch.clamp(q + dq, self.q_low, self.q_high)
-        return q, converged
 
     # --------------------------------------------------------------- control
     def reset(self):
@@ -151,50 +95,15 @@ class PDEEDeltaToolController(PDJointPosController):
             else:
                 self._target_pose[mask] = pose[mask]
 
-    @staticmethod
-    def apply_tool_delta(xp, ref, action):
-        """``ref · Δ`` for (N,4,4) poses and (N,4) scaled actions, Δ = translate by action[:3] in the tool
-        frame, then rotate by action[3] about its x axis; ``xp`` is numpy or torch."""
-        r = ref[:, :3, :3]
-        c, s = xp.cos(action[:, 3:4]), xp.sin(action[:, 3:4])
-        pos = ref[:, :3, 3] + (r @ action[:, :3, None])[..., 0]
-        cols = [r[:, :, 0], c * r[:, :, 1] + s * r[:, :, 2], c * r[:, :, 2] - s * r[:, :, 1], pos]
-        return xp.concatenate([xp.stack(cols, 2), ref[:, 3:]], 1)
-
-    @staticmethod
-    def _accept(xp, q, ok, q0, target, target_qpos, target_pose, max_step):
-        """Apply IK solutions that exist and need no joint faster than ``max_step`` per control step;
-        elsewhere keep the last targets. Returns (joint targets, pose targets, accepted)."""
-        ok = ok & (xp.abs(q - q0) <= max_step).all(1)
-        return xp.where(ok[:, None], q, target_qpos), xp.where(ok[:, None, None], target, target_pose), ok
-
-    def _closed_form_step(self, xp, c, q0, action, target_qpos, target_pose):
-        """FK, tool delta, IK and the speed check in one pass (numpy on CPU, torch on CUDA)."""
-        ref = target_pose if self.config.use_target else SerialChain.fk(xp, c.chain, q0)
-        target = self.apply_tool_delta(xp, ref, action)
-        q, ok = SphericalWristIK._solve(xp, c.ik, target, q0)
-        return self._accept(xp, q, ok, q0, target, target_qpos, target_pose, c.max_step)
-
-    def _step_consts(self, xp, like) -> SimpleNamespace:
-        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
-            chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like), max_step=conv(self.max_joint_step)))
-
     def set_action(self, action: Array):
         action = self._preprocess_action(action)
         self._step = 0
         self._start_qpos = self.qpos
-        q0 = self._target_qpos if self.config.use_target else self._start_qpos
         # relative mode: FK of the measured joints is the measured TCP pose (same kinematics as PhysX)
-        if self.closed_form is not None:
-            self._target_qpos, self._target_pose, ok = run_batched(
-                self._closed_form_step, self._step_consts, q0, action, self._target_qpos, self._target_pose)
-        else:
-            fk0 = self.chain.fk_with_jacobian(q0)
-            ref = self._target_pose if self.config.use_target else fk0[0]
-            target = self.apply_tool_delta(torch, ref, action)
-            q, ok = self.solve_ik_dls(target, q0, fk0)
-            self._target_qpos, self._target_pose, ok = self._accept(
-                torch, q, ok, q0, target, self._target_qpos, self._target_pose, self.max_joint_step)
+        q0 = self._target_qpos if self.config.use_target else self._start_qpos
+        q, ok, target = self.ik.tool_step(q0, action, self._target_pose if self.config.use_target else None)
+        self._target_qpos = torch.where(ok[:, None], q, self._target_qpos)
+        self._target_pose = torch.where(ok[:, None, None], target, self._target_pose)
         self.ik_unreachable = ~ok
         self.set_drive_targets(self._target_qpos)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -274,6 +275,117 @@ class SphericalWristIK:
         q = xp.concatenate([xp.stack([q1, q2, q3], 1), best], 1)
         ok = reachable & ((q >= c.lower) & (q <= c.upper)).all(1)
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
+
+
+def apply_tool_delta(xp, ref, action):
+    """``ref · Δ`` for (N,4,4) poses and (N,4) actions in metres and radians: Δ translates by action[:3]
+    in the tool frame, then rotates by action[3] about the tool's x axis (the original report's
+    ``multiplyTransforms(current, delta)``); ``xp`` is numpy or torch."""
+    r = ref[:, :3, :3]
+    c, s = xp.cos(action[:, 3:4]), xp.sin(action[:, 3:4])
+    pos = ref[:, :3, 3] + (r @ action[:, :3, None])[..., 0]
+    cols = [r[:, :, 0], c * r[:, :, 1] + s * r[:, :, 2], c * r[:, :, 2] - s * r[:, :, 1], pos]
+    return xp.concatenate([xp.stack(cols, 2), ref[:, 3:]], 1)
+
+
+@dataclass
+class DLSParams:
+    iterations: int = 6
+    damping: float = 1e-3
+    pos_tol: float = 2e-4
+    """metres"""
+    rot_tol: float = math.radians(0.2)
+    """radians"""
+
+
+IK_METHODS = ("auto", "closed_form", "dls")
+
+
+class ArmIK:
+    """The one inverse-kinematics interface: :meth:`solve` (a pose) and :meth:`tool_step` (a tool-frame
+    delta from the current or a given pose, FK + delta + IK in one pass). Behind it: the closed form for
+    the IRB 120's spherical wrist (exact, one pass) or damped least squares for any other serial chain.
+
+    ``method``: "closed_form", "dls" or "auto" (closed form when the chain has the structure).
+    ``max_joint_step`` (dof,): a solution needing a larger move from ``q0`` on any joint is not ok (a real
+    arm could not follow it within one control period; such jumps happen only at singularities).
+    """
+
+    def __init__(self, chain: SerialChain, method: str = "auto", dls: DLSParams | None = None,
+                 max_joint_step: torch.Tensor | None = None):
+        if method not in IK_METHODS:
+            raise ValueError(f"ik_solver={method!r} is not one of {IK_METHODS}")
+        self.chain, self.dls = chain, dls or DLSParams()
+        self.max_joint_step = (torch.full_like(chain.lower, math.inf) if max_joint_step is None
+                               else torch.as_tensor(max_joint_step).to(chain.lower))
+        self.closed_form = None
+        if method != "dls":
+            try:
+                self.closed_form = SphericalWristIK(chain)
+            except ValueError:
+                if method == "closed_form":
+                    raise
+        self.method = "closed_form" if self.closed_form is not None else "dls"
+        self._consts: dict = {}
+
+    def consts(self, xp, like) -> SimpleNamespace:
+        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
+            chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like),
+            max_step=conv(self.max_joint_step)))
+
+    def solve(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joint angles (N,dof) reaching ``target`` (N,4,4, tip in the root frame) from ``q0``, and (N,)
+        whether they do within the joint limits (closed form: ``q0``'s branch; rows that fail are ``q0``)."""
+        if self.method == "closed_form":
+            return self.closed_form.solve(target, q0)
+        return self.solve_dls(target, q0)
+
+    def solve_dls(self, target: torch.Tensor, q0: torch.Tensor, fk0=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Damped least squares from ``q0`` (``fk0``: ``chain.fk_with_jacobian(q0)`` if already known).
+
+        The rotation error is the vee of the skew part of R_target·R_currentᵀ: its direction is the
+        rotation axis and its norm sin(angle), which equals the angle to 1e-5 rad at the sub-degree
+        errors IK iterates on, at a fraction of the cost of a quaternion/axis-angle round trip.
+        """
+        p, chain = self.dls, self.chain
+        q = q0.clone()
+        eye = torch.eye(6, device=q.device, dtype=q.dtype)
+        for i in range(p.iterations + 1):
+            cur, jac = fk0 if (i == 0 and fk0 is not None) else chain.fk_with_jacobian(q)
+            err_p = target[:, :3, 3] - cur[:, :3, 3]
+            r = target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2)
+            err_r = 0.5 * torch.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], 1)
+            # a trace below 1 means an error above 90 deg, where sin() is ambiguous: never "converged"
+            converged = ((err_p.norm(dim=1) < p.pos_tol) & (err_r.norm(dim=1) < p.rot_tol)
+                         & (r.diagonal(dim1=1, dim2=2).sum(1) > 1.0))
+            # early exit on the CPU only: on CUDA the check would wait for the GPU every iteration
+            if i == p.iterations or (q.device.type == "cpu" and bool(converged.all())):
+                break
+            err = torch.cat([err_p, err_r], dim=1)
+            jjt = jac @ jac.transpose(1, 2) + (p.damping**2) * eye
+            dq = (jac.transpose(1, 2) @ torch.linalg.solve(jjt, err.unsqueeze(-1))).squeeze(-1)
+            q = torch.clamp(q + dq, chain.lower, chain.upper)
+        return q, converged
+
+    def tool_step(self, q0: torch.Tensor, action: torch.Tensor, ref: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Solve for ``ref · Δ(action)`` (see :func:`apply_tool_delta`; ``ref``: FK of ``q0`` when None).
+        Returns (joint angles, ok: reachable and within ``max_joint_step`` of ``q0``, target pose)."""
+        if self.method == "closed_form":
+            if ref is None:
+                return run_batched(self._closed_form_tool_step, self.consts, q0, action)
+            return run_batched(self._closed_form_tool_step, self.consts, q0, action, ref)
+        fk0 = self.chain.fk_with_jacobian(q0)
+        target = apply_tool_delta(torch, fk0[0] if ref is None else ref, action)
+        q, ok = self.solve_dls(target, q0, fk0)
+        return q, ok & ((q - q0).abs() <= self.max_joint_step).all(1), target
+
+    @staticmethod
+    def _closed_form_tool_step(xp, c: SimpleNamespace, q0, action, ref=None):
+        """FK, tool delta, IK and the joint-speed check in one pass (numpy on CPU, torch on CUDA)."""
+        target = apply_tool_delta(xp, SerialChain.fk(xp, c.chain, q0) if ref is None else ref, action)
+        q, ok = SphericalWristIK._solve(xp, c.ik, target, q0)
+        return q, ok & (xp.abs(q - q0) <= c.max_step).all(1), target
 
 
 def matrix_to_quaternion(m: torch.Tensor) -> torch.Tensor:

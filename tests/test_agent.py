@@ -185,22 +185,23 @@ def test_kinematics_numpy_and_torch_backends_agree():
 
 
 def test_controller_step_numpy_and_torch_backends_agree():
-    """The controller's fused FK/delta/IK/speed-check pass: numpy (CPU sim) and torch (GPU sim) agree."""
-    from maniskill_irb120.kinematics import run_batched
+    """The fused FK/delta/IK/speed-check pass: numpy (CPU sim) and torch (GPU sim) agree."""
+    from maniskill_irb120.kinematics import ArmIK
 
     env = make()
     ctrl = env.unwrapped.agent.arm_controller
+    ik = ctrl.ik
     gen = torch.Generator().manual_seed(2)
     q0 = ctrl.qpos.repeat(32, 1) + 0.3 * torch.randn(32, 6, generator=gen)
     action = (torch.rand(32, 4, generator=gen) * 2 - 1) * torch.tensor([0.01, 0.01, 0.01, math.radians(10)])
     action[0] = torch.tensor([0.0, 0.0, 0.0, 0.0])
-    tq, tp = q0.clone(), ctrl.chain.forward_kinematics(q0)
-    q_np, pose_np, ok_np = run_batched(ctrl._closed_form_step, ctrl._step_consts, q0, action, tq, tp)
-    q_t, pose_t, ok_t = ctrl._closed_form_step(torch, ctrl._step_consts(torch, q0), q0, action, tq, tp)
-    assert torch.equal(ok_np, ok_t) and bool(ok_np.float().mean() > 0.8)
-    torch.testing.assert_close(q_np, q_t, atol=1e-4, rtol=0)
-    torch.testing.assert_close(pose_np, pose_t, atol=1e-5, rtol=0)
-    torch.testing.assert_close(q_np[0], q0[0], atol=1e-4, rtol=0)  # a zero action keeps the joints
+    for ref in (None, ctrl.chain.forward_kinematics(q0)):
+        q_np, ok_np, pose_np = ik.tool_step(q0, action, ref)
+        q_t, ok_t, pose_t = ArmIK._closed_form_tool_step(torch, ik.consts(torch, q0), q0, action, ref)
+        assert torch.equal(ok_np, ok_t) and bool(ok_np.float().mean() > 0.8)
+        torch.testing.assert_close(q_np, q_t, atol=1e-4, rtol=0)
+        torch.testing.assert_close(pose_np, pose_t, atol=1e-5, rtol=0)
+        torch.testing.assert_close(q_np[0], q0[0], atol=1e-4, rtol=0)  # a zero action keeps the joints
 
 
 def test_closed_form_ik_crosses_the_wrist_singularity_smoothly():
@@ -256,7 +257,7 @@ def test_tool_step_needing_a_too_fast_joint_is_refused():
 def test_tool_delta_moves_tcp_as_commanded(solver):
     env = make()
     if solver == "dls":  # what ik_solver="dls" (or a chain without a spherical wrist) gets
-        env.unwrapped.agent.arm_controller.closed_form = None
+        env.unwrapped.agent.arm_controller.ik.method = "dls"
     rng = np.random.default_rng(0)
     for _ in range(8):
         a = np.r_[rng.uniform(-1, 1, 4), 1.0].astype(np.float32)

@@ -221,14 +221,14 @@ def test_trays_reachable_pointing_down(env):
         t[:3, 3] = torch.tensor([cx + sx * tc.TRAY_INNER / 2, cy + sy * tc.TRAY_INNER / 2, tc.TRAY_FLOOR_TOP + dz])
         targets.append(t)
     targets = torch.stack(targets)
-    q, ok = ctrl.solve_ik(targets, q0.repeat(len(targets), 1))  # closed form: one call
-    assert ctrl.closed_form is not None
+    q, ok = ctrl.ik.solve(targets, q0.repeat(len(targets), 1))  # closed form: one call
+    assert ctrl.ik.method == "closed_form"
     assert bool(ok.all()), targets[~ok][:, :3, 3]
     reached = ctrl.chain.forward_kinematics(q)
     torch.testing.assert_close(reached, targets, atol=1e-4, rtol=0)
     q = q0.repeat(len(targets), 1)
     for _ in range(10):  # damped least squares does a few iterations per call; chain calls to converge
-        q, ok = ctrl.solve_ik_dls(targets, q)
+        q, ok = ctrl.ik.solve_dls(targets, q)
     assert bool(ok.all()), targets[~ok][:, :3, 3]
 
 
