@@ -1,0 +1,67 @@
+"""Shared pieces of the agent tests: a bare scene with the robot and one cube (the grasp scenario)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import mani_skill.envs  # noqa: F401
+import maniskill_irb120  # noqa: F401
+import numpy as np
+import sapien
+import torch
+from mani_skill.envs.sapien_env import BaseEnv
+from mani_skill.utils.building import actors
+from mani_skill.utils.building.ground import build_ground
+from mani_skill.utils.registration import REGISTERED_ENVS, register_env
+from mani_skill.utils.scene_builder.table import TableSceneBuilder  # noqa: F401  (ManiSkill import check)
+
+REPO = Path(__file__).resolve().parents[1]
+CUBE_HALF = 0.01
+
+if "IRB120CubeBench-test" not in REGISTERED_ENVS:
+
+    @register_env("IRB120CubeBench-test", max_episode_steps=1000)
+    class CubeBench(BaseEnv):
+        """Robot on the floor, a red 20 mm cube under the rest pose's TCP: the bare grasp scenario."""
+
+        SUPPORTED_ROBOTS = ["irb120_metalwork"]
+        SUPPORTED_REWARD_MODES = ["none"]
+
+        def __init__(self, *args, robot_uids="irb120_metalwork", **kwargs):
+            super().__init__(*args, robot_uids=robot_uids, **kwargs)
+
+        def _load_agent(self, options: dict):
+            super()._load_agent(options, sapien.Pose())
+
+        def _load_scene(self, options: dict):
+            self.ground = build_ground(self.scene)
+            self.cube = actors.build_cube(self.scene, half_size=CUBE_HALF, color=[1, 0, 0, 1], name="cube",
+                                          initial_pose=sapien.Pose(p=[0.35, 0, CUBE_HALF]))
+
+        def _initialize_episode(self, env_idx, options):
+            qpos = torch.as_tensor(self.agent.keyframes["rest"].qpos, dtype=torch.float32)
+            self.agent.reset(qpos.expand(len(env_idx), -1))
+            self.cube.set_pose(sapien.Pose(p=[0.35, 0, CUBE_HALF]))
+
+        def evaluate(self):
+            return {}
+
+        def _get_obs_extra(self, info):
+            return {}
+
+
+
+def make(obs_mode="none", control_mode="pd_ee_delta_tool", **kw):
+    env = gym.make("IRB120CubeBench-test", obs_mode=obs_mode, control_mode=control_mode, reward_mode="none", **kw)
+    env.reset(seed=0)
+    return env
+
+
+OPEN = np.array([0, 0, 0, 0, 1], dtype=np.float32)
+
+
+def tcp_matrix(env) -> torch.Tensor:
+    return env.unwrapped.agent.tcp_pose.to_transformation_matrix()[0].double()
+
+
