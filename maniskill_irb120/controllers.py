@@ -23,7 +23,7 @@ from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
 from maniskill_irb120.kinematics import ArmIK, DLSParams, SerialChain, matrix_to_quaternion
-from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, true_reset_mask
+from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, set_drive_targets, true_reset_mask
 
 
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
@@ -32,17 +32,6 @@ def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     m[:, :3, 3] = p
     m[:, 3, 3] = 1
     return m
-
-
-def _set_drive_targets(ctrl: PDJointPosController, targets: torch.Tensor) -> None:
-    """ManiSkill's CPU path converts and validates each joint's target through three Python layers
-    (~12 us per joint, 8 joints per step); this hands the floats to PhysX directly. GPU: unchanged."""
-    if ctrl.scene.gpu_sim_enabled:
-        PDJointPosController.set_drive_targets(ctrl, targets)
-        return
-    row = targets[0].detach().numpy()
-    for i, joint in enumerate(ctrl.joints):
-        joint._objs[0].drive_target = row[i:i + 1]
 
 
 class PDEEDeltaToolController(PDJointPosController):
@@ -108,7 +97,7 @@ class PDEEDeltaToolController(PDJointPosController):
         self.set_drive_targets(self._target_qpos)
 
     def set_drive_targets(self, targets: torch.Tensor):
-        _set_drive_targets(self, targets)
+        set_drive_targets(self, targets)
 
     def get_state(self) -> dict:
         """With ``use_target`` the targets are the controller's memory: the pose target (p, wxyz) and the
@@ -172,7 +161,7 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
         self.set_drive_targets(self._target_qpos)
 
     def set_drive_targets(self, targets: torch.Tensor):
-        _set_drive_targets(self, targets)
+        set_drive_targets(self, targets)
 
 
 @dataclass

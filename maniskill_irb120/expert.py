@@ -23,7 +23,8 @@ import gymnasium as gym
 import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
-from maniskill_irb120.envs.table_clearing import TRAY_INNER, TRAY_WALL_H, TableClearingIRB120Env
+from maniskill_irb120.envs.table_clearing import TableClearingIRB120Env
+from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
 
 POS_LIMIT = 0.01  # m per action (pd_ee_delta_tool)
 ROT_LIMIT = math.radians(10.0)  # rad per action

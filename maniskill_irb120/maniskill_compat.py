@@ -4,6 +4,10 @@ Everything here was read against ``mani_skill`` 3.0.1 (``envs/sapien_env.py``, `
 ``agents/controllers/*``). ``tests/test_maniskill_compat.py`` pins each assumption, so an upgrade that
 changes one fails there first, not somewhere downstream in training.
 
+What is here: partial-reset masks for controllers and controller-state restore (below), direct PhysX
+drive-target writes on the CPU (:func:`set_drive_targets`), and the render-ahead read-back of a camera
+frame whose capture the task already started (:func:`read_sensor_obs`).
+
 Partial resets: ``BaseEnv.reset`` sets ``scene._reset_mask`` to the envs being reset while it runs
 ``_initialize_episode``, then sets it back to all-true *before* it resets the controllers. Every
 controller that writes ``target[scene._reset_mask] = ...`` in ``reset()`` (ManiSkill's joint and EE
@@ -129,3 +133,29 @@ def restore_controller_state(env, state, env_idx=None) -> None:
             return  # a state recorded without the controller part (e.g. in another control mode)
         ctrl = _unflatten_like(current, flat[:, base:])
     env.agent.set_controller_state(_merge_rows(current, ctrl, env_idx))
+
+
+def set_drive_targets(ctrl, targets: torch.Tensor) -> None:
+    """Joint drive targets of a ManiSkill joint controller. ManiSkill's CPU path converts and validates
+    each joint's target through three Python layers (~12 us per joint, 8 joints per step); this writes
+    the floats to the PhysX joints directly. GPU: ManiSkill's own (batched) path."""
+    if ctrl.scene.gpu_sim_enabled:  # what PDJointPosController.set_drive_targets does
+        ctrl.articulation.set_joint_drive_targets(targets, ctrl.joints, ctrl.active_joint_indices)
+        return
+    row = targets[0].detach().numpy()
+    for i, joint in enumerate(ctrl.joints):
+        joint._objs[0].drive_target = row[i:i + 1]
+
+
+def read_sensor_obs(env, apply_texture_transforms: bool = True) -> dict:
+    """``BaseEnv._get_obs_sensor_data`` without its ``update_render`` + ``capture_sensor_data``: for a
+    frame whose capture was already started (render-ahead); a second update would only mark it stale."""
+    from mani_skill.sensors.camera import Camera
+
+    v = env.obs_mode_struct.visual
+    return {
+        name: sensor.get_obs(rgb=v.rgb, depth=v.depth, position=v.position, segmentation=v.segmentation,
+                             normal=v.normal, albedo=v.albedo, apply_texture_transforms=apply_texture_transforms)
+        if isinstance(sensor, Camera) else sensor.get_obs()
+        for name, sensor in env.scene.sensors.items()
+    }

@@ -22,7 +22,7 @@ from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120 import make_vec_env
 from maniskill_irb120.agents.irb120 import hand_camera_shader
-from maniskill_irb120.envs.table_clearing import TableClearingIRB120Env
+from maniskill_irb120.envs.base import IRB120TableEnv
 from maniskill_irb120.kinematics import matrix_to_quaternion
 from maniskill_irb120.maniskill_compat import episode_reset
 from maniskill_irb120.rendering import FORWARD
@@ -41,7 +41,7 @@ def ms_reset_rng(fake, seed, env_idx) -> torch.Tensor:
     """ManiSkill 3.0.1's RNG steps of ``BaseEnv.reset`` (no reconfiguration), then our per-env draws."""
     BaseEnv._set_main_rng(fake, seed)
     BaseEnv._set_episode_rng(fake, seed, env_idx)
-    return TableClearingIRB120Env._episode_draws(fake, env_idx)
+    return IRB120TableEnv._episode_draws(fake, env_idx, 9)
 
 
 def test_partial_resets_draw_a_new_start_for_each_env():
@@ -145,10 +145,11 @@ def test_contact_pairs_one_fixed_layout():
     env = gym.make(ENV, obs_mode="state")
     env.reset(seed=0)
     u = env.unwrapped
-    links = {a.name for a, b in u._contact_pairs if b in u.scene_actors and a is not u.obj}
+    pairs = u.contacts.pairs
+    links = {a.name for a, b in pairs if b in u.scene_actors and a is not u.obj}
     assert "base_link" not in links and "tcp" not in links  # stands on the table / has no shape
-    assert len(u._contact_pairs) == len(links) * 4 + 4 + 2
-    assert u._pair_impulses().shape == (len(u._contact_pairs), 1, 3)
+    assert len(pairs) == len(links) * 4 + 4 + 2
+    assert u.contacts.impulses().shape == (len(pairs), 1, 3)
     env.close()
 
 

@@ -17,6 +17,7 @@ import torch
 
 import maniskill_irb120  # noqa: F401  (registers the env)
 from maniskill_irb120.envs import table_clearing as tc
+from maniskill_irb120.envs import table_scene as ts
 from maniskill_irb120.expert import CARRY, ENV_ID, TableClearingExpert, run_expert
 
 TERMS = tc.REWARD_TERMS
@@ -24,6 +25,7 @@ TERMS = tc.REWARD_TERMS
 
 def make(**kw):
     kw.setdefault("obs_mode", "state")
+    kw.setdefault("reward_mode", "dense")  # the original report's terms (the default is normalized_dense)
     return gym.make(ENV_ID, **kw)
 
 
@@ -176,21 +178,26 @@ def test_sparse_and_normalized_dense_rewards():
 
 
 def test_cpu_contact_pass_matches_pairwise_queries(env):
-    """The CPU single-pass contact scan agrees with ManiSkill's pairwise queries (the GPU code path)
-    through a whole expert episode (finger and scene contacts) and a collision."""
+    """The CPU single-pass contact scan agrees with ManiSkill's pairwise queries (the GPU code path's
+    pair layout) through a whole expert episode (finger and scene contacts) and a collision."""
     env.reset(seed=6)
     u = env.unwrapped
     expert = TableClearingExpert(u)
     expert.reset()
     seen = set()
+
+    def both():
+        fast, slow = u.contacts.scan(), u.contacts.pairwise()
+        for f, s in zip(fast[:2], slow[:2]):
+            assert torch.equal(f, s)
+        torch.testing.assert_close(fast[2], slow[2], atol=1e-3, rtol=1e-4)  # finger forces, same sign convention
+        return fast
+
     for _ in range(250):
         _, _, term, _, info = step(env, expert.act())
-        fast, slow = u._contact_flags_cpu(), u._contact_flags_pairwise()
-        assert [bool(x[0]) for x in fast[:3]] == [bool(x[0]) for x in slow[:3]]
-        for f_fast, f_slow in zip(fast[3:], slow[3:]):  # finger forces from the object, same sign convention
-            torch.testing.assert_close(f_fast, f_slow, atol=1e-3, rtol=1e-4)
-        assert bool(u.agent.is_grasping(u.obj, finger_forces=fast[3:])[0]) == bool(u.agent.is_grasping(u.obj)[0])
-        seen.add(tuple(bool(x[0]) for x in fast[:3]))
+        robot_hit, obj_hit, forces = both()
+        assert bool(u._grasped(forces[0], u.agent.tcp_pose.q)[0]) == bool(u.agent.is_grasping(u.obj)[0])
+        seen.add((bool(robot_hit[0]), bool(obj_hit[0, 0]), bool(u._touches(forces[0])[0])))
         if bool(term[0]):
             break
     assert (False, False, True) in seen and (False, True, False) in seen  # held / resting
@@ -199,8 +206,7 @@ def test_cpu_contact_pass_matches_pairwise_queries(env):
         _, _, term, _, info = step(env, [1, 0, 0, 0, 1])
         if bool(term[0]):
             break
-    fast, slow = u._contact_flags_cpu(), u._contact_flags_pairwise()
-    assert bool(fast[0][0]) and bool(slow[0][0])
+    assert bool(both()[0][0])
 
 
 # --------------------------------------------------------------------------- scene, resets, determinism
@@ -213,12 +219,12 @@ def test_trays_reachable_pointing_down(env):
     down = ctrl.ee_pose_at_base()[0, :3, :3]
     targets = []
     for (cx, cy), sx, sy, dz, yaw in itertools.product(
-        (tc.SOURCE_TRAY_XY, tc.DEST_TRAY_XY), (-1, 1), (-1, 1), (0.01, 0.05, 0.10, 0.15), (0.0, math.pi / 4, -math.pi / 4)
+        (ts.SOURCE_TRAY_XY, ts.DEST_TRAY_XY), (-1, 1), (-1, 1), (0.01, 0.05, 0.10, 0.15), (0.0, math.pi / 4, -math.pi / 4)
     ):
         t = torch.eye(4)
         c, s = math.cos(yaw), math.sin(yaw)
         t[:3, :3] = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ down
-        t[:3, 3] = torch.tensor([cx + sx * tc.TRAY_INNER / 2, cy + sy * tc.TRAY_INNER / 2, tc.TRAY_FLOOR_TOP + dz])
+        t[:3, 3] = torch.tensor([cx + sx * ts.TRAY_INNER / 2, cy + sy * ts.TRAY_INNER / 2, ts.TRAY_FLOOR_TOP + dz])
         targets.append(t)
     targets = torch.stack(targets)
     q, ok = ctrl.ik.solve(targets, q0.repeat(len(targets), 1))  # closed form: one call
@@ -238,9 +244,9 @@ def test_object_spawn_inside_source_tray_and_seeded(env):
         env.reset(seed=seed)
         u = env.unwrapped
         p = u.obj.pose.raw_pose[0].clone()
-        rel = p[:2] - torch.tensor(tc.SOURCE_TRAY_XY)
-        assert bool((rel.abs() <= tc.TRAY_INNER / 2 - tc.SPAWN_MARGIN + 1e-6).all())
-        assert float(p[2]) == pytest.approx(tc.TRAY_FLOOR_TOP + u.object_half_size, abs=1e-5)
+        rel = p[:2] - torch.tensor(ts.SOURCE_TRAY_XY)
+        assert bool((rel.abs() <= ts.TRAY_INNER / 2 - ts.SPAWN_MARGIN + 1e-6).all())
+        assert float(p[2]) == pytest.approx(ts.TRAY_FLOOR_TOP + u.object_half_size, abs=1e-5)
         if seed in poses:
             assert torch.equal(poses[seed], p)
         poses[seed] = p
@@ -289,7 +295,7 @@ def test_defaults_and_module_prefixed_make_in_fresh_interpreter():
         f"env = gym.make('maniskill_irb120:{ENV_ID}', obs_mode='state')\n"
         "u = env.unwrapped\n"
         "assert u.control_mode == 'pd_ee_delta_tool', u.control_mode\n"
-        "assert u.reward_mode == 'dense', u.reward_mode\n"
+        "assert u.reward_mode == 'normalized_dense', u.reward_mode\n"
         "assert u.single_action_space.shape == (5,), u.single_action_space.shape\n"
         "assert u.obs_mode == 'state'\n"
         "print('ok')\n"
