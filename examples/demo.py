@@ -1,7 +1,7 @@
 """Demo: the scripted expert clears the table on CPU; one mp4 shows the overview camera beside the
 84x84 hand camera, a PNG shows the scene, and the success rate and step timing are printed.
 
-    .venv/bin/python examples/demo.py [--episodes 3] [--seed 0] [--out-dir outputs]
+    .venv/bin/python examples/demo.py [--env-id TableClearing-IRB120-v1] [--episodes 3] [--seed 0] [--out-dir outputs]
 """
 
 from __future__ import annotations
@@ -17,11 +17,14 @@ import torch
 import tyro
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.expert import ENV_ID, TableClearingExpert
+from maniskill_irb120.expert import expert_for
+from maniskill_irb120.rollout import run_episode
 
 
 @dataclass
 class Args:
+    env_id: str = "TableClearing-IRB120-v1"
+    """any task with a scripted expert: TableClearing-, GraspLift- or StackCube-IRB120-v1"""
     episodes: int = 3
     seed: int = 0
     out_dir: Path = Path("outputs")
@@ -39,34 +42,46 @@ def upscale(img: np.ndarray, size: int) -> np.ndarray:
     return np.kron(img, np.ones((k, k, 1), dtype=np.uint8))[:size, :size]
 
 
+class StepTimer(gym.Wrapper):
+    """Times ``env.step`` alone (the overview video's rendering happens outside it)."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.times: list[float] = []
+
+    def step(self, action):
+        t0 = time.perf_counter()
+        out = self.env.step(action)
+        self.times.append(time.perf_counter() - t0)
+        return out
+
+
 def main(args: Args) -> dict:
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    env = gym.make(ENV_ID, obs_mode="rgbd", render_mode="rgb_array",
-                   human_render_camera_configs=dict(width=args.size, height=args.size))
-    expert = TableClearingExpert(env.unwrapped)
-    video = args.out_dir / "table_clearing_expert.mp4"
-    scene_png = args.out_dir / "table_clearing_scene.png"
+    env = StepTimer(gym.make(args.env_id, obs_mode="rgbd", render_mode="rgb_array",
+                             human_render_camera_configs=dict(width=args.size, height=args.size)))
+    expert = expert_for(env)
+    stem = args.env_id.split("-")[0].lower()
+    video = args.out_dir / f"{stem}_expert.mp4"
+    scene_png = args.out_dir / f"{stem}_scene.png"
     hand_png = args.out_dir / "hand_camera.png"
-    successes, steps, step_times = 0, [], []
+    episodes = []
     with imageio.get_writer(video, fps=20, macro_block_size=1) as writer:
+
+        def write_frame(_action, result):
+            hand = frame(result[0]["sensor_data"]["hand_camera"]["rgb"])
+            overview = frame(env.render())
+            if not scene_png.exists():
+                imageio.imwrite(scene_png, overview)
+                imageio.imwrite(hand_png, upscale(hand, 252))
+            writer.append_data(np.concatenate([overview, upscale(hand, args.size)], axis=1))
+
+        for f in (scene_png, hand_png):
+            f.unlink(missing_ok=True)
         for ep in range(args.episodes):
-            obs, _ = env.reset(seed=args.seed + ep)
-            expert.reset()
-            if ep == 0:
-                imageio.imwrite(scene_png, frame(env.render()))
-                imageio.imwrite(hand_png, upscale(frame(obs["sensor_data"]["hand_camera"]["rgb"]), 252))
-            for t in range(1000):
-                action = expert.act()
-                t0 = time.perf_counter()
-                obs, _, term, trunc, info = env.step(action)
-                step_times.append(time.perf_counter() - t0)
-                hand = upscale(frame(obs["sensor_data"]["hand_camera"]["rgb"]), args.size)
-                writer.append_data(np.concatenate([frame(env.render()), hand], axis=1))
-                if bool(term[0]) or bool(trunc[0]):
-                    break
-            successes += bool(info["success"][0])
-            steps.append(t + 1)
+            episodes.append(run_episode(env, expert, args.seed + ep, on_step=write_frame))
     env.close()
+    successes, steps, step_times = sum(e.success for e in episodes), [e.steps for e in episodes], env.times
     result = dict(success_rate=successes / args.episodes, episodes=args.episodes, mean_steps=float(np.mean(steps)),
                   step_ms=1000 * float(np.mean(step_times)), steps_per_s=1 / float(np.mean(step_times)))
     print(f"scene:  {scene_png.resolve()}")

@@ -1,10 +1,15 @@
-"""``maniskill-irb120`` command line (tyro subcommands, as ManiSkill's own scripts use tyro)."""
+"""``maniskill-irb120``: the package's one command line (tyro subcommands, as ManiSkill's own scripts use
+tyro). ``python -m maniskill_irb120`` and ``python -m maniskill_irb120.expert`` forward here."""
 
 from __future__ import annotations
 
+import json
 import sys
+from pathlib import Path
 
 import tyro
+
+DEFAULT_ENV_ID = "TableClearing-IRB120-v1"
 
 
 def doctor(json: bool = False) -> int:
@@ -14,23 +19,26 @@ def doctor(json: bool = False) -> int:
     return main(json_output=json)
 
 
-def collect_demos(episodes: int = 10, seed: int = 0, out_dir: str = "demos", name: str = "expert",
-                  obs_mode: str = "none", keep_failures: bool = False, save_video: bool = False) -> int:
-    """Record scripted-expert episodes in ManiSkill's trajectory format (h5 + json)."""
-    import json
-    from pathlib import Path
-
+def collect_demos(env_id: str = DEFAULT_ENV_ID, episodes: int = 10, seed: int = 0, out_dir: str = "demos",
+                  name: str = "expert", obs_mode: str = "none", keep_failures: bool = False,
+                  save_video: bool = False, object_shape: str = "cube") -> int:
+    """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json)."""
     from maniskill_irb120.demos import collect_demos as collect
 
-    print(json.dumps(collect(episodes, seed, Path(out_dir), name, obs_mode, not keep_failures, save_video)))
+    print(json.dumps(collect(episodes, seed, Path(out_dir), name, obs_mode, not keep_failures, save_video,
+                             env_id=env_id, object_shape=object_shape)))
     return 0
 
 
-def expert(episodes: int = 100, seed: int = 0, obs_mode: str = "state") -> int:
-    """Run the scripted expert and print one JSON line (success_rate, episodes, mean_steps, ...)."""
-    from maniskill_irb120.expert import Args, main as expert_main
+def expert(env_id: str = DEFAULT_ENV_ID, episodes: int = 100, seed: int = 0, obs_mode: str = "state",
+           object_shape: str = "cube") -> int:
+    """Run a task's scripted expert on seeds seed..seed+episodes-1; print one JSON line (success_rate,
+    episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode."""
+    import maniskill_irb120  # noqa: F401
+    from maniskill_irb120.rollout import run_expert
 
-    expert_main(Args(episodes=episodes, seed=seed, obs_mode=obs_mode))
+    kwargs = dict(reconfiguration_freq=1) if object_shape == "random" else {}
+    print(json.dumps(run_expert(env_id, episodes, seed, obs_mode=obs_mode, object_shape=object_shape, **kwargs)))
     return 0
 
 

@@ -1,7 +1,7 @@
 """Expert demonstrations in ManiSkill's trajectory format (h5 + json), via ManiSkill's RecordEpisode.
 
-The json names the env as ``maniskill_irb120:TableClearing-IRB120-v1``, so ManiSkill's own replay
-tool finds it in a fresh interpreter with no import of ours::
+The json names the env as ``maniskill_irb120:<env id>``, so ManiSkill's own replay tool finds it in a
+fresh interpreter with no import of ours::
 
     python -m mani_skill.trajectory.replay_trajectory --traj-path demos/expert.h5 --use-env-states
 """
@@ -15,51 +15,41 @@ import gymnasium as gym
 from mani_skill.utils.wrappers.record import RecordEpisode
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.expert import ENV_ID, TableClearingExpert
+from maniskill_irb120.expert import expert_for
+from maniskill_irb120.rollout import run_episode
 
-QUALIFIED_ENV_ID = f"maniskill_irb120:{ENV_ID}"
+DEFAULT_ENV_ID = "TableClearing-IRB120-v1"
 
 
 def collect_demos(episodes: int = 10, seed: int = 0, out_dir: Path = Path("demos"), name: str = "expert",
-                  obs_mode: str = "none", only_success: bool = True, save_video: bool = False) -> dict:
-    """Roll out the expert for seeds ``seed..seed+episodes-1`` and record each episode.
+                  obs_mode: str = "none", only_success: bool = True, save_video: bool = False,
+                  env_id: str = DEFAULT_ENV_ID, **env_kwargs) -> dict:
+    """Roll out the task's expert for seeds ``seed..seed+episodes-1`` and record each episode.
 
-    ``only_success`` drops failed episodes from the file (ManiSkill's convention for demo sets).
-    Returns the paths and counts. Raises if nothing was recorded.
+    ``only_success`` drops failed episodes from the file (ManiSkill's convention for demo sets). The
+    recorded rewards are the task's ``dense`` ones. Returns the paths and counts; raises if nothing was kept.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     out_dir = Path(out_dir)
-    env = gym.make(ENV_ID, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", reward_mode="dense",
-                   render_mode="rgb_array" if save_video else None)
+    env = gym.make(env_id, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", reward_mode="dense",
+                   render_mode="rgb_array" if save_video else None, **env_kwargs)
+    expert = expert_for(env)
     env = RecordEpisode(env, output_dir=str(out_dir), trajectory_name=name, save_video=save_video,
                         save_on_reset=False, record_env_state=True, video_fps=20,
                         source_type="motion_planning", source_desc="maniskill_irb120 scripted expert")
-    expert = TableClearingExpert(env.unwrapped)
-    kept, tried = 0, 0
+    kept = 0
     for ep in range(episodes):
-        env.reset(seed=seed + ep)
-        expert.reset()
-        while True:
-            _, _, term, trunc, info = env.step(expert.act())
-            if bool(term[0]) or bool(trunc[0]):
-                break
-        tried += 1
-        ok = bool(info["success"][0])
-        if ok or not only_success:
-            env.flush_trajectory(save=True)
-            if save_video:
-                env.flush_video(save=True)
-            kept += 1
-        else:
-            env.flush_trajectory(save=False)
-            if save_video:
-                env.flush_video(save=False)
+        keep = run_episode(env, expert, seed + ep).success or not only_success
+        env.flush_trajectory(save=keep)
+        if save_video:
+            env.flush_video(save=keep)
+        kept += keep
     env.close()
     h5, js = out_dir / f"{name}.h5", out_dir / f"{name}.json"
     if kept == 0:
-        raise RuntimeError(f"no successful episode among {tried}; nothing recorded")
+        raise RuntimeError(f"no successful episode among {episodes}; nothing recorded")
     meta = json.loads(js.read_text())
-    meta["env_info"]["env_id"] = QUALIFIED_ENV_ID
+    meta["env_info"]["env_id"] = f"maniskill_irb120:{env_id}"
     js.write_text(json.dumps(meta, indent=2))
-    return dict(h5=str(h5), json=str(js), episodes_recorded=kept, episodes_tried=tried)
+    return dict(env_id=env_id, h5=str(h5), json=str(js), episodes_recorded=kept, episodes_tried=episodes)

@@ -1,39 +1,35 @@
-"""Scripted expert for TableClearing-IRB120-v1.
+"""Scripted experts for the IRB 120 table tasks: one pick-and-place phase machine, one subclass per task.
 
-It reads privileged state (object pose, tray centres) but acts only through ``pd_ee_delta_tool``
-actions in [-1, 1]: a world-frame displacement is rotated into the TCP frame (Rᵀ·d), scaled by the
-±1 cm limit, and shrunk uniformly so its largest component is 1 (straight-line moves, no axis-wise
-clipping that would bend the path into a tray wall). Yaw uses the ±10° rotation about the approach axis.
+They read privileged state (object poses, tray centres) but act only through ``pd_ee_delta_tool`` actions
+in [-1, 1]: a world-frame displacement is rotated into the TCP frame (Rᵀ·d), scaled by the ±1 cm limit, and
+shrunk uniformly so its largest component is 1 (straight-line moves, no axis-wise clipping that would bend
+the path into a tray wall). Yaw uses the ±10° rotation about the approach axis.
 
-Phases (per env, batched): approach a hover point above the object while aligning the finger axis with
-a cube face normal (smallest rotation modulo 90°) → descend → close → lift → carry above the
-destination tray → lower → open. ``python -m maniskill_irb120.expert --episodes 100 --seed 0``
-prints one JSON line with the success rate.
+Phases (per env, batched): approach a hover point above the object while aligning the finger axis with a
+side face normal (smallest rotation modulo 90°) → descend → close → lift → then per task: hold still
+(GraspLift), or carry above the place → lower → open → retreat (TableClearing: the destination tray;
+StackCube: the other object). ``maniskill-irb120 expert --env-id ID --episodes 100 --seed 0`` prints one
+JSON line with the success rate.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import time
-from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-import gymnasium as gym
 import torch
-from mani_skill.utils.registration import REGISTERED_ENVS
+from mani_skill.utils.structs.actor import Actor
 
-from maniskill_irb120.envs.table_clearing import TableClearingIRB120Env
+from maniskill_irb120.envs.base import IRB120TableEnv
 from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
 
 POS_LIMIT = 0.01  # m per action (pd_ee_delta_tool)
 ROT_LIMIT = math.radians(10.0)  # rad per action
-ENV_ID = "TableClearing-IRB120-v1"
 # gripper_base collision box half extents across the approach axis: along the fingers / across them
 GRIPPER_HALF_LONG, GRIPPER_HALF_SHORT = 0.032, 0.015
 
-APPROACH, DESCEND, CLOSE, LIFT, CARRY, LOWER, RELEASE, RETREAT = range(8)
-PHASE_NAMES = ["approach", "descend", "close", "lift", "carry", "lower", "release", "retreat"]
+APPROACH, DESCEND, CLOSE, LIFT, CARRY, LOWER, RELEASE, RETREAT, HOLD = range(9)
+PHASE_NAMES = ["approach", "descend", "close", "lift", "carry", "lower", "release", "retreat", "hold"]
 
 
 @dataclass
@@ -44,21 +40,26 @@ class ExpertConfig:
     """TCP height above the object centre at the grasp: finger tips 4 mm below the centre, and the
     gripper body (17 mm above the TCP) 2 mm above the 3 cm tray walls for a 20 mm cube"""
     carry_height: float = 0.12
-    """TCP height above the tray floor while lifting and carrying"""
+    """TCP height above the source tray floor while lifting and carrying"""
     release_height: float = 0.006
-    """object-centre height above its resting height when the gripper opens"""
+    """object-centre height above its resting place when the gripper opens"""
     close_steps: int = 4
     release_steps: int = 3
     pos_tol: float = 0.002
     yaw_tol: float = math.radians(2.0)
 
 
-class TableClearingExpert:
-    """Batched phase machine; call :meth:`reset` after ``env.reset`` and :meth:`act` each step."""
+class PickPlaceExpert:
+    """Batched phase machine; call :meth:`reset` after ``env.reset`` and :meth:`act` each step.
 
-    def __init__(self, env: TableClearingIRB120Env, config: ExpertConfig | None = None):
+    A task's expert says what to pick (:meth:`_object`) and where to put it (:meth:`_place`: the object
+    centre's resting point there, or None to hold it at the carry height instead)."""
+
+    default_config = ExpertConfig()
+
+    def __init__(self, env: IRB120TableEnv, config: ExpertConfig | None = None):
         self.env = env
-        self.cfg = config or ExpertConfig()
+        self.cfg = config or self.default_config
         n, dev = env.num_envs, env.device
         self.phase = torch.zeros(n, dtype=torch.long, device=dev)
         self.counter = torch.zeros(n, dtype=torch.long, device=dev)
@@ -69,6 +70,12 @@ class TableClearingExpert:
         self.phase[idx] = APPROACH
         self.counter[idx] = 0
 
+    def _object(self) -> Actor:
+        return self.env.obj
+
+    def _place(self) -> torch.Tensor | None:
+        return None
+
     def _yaw_error(self, tcp_rot: torch.Tensor) -> torch.Tensor:
         """Rotation about the TCP approach axis that aligns the finger axis with a cube face normal.
 
@@ -77,7 +84,8 @@ class TableClearingExpert:
         parallel to the wall wins; otherwise the smaller rotation does.
         """
         env = self.env
-        obj_rot = env.obj.pose.to_transformation_matrix()[:, :3, :3]
+        obj = self._object()
+        obj_rot = obj.pose.to_transformation_matrix()[:, :3, :3]
         # the object's most horizontal axis is a side-face normal (any resting pose of a cube)
         axis_idx = obj_rot[:, 2, :].abs().argmin(dim=1)
         normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
@@ -85,7 +93,7 @@ class TableClearingExpert:
         finger_ang = torch.atan2(fingers[:, 1], fingers[:, 0])
         e1 = torch.remainder(torch.atan2(normal[:, 1], normal[:, 0]) - finger_ang + math.pi / 4, math.pi / 2) - math.pi / 4
         e2 = e1 - torch.where(e1 >= 0, 1.0, -1.0) * (math.pi / 2)
-        rel = (env.obj.pose.p[:, :2] - env.source_center[:, :2]).abs()
+        rel = (obj.pose.p[:, :2] - env.source_center[:, :2]).abs()
         wall_gap = TRAY_INNER / 2 - rel  # (N, 2) distance from the object centre to the nearest x / y wall
 
         def margin(e: torch.Tensor) -> torch.Tensor:
@@ -98,17 +106,14 @@ class TableClearingExpert:
         # a rotation by a about TCP x is a rotation by a * (x · ẑ) about world z
         return world_err * torch.sign(tcp_rot[:, 2, 0])
 
-    def _targets(self, phase: torch.Tensor, tcp_p: torch.Tensor, yaw_err: torch.Tensor):
-        """World-frame TCP target, yaw command (rad) and gripper command for each env's phase."""
+    def _targets(self, phase: torch.Tensor, tcp_p: torch.Tensor, place: torch.Tensor | None):
+        """World-frame TCP target and gripper command (+1 open) for each env's phase."""
         env, c = self.env, self.cfg
-        n = env.num_envs
-        obj_p = env.obj.pose.p
+        obj_p = self._object().pose.p
         h = env.object_half_size
         floor = env.source_center[:, 2]
-        dest = env.dest_center
         target = tcp_p.clone()
-        yaw = torch.zeros(n, device=env.device)
-        gripper = -torch.ones(n, device=env.device)
+        gripper = -torch.ones(env.num_envs, device=env.device)
 
         m = phase == APPROACH
         target[m, :2] = obj_p[m, :2]
@@ -116,21 +121,20 @@ class TableClearingExpert:
         m = phase == DESCEND
         target[m, :2] = obj_p[m, :2]
         target[m, 2] = floor[m] + h + c.grasp_offset
-        m = (phase == APPROACH) | (phase == DESCEND)
-        yaw[m] = yaw_err[m]
-        m = phase == LIFT
+        m = (phase == LIFT) | (phase == HOLD)
         target[m, :2] = self.grasp_xy[m]
         target[m, 2] = floor[m] + c.carry_height
-        m = phase == CARRY
-        target[m, :2] = dest[m, :2]
-        target[m, 2] = floor[m] + c.carry_height
-        m = phase == LOWER  # the TCP is grasp_offset above the held object's centre
-        target[m, :2] = dest[m, :2]
-        target[m, 2] = dest[m, 2] + h + c.release_height + c.grasp_offset
-        m = phase == RETREAT
-        target[m, 2] = dest[m, 2] + TRAY_WALL_H + 0.06
-        gripper[(phase <= DESCEND) | (phase >= RELEASE)] = 1.0
-        return target, yaw, gripper
+        if place is not None:
+            m = phase == CARRY
+            target[m, :2] = place[m, :2]
+            target[m, 2] = floor[m] + c.carry_height
+            m = phase == LOWER  # the TCP is grasp_offset above the held object's centre
+            target[m, :2] = place[m, :2]
+            target[m, 2] = place[m, 2] + c.release_height + c.grasp_offset
+            m = phase == RETREAT
+            target[m, 2] = place[m, 2] + TRAY_WALL_H + 0.06
+        gripper[(phase <= DESCEND) | ((phase >= RELEASE) & (phase != HOLD))] = 1.0
+        return target, gripper
 
     def act(self) -> torch.Tensor:
         """(N, 5) action for the current state; advances each env's phase first."""
@@ -139,9 +143,10 @@ class TableClearingExpert:
         tcp_p = tcp.p
         tcp_rot = tcp.to_transformation_matrix()[:, :3, :3]
         yaw_err = self._yaw_error(tcp_rot)
+        place = self._place()
         ph = self.phase
 
-        target, _, _ = self._targets(ph, tcp_p, yaw_err)
+        target, _ = self._targets(ph, tcp_p, place)
         dist = torch.linalg.norm(target - tcp_p, dim=1)
         reached = dist < c.pos_tol
         aligned = yaw_err.abs() < c.yaw_tol
@@ -149,7 +154,7 @@ class TableClearingExpert:
         nxt[(ph == APPROACH) & reached & aligned] = DESCEND
         nxt[(ph == DESCEND) & reached & aligned] = CLOSE
         nxt[(ph == CLOSE) & (self.counter >= c.close_steps)] = LIFT
-        nxt[(ph == LIFT) & (dist < 0.005)] = CARRY
+        nxt[(ph == LIFT) & (dist < 0.005)] = CARRY if place is not None else HOLD
         nxt[(ph == CARRY) & (dist < 0.003)] = LOWER
         nxt[(ph == LOWER) & reached] = RELEASE
         nxt[(ph == RELEASE) & (self.counter >= c.release_steps)] = RETREAT
@@ -159,7 +164,8 @@ class TableClearingExpert:
         self.counter[(nxt == CLOSE) | (nxt == RELEASE)] += 1
         self.phase = nxt
 
-        target, yaw, gripper = self._targets(nxt, tcp_p, yaw_err)
+        target, gripper = self._targets(nxt, tcp_p, place)
+        yaw = torch.where((nxt == APPROACH) | (nxt == DESCEND), yaw_err, torch.zeros_like(yaw_err))
         return self._to_action(target - tcp_p, yaw, gripper, tcp_rot)
 
     @staticmethod
@@ -171,98 +177,55 @@ class TableClearingExpert:
         return torch.cat([local, rot.unsqueeze(1), gripper.unsqueeze(1)], dim=1).clamp(-1, 1)
 
 
-def make_env(obs_mode: str = "state", **kwargs) -> gym.Env:
-    """The task with the expert's action space; ``kwargs`` go to the env (object size, mass, ...)."""
-    return gym.make(ENV_ID, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **kwargs)
+
+class TableClearingExpert(PickPlaceExpert):
+    """Into the destination tray, released ``release_height`` above its floor."""
+
+    def _place(self) -> torch.Tensor:
+        place = self.env.dest_center.clone()
+        place[:, 2] += self.env.object_half_size
+        return place
 
 
-def _failure_reason(info: dict, expert: TableClearingExpert, truncated: bool) -> str:
-    if bool(info["collided"][0]):
-        return f"collision during {PHASE_NAMES[int(expert.phase[0])]}"
-    if truncated:
-        return f"timeout during {PHASE_NAMES[int(expert.phase[0])]}"
-    return "unknown"
+class GraspLiftExpert(PickPlaceExpert):
+    """Lift the object's centre 12.5 cm above the tray floor (the task asks 10 cm) and hold it there."""
+
+    default_config = replace(ExpertConfig(), carry_height=0.13)
 
 
-def run_expert(
-    episodes: int = 100,
-    seed: int = 0,
-    obs_mode: str = "state",
-    max_steps: int | None = None,
-    record: bool = False,
-    **env_kwargs,
-) -> dict:
-    """Roll the expert out for ``episodes`` single-env episodes seeded ``seed, seed+1, ...``.
+class StackCubeExpert(PickPlaceExpert):
+    """cube_a onto cube_b: carried 8 cm above the floor (clears cube_b), released 3 mm above its top."""
 
-    Returns success_rate, episodes, mean_steps (over all episodes), failure reason counts, steps/s
-    and, with ``record``, per-episode actions and TCP positions (for determinism checks).
-    """
-    env = make_env(obs_mode, **env_kwargs)
-    u: TableClearingIRB120Env = env.unwrapped
-    limit = max_steps or REGISTERED_ENVS[ENV_ID].max_episode_steps
-    expert = TableClearingExpert(u)
-    successes, steps, reasons, drops, grasps, trajs = 0, [], Counter(), 0, 0, []
-    total_steps, t0 = 0, time.perf_counter()
-    for ep in range(episodes):
-        env.reset(seed=seed + ep)
-        expert.reset()
-        actions, tcps = [], []
-        info, truncated = {}, False
-        for t in range(limit):
-            a = expert.act()
-            if record:
-                actions.append(a[0].cpu().clone())
-                tcps.append(u.agent.tcp_pose.p[0].cpu().clone())
-            _, _, term, trunc, info = env.step(a)
-            total_steps += 1
-            drops += int(info["dropped"][0])
-            grasps += int(info["r_grasp"][0] > 0)
-            if bool(term[0]) or bool(trunc[0]):
-                truncated = bool(trunc[0]) and not bool(term[0])
-                break
-        else:
-            truncated = True
-        ok = bool(info["success"][0])
-        successes += ok
-        steps.append(t + 1)
-        if not ok:
-            reasons[_failure_reason(info, expert, truncated)] += 1
-        if record:
-            trajs.append(dict(actions=torch.stack(actions), tcp=torch.stack(tcps), success=ok))
-    elapsed = time.perf_counter() - t0
-    env.close()
-    out = dict(
-        success_rate=successes / episodes,
-        episodes=episodes,
-        seed=seed,
-        mean_steps=sum(steps) / episodes,
-        max_steps=max(steps),
-        failures=dict(reasons),
-        grasp_events=grasps,
-        drop_events=drops,
-        steps_per_s=total_steps / elapsed,
-        wall_s=elapsed,
-    )
-    if record:
-        out["trajectories"] = trajs
-    return out
+    default_config = replace(ExpertConfig(), carry_height=0.08, release_height=0.003)
+
+    def _object(self) -> Actor:
+        return self.env.cube_a
+
+    def _place(self) -> torch.Tensor:
+        place = self.env.cube_b.pose.p.clone()
+        place[:, 2] += 2 * self.env.object_half_size
+        return place
 
 
-@dataclass
-class Args:
-    episodes: int = 100
-    """number of seeded episodes (seeds seed .. seed+episodes-1)"""
-    seed: int = 0
-    obs_mode: str = "state"
-    """observation mode; the expert reads privileged state, so 'state' is fastest"""
+EXPERTS: dict[str, type[PickPlaceExpert]] = {
+    "TableClearing-IRB120-v1": TableClearingExpert,
+    "GraspLift-IRB120-v1": GraspLiftExpert,
+    "StackCube-IRB120-v1": StackCubeExpert,
+}
 
 
-def main(args: Args) -> None:
-    result = run_expert(args.episodes, args.seed, obs_mode=args.obs_mode)
-    print(json.dumps(result))
+def expert_for(env) -> PickPlaceExpert:
+    """The scripted expert of ``env``'s task (a gym env or its unwrapped ManiSkill env)."""
+    u = env.unwrapped
+    env_id = u.spec.id if u.spec is not None else None
+    if env_id not in EXPERTS:
+        raise ValueError(f"no scripted expert for env {env_id!r}; experts exist for {sorted(EXPERTS)}")
+    return EXPERTS[env_id](u)
 
 
-if __name__ == "__main__":
-    import tyro
+if __name__ == "__main__":  # python -m maniskill_irb120.expert ... = maniskill-irb120 expert ...
+    import sys
 
-    main(tyro.cli(Args))
+    from maniskill_irb120.cli import main
+
+    sys.exit(main(["expert", *sys.argv[1:]]))

@@ -1,4 +1,4 @@
-"""Expert demos in ManiSkill's trajectory format, replayed by ManiSkill's own replay tool."""
+"""Expert demos of every task in ManiSkill's trajectory format, replayed by ManiSkill's own replay tool."""
 
 from __future__ import annotations
 
@@ -9,17 +9,20 @@ import sys
 import h5py
 import pytest
 
-from maniskill_irb120.demos import QUALIFIED_ENV_ID, collect_demos
+from maniskill_irb120.demos import collect_demos
+from maniskill_irb120.expert import EXPERTS
+
+ENV_IDS = sorted(EXPERTS)
 
 
-@pytest.fixture(scope="module")
-def demos(tmp_path_factory):
-    return collect_demos(episodes=2, seed=3, out_dir=tmp_path_factory.mktemp("demos"))
+@pytest.fixture(scope="module", params=ENV_IDS)
+def demos(request, tmp_path_factory):
+    return collect_demos(episodes=2, seed=3, out_dir=tmp_path_factory.mktemp("demos"), env_id=request.param)
 
 
 def test_files_follow_maniskill_format(demos):
     meta = json.loads(open(demos["json"]).read())
-    assert meta["env_info"]["env_id"] == QUALIFIED_ENV_ID
+    assert meta["env_info"]["env_id"] == f"maniskill_irb120:{demos['env_id']}"
     assert meta["env_info"]["env_kwargs"]["control_mode"] == "pd_ee_delta_tool"
     assert len(meta["episodes"]) == 2 and all(e["success"] for e in meta["episodes"])
     with h5py.File(demos["h5"]) as f:

@@ -18,7 +18,9 @@ import torch
 import maniskill_irb120  # noqa: F401  (registers the env)
 from maniskill_irb120.envs import table_clearing as tc
 from maniskill_irb120.envs import table_scene as ts
-from maniskill_irb120.expert import CARRY, ENV_ID, TableClearingExpert, run_expert
+from maniskill_irb120.envs.table_clearing import ENV_ID
+from maniskill_irb120.expert import CARRY, TableClearingExpert
+from maniskill_irb120.rollout import run_expert
 
 TERMS = tc.REWARD_TERMS
 
@@ -254,8 +256,8 @@ def test_object_spawn_inside_source_tray_and_seeded(env):
 
 
 def test_expert_trajectory_deterministic():
-    a = run_expert(2, seed=7, record=True)
-    b = run_expert(2, seed=7, record=True)
+    a = run_expert(ENV_ID, 2, seed=7, record=True)
+    b = run_expert(ENV_ID, 2, seed=7, record=True)
     for ta, tb in zip(a["trajectories"], b["trajectories"]):
         assert torch.equal(ta["actions"], tb["actions"])
         assert torch.equal(ta["tcp"], tb["tcp"])
@@ -386,7 +388,7 @@ def test_bad_actions_raise(env):
 
 # --------------------------------------------------------------------------- expert
 def test_expert_success_rate():
-    res = run_expert(20, seed=1000)
+    res = run_expert(ENV_ID, 20, seed=1000)
     assert res["episodes"] == 20
     assert res["success_rate"] >= 0.9, res
     assert res["mean_steps"] < 0.6 * 250

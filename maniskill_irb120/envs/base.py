@@ -191,13 +191,22 @@ class IRB120TableEnv(BaseEnv):
         self._prev = {k: v.clone() for k, v in self._cur.items()}
         self._fresh[:] = False
 
+    def _last(self, key: str, now: torch.Tensor) -> torch.Tensor:
+        """The last step's value of ``key`` (``now`` itself right after a reset)."""
+        return torch.where(self._fresh.view(-1, *[1] * (now.dim() - 1)), now, self._prev.get(key, now))
+
     def _previous(self, cur: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Record ``cur`` as this step's state and return the last step's (``cur`` itself right after a
         reset): edge-triggered events compare the two. Idempotent between steps."""
-        prev = {k: torch.where(self._fresh.view(-1, *[1] * (v.dim() - 1)), v, self._prev.get(k, v))
-                for k, v in cur.items()}
+        prev = {k: self._last(k, v) for k, v in cur.items()}
         self._cur = cur
         return prev
+
+    def _speed(self, key: str, pos: torch.Tensor) -> torch.Tensor:
+        """(N,) speed over the last control step from positions (N, 3) recorded under ``key`` (include it in
+        ``_previous``). PhysX's body velocity of an object squeezed in the gripper is not usable: it reads a
+        steady few cm/s and rad/s while the object does not move."""
+        return torch.linalg.norm(pos - self._last(key, pos), dim=1) * self.control_freq
 
     # ------------------------------------------------------------------ contacts and grasps
     def _grasped(self, finger_forces: torch.Tensor, tcp_quat: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,5 @@
+import sys
+
+from maniskill_irb120.cli import main
+
+sys.exit(main())

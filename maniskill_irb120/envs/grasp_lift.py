@@ -1,0 +1,82 @@
+"""GraspLift-IRB120-v1: grasp the object in the source tray and hold it at least 10 cm above the tray
+floor, still, for one second. The first skill of the original report's table clearing, on its own."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from mani_skill.utils.registration import register_env
+
+from maniskill_irb120.envs.base import IRB120TableEnv
+
+ENV_ID = "GraspLift-IRB120-v1"
+LIFT_HEIGHT = 0.10  # object centre above the source tray floor
+HOLD_STEPS = 20  # one second at the 20 Hz control rate
+STILL_SPEED = 0.02  # m/s: "still" means the object moves slower than this
+
+
+@register_env(ENV_ID, max_episode_steps=150)
+class GraspLiftIRB120Env(IRB120TableEnv):
+    """Grasp the object and hold it >= 10 cm above the source tray floor, still, for 1 s.
+
+    **Randomisation:** as TableClearing: object uniform in the source tray (shrunk by ``spawn_margin``),
+    uniform yaw; robot at ``rest`` plus optional joint noise.
+
+    **Events** (``(N,)`` in ``info``): ``grasped`` (both fingers squeeze it and it touches nothing of the
+    scene), ``lifted`` (centre >= 10 cm above the tray floor), ``still`` (speed < 2 cm/s), ``hold_steps``
+    (consecutive control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20),
+    ``fail`` = ``collided`` (a robot link but the base pushes on the table, a tray or the floor).
+
+    **Rewards:** ``dense`` is staged in [0, 4]: reach (1 - tanh(5·TCP-object distance), 1 once grasped), +1
+    grasped, + lift fraction (height / 10 cm, capped) while grasped, + hold fraction while holding; 4 on
+    success, 0 on a collision. ``normalized_dense`` (default) = dense / 4; ``sparse`` = success.
+
+    **Episode length:** 150 steps (the scripted expert needs about 65).
+    """
+
+    def _load_scene(self, options: dict):
+        (self.obj,) = self._build_table_scene(lambda: [self._build_object("object", [0.8, 0.1, 0.1, 1])])
+
+    def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        u = self._episode_draws(env_idx, 9)  # joint noise, object x, y, yaw
+        self._reset_robot(env_idx, u[:, :6])
+        self.obj.set_pose(self._spawn_in_source_tray(u[:, 6:]))
+
+    def evaluate(self) -> dict:
+        self._obj_pose, self._tcp_pose = self.obj.pose.raw_pose, self.agent.tcp_pose.raw_pose
+        robot_hit, obj_hit, finger_forces = self.contacts.flags()
+        height = self._obj_pose[:, 2] - self.source_center[:, 2]
+        grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
+        lifted = height >= LIFT_HEIGHT
+        still = self._speed("obj_p", self._obj_pose[:, :3]) < STILL_SPEED
+        held_before = self._last("hold_steps", torch.zeros_like(grasped, dtype=torch.long))
+        hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
+        self._previous(dict(hold_steps=hold_steps, obj_p=self._obj_pose[:, :3]))
+        return dict(success=hold_steps >= HOLD_STEPS, fail=robot_hit, collided=robot_hit, grasped=grasped,
+                    is_grasped=grasped, lifted=lifted, still=still, hold_steps=hold_steps, object_height=height,
+                    ik_unreachable=self.agent.ik_unreachable.clone(),
+                    invalid_action=self.agent.invalid_action.clone())
+
+    def _get_obs_extra(self, info: dict):
+        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+        if self.obs_mode_struct.use_state:
+            obs.update(obj_pose=self._obj_pose.clone(), source_tray_pos=self.source_center.clone(),
+                       tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
+                       hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None])
+        return obs
+
+    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        grasped = info["grasped"].float()
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(self._obj_pose[:, :3] - self._tcp_pose[:, :3], dim=1))
+        lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
+        hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
+        reward = torch.where(info["grasped"], 1.0, reach) + grasped * (1 + lift + hold)
+        reward = torch.where(info["success"], 4.0, reward)
+        return torch.where(info["fail"], 0.0, reward)
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return self.compute_dense_reward(obs, action, info) / 4.0
+
+    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return info["success"].float()

@@ -1,0 +1,110 @@
+"""StackCube-IRB120-v1: place the red object on the blue one, both in the source tray, and let go.
+The original report's future work names stacking; this is its simplest form."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from mani_skill.utils.registration import register_env
+
+from maniskill_irb120.envs.base import IRB120TableEnv
+from maniskill_irb120.envs.table_scene import TRAY_INNER
+
+ENV_ID = "StackCube-IRB120-v1"
+MIN_GAP = 0.045  # m between the centres at the start: the open fingers (±18 mm) clear the other object
+CANDIDATES = 8  # draws of the base object's position per reset (the first inside the spawn square wins)
+STACK_Z_TOL = 0.004  # m: resting on the base object (its top face +- this)
+STILL_SPEED = 0.02  # m/s
+
+
+@register_env(ENV_ID, max_episode_steps=200)
+class StackCubeIRB120Env(IRB120TableEnv):
+    """Pick the red object (``cube_a``) and place it on the blue one (``cube_b``), released and stable.
+
+    **Randomisation:** both uniform in the source tray (shrunk by ``spawn_margin``) with uniform yaws, their
+    centres 4.5 to 8.5 cm apart; robot at ``rest`` plus optional joint noise. ``object_shape`` applies to
+    both objects.
+
+    **Events** (``(N,)`` in ``info``): ``grasped`` (cube_a squeezed by both fingers, touching nothing of the
+    scene), ``stacked`` (cube_a's centre within 0.8 half sizes of cube_b's axis horizontally and resting on
+    its top face), ``released`` (no finger touches cube_a), ``still`` (both slower than 2 cm/s),
+    ``success`` = stacked & released & still, ``fail`` = ``collided``.
+
+    **Rewards:** ``dense`` in [0, 4]: reach cube_a, +1 grasped, + closeness of cube_a to its place on cube_b
+    while grasped, +1 stacked and released; 4 on success, 0 on a collision. ``normalized_dense`` (default) =
+    dense / 4; ``sparse`` = success.
+
+    **Episode length:** 200 steps (the scripted expert needs about 100).
+    """
+
+    def _load_scene(self, options: dict):
+        self.cube_a, self.cube_b = self._build_table_scene(lambda: [
+            self._build_object("cube_a", [0.8, 0.1, 0.1, 1]), self._build_object("cube_b", [0.15, 0.25, 0.85, 1])])
+
+    def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
+        u = self._episode_draws(env_idx, 9 + 3 * CANDIDATES)  # joint noise, a (x, y, yaw), b candidates
+        self._reset_robot(env_idx, u[:, :6])
+        pose_a = self._spawn_in_source_tray(u[:, 6:9])
+        self.cube_a.set_pose(pose_a)
+        # b at MIN_GAP..MIN_GAP + 4 cm from a in a uniform direction: the first candidate inside the spawn
+        # square; else MIN_GAP towards the square's farther side in x (always inside: the square is 10 cm)
+        span = TRAY_INNER / 2 - self.spawn_margin
+        a_rel = (u[:, 6:8] * 2 - 1) * span  # a relative to the tray centre
+        cand = u[:, 9:].reshape(-1, CANDIDATES, 3)
+        ang, dist = cand[:, :, 0] * 2 * math.pi, MIN_GAP + cand[:, :, 1] * 0.04
+        b_rel = a_rel[:, None] + dist[..., None] * torch.stack([torch.cos(ang), torch.sin(ang)], 2)  # (b, K, 2)
+        inside = (b_rel.abs() <= span).all(2)
+        first = torch.where(inside, torch.arange(CANDIDATES, device=u.device), CANDIDATES).amin(1)
+        fallback = a_rel - torch.stack([torch.sign(a_rel[:, 0]) * MIN_GAP, 0 * a_rel[:, 1]], 1)
+        rows = torch.arange(len(first), device=u.device)
+        b_rel = torch.where((first < CANDIDATES)[:, None], b_rel[rows, first.clamp(max=CANDIDATES - 1)], fallback)
+        b_u = torch.cat([(b_rel / span + 1) / 2, cand[rows, first.clamp(max=CANDIDATES - 1), 2:]], 1)
+        self.cube_b.set_pose(self._spawn_in_source_tray(b_u))
+
+    def evaluate(self) -> dict:
+        self._a_pose, self._b_pose = self.cube_a.pose.raw_pose, self.cube_b.pose.raw_pose
+        self._tcp_pose = self.agent.tcp_pose.raw_pose
+        robot_hit, obj_hit, finger_forces = self.contacts.flags()
+        h = self.object_half_size
+        offset = self._a_pose[:, :3] - self._b_pose[:, :3]
+        stacked = (torch.linalg.norm(offset[:, :2], dim=1) < 0.8 * h) & ((offset[:, 2] - 2 * h).abs() < STACK_Z_TOL)
+        released = ~self._touches(finger_forces[0])
+        a_p, b_p = self._a_pose[:, :3], self._b_pose[:, :3]
+        still = (self._speed("a_p", a_p) < STILL_SPEED) & (self._speed("b_p", b_p) < STILL_SPEED)
+        self._previous(dict(a_p=a_p, b_p=b_p))
+        grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
+        return dict(success=stacked & released & still, fail=robot_hit, collided=robot_hit, grasped=grasped,
+                    is_grasped=grasped, stacked=stacked, released=released, still=still,
+                    ik_unreachable=self.agent.ik_unreachable.clone(),
+                    invalid_action=self.agent.invalid_action.clone())
+
+    def _place_target(self) -> torch.Tensor:
+        goal = self._b_pose[:, :3].clone()
+        goal[:, 2] += 2 * self.object_half_size
+        return goal
+
+    def _get_obs_extra(self, info: dict):
+        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+        if self.obs_mode_struct.use_state:
+            obs.update(cube_a_pose=self._a_pose.clone(), cube_b_pose=self._b_pose.clone(),
+                       tcp_to_a_pos=self._a_pose[:, :3] - self._tcp_pose[:, :3],
+                       a_to_goal_pos=self._place_target() - self._a_pose[:, :3])
+        return obs
+
+    def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        a_p = self._a_pose[:, :3]
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(a_p - self._tcp_pose[:, :3], dim=1))
+        place = 1 - torch.tanh(5 * torch.linalg.norm(self._place_target() - a_p, dim=1))
+        grasped = info["grasped"].float()
+        reward = torch.where(info["grasped"] | info["stacked"], 1.0, reach) + grasped * (1 + place)
+        reward = reward + (info["stacked"] & info["released"]).float() * 3.0  # as if reach, grasp, place held
+        reward = torch.where(info["success"], 4.0, reward.clamp(max=4.0))
+        return torch.where(info["fail"], 0.0, reward)
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return self.compute_dense_reward(obs, action, info) / 4.0
+
+    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        return info["success"].float()
