@@ -9,7 +9,7 @@ from pathlib import Path
 
 import tyro
 
-DEFAULT_ENV_ID = "TableClearing-IRB120-v1"
+from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
 
 
 def doctor(json: bool = False) -> int:

@@ -25,6 +25,10 @@ from mani_skill.utils.structs.types import Array
 from maniskill_irb120.kinematics import ArmIK, DLSParams, SerialChain, matrix_to_quaternion
 from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, set_drive_targets, true_reset_mask
 
+# the original report's action limits (Table 4.1): ±1 cm along each tool axis, ±10° about the approach axis
+TOOL_POS_LIMIT = 0.01
+TOOL_ROT_LIMIT = math.radians(10.0)
+
 
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     m = torch.zeros(p.shape[0], 4, 4, device=p.device, dtype=p.dtype)
@@ -115,18 +119,20 @@ class PDEEDeltaToolController(PDJointPosController):
             self._target_qpos = state["target_qpos"].clone()
 
 
-@dataclass
+@dataclass(kw_only=True)
 class PDEEDeltaToolControllerConfig(PDJointPosControllerConfig):
+    """Drive gains and the URDF have no defaults: the agent owns them."""
+
     lower: None = None
     upper: None = None
-    stiffness: Union[float, Sequence[float]] = 1e4
-    damping: Union[float, Sequence[float]] = 1e3
-    pos_limit: float = 0.01
-    """metres per action along each tool axis (seed: ±1 cm)"""
-    rot_limit: float = math.radians(10.0)
-    """radians per action about the approach axis (seed: ±10°)"""
+    stiffness: Union[float, Sequence[float]]
+    damping: Union[float, Sequence[float]]
+    urdf_path: str
     ee_link: str = "tcp"
-    urdf_path: str = ""
+    pos_limit: float = TOOL_POS_LIMIT
+    """metres per action along each tool axis"""
+    rot_limit: float = TOOL_ROT_LIMIT
+    """radians per action about the approach axis"""
     use_target: bool = False
     ik_solver: str = "auto"
     """"closed_form" (spherical wrist, exact), "dls" (any chain, iterative) or "auto" (closed form if it applies)"""
@@ -164,15 +170,17 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
         set_drive_targets(self, targets)
 
 
-@dataclass
+@dataclass(kw_only=True)
 class BinaryGripperControllerConfig(PDJointPosControllerConfig):
+    """Gains, force limit and finger targets have no defaults: the agent owns them."""
+
     lower: None = None
     upper: None = None
-    stiffness: Union[float, Sequence[float]] = 1e4
-    damping: Union[float, Sequence[float]] = 100.0
-    force_limit: Union[float, Sequence[float]] = 40.0
-    open_target: float = 0.012
-    closed_target: float = -0.002
+    stiffness: Union[float, Sequence[float]]
+    damping: Union[float, Sequence[float]]
+    force_limit: Union[float, Sequence[float]]
+    open_target: float
+    closed_target: float
     normalize_action: bool = False
     controller_cls = BinaryGripperController
 

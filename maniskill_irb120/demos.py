@@ -15,10 +15,9 @@ import gymnasium as gym
 from mani_skill.utils.wrappers.record import RecordEpisode
 
 import maniskill_irb120  # noqa: F401
+from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.rollout import run_episode
-
-DEFAULT_ENV_ID = "TableClearing-IRB120-v1"
 
 
 def collect_demos(episodes: int = 10, seed: int = 0, out_dir: Path = Path("demos"), name: str = "expert",

@@ -20,11 +20,10 @@ from dataclasses import dataclass, replace
 import torch
 from mani_skill.utils.structs.actor import Actor
 
+from maniskill_irb120.envs import grasp_lift, stack_cube, table_clearing
 from maniskill_irb120.envs.base import IRB120TableEnv
 from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
 
-POS_LIMIT = 0.01  # m per action (pd_ee_delta_tool)
-ROT_LIMIT = math.radians(10.0)  # rad per action
 # gripper_base collision box half extents across the approach axis: along the fingers / across them
 GRIPPER_HALF_LONG, GRIPPER_HALF_SHORT = 0.032, 0.015
 
@@ -166,17 +165,17 @@ class PickPlaceExpert:
 
         target, gripper = self._targets(nxt, tcp_p, place)
         yaw = torch.where((nxt == APPROACH) | (nxt == DESCEND), yaw_err, torch.zeros_like(yaw_err))
-        return self._to_action(target - tcp_p, yaw, gripper, tcp_rot)
+        limits = self.env.agent.arm_controller.config  # the action space's own scale
+        return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, limits.pos_limit, limits.rot_limit)
 
     @staticmethod
-    def _to_action(err: torch.Tensor, yaw: torch.Tensor, gripper: torch.Tensor, tcp_rot: torch.Tensor) -> torch.Tensor:
-        local = (tcp_rot.transpose(1, 2) @ err.unsqueeze(2)).squeeze(2) / POS_LIMIT
+    def _to_action(err: torch.Tensor, yaw: torch.Tensor, gripper: torch.Tensor, tcp_rot: torch.Tensor,
+                   pos_limit: float, rot_limit: float) -> torch.Tensor:
+        local = (tcp_rot.transpose(1, 2) @ err.unsqueeze(2)).squeeze(2) / pos_limit
         scale = local.abs().amax(dim=1, keepdim=True).clamp(min=1.0)
         local = local / scale
-        rot = (yaw / ROT_LIMIT).clamp(-1, 1)
+        rot = (yaw / rot_limit).clamp(-1, 1)
         return torch.cat([local, rot.unsqueeze(1), gripper.unsqueeze(1)], dim=1).clamp(-1, 1)
-
-
 
 class TableClearingExpert(PickPlaceExpert):
     """Into the destination tray, released ``release_height`` above its floor."""
@@ -208,9 +207,9 @@ class StackCubeExpert(PickPlaceExpert):
 
 
 EXPERTS: dict[str, type[PickPlaceExpert]] = {
-    "TableClearing-IRB120-v1": TableClearingExpert,
-    "GraspLift-IRB120-v1": GraspLiftExpert,
-    "StackCube-IRB120-v1": StackCubeExpert,
+    table_clearing.ENV_ID: TableClearingExpert,
+    grasp_lift.ENV_ID: GraspLiftExpert,
+    stack_cube.ENV_ID: StackCubeExpert,
 }
 
 

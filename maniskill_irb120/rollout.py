@@ -12,6 +12,7 @@ import gymnasium as gym
 import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
+from maniskill_irb120.envs import table_clearing
 from maniskill_irb120.expert import PHASE_NAMES, PickPlaceExpert, expert_for
 
 
@@ -57,7 +58,7 @@ def run_episode(env: gym.Env, expert: PickPlaceExpert, seed: int, max_steps: int
     return Episode(seed, success, t, truncated, info, failure, events)
 
 
-def run_expert(env_id: str = "TableClearing-IRB120-v1", episodes: int = 100, seed: int = 0, obs_mode: str = "state",
+def run_expert(env_id: str = table_clearing.ENV_ID, episodes: int = 100, seed: int = 0, obs_mode: str = "state",
                max_steps: int | None = None, record: bool = False, **env_kwargs) -> dict:
     """The task's scripted expert for ``episodes`` single-env episodes seeded ``seed, seed+1, ...``.
 

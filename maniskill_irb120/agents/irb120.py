@@ -26,6 +26,7 @@ from maniskill_irb120.rendering import FORWARD, sensor_shader_config
 from maniskill_irb120.robot_description import geometry, urdf_path
 
 ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
+FINGER_STROKE = geometry()["finger_stroke"]  # each finger's travel from closed (2 mm gap) to open (26 mm)
 GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 
 # Hand camera per the seed: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
@@ -62,9 +63,9 @@ class IRB120Metalwork(BaseAgent):
     disable_self_collisions = True
 
     keyframes = dict(
-        # TCP at (0.35, 0, 0.25) m in the base frame, approach axis pointing straight down
+        # TCP at (0.35, 0, 0.25) m in the base frame, approach axis pointing straight down, gripper open
         rest=Keyframe(
-            qpos=np.array([0.0, 0.3325, 0.4627, 0.0, 0.7756, 0.0, 0.012, 0.012]),
+            qpos=np.array([0.0, 0.3325, 0.4627, 0.0, 0.7756, 0.0, FINGER_STROKE, FINGER_STROKE]),
             pose=sapien.Pose(),
         ),
         zero=Keyframe(qpos=np.zeros(8), pose=sapien.Pose()),
@@ -83,6 +84,7 @@ class IRB120Metalwork(BaseAgent):
     gripper_stiffness = 1e3  # ~10 N squeeze on a 20 mm cube; stiffer drives chatter on the 20 g fingers
     gripper_damping = 100.0
     gripper_force_limit = 40.0
+    gripper_squeeze = 0.002  # m past the closed stop: the drive keeps pushing on a held object
 
     def __init__(self, *args, hand_camera: dict | None = None, **kwargs):
         self.hand_camera_cfg = {**HAND_CAMERA, **(hand_camera or {})}
@@ -114,7 +116,7 @@ class IRB120Metalwork(BaseAgent):
         arm_kw = dict(stiffness=self.arm_stiffness, damping=self.arm_damping, force_limit=self.arm_force_limit)
         gripper = BinaryGripperControllerConfig(
             self.gripper_joint_names, stiffness=self.gripper_stiffness, damping=self.gripper_damping,
-            force_limit=self.gripper_force_limit,
+            force_limit=self.gripper_force_limit, open_target=FINGER_STROKE, closed_target=-self.gripper_squeeze,
         )
         tool = PDEEDeltaToolControllerConfig(
             self.arm_joint_names, ee_link=self.ee_link_name, urdf_path=self.urdf_path, **arm_kw
