@@ -3,6 +3,10 @@ long-lived objects (the CPU vector env) still usable after a rejected call. Shor
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -50,3 +54,67 @@ def test_vector_env_rejects_wrong_types_and_stays_usable(venv, bad, err, match):
     with pytest.raises(err, match=match):
         venv.step(bad)
     venv.step(np.zeros((2, 5), dtype=np.int64))  # integers are numbers; the workers are alive
+
+
+# --------------------------------------------------------------------------- README snippets
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def readme_snippet(name: str) -> str:
+    """The fenced python block right after the marker ``<!-- README snippet "name" ... -->`` in README.md,
+    so the tests run the README itself."""
+    m = re.search(rf'<!-- README snippet "{re.escape(name)}".*?-->\s*```python\n(.*?)```', README.read_text(), re.S)
+    assert m, f"README.md has no snippet marked {name!r}"
+    return m.group(1)
+
+
+# --------------------------------------------------------------------------- actions of the single env
+def test_list_and_tuple_actions_step_like_arrays():
+    envs = [gym.make(ENV, obs_mode="state") for _ in range(3)]
+    try:
+        a = [0.0, 0.5, 0.0, 1.0, 1.0]
+        outs = []
+        for e, action in zip(envs, (a, tuple(a), np.array(a, dtype=np.float32))):
+            e.reset(seed=0)
+            outs.append(e.step(action))
+        for out in outs[:2]:
+            torch.testing.assert_close(out[0], outs[2][0])  # same observation as the array action
+            torch.testing.assert_close(out[1], outs[2][1])
+        outs = [e.step([[1, 0, 0, 0, 1]]) for e in envs]  # batched nested list of ints
+        assert outs[0][0].shape == (1, envs[0].unwrapped.single_observation_space.shape[0])
+    finally:
+        for e in envs:
+            e.close()
+
+
+@pytest.mark.parametrize(
+    "bad,err,match",
+    [
+        ("open", TypeError, "got str 'open'"),
+        ([0, 0, 0, 0, "x"], TypeError, "dtype <U"),
+        (object(), TypeError, "got object"),
+        ([True, False, True, False, True], TypeError, "dtype bool"),
+        ([[0.0] * 5, [0.0]], ValueError, "rectangular"),
+        ([0.0, 0.0, 0.0], ValueError, "shape"),
+        ([0.0, float("nan"), 0.0, 0.0, 1.0], ValueError, "NaN"),
+    ],
+)
+def test_bad_single_env_actions_raise_clear_errors(bad, err, match):
+    e = gym.make(ENV, obs_mode="state")
+    try:
+        e.reset(seed=0)
+        with pytest.raises(err, match=match):
+            e.step(bad)
+        e.step([0.0, 0.0, 0.0, 0.0, 1.0])  # still usable
+    finally:
+        e.close()
+
+
+def test_readme_robot_alone_snippet_runs():
+    """The README's "Use the robot alone" snippet, as written (ManiSkill's Empty-v1 with our agent)."""
+    ns: dict = {}
+    exec(compile(readme_snippet("robot-alone"), "README.md:robot-alone", "exec"), ns)
+    try:
+        assert tuple(ns["obs"]["sensor_data"]["hand_camera"]["rgb"].shape) == (1, 84, 84, 3)
+    finally:
+        ns["env"].close()

@@ -26,6 +26,7 @@ from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
+from maniskill_irb120.contract import as_action_array
 from maniskill_irb120.robot_description import merged_box_mesh
 
 # --------------------------------------------------------------------------- scene geometry (metres)
@@ -469,3 +470,10 @@ class TableClearingIRB120Env(BaseEnv):
     def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
         return info["success"].float()
 
+    # ------------------------------------------------------------------ input checks (the env contract)
+    def step(self, action: Any):
+        """ManiSkill's step, for lists and tuples of numbers too: BaseEnv takes only arrays, tensors and dicts
+        and raises a bare ``TypeError: <class 'list'>``. Strings and other objects get a TypeError naming them."""
+        if action is not None and not isinstance(action, dict):
+            action = as_action_array(action)
+        return super().step(action)
