@@ -118,3 +118,47 @@ def test_readme_robot_alone_snippet_runs():
         assert tuple(ns["obs"]["sensor_data"]["hand_camera"]["rgb"].shape) == (1, 84, 84, 3)
     finally:
         ns["env"].close()
+
+
+# --------------------------------------------------------------------------- observations are copies
+def _leaves(d: dict, prefix: str = ""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}/")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def test_state_dict_observations_do_not_alias_env_state():
+    """Writing into every observation tensor changes nothing the env keeps (trays, poses, info, the grasp
+    reference of the next step), for reset and step observations alike."""
+    e = gym.make(ENV, obs_mode="state_dict")
+    try:
+        u = e.unwrapped
+        for obs, info in (e.reset(seed=0), e.step(np.zeros(5))[::4]):
+            kept = dict(source=u.source_center.clone(), dest=u.dest_center.clone(), tcp=u._tcp_pose.clone(),
+                        obj=u._obj_pose.clone(), grasped=info["grasped"].clone(),
+                        cur={k: v.clone() for k, v in u._cur.items()})
+            for _, v in _leaves(obs):
+                v.fill_(True) if v.dtype == torch.bool else v.fill_(5)
+            torch.testing.assert_close(u.source_center, kept["source"])
+            torch.testing.assert_close(u.dest_center, kept["dest"])
+            torch.testing.assert_close(u._tcp_pose, kept["tcp"])
+            torch.testing.assert_close(u._obj_pose, kept["obj"])
+            torch.testing.assert_close(info["grasped"], kept["grasped"])
+            for k, v in u._cur.items():
+                torch.testing.assert_close(v, kept["cur"][k])
+    finally:
+        e.close()
+
+
+def test_gymnasium_env_checker_with_state_dict_obs():
+    """gymnasium's checker asserts that reset and step observations share no data (it failed on state_dict)."""
+    from gymnasium.utils.env_checker import check_env
+    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+
+    e = CPUGymWrapper(gym.make(ENV, obs_mode="state_dict"))
+    try:  # skip_close_check: see test_table_clearing.test_gymnasium_env_checker
+        check_env(e, skip_render_check=True, skip_close_check=True)
+    finally:
+        e.close()

@@ -438,12 +438,14 @@ class TableClearingIRB120Env(BaseEnv):
 
     # ------------------------------------------------------------------ observations
     def _get_obs_extra(self, info: dict):
-        obs = dict(tcp_pose=self._tcp_pose, is_grasped=info["grasped"])
+        """Copies, never the env's own tensors: a caller writing into an observation (``state_dict``) must not
+        move the trays the env scores against, nor change ``info`` or the next step's grasp edge."""
+        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
         if self.obs_mode_struct.use_state:
             obs.update(
-                obj_pose=self._obj_pose,
-                source_tray_pos=self.source_center,
-                dest_tray_pos=self.dest_center,
+                obj_pose=self._obj_pose.clone(),
+                source_tray_pos=self.source_center.clone(),
+                dest_tray_pos=self.dest_center.clone(),
                 tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
                 obj_to_dest_pos=self.dest_center - self._obj_pose[:, :3],
             )
