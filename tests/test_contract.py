@@ -162,3 +162,70 @@ def test_gymnasium_env_checker_with_state_dict_obs():
         check_env(e, skip_render_check=True, skip_close_check=True)
     finally:
         e.close()
+
+
+# --------------------------------------------------------------------------- num_envs, env_idx, obs_mode
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_batched_env_without_cuda_says_use_make_vec_env():
+    with pytest.raises(ValueError, match=r"CUDA GPU.*physx_cuda.*make_vec_env\(env_id, num_envs, backend=\"cpu\"\)"):
+        gym.make(ENV, num_envs=4, obs_mode="state")
+
+
+def test_batched_env_on_cpu_backend_and_bad_num_envs():
+    with pytest.raises(ValueError, match="make_vec_env"):
+        gym.make(ENV, num_envs=2, obs_mode="state", sim_backend="physx_cpu")
+    for bad in (0, -1, 1.5, "2"):
+        with pytest.raises(ValueError, match=f"num_envs must be a positive integer, got {re.escape(repr(bad))}"):
+            gym.make(ENV, num_envs=bad, obs_mode="state")
+
+
+def test_reset_env_idx_checked():
+    e = gym.make(ENV, obs_mode="state")
+    try:
+        e.reset(seed=0)
+        with pytest.raises(ValueError, match=r"\[5\] out of range: valid env indices are 0\.\.0"):
+            e.reset(options={"env_idx": [5]})
+        with pytest.raises(ValueError, match="out of range"):
+            e.reset(options={"env_idx": torch.tensor([-1])})
+        with pytest.raises(ValueError, match="selects no env"):
+            e.reset(options={"env_idx": []})
+        with pytest.raises(TypeError, match="integer env indices"):
+            e.reset(options={"env_idx": [0.0]})
+        with pytest.raises(TypeError, match="integer env indices"):
+            e.reset(options={"env_idx": "0"})
+        with pytest.raises(TypeError, match="options must be a dict"):
+            e.reset(options=[("env_idx", [0])])
+        a, _ = e.reset(seed=3, options={"env_idx": [0]})  # lists, tensors and masks of the right kind work
+        b, _ = e.reset(seed=3, options={"env_idx": torch.tensor([0])})
+        c, _ = e.reset(seed=3, options={"env_idx": np.array([True])})
+        torch.testing.assert_close(a, b)
+        torch.testing.assert_close(a, c)
+    finally:
+        e.close()
+
+
+def test_vector_env_reset_env_idx_checked_and_stays_usable(venv):
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\[2\] out of range: valid env indices are 0\.\.1"):
+        venv.reset(options={"env_idx": [2]})
+    with pytest.raises(ValueError, match="repeats"):
+        venv.reset(options={"env_idx": [1, 1]})
+    obs, _ = venv.reset(options={"env_idx": torch.tensor([1])})
+    assert obs.shape[0] == 2
+    venv.step(torch.zeros(2, 5))
+
+
+def test_obs_mode_error_lists_every_valid_mode():
+    from mani_skill.envs.utils.observations import parse_obs_mode_to_struct
+
+    from maniskill_irb120.envs.table_clearing import TableClearingIRB120Env
+
+    for bad in ("telepathy", "rgb+smell", "", 3):
+        with pytest.raises(ValueError, match="use one of") as err:
+            gym.make(ENV, obs_mode=bad)
+    listed = re.search(r"use one of (\[.*?\])", str(err.value)).group(1)
+    names = eval(listed)  # the message's list literal
+    assert {"rgbd", "rgb", "depth", "state", "state_dict", "none", "sensor_data"} <= set(names)
+    for name in names:
+        parse_obs_mode_to_struct(name)  # every mode the message offers is one ManiSkill accepts
+    assert names == list(TableClearingIRB120Env.NAMED_OBS_MODES)

@@ -26,7 +26,7 @@ from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.contract import as_action_array
+from maniskill_irb120.contract import as_action_array, check_env_idx
 from maniskill_irb120.robot_description import merged_box_mesh
 
 # --------------------------------------------------------------------------- scene geometry (metres)
@@ -108,15 +108,8 @@ class TableClearingIRB120Env(BaseEnv):
             raise ValueError(f"robot_uids={robot_uids!r} is not supported; use one of {self.SUPPORTED_ROBOTS}")
         if reward_mode is not None and reward_mode not in self.SUPPORTED_REWARD_MODES:
             raise ValueError(f"reward_mode={reward_mode!r} is not supported; use one of {self.SUPPORTED_REWARD_MODES}")
-        if obs_mode is not None and obs_mode not in self.SUPPORTED_OBS_MODES:
-            try:  # combinations of camera textures such as "rgb+depth" (ManiSkill asserts on bad ones)
-                parse_obs_mode_to_struct(obs_mode)
-            except AssertionError:
-                named = [m for m in self.SUPPORTED_OBS_MODES if m != "any_textures"]
-                raise ValueError(
-                    f"obs_mode={obs_mode!r} is not supported; use one of {named} "
-                    f"or a '+'-joined combination of {ALL_VISUAL_TEXTURES}"
-                ) from None
+        self._check_obs_mode(obs_mode)
+        self._check_batching(kwargs.get("num_envs", args[0] if args else 1), kwargs.get("sim_backend", "auto"))
         if not 0.003 <= object_half_size <= 0.012:
             raise ValueError(
                 f"object_half_size={object_half_size} m: the open gripper (26 mm gap) holds cubes of "
@@ -243,6 +236,7 @@ class TableClearingIRB120Env(BaseEnv):
     def reset(self, seed: int | list[int] | None = None, options: dict | None = None):
         """ManiSkill's reset, plus gymnasium's ``np_random`` seeded alike (ManiSkill keeps its own RNGs
         and never seeds it, which gymnasium's env checker and ``Env.np_random`` users expect)."""
+        options = self._checked_reset_options(options)
         if seed is not None:
             first = int(seed[0]) if np.iterable(seed) else int(seed)
             self._np_random, self._np_random_seed = gym_seeding.np_random(first)
@@ -479,3 +473,52 @@ class TableClearingIRB120Env(BaseEnv):
         if action is not None and not isinstance(action, dict):
             action = as_action_array(action)
         return super().step(action)
+
+    # obs modes ManiSkill 3.0.1 accepts by name: its SUPPORTED_OBS_MODES lacks "rgbd" and the single textures,
+    # which parse_obs_mode_to_struct handles ("any_textures" there is a flag, not a mode)
+    NAMED_OBS_MODES = ("rgbd", "state", "state_dict", "none", "sensor_data", "pointcloud", *ALL_VISUAL_TEXTURES)
+
+    @classmethod
+    def _check_obs_mode(cls, obs_mode: str | None) -> None:
+        """ValueError listing every valid mode: ManiSkill asserts, or fails on ``str.split``, deep in its init."""
+        if obs_mode is None or obs_mode in cls.NAMED_OBS_MODES:
+            return
+        try:  # combinations such as "rgb+depth" or "rgb+state_dict" (ManiSkill asserts on bad ones)
+            if isinstance(obs_mode, str) and obs_mode:
+                parse_obs_mode_to_struct(obs_mode)
+                return
+        except AssertionError:
+            pass
+        raise ValueError(
+            f"obs_mode={obs_mode!r} is not supported; use one of {list(cls.NAMED_OBS_MODES)} or a '+'-joined "
+            f"combination of {ALL_VISUAL_TEXTURES} with optional 'state' / 'state_dict', e.g. 'rgb+depth+state'"
+        )
+
+    @staticmethod
+    def _check_batching(num_envs: Any, sim_backend: str) -> None:
+        """Clear errors for ``num_envs``: ManiSkill fails on 0 with a bare IndexError, and on num_envs > 1
+        without CUDA with ``failed to find device "cuda"``, which does not say that CPUs need worker processes."""
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if num_envs == 1:
+            return
+        on_gpu = sim_backend == "auto" or "cuda" in str(sim_backend) or sim_backend == "gpu"
+        if not on_gpu or not torch.cuda.is_available():
+            why = f"sim_backend={sim_backend!r} was given" if not on_gpu else "no CUDA GPU is available here"
+            raise ValueError(
+                f"num_envs={num_envs}: batched envs (num_envs > 1) need a CUDA GPU (sim_backend='physx_cuda'), and "
+                f"{why}. On CPUs use maniskill_irb120.make_vec_env(env_id, num_envs, backend=\"cpu\"): one worker "
+                "process per env behind the same batched interface."
+            )
+
+    def _checked_reset_options(self, options: dict | None) -> dict | None:
+        """``options["env_idx"]`` checked (ValueError naming the valid range instead of a bare IndexError) and
+        handed on as an index tensor on the env's device."""
+        if options is None:
+            return None
+        if not isinstance(options, dict):
+            raise TypeError(f"reset options must be a dict, got {type(options).__name__}")
+        if "env_idx" not in options:
+            return options
+        idx = check_env_idx(options["env_idx"], self.num_envs)
+        return {**options, "env_idx": torch.as_tensor(idx, device=self.device)}
