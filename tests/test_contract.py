@@ -229,3 +229,24 @@ def test_obs_mode_error_lists_every_valid_mode():
     for name in names:
         parse_obs_mode_to_struct(name)  # every mode the message offers is one ManiSkill accepts
     assert names == list(TableClearingIRB120Env.NAMED_OBS_MODES)
+
+
+# --------------------------------------------------------------------------- after close()
+def test_single_env_after_close_raises_clear_error():
+    e = gym.make(ENV, obs_mode="state", render_mode="rgb_array")
+    e.reset(seed=0)
+    e.close()
+    for call in (lambda: e.step(np.zeros(5)), lambda: e.reset(seed=0), e.render):
+        with pytest.raises(RuntimeError, match="the env is closed"):
+            call()
+    e.close()  # closing twice is fine
+
+
+def test_vector_env_after_close_raises_clear_error():
+    v = make_vec_env(ENV, 1, backend="cpu", obs_mode="state")
+    v.reset(seed=0)
+    v.close()
+    for call in (lambda: v.step(torch.zeros(1, 5)), lambda: v.reset(seed=0), v.render):
+        with pytest.raises(RuntimeError, match="the vector env is closed"):
+            call()
+    v.close()

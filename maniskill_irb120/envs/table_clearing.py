@@ -236,6 +236,7 @@ class TableClearingIRB120Env(BaseEnv):
     def reset(self, seed: int | list[int] | None = None, options: dict | None = None):
         """ManiSkill's reset, plus gymnasium's ``np_random`` seeded alike (ManiSkill keeps its own RNGs
         and never seeds it, which gymnasium's env checker and ``Env.np_random`` users expect)."""
+        self._check_open()
         options = self._checked_reset_options(options)
         if seed is not None:
             first = int(seed[0]) if np.iterable(seed) else int(seed)
@@ -470,9 +471,25 @@ class TableClearingIRB120Env(BaseEnv):
     def step(self, action: Any):
         """ManiSkill's step, for lists and tuples of numbers too: BaseEnv takes only arrays, tensors and dicts
         and raises a bare ``TypeError: <class 'list'>``. Strings and other objects get a TypeError naming them."""
+        self._check_open()
         if action is not None and not isinstance(action, dict):
             action = as_action_array(action)
         return super().step(action)
+
+    _closed: bool = False
+
+    def close(self):
+        self._closed = True
+        super().close()
+
+    def render(self):
+        self._check_open()
+        return super().render()
+
+    def _check_open(self) -> None:
+        """After ``close()`` ManiSkill has dropped the scene and agent: say so instead of failing on ``None``."""
+        if self._closed:
+            raise RuntimeError("the env is closed; make a new one with gym.make(...)")
 
     # obs modes ManiSkill 3.0.1 accepts by name: its SUPPORTED_OBS_MODES lacks "rgbd" and the single textures,
     # which parse_obs_mode_to_struct handles ("any_textures" there is a flag, not a mode)
