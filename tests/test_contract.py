@@ -250,3 +250,17 @@ def test_vector_env_after_close_raises_clear_error():
         with pytest.raises(RuntimeError, match="the vector env is closed"):
             call()
     v.close()
+
+
+# --------------------------------------------------------------------------- render_mode="all"
+def test_render_all_frames_fit_video_macro_blocks():
+    """Overview (512x512) beside the 84x84 hand camera is 596 wide; padded to 608 so encoders do not rescale."""
+    e = gym.make(ENV, obs_mode="rgbd", render_mode="all")
+    try:
+        e.reset(seed=0)
+        img = e.render()
+        assert tuple(img.shape) == (1, 512, 608, 3) and img.dtype == torch.uint8
+        assert int(img[:, :, 596:].abs().sum()) == 0  # the padding is black ...
+        assert float(img[:, :84, 512:596].float().std()) > 1.0  # ... and the hand camera is still there
+    finally:
+        e.close()

@@ -46,6 +46,7 @@ APPROACH_MOVE_LIMIT = 0.05  # the approach term is active only until the object 
 CONTACT_FORCE_EPS = 1e-2  # N; a robot link pressing on the scene harder than this is a collision
 R_APPROACH, R_CARRY, R_TIME = 1.0, 1.0, -1.0
 R_COLLISION, R_GRASP, R_DROP, R_DELIVERY = -1000.0, 100.0, -200.0, 200.0
+VIDEO_BLOCK = 16  # render_mode="all" frames are padded to multiples of this (video encoders' macro block)
 REWARD_TERMS = ("r_approach", "r_carry", "r_time", "r_collision", "r_grasp", "r_drop", "r_delivery")
 
 
@@ -485,6 +486,20 @@ class TableClearingIRB120Env(BaseEnv):
     def render(self):
         self._check_open()
         return super().render()
+
+    def render_all(self):
+        """ManiSkill's overview + hand-camera composite (512 x 596 by default) padded with black on the right
+        and bottom to multiples of 16: video encoders (imageio/ffmpeg, macro_block_size 16) would otherwise
+        rescale every frame, with a warning."""
+        img = super().render_all()
+        h, w = img.shape[-3], img.shape[-2]
+        ph, pw = -h % VIDEO_BLOCK, -w % VIDEO_BLOCK
+        if not ph and not pw:
+            return img
+        pad = [(0, 0)] * (img.ndim - 3) + [(0, ph), (0, pw), (0, 0)]
+        if isinstance(img, torch.Tensor):
+            return torch.nn.functional.pad(img, [p for pair in reversed(pad) for p in pair])
+        return np.pad(img, pad)
 
     def _check_open(self) -> None:
         """After ``close()`` ManiSkill has dropped the scene and agent: say so instead of failing on ``None``."""
