@@ -171,7 +171,9 @@ class TableClearingExpert:
 
 
 def make_env(obs_mode: str = "state", **kwargs) -> gym.Env:
-    """The task with the expert's action space; ``kwargs`` go to the env (object size, mass, ...)."""
+    """The task with the expert's action space and the seed's reward (``dense``, not the env's default);
+    ``kwargs`` go to the env (object size, mass, ...)."""
+    kwargs.setdefault("reward_mode", "dense")
     return gym.make(ENV_ID, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **kwargs)
 
 

@@ -264,3 +264,23 @@ def test_render_all_frames_fit_video_macro_blocks():
         assert float(img[:, :84, 512:596].float().std()) > 1.0  # ... and the hand camera is still there
     finally:
         e.close()
+
+
+# --------------------------------------------------------------------------- default reward mode
+def test_default_reward_is_normalized_dense_and_the_seeds_reward_is_one_keyword_away():
+    from maniskill_irb120.envs.table_clearing import REWARD_TERMS
+
+    default, dense = gym.make(ENV, obs_mode="state"), gym.make(ENV, obs_mode="state", reward_mode="dense")
+    try:
+        assert default.unwrapped.reward_mode == "normalized_dense" and dense.unwrapped.reward_mode == "dense"
+        for e in (default, dense):
+            e.reset(seed=0)
+        action = [0.0, 0.0, 0.0, 0.0, 1.0]
+        _, r_norm, *_ = default.step(action)
+        _, r_dense, *_, info = dense.step(action)
+        assert 0.0 <= float(r_norm[0]) <= 1.0
+        assert float(r_dense[0]) == pytest.approx(sum(float(info[k][0]) for k in REWARD_TERMS))
+        assert float(info["r_time"][0]) == -1.0
+    finally:
+        default.close()
+        dense.close()

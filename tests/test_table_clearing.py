@@ -24,6 +24,7 @@ TERMS = tc.REWARD_TERMS
 
 def make(**kw):
     kw.setdefault("obs_mode", "state")
+    kw.setdefault("reward_mode", "dense")  # these tests check the seed's reward terms
     return gym.make(ENV_ID, **kw)
 
 
@@ -289,7 +290,7 @@ def test_defaults_and_module_prefixed_make_in_fresh_interpreter():
         f"env = gym.make('maniskill_irb120:{ENV_ID}', obs_mode='state')\n"
         "u = env.unwrapped\n"
         "assert u.control_mode == 'pd_ee_delta_tool', u.control_mode\n"
-        "assert u.reward_mode == 'dense', u.reward_mode\n"
+        "assert u.reward_mode == 'normalized_dense', u.reward_mode\n"
         "assert u.single_action_space.shape == (5,), u.single_action_space.shape\n"
         "assert u.obs_mode == 'state'\n"
         "print('ok')\n"
