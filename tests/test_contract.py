@@ -3,7 +3,10 @@ long-lived objects (the CPU vector env) still usable after a rejected call. Shor
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -284,3 +287,16 @@ def test_default_reward_is_normalized_dense_and_the_seeds_reward_is_one_keyword_
     finally:
         default.close()
         dense.close()
+
+
+def test_readme_vec_env_snippet_runs_as_a_script(tmp_path):
+    """The README's make_vec_env snippet saved as a script and run: the CPU workers re-import the main
+    module (forkserver), which only works under the ``if __name__ == "__main__":`` guard."""
+    script = tmp_path / "vec_env_snippet.py"
+    script.write_text(readme_snippet("vec-env"))
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    out = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "(2, 84, 84, 3) (2,)" in out.stdout, out.stdout
