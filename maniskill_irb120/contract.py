@@ -60,7 +60,8 @@ def check_env_idx(env_idx: Any, num_envs: int) -> np.ndarray:
     if isinstance(env_idx, torch.Tensor):
         env_idx = env_idx.detach().cpu().numpy()
     if isinstance(env_idx, (str, bytes)) or not isinstance(env_idx, (np.ndarray, np.generic, list, tuple, range, int)):
-        raise TypeError(f"options['env_idx'] must be integer env indices (list, array or tensor); got {_describe(env_idx)}")
+        raise TypeError("options['env_idx'] must be integer env indices (list, array or tensor); "
+                        f"got {_describe(env_idx)}")
     idx = np.atleast_1d(np.asarray(env_idx))
     if idx.ndim != 1:
         raise ValueError(f"options['env_idx'] must be 1-D, got shape {idx.shape}")

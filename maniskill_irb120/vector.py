@@ -177,7 +177,11 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         return self._venv.call(name, *args, **kwargs)
 
     def render(self):
+        """Each worker's ``render()``; checked here first, since a worker that raises is lost for good."""
         self._check_usable()
+        if self._venv.render_mode is None:
+            raise RuntimeError("render_mode is not set: pass render_mode='rgb_array' (or 'sensors', 'all') "
+                               "to make_vec_env")
         return self._venv.call("render")
 
     # ------------------------------------------------------------------ input checks

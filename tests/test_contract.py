@@ -255,6 +255,23 @@ def test_vector_env_after_close_raises_clear_error():
     v.close()
 
 
+def test_vector_env_after_a_worker_died_says_so():
+    """An error inside a worker (here an unknown attribute through call()) makes gymnasium shut that worker down;
+    later calls say so instead of failing with 'NoneType' object has no attribute 'send'."""
+    v = make_vec_env(ENV, 1, backend="cpu", obs_mode="state")
+    try:
+        v.reset(seed=0)
+        with pytest.raises(RuntimeError, match="render_mode is not set"):  # checked before dispatch: no harm
+            v.render()
+        v.step(torch.zeros(1, 5))
+        with pytest.raises(AttributeError, match="no_such_method"):
+            v.call("no_such_method")
+        with pytest.raises(RuntimeError, match=r"worker\(s\) \[0\] of this vector env were shut down"):
+            v.step(torch.zeros(1, 5))
+    finally:
+        v.close()
+
+
 # --------------------------------------------------------------------------- render_mode="all"
 def test_render_all_frames_fit_video_macro_blocks():
     """Overview (512x512) beside the 84x84 hand camera is 596 wide; padded to 608 so encoders do not rescale."""
