@@ -17,6 +17,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from maniskill_irb120.contract import as_action_array, check_env_idx, check_finite_actions
+
 
 def _to_torch(x: Any) -> Any:
     if isinstance(x, dict):
@@ -108,10 +110,11 @@ class CPUVectorEnv(gym.vector.VectorEnv):
 
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: Optional[int | list[int]] = None, options: Optional[dict] = None):
+        self._check_usable()
         options = dict(options or {})
         mask = np.ones(self.num_envs, dtype=bool)
         if "env_idx" in options:
-            idx = torch.as_tensor(options.pop("env_idx")).cpu().numpy()
+            idx = check_env_idx(options.pop("env_idx"), self.num_envs)
             mask[:] = False
             mask[idx] = True
             options["reset_mask"] = mask
@@ -124,11 +127,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         return _to_torch(obs), _to_torch(_strip_masks(info))
 
     def step(self, actions):
-        if isinstance(actions, torch.Tensor):
-            actions = actions.detach().cpu().numpy()
-        actions = np.asarray(actions, dtype=np.float32)
-        if actions.shape != self.action_space.shape:
-            raise ValueError(f"actions have shape {actions.shape}, expected {self.action_space.shape}")
+        actions = self._checked_actions(actions)
         obs_np, rew, term, trunc, info_np = self._venv.step(actions)
         obs = _to_torch(obs_np)
         rew = torch.from_numpy(np.asarray(rew, dtype=np.float32))
@@ -174,10 +173,39 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         return obs, rew, term, trunc, infos
 
     def call(self, name: str, *args, **kwargs):
+        self._check_usable()
         return self._venv.call(name, *args, **kwargs)
 
     def render(self):
+        """Each worker's ``render()``; checked here first, since a worker that raises is lost for good."""
+        self._check_usable()
+        if self._venv.render_mode is None:
+            raise RuntimeError("render_mode is not set: pass render_mode='rgb_array' (or 'sensors', 'all') "
+                               "to make_vec_env")
         return self._venv.call("render")
+
+    # ------------------------------------------------------------------ input checks
+    def _checked_actions(self, actions: Any) -> np.ndarray:
+        """The batch as float32 numpy, or a clear error *before* dispatch: a worker that raises is shut down
+        by gymnasium for good, and every later call would fail with ``'NoneType' object has no attribute 'send'``."""
+        self._check_usable()
+        actions = as_action_array(actions, "actions")
+        if isinstance(actions, torch.Tensor):
+            actions = actions.detach().cpu().numpy()
+        actions = np.asarray(actions, dtype=np.float32)
+        if actions.shape != self.action_space.shape:
+            raise ValueError(f"actions have shape {actions.shape}, expected {self.action_space.shape}")
+        check_finite_actions(actions)
+        return actions
+
+    def _check_usable(self) -> None:
+        """RuntimeError after ``close()`` or once a worker died, instead of gymnasium's pipe errors."""
+        if self.closed:
+            raise RuntimeError("the vector env is closed; make a new one with make_vec_env(...)")
+        dead = [i for i, pipe in enumerate(self._venv.parent_pipes) if pipe is None]
+        if dead:
+            raise RuntimeError(f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
+                               "earlier traceback); close() it and make a new one with make_vec_env(...)")
 
     def close_extras(self, **kwargs):
         self._venv.close(**kwargs)
