@@ -122,9 +122,12 @@ class NatureCNN(nn.Module):
         if image_shape is not None:
             h, w, c = image_shape
             self.cnn = nn.Sequential(
-                nn.Conv2d(c, 32, 8, stride=4), nn.ReLU(),
-                nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
-                nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
+                nn.Conv2d(c, 32, 8, stride=4),
+                nn.ReLU(),
+                nn.Conv2d(32, 64, 4, stride=2),
+                nn.ReLU(),
+                nn.Conv2d(64, 64, 3, stride=1),
+                nn.ReLU(),
                 nn.Flatten(),
             )
             with torch.no_grad():
@@ -158,13 +161,17 @@ class Agent(nn.Module):
         self.encoder = NatureCNN(image_shape, state_dim)
         d = self.encoder.out_dim
         self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
-        self.actor_mean = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(),
-                                        layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2)))
+        self.actor_mean = nn.Sequential(
+            layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2))
+        )
         self.actor_logstd = nn.Parameter(torch.full((1, action_dim), -0.5))
 
     def signature(self) -> dict:
-        return dict(image_shape=list(self.image_shape) if self.image_shape else None, state_dim=self.state_dim,
-                    action_dim=self.action_dim)
+        return dict(
+            image_shape=list(self.image_shape) if self.image_shape else None,
+            state_dim=self.state_dim,
+            action_dim=self.action_dim,
+        )
 
     def get_value(self, obs) -> torch.Tensor:
         return self.critic(self.encoder(obs))
@@ -200,8 +207,12 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
     from mani_skill.utils.wrappers.record import RecordEpisode
 
-    kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=args.control_mode,
-                  reward_mode=args.reward_mode, **args.env_kwargs)
+    kwargs = dict(
+        obs_mode="rgbd" if args.obs == "rgbd" else "state",
+        control_mode=args.control_mode,
+        reward_mode=args.reward_mode,
+        **args.env_kwargs,
+    )
     needs_render = args.obs == "rgbd" or (evaluate and video_dir is not None)
     if needs_render:
         kwargs["render_mode"] = "rgb_array"
@@ -218,16 +229,38 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
             backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
             num_envs = 1
         if video_dir is not None:
-            wrappers.append(lambda e: RecordEpisode(e, output_dir=str(video_dir), save_trajectory=False,
-                                                    max_steps_per_video=None, video_fps=20, info_on_video=False))
+            wrappers.append(
+                lambda e: RecordEpisode(
+                    e,
+                    output_dir=str(video_dir),
+                    save_trajectory=False,
+                    max_steps_per_video=None,
+                    video_fps=20,
+                    info_on_video=False,
+                )
+            )
         # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
         # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
-        return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers,
-                            ignore_terminations=backend == "gpu", record_metrics=True, **kwargs)
+        return make_vec_env(
+            args.env_id,
+            num_envs,
+            backend=backend,
+            wrappers=wrappers,
+            ignore_terminations=backend == "gpu",
+            record_metrics=True,
+            **kwargs,
+        )
     if not args.partial_reset:
         raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
-    return make_vec_env(args.env_id, num_envs, backend=args.backend, wrappers=wrappers,
-                        ignore_terminations=False, record_metrics=True, **kwargs)
+    return make_vec_env(
+        args.env_id,
+        num_envs,
+        backend=args.backend,
+        wrappers=wrappers,
+        ignore_terminations=False,
+        record_metrics=True,
+        **kwargs,
+    )
 
 
 def agent_for(envs, device) -> Agent:
@@ -242,8 +275,9 @@ def agent_for(envs, device) -> Agent:
 
 
 # ----------------------------------------------------------------------------- PPO update
-def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args,
-               critic_only: bool = False) -> dict[str, float]:
+def ppo_update(
+    agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args, critic_only: bool = False
+) -> dict[str, float]:
     """Clipped-surrogate epochs over minibatches of one rollout; returns the last epoch's stats.
     ``critic_only``: value loss alone (the policy, its encoder included, stays as it is)."""
     n = batch["actions"].shape[0]
@@ -253,7 +287,7 @@ def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args
         perm = torch.randperm(n, device=batch["actions"].device)
         approx_kl = torch.zeros(())
         for start in range(0, n, mb):
-            idx = perm[start:start + mb]
+            idx = perm[start : start + mb]
             obs = {k: v[idx] for k, v in batch["obs"].items()}
             _, logp, entropy, value = agent.get_action_and_value(obs, batch["actions"][idx])
             logratio = logp - batch["logprobs"][idx]
@@ -269,8 +303,10 @@ def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args
             value = value.view(-1)
             if args.clip_vloss:
                 v_clipped = batch["values"][idx] + (value - batch["values"][idx]).clamp(-args.clip_coef, args.clip_coef)
-                v_loss = 0.5 * torch.max((value - batch["returns"][idx]) ** 2,
-                                         (v_clipped - batch["returns"][idx]) ** 2).mean()
+                v_loss = (
+                    0.5
+                    * torch.max((value - batch["returns"][idx]) ** 2, (v_clipped - batch["returns"][idx]) ** 2).mean()
+                )
             else:
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
             ent = entropy.mean()
@@ -284,8 +320,14 @@ def ppo_update(agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args
             loss.backward()
             nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
             optimizer.step()
-            stats = dict(policy_loss=pg_loss.item(), value_loss=v_loss.item(), entropy=ent.item(),
-                         old_approx_kl=old_approx_kl.item(), approx_kl=approx_kl.item(), loss=loss.item())
+            stats = dict(
+                policy_loss=pg_loss.item(),
+                value_loss=v_loss.item(),
+                entropy=ent.item(),
+                old_approx_kl=old_approx_kl.item(),
+                approx_kl=approx_kl.item(),
+                loss=loss.item(),
+            )
         if not critic_only and args.target_kl is not None and approx_kl > args.target_kl:
             break
     stats["clipfrac"] = float(np.mean(clipfracs)) if clipfracs else 0.0
@@ -343,9 +385,18 @@ def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: A
     """Write to a temporary file and rename, so a crash never leaves a truncated checkpoint."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
-    torch.save(dict(model=agent.state_dict(), optimizer=optimizer.state_dict(), counters=counters,
-                    rng=rng_state(), args=json.loads(json.dumps(asdict(args), default=str)),
-                    signature=agent.signature(), format="maniskill_irb120.ppo/1"), tmp)
+    torch.save(
+        dict(
+            model=agent.state_dict(),
+            optimizer=optimizer.state_dict(),
+            counters=counters,
+            rng=rng_state(),
+            args=json.loads(json.dumps(asdict(args), default=str)),
+            signature=agent.signature(),
+            format="maniskill_irb120.ppo/1",
+        ),
+        tmp,
+    )
     os.replace(tmp, path)
 
 
@@ -358,10 +409,13 @@ def load_checkpoint(path: Path, agent: Agent, args: Args) -> dict:
     except Exception as e:
         raise ValueError(f"checkpoint {path} is not a readable torch checkpoint: {e}") from e
     if not isinstance(ckpt, dict) or ckpt.get("format") != "maniskill_irb120.ppo/1":
-        raise ValueError(f"checkpoint {path} was not written by agents.ppo (format {ckpt.get('format') if isinstance(ckpt, dict) else type(ckpt)})")
+        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt)
+        raise ValueError(f"checkpoint {path} was not written by agents.ppo (format {found})")
     if ckpt["signature"] != agent.signature():
-        raise ValueError(f"checkpoint {path} does not match this run: it has {ckpt['signature']}, the env gives "
-                         f"{agent.signature()} (obs={args.obs}, env={args.env_id}, control_mode={args.control_mode})")
+        raise ValueError(
+            f"checkpoint {path} does not match this run: it has {ckpt['signature']}, the env gives "
+            f"{agent.signature()} (obs={args.obs}, env={args.env_id}, control_mode={args.control_mode})"
+        )
     agent.load_state_dict(ckpt["model"])
     return ckpt
 
@@ -471,8 +525,14 @@ def run_evaluation_only(args: Args) -> dict:
     if args.checkpoint is None:
         raise ValueError("--evaluate needs --checkpoint PATH")
     device = resolve_device(args)
-    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval" if args.exp_name is None else args.runs_dir / args.exp_name / "eval"
-    envs = make_envs(args, args.num_eval_envs, evaluate=True, video_dir=out_dir / "videos" if args.capture_video else None)
+    out_dir = (
+        Path(args.checkpoint).resolve().parent.parent / "eval"
+        if args.exp_name is None
+        else args.runs_dir / args.exp_name / "eval"
+    )
+    envs = make_envs(
+        args, args.num_eval_envs, evaluate=True, video_dir=out_dir / "videos" if args.capture_video else None
+    )
     agent = agent_for(envs, device)
     load_checkpoint(args.checkpoint, agent, args)
     agent.eval()
@@ -531,8 +591,9 @@ def train(args: Args) -> dict:
     if args.progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=num_iterations * args.batch_size, initial=counters["global_step"], unit="step",
-                   dynamic_ncols=True)
+        bar = tqdm(
+            total=num_iterations * args.batch_size, initial=counters["global_step"], unit="step", dynamic_ncols=True
+        )
     last_eval: dict = {}
     history: list[dict] = []
     start_iteration = counters["iteration"]
@@ -575,10 +636,14 @@ def train(args: Args) -> dict:
         with torch.no_grad():
             next_value = agent.get_value(next_obs).reshape(1, -1)[0]
             advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, final_values, args)
-        batch = dict(obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in obs_buf.items()},
-                     actions=actions.reshape((-1,) + envs.single_action_space.shape),
-                     logprobs=logprobs.reshape(-1), advantages=advantages.reshape(-1),
-                     returns=returns.reshape(-1), values=values.reshape(-1))
+        batch = dict(
+            obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in obs_buf.items()},
+            actions=actions.reshape((-1,) + envs.single_action_space.shape),
+            logprobs=logprobs.reshape(-1),
+            advantages=advantages.reshape(-1),
+            returns=returns.reshape(-1),
+            values=values.reshape(-1),
+        )
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
@@ -588,23 +653,37 @@ def train(args: Args) -> dict:
         y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
         var_y = np.var(y_true)
         scalars = {f"losses/{k}": v for k, v in stats.items()}
-        scalars.update({"charts/SPS": args.batch_size / dt, "charts/learning_rate": optimizer.param_groups[0]["lr"],
-                        "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
-                        "time/rollout_s": dt - update_time, "time/sim_s": sim_time, "time/update_s": update_time})
+        scalars.update(
+            {
+                "charts/SPS": args.batch_size / dt,
+                "charts/learning_rate": optimizer.param_groups[0]["lr"],
+                "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
+                "time/rollout_s": dt - update_time,
+                "time/sim_s": sim_time,
+                "time/update_s": update_time,
+            }
+        )
         if recent:
             scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
         logger.scalars(scalars, counters["global_step"])
-        history.append(dict(iteration=it, global_step=counters["global_step"],
-                            wall_s=time.perf_counter() - t_start, **scalars))
+        history.append(
+            dict(iteration=it, global_step=counters["global_step"], wall_s=time.perf_counter() - t_start, **scalars)
+        )
         if bar is not None:
             bar.update(args.batch_size)
-            bar.set_postfix(SPS=f"{args.batch_size / dt:.0f}",
-                            success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-")
+            bar.set_postfix(
+                SPS=f"{args.batch_size / dt:.0f}",
+                success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-",
+            )
         recent.clear()
         if args.eval_freq and it % args.eval_freq == 0:
             if eval_envs is None:
-                eval_envs = make_envs(args, args.num_eval_envs, evaluate=True,
-                                      video_dir=run_dir / "videos" if args.capture_video else None)
+                eval_envs = make_envs(
+                    args,
+                    args.num_eval_envs,
+                    evaluate=True,
+                    video_dir=run_dir / "videos" if args.capture_video else None,
+                )
             agent.eval()
             last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
             logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
@@ -617,9 +696,14 @@ def train(args: Args) -> dict:
     if eval_envs is not None:
         eval_envs.close()
     logger.close()
-    result = dict(run_dir=str(run_dir), global_step=counters["global_step"], iterations=counters["iteration"],
-                  iterations_this_run=counters["iteration"] - start_iteration, last_eval=last_eval,
-                  checkpoint=str(ckpt_dir / "latest.pt"))
+    result = dict(
+        run_dir=str(run_dir),
+        global_step=counters["global_step"],
+        iterations=counters["iteration"],
+        iterations_this_run=counters["iteration"] - start_iteration,
+        last_eval=last_eval,
+        checkpoint=str(ckpt_dir / "latest.pt"),
+    )
     print(json.dumps(result))
     result["history"] = history
     return result

@@ -31,7 +31,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agents.ppo import Agent, Args as PPOArgs, evaluate, make_envs, save_checkpoint, train  # noqa: E402
+from agents.ppo import Agent, evaluate, make_envs, save_checkpoint, train  # noqa: E402
+from agents.ppo import Args as PPOArgs  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
 
@@ -52,21 +53,46 @@ class Args:
     out_dir: Path = Path("benchmarks/results/learning")
 
 
-def ppo_args(args: Args, name: str, minutes: float, checkpoint: Path | None = None, lr: float = 3e-4,
-             critic_warmup_iters: int = 0) -> PPOArgs:
-    return PPOArgs(obs="state", num_envs=args.num_envs, num_steps=100, num_minibatches=4, update_epochs=8,
-                   learning_rate=lr, total_timesteps=10**9, max_wall_s=60 * minutes, eval_freq=0, save_freq=20,
-                   critic_warmup_iters=critic_warmup_iters,
-                   seed=args.seed, exp_name=name, runs_dir=args.out_dir / "runs", checkpoint=checkpoint,
-                   capture_video=False, progress=False, backend="cpu")
+def ppo_args(
+    args: Args,
+    name: str,
+    minutes: float,
+    checkpoint: Path | None = None,
+    lr: float = 3e-4,
+    critic_warmup_iters: int = 0,
+) -> PPOArgs:
+    return PPOArgs(
+        obs="state",
+        num_envs=args.num_envs,
+        num_steps=100,
+        num_minibatches=4,
+        update_epochs=8,
+        learning_rate=lr,
+        total_timesteps=10**9,
+        max_wall_s=60 * minutes,
+        eval_freq=0,
+        save_freq=20,
+        critic_warmup_iters=critic_warmup_iters,
+        seed=args.seed,
+        exp_name=name,
+        runs_dir=args.out_dir / "runs",
+        checkpoint=checkpoint,
+        capture_video=False,
+        progress=False,
+        backend="cpu",
+    )
 
 
 def summary_from_eval(m: dict) -> dict:
     """agents.ppo.evaluate() means -> rates, normalized return and the seed's dense return (sum of terms)."""
-    return dict(episodes=m["episodes"], success_rate=m.get("success_rate_mean", 0.0),
-                grasp_rate=m.get("grasped_rate_mean", 0.0), collision_rate=m.get("collided_rate_mean", 0.0),
-                normalized_return=m.get("return_mean", 0.0),
-                dense_return=sum(v for k, v in m.items() if k.startswith("return_r_")))
+    return dict(
+        episodes=m["episodes"],
+        success_rate=m.get("success_rate_mean", 0.0),
+        grasp_rate=m.get("grasped_rate_mean", 0.0),
+        collision_rate=m.get("collided_rate_mean", 0.0),
+        normalized_return=m.get("return_mean", 0.0),
+        dense_return=sum(v for k, v in m.items() if k.startswith("return_r_")),
+    )
 
 
 class RandomPolicy:
@@ -126,7 +152,7 @@ def behaviour_clone(obs: torch.Tensor, act: torch.Tensor, epochs: int, seed: int
     for _ in range(epochs):
         perm = torch.randperm(n)
         for i in range(0, n, 256):
-            idx = perm[i:i + 256]
+            idx = perm[i : i + 256]
             loss = ((agent.actor_mean(agent.encoder({"state": obs[idx]})) - act[idx]) ** 2).mean()
             opt.zero_grad()
             loss.backward()
@@ -134,8 +160,9 @@ def behaviour_clone(obs: torch.Tensor, act: torch.Tensor, epochs: int, seed: int
         losses.append(loss.item())
     with torch.no_grad():  # start PPO's exploration narrow around the cloned behaviour
         agent.actor_logstd.fill_(-1.6)
-    save_checkpoint(path, agent, torch.optim.Adam(agent.parameters()), dict(global_step=0, iteration=0),
-                    ppo_args(Args(), "bc", 0))
+    save_checkpoint(
+        path, agent, torch.optim.Adam(agent.parameters()), dict(global_step=0, iteration=0), ppo_args(Args(), "bc", 0)
+    )
     return dict(transitions=n, final_mse=losses[-1], first_mse=losses[0])
 
 
@@ -164,8 +191,11 @@ def state_dim() -> int:
 def curve(history: list[dict]) -> dict:
     keys = ("train/success_rate", "train/grasped_rate", "train/return")
     pts = [h for h in history if "train/return" in h]
-    return dict(wall_s=[h["wall_s"] for h in pts], global_step=[h["global_step"] for h in pts],
-                **{k.split("/")[1]: [h.get(k, float("nan")) for h in pts] for k in keys})
+    return dict(
+        wall_s=[h["wall_s"] for h in pts],
+        global_step=[h["global_step"] for h in pts],
+        **{k.split("/")[1]: [h.get(k, float("nan")) for h in pts] for k in keys},
+    )
 
 
 def plot(result: dict, path: Path) -> None:
@@ -186,10 +216,13 @@ def plot(result: dict, path: Path) -> None:
         t = np.asarray(c["wall_s"]) / 60
         for ax, key in zip(axes, ("success_rate", "grasped_rate", "return")):
             y = smooth(c[key])
-            ax.plot(t[len(t) - len(y):], y, label=name)
+            ax.plot(t[len(t) - len(y) :], y, label=name)
     base = result["random"]
-    for ax, key, title in zip(axes, ("success_rate", "grasp_rate", "normalized_return"),
-                              ("delivery success (training episodes)", "grasp rate", "normalized return per episode")):
+    for ax, key, title in zip(
+        axes,
+        ("success_rate", "grasp_rate", "normalized_return"),
+        ("delivery success (training episodes)", "grasp rate", "normalized return per episode"),
+    ):
         ax.axhline(base[key], color="k", ls="--", lw=1, label="random policy")
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("wall-clock minutes (2 CPU cores)")
@@ -202,29 +235,50 @@ def plot(result: dict, path: Path) -> None:
 def main(args: Args) -> dict:
     args.out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    result: dict = dict(budget_min=args.budget_min, num_envs=args.num_envs, seed=args.seed,
-                        date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv), arms={})
+    result: dict = dict(
+        budget_min=args.budget_min,
+        num_envs=args.num_envs,
+        seed=args.seed,
+        date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        command=" ".join(sys.argv),
+        arms={},
+    )
     result["random"] = random_baseline(args.eval_episodes, args.seed)
     print("random:", json.dumps(result["random"]), flush=True)
 
     half = args.budget_min / 2
     scratch = train(ppo_args(args, "ppo", half))
-    result["arms"]["ppo"] = dict(curve=curve(scratch["history"]), global_step=scratch["global_step"],
-                                 final=final_eval(Path(scratch["checkpoint"]), args.eval_episodes))
+    result["arms"]["ppo"] = dict(
+        curve=curve(scratch["history"]),
+        global_step=scratch["global_step"],
+        final=final_eval(Path(scratch["checkpoint"]), args.eval_episodes),
+    )
     print("ppo:", json.dumps(result["arms"]["ppo"]["final"]), flush=True)
 
     t_bc = time.perf_counter()
     obs, act, expert_success = expert_dataset(args.bc_episodes, args.seed)
     bc_ckpt = args.out_dir / "bc.pt"
     bc = behaviour_clone(obs, act, args.bc_epochs, args.seed, bc_ckpt)
-    bc.update(expert_success=expert_success, seconds=time.perf_counter() - t_bc,
-              final=final_eval(bc_ckpt, args.eval_episodes))
+    bc.update(
+        expert_success=expert_success, seconds=time.perf_counter() - t_bc, final=final_eval(bc_ckpt, args.eval_episodes)
+    )
     result["bc"] = bc
     print("bc:", json.dumps(bc), flush=True)
-    warm = train(ppo_args(args, "bc_ppo", max(0.5, half - bc["seconds"] / 60), checkpoint=bc_ckpt, lr=1e-4,
-                          critic_warmup_iters=args.critic_warmup_iters))
-    result["arms"]["bc+ppo"] = dict(curve=curve(warm["history"]), global_step=warm["global_step"],
-                                    final=final_eval(Path(warm["checkpoint"]), args.eval_episodes))
+    warm = train(
+        ppo_args(
+            args,
+            "bc_ppo",
+            max(0.5, half - bc["seconds"] / 60),
+            checkpoint=bc_ckpt,
+            lr=1e-4,
+            critic_warmup_iters=args.critic_warmup_iters,
+        )
+    )
+    result["arms"]["bc+ppo"] = dict(
+        curve=curve(warm["history"]),
+        global_step=warm["global_step"],
+        final=final_eval(Path(warm["checkpoint"]), args.eval_episodes),
+    )
     print("bc+ppo:", json.dumps(result["arms"]["bc+ppo"]["final"]), flush=True)
     result["wall_s"] = time.perf_counter() - t0
     (args.out_dir / "learning.json").write_text(json.dumps(result, indent=1))
@@ -234,12 +288,16 @@ def main(args: Args) -> dict:
 
 
 def markdown(r: dict) -> str:
-    rows = ["| policy | env steps | success | grasp rate | collision rate | normalized return | seed's dense return |",
-            "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| policy | env steps | success | grasp rate | collision rate | normalized return | seed's dense return |",
+        "|---|---|---|---|---|---|---|",
+    ]
 
     def row(name, steps, f):
-        return (f"| {name} | {steps} | {f['success_rate']:.2f} | {f['grasp_rate']:.2f} | {f['collision_rate']:.2f} | "
-                f"{f['normalized_return']:.2f} | {f['dense_return']:.0f} |")
+        return (
+            f"| {name} | {steps} | {f['success_rate']:.2f} | {f['grasp_rate']:.2f} | {f['collision_rate']:.2f} | "
+            f"{f['normalized_return']:.2f} | {f['dense_return']:.0f} |"
+        )
 
     rows.append(row("random", "-", r["random"]))
     rows.append(row("PPO from scratch", r["arms"]["ppo"]["global_step"], r["arms"]["ppo"]["final"]))

@@ -105,18 +105,27 @@ class SeedPyBulletEnv:
         self.plane = p.loadURDF("plane.urdf", physicsClientId=c)
         self.table = p.loadURDF("table/table.urdf", TABLE_POS, globalScaling=0.5, physicsClientId=c)
         self.table_top = p.getAABB(self.table, -1, physicsClientId=c)[1][2]
-        self.source_tray = p.loadURDF("tray/traybox.urdf", (*SOURCE_TRAY_XY, self.table_top),
-                                      globalScaling=0.5, physicsClientId=c)
-        self.dest_tray = p.loadURDF("tray/traybox.urdf", (*DEST_TRAY_XY, self.table_top),
-                                    globalScaling=0.5, physicsClientId=c)
+        self.source_tray = p.loadURDF(
+            "tray/traybox.urdf", (*SOURCE_TRAY_XY, self.table_top), globalScaling=0.5, physicsClientId=c
+        )
+        self.dest_tray = p.loadURDF(
+            "tray/traybox.urdf", (*DEST_TRAY_XY, self.table_top), globalScaling=0.5, physicsClientId=c
+        )
         p.changeVisualShape(self.source_tray, -1, rgbaColor=(1, 1, 0, 1), physicsClientId=c)
         p.changeVisualShape(self.dest_tray, -1, rgbaColor=(0, 1, 0, 1), physicsClientId=c)
         self.tray_floor = p.getAABB(self.source_tray, -1, physicsClientId=c)[0][2] + 0.01
-        self.cube = p.loadURDF("cube_small.urdf", (*SOURCE_TRAY_XY, self.tray_floor + 0.05),
-                               globalScaling=CUBE_SCALE, physicsClientId=c)
+        self.cube = p.loadURDF(
+            "cube_small.urdf", (*SOURCE_TRAY_XY, self.tray_floor + 0.05), globalScaling=CUBE_SCALE, physicsClientId=c
+        )
         self.robot = p.loadURDF(urdf_path(), ROBOT_BASE, useFixedBase=True, physicsClientId=c)
-        self.bodies = {"plane": self.plane, "table": self.table, "source_tray": self.source_tray,
-                       "dest_tray": self.dest_tray, "cube": self.cube, "robot": self.robot}
+        self.bodies = {
+            "plane": self.plane,
+            "table": self.table,
+            "source_tray": self.source_tray,
+            "dest_tray": self.dest_tray,
+            "cube": self.cube,
+            "robot": self.robot,
+        }
 
         # joint / link indices by name; DoF order of calculateInverseKinematics = non-fixed joints
         self.joint_index, self.link_index, self.joint_types = {}, {}, {}
@@ -139,16 +148,23 @@ class SeedPyBulletEnv:
         self.tcp_link = self.link_index["tcp"]
         self.finger_links = [self.link_index["finger_left"], self.link_index["finger_right"]]
         # the URDF's tcp frame has no <inertial>: PyBullet would make it a 1 kg payload
-        p.changeDynamics(self.robot, self.tcp_link, mass=1e-3, localInertiaDiagonal=(1e-9,) * 3,
-                         physicsClientId=c)
+        p.changeDynamics(self.robot, self.tcp_link, mass=1e-3, localInertiaDiagonal=(1e-9,) * 3, physicsClientId=c)
         n = len(dof_names)
-        self._ik_dls = dict(maxNumIterations=1000, residualThreshold=1e-5, jointDamping=[1e-50] * n,
-                            solver=p.IK_DLS, physicsClientId=c)
-        self._ik_sdls = dict(self._ik_dls, solver=p.IK_SDLS, lowerLimits=list(lower), upperLimits=list(upper),
-                             jointRanges=[2 * math.pi] * n, restPoses=[0.0] * n)
+        self._ik_dls = dict(
+            maxNumIterations=1000, residualThreshold=1e-5, jointDamping=[1e-50] * n, solver=p.IK_DLS, physicsClientId=c
+        )
+        self._ik_sdls = dict(
+            self._ik_dls,
+            solver=p.IK_SDLS,
+            lowerLimits=list(lower),
+            upperLimits=list(upper),
+            jointRanges=[2 * math.pi] * n,
+            restPoses=[0.0] * n,
+        )
 
-        self._proj = p.computeProjectionMatrixFOV(fov=CAM_FOV, aspect=1.0, nearVal=CAM_NEAR, farVal=CAM_FAR,
-                                                  physicsClientId=c)
+        self._proj = p.computeProjectionMatrixFOV(
+            fov=CAM_FOV, aspect=1.0, nearVal=CAM_NEAR, farVal=CAM_FAR, physicsClientId=c
+        )
         self.q_start = self._solve_start_pose()
         self.finger_target = FINGER_OPEN
         self.n_resets = 0
@@ -208,12 +224,26 @@ class SeedPyBulletEnv:
     def _command(self, q_arm, finger) -> None:
         """Seed step 4."""
         for j, q in zip(self.arm, q_arm):
-            p.setJointMotorControl2(self.robot, j, p.POSITION_CONTROL, targetPosition=float(q),
-                                    positionGain=0.3, velocityGain=1.0, maxVelocity=4.0,
-                                    physicsClientId=self.cid)
-        p.setJointMotorControlArray(self.robot, self.fingers, p.POSITION_CONTROL, targetPositions=[finger] * 2,
-                                    forces=[500] * 2, positionGains=[0.3] * 2, velocityGains=[1.0] * 2,
-                                    physicsClientId=self.cid)
+            p.setJointMotorControl2(
+                self.robot,
+                j,
+                p.POSITION_CONTROL,
+                targetPosition=float(q),
+                positionGain=0.3,
+                velocityGain=1.0,
+                maxVelocity=4.0,
+                physicsClientId=self.cid,
+            )
+        p.setJointMotorControlArray(
+            self.robot,
+            self.fingers,
+            p.POSITION_CONTROL,
+            targetPositions=[finger] * 2,
+            forces=[500] * 2,
+            positionGains=[0.3] * 2,
+            velocityGains=[1.0] * 2,
+            physicsClientId=self.cid,
+        )
 
     def _robot_collided(self) -> bool:
         """The robot touches anything except the object (self-collision is off, as PyBullet's default)."""
@@ -242,8 +272,9 @@ class SeedPyBulletEnv:
         # 1-2: current TCP composed with the tool-frame delta
         cur_pos, cur_orn = self.tcp_pose()
         delta_orn = p.getQuaternionFromEuler((float(a[3]) * MAX_ROTATION, 0.0, 0.0))
-        tgt_pos, tgt_orn = p.multiplyTransforms(cur_pos, cur_orn, (a[:3] * MAX_TRANSLATION).tolist(), delta_orn,
-                                                physicsClientId=c)
+        tgt_pos, tgt_orn = p.multiplyTransforms(
+            cur_pos, cur_orn, (a[:3] * MAX_TRANSLATION).tolist(), delta_orn, physicsClientId=c
+        )
         finger = FINGER_OPEN if a[4] > 0 else FINGER_CLOSED
         # 3: IK (DLS, then SDLS)
         q_arm = self._ik(tgt_pos, tgt_orn)
@@ -319,9 +350,15 @@ class SeedPyBulletEnv:
         target = eye + 100.0 * rot[:, 0]
         view = p.computeViewMatrix(eye.tolist(), target.tolist(), rot[:, 2].tolist(), physicsClientId=c)
         # in DIRECT mode PyBullet silently uses its CPU TinyRenderer for ER_BULLET_HARDWARE_OPENGL
-        w, h, rgba, depth_buf, _ = p.getCameraImage(IMG_SIZE, IMG_SIZE, view, self._proj,
-                                                    renderer=p.ER_BULLET_HARDWARE_OPENGL,
-                                                    flags=p.ER_NO_SEGMENTATION_MASK, physicsClientId=c)
+        w, h, rgba, depth_buf, _ = p.getCameraImage(
+            IMG_SIZE,
+            IMG_SIZE,
+            view,
+            self._proj,
+            renderer=p.ER_BULLET_HARDWARE_OPENGL,
+            flags=p.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=c,
+        )
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
         zbuf = np.asarray(depth_buf, dtype=np.float32).reshape(h, w)
         depth = CAM_FAR * CAM_NEAR / (CAM_FAR - (CAM_FAR - CAM_NEAR) * zbuf)  # metric depth (m)
@@ -339,8 +376,14 @@ def summarize(times) -> dict:
     t = np.asarray(times, dtype=float)
     q25, q50, q75 = np.percentile(t, [25, 50, 75])
     return {
-        "n": int(t.size), "mean": float(t.mean()), "std": float(t.std()), "min": float(t.min()),
-        "25%": float(q25), "50%": float(q50), "75%": float(q75), "max": float(t.max()),
+        "n": int(t.size),
+        "mean": float(t.mean()),
+        "std": float(t.std()),
+        "min": float(t.min()),
+        "25%": float(q25),
+        "50%": float(q50),
+        "75%": float(q75),
+        "max": float(t.max()),
         "actions_per_s": float(t.size / t.sum()),
     }
 
@@ -365,10 +408,18 @@ def measure(mode: str, n_actions: int, seed: int = 0) -> dict:
                 env.reset()
         stats = summarize(times)
         stats.update(
-            mode=mode, render=render, realtime=realtime, seed=seed, times=times,
-            mean_substeps=float(np.mean(substeps)), substeps=substeps, n_converged=int(converged),
-            n_timeouts=int(sum(1 for n in substeps if n == TIMEOUT_STEPS)), n_skipped=int(skipped),
-            n_collisions=int(collisions), sim_time_per_action=float(np.mean(substeps)) / SIM_HZ,
+            mode=mode,
+            render=render,
+            realtime=realtime,
+            seed=seed,
+            times=times,
+            mean_substeps=float(np.mean(substeps)),
+            substeps=substeps,
+            n_converged=int(converged),
+            n_timeouts=int(sum(1 for n in substeps if n == TIMEOUT_STEPS)),
+            n_skipped=int(skipped),
+            n_collisions=int(collisions),
+            sim_time_per_action=float(np.mean(substeps)) / SIM_HZ,
         )
         return stats
     finally:
@@ -376,8 +427,10 @@ def measure(mode: str, n_actions: int, seed: int = 0) -> dict:
 
 
 def markdown_table(results: list[dict]) -> str:
-    head = ("| mode | n | mean (s) | std | min | 25% | 50% | 75% | max | actions/s | substeps/action |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|")
+    head = (
+        "| mode | n | mean (s) | std | min | 25% | 50% | 75% | max | actions/s | substeps/action |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|"
+    )
     rows = [
         f"| {r['mode']} | {r['n']} | {r['mean']:.4f} | {r['std']:.4f} | {r['min']:.4f} | {r['25%']:.4f} | "
         f"{r['50%']:.4f} | {r['75%']:.4f} | {r['max']:.4f} | {r['actions_per_s']:.2f} | {r['mean_substeps']:.1f} |"
@@ -412,9 +465,11 @@ def main(args: Args) -> list[dict]:
         results.append(measure(mode, k, args.seed))
     print("\n" + markdown_table(results))  # (a newline: PyBullet's URDF warnings do not end with one)
     for r in results:
-        print(f"{r['mode']}: converged {r['n_converged']}/{r['n']}, timeouts {r['n_timeouts']}, "
-              f"skipped (IK) {r['n_skipped']}, collisions/resets {r['n_collisions']}, "
-              f"sim time/action {r['sim_time_per_action']:.3f} s")
+        print(
+            f"{r['mode']}: converged {r['n_converged']}/{r['n']}, timeouts {r['n_timeouts']}, "
+            f"skipped (IK) {r['n_skipped']}, collisions/resets {r['n_collisions']}, "
+            f"sim time/action {r['sim_time_per_action']:.3f} s"
+        )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"pybullet": p.getAPIVersion(), "results": results}, indent=1))

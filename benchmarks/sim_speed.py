@@ -41,8 +41,17 @@ MODES = ("render_realtime", "render", "no_render")
 def summarize(times) -> dict:
     t = np.asarray(times, dtype=float)
     q = np.percentile(t, [25, 50, 75])
-    return dict(n=int(t.size), mean=float(t.mean()), std=float(t.std()), min=float(t.min()), p25=float(q[0]),
-                p50=float(q[1]), p75=float(q[2]), max=float(t.max()), steps_per_s=float(t.size / t.sum()))
+    return dict(
+        n=int(t.size),
+        mean=float(t.mean()),
+        std=float(t.std()),
+        min=float(t.min()),
+        p25=float(q[0]),
+        p50=float(q[1]),
+        p75=float(q[2]),
+        max=float(t.max()),
+        steps_per_s=float(t.size / t.sum()),
+    )
 
 
 def peak_rss_mb() -> float:
@@ -155,8 +164,9 @@ def measure_parallel_ceiling(n: int = 5_000_000) -> dict:
     return dict(one_s=one, two_parallel_s=two, speedup=2 * one / two)
 
 
-def measure_batched(env_id: str, num_envs: int, steps: int, seed: int, backend: str = "gpu",
-                    obs_mode: str = "rgbd") -> dict:
+def measure_batched(
+    env_id: str, num_envs: int, steps: int, seed: int, backend: str = "gpu", obs_mode: str = "rgbd"
+) -> dict:
     """Batched env steps/s as training sees them: ``make_vec_env`` (ManiSkillVectorEnv, auto-reset of
     finished envs), a fresh seeded uniform action every step. The GPU sweep; ``backend="inprocess"``
     runs the same loop on one CPU env (how the tests check it)."""
@@ -184,16 +194,23 @@ def measure_batched(env_id: str, num_envs: int, steps: int, seed: int, backend: 
     dt = time.perf_counter() - t0
     free1 = torch.cuda.mem_get_info()[0] if dev.type == "cuda" else 0
     envs.close()
-    return dict(num_envs=num_envs, backend=backend, obs_mode=obs_mode, env_steps_per_s=steps * num_envs / dt,
-                episodes_finished=episodes, gpu_mem_used_gb=(total - min(free0, free1)) / 2**30)
+    return dict(
+        num_envs=num_envs,
+        backend=backend,
+        obs_mode=obs_mode,
+        env_steps_per_s=steps * num_envs / dt,
+        episodes_finished=episodes,
+        gpu_mem_used_gb=(total - min(free0, free1)) / 2**30,
+    )
 
 
 def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
     import pybullet_seed
 
     r = pybullet_seed.measure(mode, steps, seed)
-    return dict(times=r["times"], resets=r.get("collided", 0), peak_rss_mb=peak_rss_mb(),
-                mean_substeps=r.get("mean_substeps"))
+    return dict(
+        times=r["times"], resets=r.get("collided", 0), peak_rss_mb=peak_rss_mb(), mean_substeps=r.get("mean_substeps")
+    )
 
 
 def _run(conn, fn: str, kwargs: dict) -> None:
@@ -247,8 +264,10 @@ class Args:
 
 
 def fmt_row(name: str, s: dict) -> str:
-    return (f"| {name} | {s['mean']:.4f} | {s['std']:.4f} | {s['min']:.4f} | {s['p25']:.4f} | {s['p50']:.4f} | "
-            f"{s['p75']:.4f} | {s['max']:.4f} | {s['steps_per_s']:.1f} |")
+    return (
+        f"| {name} | {s['mean']:.4f} | {s['std']:.4f} | {s['min']:.4f} | {s['p25']:.4f} | {s['p50']:.4f} | "
+        f"{s['p75']:.4f} | {s['max']:.4f} | {s['steps_per_s']:.1f} |"
+    )
 
 
 def one_round(args: Args, steps: int) -> dict:
@@ -259,24 +278,37 @@ def one_round(args: Args, steps: int) -> dict:
         n = rt_steps if mode == "render_realtime" else steps
         r["ours"][mode] = isolated("measure_maniskill", env_id=ENV_ID, mode=mode, steps=n, seed=args.seed)
         r["pyb"][mode] = isolated("measure_pybullet", mode=mode, steps=n, seed=args.seed)
-    r["pick"] = isolated("measure_maniskill", env_id="PickCube-v1", mode="render", steps=steps, seed=args.seed,
-                         sensor_configs=dict(width=84, height=84))
-    r["workers"] = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed)
-                    for w in (1, 2)]
-    r["workers_state"] = [isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps), seed=args.seed,
-                                   obs_mode="state") for w in (1, 2)]
+    r["pick"] = isolated(
+        "measure_maniskill",
+        env_id="PickCube-v1",
+        mode="render",
+        steps=steps,
+        seed=args.seed,
+        sensor_configs=dict(width=84, height=84),
+    )
+    r["workers"] = [
+        isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed) for w in (1, 2)
+    ]
+    r["workers_state"] = [
+        isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps), seed=args.seed, obs_mode="state")
+        for w in (1, 2)
+    ]
     r["ceiling"] = measure_parallel_ceiling(1_000_000 if args.quick else 5_000_000)
     rate = lambda x: len(x["times"]) / sum(x["times"])  # noqa: E731
-    r["ratios"] = dict(vs_pickcube_rgbd=rate(r["ours"]["render"]) / rate(r["pick"]),
-                       vs_pybullet_seed={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
-                       two_workers_vs_one=r["workers"][1]["env_steps_per_s"] / r["workers"][0]["env_steps_per_s"],
-                       machine_two_process_ceiling=r["ceiling"]["speedup"])
+    r["ratios"] = dict(
+        vs_pickcube_rgbd=rate(r["ours"]["render"]) / rate(r["pick"]),
+        vs_pybullet_seed={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
+        two_workers_vs_one=r["workers"][1]["env_steps_per_s"] / r["workers"][0]["env_steps_per_s"],
+        machine_two_process_ceiling=r["ceiling"]["speedup"],
+    )
     return r
 
 
 def gpu_sweep(args: Args) -> list[dict]:
-    return [isolated("measure_batched", env_id=ENV_ID, num_envs=n, steps=args.gpu_steps, seed=args.seed)
-            for n in args.gpu_num_envs]
+    return [
+        isolated("measure_batched", env_id=ENV_ID, num_envs=n, steps=args.gpu_steps, seed=args.seed)
+        for n in args.gpu_num_envs
+    ]
 
 
 def main(args: Args) -> dict:
@@ -287,8 +319,12 @@ def main(args: Args) -> dict:
 
         if not torch.cuda.is_available():
             raise SystemExit("--gpu-only needs CUDA; none is available here")
-        out = dict(date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv),
-                   device=torch.cuda.get_device_name(), gpu_scaling=gpu_sweep(args))
+        out = dict(
+            date=time.strftime("%Y-%m-%d %H:%M:%S"),
+            command=" ".join(sys.argv),
+            device=torch.cuda.get_device_name(),
+            gpu_scaling=gpu_sweep(args),
+        )
         print(gpu_markdown(out["gpu_scaling"]))
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -296,37 +332,65 @@ def main(args: Args) -> dict:
         return out
     steps = 12 if args.quick else args.steps
     rounds = 1 if args.quick else args.rounds
-    out: dict = dict(machine=dict(platform=platform.platform(), python=platform.python_version(),
-                                  cpus=os.cpu_count(), processor=platform.processor()),
-                     date=time.strftime("%Y-%m-%d %H:%M:%S"), command=" ".join(sys.argv), steps=steps, rounds=rounds)
+    out: dict = dict(
+        machine=dict(
+            platform=platform.platform(),
+            python=platform.python_version(),
+            cpus=os.cpu_count(),
+            processor=platform.processor(),
+        ),
+        date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        command=" ".join(sys.argv),
+        steps=steps,
+        rounds=rounds,
+    )
     runs = [one_round(args, steps) for _ in range(rounds)]
     pooled = lambda get: [t for r in runs for t in get(r)["times"]]  # noqa: E731
     ours, pyb = {}, {}
     for mode in MODES:
-        split = {k: float(np.mean([r["ours"][mode]["split_s"][k] for r in runs])) for k in runs[0]["ours"][mode]["split_s"]}
-        ours[mode] = dict(summarize(pooled(lambda r: r["ours"][mode])), split_s=split,
-                          peak_rss_mb=max(r["ours"][mode]["peak_rss_mb"] for r in runs))
-        pyb[mode] = dict(summarize(pooled(lambda r: r["pyb"][mode])),
-                         peak_rss_mb=max(r["pyb"][mode]["peak_rss_mb"] for r in runs),
-                         mean_substeps=float(np.mean([r["pyb"][mode]["mean_substeps"] for r in runs])))
+        split = {
+            k: float(np.mean([r["ours"][mode]["split_s"][k] for r in runs])) for k in runs[0]["ours"][mode]["split_s"]
+        }
+        ours[mode] = dict(
+            summarize(pooled(lambda r, mode=mode: r["ours"][mode])),
+            split_s=split,
+            peak_rss_mb=max(r["ours"][mode]["peak_rss_mb"] for r in runs),
+        )
+        pyb[mode] = dict(
+            summarize(pooled(lambda r, mode=mode: r["pyb"][mode])),
+            peak_rss_mb=max(r["pyb"][mode]["peak_rss_mb"] for r in runs),
+            mean_substeps=float(np.mean([r["pyb"][mode]["mean_substeps"] for r in runs])),
+        )
     pick = dict(summarize(pooled(lambda r: r["pick"])), peak_rss_mb=max(r["pick"]["peak_rss_mb"] for r in runs))
-    workers = [dict(workers=w + 1, obs_mode=mode,
-                    env_steps_per_s=float(np.median([r[key][w]["env_steps_per_s"] for r in runs])))
-               for key, mode in (("workers", "rgbd"), ("workers_state", "state")) for w in range(2)]
+    workers = [
+        dict(
+            workers=w + 1, obs_mode=mode, env_steps_per_s=float(np.median([r[key][w]["env_steps_per_s"] for r in runs]))
+        )
+        for key, mode in (("workers", "rgbd"), ("workers_state", "state"))
+        for w in range(2)
+    ]
     med = lambda f: float(np.median([f(r["ratios"]) for r in runs]))  # noqa: E731
-    ratios = dict(vs_pickcube_rgbd=med(lambda x: x["vs_pickcube_rgbd"]),
-                  vs_pybullet_seed={m: med(lambda x, m=m: x["vs_pybullet_seed"][m]) for m in MODES},
-                  two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
-                  machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]))
+    ratios = dict(
+        vs_pickcube_rgbd=med(lambda x: x["vs_pickcube_rgbd"]),
+        vs_pybullet_seed={m: med(lambda x, m=m: x["vs_pybullet_seed"][m]) for m in MODES},
+        two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
+        machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]),
+    )
     import torch
 
     gpu = gpu_sweep(args) if torch.cuda.is_available() and not args.quick else []
     out.update(
         env_steps_per_s={m: ours[m]["steps_per_s"] for m in MODES},
-        reference_steps_per_s=dict(pickcube_rgbd_84=pick["steps_per_s"],
-                                   pybullet_seed={m: pyb[m]["steps_per_s"] for m in MODES}),
-        ratios=ratios, ratios_per_round=[r["ratios"] for r in runs],
-        ours=ours, pybullet_seed=pyb, pickcube_rgbd_84=pick, cpu_workers=workers, gpu_scaling=gpu,
+        reference_steps_per_s=dict(
+            pickcube_rgbd_84=pick["steps_per_s"], pybullet_seed={m: pyb[m]["steps_per_s"] for m in MODES}
+        ),
+        ratios=ratios,
+        ratios_per_round=[r["ratios"] for r in runs],
+        ours=ours,
+        pybullet_seed=pyb,
+        pickcube_rgbd_84=pick,
+        cpu_workers=workers,
+        gpu_scaling=gpu,
     )
     print(markdown(out))
     if args.json:
@@ -338,41 +402,64 @@ def main(args: Args) -> dict:
 
 
 def markdown(r: dict) -> str:
-    head = ("| configuration | mean (s) | std | min | 25% | 50% | 75% | max | steps/s |\n"
-            "|---|---|---|---|---|---|---|---|---|")
+    head = (
+        "| configuration | mean (s) | std | min | 25% | 50% | 75% | max | steps/s |\n"
+        "|---|---|---|---|---|---|---|---|---|"
+    )
     rows = [head]
     for m in MODES:
         rows.append(fmt_row(f"TableClearing-IRB120-v1 (ManiSkill) — {m}", r["ours"][m]))
         rows.append(fmt_row(f"seed loop (PyBullet) — {m}", r["pybullet_seed"][m]))
     rows.append(fmt_row("PickCube-v1 (ManiSkill) — rgbd 84x84", r["pickcube_rgbd_84"]))
-    lines = [f"## Action time (Table 5.1 layout; {r['rounds']} interleaved rounds x {r['steps']} actions, pooled)", *rows, "",
-             "## Ratios (same run; median over rounds, per-round values in the JSON)",
-             f"- TableClearing rgbd vs PickCube-v1 rgbd 84x84: {r['ratios']['vs_pickcube_rgbd']:.2f}x"]
+    lines = [
+        f"## Action time (Table 5.1 layout; {r['rounds']} interleaved rounds x {r['steps']} actions, pooled)",
+        *rows,
+        "",
+        "## Ratios (same run; median over rounds, per-round values in the JSON)",
+        f"- TableClearing rgbd vs PickCube-v1 rgbd 84x84: {r['ratios']['vs_pickcube_rgbd']:.2f}x",
+    ]
     for m in MODES:
-        lines.append(f"- TableClearing vs PyBullet seed loop, {m}: {r['ratios']['vs_pybullet_seed'][m]:.2f}x per action")
-    lines.append(f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
-                 f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s; "
-                 f"state: {r['cpu_workers'][2]['env_steps_per_s']:.1f} -> {r['cpu_workers'][3]['env_steps_per_s']:.1f}); "
-                 f"this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x")
+        lines.append(
+            f"- TableClearing vs PyBullet seed loop, {m}: {r['ratios']['vs_pybullet_seed'][m]:.2f}x per action"
+        )
+    lines.append(
+        f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
+        f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s; "
+        f"state: {r['cpu_workers'][2]['env_steps_per_s']:.1f} -> {r['cpu_workers'][3]['env_steps_per_s']:.1f}); "
+        f"this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x"
+    )
     per_round = ", ".join(f"{x['vs_pickcube_rgbd']:.2f}" for x in r["ratios_per_round"])
-    lines.append(f"- per round, vs PickCube: {per_round}; vs PyBullet (render): "
-                 + ", ".join(f"{x['vs_pybullet_seed']['render']:.2f}" for x in r["ratios_per_round"]))
-    lines += ["", "## Where an action's time goes (ManiSkill, ms per action)",
-              "| mode | physics | controller (IK) | rendering | Python/other | peak RSS (MB) |", "|---|---|---|---|---|---|"]
+    lines.append(
+        f"- per round, vs PickCube: {per_round}; vs PyBullet (render): "
+        + ", ".join(f"{x['vs_pybullet_seed']['render']:.2f}" for x in r["ratios_per_round"])
+    )
+    lines += [
+        "",
+        "## Where an action's time goes (ManiSkill, ms per action)",
+        "| mode | physics | controller (IK) | rendering | Python/other | peak RSS (MB) |",
+        "|---|---|---|---|---|---|",
+    ]
     for m in MODES:
         s = r["ours"][m]["split_s"]
-        lines.append(f"| {m} | {1e3 * s['physics']:.2f} | {1e3 * s['controller']:.2f} | {1e3 * s['render']:.2f} | "
-                     f"{1e3 * s['python']:.2f} | {r['ours'][m]['peak_rss_mb']:.0f} |")
+        lines.append(
+            f"| {m} | {1e3 * s['physics']:.2f} | {1e3 * s['controller']:.2f} | {1e3 * s['render']:.2f} | "
+            f"{1e3 * s['python']:.2f} | {r['ours'][m]['peak_rss_mb']:.0f} |"
+        )
     if r["gpu_scaling"]:
         lines += ["", gpu_markdown(r["gpu_scaling"])]
     return "\n".join(lines)
 
 
 def gpu_markdown(rows: list[dict]) -> str:
-    lines = ["## GPU (physx_cuda, rgbd, auto-reset, random actions)",
-             "| num_envs | steps/s | episodes finished | GPU memory (GB) |", "|---|---|---|---|"]
-    lines += [f"| {g['num_envs']} | {g['env_steps_per_s']:.0f} | {g['episodes_finished']} | {g['gpu_mem_used_gb']:.1f} |"
-              for g in rows]
+    lines = [
+        "## GPU (physx_cuda, rgbd, auto-reset, random actions)",
+        "| num_envs | steps/s | episodes finished | GPU memory (GB) |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {g['num_envs']} | {g['env_steps_per_s']:.0f} | {g['episodes_finished']} | {g['gpu_mem_used_gb']:.1f} |"
+        for g in rows
+    ]
     return "\n".join(lines)
 
 
@@ -385,7 +472,9 @@ def plot(r: dict, path: Path) -> None:
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     x = np.arange(len(MODES))
     ax[0].bar(x - 0.2, [r["env_steps_per_s"][m] for m in MODES], 0.4, label="TableClearing (ManiSkill)")
-    ax[0].bar(x + 0.2, [r["reference_steps_per_s"]["pybullet_seed"][m] for m in MODES], 0.4, label="seed loop (PyBullet)")
+    ax[0].bar(
+        x + 0.2, [r["reference_steps_per_s"]["pybullet_seed"][m] for m in MODES], 0.4, label="seed loop (PyBullet)"
+    )
     ax[0].axhline(r["reference_steps_per_s"]["pickcube_rgbd_84"], color="k", ls="--", lw=1, label="PickCube-v1 rgbd 84")
     ax[0].set_xticks(x, MODES)
     ax[0].set_ylabel("actions / s (one process)")

@@ -58,8 +58,14 @@ class StepTimer(gym.Wrapper):
 
 def main(args: Args) -> dict:
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    env = StepTimer(gym.make(args.env_id, obs_mode="rgbd", render_mode="rgb_array",
-                             human_render_camera_configs=dict(width=args.size, height=args.size)))
+    env = StepTimer(
+        gym.make(
+            args.env_id,
+            obs_mode="rgbd",
+            render_mode="rgb_array",
+            human_render_camera_configs=dict(width=args.size, height=args.size),
+        )
+    )
     expert = expert_for(env)
     stem = args.env_id.split("-")[0].lower()
     video = args.out_dir / f"{stem}_expert.mp4"
@@ -82,13 +88,20 @@ def main(args: Args) -> dict:
             episodes.append(run_episode(env, expert, args.seed + ep, on_step=write_frame))
     env.close()
     successes, steps, step_times = sum(e.success for e in episodes), [e.steps for e in episodes], env.times
-    result = dict(success_rate=successes / args.episodes, episodes=args.episodes, mean_steps=float(np.mean(steps)),
-                  step_ms=1000 * float(np.mean(step_times)), steps_per_s=1 / float(np.mean(step_times)))
+    result = dict(
+        success_rate=successes / args.episodes,
+        episodes=args.episodes,
+        mean_steps=float(np.mean(steps)),
+        step_ms=1000 * float(np.mean(step_times)),
+        steps_per_s=1 / float(np.mean(step_times)),
+    )
     print(f"scene:  {scene_png.resolve()}")
     print(f"video ({args.episodes} expert episodes, overview | hand camera): {video.resolve()}")
     print(f"success rate {successes}/{args.episodes}, mean {result['mean_steps']:.0f} steps per episode")
-    print(f"env.step with the 84x84 RGB-D hand camera (rgbd obs, CPU, one process): "
-          f"{result['step_ms']:.1f} ms = {result['steps_per_s']:.0f} steps/s (overview video rendering excluded)")
+    print(
+        f"env.step with the 84x84 RGB-D hand camera (rgbd obs, CPU, one process): "
+        f"{result['step_ms']:.1f} ms = {result['steps_per_s']:.0f} steps/s (overview video rendering excluded)"
+    )
     return result
 
 

@@ -2,8 +2,10 @@
 
 __version__ = "0.1.0"
 
-from maniskill_irb120 import agents  # noqa: F401,E402  (registers irb120_metalwork)
-from maniskill_irb120 import envs  # noqa: F401,E402  (registers TableClearing-IRB120-v1)
+from maniskill_irb120 import (
+    agents,  # noqa: F401,E402  (registers irb120_metalwork)
+    envs,  # noqa: F401,E402  (registers TableClearing-IRB120-v1)
+)
 from maniskill_irb120.vector import make_vec_env  # noqa: E402
 
 __all__ = ["make_vec_env", "__version__"]

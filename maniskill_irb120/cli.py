@@ -19,19 +19,45 @@ def doctor(json: bool = False) -> int:
     return main(json_output=json)
 
 
-def collect_demos(env_id: str = DEFAULT_ENV_ID, episodes: int = 10, seed: int = 0, out_dir: str = "demos",
-                  name: str = "expert", obs_mode: str = "none", keep_failures: bool = False,
-                  save_video: bool = False, object_shape: str = "cube") -> int:
+def collect_demos(
+    env_id: str = DEFAULT_ENV_ID,
+    episodes: int = 10,
+    seed: int = 0,
+    out_dir: str = "demos",
+    name: str = "expert",
+    obs_mode: str = "none",
+    keep_failures: bool = False,
+    save_video: bool = False,
+    object_shape: str = "cube",
+) -> int:
     """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json)."""
     from maniskill_irb120.demos import collect_demos as collect
 
-    print(json.dumps(collect(episodes, seed, Path(out_dir), name, obs_mode, not keep_failures, save_video,
-                             env_id=env_id, object_shape=object_shape)))
+    print(
+        json.dumps(
+            collect(
+                episodes,
+                seed,
+                Path(out_dir),
+                name,
+                obs_mode,
+                not keep_failures,
+                save_video,
+                env_id=env_id,
+                object_shape=object_shape,
+            )
+        )
+    )
     return 0
 
 
-def expert(env_id: str = DEFAULT_ENV_ID, episodes: int = 100, seed: int = 0, obs_mode: str = "state",
-           object_shape: str = "cube") -> int:
+def expert(
+    env_id: str = DEFAULT_ENV_ID,
+    episodes: int = 100,
+    seed: int = 0,
+    obs_mode: str = "state",
+    object_shape: str = "cube",
+) -> int:
     """Run a task's scripted expert on seeds seed..seed+episodes-1; print one JSON line (success_rate,
     episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode."""
     import maniskill_irb120  # noqa: F401

@@ -60,8 +60,9 @@ def check_env_idx(env_idx: Any, num_envs: int) -> np.ndarray:
     if isinstance(env_idx, torch.Tensor):
         env_idx = env_idx.detach().cpu().numpy()
     if isinstance(env_idx, (str, bytes)) or not isinstance(env_idx, (np.ndarray, np.generic, list, tuple, range, int)):
-        raise TypeError("options['env_idx'] must be integer env indices (list, array or tensor); "
-                        f"got {_describe(env_idx)}")
+        raise TypeError(
+            f"options['env_idx'] must be integer env indices (list, array or tensor); got {_describe(env_idx)}"
+        )
     idx = np.atleast_1d(np.asarray(env_idx))
     if idx.ndim != 1:
         raise ValueError(f"options['env_idx'] must be 1-D, got shape {idx.shape}")
@@ -75,8 +76,10 @@ def check_env_idx(env_idx: Any, num_envs: int) -> np.ndarray:
         raise ValueError("options['env_idx'] selects no env; name at least one env to reset (or leave env_idx out)")
     out = idx[(idx < 0) | (idx >= num_envs)]
     if len(out):
-        raise ValueError(f"options['env_idx'] {out.tolist()} out of range: valid env indices are 0..{num_envs - 1} "
-                         f"(num_envs={num_envs})")
+        raise ValueError(
+            f"options['env_idx'] {out.tolist()} out of range: valid env indices are 0..{num_envs - 1} "
+            f"(num_envs={num_envs})"
+        )
     if len(np.unique(idx)) != len(idx):
         raise ValueError(f"options['env_idx'] repeats an index: {idx.tolist()}")
     return idx.astype(np.int64)

@@ -11,8 +11,9 @@ any other serial chain.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence, Union
+from typing import Union
 
 import numpy as np
 import torch
@@ -51,7 +52,7 @@ class PDEEDeltaToolController(PDJointPosController):
     control period: such jumps happen only at singularities, and a real arm could not follow them.
     """
 
-    config: "PDEEDeltaToolControllerConfig"
+    config: PDEEDeltaToolControllerConfig
 
     def _initialize_joints(self):
         super()._initialize_joints()
@@ -59,8 +60,12 @@ class PDEEDeltaToolController(PDJointPosController):
         self.chain = SerialChain(c.urdf_path, c.ee_link, device=self.device)
         if self.chain.joint_names != list(c.joint_names):
             raise ValueError(f"IK chain joints {self.chain.joint_names} differ from controller joints {c.joint_names}")
-        self.ik = ArmIK(self.chain, c.ik_solver, DLSParams(c.ik_iterations, c.ik_damping, c.ik_pos_tol, c.ik_rot_tol),
-                        max_joint_step=self.chain.velocity / self._control_freq)
+        self.ik = ArmIK(
+            self.chain,
+            c.ik_solver,
+            DLSParams(c.ik_iterations, c.ik_damping, c.ik_pos_tol, c.ik_rot_tol),
+            max_joint_step=self.chain.velocity / self._control_freq,
+        )
         self.ee_link = self.articulation.links_map[c.ee_link]
         self.root_link = self.articulation.root
         self.ik_unreachable = torch.zeros(self.scene.num_envs, dtype=torch.bool, device=self.device)
@@ -108,8 +113,10 @@ class PDEEDeltaToolController(PDJointPosController):
         joint targets its IK starts from. Part of every observation's proprioception."""
         if self.config.use_target:
             pose = self._target_pose
-            return {"target_pose": torch.cat([pose[:, :3, 3], matrix_to_quaternion(pose[:, :3, :3])], 1),
-                    "target_qpos": self._target_qpos.clone()}
+            return {
+                "target_pose": torch.cat([pose[:, :3, 3], matrix_to_quaternion(pose[:, :3, :3])], 1),
+                "target_qpos": self._target_qpos.clone(),
+            }
         return {}
 
     def set_state(self, state: dict):
@@ -150,7 +157,7 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
     a held object with up to ``force_limit`` newtons each.
     """
 
-    config: "BinaryGripperControllerConfig"
+    config: BinaryGripperControllerConfig
 
     def _initialize_action_space(self):
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
@@ -161,8 +168,10 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
         self._start_qpos = self.qpos
         if getattr(self, "_levels", None) is None:
             n = len(self.joints)
-            self._levels = (torch.full((1, n), self.config.open_target, device=self.device),
-                            torch.full((1, n), self.config.closed_target, device=self.device))
+            self._levels = (
+                torch.full((1, n), self.config.open_target, device=self.device),
+                torch.full((1, n), self.config.closed_target, device=self.device),
+            )
         self._target_qpos = torch.where(action[:, :1] > 0, *self._levels)
         self.set_drive_targets(self._target_qpos)
 

@@ -20,9 +20,17 @@ from maniskill_irb120.expert import expert_for
 from maniskill_irb120.rollout import run_episode
 
 
-def collect_demos(episodes: int = 10, seed: int = 0, out_dir: Path = Path("demos"), name: str = "expert",
-                  obs_mode: str = "none", only_success: bool = True, save_video: bool = False,
-                  env_id: str = DEFAULT_ENV_ID, **env_kwargs) -> dict:
+def collect_demos(
+    episodes: int = 10,
+    seed: int = 0,
+    out_dir: Path = Path("demos"),
+    name: str = "expert",
+    obs_mode: str = "none",
+    only_success: bool = True,
+    save_video: bool = False,
+    env_id: str = DEFAULT_ENV_ID,
+    **env_kwargs,
+) -> dict:
     """Roll out the task's expert for seeds ``seed..seed+episodes-1`` and record each episode.
 
     ``only_success`` drops failed episodes from the file (ManiSkill's convention for demo sets). The
@@ -31,12 +39,26 @@ def collect_demos(episodes: int = 10, seed: int = 0, out_dir: Path = Path("demos
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     out_dir = Path(out_dir)
-    env = gym.make(env_id, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", reward_mode="dense",
-                   render_mode="rgb_array" if save_video else None, **env_kwargs)
+    env = gym.make(
+        env_id,
+        obs_mode=obs_mode,
+        control_mode="pd_ee_delta_tool",
+        reward_mode="dense",
+        render_mode="rgb_array" if save_video else None,
+        **env_kwargs,
+    )
     expert = expert_for(env)
-    env = RecordEpisode(env, output_dir=str(out_dir), trajectory_name=name, save_video=save_video,
-                        save_on_reset=False, record_env_state=True, video_fps=20,
-                        source_type="motion_planning", source_desc="maniskill_irb120 scripted expert")
+    env = RecordEpisode(
+        env,
+        output_dir=str(out_dir),
+        trajectory_name=name,
+        save_video=save_video,
+        save_on_reset=False,
+        record_env_state=True,
+        video_fps=20,
+        source_type="motion_planning",
+        source_desc="maniskill_irb120 scripted expert",
+    )
     kept = 0
     for ep in range(episodes):
         keep = run_episode(env, expert, seed + ep).success or not only_success

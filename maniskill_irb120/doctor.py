@@ -62,8 +62,11 @@ def _render_probe() -> dict:
     depth = -float(pos[42, 42, 2])
     if np.issubdtype(pos.dtype, np.integer):  # the minimal shader stores millimetres
         depth /= 1000.0
-    return dict(ok=bool(rgb[42, 42, 0] > 0.5 and abs(depth - 0.4) < 0.01), first_frame_s=round(dt, 3),
-                centre_depth_m=round(float(depth), 4))
+    return dict(
+        ok=bool(rgb[42, 42, 0] > 0.5 and abs(depth - 0.4) < 0.01),
+        first_frame_s=round(dt, 3),
+        centre_depth_m=round(float(depth), 4),
+    )
 
 
 def diagnose() -> dict:
@@ -121,8 +124,10 @@ def format_report(r: dict) -> str:
     if r["render_ok"]:
         dev = r["render_device"]
         where = "CPU (lavapipe/llvmpipe: fine for num_envs=1 and process-parallel envs)" if dev["cpu"] else "GPU"
-        lines.append(f"VERDICT: OK - rendering works on {dev['name']} [{where}]"
-                     + ("; GPU-batched sim available" if r["cuda_sim_available"] else "; GPU-batched sim not available"))
+        lines.append(
+            f"VERDICT: OK - rendering works on {dev['name']} [{where}]"
+            + ("; GPU-batched sim available" if r["cuda_sim_available"] else "; GPU-batched sim not available")
+        )
     else:
         lines.append("VERDICT: FAIL - " + FIX_HINT)
     return "\n".join(lines)

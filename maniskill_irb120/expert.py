@@ -90,7 +90,10 @@ class PickPlaceExpert:
         normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
         fingers = tcp_rot[:, :, 1]
         finger_ang = torch.atan2(fingers[:, 1], fingers[:, 0])
-        e1 = torch.remainder(torch.atan2(normal[:, 1], normal[:, 0]) - finger_ang + math.pi / 4, math.pi / 2) - math.pi / 4
+        e1 = (
+            torch.remainder(torch.atan2(normal[:, 1], normal[:, 0]) - finger_ang + math.pi / 4, math.pi / 2)
+            - math.pi / 4
+        )
         e2 = e1 - torch.where(e1 >= 0, 1.0, -1.0) * (math.pi / 2)
         rel = (obj.pose.p[:, :2] - env.source_center[:, :2]).abs()
         wall_gap = TRAY_INNER / 2 - rel  # (N, 2) distance from the object centre to the nearest x / y wall
@@ -169,13 +172,20 @@ class PickPlaceExpert:
         return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, limits.pos_limit, limits.rot_limit)
 
     @staticmethod
-    def _to_action(err: torch.Tensor, yaw: torch.Tensor, gripper: torch.Tensor, tcp_rot: torch.Tensor,
-                   pos_limit: float, rot_limit: float) -> torch.Tensor:
+    def _to_action(
+        err: torch.Tensor,
+        yaw: torch.Tensor,
+        gripper: torch.Tensor,
+        tcp_rot: torch.Tensor,
+        pos_limit: float,
+        rot_limit: float,
+    ) -> torch.Tensor:
         local = (tcp_rot.transpose(1, 2) @ err.unsqueeze(2)).squeeze(2) / pos_limit
         scale = local.abs().amax(dim=1, keepdim=True).clamp(min=1.0)
         local = local / scale
         rot = (yaw / rot_limit).clamp(-1, 1)
         return torch.cat([local, rot.unsqueeze(1), gripper.unsqueeze(1)], dim=1).clamp(-1, 1)
+
 
 class TableClearingExpert(PickPlaceExpert):
     """Into the destination tray, released ``release_height`` above its floor."""

@@ -29,8 +29,11 @@ def run_batched(fn, consts, *tensors: torch.Tensor):
     if like.device.type == "cpu":
         arrays = [t.detach().numpy() for t in tensors]
         out = fn(np, consts(np, arrays[0]), *arrays)
-        return tuple(torch.from_numpy(np.ascontiguousarray(o)) for o in out) if isinstance(out, tuple) \
+        return (
+            tuple(torch.from_numpy(np.ascontiguousarray(o)) for o in out)
+            if isinstance(out, tuple)
             else torch.from_numpy(np.ascontiguousarray(out))
+        )
     return fn(torch, consts(torch, like), *tensors)
 
 
@@ -48,9 +51,13 @@ def backend_consts(cache: dict, xp, like, build) -> SimpleNamespace:
 
 def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
 
 
 def _origin(joint: ET.Element) -> np.ndarray:
@@ -110,7 +117,7 @@ class SerialChain:
         # per joint: [offset translation | offset rotation · axis], both expressed before the offset
         self.off_pc = torch.stack([self.offsets[:, :3, 3], (self.off_r @ self.axes[..., None])[..., 0]], -1)
 
-    def to(self, device) -> "SerialChain":
+    def to(self, device) -> SerialChain:
         for name in ("offsets", "tip_offset", "axes", "K", "K2", "lower", "upper", "velocity"):
             setattr(self, name, getattr(self, name).to(device))
         self._consts = {}
@@ -148,11 +155,24 @@ class SerialChain:
 
     def consts(self, xp, like) -> SimpleNamespace:
         """The chain's constants as ``xp`` arrays of ``like``'s dtype (and device), cached."""
-        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
-            off_r=conv(self.offsets[:, :3, :3]), off_p=conv(self.offsets[:, :3, 3]), K=conv(self.K),
-            K2=conv(self.K2), eye3=conv(torch.eye(3)), tip_r=conv(self.tip_offset[:3, :3]),
-            tip_p=conv(self.tip_offset[:3, 3]), last_row=conv(torch.tensor([[[0.0, 0.0, 0.0, 1.0]]])),
-            lower=conv(self.lower), upper=conv(self.upper), one=conv(torch.tensor(1.0))))
+        return backend_consts(
+            self._consts,
+            xp,
+            like,
+            lambda conv: SimpleNamespace(
+                off_r=conv(self.offsets[:, :3, :3]),
+                off_p=conv(self.offsets[:, :3, 3]),
+                K=conv(self.K),
+                K2=conv(self.K2),
+                eye3=conv(torch.eye(3)),
+                tip_r=conv(self.tip_offset[:3, :3]),
+                tip_p=conv(self.tip_offset[:3, 3]),
+                last_row=conv(torch.tensor([[[0.0, 0.0, 0.0, 1.0]]])),
+                lower=conv(self.lower),
+                upper=conv(self.upper),
+                one=conv(torch.tensor(1.0)),
+            ),
+        )
 
     @staticmethod
     def fk(xp, c: SimpleNamespace, q):
@@ -192,15 +212,20 @@ class SphericalWristIK:
             raise ValueError(f"closed-form IK needs 6 revolute joints, chain has {chain.dof}")
         off = chain.offsets.detach().cpu().double()
         ax = chain.axes.detach().cpu().double()
-        expected_axes = torch.tensor([[0, 0, 1], [0, 1, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0]],
-                                     dtype=torch.float64)
+        expected_axes = torch.tensor(
+            [[0, 0, 1], [0, 1, 0], [0, 1, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0]], dtype=torch.float64
+        )
         p = off[:, :3, 3]
         structure_ok = (
             torch.allclose(ax, expected_axes, atol=1e-9)
             and torch.allclose(off[:, :3, :3], torch.eye(3, dtype=torch.float64).expand(6, 3, 3), atol=1e-9)
-            and torch.allclose(p[:3, :2], torch.zeros(3, 2, dtype=torch.float64), atol=1e-9)  # on axis 1, no shoulder offset
+            and torch.allclose(
+                p[:3, :2], torch.zeros(3, 2, dtype=torch.float64), atol=1e-9
+            )  # on axis 1, no shoulder offset
             and torch.allclose(p[3:, 1], torch.zeros(3, dtype=torch.float64), atol=1e-9)
-            and torch.allclose(p[4:, 2], torch.zeros(2, dtype=torch.float64), atol=1e-9)  # axes 4 and 6 through the wrist
+            and torch.allclose(
+                p[4:, 2], torch.zeros(2, dtype=torch.float64), atol=1e-9
+            )  # axes 4 and 6 through the wrist
         )
         if not structure_ok:
             raise ValueError("chain is not an axis-1-vertical, parallel-axes-2/3, spherical-wrist 6R arm")
@@ -220,9 +245,19 @@ class SphericalWristIK:
     def consts(self, xp, like) -> SimpleNamespace:
         def build(conv) -> SimpleNamespace:
             c = self.chain.consts(xp, like)
-            return SimpleNamespace(lower=c.lower, upper=c.upper, one=c.one, w_tip=conv(self.w_tip),
-                                   r_to_t=conv(self.r_to.T.contiguous()), h=self.h, a2=self.a2, L=self.L,
-                                   phi=self.phi, singular=self.SINGULAR)
+            return SimpleNamespace(
+                lower=c.lower,
+                upper=c.upper,
+                one=c.one,
+                w_tip=conv(self.w_tip),
+                r_to_t=conv(self.r_to.T.contiguous()),
+                h=self.h,
+                a2=self.a2,
+                L=self.L,
+                phi=self.phi,
+                singular=self.SINGULAR,
+            )
+
         return backend_consts(self._consts, xp, like, build)
 
     def solve(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -311,13 +346,21 @@ class ArmIK:
     arm could not follow it within one control period; such jumps happen only at singularities).
     """
 
-    def __init__(self, chain: SerialChain, method: str = "auto", dls: DLSParams | None = None,
-                 max_joint_step: torch.Tensor | None = None):
+    def __init__(
+        self,
+        chain: SerialChain,
+        method: str = "auto",
+        dls: DLSParams | None = None,
+        max_joint_step: torch.Tensor | None = None,
+    ):
         if method not in IK_METHODS:
             raise ValueError(f"ik_solver={method!r} is not one of {IK_METHODS}")
         self.chain, self.dls = chain, dls or DLSParams()
-        self.max_joint_step = (torch.full_like(chain.lower, math.inf) if max_joint_step is None
-                               else torch.as_tensor(max_joint_step).to(chain.lower))
+        self.max_joint_step = (
+            torch.full_like(chain.lower, math.inf)
+            if max_joint_step is None
+            else torch.as_tensor(max_joint_step).to(chain.lower)
+        )
         self.closed_form = None
         if method != "dls":
             try:
@@ -329,9 +372,16 @@ class ArmIK:
         self._consts: dict = {}
 
     def consts(self, xp, like) -> SimpleNamespace:
-        return backend_consts(self._consts, xp, like, lambda conv: SimpleNamespace(
-            chain=self.chain.consts(xp, like), ik=self.closed_form.consts(xp, like),
-            max_step=conv(self.max_joint_step)))
+        return backend_consts(
+            self._consts,
+            xp,
+            like,
+            lambda conv: SimpleNamespace(
+                chain=self.chain.consts(xp, like),
+                ik=self.closed_form.consts(xp, like),
+                max_step=conv(self.max_joint_step),
+            ),
+        )
 
     def solve(self, target: torch.Tensor, q0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Joint angles (N,dof) reaching ``target`` (N,4,4, tip in the root frame) from ``q0``, and (N,)
@@ -356,8 +406,11 @@ class ArmIK:
             r = target[:, :3, :3] @ cur[:, :3, :3].transpose(1, 2)
             err_r = 0.5 * torch.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], 1)
             # a trace below 1 means an error above 90 deg, where sin() is ambiguous: never "converged"
-            converged = ((err_p.norm(dim=1) < p.pos_tol) & (err_r.norm(dim=1) < p.rot_tol)
-                         & (r.diagonal(dim1=1, dim2=2).sum(1) > 1.0))
+            converged = (
+                (err_p.norm(dim=1) < p.pos_tol)
+                & (err_r.norm(dim=1) < p.rot_tol)
+                & (r.diagonal(dim1=1, dim2=2).sum(1) > 1.0)
+            )
             # early exit on the CPU only: on CUDA the check would wait for the GPU every iteration
             if i == p.iterations or (q.device.type == "cpu" and bool(converged.all())):
                 break
@@ -367,8 +420,9 @@ class ArmIK:
             q = torch.clamp(q + dq, chain.lower, chain.upper)
         return q, converged
 
-    def tool_step(self, q0: torch.Tensor, action: torch.Tensor, ref: torch.Tensor | None = None
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def tool_step(
+        self, q0: torch.Tensor, action: torch.Tensor, ref: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Solve for ``ref · Δ(action)`` (see :func:`apply_tool_delta`; ``ref``: FK of ``q0`` when None).
         Returns (joint angles, ok: reachable and within ``max_joint_step`` of ``q0``, target pose)."""
         if self.method == "closed_form":
@@ -395,13 +449,21 @@ def matrix_to_quaternion(m: torch.Tensor) -> torch.Tensor:
     indexing, which waits for the GPU; this picks it with ``gather``. Called on every observation in
     ``pd_ee_target_delta_tool`` (the controller state is part of the proprioception)."""
     m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
-    q_abs = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22],
-                        1).clamp_min(0).sqrt()  # 2|w|, 2|x|, 2|y|, 2|z|
+    q_abs = (
+        torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], 1)
+        .clamp_min(0)
+        .sqrt()
+    )  # 2|w|, 2|x|, 2|y|, 2|z|
     d21, d02, d10 = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
     s10, s02, s21 = m[:, 1, 0] + m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] + m[:, 1, 2]
     a0, a1, a2, a3 = (q_abs[:, i] ** 2 for i in range(4))
-    cand = torch.stack([torch.stack(row, 1) for row in (
-        (a0, d21, d02, d10), (d21, a1, s10, s02), (d02, s10, a2, s21), (d10, s02, s21, a3))], 1)  # (N, 4, 4)
+    cand = torch.stack(
+        [
+            torch.stack(row, 1)
+            for row in ((a0, d21, d02, d10), (d21, a1, s10, s02), (d02, s10, a2, s21), (d10, s02, s21, a3))
+        ],
+        1,
+    )  # (N, 4, 4)
     cand = cand / (2 * q_abs.clamp_min(0.1))[:, :, None]
     best = q_abs.argmax(1)[:, None, None].expand(-1, 1, 4)
     q = torch.gather(cand, 1, best)[:, 0]

@@ -19,8 +19,8 @@ the GPU. The task records the true mask for the duration of its reset (:func:`ep
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import torch
 
@@ -82,10 +82,10 @@ def _unflatten_like(template: dict, flat: torch.Tensor) -> dict:
     for key, value in template.items():
         if isinstance(value, dict):
             width = sum(_width(v) for v in value.values())
-            out[key] = _unflatten_like(value, flat[:, start:start + width])
+            out[key] = _unflatten_like(value, flat[:, start : start + width])
         else:
             width = _width(value)
-            out[key] = flat[:, start:start + width]
+            out[key] = flat[:, start : start + width]
         start += width
     return out
 
@@ -105,7 +105,8 @@ def _merge_rows(current: dict, new: dict, env_idx) -> dict:
         else:
             merged = cur.clone()
             merged[torch.as_tensor(env_idx, device=cur.device).long()] = torch.as_tensor(
-                new[key], device=cur.device, dtype=cur.dtype).reshape(-1, *cur.shape[1:])
+                new[key], device=cur.device, dtype=cur.dtype
+            ).reshape(-1, *cur.shape[1:])
             out[key] = merged
     return out
 
@@ -144,7 +145,7 @@ def set_drive_targets(ctrl, targets: torch.Tensor) -> None:
         return
     row = targets[0].detach().numpy()
     for i, joint in enumerate(ctrl.joints):
-        joint._objs[0].drive_target = row[i:i + 1]
+        joint._objs[0].drive_target = row[i : i + 1]
 
 
 def read_sensor_obs(env, apply_texture_transforms: bool = True) -> dict:
@@ -154,8 +155,16 @@ def read_sensor_obs(env, apply_texture_transforms: bool = True) -> dict:
 
     v = env.obs_mode_struct.visual
     return {
-        name: sensor.get_obs(rgb=v.rgb, depth=v.depth, position=v.position, segmentation=v.segmentation,
-                             normal=v.normal, albedo=v.albedo, apply_texture_transforms=apply_texture_transforms)
-        if isinstance(sensor, Camera) else sensor.get_obs()
+        name: sensor.get_obs(
+            rgb=v.rgb,
+            depth=v.depth,
+            position=v.position,
+            segmentation=v.segmentation,
+            normal=v.normal,
+            albedo=v.albedo,
+            apply_texture_transforms=apply_texture_transforms,
+        )
+        if isinstance(sensor, Camera)
+        else sensor.get_obs()
         for name, sensor in env.scene.sensors.items()
     }

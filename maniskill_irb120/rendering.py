@@ -37,8 +37,11 @@ def sensor_shader_config(name: str = FORWARD) -> ShaderConfig:
         sapien.render.set_picture_format("Color", "r8g8b8a8unorm")
         sapien.render.set_picture_format("PositionSegmentation", "r16g16b16a16sint")
         minimal = PREBUILT_SHADER_CONFIGS["minimal"]
-        return ShaderConfig(shader_pack=forward_shader_dir(), texture_names=dict(minimal.texture_names),
-                            texture_transforms=dict(minimal.texture_transforms))
+        return ShaderConfig(
+            shader_pack=forward_shader_dir(),
+            texture_names=dict(minimal.texture_names),
+            texture_transforms=dict(minimal.texture_transforms),
+        )
     if name in PREBUILT_SHADER_CONFIGS:
         return PREBUILT_SHADER_CONFIGS[name]
     raise ValueError(f"unknown sensor shader {name!r}; use {FORWARD!r} or one of {sorted(PREBUILT_SHADER_CONFIGS)}")

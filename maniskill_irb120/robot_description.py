@@ -53,8 +53,22 @@ def geometry() -> dict[str, float]:
 def _box(size, center) -> tuple[np.ndarray, np.ndarray]:
     sx, sy, sz = np.asarray(size, dtype=float) / 2
     v = np.array([[x, y, z] for x in (-sx, sx) for y in (-sy, sy) for z in (-sz, sz)]) + center
-    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    f = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ]
+    )
     return v, f
 
 
@@ -87,31 +101,47 @@ def _visual_parts() -> dict[str, list[tuple[str, tuple]]]:
     def finger(side: int):
         body_y = side * (half + 0.001 + (th - 0.001) / 2)
         pad_y = side * (half + 0.0005)
-        return [("aluminium", ("box", (fl, th - 0.001, w), (fx, body_y, 0))),
-                ("rubber", ("box", (0.020, 0.001, w), (x1 - 0.010, pad_y, 0)))]
+        return [
+            ("aluminium", ("box", (fl, th - 0.001, w), (fx, body_y, 0))),
+            ("rubber", ("box", (0.020, 0.001, w), (x1 - 0.010, pad_y, 0))),
+        ]
 
     return {
-        "base_link": [("orange", ("box", (0.18, 0.18, 0.09), (-0.01, 0, 0.045))),
-                      ("graphite", ("cyl", 0.08, 0.076, "z", (0, 0, 0.128))),
-                      ("graphite", ("box", (0.04, 0.10, 0.05), (-0.115, 0, 0.04)))],
-        "link1": [("orange", ("cyl", 0.075, 0.07, "z", (0, 0, 0.035))),
-                  ("orange", ("cyl", 0.06, 0.14, "y", (0, 0, 0.124))),
-                  ("graphite", ("cyl", 0.045, 0.02, "y", (0, 0.08, 0.124)))],
-        "link2": [("orange", ("box", (0.075, 0.06, 0.27), (0, -0.1, 0.135))),
-                  ("graphite", ("cyl", 0.05, 0.065, "y", (0, -0.1, 0))),
-                  ("orange", ("cyl", 0.045, 0.065, "y", (0, -0.1, 0.27)))],
-        "link3": [("orange", ("cyl", 0.055, 0.14, "y", (0, 0, 0))),
-                  ("orange", ("box", (0.09, 0.10, 0.07), (0.02, 0, 0.035))),
-                  ("graphite", ("cyl", 0.045, 0.15, "x", (0.075, 0, 0.0706)))],
-        "link4": [("orange", ("cyl", 0.035, 0.10, "x", (0.05, 0, 0))),
-                  ("orange", ("box", (0.07, 0.016, 0.05), (0.125, 0.04, 0))),
-                  ("orange", ("box", (0.07, 0.016, 0.05), (0.125, -0.04, 0)))],
-        "link5": [("graphite", ("cyl", 0.03, 0.064, "y", (0, 0, 0))),
-                  ("orange", ("cyl", 0.028, 0.064, "x", (0.032, 0, 0)))],
+        "base_link": [
+            ("orange", ("box", (0.18, 0.18, 0.09), (-0.01, 0, 0.045))),
+            ("graphite", ("cyl", 0.08, 0.076, "z", (0, 0, 0.128))),
+            ("graphite", ("box", (0.04, 0.10, 0.05), (-0.115, 0, 0.04))),
+        ],
+        "link1": [
+            ("orange", ("cyl", 0.075, 0.07, "z", (0, 0, 0.035))),
+            ("orange", ("cyl", 0.06, 0.14, "y", (0, 0, 0.124))),
+            ("graphite", ("cyl", 0.045, 0.02, "y", (0, 0.08, 0.124))),
+        ],
+        "link2": [
+            ("orange", ("box", (0.075, 0.06, 0.27), (0, -0.1, 0.135))),
+            ("graphite", ("cyl", 0.05, 0.065, "y", (0, -0.1, 0))),
+            ("orange", ("cyl", 0.045, 0.065, "y", (0, -0.1, 0.27))),
+        ],
+        "link3": [
+            ("orange", ("cyl", 0.055, 0.14, "y", (0, 0, 0))),
+            ("orange", ("box", (0.09, 0.10, 0.07), (0.02, 0, 0.035))),
+            ("graphite", ("cyl", 0.045, 0.15, "x", (0.075, 0, 0.0706))),
+        ],
+        "link4": [
+            ("orange", ("cyl", 0.035, 0.10, "x", (0.05, 0, 0))),
+            ("orange", ("box", (0.07, 0.016, 0.05), (0.125, 0.04, 0))),
+            ("orange", ("box", (0.07, 0.016, 0.05), (0.125, -0.04, 0))),
+        ],
+        "link5": [
+            ("graphite", ("cyl", 0.03, 0.064, "y", (0, 0, 0))),
+            ("orange", ("cyl", 0.028, 0.064, "x", (0.032, 0, 0))),
+        ],
         "link6": [("graphite", ("cyl", 0.02, 0.008, "x", (-0.004, 0, 0)))],
-        "gripper_base": [("aluminium", ("cyl", 0.025, 0.008, "x", (0.004, 0, 0))),
-                         ("aluminium", ("box", (0.018, 0.064, 0.030), (0.017, 0, 0))),
-                         ("rubber", ("box", (0.016, 0.026, 0.014), (0.019, 0, 0.022)))],
+        "gripper_base": [
+            ("aluminium", ("cyl", 0.025, 0.008, "x", (0.004, 0, 0))),
+            ("aluminium", ("box", (0.018, 0.064, 0.030), (0.017, 0, 0))),
+            ("rubber", ("box", (0.016, 0.026, 0.014), (0.019, 0, 0.022))),
+        ],
         "finger_left": finger(1),
         "finger_right": finger(-1),
     }
@@ -158,10 +188,13 @@ def xacro_to_urdf(mesh_dir: Path) -> str:
     doc = xacro.process_file(str(xacro_dir() / XACRO_MAIN), mappings={"mesh_dir": str(mesh_dir)})
     # xacro's banner names the absolute source path; the cache is keyed by content, so drop it
     for node in list(doc.childNodes):
-        if node.nodeType == node.COMMENT_NODE and ("xacro" in node.data or "EDITING" in node.data
-                                                   or set(node.data.strip()) <= {"="}):
+        if node.nodeType == node.COMMENT_NODE and (
+            "xacro" in node.data or "EDITING" in node.data or set(node.data.strip()) <= {"="}
+        ):
             doc.removeChild(node)
-    doc.insertBefore(doc.createComment(f" generated by maniskill_irb120 from {XACRO_MAIN}; edit the xacro "), doc.firstChild)
+    doc.insertBefore(
+        doc.createComment(f" generated by maniskill_irb120 from {XACRO_MAIN}; edit the xacro "), doc.firstChild
+    )
     return doc.toprettyxml(indent="  ")
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import gymnasium as gym
 import torch
@@ -27,8 +27,13 @@ class Episode:
     events: Counter = field(default_factory=Counter)
 
 
-def run_episode(env: gym.Env, expert: PickPlaceExpert, seed: int, max_steps: int | None = None,
-                on_step: Callable[[torch.Tensor, tuple], None] | None = None) -> Episode:
+def run_episode(
+    env: gym.Env,
+    expert: PickPlaceExpert,
+    seed: int,
+    max_steps: int | None = None,
+    on_step: Callable[[torch.Tensor, tuple], None] | None = None,
+) -> Episode:
     """Reset ``env`` to ``seed`` and step ``expert`` until the episode ends (or ``max_steps``).
     ``on_step(action, step_result)`` runs after every step; one env (num_envs=1)."""
     env.reset(seed=seed)
@@ -36,7 +41,8 @@ def run_episode(env: gym.Env, expert: PickPlaceExpert, seed: int, max_steps: int
     limit = max_steps or env.spec.max_episode_steps or REGISTERED_ENVS[env.unwrapped.spec.id].max_episode_steps
     events: Counter = Counter()
     info, term, trunc, t, was_grasped = {}, False, False, 0, False
-    for t in range(1, limit + 1):
+    while t < limit:
+        t += 1
         action = expert.act()
         result = env.step(action)
         _, _, term_t, trunc_t, info = result
@@ -58,8 +64,15 @@ def run_episode(env: gym.Env, expert: PickPlaceExpert, seed: int, max_steps: int
     return Episode(seed, success, t, truncated, info, failure, events)
 
 
-def run_expert(env_id: str = table_clearing.ENV_ID, episodes: int = 100, seed: int = 0, obs_mode: str = "state",
-               max_steps: int | None = None, record: bool = False, **env_kwargs) -> dict:
+def run_expert(
+    env_id: str = table_clearing.ENV_ID,
+    episodes: int = 100,
+    seed: int = 0,
+    obs_mode: str = "state",
+    max_steps: int | None = None,
+    record: bool = False,
+    **env_kwargs,
+) -> dict:
     """The task's scripted expert for ``episodes`` single-env episodes seeded ``seed, seed+1, ...``.
 
     Returns success_rate, episodes, mean_steps (over all episodes), failure reason counts, steps/s and,
@@ -73,7 +86,7 @@ def run_expert(env_id: str = table_clearing.ENV_ID, episodes: int = 100, seed: i
     for ep in range(episodes):
         actions, tcps = [], []
 
-        def keep(action, _result):
+        def keep(action, _result, actions=actions, tcps=tcps):
             actions.append(action[0].cpu().clone())
             tcps.append(env.unwrapped.agent.tcp_pose.p[0].cpu().clone())
 
@@ -84,12 +97,18 @@ def run_expert(env_id: str = table_clearing.ENV_ID, episodes: int = 100, seed: i
     env.close()
     steps = [r.steps for r in runs]
     out = dict(
-        env_id=env_id, success_rate=sum(r.success for r in runs) / episodes, episodes=episodes, seed=seed,
-        mean_steps=sum(steps) / episodes, max_steps=max(steps),
+        env_id=env_id,
+        success_rate=sum(r.success for r in runs) / episodes,
+        episodes=episodes,
+        seed=seed,
+        mean_steps=sum(steps) / episodes,
+        max_steps=max(steps),
         failures=dict(Counter(r.failure for r in runs if r.failure)),
         failed_seeds=[r.seed for r in runs if not r.success],
-        grasp_events=sum(r.events["grasp"] for r in runs), drop_events=sum(r.events["dropped"] for r in runs),
-        steps_per_s=sum(steps) / elapsed, wall_s=elapsed,
+        grasp_events=sum(r.events["grasp"] for r in runs),
+        drop_events=sum(r.events["dropped"] for r in runs),
+        steps_per_s=sum(steps) / elapsed,
+        wall_s=elapsed,
     )
     if record:
         out["trajectories"] = trajs

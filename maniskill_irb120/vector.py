@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Any, Callable, Optional, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -38,8 +39,13 @@ def _select(where: torch.Tensor, new: Any, old: Any) -> Any:
     return new
 
 
-def _make_worker_env(env_id: str, env_kwargs: dict, wrappers: Sequence[Callable], ignore_terminations: bool,
-                     lp_num_threads: Optional[int]) -> gym.Env:
+def _make_worker_env(
+    env_id: str,
+    env_kwargs: dict,
+    wrappers: Sequence[Callable],
+    ignore_terminations: bool,
+    lp_num_threads: Optional[int],
+) -> gym.Env:
     # lavapipe reads this when the render device is created, i.e. inside gym.make below
     if lp_num_threads:
         os.environ.setdefault("LP_NUM_THREADS", str(lp_num_threads))
@@ -81,18 +87,29 @@ def _strip_masks(info: dict) -> dict:
 class CPUVectorEnv(gym.vector.VectorEnv):
     """N single-env ManiSkill workers in processes, with ManiSkillVectorEnv's batched torch interface."""
 
-    def __init__(self, env_id: str, num_envs: int, *, wrappers: Sequence[Callable] = (),
-                 ignore_terminations: bool = False, record_metrics: bool = False, context: str = "forkserver",
-                 lp_num_threads: Optional[int] = 1, **env_kwargs):
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int,
+        *,
+        wrappers: Sequence[Callable] = (),
+        ignore_terminations: bool = False,
+        record_metrics: bool = False,
+        context: str = "forkserver",
+        lp_num_threads: Optional[int] = 1,
+        **env_kwargs,
+    ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if env_kwargs.get("sim_backend", "physx_cpu") not in ("physx_cpu", "cpu", "auto"):
             raise ValueError(f"CPUVectorEnv workers run physx_cpu, got sim_backend={env_kwargs['sim_backend']!r}")
         env_kwargs.pop("sim_backend", None)
-        fn = functools.partial(_make_worker_env, env_id, env_kwargs, tuple(wrappers), ignore_terminations,
-                               lp_num_threads)
-        self._venv = gym.vector.AsyncVectorEnv([fn] * num_envs, context=context, shared_memory=True,
-                                               autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+        fn = functools.partial(
+            _make_worker_env, env_id, env_kwargs, tuple(wrappers), ignore_terminations, lp_num_threads
+        )
+        self._venv = gym.vector.AsyncVectorEnv(
+            [fn] * num_envs, context=context, shared_memory=True, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
+        )
         self.num_envs = num_envs
         self.ignore_terminations = ignore_terminations
         self.record_metrics = record_metrics
@@ -180,8 +197,9 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         """Each worker's ``render()``; checked here first, since a worker that raises is lost for good."""
         self._check_usable()
         if self._venv.render_mode is None:
-            raise RuntimeError("render_mode is not set: pass render_mode='rgb_array' (or 'sensors', 'all') "
-                               "to make_vec_env")
+            raise RuntimeError(
+                "render_mode is not set: pass render_mode='rgb_array' (or 'sensors', 'all') to make_vec_env"
+            )
         return self._venv.call("render")
 
     # ------------------------------------------------------------------ input checks
@@ -204,15 +222,25 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             raise RuntimeError("the vector env is closed; make a new one with make_vec_env(...)")
         dead = [i for i, pipe in enumerate(self._venv.parent_pipes) if pipe is None]
         if dead:
-            raise RuntimeError(f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
-                               "earlier traceback); close() it and make a new one with make_vec_env(...)")
+            raise RuntimeError(
+                f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
+                "earlier traceback); close() it and make a new one with make_vec_env(...)"
+            )
 
     def close_extras(self, **kwargs):
         self._venv.close(**kwargs)
 
 
-def make_vec_env(env_id: str, num_envs: int, *, backend: str = "auto", wrappers: Sequence[Callable] = (),
-                 ignore_terminations: bool = False, record_metrics: bool = True, **env_kwargs) -> gym.vector.VectorEnv:
+def make_vec_env(
+    env_id: str,
+    num_envs: int,
+    *,
+    backend: str = "auto",
+    wrappers: Sequence[Callable] = (),
+    ignore_terminations: bool = False,
+    record_metrics: bool = True,
+    **env_kwargs,
+) -> gym.vector.VectorEnv:
     """The front door for batched training code; it need not care which backend it got.
 
     ``backend``: ``"auto"`` (GPU-batched ``physx_cuda`` when CUDA is available, else CPU processes),
@@ -242,9 +270,16 @@ def make_vec_env(env_id: str, num_envs: int, *, backend: str = "auto", wrappers:
             raise ValueError("backend='inprocess' runs one CPU env; use backend='cpu' for num_envs > 1")
         env = gym.make(env_id, num_envs=1, sim_backend="physx_cpu", **env_kwargs)
     else:
-        return CPUVectorEnv(env_id, num_envs, wrappers=wrappers, ignore_terminations=ignore_terminations,
-                            record_metrics=record_metrics, **env_kwargs)
+        return CPUVectorEnv(
+            env_id,
+            num_envs,
+            wrappers=wrappers,
+            ignore_terminations=ignore_terminations,
+            record_metrics=record_metrics,
+            **env_kwargs,
+        )
     for w in wrappers:
         env = w(env)
-    return ManiSkillVectorEnv(env, num_envs, auto_reset=True, ignore_terminations=ignore_terminations,
-                              record_metrics=record_metrics)
+    return ManiSkillVectorEnv(
+        env, num_envs, auto_reset=True, ignore_terminations=ignore_terminations, record_metrics=record_metrics
+    )

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import gymnasium as gym
 import mani_skill.envs  # noqa: F401
-import maniskill_irb120  # noqa: F401
 import numpy as np
 import sapien
 import torch
@@ -15,6 +14,8 @@ from mani_skill.utils.building import actors
 from mani_skill.utils.building.ground import build_ground
 from mani_skill.utils.registration import REGISTERED_ENVS, register_env
 from mani_skill.utils.scene_builder.table import TableSceneBuilder  # noqa: F401  (ManiSkill import check)
+
+import maniskill_irb120  # noqa: F401
 
 REPO = Path(__file__).resolve().parents[1]
 CUBE_HALF = 0.01
@@ -36,8 +37,13 @@ if "IRB120CubeBench-test" not in REGISTERED_ENVS:
 
         def _load_scene(self, options: dict):
             self.ground = build_ground(self.scene)
-            self.cube = actors.build_cube(self.scene, half_size=CUBE_HALF, color=[1, 0, 0, 1], name="cube",
-                                          initial_pose=sapien.Pose(p=[0.35, 0, CUBE_HALF]))
+            self.cube = actors.build_cube(
+                self.scene,
+                half_size=CUBE_HALF,
+                color=[1, 0, 0, 1],
+                name="cube",
+                initial_pose=sapien.Pose(p=[0.35, 0, CUBE_HALF]),
+            )
 
         def _initialize_episode(self, env_idx, options):
             qpos = torch.as_tensor(self.agent.keyframes["rest"].qpos, dtype=torch.float32)
@@ -51,7 +57,6 @@ if "IRB120CubeBench-test" not in REGISTERED_ENVS:
             return {}
 
 
-
 def make(obs_mode="none", control_mode="pd_ee_delta_tool", **kw):
     env = gym.make("IRB120CubeBench-test", obs_mode=obs_mode, control_mode=control_mode, reward_mode="none", **kw)
     env.reset(seed=0)
@@ -63,5 +68,3 @@ OPEN = np.array([0, 0, 0, 0, 1], dtype=np.float32)
 
 def tcp_matrix(env) -> torch.Tensor:
     return env.unwrapped.agent.tcp_pose.to_transformation_matrix()[0].double()
-
-

@@ -15,8 +15,20 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_sim_speed_quick_writes_json(tmp_path):
     out = tmp_path / "sim_speed.json"
-    run = subprocess.run([sys.executable, str(REPO / "benchmarks" / "sim_speed.py"), "--quick", "--json", str(out),
-                          "--plot", str(tmp_path / "p.png")], capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "benchmarks" / "sim_speed.py"),
+            "--quick",
+            "--json",
+            str(out),
+            "--plot",
+            str(tmp_path / "p.png"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
     for mode in ("render_realtime", "render", "no_render"):

@@ -6,7 +6,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-
 from irb120_bench import make
 
 
@@ -43,8 +42,12 @@ def test_forward_shader_renders_what_minimal_renders():
     arm, RGB and depth match ManiSkill's two-pass ``minimal`` pack."""
     from maniskill_irb120.rendering import sensor_shader_config
 
-    envs = [gym.make("TableClearing-IRB120-v1", obs_mode="rgbd"),
-            gym.make("TableClearing-IRB120-v1", obs_mode="rgbd", sensor_configs=dict(hand_camera=dict(shader_pack="minimal")))]
+    envs = [
+        gym.make("TableClearing-IRB120-v1", obs_mode="rgbd"),
+        gym.make(
+            "TableClearing-IRB120-v1", obs_mode="rgbd", sensor_configs=dict(hand_camera=dict(shader_pack="minimal"))
+        ),
+    ]
     assert envs[0].unwrapped._sensors["hand_camera"].config.shader_pack.endswith("rgbd_forward")
     assert envs[1].unwrapped._sensors["hand_camera"].config.shader_pack == "minimal"
     obs = [e.reset(seed=3)[0] for e in envs]

@@ -139,9 +139,14 @@ def test_state_dict_observations_do_not_alias_env_state():
     try:
         u = e.unwrapped
         for obs, info in (e.reset(seed=0), e.step(np.zeros(5))[::4]):
-            kept = dict(source=u.source_center.clone(), dest=u.dest_center.clone(), tcp=u._tcp_pose.clone(),
-                        obj=u._obj_pose.clone(), grasped=info["grasped"].clone(),
-                        cur={k: v.clone() for k, v in u._cur.items()})
+            kept = dict(
+                source=u.source_center.clone(),
+                dest=u.dest_center.clone(),
+                tcp=u._tcp_pose.clone(),
+                obj=u._obj_pose.clone(),
+                grasped=info["grasped"].clone(),
+                cur={k: v.clone() for k, v in u._cur.items()},
+            )
             for _, v in _leaves(obs):
                 v.fill_(True) if v.dtype == torch.bool else v.fill_(5)
             torch.testing.assert_close(u.source_center, kept["source"])
@@ -313,8 +318,9 @@ def test_readme_vec_env_snippet_runs_as_a_script(tmp_path):
     script.write_text(readme_snippet("vec-env"))
     root = str(Path(__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
-    out = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "(2, 84, 84, 3) (2,)" in out.stdout, out.stdout
 
@@ -328,11 +334,14 @@ def test_record_episode_info_on_video_writes_a_video(tmp_path):
 
     assert np.lib.NumpyVersion(np.__version__) < "2.4.0", (
         f"numpy {np.__version__} is installed but pyproject.toml pins numpy<2.4 (ManiSkill 3.0.1's RecordEpisode "
-        "with info_on_video needs it): reinstall with pip install -e '.[dev]'")
-    e = gym.make(ENV, obs_mode="state", render_mode="rgb_array",
-                 human_render_camera_configs=dict(width=128, height=128))
-    e = RecordEpisode(e, output_dir=str(tmp_path), save_trajectory=False, save_video=True, info_on_video=True,
-                      video_fps=20)
+        "with info_on_video needs it): reinstall with pip install -e '.[dev]'"
+    )
+    e = gym.make(
+        ENV, obs_mode="state", render_mode="rgb_array", human_render_camera_configs=dict(width=128, height=128)
+    )
+    e = RecordEpisode(
+        e, output_dir=str(tmp_path), save_trajectory=False, save_video=True, info_on_video=True, video_fps=20
+    )
     e.reset(seed=0)
     for _ in range(3):
         e.step(np.array([0.0, 0.0, 0.0, 0.0, 1.0], dtype=np.float32))

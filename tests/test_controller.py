@@ -9,10 +9,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from mani_skill.utils.geometry.rotation_conversions import matrix_to_axis_angle
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
-
 from irb120_bench import OPEN, make, tcp_matrix
+from mani_skill.utils.geometry.rotation_conversions import matrix_to_axis_angle
+
+from maniskill_irb120.agents.irb120 import IRB120Metalwork
 
 
 @pytest.mark.parametrize("solver", ["closed_form", "dls"])
@@ -62,12 +62,15 @@ def test_unreachable_target_keeps_last_reachable_and_is_reported():
     assert (q - q_before).abs().max() < 0.02  # held, not flung towards a bogus solution
 
 
-@pytest.mark.parametrize("bad, msg", [
-    (np.array([0, 0, np.nan, 0, 1], dtype=np.float32), "NaN"),
-    (np.array([0, 0, np.inf, 0, 1], dtype=np.float32), "NaN or inf"),
-    (np.zeros(4, dtype=np.float32), "shape"),
-    (np.zeros((2, 5), dtype=np.float32), "shape"),
-])
+@pytest.mark.parametrize(
+    "bad, msg",
+    [
+        (np.array([0, 0, np.nan, 0, 1], dtype=np.float32), "NaN"),
+        (np.array([0, 0, np.inf, 0, 1], dtype=np.float32), "NaN or inf"),
+        (np.zeros(4, dtype=np.float32), "shape"),
+        (np.zeros((2, 5), dtype=np.float32), "shape"),
+    ],
+)
 def test_bad_actions_raise_clear_errors(bad, msg):
     env = make()
     with pytest.raises(ValueError, match=msg):
@@ -79,8 +82,9 @@ def test_unknown_control_mode_is_rejected():
         gym.make("IRB120CubeBench-test", control_mode="pd_nonsense")
 
 
-@pytest.mark.parametrize("mode", ["pd_ee_delta_tool", "pd_ee_target_delta_tool", "pd_joint_pos",
-                                  "pd_joint_delta_pos", "pd_ee_delta_pose"])
+@pytest.mark.parametrize(
+    "mode", ["pd_ee_delta_tool", "pd_ee_target_delta_tool", "pd_joint_pos", "pd_joint_delta_pos", "pd_ee_delta_pose"]
+)
 def test_all_control_modes_step(mode):
     env = make(control_mode=mode)
     if mode == "pd_joint_pos":

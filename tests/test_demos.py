@@ -35,7 +35,12 @@ def test_files_follow_maniskill_format(demos):
 @pytest.mark.parametrize("mode", [[], ["--use-env-states"]])
 def test_maniskill_replay_tool_reproduces_success(demos, mode, tmp_path):
     # a fresh interpreter that never imports maniskill_irb120 itself: the json's env id does it
-    out = subprocess.run([sys.executable, "-m", "mani_skill.trajectory.replay_trajectory", "--traj-path",
-                          demos["h5"], *mode], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, "-m", "mani_skill.trajectory.replay_trajectory", "--traj-path", demos["h5"], *mode],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "2/2=100.00%" in out.stdout + out.stderr

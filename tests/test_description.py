@@ -6,9 +6,9 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from maniskill_irb120 import robot_description as rd
-
 from irb120_bench import REPO
+
+from maniskill_irb120 import robot_description as rd
 
 
 def test_urdf_regenerates_identically(tmp_path):
@@ -29,8 +29,21 @@ def test_wheel_ships_assets(tmp_path):
     import subprocess
     import sys
 
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                    str(tmp_path), str(REPO)], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path),
+            str(REPO),
+        ],
+        check=True,
+    )
     (whl,) = tmp_path.glob("maniskill_irb120-*.whl")
     names = zipfile.ZipFile(whl).namelist()
     for f in ["irb120_metalwork.urdf.xacro", "geometry.xacro", "physics.xacro", "gripper.xacro", "macros.xacro"]:
@@ -44,8 +57,9 @@ def test_doctor_finds_render_device():
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-m", "maniskill_irb120.cli", "doctor", "--json"], capture_output=True,
-                         text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "maniskill_irb120.cli", "doctor", "--json"], capture_output=True, text=True, timeout=120
+    )
     r = json.loads(out.stdout)
     assert out.returncode == 0, out.stdout + out.stderr
     assert r["render_ok"] and r["render_device"]["supported"], r

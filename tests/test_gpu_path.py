@@ -32,9 +32,15 @@ ENV = "TableClearing-IRB120-v1"
 
 def batch_of_envs(num_envs: int) -> SimpleNamespace:
     """What ManiSkill's RNG methods and our ``_episode_draws`` read, for a batch of envs."""
-    return SimpleNamespace(num_envs=num_envs, device=torch.device("cpu"), _enhanced_determinism=True,
-                           _main_seed=None, _episode_seed=None, _batched_episode_rng=None,
-                           _batched_rng_backend="numpy:random_state")
+    return SimpleNamespace(
+        num_envs=num_envs,
+        device=torch.device("cpu"),
+        _enhanced_determinism=True,
+        _main_seed=None,
+        _episode_seed=None,
+        _batched_episode_rng=None,
+        _batched_rng_backend="numpy:random_state",
+    )
 
 
 def ms_reset_rng(fake, seed, env_idx) -> torch.Tensor:
@@ -74,8 +80,13 @@ def test_batched_draws_equal_single_env_draws_with_the_same_seeds():
     env.close()
 
 
-CONTROL_MODES = ["pd_ee_delta_tool", "pd_ee_target_delta_tool", "pd_joint_pos", "pd_joint_delta_pos",
-                 "pd_ee_delta_pose"]
+CONTROL_MODES = [
+    "pd_ee_delta_tool",
+    "pd_ee_target_delta_tool",
+    "pd_joint_pos",
+    "pd_joint_delta_pos",
+    "pd_ee_delta_pose",
+]
 
 
 def controller_targets(agent) -> dict[str, torch.Tensor]:
@@ -133,7 +144,9 @@ def test_state_round_trip_restores_target_controller():
         restore()
         ctrl = u.agent.get_controller_state()["arm"]
         torch.testing.assert_close(ctrl["target_qpos"], saved_dict["controller"]["arm"]["target_qpos"])
-        torch.testing.assert_close(ctrl["target_pose"], saved_dict["controller"]["arm"]["target_pose"], atol=1e-6, rtol=0)
+        torch.testing.assert_close(
+            ctrl["target_pose"], saved_dict["controller"]["arm"]["target_pose"], atol=1e-6, rtol=0
+        )
         obs_b, *_ = env.step(a)
         for k, v in controller_targets(u.agent).items():
             torch.testing.assert_close(v, targets_a[k], atol=1e-5, rtol=0)

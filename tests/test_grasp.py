@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from irb120_bench import CUBE_HALF, make
 
 

@@ -9,15 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from maniskill_irb120 import robot_description as rd
-
 from irb120_bench import make
+
+from maniskill_irb120 import robot_description as rd
 
 
 def rot(axis: str, a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
-    m = {"x": [[1, 0, 0], [0, c, -s], [0, s, c]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
-         "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}[axis]
+    m = {
+        "x": [[1, 0, 0], [0, c, -s], [0, s, c]],
+        "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]],
+        "z": [[c, -s, 0], [s, c, 0], [0, 0, 1]],
+    }[axis]
     t = np.eye(4)
     t[:3, :3] = m
     return t
@@ -31,12 +34,28 @@ def trans(x=0.0, z=0.0) -> np.ndarray:
 
 def abb_flange(q) -> np.ndarray:
     """ABB's published IRB 120 chain: 0.290 base-axis2, 0.270 axis2-3, 0.070 offset, 0.302 to wrist, 0.072 flange."""
-    return (trans(z=0.290) @ rot("z", q[0]) @ rot("y", q[1]) @ trans(z=0.270) @ rot("y", q[2])
-            @ trans(x=0.302, z=0.070) @ rot("x", q[3]) @ rot("y", q[4]) @ trans(x=0.072) @ rot("x", q[5]))
+    return (
+        trans(z=0.290)
+        @ rot("z", q[0])
+        @ rot("y", q[1])
+        @ trans(z=0.270)
+        @ rot("y", q[2])
+        @ trans(x=0.302, z=0.070)
+        @ rot("x", q[3])
+        @ rot("y", q[4])
+        @ trans(x=0.072)
+        @ rot("x", q[5])
+    )
 
 
-CONFIGS = [np.zeros(6), [0.5, 0.3, -0.2, 0.4, 0.6, 0.7], [-1.2, -0.8, 0.9, -1.5, 1.1, -2.0],
-           [2.5, 1.2, -1.5, 2.0, -1.8, 5.0], [0.0, 0.33, 0.46, 0.0, 0.78, 0.0], [-2.8, -1.9, 1.2, 2.7, 2.0, -6.5]]
+CONFIGS = [
+    np.zeros(6),
+    [0.5, 0.3, -0.2, 0.4, 0.6, 0.7],
+    [-1.2, -0.8, 0.9, -1.5, 1.1, -2.0],
+    [2.5, 1.2, -1.5, 2.0, -1.8, 5.0],
+    [0.0, 0.33, 0.46, 0.0, 0.78, 0.0],
+    [-2.8, -1.9, 1.2, 2.7, 2.0, -6.5],
+]
 
 
 def test_flange_fk_matches_abb_chain():
@@ -57,19 +76,25 @@ def test_joint_limits_and_speeds_match_abb():
     env = make()
     lim = env.unwrapped.agent.robot.get_qlimits()[0].numpy()
     deg = np.degrees(lim[:6])
-    np.testing.assert_allclose(deg, [[-165, 165], [-110, 110], [-110, 70], [-160, 160], [-120, 120], [-400, 400]],
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        deg, [[-165, 165], [-110, 110], [-110, 70], [-160, 160], [-120, 120], [-400, 400]], atol=1e-3
+    )
     np.testing.assert_allclose(lim[6:], [[0, 0.012], [0, 0.012]], atol=1e-7)
     import xml.etree.ElementTree as ET
 
-    vel = {j.get("name"): float(j.find("limit").get("velocity"))
-           for j in ET.parse(rd.urdf_path()).getroot().iter("joint") if j.find("limit") is not None}
-    np.testing.assert_allclose(np.degrees([vel[f"joint_{i}"] for i in range(1, 7)]),
-                               [250, 250, 250, 320, 320, 420], rtol=1e-6)
+    vel = {
+        j.get("name"): float(j.find("limit").get("velocity"))
+        for j in ET.parse(rd.urdf_path()).getroot().iter("joint")
+        if j.find("limit") is not None
+    }
+    np.testing.assert_allclose(
+        np.degrees([vel[f"joint_{i}"] for i in range(1, 7)]), [250, 250, 250, 320, 320, 420], rtol=1e-6
+    )
 
 
 def test_own_kinematics_matches_pytorch_kinematics():
     import pytorch_kinematics as pk
+
     from maniskill_irb120.kinematics import SerialChain
 
     chain = SerialChain(rd.urdf_path(), "tcp")

@@ -20,8 +20,15 @@ ENV = "maniskill_irb120:TableClearing-IRB120-v1"
 
 
 def test_ppo_rgb_wrapper_stack(tmp_path):
-    env = gym.make(ENV, num_envs=1, obs_mode="rgbd", render_mode="rgb_array", sim_backend="physx_cpu",
-                   control_mode="pd_joint_delta_pos", reward_mode="normalized_dense")
+    env = gym.make(
+        ENV,
+        num_envs=1,
+        obs_mode="rgbd",
+        render_mode="rgb_array",
+        sim_backend="physx_cpu",
+        control_mode="pd_joint_delta_pos",
+        reward_mode="normalized_dense",
+    )
     assert gym_utils.find_max_episode_steps_value(env) == 250
     env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     if isinstance(env.action_space, gym.spaces.Dict):
@@ -43,8 +50,14 @@ def test_ppo_rgb_wrapper_stack(tmp_path):
 
 
 def test_ppo_state_obs_and_partial_reset():
-    env = gym.make(ENV, num_envs=1, obs_mode="state", sim_backend="physx_cpu", reward_mode="normalized_dense",
-                   control_mode="pd_ee_delta_tool")
+    env = gym.make(
+        ENV,
+        num_envs=1,
+        obs_mode="state",
+        sim_backend="physx_cpu",
+        reward_mode="normalized_dense",
+        control_mode="pd_ee_delta_tool",
+    )
     venv = ManiSkillVectorEnv(env, 1, ignore_terminations=False, record_metrics=True)
     obs, _ = venv.reset(seed=1)
     assert obs.shape[0] == 1 and obs.dtype == torch.float32
@@ -54,8 +67,10 @@ def test_ppo_state_obs_and_partial_reset():
 
 
 def test_env_id_resolves_in_fresh_interpreter_like_a_third_party_script():
-    code = ("import gymnasium as gym, mani_skill.envs\n"
-            f"e = gym.make('{ENV}', num_envs=1, obs_mode='state', sim_backend='physx_cpu')\n"
-            "o, _ = e.reset(seed=0); print(type(e.unwrapped).__name__)\n")
+    code = (
+        "import gymnasium as gym, mani_skill.envs\n"
+        f"e = gym.make('{ENV}', num_envs=1, obs_mode='state', sim_backend='physx_cpu')\n"
+        "o, _ = e.reset(seed=0); print(type(e.unwrapped).__name__)\n"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
     assert out.returncode == 0 and "TableClearingIRB120Env" in out.stdout, out.stderr[-2000:]

@@ -7,14 +7,23 @@ from pathlib import Path
 
 import pytest
 import torch
-
-from agents.ppo import Agent, Args, bootstrap_mask, ppo_update, main
 import torch.optim as optim
+
+from agents.ppo import Agent, Args, bootstrap_mask, main, ppo_update
 
 
 def run(tmp_path: Path, **kw):
-    base = dict(num_envs=2, num_steps=8, total_timesteps=16, eval_freq=0, save_freq=1, runs_dir=tmp_path,
-                exp_name="t", progress=False, num_eval_episodes=1)
+    base = dict(
+        num_envs=2,
+        num_steps=8,
+        total_timesteps=16,
+        eval_freq=0,
+        save_freq=1,
+        runs_dir=tmp_path,
+        exp_name="t",
+        progress=False,
+        num_eval_episodes=1,
+    )
     base.update(kw)
     return main(Args(**base))
 
@@ -73,13 +82,21 @@ def test_loss_decreases_on_fixed_batch():
     torch.manual_seed(0)
     agent = Agent((84, 84, 4), 20, 5)
     n = 64
-    obs = {"rgb": torch.randint(0, 255, (n, 84, 84, 3), dtype=torch.uint8),
-           "depth": torch.randint(0, 2000, (n, 84, 84, 1), dtype=torch.int16),
-           "state": torch.randn(n, 20)}
+    obs = {
+        "rgb": torch.randint(0, 255, (n, 84, 84, 3), dtype=torch.uint8),
+        "depth": torch.randint(0, 2000, (n, 84, 84, 1), dtype=torch.int16),
+        "state": torch.randn(n, 20),
+    }
     with torch.no_grad():
         actions, logp, _, values = agent.get_action_and_value(obs)
-    batch = dict(obs=obs, actions=actions, logprobs=logp, values=values.view(-1),
-                 advantages=torch.randn(n), returns=torch.randn(n) * 2 + 1)
+    batch = dict(
+        obs=obs,
+        actions=actions,
+        logprobs=logp,
+        values=values.view(-1),
+        advantages=torch.randn(n),
+        returns=torch.randn(n) * 2 + 1,
+    )
     args = Args(update_epochs=1, num_minibatches=1, target_kl=None)
     opt = optim.Adam(agent.parameters(), lr=1e-3)
     losses = [ppo_update(agent, opt, batch, args)["value_loss"] for _ in range(10)]
@@ -88,8 +105,10 @@ def test_loss_decreases_on_fixed_batch():
 
 def test_bootstrap_truncations_and_successes_not_failures():
     t, f = True, False
-    info = {"_final_info": torch.tensor([t, t, t, f]),
-            "final_info": {"fail": torch.tensor([t, f, f, f]), "success": torch.tensor([f, t, f, f])}}
+    info = {
+        "_final_info": torch.tensor([t, t, t, f]),
+        "final_info": {"fail": torch.tensor([t, f, f, f]), "success": torch.tensor([f, t, f, f])},
+    }
     term = torch.tensor([t, t, f, f])  # collision, delivery, time limit, still running
     assert bootstrap_mask(info, term).tolist() == [f, t, t, f]
 
@@ -100,12 +119,20 @@ def test_critic_warmup_leaves_policy_untouched():
     obs = {"state": torch.randn(64, 20)}
     with torch.no_grad():
         actions, logp, _, values = agent.get_action_and_value(obs)
-    batch = dict(obs=obs, actions=actions, logprobs=logp, values=values.view(-1), advantages=torch.randn(64),
-                 returns=torch.randn(64) * 2 + 1)
+    batch = dict(
+        obs=obs,
+        actions=actions,
+        logprobs=logp,
+        values=values.view(-1),
+        advantages=torch.randn(64),
+        returns=torch.randn(64) * 2 + 1,
+    )
     frozen = [p.clone() for p in list(agent.actor_mean.parameters()) + list(agent.encoder.parameters())]
     opt = optim.Adam(agent.parameters(), lr=1e-3)
-    losses = [ppo_update(agent, opt, batch, Args(update_epochs=1, num_minibatches=1), critic_only=True)["value_loss"]
-              for _ in range(10)]
+    losses = [
+        ppo_update(agent, opt, batch, Args(update_epochs=1, num_minibatches=1), critic_only=True)["value_loss"]
+        for _ in range(10)
+    ]
     assert losses[-1] < 0.5 * losses[0]
     now = list(agent.actor_mean.parameters()) + list(agent.encoder.parameters())
     assert all(torch.equal(a, b) for a, b in zip(frozen, now))

@@ -38,7 +38,10 @@ def test_scene_has_all_bodies(env):
     assert pb.getNumBodies(physicsClientId=c) == 6
     assert set(env.bodies) == {"plane", "table", "source_tray", "dest_tray", "cube", "robot"}
     assert len(set(env.bodies.values())) == 6
-    types = [pb.getJointInfo(env.robot, j, physicsClientId=c)[2] for j in range(pb.getNumJoints(env.robot, physicsClientId=c))]
+    types = [
+        pb.getJointInfo(env.robot, j, physicsClientId=c)[2]
+        for j in range(pb.getNumJoints(env.robot, physicsClientId=c))
+    ]
     assert types.count(pb.JOINT_REVOLUTE) == 6
     assert types.count(pb.JOINT_PRISMATIC) == 2
     # the cube rests in the source tray after the reset's settling

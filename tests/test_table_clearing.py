@@ -221,7 +221,11 @@ def test_trays_reachable_pointing_down(env):
     down = ctrl.ee_pose_at_base()[0, :3, :3]
     targets = []
     for (cx, cy), sx, sy, dz, yaw in itertools.product(
-        (ts.SOURCE_TRAY_XY, ts.DEST_TRAY_XY), (-1, 1), (-1, 1), (0.01, 0.05, 0.10, 0.15), (0.0, math.pi / 4, -math.pi / 4)
+        (ts.SOURCE_TRAY_XY, ts.DEST_TRAY_XY),
+        (-1, 1),
+        (-1, 1),
+        (0.01, 0.05, 0.10, 0.15),
+        (0.0, math.pi / 4, -math.pi / 4),
     ):
         t = torch.eye(4)
         c, s = math.cos(yaw), math.sin(yaw)
@@ -326,10 +330,14 @@ def test_render_ahead_gives_the_same_observations():
         a = rng.uniform(-1, 1, 5).astype(np.float32)
         out = [e.step(a) for e in envs]
         for k in ("rgb", "depth"):
-            assert torch.equal(out[0][0]["sensor_data"]["hand_camera"][k], out[1][0]["sensor_data"]["hand_camera"][k]), (step, k)
+            assert torch.equal(
+                out[0][0]["sensor_data"]["hand_camera"][k], out[1][0]["sensor_data"]["hand_camera"][k]
+            ), (step, k)
         if out[0][2] or out[0][3]:
             obs = [e.reset() for e in envs]
-            assert torch.equal(obs[0][0]["sensor_data"]["hand_camera"]["rgb"], obs[1][0]["sensor_data"]["hand_camera"]["rgb"])
+            assert torch.equal(
+                obs[0][0]["sensor_data"]["hand_camera"]["rgb"], obs[1][0]["sensor_data"]["hand_camera"]["rgb"]
+            )
     assert captured_ahead == 30  # every step's frame was started early
     for e in envs:
         e.close()

@@ -49,14 +49,17 @@ def test_contract_reward_and_obs_modes(env_id):
 
 
 @pytest.mark.parametrize("env_id", TASKS)
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(reward_mode="shaped"), "reward_mode"),
-    (dict(obs_mode="pixels"), "obs_mode"),
-    (dict(object_shape="sphere"), "object_shape"),
-    (dict(object_half_size=0.02), "object_half_size"),
-    (dict(object_mass=0.0), "object_mass"),
-    (dict(control_mode="pd_nonsense"), "control_mode"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(reward_mode="shaped"), "reward_mode"),
+        (dict(obs_mode="pixels"), "obs_mode"),
+        (dict(object_shape="sphere"), "object_shape"),
+        (dict(object_half_size=0.02), "object_half_size"),
+        (dict(object_mass=0.0), "object_mass"),
+        (dict(control_mode="pd_nonsense"), "control_mode"),
+    ],
+)
 def test_contract_bad_arguments(env_id, kwargs, match):
     with pytest.raises(ValueError, match=match):
         make(env_id, **kwargs)
@@ -100,7 +103,7 @@ def test_grasp_lift_needs_one_second_of_still_holding():
     holds = []
     ep = run_episode(env, expert, seed=4, on_step=lambda a, r: holds.append(int(r[4]["hold_steps"][0])))
     assert ep.success and int(expert.phase[0]) == HOLD
-    assert holds[-1] == grasp_lift.HOLD_STEPS and holds[-grasp_lift.HOLD_STEPS:] == list(range(1, 21))
+    assert holds[-1] == grasp_lift.HOLD_STEPS and holds[-grasp_lift.HOLD_STEPS :] == list(range(1, 21))
     assert float(u.obj.pose.p[0, 2]) - TRAY_FLOOR_TOP >= grasp_lift.LIFT_HEIGHT
     # held high but moving: the count starts again
     env.reset(seed=4)

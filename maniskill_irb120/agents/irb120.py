@@ -32,8 +32,7 @@ GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 # Hand camera per the seed: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
 # SAPIEN cameras look along their local +x with +z up, which is exactly the TCP frame's convention.
 # Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see rendering.py).
-HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0,
-                   shader=FORWARD)
+HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0, shader=FORWARD)
 
 
 def hand_camera_shader(name: str, render_device: sapien.Device) -> str:
@@ -115,8 +114,12 @@ class IRB120Metalwork(BaseAgent):
     def _controller_configs(self):
         arm_kw = dict(stiffness=self.arm_stiffness, damping=self.arm_damping, force_limit=self.arm_force_limit)
         gripper = BinaryGripperControllerConfig(
-            self.gripper_joint_names, stiffness=self.gripper_stiffness, damping=self.gripper_damping,
-            force_limit=self.gripper_force_limit, open_target=FINGER_STROKE, closed_target=-self.gripper_squeeze,
+            self.gripper_joint_names,
+            stiffness=self.gripper_stiffness,
+            damping=self.gripper_damping,
+            force_limit=self.gripper_force_limit,
+            open_target=FINGER_STROKE,
+            closed_target=-self.gripper_squeeze,
         )
         tool = PDEEDeltaToolControllerConfig(
             self.arm_joint_names, ee_link=self.ee_link_name, urdf_path=self.urdf_path, **arm_kw
@@ -130,8 +133,14 @@ class IRB120Metalwork(BaseAgent):
             self.arm_joint_names, lower=-0.1, upper=0.1, use_delta=True, **arm_kw
         )
         ee_delta_pose = PartialResetPDEEPoseControllerConfig(
-            self.arm_joint_names, pos_lower=-0.1, pos_upper=0.1, rot_lower=-0.1, rot_upper=0.1,
-            ee_link=self.ee_link_name, urdf_path=self.urdf_path, **arm_kw,
+            self.arm_joint_names,
+            pos_lower=-0.1,
+            pos_upper=0.1,
+            rot_lower=-0.1,
+            rot_upper=0.1,
+            ee_link=self.ee_link_name,
+            urdf_path=self.urdf_path,
+            **arm_kw,
         )
         return deepcopy_dict(
             dict(
@@ -190,7 +199,11 @@ class IRB120Metalwork(BaseAgent):
             n, dim = ctrl._target_qpos.shape[0], ctrl.action_space.shape[-1]
             if isinstance(ctrl, BinaryGripperController):
                 parts.append(torch.where(ctrl._target_qpos[:, :1] > 0, 1.0, -1.0))
-            elif isinstance(ctrl, PDJointPosController) and not ctrl.config.use_delta and not ctrl.config.normalize_action:
+            elif (
+                isinstance(ctrl, PDJointPosController)
+                and not ctrl.config.use_delta
+                and not ctrl.config.normalize_action
+            ):
                 parts.append(ctrl._target_qpos.clone())
             else:
                 parts.append(torch.zeros(n, dim, device=self.device))
@@ -223,9 +236,14 @@ class IRB120Metalwork(BaseAgent):
         q = self.robot.get_qpos()[:, -2:]
         return q.sum(dim=1) + 2 * geometry()["finger_closed_half_gap"]
 
-    def is_grasping(self, object: Actor, min_force: float = 0.5, max_angle: float = 85.0,
-                    finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None,
-                    tcp_quat: torch.Tensor | None = None) -> torch.Tensor:
+    def is_grasping(
+        self,
+        object: Actor,
+        min_force: float = 0.5,
+        max_angle: float = 85.0,
+        finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None,
+        tcp_quat: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Both fingers push on ``object`` with at least ``min_force`` N roughly along their closing direction.
 
         ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object``, and

@@ -65,11 +65,22 @@ class IRB120TableEnv(BaseEnv):
     render_ahead: bool = True
     _captured_ahead: bool = False
 
-    def __init__(self, *args, robot_uids: str = "irb120_metalwork", obs_mode: str = "rgbd",
-                 reward_mode: str | None = None, control_mode: str | None = None, robot_init_qpos_noise: float = 0.0,
-                 object_shape: str = "cube", object_half_size: float = 0.01, object_mass: float = 0.02,
-                 object_friction: float = 1.0, spawn_margin: float = SPAWN_MARGIN, enhanced_determinism: bool = True,
-                 **kwargs):
+    def __init__(
+        self,
+        *args,
+        robot_uids: str = "irb120_metalwork",
+        obs_mode: str = "rgbd",
+        reward_mode: str | None = None,
+        control_mode: str | None = None,
+        robot_init_qpos_noise: float = 0.0,
+        object_shape: str = "cube",
+        object_half_size: float = 0.01,
+        object_mass: float = 0.02,
+        object_friction: float = 1.0,
+        spawn_margin: float = SPAWN_MARGIN,
+        enhanced_determinism: bool = True,
+        **kwargs,
+    ):
         if robot_uids not in self.SUPPORTED_ROBOTS:
             raise ValueError(f"robot_uids={robot_uids!r} is not supported; use one of {self.SUPPORTED_ROBOTS}")
         if reward_mode is not None and reward_mode not in self.SUPPORTED_REWARD_MODES:
@@ -85,8 +96,15 @@ class IRB120TableEnv(BaseEnv):
         self.object_mass = object_mass
         self.object_friction = object_friction
         self.spawn_margin = spawn_margin
-        super().__init__(*args, robot_uids=robot_uids, obs_mode=obs_mode, reward_mode=reward_mode,
-                         control_mode=control_mode, enhanced_determinism=enhanced_determinism, **kwargs)
+        super().__init__(
+            *args,
+            robot_uids=robot_uids,
+            obs_mode=obs_mode,
+            reward_mode=reward_mode,
+            control_mode=control_mode,
+            enhanced_determinism=enhanced_determinism,
+            **kwargs,
+        )
 
     # ------------------------------------------------------------------ cameras
     @property
@@ -116,12 +134,21 @@ class IRB120TableEnv(BaseEnv):
         if self.object_shape != "random":
             return [self.object_shape] * self.num_envs
         rngs = self._batched_episode_rng
-        return [("cube", "cylinder")[int((rngs[i] if rngs is not None else np.random).randint(2))]
-                for i in range(self.num_envs)]
+        return [
+            ("cube", "cylinder")[int((rngs[i] if rngs is not None else np.random).randint(2))]
+            for i in range(self.num_envs)
+        ]
 
     def _build_object(self, name: str, color) -> Actor:
-        return build_object(self.scene, name, self._object_shapes(), self.object_half_size, self.object_mass,
-                            self.object_friction, color)
+        return build_object(
+            self.scene,
+            name,
+            self._object_shapes(),
+            self.object_half_size,
+            self.object_mass,
+            self.object_friction,
+            color,
+        )
 
     def _build_table_scene(self, build_objects) -> list[Actor]:
         """Trays, then ``build_objects()`` (returns the task's objects), then table and floor (drawn last);
@@ -224,8 +251,12 @@ class IRB120TableEnv(BaseEnv):
         own threads while this thread evaluates the step, and ``get_obs`` then only reads it back (measured:
         ~1 ms less per rgbd step on 2 cores). The scene does not change in between, so the images are the
         ones ManiSkill's capture in ``get_obs`` takes (tested). GPU sim: ManiSkill's path."""
-        if (not self.render_ahead or self.gpu_sim_enabled or not self._sensors
-                or self._obs_mode in ("state", "state_dict", "none")):
+        if (
+            not self.render_ahead
+            or self.gpu_sim_enabled
+            or not self._sensors
+            or self._obs_mode in ("state", "state_dict", "none")
+        ):
             return
         for obj in self._hidden_objects:
             obj.hide_visual()
@@ -321,7 +352,7 @@ class IRB120TableEnv(BaseEnv):
             why = f"sim_backend={sim_backend!r} was given" if not on_gpu else "no CUDA GPU is available here"
             raise ValueError(
                 f"num_envs={num_envs}: batched envs (num_envs > 1) need a CUDA GPU (sim_backend='physx_cuda'), and "
-                f"{why}. On CPUs use maniskill_irb120.make_vec_env(env_id, num_envs, backend=\"cpu\"): one worker "
+                f'{why}. On CPUs use maniskill_irb120.make_vec_env(env_id, num_envs, backend="cpu"): one worker '
                 "process per env behind the same batched interface."
             )
 

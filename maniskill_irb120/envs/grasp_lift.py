@@ -53,17 +53,29 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         held_before = self._last("hold_steps", torch.zeros_like(grasped, dtype=torch.long))
         hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
         self._previous(dict(hold_steps=hold_steps, obj_p=self._obj_pose[:, :3]))
-        return dict(success=hold_steps >= HOLD_STEPS, fail=robot_hit, collided=robot_hit, grasped=grasped,
-                    is_grasped=grasped, lifted=lifted, still=still, hold_steps=hold_steps, object_height=height,
-                    ik_unreachable=self.agent.ik_unreachable.clone(),
-                    invalid_action=self.agent.invalid_action.clone())
+        return dict(
+            success=hold_steps >= HOLD_STEPS,
+            fail=robot_hit,
+            collided=robot_hit,
+            grasped=grasped,
+            is_grasped=grasped,
+            lifted=lifted,
+            still=still,
+            hold_steps=hold_steps,
+            object_height=height,
+            ik_unreachable=self.agent.ik_unreachable.clone(),
+            invalid_action=self.agent.invalid_action.clone(),
+        )
 
     def _get_obs_extra(self, info: dict):
         obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
         if self.obs_mode_struct.use_state:
-            obs.update(obj_pose=self._obj_pose.clone(), source_tray_pos=self.source_center.clone(),
-                       tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
-                       hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None])
+            obs.update(
+                obj_pose=self._obj_pose.clone(),
+                source_tray_pos=self.source_center.clone(),
+                tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
+                hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None],
+            )
         return obs
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):

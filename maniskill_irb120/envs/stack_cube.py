@@ -40,8 +40,12 @@ class StackCubeIRB120Env(IRB120TableEnv):
     """
 
     def _load_scene(self, options: dict):
-        self.cube_a, self.cube_b = self._build_table_scene(lambda: [
-            self._build_object("cube_a", [0.8, 0.1, 0.1, 1]), self._build_object("cube_b", [0.15, 0.25, 0.85, 1])])
+        self.cube_a, self.cube_b = self._build_table_scene(
+            lambda: [
+                self._build_object("cube_a", [0.8, 0.1, 0.1, 1]),
+                self._build_object("cube_b", [0.15, 0.25, 0.85, 1]),
+            ]
+        )
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
         u = self._episode_draws(env_idx, 9 + 3 * CANDIDATES)  # joint noise, a (x, y, yaw), b candidates
@@ -75,10 +79,18 @@ class StackCubeIRB120Env(IRB120TableEnv):
         still = (self._speed("a_p", a_p) < STILL_SPEED) & (self._speed("b_p", b_p) < STILL_SPEED)
         self._previous(dict(a_p=a_p, b_p=b_p))
         grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
-        return dict(success=stacked & released & still, fail=robot_hit, collided=robot_hit, grasped=grasped,
-                    is_grasped=grasped, stacked=stacked, released=released, still=still,
-                    ik_unreachable=self.agent.ik_unreachable.clone(),
-                    invalid_action=self.agent.invalid_action.clone())
+        return dict(
+            success=stacked & released & still,
+            fail=robot_hit,
+            collided=robot_hit,
+            grasped=grasped,
+            is_grasped=grasped,
+            stacked=stacked,
+            released=released,
+            still=still,
+            ik_unreachable=self.agent.ik_unreachable.clone(),
+            invalid_action=self.agent.invalid_action.clone(),
+        )
 
     def _place_target(self) -> torch.Tensor:
         goal = self._b_pose[:, :3].clone()
@@ -88,9 +100,12 @@ class StackCubeIRB120Env(IRB120TableEnv):
     def _get_obs_extra(self, info: dict):
         obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
         if self.obs_mode_struct.use_state:
-            obs.update(cube_a_pose=self._a_pose.clone(), cube_b_pose=self._b_pose.clone(),
-                       tcp_to_a_pos=self._a_pose[:, :3] - self._tcp_pose[:, :3],
-                       a_to_goal_pos=self._place_target() - self._a_pose[:, :3])
+            obs.update(
+                cube_a_pose=self._a_pose.clone(),
+                cube_b_pose=self._b_pose.clone(),
+                tcp_to_a_pos=self._a_pose[:, :3] - self._tcp_pose[:, :3],
+                a_to_goal_pos=self._place_target() - self._a_pose[:, :3],
+            )
         return obs
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):

@@ -42,10 +42,11 @@ class TableClearingIRB120Env(IRB120TableEnv):
       below its wall top and touches neither finger, i.e. it was released in the tray. The original report only
       said "reached the destination tray"; requiring the release keeps a held object from counting.
 
-    **Dense reward** (``reward_mode="dense"``: the original report's terms, each also in ``info``): approach ±1 while not grasped and
-    the object is within 5 cm of its start (+1 if the TCP got closer to it); carry ±1 while grasped
-    (+1 if the TCP got closer to the destination tray centre); time -1; collision -1000; grasp +100
-    on the not-grasped → grasped edge; drop -200; delivery +200 on the not-delivered → delivered edge.
+    **Dense reward** (``reward_mode="dense"``: the original report's terms, each also in ``info``): approach
+    ±1 while not grasped and the object is within 5 cm of its start (+1 if the TCP got closer to it); carry
+    ±1 while grasped (+1 if the TCP got closer to the destination tray centre); time -1; collision -1000;
+    grasp +100 on the not-grasped → grasped edge; drop -200; delivery +200 on the not-delivered → delivered
+    edge.
 
     **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 100;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without
@@ -81,9 +82,12 @@ class TableClearingIRB120Env(IRB120TableEnv):
         grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0] & lifted
         over_dest = self._inside_dest_xy(obj_p)
         delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~self._touches(finger_forces[0])
-        cur = dict(tcp_obj_dist=torch.linalg.norm(obj_p - tcp_p, dim=1),
-                   tcp_dest_dist=torch.linalg.norm(self.dest_center - tcp_p, dim=1),
-                   grasped=grasped, delivered=delivered)
+        cur = dict(
+            tcp_obj_dist=torch.linalg.norm(obj_p - tcp_p, dim=1),
+            tcp_dest_dist=torch.linalg.norm(self.dest_center - tcp_p, dim=1),
+            grasped=grasped,
+            delivered=delivered,
+        )
         prev = self._previous(cur)
 
         ones = torch.ones_like(cur["tcp_obj_dist"])
@@ -98,9 +102,17 @@ class TableClearingIRB120Env(IRB120TableEnv):
         r_carry = torch.where(self._fresh, zeros, r_carry)
         dropped = prev["grasped"] & ~grasped & ~over_dest
         return dict(
-            success=delivered, fail=robot_hit, grasped=grasped, is_grasped=grasped, dropped=dropped,
-            collided=robot_hit, delivered=delivered, object_lifted=lifted, object_over_dest=over_dest,
-            ik_unreachable=self.agent.ik_unreachable.clone(), invalid_action=self.agent.invalid_action.clone(),
+            success=delivered,
+            fail=robot_hit,
+            grasped=grasped,
+            is_grasped=grasped,
+            dropped=dropped,
+            collided=robot_hit,
+            delivered=delivered,
+            object_lifted=lifted,
+            object_over_dest=over_dest,
+            ik_unreachable=self.agent.ik_unreachable.clone(),
+            invalid_action=self.agent.invalid_action.clone(),
             r_approach=r_approach,
             r_carry=r_carry,
             r_time=ones * R_TIME,

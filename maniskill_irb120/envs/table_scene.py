@@ -54,8 +54,7 @@ def check_object_params(shape: str, half_size: float, mass: float, friction: flo
         raise ValueError(f"object_mass={mass} must be > 0 and object_friction={friction} >= 0")
 
 
-def build_box_actor(scene: ManiSkillScene, name: str, boxes: list[tuple[tuple, tuple]], color,
-                    xy=(0.0, 0.0)) -> Actor:
+def build_box_actor(scene: ManiSkillScene, name: str, boxes: list[tuple[tuple, tuple]], color, xy=(0.0, 0.0)) -> Actor:
     """A static actor of (half_size, centre) boxes: box collisions, one merged visual mesh."""
     builder = scene.create_actor_builder()
     for half, centre in boxes:
@@ -84,14 +83,18 @@ def build_floor(scene: ManiSkillScene, altitude: float, half_width: float = 4.0)
     that costs ~0.7 ms per 84x84 frame on the CPU rasteriser, a third of the render."""
     builder = scene.create_actor_builder()
     builder.add_plane_collision(sapien.Pose(p=[0, 0, altitude], q=[0.7071068, 0, -0.7071068, 0]))
-    builder.add_box_visual(pose=sapien.Pose(p=[0, 0, altitude - 0.005]), half_size=[half_width, half_width, 0.005],
-                           material=sapien.render.RenderMaterial(base_color=[0.45, 0.47, 0.5, 1.0]))
+    builder.add_box_visual(
+        pose=sapien.Pose(p=[0, 0, altitude - 0.005]),
+        half_size=[half_width, half_width, 0.005],
+        material=sapien.render.RenderMaterial(base_color=[0.45, 0.47, 0.5, 1.0]),
+    )
     builder.initial_pose = sapien.Pose()
     return builder.build_static(name="ground")
 
 
-def build_object(scene: ManiSkillScene, name: str, shapes: list[str], half_size: float, mass: float,
-                 friction: float, color) -> Actor:
+def build_object(
+    scene: ManiSkillScene, name: str, shapes: list[str], half_size: float, mass: float, friction: float, color
+) -> Actor:
     """A graspable rigid body per env: ``shapes[i]`` ("cube" or "cylinder") in env i, merged into one
     batched actor. Cubes of side 2·``half_size``; cylinders of radius and half height ``half_size``,
     standing. Either has mass ``mass`` and ``friction`` on its surface."""
@@ -105,8 +108,9 @@ def build_object(scene: ManiSkillScene, name: str, shapes: list[str], half_size:
             builder.add_box_collision(half_size=[h] * 3, material=mat, density=mass / (2 * h) ** 3)
             builder.add_box_visual(half_size=[h] * 3, material=render_mat)
         else:
-            builder.add_cylinder_collision(pose=UPRIGHT, radius=h, half_length=h, material=mat,
-                                           density=mass / (math.pi * h * h * 2 * h))
+            builder.add_cylinder_collision(
+                pose=UPRIGHT, radius=h, half_length=h, material=mat, density=mass / (math.pi * h * h * 2 * h)
+            )
             builder.add_cylinder_visual(pose=UPRIGHT, radius=h, half_length=h, material=render_mat)
         builder.initial_pose = sapien.Pose(p=[*SOURCE_TRAY_XY, TRAY_FLOOR_TOP + h])
         if len(set(shapes)) == 1:
@@ -128,9 +132,12 @@ class TableScene:
 
     def build_background(self) -> None:
         sx, sy, sz = TABLE_SIZE
-        self.table = build_box_actor(self.scene, "table", [((sx / 2, sy / 2, sz / 2),
-                                                              (TABLE_CENTER_XY[0], TABLE_CENTER_XY[1], -sz / 2))],
-                                     [0.55, 0.42, 0.3, 1.0])
+        self.table = build_box_actor(
+            self.scene,
+            "table",
+            [((sx / 2, sy / 2, sz / 2), (TABLE_CENTER_XY[0], TABLE_CENTER_XY[1], -sz / 2))],
+            [0.55, 0.42, 0.3, 1.0],
+        )
         self.ground = build_floor(self.scene, altitude=-sz)
 
     @property
@@ -147,15 +154,23 @@ class Contacts:
     queries (:meth:`pairwise`) are the reference it is tested against.
     """
 
-    def __init__(self, scene: ManiSkillScene, robot_links: list[Link], fingers: list[Link], scene_actors: list[Actor],
-                 objects: list[Actor]):
+    def __init__(
+        self,
+        scene: ManiSkillScene,
+        robot_links: list[Link],
+        fingers: list[Link],
+        scene_actors: list[Actor],
+        objects: list[Actor],
+    ):
         self.scene, self.objects, self.n_scene = scene, objects, len(scene_actors)
         self.robot_links, self.fingers, self.scene_actors = robot_links, fingers, scene_actors
         touching = [link for link in robot_links if len(link._bodies[0].get_collision_shapes()) > 0]
         self.n_robot = len(touching) * len(scene_actors)
-        self.pairs = ([(link, a) for a in scene_actors for link in touching]
-                      + [(o, a) for o in objects for a in scene_actors]
-                      + [(f, o) for o in objects for f in fingers])
+        self.pairs = (
+            [(link, a) for a in scene_actors for link in touching]
+            + [(o, a) for o in objects for a in scene_actors]
+            + [(f, o) for o in objects for f in fingers]
+        )
         self._query = None
         self._kind = None
 
@@ -166,7 +181,8 @@ class Contacts:
         px = self.scene.px
         if self._query is None:
             self._query = px.gpu_create_contact_pair_impulse_query(
-                [bp for a, b in self.pairs for bp in zip(a._bodies, b._bodies)])
+                [bp for a, b in self.pairs for bp in zip(a._bodies, b._bodies)]
+            )
         px.gpu_query_contact_pair_impulses(self._query)
         # rows are pair-major (each pair's N envs in a row), as the body pairs were listed
         return self._query.cuda_impulses.torch().clone().view(len(self.pairs), self.scene.num_envs, 3)
@@ -180,8 +196,8 @@ class Contacts:
         forces = self.impulses() / self.scene.px.timestep
         hit = torch.linalg.norm(forces, dim=2) > CONTACT_FORCE_EPS  # (P, N)
         m, r, s = len(self.objects), self.n_robot, self.n_scene
-        obj_hit = hit[r:r + m * s].view(m, s, -1).any(1)
-        return hit[:r].any(0), obj_hit, forces[r + m * s:].view(m, 2, -1, 3)
+        obj_hit = hit[r : r + m * s].view(m, s, -1).any(1)
+        return hit[:r].any(0), obj_hit, forces[r + m * s :].view(m, 2, -1, 3)
 
     def scan(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """CPU (one env): one pass over PhysX's contact list, same answer as :meth:`pairwise`."""
