@@ -1,0 +1,104 @@
+"""Pins every assumption ``maniskill_irb120/maniskill_compat.py`` makes about ManiSkill's internals, so a
+ManiSkill upgrade that changes one fails here first (the module mirrors ManiSkill 3.0.1)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import mani_skill
+import torch
+from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController
+
+import maniskill_irb120  # noqa: F401
+from maniskill_irb120 import maniskill_compat as compat
+
+ENV = "TableClearing-IRB120-v1"
+
+
+def test_mirrored_version_is_installed():
+    assert mani_skill.__version__ == compat.MANISKILL_VERSION
+
+
+def test_maniskill_resets_controllers_with_an_all_true_mask(monkeypatch):
+    """Why controllers need the task's record: by the time BaseEnv.reset resets the controllers, the scene's
+    ``_reset_mask`` is all-true again, even for a reset of some envs only."""
+    env = gym.make(ENV, obs_mode="state")
+    env.reset(seed=0)
+    u = env.unwrapped
+    seen = {}
+    original = PDJointPosController.reset
+
+    def spy(self):
+        seen["maniskill_mask"] = self.scene._reset_mask.clone()
+        seen["recorded"] = getattr(self.scene, compat._MASK_ATTR, None)
+        original(self)
+
+    monkeypatch.setattr(PDJointPosController, "reset", spy)
+    # the controller's own reset runs inside true_reset_mask, so look at what BaseEnv set before that
+    monkeypatch.setattr(compat, "true_reset_mask", _passthrough)
+    import maniskill_irb120.controllers as controllers
+
+    monkeypatch.setattr(controllers, "true_reset_mask", _passthrough)
+    u.reset(options=dict(env_idx=torch.tensor([0])))
+    assert bool(seen["maniskill_mask"].all())
+    assert seen["recorded"] is not None and bool(seen["recorded"][0])  # our record of the envs being reset
+    env.close()
+
+
+class _passthrough:
+    def __init__(self, scene):
+        self.scene = scene
+
+    def __enter__(self):
+        return self.scene._reset_mask
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_maniskill_set_state_dict_drops_controller_state():
+    """Why ``restore_controller_state`` exists: BaseEnv.set_state_dict restores actors and articulations only."""
+    from mani_skill.envs.sapien_env import BaseEnv
+
+    env = gym.make(ENV, obs_mode="state", control_mode="pd_ee_target_delta_tool")
+    env.reset(seed=0)
+    u = env.unwrapped
+    saved = u.get_state_dict()
+    env.step(torch.tensor([[1.0, 1.0, 1.0, 1.0, 1.0]]))
+    BaseEnv.set_state_dict(u, saved)  # ManiSkill's own
+    arm = u.agent.get_controller_state()["arm"]
+    assert not torch.allclose(arm["target_qpos"], saved["controller"]["arm"]["target_qpos"])
+    u.set_state_dict(saved)  # ours
+    torch.testing.assert_close(
+        u.agent.get_controller_state()["arm"]["target_qpos"], saved["controller"]["arm"]["target_qpos"]
+    )
+    env.close()
+
+
+def test_direct_drive_targets_equal_maniskills_path():
+    env = gym.make(ENV, obs_mode="state")
+    env.reset(seed=0)
+    arm = env.unwrapped.agent.arm_controller
+    targets = arm.qpos + 0.01
+    PDJointPosController.set_drive_targets(arm, targets)
+    theirs = [float(j._objs[0].drive_target[0]) for j in arm.joints]
+    compat.set_drive_targets(arm, targets + 0.01)
+    compat.set_drive_targets(arm, targets)
+    ours = [float(j._objs[0].drive_target[0]) for j in arm.joints]
+    assert ours == theirs
+    env.close()
+
+
+def test_sensor_read_back_equals_maniskills_capture():
+    """``read_sensor_obs`` after a started capture gives what BaseEnv._get_obs_sensor_data gives."""
+    from mani_skill.envs.sapien_env import BaseEnv
+
+    env = gym.make(ENV, obs_mode="rgbd")
+    env.reset(seed=0)
+    u = env.unwrapped
+    u.scene.update_render(update_sensors=True, update_human_render_cameras=False)
+    u.capture_sensor_data()
+    ours = compat.read_sensor_obs(u)
+    theirs = BaseEnv._get_obs_sensor_data(u)
+    for k in ("rgb", "depth"):
+        assert torch.equal(ours["hand_camera"][k], theirs["hand_camera"][k])
+    env.close()
