@@ -32,7 +32,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     grasped, + lift fraction (height / 10 cm, capped) while grasped, + hold fraction while holding; 4 on
     success, 0 on a collision. ``normalized_dense`` (default) = dense / 4; ``sparse`` = success.
 
-    **Episode length:** 150 steps (the scripted expert needs about 65).
+    **Episode length:** 150 steps (the scripted expert needs 60).
     """
 
     def _load_scene(self, options: dict):

@@ -36,7 +36,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
     while grasped, +1 stacked and released; 4 on success, 0 on a collision. ``normalized_dense`` (default) =
     dense / 4; ``sparse`` = success.
 
-    **Episode length:** 200 steps (the scripted expert needs about 100).
+    **Episode length:** 200 steps (the scripted expert needs about 47; placing by a learner takes longer).
     """
 
     def _load_scene(self, options: dict):

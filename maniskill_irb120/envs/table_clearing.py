@@ -48,7 +48,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
     grasp +100 on the not-grasped → grasped edge; drop -200; delivery +200 on the not-delivered → delivered
     edge.
 
-    **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 100;
+    **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 75;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without
     letting a stuck policy waste long rollouts.
     """
