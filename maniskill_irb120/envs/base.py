@@ -240,6 +240,22 @@ class IRB120TableEnv(BaseEnv):
         """(N,) both fingers squeeze the object whose (2, N, 3) finger forces these are."""
         return self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
 
+    def _common_info(self, robot_hit: torch.Tensor, grasped: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The ``info`` entries every task reports: a collision ends the episode as a failure."""
+        return dict(
+            fail=robot_hit,
+            collided=robot_hit,
+            grasped=grasped,
+            is_grasped=grasped,
+            ik_unreachable=self.agent.ik_unreachable.clone(),
+            invalid_action=self.agent.invalid_action.clone(),
+        )
+
+    def _common_obs(self, info: dict) -> dict[str, torch.Tensor]:
+        """The extra observations every task gives (copies: writing into an observation must not move what
+        the env scores against)."""
+        return dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+
     @staticmethod
     def _touches(finger_forces: torch.Tensor) -> torch.Tensor:
         """(N,) either finger touches the object whose (2, N, 3) finger forces these are."""

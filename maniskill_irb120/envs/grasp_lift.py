@@ -54,21 +54,16 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
         self._previous(dict(hold_steps=hold_steps, obj_p=self._obj_pose[:, :3]))
         return dict(
+            **self._common_info(robot_hit, grasped),
             success=hold_steps >= HOLD_STEPS,
-            fail=robot_hit,
-            collided=robot_hit,
-            grasped=grasped,
-            is_grasped=grasped,
             lifted=lifted,
             still=still,
             hold_steps=hold_steps,
             object_height=height,
-            ik_unreachable=self.agent.ik_unreachable.clone(),
-            invalid_action=self.agent.invalid_action.clone(),
         )
 
     def _get_obs_extra(self, info: dict):
-        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+        obs = self._common_obs(info)
         if self.obs_mode_struct.use_state:
             obs.update(
                 obj_pose=self._obj_pose.clone(),

@@ -80,16 +80,11 @@ class StackCubeIRB120Env(IRB120TableEnv):
         self._previous(dict(a_p=a_p, b_p=b_p))
         grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
         return dict(
+            **self._common_info(robot_hit, grasped),
             success=stacked & released & still,
-            fail=robot_hit,
-            collided=robot_hit,
-            grasped=grasped,
-            is_grasped=grasped,
             stacked=stacked,
             released=released,
             still=still,
-            ik_unreachable=self.agent.ik_unreachable.clone(),
-            invalid_action=self.agent.invalid_action.clone(),
         )
 
     def _place_target(self) -> torch.Tensor:
@@ -98,7 +93,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
         return goal
 
     def _get_obs_extra(self, info: dict):
-        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+        obs = self._common_obs(info)
         if self.obs_mode_struct.use_state:
             obs.update(
                 cube_a_pose=self._a_pose.clone(),

@@ -102,17 +102,12 @@ class TableClearingIRB120Env(IRB120TableEnv):
         r_carry = torch.where(self._fresh, zeros, r_carry)
         dropped = prev["grasped"] & ~grasped & ~over_dest
         return dict(
+            **self._common_info(robot_hit, grasped),
             success=delivered,
-            fail=robot_hit,
-            grasped=grasped,
-            is_grasped=grasped,
             dropped=dropped,
-            collided=robot_hit,
             delivered=delivered,
             object_lifted=lifted,
             object_over_dest=over_dest,
-            ik_unreachable=self.agent.ik_unreachable.clone(),
-            invalid_action=self.agent.invalid_action.clone(),
             r_approach=r_approach,
             r_carry=r_carry,
             r_time=ones * R_TIME,
@@ -124,8 +119,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     # ------------------------------------------------------------------ observations
     def _get_obs_extra(self, info: dict):
-        """Copies: an observation a user writes into must not move what the env scores against."""
-        obs = dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
+        obs = self._common_obs(info)
         if self.obs_mode_struct.use_state:
             obs.update(
                 obj_pose=self._obj_pose.clone(),
