@@ -50,6 +50,8 @@ def test_wheel_ships_assets(tmp_path):
         assert f"maniskill_irb120/assets/irb120_metalwork/{f}" in names
     for f in ["gbuffer.vert", "gbuffer.frag"]:
         assert f"maniskill_irb120/assets/shaders/rgbd_forward/{f}" in names
+    assert "maniskill_irb120/assets/rapid/protocol_vectors.json" in names
+    assert "maniskill_irb120/real/protocol.py" in names
 
 
 def test_doctor_finds_render_device():
