@@ -31,6 +31,22 @@ TOOL_POS_LIMIT = 0.01
 TOOL_ROT_LIMIT = math.radians(10.0)
 
 
+def scale_tool_action(action, pos_limit: float = TOOL_POS_LIMIT, rot_limit: float = TOOL_ROT_LIMIT):
+    """Normalised tool actions (..., 4) in [-1, 1] → metres along the tool axes and radians about the approach
+    axis: clipped to the box, then scaled (ManiSkill's normalised-action convention for symmetric limits).
+    numpy or torch. The one definition shared by the controller and the real-robot client."""
+    lib = torch if isinstance(action, torch.Tensor) else np
+    limits = lib.asarray([pos_limit] * 3 + [rot_limit], dtype=action.dtype)
+    if lib is torch:
+        limits = limits.to(action.device)
+    return lib.clip(action, -1.0, 1.0) * limits
+
+
+def gripper_opens(value):
+    """The gripper command of an action: > 0 opens, <= 0 closes (the original report's ``open`` flag)."""
+    return value > 0
+
+
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     m = torch.zeros(p.shape[0], 4, 4, device=p.device, dtype=p.dtype)
     m[:, :3, :3] = quaternion_to_matrix(q)
@@ -75,6 +91,9 @@ class PDEEDeltaToolController(PDJointPosController):
         c = self.config
         high = np.array([c.pos_limit] * 3 + [c.rot_limit], dtype=np.float32)
         self.single_action_space = spaces.Box(-high, high, dtype=np.float32)
+
+    def _clip_and_scale_action(self, action):
+        return scale_tool_action(action, self.config.pos_limit, self.config.rot_limit)
 
     def ee_pose_at_base(self) -> torch.Tensor:
         """Current TCP pose in the robot root frame as (N, 4, 4)."""
@@ -172,7 +191,7 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
                 torch.full((1, n), self.config.open_target, device=self.device),
                 torch.full((1, n), self.config.closed_target, device=self.device),
             )
-        self._target_qpos = torch.where(action[:, :1] > 0, *self._levels)
+        self._target_qpos = torch.where(gripper_opens(action[:, :1]), *self._levels)
         self.set_drive_targets(self._target_qpos)
 
     def set_drive_targets(self, targets: torch.Tensor):

@@ -95,3 +95,17 @@ def test_all_control_modes_step(mode):
         env.step(a)
     assert torch.isfinite(env.unwrapped.agent.robot.get_qpos()).all()
     env.close()
+
+
+def test_tool_action_scaling_is_maniskills_convention():
+    """scale_tool_action (shared with the real-robot client) = ManiSkill's clip-and-scale for our limits."""
+    from mani_skill.utils import gym_utils
+
+    from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, scale_tool_action
+
+    a = np.random.default_rng(0).uniform(-1.5, 1.5, (64, 4))
+    high = np.array([TOOL_POS_LIMIT] * 3 + [TOOL_ROT_LIMIT])
+    theirs = gym_utils.clip_and_scale_action(torch.as_tensor(a), torch.as_tensor(-high), torch.as_tensor(high))
+    np.testing.assert_allclose(scale_tool_action(a), theirs.numpy(), atol=1e-12)
+    t = torch.as_tensor(a, dtype=torch.float32)
+    torch.testing.assert_close(scale_tool_action(t), torch.as_tensor(scale_tool_action(a), dtype=torch.float32))

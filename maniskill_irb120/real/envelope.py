@@ -1,0 +1,126 @@
+"""The safety envelope every command must stay inside before it goes on the wire (the RAPID server checks
+the same limits again on the controller: each side holds alone).
+
+Limits: per-step tool motion (the action space's ±1 cm / ±10°), a workspace box for the TCP in the robot base
+frame (both trays with margin, never below the table top), ABB's joint limits, and ABB's axis speeds over one
+control period. Predictions use the robot's own kinematics (``maniskill_irb120.kinematics``, the same closed
+form the simulator's controller uses), so a step the envelope accepts is the step the sim would take.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, apply_tool_delta
+from maniskill_irb120.robot_description import urdf_path
+
+CONTROL_PERIOD_S = 0.05  # 20 Hz, the env's control rate
+# TCP box in the robot base frame (m): both trays (x 0.27..0.43, |y| <= 0.21) with margin, the TCP at least
+# 1 cm above the table top, at most 0.45 m high
+WORKSPACE_LOW = (0.15, -0.32, 0.01)
+WORKSPACE_HIGH = (0.60, 0.32, 0.45)
+
+
+class EnvelopeError(ValueError):
+    """A command outside the envelope; ``limit`` names which: step, workspace, reach, joint_limit, joint_speed."""
+
+    def __init__(self, limit: str, detail: str):
+        super().__init__(f"refused by the safety envelope ({limit}): {detail}")
+        self.limit = limit
+
+
+@dataclass(frozen=True)
+class Envelope:
+    workspace_low: tuple[float, float, float] = WORKSPACE_LOW
+    workspace_high: tuple[float, float, float] = WORKSPACE_HIGH
+    step_pos: float = TOOL_POS_LIMIT
+    step_rot: float = TOOL_ROT_LIMIT
+    control_period: float = CONTROL_PERIOD_S
+
+    def __post_init__(self):
+        chain = SerialChain(urdf_path(), "tcp", dtype=torch.float64)
+        object.__setattr__(self, "_chain", chain)
+        object.__setattr__(self, "_ik", SphericalWristIK(chain))
+        object.__setattr__(self, "_max_joint_step", (chain.velocity * self.control_period).numpy())
+
+    @property
+    def joint_lower(self) -> np.ndarray:
+        return self._chain.lower.numpy()
+
+    @property
+    def joint_upper(self) -> np.ndarray:
+        return self._chain.upper.numpy()
+
+    def tcp_pose(self, q) -> np.ndarray:
+        """(4, 4) TCP pose in the base frame for joint angles ``q`` (6,)."""
+        return self._chain.forward_kinematics(torch.as_tensor(np.asarray(q, dtype=np.float64))[None])[0].numpy()
+
+    def check_tool_step(self, q_now, d, rot: float) -> np.ndarray:
+        """Joint angles (6,) the tool step (``d`` m in the tool frame, then ``rot`` rad about the approach axis)
+        leads to from ``q_now``; ``EnvelopeError`` if any limit would be broken."""
+        d = np.asarray(d, dtype=np.float64)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or not math.isfinite(rot):
+            raise EnvelopeError("step", f"a tool step is 3 finite distances and a finite angle, got {d}, {rot}")
+        if np.abs(d).max() > self.step_pos + 1e-12 or abs(rot) > self.step_rot + 1e-12:
+            raise EnvelopeError(
+                "step",
+                f"step {d} m, {math.degrees(rot):.2f} deg exceeds ±{self.step_pos} m per "
+                f"axis / ±{math.degrees(self.step_rot):.1f} deg",
+            )
+        q_now = self._check_joint_vector(q_now, "current joints")
+        action = np.concatenate([d, [rot]])[None]
+        target = apply_tool_delta(np, self.tcp_pose(q_now)[None], action)
+        self.check_tcp(target[0, :3, 3])
+        q, ok = self._ik.solve(torch.as_tensor(target), torch.as_tensor(q_now)[None])
+        if not bool(ok[0]):
+            raise EnvelopeError("reach", f"no joint solution within ABB's joint limits for TCP {target[0, :3, 3]}")
+        q = q[0].numpy()
+        self._check_speed(q_now, q)
+        return q
+
+    def check_joints(self, q_now, q_target) -> np.ndarray:
+        """``q_target`` (6,) if it is within the joint limits, one control period's motion from ``q_now`` at
+        ABB's axis speeds, and puts the TCP inside the workspace box; else ``EnvelopeError``."""
+        q_now = self._check_joint_vector(q_now, "current joints")
+        q_target = self._check_joint_vector(q_target, "joint target")
+        low, high = self.joint_lower, self.joint_upper
+        bad = np.flatnonzero((q_target < low) | (q_target > high))
+        if bad.size:
+            i = int(bad[0])
+            raise EnvelopeError(
+                "joint_limit",
+                f"axis {i + 1} target {math.degrees(q_target[i]):.2f} deg is outside "
+                f"{math.degrees(low[i]):.1f}..{math.degrees(high[i]):.1f} deg",
+            )
+        self._check_speed(q_now, q_target)
+        self.check_tcp(self.tcp_pose(q_target)[:3, 3])
+        return q_target
+
+    def check_tcp(self, p) -> None:
+        p = np.asarray(p, dtype=np.float64)
+        low, high = np.asarray(self.workspace_low), np.asarray(self.workspace_high)
+        if np.any(p < low) or np.any(p > high):
+            raise EnvelopeError("workspace", f"TCP {np.round(p, 4)} m is outside the box {low}..{high} m")
+
+    def _check_speed(self, q_now: np.ndarray, q: np.ndarray) -> None:
+        over = np.flatnonzero(np.abs(q - q_now) > self._max_joint_step)
+        if over.size:
+            i = int(over[0])
+            raise EnvelopeError(
+                "joint_speed",
+                f"axis {i + 1} would move {math.degrees(abs(q[i] - q_now[i])):.2f} deg "
+                f"in {self.control_period * 1000:.0f} ms, more than ABB's axis speed "
+                f"allows ({math.degrees(self._max_joint_step[i]):.2f} deg)",
+            )
+
+    @staticmethod
+    def _check_joint_vector(q, what: str) -> np.ndarray:
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise EnvelopeError("joint_limit", f"{what} must be 6 finite angles (rad), got {q}")
+        return q
