@@ -1,0 +1,177 @@
+"""``ABBRobot``: the env's action space on an ABB IRC5 running our RAPID server (protocol: docs/protocol.md).
+
+Transports by URL through pyserial's ``serial_for_url`` (no serial code of ours): ``serial:///dev/ttyUSB0?
+baudrate=9600`` for the licence-free serial channel, ``tcp://host:port`` for controllers with 616-1 PC Interface.
+Every command is checked against the safety envelope before it is sent (the controller checks again). A command
+that gets no valid reply in time is resent byte for byte, same sequence number: the controller answers a
+repeated number without executing it again, so a retry never repeats a motion.
+
+    with ABBRobot.connect("tcp://192.168.125.1:5000") as robot:
+        state = robot.state()
+        state = robot.move_tool([0.0, 0.5, 0.0, 1.0, 1.0])   # the env's normalised 5-vector
+"""
+
+from __future__ import annotations
+
+import time
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+
+from maniskill_irb120.controllers import gripper_opens, scale_tool_action
+from maniskill_irb120.real.envelope import Envelope
+from maniskill_irb120.real.protocol import (
+    ERROR_MEANINGS,
+    ErrorCode,
+    FrameParser,
+    GetState,
+    Gripper,
+    Joints,
+    MsgType,
+    ProtocolError,
+    RobotState,
+    Status,
+    Stop,
+    ToolStep,
+    command_frame,
+    decode_reply,
+)
+
+
+class RobotError(RuntimeError):
+    """Base of the client's errors: each says what happened."""
+
+
+class RobotTimeout(RobotError):
+    pass
+
+
+class ControllerRefused(RobotError):
+    def __init__(self, state: RobotState):
+        super().__init__(f"controller refused the command: {ERROR_MEANINGS[state.error]} (code {int(state.error)})")
+        self.state = state
+
+
+def open_port(url: str, timeout: float):
+    """A pyserial port for ``serial://DEVICE?baudrate=N`` or ``tcp://HOST:PORT`` (pyserial's socket handler)."""
+    import serial  # the ``real`` extra
+
+    u = urlparse(url)
+    if u.scheme == "tcp":
+        if not u.hostname or not u.port:
+            raise ValueError(f"{url!r}: a TCP URL is tcp://HOST:PORT")
+        return serial.serial_for_url(f"socket://{u.hostname}:{u.port}", timeout=timeout)
+    if u.scheme == "serial":
+        query = parse_qs(u.query)
+        unknown = set(query) - {"baudrate"}
+        if not u.path or unknown:
+            raise ValueError(f"{url!r}: a serial URL is serial:///dev/DEVICE[?baudrate=N] (unknown: {sorted(unknown)})")
+        baud = int(query.get("baudrate", ["9600"])[0])
+        return serial.serial_for_url(u.path, baudrate=baud, bytesize=8, parity="N", stopbits=1, timeout=timeout)
+    raise ValueError(f"{url!r}: unknown transport {u.scheme!r}; use serial:///dev/DEVICE?baudrate=N or tcp://HOST:PORT")
+
+
+class ABBRobot:
+    """One connection to the RAPID server. Use :meth:`connect` (a context manager that stops the robot on exit)."""
+
+    def __init__(self, port, timeout: float = 0.25, retries: int = 2, envelope: Envelope | None = None):
+        self.port, self.timeout, self.retries = port, timeout, retries
+        self.envelope = envelope or Envelope()
+        self.check_envelope = True  # tests of the controller side alone turn this off
+        self.parser = FrameParser()
+        self.seq = 0
+        self.last_state: RobotState | None = None
+
+    @classmethod
+    def connect(cls, url: str, timeout: float = 0.25, retries: int = 2, envelope: Envelope | None = None) -> ABBRobot:
+        robot = cls(open_port(url, timeout), timeout, retries, envelope)
+        robot.state()  # fail now, not at the first motion, if nothing answers
+        return robot
+
+    def __enter__(self) -> ABBRobot:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ commands
+    def state(self) -> RobotState:
+        return self._request(GetState())
+
+    def move_tool(self, action) -> RobotState:
+        """The env's ``pd_ee_delta_tool`` action (5 numbers in [-1, 1], clipped and scaled as the sim does)."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (5,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"a tool action is 5 finite numbers, got {action!r}")
+        step = scale_tool_action(a[:4])
+        if self.check_envelope:
+            self.envelope.check_tool_step(self._joints_now(), step[:3], float(step[3]))
+        return self._request(ToolStep(*map(float, step), bool(gripper_opens(a[4]))))
+
+    def move_joints(self, q, gripper_open: bool | None = None) -> RobotState:
+        q = np.asarray(q, dtype=np.float64)
+        if self.check_envelope:
+            self.envelope.check_joints(self._joints_now(), q)
+        return self._request(Joints(tuple(map(float, q)), gripper_open))
+
+    def set_gripper(self, open_: bool) -> RobotState:
+        return self._request(Gripper(bool(open_)))
+
+    def stop(self) -> RobotState:
+        return self._request(Stop())
+
+    def close(self) -> None:
+        """Stop the robot (best effort), then close the port."""
+        if self.port is None:
+            return
+        try:
+            self.stop()
+        except RobotError:
+            pass
+        finally:
+            self.port.close()
+            self.port = None
+
+    # ------------------------------------------------------------------ internals
+    def _joints_now(self) -> np.ndarray:
+        return np.asarray((self.last_state or self.state()).joints)
+
+    def _request(self, msg) -> RobotState:
+        if self.port is None:
+            raise RobotError("the robot connection is closed")
+        self.seq = self.seq % 255 + 1  # 1..255: a fresh number for every new command
+        raw = command_frame(msg, self.seq).encode()
+        want = MsgType.REPLY | msg.TYPE
+        bad_before = self.parser.bad_frames
+        for _attempt in range(1 + self.retries):
+            self.port.write(raw)  # a retry is the same bytes: the controller answers it without executing it
+            state = self._await_reply(want, self.seq)
+            if state is not None:
+                return self._checked(state)
+        corrupt = self.parser.bad_frames - bad_before
+        raise RobotTimeout(
+            f"no valid reply to {type(msg).__name__} (seq {self.seq}) within {self.timeout:.2f} s, "
+            f"{1 + self.retries} attempts" + (f"; {corrupt} corrupted frames were discarded" if corrupt else "")
+        )
+
+    def _await_reply(self, want: int, seq: int) -> RobotState | None:
+        deadline = time.monotonic() + self.timeout
+        while (left := deadline - time.monotonic()) > 0:
+            self.port.timeout = left
+            data = self.port.read(max(1, self.port.in_waiting))
+            for frame in self.parser.feed(data):
+                if frame.seq != seq or frame.type != want:
+                    continue  # a late reply to an earlier attempt or command
+                try:
+                    return decode_reply(frame)
+                except ProtocolError as e:
+                    raise RobotError(f"malformed reply from the controller: {e}") from None
+        return None
+
+    def _checked(self, state: RobotState) -> RobotState:
+        self.last_state = state
+        if state.error != ErrorCode.OK:
+            raise ControllerRefused(state)
+        if state.status == Status.FAULT:
+            raise RobotError("controller reports a fault (motors off or emergency stop); clear it on the controller")
+        return state
