@@ -63,7 +63,8 @@ ERROR_MEANINGS = {
     ErrorCode.JOINT_LIMIT: "refused: the target is outside a joint's limits",
     ErrorCode.BAD_LENGTH: "refused: the payload length does not match the message type",
     ErrorCode.UNKNOWN_TYPE: "refused: unknown message type",
-    ErrorCode.WATCHDOG: "held: no valid frame within the heartbeat timeout, the robot was stopped",
+    ErrorCode.WATCHDOG: "refused: the robot was moving and no frame came within the heartbeat timeout, so the "
+    "controller stopped and held it; send the command again",
     ErrorCode.MOTORS_OFF: "refused: motors are off (controller error)",
     ErrorCode.ESTOP: "refused: emergency stop is active",
     ErrorCode.JOINT_SPEED: "refused: a joint would move more than its per-step limit",

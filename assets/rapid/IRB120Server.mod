@@ -1,0 +1,467 @@
+MODULE IRB120Server
+    !
+    ! maniskill_irb120 RAPID server for an ABB IRB 120 on an IRC5: serves the wire protocol of
+    ! docs/protocol.md (frames: sync 0xA5, length, type, sequence, payload, CRC-16/CCITT-FALSE) on ONE channel,
+    ! serial (no RobotWare option needed) or TCP (needs 616-1 PC Interface), chosen by USE_SOCKET below.
+    !
+    ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
+    ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
+    ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed. A world
+    ! zone slightly larger than the box is set at start, and a heartbeat watchdog stops and holds the robot
+    ! when no valid frame arrives within HEARTBEAT_S.
+    !
+    ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
+    !
+    ! ---------------------------------------------------------------- configuration (see README: install)
+    CONST bool USE_SOCKET := FALSE;
+    CONST string SERIAL_CHANNEL := "COM1:";
+    CONST string SERVER_ADDRESS := "192.168.125.1";
+    CONST num SERVER_PORT := 5000;
+    CONST string GRIPPER_SIGNAL := "doGripperOpen";
+    CONST string MOTORS_ON_SIGNAL := "doMotorsOn";
+    CONST string ESTOP_SIGNAL := "doEmergencyStop";
+    CONST num HEARTBEAT_S := 0.5;
+    ! the safety envelope (the PC checks the same numbers: maniskill_irb120/real/envelope.py)
+    CONST num STEP_POS_MM := 10;
+    CONST num STEP_ROT_DEG := 10;
+    CONST pos WORKSPACE_LOW := [150, -320, 10];
+    CONST pos WORKSPACE_HIGH := [600, 320, 450];
+    CONST num WORLD_ZONE_MARGIN := 10;
+    CONST num JOINT_LOW{6} := [-165, -110, -110, -160, -120, -400];
+    CONST num JOINT_HIGH{6} := [165, 110, 70, 160, 120, 400];
+    ! ABB's axis speeds (250, 250, 250, 320, 320, 420 deg/s) over one 50 ms control period
+    CONST num JOINT_STEP_DEG{6} := [12.5, 12.5, 12.5, 16, 16, 21];
+    !
+    ! The TCP of the MetalWork gripper, 57 mm out of the flange; its x axis (the approach axis of the
+    ! action space) is tool0's z axis, its z axis (camera side) is tool0's -x axis.
+    PERS tooldata tGripper := [TRUE, [[0, 0, 57], [0.707107, 0, -0.707107, 0]], [0.6, [0, 0, 30], [1, 0, 0, 0], 0, 0, 0]];
+    ! A full step (10 mm or 10 deg) at 250 mm/s and 250 deg/s takes 40 ms, inside the 50 ms control period;
+    ! zone z1 lets consecutive steps blend, so the program answers as soon as the step is planned.
+    CONST speeddata vStep := [250, 250, 5000, 1000];
+    CONST zonedata zStep := z1;
+    !
+    ! ---------------------------------------------------------------- protocol constants
+    CONST num SYNC := 165;
+    CONST num MAX_PAYLOAD := 32;
+    CONST num T_STATE := 1;
+    CONST num T_TOOL_STEP := 2;
+    CONST num T_JOINTS := 3;
+    CONST num T_GRIPPER := 4;
+    CONST num T_STOP := 5;
+    CONST num S_IDLE := 0;
+    CONST num S_MOVING := 1;
+    CONST num S_HELD := 2;
+    CONST num S_FAULT := 3;
+    CONST num E_OK := 0;
+    CONST num E_STEP_LIMIT := 1;
+    CONST num E_WORKSPACE := 2;
+    CONST num E_UNREACHABLE := 3;
+    CONST num E_JOINT_LIMIT := 4;
+    CONST num E_BAD_LENGTH := 5;
+    CONST num E_UNKNOWN_TYPE := 6;
+    CONST num E_WATCHDOG := 7;
+    CONST num E_MOTORS_OFF := 8;
+    CONST num E_ESTOP := 9;
+    CONST num E_JOINT_SPEED := 10;
+    !
+    ! ---------------------------------------------------------------- state
+    VAR iodev serialDev;
+    VAR socketdev serverSocket;
+    VAR socketdev clientSocket;
+    VAR signaldo doGripper;
+    VAR signaldo doMotors;
+    VAR signaldo doEstop;
+    VAR wztemporary wzBox;
+    VAR shapedata shBox;
+    VAR byte rx{40};
+    VAR byte tx{40};
+    VAR num rxLen := 0;
+    VAR num txLen := 0;
+    VAR num lastSeq := -1;
+    VAR num status := 0;
+    VAR bool watchdogFired := FALSE;
+    VAR bool connected := FALSE;
+    VAR num refusal := 0;
+
+    PROC main()
+        InitServer;
+        WHILE TRUE DO
+            ServeOneFrame;
+        ENDWHILE
+    ENDPROC
+
+    PROC InitServer()
+        VAR pos low;
+        VAR pos high;
+        AliasIO GRIPPER_SIGNAL, doGripper;
+        AliasIO MOTORS_ON_SIGNAL, doMotors;
+        AliasIO ESTOP_SIGNAL, doEstop;
+        ConfL\Off;
+        SingArea\Wrist;
+        low := WORKSPACE_LOW;
+        high := WORKSPACE_HIGH;
+        low.x := low.x - WORLD_ZONE_MARGIN;
+        low.y := low.y - WORLD_ZONE_MARGIN;
+        low.z := low.z - WORLD_ZONE_MARGIN;
+        high.x := high.x + WORLD_ZONE_MARGIN;
+        high.y := high.y + WORLD_ZONE_MARGIN;
+        high.z := high.z + WORLD_ZONE_MARGIN;
+        ! the TCP may not leave the box: the controller stops it even if this program misbehaves
+        WZBoxDef\Outside, shBox, low, high;
+        WZLimSup\Temp, wzBox, shBox;
+        OpenChannel;
+    ENDPROC
+
+    PROC OpenChannel()
+        IF USE_SOCKET THEN
+            SocketCreate serverSocket;
+            SocketBind serverSocket, SERVER_ADDRESS, SERVER_PORT;
+            SocketListen serverSocket;
+            SocketAccept serverSocket, clientSocket\Time:=WAIT_MAX;
+        ELSE
+            Open SERIAL_CHANNEL, serialDev\Bin;
+            ClearIOBuff serialDev;
+        ENDIF
+        connected := TRUE;
+    ENDPROC
+
+    PROC Reconnect()
+        ! the peer went away: hold the robot, then wait for it again
+        HoldRobot;
+        IF USE_SOCKET THEN
+            SocketClose clientSocket;
+            SocketAccept serverSocket, clientSocket\Time:=WAIT_MAX;
+        ENDIF
+        rxLen := 0;
+    ENDPROC
+
+    PROC HoldRobot()
+        StopMove;
+        ClearPath;
+        StartMove;
+        IF status <> S_FAULT status := S_HELD;
+    ENDPROC
+
+    ! ---------------------------------------------------------------- receiving
+    FUNC num ReadByte(num timeout)
+        ! the next byte, or -1 when none came within timeout seconds (the watchdog's cue)
+        VAR byte one{1};
+        IF USE_SOCKET THEN
+            SocketReceive clientSocket\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
+            RETURN one{1};
+        ENDIF
+        RETURN ReadBin(serialDev\Time:=timeout);
+    ERROR
+        IF ERRNO = ERR_DEV_MAXTIME OR ERRNO = ERR_SOCK_TIMEOUT THEN
+            RETURN -1;
+        ELSEIF ERRNO = ERR_SOCK_CLOSED THEN
+            Reconnect;
+            RETURN -1;
+        ENDIF
+        RAISE;
+    ENDFUNC
+
+    PROC ServeOneFrame()
+        ! reads one frame (sync, length, type, seq, payload, crc); any byte arriving later than HEARTBEAT_S
+        ! after the previous one fires the watchdog and restarts the frame
+        VAR num b;
+        VAR num n;
+        b := ReadByte(HEARTBEAT_S);
+        IF b < 0 THEN
+            Watchdog;
+            RETURN;
+        ENDIF
+        IF b <> SYNC RETURN;
+        n := ReadByte(HEARTBEAT_S);
+        IF n < 0 OR n > MAX_PAYLOAD RETURN;
+        rx{1} := n;
+        FOR i FROM 2 TO n + 5 DO
+            b := ReadByte(HEARTBEAT_S);
+            IF b < 0 THEN
+                Watchdog;
+                RETURN;
+            ENDIF
+            rx{i} := b;
+        ENDFOR
+        rxLen := n + 5;
+        ! rx: 1 length, 2 type, 3 seq, 4.. payload, then the CRC (low byte first)
+        IF Crc16Rx(n + 3) <> rx{n + 4} + 256 * rx{n + 5} RETURN;
+        HandleFrame;
+    ENDPROC
+
+    PROC Watchdog()
+        ! while the robot is commanded to move, the PC must send a frame (a STATE request will do) at least every
+        ! HEARTBEAT_S; if it does not, the robot stops and holds, and the next motion command is refused
+        IF status = S_MOVING THEN
+            HoldRobot;
+            watchdogFired := TRUE;
+        ENDIF
+    ENDPROC
+
+    ! ---------------------------------------------------------------- commands
+    PROC HandleFrame()
+        VAR num kind;
+        VAR num seq;
+        kind := rx{2};
+        seq := rx{3};
+        IF seq = lastSeq THEN
+            ! a repeated frame: answer again, never execute again
+            SendTx;
+            RETURN;
+        ENDIF
+        refusal := CheckFrame(kind, rx{1});
+        IF refusal = E_OK THEN
+            TEST kind
+            CASE T_TOOL_STEP:
+                ToolStep;
+            CASE T_JOINTS:
+                JointMove;
+            CASE T_GRIPPER:
+                SetGripper rx{4};
+            CASE T_STOP:
+                HoldRobot;
+            ENDTEST
+        ENDIF
+        lastSeq := seq;
+        BuildReply kind, seq;
+        SendTx;
+    ENDPROC
+
+    FUNC num CheckFrame(num kind, num len)
+        VAR num want := -1;
+        TEST kind
+        CASE T_STATE, T_STOP:
+            want := 0;
+        CASE T_TOOL_STEP:
+            want := 9;
+        CASE T_JOINTS:
+            want := 13;
+        CASE T_GRIPPER:
+            want := 1;
+        DEFAULT:
+            RETURN E_UNKNOWN_TYPE;
+        ENDTEST
+        IF len <> want RETURN E_BAD_LENGTH;
+        IF kind = T_STATE OR kind = T_STOP RETURN E_OK;
+        IF DOutput(doEstop) = 1 THEN
+            status := S_FAULT;
+            RETURN E_ESTOP;
+        ENDIF
+        IF DOutput(doMotors) = 0 THEN
+            status := S_FAULT;
+            RETURN E_MOTORS_OFF;
+        ENDIF
+        IF status = S_FAULT status := S_IDLE;
+        IF watchdogFired THEN
+            ! the PC must learn that the robot was stopped: this command is refused, the next one runs
+            watchdogFired := FALSE;
+            RETURN E_WATCHDOG;
+        ENDIF
+        RETURN E_OK;
+    ENDFUNC
+
+    PROC ToolStep()
+        VAR num dx;
+        VAR num dy;
+        VAR num dz;
+        VAR num rot;
+        VAR robtarget here;
+        VAR robtarget target;
+        VAR jointtarget jNow;
+        VAR jointtarget jTarget;
+        dx := Int16At(4) / 100;
+        dy := Int16At(6) / 100;
+        dz := Int16At(8) / 100;
+        rot := Int16At(10) / 1000;
+        IF Abs(dx) > STEP_POS_MM OR Abs(dy) > STEP_POS_MM OR Abs(dz) > STEP_POS_MM OR Abs(rot) > STEP_ROT_DEG THEN
+            refusal := E_STEP_LIMIT;
+            RETURN;
+        ENDIF
+        here := CRobT(\Tool:=tGripper\WObj:=wobj0);
+        ! translate in the tool frame, then rotate about the approach axis (tool x): pd_ee_delta_tool
+        target := RelTool(here, dx, dy, dz\Rx:=rot);
+        IF NOT InsideBox(target.trans) THEN
+            refusal := E_WORKSPACE;
+            RETURN;
+        ENDIF
+        jNow := CJointT();
+        jTarget := CalcJointT(target, tGripper\WObj:=wobj0);
+        IF refusal <> E_OK RETURN;
+        refusal := CheckJoints(jNow, jTarget);
+        IF refusal <> E_OK RETURN;
+        MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        status := S_MOVING;
+        IF rx{12} <> 2 SetGripper rx{12};
+    ERROR
+        IF ERRNO = ERR_ROBLIMIT THEN
+            refusal := E_JOINT_LIMIT;
+            TRYNEXT;
+        ELSEIF ERRNO = ERR_OUTSIDE_REACH THEN
+            refusal := E_UNREACHABLE;
+            TRYNEXT;
+        ENDIF
+        RAISE;
+    ENDPROC
+
+    PROC JointMove()
+        VAR jointtarget jNow;
+        VAR jointtarget jTarget;
+        VAR robtarget tcp;
+        jNow := CJointT();
+        jTarget := jNow;
+        jTarget.robax.rax_1 := Int16At(4) * 0.02;
+        jTarget.robax.rax_2 := Int16At(6) * 0.02;
+        jTarget.robax.rax_3 := Int16At(8) * 0.02;
+        jTarget.robax.rax_4 := Int16At(10) * 0.02;
+        jTarget.robax.rax_5 := Int16At(12) * 0.02;
+        jTarget.robax.rax_6 := Int16At(14) * 0.02;
+        refusal := CheckJoints(jNow, jTarget);
+        IF refusal <> E_OK RETURN;
+        tcp := CalcRobT(jTarget, tGripper\WObj:=wobj0);
+        IF NOT InsideBox(tcp.trans) THEN
+            refusal := E_WORKSPACE;
+            RETURN;
+        ENDIF
+        MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        status := S_MOVING;
+        IF rx{16} <> 2 SetGripper rx{16};
+    ENDPROC
+
+    FUNC num CheckJoints(jointtarget jNow, jointtarget jTarget)
+        VAR num now{6};
+        VAR num target{6};
+        now := [jNow.robax.rax_1, jNow.robax.rax_2, jNow.robax.rax_3, jNow.robax.rax_4, jNow.robax.rax_5, jNow.robax.rax_6];
+        target := [jTarget.robax.rax_1, jTarget.robax.rax_2, jTarget.robax.rax_3, jTarget.robax.rax_4, jTarget.robax.rax_5,
+            jTarget.robax.rax_6];
+        FOR i FROM 1 TO 6 DO
+            IF target{i} < JOINT_LOW{i} OR target{i} > JOINT_HIGH{i} RETURN E_JOINT_LIMIT;
+            IF Abs(target{i} - now{i}) > JOINT_STEP_DEG{i} RETURN E_JOINT_SPEED;
+        ENDFOR
+        RETURN E_OK;
+    ENDFUNC
+
+    FUNC bool InsideBox(pos p)
+        RETURN p.x >= WORKSPACE_LOW.x AND p.x <= WORKSPACE_HIGH.x AND p.y >= WORKSPACE_LOW.y AND p.y <= WORKSPACE_HIGH.y
+            AND p.z >= WORKSPACE_LOW.z AND p.z <= WORKSPACE_HIGH.z;
+    ENDFUNC
+
+    PROC SetGripper(num open)
+        IF open = 1 THEN
+            SetDO doGripper, 1;
+        ELSE
+            SetDO doGripper, 0;
+        ENDIF
+    ENDPROC
+
+    ! ---------------------------------------------------------------- replying
+    PROC BuildReply(num kind, num seq)
+        ! tx: sync, length 26, type 0x80 + kind, seq, state payload, CRC
+        VAR jointtarget j;
+        VAR robtarget p;
+        VAR num q{4};
+        VAR num big := 1;
+        VAR num sign := 1;
+        VAR num k := 0;
+        j := CJointT();
+        p := CRobT(\Tool:=tGripper\WObj:=wobj0);
+        q := [p.rot.q1, p.rot.q2, p.rot.q3, p.rot.q4];
+        FOR i FROM 2 TO 4 DO
+            IF Abs(q{i}) > Abs(q{big}) big := i;
+        ENDFOR
+        IF q{big} < 0 sign := -1;
+        tx{1} := SYNC;
+        tx{2} := 26;
+        tx{3} := 128 + kind;
+        tx{4} := seq;
+        tx{5} := status + 4 * (big - 1) + 128 * DOutput(doGripper);
+        tx{6} := refusal;
+        PutInt16 7, j.robax.rax_1 / 0.02;
+        PutInt16 9, j.robax.rax_2 / 0.02;
+        PutInt16 11, j.robax.rax_3 / 0.02;
+        PutInt16 13, j.robax.rax_4 / 0.02;
+        PutInt16 15, j.robax.rax_5 / 0.02;
+        PutInt16 17, j.robax.rax_6 / 0.02;
+        PutInt16 19, p.trans.x / 0.05;
+        PutInt16 21, p.trans.y / 0.05;
+        PutInt16 23, p.trans.z / 0.05;
+        FOR i FROM 1 TO 4 DO
+            IF i <> big THEN
+                PutInt16 25 + 2 * k, sign * q{i} * 46339.5;
+                k := k + 1;
+            ENDIF
+        ENDFOR
+        PutCrcTx 26 + 3;
+        txLen := 32;
+    ENDPROC
+
+    PROC SendTx()
+        IF USE_SOCKET THEN
+            SocketSend clientSocket\Data:=tx\NoOfBytes:=txLen;
+        ELSE
+            WriteBin serialDev, tx, txLen;
+        ENDIF
+    ERROR
+        IF ERRNO = ERR_SOCK_CLOSED THEN
+            Reconnect;
+            RETURN;
+        ENDIF
+        RAISE;
+    ENDPROC
+
+    ! ---------------------------------------------------------------- bytes
+    FUNC num Int16At(num i)
+        ! little-endian int16 at rx{i}, rx{i + 1}
+        VAR num v;
+        v := rx{i} + 256 * rx{i + 1};
+        IF v >= 32768 v := v - 65536;
+        RETURN v;
+    ENDFUNC
+
+    PROC PutInt16(num i, num value)
+        VAR num v;
+        v := Round(value);
+        IF v > 32767 v := 32767;
+        IF v < -32768 v := -32768;
+        IF v < 0 v := v + 65536;
+        tx{i} := v MOD 256;
+        tx{i + 1} := v DIV 256;
+    ENDPROC
+
+    FUNC num Crc16Rx(num count)
+        ! CRC-16/CCITT-FALSE of rx{1..count} (length, type, seq, payload)
+        VAR byte hi := 255;
+        VAR byte lo := 255;
+        FOR i FROM 1 TO count DO
+            hi := BitXOr(hi, rx{i});
+            CrcShift8 hi, lo;
+        ENDFOR
+        RETURN 256 * hi + lo;
+    ENDFUNC
+
+    PROC PutCrcTx(num count)
+        ! CRC of tx{2..count + 1}, appended low byte first
+        VAR byte hi := 255;
+        VAR byte lo := 255;
+        FOR i FROM 2 TO count + 1 DO
+            hi := BitXOr(hi, tx{i});
+            CrcShift8 hi, lo;
+        ENDFOR
+        tx{count + 2} := lo;
+        tx{count + 3} := hi;
+    ENDPROC
+
+    PROC CrcShift8(INOUT byte hi, INOUT byte lo)
+        ! eight steps of the CRC register (poly 0x1021) held as two bytes
+        VAR bool carry;
+        FOR k FROM 1 TO 8 DO
+            carry := hi >= 128;
+            hi := BitLSh(hi, 1);
+            IF lo >= 128 hi := BitOr(hi, 1);
+            lo := BitLSh(lo, 1);
+            IF carry THEN
+                hi := BitXOr(hi, 16);
+                lo := BitXOr(lo, 33);
+            ENDIF
+        ENDFOR
+    ENDPROC
+ENDMODULE
