@@ -1,0 +1,201 @@
+"""The IRB 120 behind the controller emulator: what RAPID's motion and kinematics built-ins act on.
+
+Joint state that moves over wall-clock time at ABB's axis speeds, in RAPID's units (mm, degrees, wxyz
+quaternions) and conventions: ``tool0`` is the flange with its z axis out of the flange (at the zero pose it
+points along base +x), a tool's ``tframe`` is given in ``tool0``. Kinematics are the simulator's own
+(``maniskill_irb120.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
+
+Simplifications, said plainly: a MoveL segment is interpolated in joint space (for the 1 cm steps the adapter
+streams the straight-line deviation is below 0.01 mm; long MoveL paths are not straight); configuration data
+(``robconf``) is ignored and IK keeps the current arm branch; acceleration is not modelled (each segment runs
+at constant joint speed); the world zone is checked at each segment's end and on ten points along it.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, matrix_to_quaternion
+from maniskill_irb120.robot_description import urdf_path
+
+# tool0 = flange · R_y(+90°): tool0 z = our flange x (approach), tool0 x = -our flange z
+_R_FLANGE_TOOL0 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
+class MotionError(RuntimeError):
+    """A kinematic failure the RAPID layer turns into its error number (``kind``: reach or joint_limit)."""
+
+    def __init__(self, kind: str, detail: str):
+        super().__init__(detail)
+        self.kind = kind
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    return matrix_to_quaternion(torch.as_tensor(m[None], dtype=torch.float64))[0].numpy()
+
+
+def pose(pos_mm, quat) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = quat_to_matrix(quat), np.asarray(pos_mm, dtype=np.float64) / 1000
+    return t
+
+
+@dataclass
+class Segment:
+    q0: np.ndarray
+    q1: np.ndarray
+    t0: float
+    duration: float
+
+    def at(self, t: float) -> np.ndarray:
+        s = 1.0 if self.duration <= 0 else min(1.0, max(0.0, (t - self.t0) / self.duration))
+        return self.q0 + s * (self.q1 - self.q0)
+
+
+class EmulatedIRB120:
+    """Joint angles in degrees; poses as 4x4 in metres internally, mm + quaternions at the RAPID boundary."""
+
+    def __init__(self, q0_deg, clock=time.monotonic):
+        self.chain = SerialChain(urdf_path(), "link6", dtype=torch.float64)
+        self.ik = SphericalWristIK(self.chain)
+        wide = SerialChain(urdf_path(), "link6", dtype=torch.float64)
+        wide.lower, wide.upper = wide.lower - 100.0, wide.upper + 100.0
+        self.ik_unlimited = SphericalWristIK(wide)  # tells "out of reach" from "breaks a joint limit"
+        self.max_speed = np.degrees(self.chain.velocity.numpy())  # ABB's axis speeds, deg/s
+        self.low, self.high = np.degrees(self.chain.lower.numpy()), np.degrees(self.chain.upper.numpy())
+        self.clock = clock
+        self.lock = threading.Lock()
+        self._q = np.asarray(q0_deg, dtype=np.float64).copy()
+        self.queue: list[Segment] = []
+        self.stopped = False  # StopMove until StartMove
+        self.zone: tuple[np.ndarray, np.ndarray] | None = None  # TCP box (m) the robot may not leave
+        self.zone_tool = np.eye(4)
+        self.zone_violation = False
+
+    # ------------------------------------------------------------------ kinematics (RAPID conventions)
+    def tool0(self, q_deg) -> np.ndarray:
+        f = self.chain.forward_kinematics(torch.as_tensor(np.radians(q_deg))[None])[0].numpy()
+        f[:3, :3] = f[:3, :3] @ _R_FLANGE_TOOL0
+        return f
+
+    def tool_pose(self, q_deg, tframe: np.ndarray) -> np.ndarray:
+        return self.tool0(q_deg) @ tframe
+
+    def solve(self, tool_target: np.ndarray, tframe: np.ndarray, q_ref_deg) -> np.ndarray:
+        """Joint angles (deg) putting the tool at ``tool_target`` on ``q_ref``'s branch, or MotionError."""
+        flange = tool_target @ np.linalg.inv(tframe)
+        flange[:3, :3] = flange[:3, :3] @ _R_FLANGE_TOOL0.T
+        q, ok = self.ik.solve(torch.as_tensor(flange[None]), torch.as_tensor(np.radians(q_ref_deg))[None])
+        if bool(ok[0]):
+            return np.degrees(q[0].numpy())
+        q, ok = self.ik_unlimited.solve(torch.as_tensor(flange[None]), torch.as_tensor(np.radians(q_ref_deg))[None])
+        if bool(ok[0]):
+            raise MotionError(
+                "joint_limit", f"the solution {np.round(np.degrees(q[0].numpy()), 2)} deg breaks a joint limit"
+            )
+        raise MotionError("reach", f"tool position {np.round(tool_target[:3, 3] * 1000, 1)} mm is out of reach")
+
+    # ------------------------------------------------------------------ motion over wall-clock time
+    def joints(self) -> np.ndarray:
+        """Current joint angles (deg), advancing the motion queue to now."""
+        with self.lock:
+            return self._advance(self.clock()).copy()
+
+    def _advance(self, now: float) -> np.ndarray:
+        while self.queue and not self.stopped:
+            seg = self.queue[0]
+            self._q = seg.at(now)
+            if now < seg.t0 + seg.duration:
+                break
+            self.queue.pop(0)
+            if self.queue:
+                self.queue[0].t0 = seg.t0 + seg.duration
+        return self._q
+
+    def busy(self) -> bool:
+        with self.lock:
+            self._advance(self.clock())
+            return bool(self.queue) and not self.stopped
+
+    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0) -> None:
+        """Queue a joint-space segment to ``q_target``: as fast as the slowest axis allows at
+        ``speed_fraction`` of ABB's speeds, and no faster than ``tool_speed_s`` (from the speeddata)."""
+        q1 = np.asarray(q_target_deg, dtype=np.float64)
+        if np.any(q1 < self.low - 1e-9) or np.any(q1 > self.high + 1e-9):
+            raise MotionError("joint_limit", f"joint target {np.round(q1, 2)} deg breaks a joint limit")
+        with self.lock:
+            now = self.clock()
+            q0 = self.queue[-1].q1 if self.queue else self._advance(now).copy()
+            duration = max(float(np.max(np.abs(q1 - q0) / (self.max_speed * speed_fraction))), tool_speed_s)
+            q1 = self._clip_to_zone(q0, q1)
+            start = max(now, self.queue[-1].t0 + self.queue[-1].duration) if self.queue else now
+            self.queue.append(Segment(q0, q1, start, duration))
+
+    def _clip_to_zone(self, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+        """World-zone supervision: the segment ends at its last point inside the box (flagging a violation)."""
+        if self.zone is None:
+            return q1
+        low, high = self.zone
+        last = q0
+        for s in np.linspace(0.1, 1.0, 10):
+            q = q0 + s * (q1 - q0)
+            p = self.tool_pose(q, self.zone_tool)[:3, 3]
+            if np.any(p < low) or np.any(p > high):
+                self.zone_violation = True
+                return last
+            last = q
+        return q1
+
+    def wait_done(self, timeout: float = 10.0) -> None:
+        deadline = self.clock() + timeout
+        while self.busy() and self.clock() < deadline:
+            time.sleep(0.002)
+
+    def stop(self) -> None:
+        """StopMove: freeze where the robot is now."""
+        with self.lock:
+            self._advance(self.clock())
+            self.stopped = True
+
+    def clear_path(self) -> None:
+        with self.lock:
+            self.queue.clear()
+
+    def start(self) -> None:
+        with self.lock:
+            if self.stopped and self.queue:
+                self.queue[0] = Segment(self._q.copy(), self.queue[0].q1, self.clock(), self.queue[0].duration)
+            self.stopped = False
+
+
+def rel_tool(
+    target: np.ndarray, dx_mm: float, dy_mm: float, dz_mm: float, rx: float = 0.0, ry: float = 0.0, rz: float = 0.0
+) -> np.ndarray:
+    """RAPID's RelTool: displaced in the tool frame, then rotated about the tool's x, y, z axes (degrees)."""
+    out = target.copy()
+    out[:3, 3] = target[:3, 3] + target[:3, :3] @ (np.array([dx_mm, dy_mm, dz_mm]) / 1000)
+    for axis, a in ((0, rx), (1, ry), (2, rz)):
+        if a:
+            c, s = math.cos(math.radians(a)), math.sin(math.radians(a))
+            r = np.eye(3)
+            i, j = (axis + 1) % 3, (axis + 2) % 3  # cyclic, so each is a right-handed rotation
+            r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+            out[:3, :3] = out[:3, :3] @ r
+    return out
