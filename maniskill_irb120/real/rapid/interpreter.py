@@ -1,0 +1,384 @@
+"""Parse a RAPID module and execute it: routines, statements, arguments and ERROR-handler recovery.
+
+Error recovery follows RAPID: a :class:`RapidError` raised by the innermost statement of a routine (a builtin, a
+called routine without its own handler, RAISE, DIV by zero ...) runs that routine's ERROR handler at the point
+of failure with ERRNO set. There RETRY re-runs the failing statement (at most ``max_retries`` times, then the
+error goes on to the caller), TRYNEXT goes on after it, RETURN leaves the routine, RAISE hands the error (or a
+new errno) to the caller's handler, and reaching the end of the handler is an implicit RAISE. An error that
+leaves the entry routine becomes :class:`RapidRuntimeError` (errno, routine and line of the failing statement).
+"""
+
+from __future__ import annotations
+
+import threading
+from functools import lru_cache
+from importlib.resources import files
+from typing import Any
+
+from lark import Lark, Tree
+from lark.exceptions import UnexpectedCharacters, UnexpectedInput, UnexpectedToken
+
+from maniskill_irb120.real.rapid.calls import CallsMixin, Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.real.rapid.errors import (
+    ProgramHalt,
+    RapidError,
+    RapidRuntimeError,
+    RapidStopped,
+    RapidSyntaxError,
+    errno_name,
+)
+from maniskill_irb120.real.rapid.expressions import ExpressionsMixin
+from maniskill_irb120.real.rapid.registry import Builtins
+from maniskill_irb120.real.rapid.stdlib import STDLIB, SystemClock, system_data
+from maniskill_irb120.real.rapid.values import Cell, Ref, assign_like, copy_value, default_value, define_record
+
+
+@lru_cache(maxsize=1)
+def _parser() -> Lark:
+    grammar = files("maniskill_irb120.real.rapid").joinpath("grammar.lark").read_text()
+    return Lark(grammar, parser="lalr", propagate_positions=True, maybe_placeholders=True)
+
+
+def parse(source: str) -> Tree:
+    """The lark tree of a RAPID source; :class:`RapidSyntaxError` names line, column and what was expected."""
+    parser = _parser()
+    try:
+        return parser.parse(source)
+    except UnexpectedInput as e:
+        if isinstance(e, UnexpectedToken):
+            got = "end of input" if e.token.type == "$END" else repr(str(e.token))
+            names = e.accepts or e.expected
+        elif isinstance(e, UnexpectedCharacters):
+            got, names = repr(source[e.pos_in_stream]), e.allowed
+        else:
+            got, names = "input", set()
+        expected = sorted({_describe(parser, n) for n in names})
+        more = f" (and {len(expected) - 12} more)" if len(expected) > 12 else ""
+        msg = f"line {e.line}, column {e.column}: unexpected {got}; expected one of {', '.join(expected[:12])}{more}"
+        raise RapidSyntaxError(msg + "\n" + e.get_context(source).rstrip(), e.line, e.column) from None
+
+
+def _describe(parser: Lark, terminal: str) -> str:
+    try:
+        pattern = parser.get_terminal(terminal).pattern
+    except KeyError:
+        return terminal
+    return f'"{pattern.value.upper()}"' if pattern.type == "str" else terminal
+
+
+class Interpreter(CallsMixin, ExpressionsMixin):
+    """Executes a RAPID module. ``builtins`` adds/overrides routines (see :mod:`.registry`)."""
+
+    def __init__(
+        self,
+        source: str,
+        builtins: Builtins | dict[str, Any] | None = None,
+        *,
+        clock: Any = None,
+        max_retries: int = 4,
+        max_statements: int | None = None,
+    ):
+        self.builtins = Builtins()
+        self.builtins.update(STDLIB)
+        if builtins is not None:
+            self.builtins.update(builtins)
+        self.clock = clock or SystemClock()
+        self.max_retries = max_retries
+        self.max_statements = max_statements
+        self.statements = 0  # executed so far (all runs)
+        self.tp_log: list[str] = []  # TPWrite lines
+        self.err_log: list[str] = []  # ErrWrite entries
+        self.connections: dict[int, str] = {}  # CONNECT intno WITH trap (recorded, traps are not run)
+        self.next_errno = 0  # BookErrNo offset
+        self._stop = threading.Event()
+        self._stack: list[Frame] = []
+        self._errno = Cell("ERRNO", 0.0, "CONST")
+        self.system: dict[str, Ref] = {k: Ref(Cell(k, v, "CONST")) for k, v in system_data().items()}
+        self.system["errno"] = Ref(self._errno)
+        self.globals: dict[str, Ref] = {}
+        self.routines: dict[str, Routine] = {}
+        self.module_names: list[str] = []
+        self._load(parse(source))
+
+    # ---- public API ---------------------------------------------------------------------------------
+    @property
+    def errno(self) -> int:
+        """ERRNO: the error number of the most recent error handled."""
+        return int(self._errno.value)
+
+    def run(self, entry: str = "main") -> str:
+        """Run PROC ``entry``; returns 'completed', 'exit' (EXIT) or 'stop' (Stop)."""
+        routine = self.routines.get(entry.lower())
+        if routine is None or routine.kind != "PROC":
+            raise RapidRuntimeError(f"no PROC {entry} in module(s) {', '.join(self.module_names)}")
+        return self._top(lambda: self.call_routine(routine, [], []))[0]
+
+    def call(self, name: str, *args: Any, **options: Any) -> Any:
+        """Call a routine (PROC/FUNC/TRAP or builtin) from Python; a :class:`Ref` argument is passed by reference."""
+        return self._top(lambda: self.call_from_python(name, args, options))[1]
+
+    def get(self, name: str) -> Any:
+        """A copy of module data ``name`` (num -> float, records -> Record, arrays -> list)."""
+        return copy_value(self._global_ref(name).get())
+
+    def set(self, name: str, value: Any) -> None:
+        """Assign module data ``name`` (aggregates as lists, records as Record); CONSTs refuse."""
+        ref = self._global_ref(name)
+        try:
+            ref.set(value)
+        except TypeError as e:
+            raise RapidRuntimeError(f"cannot set {name}: {e}") from None
+
+    def ref(self, name: str) -> Ref:
+        """A live reference to module data (pass to :meth:`call` for INOUT/VAR parameters)."""
+        return self._global_ref(name)
+
+    def request_stop(self) -> None:
+        """Thread-safe: the running program raises :class:`RapidStopped` before its next statement/wait."""
+        self._stop.set()
+
+    @property
+    def stop_event(self) -> threading.Event:
+        """Set by request_stop(); blocking builtins should wait on it (as WaitTime does)."""
+        return self._stop
+
+    def check_stop(self) -> None:
+        if self._stop.is_set():
+            self._stop.clear()
+            raise RapidStopped("stop requested")
+
+    # ---- loading --------------------------------------------------------------------------------------
+    def _load(self, tree: Tree) -> None:
+        frame = Frame(None)
+        self._stack = [frame]
+        try:
+            for module in tree.children:
+                self.module_names.append(str(module.children[0]))
+                for item in module.children[2:]:
+                    if item.data == "record_decl":
+                        define_record(item.children[0], [(f.children[1], f.children[0]) for f in item.children[1:]])
+                    elif item.data == "data_decl":
+                        frame.line = item.meta.line
+                        self.declare(item, frame, self.globals)
+                    else:
+                        routine = Routine.from_tree(item)
+                        if routine.key in self.routines:
+                            raise RapidRuntimeError(f"routine {routine.name} is defined twice", line=routine.line)
+                        self.routines[routine.key] = routine
+        except RapidError as e:
+            raise RapidRuntimeError(f"error initialising module data: {e}", errno=e.errno, line=frame.line) from None
+        finally:
+            self._stack = []
+
+    def declare(self, decl: Tree, frame: Frame, scope: dict[str, Any]) -> None:
+        """Create the variable of a ``data_decl`` (default value, then the initialiser if any) in ``scope``."""
+        _, storage, type_name, name, dims, init = decl.children
+        shape = [self._dim(self.eval(e, frame)) for e in dims.children] if dims is not None else None
+        value = default_value(type_name, shape)
+        if init is not None:
+            try:
+                value = assign_like(value, self.eval(init, frame))
+            except TypeError as e:
+                raise self.fault(f"initialiser of {name}: {e}") from None
+        scope[name.lower()] = Ref(Cell(str(name), value, storage.children[0].upper()))
+
+    def _dim(self, v: Any) -> int:
+        if not isinstance(v, float) or not v.is_integer() or v < 1:
+            raise self.fault(f"array dimension must be a positive integer, got {v!r}")
+        return int(v)
+
+    # ---- names ----------------------------------------------------------------------------------------
+    def lookup(self, name: str, frame: Frame) -> Ref:
+        if name in frame.vars:
+            ref = frame.vars[name]
+            if ref is None:
+                raise RapidError("ERR_NOTPRES", f"optional parameter {name} was not given")
+            return ref
+        ref = self.globals.get(name) or self.system.get(name)
+        if ref is None:
+            raise self.fault(f"undefined name {name}")
+        return ref
+
+    def _global_ref(self, name: str) -> Ref:
+        ref = self.globals.get(name.lower()) or self.system.get(name.lower())
+        if ref is None:
+            raise RapidRuntimeError(f"no module data named {name}")
+        return ref
+
+    def fault(self, message: str) -> RapidRuntimeError:
+        """A fatal error located at the current statement (callers ``raise self.fault(...)``)."""
+        frame = self._stack[-1] if self._stack else None
+        return RapidRuntimeError(message, routine=frame.name if frame else None, line=frame.line if frame else None)
+
+    def store(self, ref: Ref, value: Any) -> None:
+        try:
+            ref.set(value)
+        except TypeError as e:
+            raise self.fault(f"cannot assign to {ref.name}: {e}") from None
+
+    # ---- execution ------------------------------------------------------------------------------------
+    def _top(self, fn: Any) -> tuple[str, Any]:
+        self._stack = []
+        try:
+            return "completed", fn()
+        except ProgramHalt as h:
+            return h.kind, None
+        except (RapidError, Propagate) as e:
+            err = e.error if isinstance(e, Propagate) else e
+            detail = f": {err.message}" if err.message else ""
+            msg = f"unhandled RAPID error {err.errno} ({errno_name(err.errno)}){detail}"
+            raise RapidRuntimeError(msg, errno=err.errno, routine=err.routine, line=err.line) from None
+        except (Retry, TryNext, Return) as e:  # pragma: no cover - caught in routines
+            raise RapidRuntimeError(f"misplaced {type(e).__name__.upper()}") from None
+        finally:
+            self._stack = []
+
+    def tick(self) -> None:
+        """Called before every statement: honours request_stop() and the statement budget."""
+        self.check_stop()
+        self.statements += 1
+        if self.max_statements is not None and self.statements > self.max_statements:
+            raise RapidStopped(f"statement budget of {self.max_statements} exhausted")
+
+    def block(self, stmts: Tree | None, frame: Frame) -> None:
+        if stmts is not None:
+            for st in stmts.children:
+                self.execute(st, frame)
+
+    def execute(self, st: Tree, frame: Frame) -> None:
+        """Run one statement; a RapidError from it enters the routine's ERROR handler (RETRY/TRYNEXT here)."""
+        retries = 0
+        while True:
+            frame.line = st.meta.line
+            self.tick()
+            try:
+                getattr(self, "_s_" + st.data)(st, frame)
+                return
+            except RapidError as err:
+                if err.line is None:
+                    err.routine, err.line = frame.name, frame.line
+                routine = frame.routine
+                if frame.in_handler or routine is None or routine.handler is None or not self._handles(routine, err):
+                    raise
+                if self._run_handler(frame, err) == "trynext":
+                    return
+                retries += 1
+                if retries > self.max_retries:
+                    raise Propagate(err) from None
+
+    def _handles(self, routine: Routine, err: RapidError) -> bool:
+        if routine.handler_filter is None:
+            return True
+        return any(self.lookup(n.lower(), Frame(None)).get() == err.errno for n in routine.handler_filter)
+
+    def _run_handler(self, frame: Frame, err: RapidError) -> str:
+        frame.in_handler, frame.error = True, err
+        self._errno.value = float(err.errno)
+        line = frame.line
+        try:
+            self.block(frame.routine.handler, frame)
+        except Retry:
+            return "retry"
+        except TryNext:
+            return "trynext"
+        except RapidError as inner:  # an error inside the handler goes to the caller
+            raise Propagate(inner) from None
+        finally:
+            frame.in_handler, frame.error, frame.line = False, None, line
+        raise Propagate(err)  # end of handler reached: implicit RAISE
+
+    def _s_assign(self, st: Tree, frame: Frame) -> None:
+        target, expr = st.children
+        self.store(self.resolve(target, frame), self.eval(expr, frame))
+
+    def _s_proc_call(self, st: Tree, frame: Frame) -> None:
+        self.call_statement(st, frame)
+
+    def _s_if_stmt(self, st: Tree, frame: Frame) -> None:
+        cond, body, *rest = st.children
+        if self.condition(cond, frame):
+            return self.block(body, frame)
+        for part in rest:
+            if part is None:
+                continue
+            if part.data == "elseif":
+                if self.condition(part.children[0], frame):
+                    return self.block(part.children[1], frame)
+            else:
+                return self.block(part.children[0], frame)
+
+    def _s_compact_if(self, st: Tree, frame: Frame) -> None:
+        if self.condition(st.children[0], frame):
+            self.execute(st.children[1], frame)
+
+    def _s_while_stmt(self, st: Tree, frame: Frame) -> None:
+        while self.condition(st.children[0], frame):
+            self.block(st.children[1], frame)
+            frame.line = st.meta.line
+
+    def _s_for_stmt(self, st: Tree, frame: Frame) -> None:
+        name, start, stop, step, body = st.children
+        a, b = self.eval(start, frame), self.eval(stop, frame)
+        s = self.eval(step, frame) if step is not None else (1.0 if a <= b else -1.0)
+        if not all(isinstance(v, float) for v in (a, b, s)) or s == 0:
+            raise self.fault("FOR needs num FROM/TO values and a non-zero STEP")
+        key, cell = name.lower(), Cell(str(name), a, "FOR")
+        saved = frame.vars.get(key, _MISSING)
+        frame.vars[key] = Ref(cell)
+        try:
+            while (cell.value <= b) if s > 0 else (cell.value >= b):
+                self.block(body, frame)
+                cell.value += s
+        finally:
+            if saved is _MISSING:
+                del frame.vars[key]
+            else:
+                frame.vars[key] = saved
+
+    def _s_test_stmt(self, st: Tree, frame: Frame) -> None:
+        value, *cases = st.children
+        v = self.eval(value, frame)
+        for case in cases:
+            if case is None:
+                continue
+            if case.data == "test_default":
+                return self.block(case.children[0], frame)
+            if any(self._compare(v, "=", self.eval(e, frame)) for e in case.children[:-1]):
+                return self.block(case.children[-1], frame)
+
+    def _s_return_stmt(self, st: Tree, frame: Frame) -> None:
+        expr = st.children[0]
+        raise Return(copy_value(self.eval(expr, frame)) if expr is not None else None)
+
+    def _s_raise_stmt(self, st: Tree, frame: Frame) -> None:
+        expr = st.children[0]
+        if expr is None:
+            if not frame.in_handler:
+                raise self.fault("RAISE without an error number is only allowed in an ERROR handler")
+            raise Propagate(frame.error)
+        errno = self.eval(expr, frame)
+        if not isinstance(errno, float) or not errno.is_integer():
+            raise self.fault(f"RAISE needs an integer errnum, got {errno!r}")
+        err = RapidError(int(errno), "raised by RAISE")
+        err.routine, err.line = frame.name, frame.line
+        raise Propagate(err) if frame.in_handler else err
+
+    def _s_retry_stmt(self, st: Tree, frame: Frame) -> None:
+        if not frame.in_handler:
+            raise self.fault("RETRY outside an ERROR handler")
+        raise Retry()
+
+    def _s_trynext_stmt(self, st: Tree, frame: Frame) -> None:
+        if not frame.in_handler:
+            raise self.fault("TRYNEXT outside an ERROR handler")
+        raise TryNext()
+
+    def _s_exit_stmt(self, st: Tree, frame: Frame) -> None:
+        raise ProgramHalt("exit")
+
+    def _s_connect_stmt(self, st: Tree, frame: Frame) -> None:
+        ref = self.resolve(st.children[0], frame)
+        self.connections[id(ref.cell)] = str(st.children[1])
+
+
+_MISSING = object()
