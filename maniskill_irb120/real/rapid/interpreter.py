@@ -36,7 +36,7 @@ from maniskill_irb120.real.rapid.values import Cell, Ref, assign_like, copy_valu
 @lru_cache(maxsize=1)
 def _parser() -> Lark:
     grammar = files("maniskill_irb120.real.rapid").joinpath("grammar.lark").read_text()
-    return Lark(grammar, parser="lalr", propagate_positions=True, maybe_placeholders=True)
+    return Lark(grammar, parser="lalr", lexer="basic", propagate_positions=True, maybe_placeholders=True)
 
 
 def parse(source: str) -> Tree:
