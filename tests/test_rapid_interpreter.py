@@ -19,6 +19,7 @@ from maniskill_irb120.real.rapid import (
     RapidSyntaxError,
     Record,
     Ref,
+    make_value,
 )
 
 
@@ -595,3 +596,103 @@ def test_ref_gives_python_access_to_a_component():
     ref = Ref(interp.ref("p").cell, ("trans", "x"))
     ref.value = 7
     assert interp.get("p").trans.x == 7.0
+
+
+def test_waituntil_polls_with_the_clock_and_times_out():
+    clock = ManualClock()
+    ready_at = 0.35
+
+    def ready() -> bool:
+        return clock.now() >= ready_at
+
+    interp = run(
+        r"""WaitUntil Ready() \PollRate:=0.1;
+        WaitUntil FALSE \MaxTime:=1 \TimeFlag:=late;
+        WaitUntil FALSE \MaxTime:=0.5;
+        ERROR
+          IF ERRNO = ERR_WAIT_MAXTIME s := "timed out";
+          RETURN;""",
+        data="VAR bool late; VAR string s;",
+        builtins={"Ready": ready},
+        clock=clock,
+    )
+    assert clock.sleeps[:4] == [0.1] * 4 and interp.get("late") is True and interp.get("s") == "timed out"
+
+
+SERVER = r"""
+MODULE SerialServer
+  ! command frames: USINT cmd, Float4 value; reply: USINT status
+  VAR iodev com;
+  VAR rawbytes buf;
+  VAR num cmd;
+  VAR num value;
+  VAR num served;
+  VAR num timeouts;
+  VAR jointtarget jt;
+
+  PROC main()
+    Open "COM1:", com \Bin;
+    WHILE TRUE DO
+      ClearRawBytes buf;
+      ReadRawBytes com, buf, 5 \Time:=0.05;
+      UnpackRawBytes buf, 1, cmd \IntX:=USINT;
+      UnpackRawBytes buf, 2, value \Float4;
+      TEST cmd
+      CASE 1:
+        jt := CJointT();
+        jt.robax.rax_1 := value;
+        MoveAbsJ jt, v100, fine, tool0;
+        Reply 0;
+      CASE 2:
+        EXIT;
+      DEFAULT:
+        Reply 1;
+      ENDTEST
+      Incr served;
+    ENDWHILE
+  ERROR
+    IF ERRNO = ERR_DEV_MAXTIME THEN
+      Incr timeouts;
+      RETRY;
+    ENDIF
+    RAISE;
+  ENDPROC
+
+  PROC Reply(num status)
+    ClearRawBytes buf;
+    PackRawBytes status, buf, 1 \IntX:=USINT;
+    WriteRawBytes com, buf;
+  ENDPROC
+ENDMODULE
+"""
+
+
+def test_a_serial_server_module_runs_against_emulated_builtins():
+    incoming = [None, None, struct.pack("<Bf", 1, 30.0), struct.pack("<Bf", 7, 0.0), None, struct.pack("<Bf", 2, 0)]
+    sent, moves, joints = [], [], [0.0] * 6
+    reg = Builtins()
+
+    @reg.register()
+    def Open(name, dev, Bin=False):  # noqa: N802,N803 - RAPID names
+        dev.value = {"port": name, "binary": Bin}
+
+    @reg.register()
+    def ReadRawBytes(dev, raw, count, Time=None):  # noqa: N802,N803
+        frame = incoming.pop(0)
+        if frame is None:
+            raise RapidError("ERR_DEV_MAXTIME")
+        raw.write(1, frame[: int(count)])
+
+    reg.add("WriteRawBytes", lambda dev, raw: sent.append(bytes(raw)))
+    reg.add("CJointT", lambda: make_value("jointtarget", [joints, [9e9] * 6]))
+
+    @reg.register()
+    def MoveAbsJ(target, speed, zone, tool, **options):  # noqa: N802
+        moves.append((target.robax.to_list(), speed.v_tcp, zone.finep, options))
+        joints[:] = target.robax.to_list()
+
+    interp = Interpreter(SERVER, reg)
+    assert interp.run() == "exit"
+    assert interp.get("com").value == {"port": "COM1:", "binary": True}
+    assert moves == [([30.0, 0, 0, 0, 0, 0], 100, True, {})] and sent == [b"\x00", b"\x01"]
+    assert interp.get("served") == 2 and interp.get("timeouts") == 3 and incoming == []

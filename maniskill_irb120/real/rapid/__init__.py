@@ -11,10 +11,11 @@ from maniskill_irb120.real.rapid.errors import (
     RapidStopped,
     RapidSyntaxError,
 )
-from maniskill_irb120.real.rapid.interpreter import Interpreter, parse
+from maniskill_irb120.real.rapid.interpreter import Interpreter
+from maniskill_irb120.real.rapid.parser import parse
 from maniskill_irb120.real.rapid.registry import Builtin, Builtins
 from maniskill_irb120.real.rapid.stdlib import ManualClock, SystemClock
-from maniskill_irb120.real.rapid.values import ClockVar, Opaque, RawBytes, Record, Ref, define_record
+from maniskill_irb120.real.rapid.values import ClockVar, Opaque, RawBytes, Record, Ref, define_record, make_value
 
 __all__ = [
     "ERROR_CODES",
@@ -33,5 +34,6 @@ __all__ = [
     "Ref",
     "SystemClock",
     "define_record",
+    "make_value",
     "parse",
 ]

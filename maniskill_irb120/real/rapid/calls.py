@@ -188,9 +188,12 @@ class CallsMixin:
             self.call_routine(routine, *self.split_args(args, frame))
             return
         builtin = self.builtins.get(name)
-        if builtin is None:
+        if builtin is not None:
+            self.call_builtin(builtin, *self.split_args(args, frame))
+        elif name.lower() == "waituntil":  # its condition is re-evaluated, so it cannot be an ordinary builtin
+            self.wait_until(*self.split_args(args, frame))
+        else:
             raise self.fault(f"unknown procedure {name}")
-        self.call_builtin(builtin, *self.split_args(args, frame))
 
     def call_function(self: Interpreter, t: Tree, frame: Frame) -> Any:
         name, args = t.children

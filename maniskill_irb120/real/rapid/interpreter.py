@@ -11,12 +11,9 @@ leaves the entry routine becomes :class:`RapidRuntimeError` (errno, routine and 
 from __future__ import annotations
 
 import threading
-from functools import lru_cache
-from importlib.resources import files
 from typing import Any
 
-from lark import Lark, Tree
-from lark.exceptions import UnexpectedCharacters, UnexpectedInput, UnexpectedToken
+from lark import Tree
 
 from maniskill_irb120.real.rapid.calls import CallsMixin, Frame, Propagate, Retry, Return, Routine, TryNext
 from maniskill_irb120.real.rapid.errors import (
@@ -24,46 +21,13 @@ from maniskill_irb120.real.rapid.errors import (
     RapidError,
     RapidRuntimeError,
     RapidStopped,
-    RapidSyntaxError,
     errno_name,
 )
 from maniskill_irb120.real.rapid.expressions import ExpressionsMixin
+from maniskill_irb120.real.rapid.parser import parse
 from maniskill_irb120.real.rapid.registry import Builtins
 from maniskill_irb120.real.rapid.stdlib import STDLIB, SystemClock, system_data
 from maniskill_irb120.real.rapid.values import Cell, Ref, assign_like, copy_value, default_value, define_record
-
-
-@lru_cache(maxsize=1)
-def _parser() -> Lark:
-    grammar = files("maniskill_irb120.real.rapid").joinpath("grammar.lark").read_text()
-    return Lark(grammar, parser="lalr", lexer="basic", propagate_positions=True, maybe_placeholders=True)
-
-
-def parse(source: str) -> Tree:
-    """The lark tree of a RAPID source; :class:`RapidSyntaxError` names line, column and what was expected."""
-    parser = _parser()
-    try:
-        return parser.parse(source)
-    except UnexpectedInput as e:
-        if isinstance(e, UnexpectedToken):
-            got = "end of input" if e.token.type == "$END" else repr(str(e.token))
-            names = e.accepts or e.expected
-        elif isinstance(e, UnexpectedCharacters):
-            got, names = repr(source[e.pos_in_stream]), e.allowed
-        else:
-            got, names = "input", set()
-        expected = sorted({_describe(parser, n) for n in names})
-        more = f" (and {len(expected) - 12} more)" if len(expected) > 12 else ""
-        msg = f"line {e.line}, column {e.column}: unexpected {got}; expected one of {', '.join(expected[:12])}{more}"
-        raise RapidSyntaxError(msg + "\n" + e.get_context(source).rstrip(), e.line, e.column) from None
-
-
-def _describe(parser: Lark, terminal: str) -> str:
-    try:
-        pattern = parser.get_terminal(terminal).pattern
-    except KeyError:
-        return terminal
-    return f'"{pattern.value.upper()}"' if pattern.type == "str" else terminal
 
 
 class Interpreter(CallsMixin, ExpressionsMixin):
@@ -218,7 +182,7 @@ class Interpreter(CallsMixin, ExpressionsMixin):
 
     # ---- execution ------------------------------------------------------------------------------------
     def _top(self, fn: Any) -> tuple[str, Any]:
-        self._stack = []
+        saved, self._stack = self._stack, []  # saved: call() may be re-entered from a builtin
         try:
             return "completed", fn()
         except ProgramHalt as h:
@@ -231,7 +195,7 @@ class Interpreter(CallsMixin, ExpressionsMixin):
         except (Retry, TryNext, Return) as e:  # pragma: no cover - caught in routines
             raise RapidRuntimeError(f"misplaced {type(e).__name__.upper()}") from None
         finally:
-            self._stack = []
+            self._stack = saved
 
     def tick(self) -> None:
         """Called before every statement: honours request_stop() and the statement budget."""
@@ -265,6 +229,26 @@ class Interpreter(CallsMixin, ExpressionsMixin):
                 retries += 1
                 if retries > self.max_retries:
                     raise Propagate(err) from None
+
+    def wait_until(self, positional: list[Any], options: list[tuple[str, Any]]) -> None:
+        """``WaitUntil [\\InPos,] cond [\\MaxTime:=s] [\\TimeFlag:=flag] [\\PollRate:=s]``, polling the condition."""
+        if len(positional) != 1:
+            raise self.fault("WaitUntil takes one condition")
+        opts = {name.lower(): arg for name, arg in options}
+        max_time = opts["maxtime"].value() if opts.get("maxtime") else None
+        poll = opts["pollrate"].value() if opts.get("pollrate") else 0.1
+        flag = opts["timeflag"].ref("\\TimeFlag") if opts.get("timeflag") else None
+        if flag is not None:
+            self.store(flag, False)
+        start = self.clock.now()
+        while not self.condition(positional[0].tree, positional[0].frame):
+            if max_time is not None and self.clock.now() - start >= max_time:
+                if flag is None:
+                    raise RapidError("ERR_WAIT_MAXTIME", f"WaitUntil: condition still false after {max_time} s")
+                self.store(flag, True)
+                return
+            self.clock.sleep(poll, self._stop)
+            self.check_stop()
 
     def _handles(self, routine: Routine, err: RapidError) -> bool:
         if routine.handler_filter is None:

@@ -178,6 +178,12 @@ def default_value(type_name: str, dims: list[int] | None = None) -> Any:
     return Opaque(t)
 
 
+def make_value(type_name: str, init: Any = None, dims: list[int] | None = None) -> Any:
+    """A RAPID value of ``type_name`` (e.g. for a builtin to return): defaults, then the aggregate ``init``."""
+    value = default_value(type_name, dims)
+    return value if init is None else assign_like(value, init)
+
+
 def copy_value(v: Any) -> Any:
     """Copy a value type (records, arrays); non-value objects keep their identity."""
     if isinstance(v, Record):
