@@ -105,15 +105,16 @@ ROBTARGET = "[[100, 200, 300], [0, 0, 1, 0], [0, -1, 0, 1], [9E9, 9E9, 9E9, 9E9,
 
 def test_records_aggregates_fields_and_value_copies():
     interp = run(
-        "p2 := p1;\n p2.trans.x := 5;\n p2.rot := [1, 0, 0, 0];\n x := p1.trans.z + p2.trans.x;",
-        data=f"VAR robtarget p1 := {ROBTARGET};\nVAR robtarget p2;\nVAR num x;",
+        "p2 := p1;\n p2.trans.x := 5;\n p2.rot := [1, 0, 0, 0];\n x := p1.trans.z + p2.trans.x;\n"
+        "same := p1.trans = [100, 200, 300] AND p2 <> p1;",
+        data=f"VAR robtarget p1 := {ROBTARGET};\nVAR robtarget p2;\nVAR num x;\nVAR bool same;",
     )
     p1, p2 = interp.get("p1"), interp.get("p2")
     assert isinstance(p1, Record) and p1.type == "robtarget"
     assert p1.trans.x == 100 and p1["trans"]["y"] == 200 and p1.robconf.cf4 == -1 and p1.extax.eax_a == 9e9
     assert p2.trans.x == 5 and p2.rot.to_list() == [1, 0, 0, 0]  # the copy changed, the original did not
     assert p1.rot.to_list() == [0, 0, 1, 0]
-    assert interp.get("x") == 305
+    assert interp.get("x") == 305 and interp.get("same") is True
     assert p1.to_python()["trans"] == {"x": 100, "y": 200, "z": 300}
 
 

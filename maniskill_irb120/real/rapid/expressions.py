@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 from lark import Tree
 
 from maniskill_irb120.real.rapid.errors import RapidError, RapidRuntimeError
-from maniskill_irb120.real.rapid.values import Record, Ref, copy_value, type_of
+from maniskill_irb120.real.rapid.values import Record, Ref, assign_like, copy_value, type_of
 
 if TYPE_CHECKING:
     from maniskill_irb120.real.rapid.interpreter import Frame
@@ -71,8 +71,6 @@ class ExpressionsMixin:
             raise self.fault(f"cannot negate a {type_of(v)}")
         if kind == "compare":
             return self._compare(self.eval(t.children[0], frame), str(t.children[1]), self.eval(t.children[2], frame))
-        if kind == "unary":  # unary plus
-            return self.eval(t.children[0], frame)
         a, b = self.eval(t.children[0], frame), self.eval(t.children[1], frame)
         return self._arith(kind, a, b)
 
@@ -95,6 +93,13 @@ class ExpressionsMixin:
 
     def _compare(self, a: Any, op: str, b: Any) -> bool:
         if op in ("=", "<>"):
+            if isinstance(b, Record) and isinstance(a, list):
+                a, b = b, a
+            if isinstance(a, Record) and isinstance(b, list):  # record = aggregate: compare in the record's shape
+                try:
+                    b = assign_like(a, b)
+                except TypeError:
+                    pass
             if type_of(a) != type_of(b):
                 raise self.fault(f"cannot compare a {type_of(a)} with a {type_of(b)}")
             return (a == b) == (op == "=")

@@ -303,9 +303,11 @@ class Interpreter(CallsMixin, ExpressionsMixin):
     def _s_for_stmt(self, st: Tree, frame: Frame) -> None:
         name, start, stop, step, body = st.children
         a, b = self.eval(start, frame), self.eval(stop, frame)
-        s = self.eval(step, frame) if step is not None else (1.0 if a <= b else -1.0)
-        if not all(isinstance(v, float) for v in (a, b, s)) or s == 0:
+        s = self.eval(step, frame) if step is not None else 0.0
+        if not all(isinstance(v, float) for v in (a, b, s)) or (step is not None and s == 0):
             raise self.fault("FOR needs num FROM/TO values and a non-zero STEP")
+        if step is None:  # without STEP, RAPID counts towards TO in steps of 1
+            s = 1.0 if a <= b else -1.0
         key, cell = name.lower(), Cell(str(name), a, "FOR")
         saved = frame.vars.get(key, _MISSING)
         frame.vars[key] = Ref(cell)

@@ -257,6 +257,8 @@ def format_value(v: Any, nested: bool = False) -> str:
     if isinstance(v, bool):
         return "TRUE" if v else "FALSE"
     if isinstance(v, float):
+        if v.is_integer() and abs(v) < 1e9:  # counters and indices print in full
+            return str(int(v))
         return f"{v:.6g}".upper().replace("E+0", "E+").replace("E-0", "E-")
     if isinstance(v, str):
         return '"' + v + '"' if nested else v
