@@ -125,6 +125,29 @@ def test_record_defaults_and_aggregate_size_check():
         run("p := [1, 2, 3];", data="VAR orient p;")
 
 
+def test_user_records():
+    src = """MODULE M
+    RECORD cmdframe
+      num id;
+      pos target;
+      string tag;
+    ENDRECORD
+    VAR cmdframe frames{2};
+    PROC main()
+      frames{2} := [7, [1, 2, 3], "go"];
+      frames{1}.target.z := frames{2}.target.y * 10;
+    ENDPROC
+    ENDMODULE"""
+    interp = Interpreter(src)
+    interp.run()
+    assert [f.to_python() for f in interp.get("frames")] == [
+        {"id": 0, "target": {"x": 0, "y": 0, "z": 20}, "tag": ""},
+        {"id": 7, "target": {"x": 1, "y": 2, "z": 3}, "tag": "go"},
+    ]
+    with pytest.raises(RapidRuntimeError, match="predefined"):
+        Interpreter("MODULE M RECORD pos num a; ENDRECORD ENDMODULE")
+
+
 def test_arrays_are_one_based_and_bounds_checked():
     interp = run(
         "FOR i FROM 1 TO 3 DO a{i} := i * i; ENDFOR\n m{2, 3} := 7;\n n := Dim(a, 1) + Dim(m, 2) + a{3};",

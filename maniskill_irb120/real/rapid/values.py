@@ -41,8 +41,16 @@ RECORD_TYPES: dict[str, list[tuple[str, str, Any]]] = {
 }
 
 
+_PREDEFINED = frozenset(RECORD_TYPES)
+
+
 def define_record(name: str, fields: list[tuple[str, str]]) -> None:
-    """Register a record type (a RAPID ``RECORD`` declaration, or one an emulator wants to expose)."""
+    """Register a record type (a RAPID ``RECORD`` declaration, or one an emulator wants to expose).
+
+    The table is process-wide (as RAPID's installed types are controller-wide); predefined types stay as they are.
+    """
+    if name.lower() in _PREDEFINED:
+        raise ValueError(f"{name} is a predefined type")
     RECORD_TYPES[name.lower()] = [(f.lower(), t.lower(), None) for f, t in fields]
 
 
