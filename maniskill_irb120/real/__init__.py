@@ -1,1 +1,3 @@
-"""The real-robot side: the wire protocol to our RAPID server on an ABB IRC5 (and, to come, its client)."""
+"""The real-robot side (ABB IRC5): wire protocol, client, safety envelope, emulated robot, RAPID interpreter.
+
+Submodules are imported on demand, so importing this package stays light."""

@@ -1,0 +1,39 @@
+"""A RAPID-subset interpreter (ABB IRC5 robot language) so the controller-side module can run in CI without a robot.
+
+``Interpreter(source, builtins).run("main")`` executes a module; robot built-ins (MoveL, CRobT, serial and socket
+I/O ...) are Python callables registered in a :class:`Builtins` registry. See ``docs/rapid_subset.md``.
+"""
+
+from maniskill_irb120.real.rapid.errors import (
+    ERROR_CODES,
+    RapidError,
+    RapidRuntimeError,
+    RapidStopped,
+    RapidSyntaxError,
+)
+from maniskill_irb120.real.rapid.interpreter import Interpreter
+from maniskill_irb120.real.rapid.parser import parse
+from maniskill_irb120.real.rapid.registry import Builtin, Builtins
+from maniskill_irb120.real.rapid.stdlib import ManualClock, SystemClock
+from maniskill_irb120.real.rapid.values import ClockVar, Opaque, RawBytes, Record, Ref, define_record, make_value
+
+__all__ = [
+    "ERROR_CODES",
+    "Builtin",
+    "Builtins",
+    "ClockVar",
+    "Interpreter",
+    "ManualClock",
+    "Opaque",
+    "RapidError",
+    "RapidRuntimeError",
+    "RapidStopped",
+    "RapidSyntaxError",
+    "RawBytes",
+    "Record",
+    "Ref",
+    "SystemClock",
+    "define_record",
+    "make_value",
+    "parse",
+]
