@@ -68,7 +68,16 @@ def expert(
     return 0
 
 
-COMMANDS = {"doctor": doctor, "collect-demos": collect_demos, "expert": expert}
+def emulator(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None) -> int:
+    """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
+    emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair).
+    Prints the URL to connect to as its first line; Ctrl-C stops it."""
+    from maniskill_irb120.real.emulator import main as emulator_main
+
+    return emulator_main(listen, rapid)
+
+
+COMMANDS = {"doctor": doctor, "collect-demos": collect_demos, "expert": expert, "emulator": emulator}
 
 
 def main(argv: list[str] | None = None) -> int:

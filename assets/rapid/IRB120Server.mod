@@ -242,16 +242,15 @@ MODULE IRB120Server
             RETURN E_UNKNOWN_TYPE;
         ENDTEST
         IF len <> want RETURN E_BAD_LENGTH;
+        ! a fault lasts as long as its cause: every frame reports it, motion commands are refused
+        IF DOutput(doEstop) = 1 OR DOutput(doMotors) = 0 THEN
+            status := S_FAULT;
+        ELSEIF status = S_FAULT THEN
+            status := S_IDLE;
+        ENDIF
         IF kind = T_STATE OR kind = T_STOP RETURN E_OK;
-        IF DOutput(doEstop) = 1 THEN
-            status := S_FAULT;
-            RETURN E_ESTOP;
-        ENDIF
-        IF DOutput(doMotors) = 0 THEN
-            status := S_FAULT;
-            RETURN E_MOTORS_OFF;
-        ENDIF
-        IF status = S_FAULT status := S_IDLE;
+        IF DOutput(doEstop) = 1 RETURN E_ESTOP;
+        IF DOutput(doMotors) = 0 RETURN E_MOTORS_OFF;
         IF watchdogFired THEN
             ! the PC must learn that the robot was stopped: this command is refused, the next one runs
             watchdogFired := FALSE;

@@ -331,6 +331,7 @@ def system_data() -> dict[str, Any]:
     data["tool0"] = assign_like(default_value("tooldata"), [True, _POSE0, _LOAD0])
     data["wobj0"] = assign_like(default_value("wobjdata"), [False, True, "", _POSE0, _POSE0])
     data["pi"] = math.pi
+    data["wait_max"] = 8388608.0  # ABB's "wait forever" \Time value
     data.update({k.lower(): float(v) for k, v in ERROR_CODES.items()})
     data.update({k.lower(): float(v) for k, v in INTX.items()})
     return data

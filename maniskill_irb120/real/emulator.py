@@ -1,0 +1,285 @@
+"""Controller emulator: executes our RAPID server module (the file users load onto the IRC5) with our RAPID
+interpreter, on an emulated IRB 120, serving a pty (serial) or a loopback TCP socket. The module is the code
+under test; the built-ins here are what an IRC5 provides: kinematics (CRobT, CJointT, CalcJointT, CalcRobT,
+RelTool), motion over wall-clock time (MoveL, MoveAbsJ, StopMove, ClearPath, StartMove), world zones, digital
+outputs, serial and socket I/O.
+
+    maniskill-irb120 emulator --listen tcp://127.0.0.1:0      # first line printed: the URL to connect to
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import re
+import select
+import socket
+import threading
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from maniskill_irb120.agents.irb120 import IRB120Metalwork
+from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, matrix_to_quat, pose, rel_tool
+from maniskill_irb120.real.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
+
+REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # where the sim's episodes start
+
+
+def shipped_module() -> Path:
+    return Path(str(resources.files("maniskill_irb120.assets").joinpath("rapid", "IRB120Server.mod")))
+
+
+def _pose_of(rt) -> np.ndarray:
+    return pose([rt.trans.x, rt.trans.y, rt.trans.z], [rt.rot.q1, rt.rot.q2, rt.rot.q3, rt.rot.q4])
+
+
+def _tframe(tool) -> np.ndarray:
+    f = tool.tframe
+    return pose([f.trans.x, f.trans.y, f.trans.z], [f.rot.q1, f.rot.q2, f.rot.q3, f.rot.q4])
+
+
+def _robtarget(t: np.ndarray):
+    return make_value("robtarget", [list(t[:3, 3] * 1000), list(matrix_to_quat(t[:3, :3])), [0, 0, 0, 0], [9e9] * 6])
+
+
+def _joints(jt) -> np.ndarray:
+    r = jt.robax
+    return np.array([r.rax_1, r.rax_2, r.rax_3, r.rax_4, r.rax_5, r.rax_6], dtype=np.float64)
+
+
+class Channel:
+    """The controller's end of the link: a pty master (serial) or an accepted TCP connection."""
+
+    def __init__(self) -> None:
+        self.fd: int | None = None
+        self.conn: socket.socket | None = None
+        self.buf = bytearray()
+
+    def read_byte(self, timeout: float) -> int | None:
+        if not self.buf:
+            src = self.fd if self.conn is None else self.conn
+            if src is None or not select.select([src], [], [], max(0.0, timeout))[0]:
+                return None
+            data = os.read(self.fd, 256) if self.conn is None else self.conn.recv(256)
+            if not data:
+                raise EOFError("peer closed")
+            self.buf += data
+        return self.buf.pop(0)
+
+    def write(self, data: bytes) -> None:
+        if self.conn is None:
+            os.write(self.fd, data)
+        else:
+            self.conn.sendall(data)
+
+
+class ControllerEmulator:
+    """Runs ``rapid`` (default: the shipped module) on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1)."""
+
+    def __init__(self, channel: str = "serial", rapid: str | Path | None = None, port: int = 0, q0_deg=REST_DEG):
+        if channel not in ("serial", "tcp"):
+            raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
+        self.channel_kind, self.port = channel, port
+        source = Path(rapid or shipped_module()).read_text()
+        # choose the channel the way an integrator does: the module's one constant
+        source, n = re.subn(
+            r"(CONST\s+bool\s+USE_SOCKET\s*:=\s*)(TRUE|FALSE)",
+            rf"\g<1>{str(channel == 'tcp').upper()}",
+            source,
+            flags=re.IGNORECASE,
+        )
+        if n != 1:
+            raise ValueError("the RAPID module must declare CONST bool USE_SOCKET exactly once")
+        self.robot = EmulatedIRB120(q0_deg)
+        self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
+        self.link = Channel()
+        self.interp = Interpreter(source, self._builtins())  # syntax errors surface here, with their line
+        self.error: BaseException | None = None
+        self._server: socket.socket | None = None
+        self._slave: int | None = None
+        self._listening = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> str:
+        """Start the RAPID program; returns the URL a client connects to."""
+        if self.channel_kind == "serial":
+            self.link.fd, self._slave = os.openpty()
+            url = f"serial://{os.ttyname(self._slave)}?baudrate=115200"
+        else:
+            self._server = socket.create_server(("127.0.0.1", self.port))
+            url = f"tcp://127.0.0.1:{self._server.getsockname()[1]}"
+        self.thread.start()
+        return url
+
+    def _run(self) -> None:
+        try:
+            self.interp.run("main")
+        except RapidStopped:
+            pass
+        except BaseException as e:  # a fatal program error: the robot stops, as the IRC5 stops the program
+            self.robot.stop()
+            self.error = e
+
+    def stop(self) -> None:
+        self.interp.request_stop()
+        self.thread.join(2)
+        self.robot.stop()
+        for closer in (
+            lambda: self._server and self._server.close(),
+            lambda: self.link.conn and self.link.conn.close(),
+        ):
+            closer()
+        for fd in (self.link.fd, self._slave):
+            if fd is not None:
+                os.close(fd)
+        self.link.fd = self._slave = None
+
+    def __enter__(self) -> ControllerEmulator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ built-ins
+    def _builtins(self) -> Builtins:
+        reg, robot, sig = Builtins(), self.robot, self.signals
+
+        def io(fn):
+            @functools.wraps(fn)  # keeps the signature: the registry maps RAPID's option names by it
+            def wrapped(*a, **k):
+                try:
+                    return fn(*a, **k)
+                except (EOFError, ConnectionError):
+                    raise RapidError("ERR_SOCK_CLOSED", "peer closed the connection") from None
+
+            return wrapped
+
+        def solve(rt, tool):
+            try:
+                return robot.solve(_pose_of(rt), _tframe(tool), robot.joints())
+            except MotionError as e:
+                raise RapidError("ERR_ROBLIMIT" if e.kind == "joint_limit" else "ERR_OUTSIDE_REACH", str(e)) from None
+
+        def move(q, speed, zone, tool, tcp_s=0.0):
+            robot.zone_tool = _tframe(tool)
+            try:
+                robot.move(q, tool_speed_s=tcp_s)
+            except MotionError as e:
+                raise RapidError("ERR_ROBLIMIT", str(e)) from None
+            if robot.zone_violation:  # world-zone supervision: the IRC5 stops the robot and the program
+                robot.stop()
+                raise RuntimeError("world zone violated: motion stopped at the zone's boundary")
+            while len(robot.queue) > (0 if zone.finep else 1):  # one segment of look-ahead, none with fine
+                self.interp.check_stop()
+                robot.wait_done(0.002)
+
+        def move_l(to, speed, zone, tool, WObj=None):
+            here, target = robot.tool_pose(robot.joints(), _tframe(tool)), _pose_of(to)
+            dist = np.linalg.norm(target[:3, 3] - here[:3, 3]) * 1000
+            cos = (np.trace(here[:3, :3].T @ target[:3, :3]) - 1) / 2
+            angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+            move(solve(to, tool), speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori))
+
+        reg.add("CJointT", lambda **_: make_value("jointtarget", [list(robot.joints()), [9e9] * 6]))
+        reg.add(
+            "CRobT",
+            lambda Tool=None, WObj=None: _robtarget(
+                robot.tool_pose(robot.joints(), np.eye(4) if Tool is None else _tframe(Tool))
+            ),
+        )
+        reg.add("CalcJointT", lambda rt, tool, WObj=None: make_value("jointtarget", [list(solve(rt, tool)), [9e9] * 6]))
+        reg.add("CalcRobT", lambda jt, tool, WObj=None: _robtarget(robot.tool_pose(_joints(jt), _tframe(tool))))
+        reg.add(
+            "RelTool",
+            lambda rt, dx, dy, dz, Rx=0.0, Ry=0.0, Rz=0.0: _robtarget(rel_tool(_pose_of(rt), dx, dy, dz, Rx, Ry, Rz)),
+        )
+        reg.add("MoveL", move_l)
+        reg.add("MoveAbsJ", lambda jt, speed, zone, tool, WObj=None: move(_joints(jt), speed, zone, tool))
+        reg.add("StopMove", lambda **_: robot.stop())
+        reg.add("ClearPath", lambda: robot.clear_path())
+        reg.add("StartMove", lambda **_: robot.start())
+        reg.add("ConfL", lambda **_: None)
+        reg.add("SingArea", lambda **_: None)
+        reg.add("AliasIO", lambda name, signal: setattr(signal, "value", name))
+        reg.add("SetDO", lambda signal, value: sig.__setitem__(signal.value, int(value)))
+        reg.add("DOutput", lambda signal: sig.get(signal.value, 0))
+
+        def wz_box(shape, low, high, Inside=False, Outside=False):
+            shape.value = (np.array([low.x, low.y, low.z]) / 1000, np.array([high.x, high.y, high.z]) / 1000)
+
+        reg.add("WZBoxDef", wz_box)
+        reg.add("WZLimSup", lambda zone, shape, Temp=False, Stat=False: setattr(robot, "zone", shape.value))
+
+        link = self.link
+
+        def read_bin(dev, Time=None):
+            b = link.read_byte(8388608.0 if Time is None else Time)
+            if b is None:
+                raise RapidError("ERR_DEV_MAXTIME", "ReadBin: no byte within \\Time")
+            return b
+
+        reg.add("Open", lambda name, dev, Bin=False, **_: setattr(dev, "value", name))
+        reg.add("ClearIOBuff", lambda dev: link.buf.clear())
+        reg.add("ReadBin", io(read_bin))
+        reg.add("WriteBin", io(lambda dev, buffer, n: link.write(bytes(int(b) for b in buffer[: int(n)]))))
+
+        def accept(server, client, Time=None):
+            self._server.settimeout(None if Time is None or Time >= 8388608 else Time)
+            while True:
+                try:
+                    link.conn, _ = self._server.accept()
+                    link.buf.clear()
+                    return
+                except TimeoutError:
+                    raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client") from None
+                except OSError:
+                    self.interp.check_stop()
+                    raise
+
+        def receive(sock, Data=None, ReadNoOfBytes=1, Time=None):
+            for i in range(int(ReadNoOfBytes)):
+                b = link.read_byte(8388608.0 if Time is None else Time)
+                if b is None:
+                    raise RapidError("ERR_SOCK_TIMEOUT", "SocketReceive: no data within \\Time")
+                Data.value[i] = b
+
+        reg.add("SocketCreate", lambda sock: None)
+        reg.add("SocketBind", lambda sock, address, port: None)  # always the emulator's loopback port
+        reg.add("SocketListen", lambda sock: None)
+        reg.add("SocketAccept", accept)
+        reg.add("SocketReceive", io(receive), refs=["Data"])
+        reg.add(
+            "SocketSend",
+            io(
+                lambda sock, Data=None, NoOfBytes=None: link.write(
+                    bytes(int(b) for b in Data[: int(NoOfBytes or len(Data))])
+                )
+            ),
+        )
+        reg.add("SocketClose", lambda sock: link.conn and link.conn.close())
+        return reg
+
+
+def main(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None) -> int:
+    """Run the emulator until interrupted; prints the URL to connect to as its first line."""
+    if listen.startswith("tcp://"):
+        emu = ControllerEmulator("tcp", rapid, port=int(listen.rsplit(":", 1)[1]))
+    elif listen.startswith("serial://"):
+        emu = ControllerEmulator("serial", rapid)
+    else:
+        raise ValueError(f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty")
+    print(emu.start(), flush=True)
+    try:
+        emu.thread.join()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    if emu.error is not None:
+        print(f"RAPID program stopped: {emu.error}", flush=True)
+        return 1
+    return 0

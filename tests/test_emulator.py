@@ -1,0 +1,148 @@
+"""The client against the controller emulator running the shipped RAPID module over a pty (serial) and TCP
+loopback: state, tool steps that land where the simulator's pd_ee_delta_tool lands, joint moves, the gripper,
+and the controller's own checks with the client's envelope turned off (the RAPID side holds alone)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("serial")
+pytest.importorskip("lark")
+
+from maniskill_irb120.controllers import scale_tool_action  # noqa: E402
+from maniskill_irb120.real.client import ABBRobot, ControllerRefused  # noqa: E402
+from maniskill_irb120.real.emulator import ControllerEmulator, shipped_module  # noqa: E402
+from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope  # noqa: E402
+from maniskill_irb120.real.protocol import ErrorCode, Status, ToolStep, command_frame  # noqa: E402
+from maniskill_irb120.real.rapid import RapidSyntaxError  # noqa: E402
+
+
+def settled(robot: ABBRobot, wait: float = 0.08):
+    time.sleep(wait)  # a full step takes 40 ms at the module's speed data
+    return robot.state()
+
+
+@pytest.fixture(params=["serial", "tcp"])
+def emulator(request):
+    emu = ControllerEmulator(request.param)
+    url = emu.start()
+    yield emu, url
+    emu.stop()
+    assert emu.error is None, emu.error
+
+
+def test_tool_steps_land_where_the_simulator_lands(emulator):
+    emu, url = emulator
+    envelope = Envelope()
+    rng = np.random.default_rng(0)
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        state = robot.state()
+        assert state.status == Status.IDLE and state.gripper_open
+        for _ in range(6):
+            a = np.r_[rng.uniform(-1, 1, 4), 1.0]
+            step = scale_tool_action(a[:4])
+            expect = envelope.tcp_pose(envelope.check_tool_step(state.joints, step[:3], step[3]))  # the sim's IK
+            robot.move_tool(a)
+            state = settled(robot)
+            got = envelope.tcp_pose(state.joints)
+            assert np.abs(np.asarray(state.tcp_pos) - expect[:3, 3]).max() < 5e-4  # the reply's TCP, within 0.5 mm
+            assert np.abs(got[:3, 3] - expect[:3, 3]).max() < 5e-4
+            angle = np.degrees(np.arccos(np.clip((np.trace(got[:3, :3].T @ expect[:3, :3]) - 1) / 2, -1, 1)))
+            assert angle < 0.1
+
+
+def test_joint_moves_and_gripper(emulator):
+    emu, url = emulator
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        q = np.asarray(robot.state().joints) + np.radians([3.0, -2.0, 2.0, 5.0, -4.0, 8.0])
+        robot.move_joints(q, gripper_open=False)
+        state = settled(robot, 0.1)
+        np.testing.assert_allclose(state.joints, q, atol=np.radians(0.02))
+        assert not state.gripper_open and emu.signals["doGripperOpen"] == 0
+        assert robot.set_gripper(True).gripper_open
+
+
+def test_controller_refuses_alone(emulator):
+    """With the client's envelope off, the RAPID module's own checks refuse and nothing moves."""
+    emu, url = emulator
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        robot.check_envelope = False
+        before = robot.state().joints
+        with pytest.raises(ControllerRefused, match="per-step limit") as e:
+            robot._request(ToolStep(0.02, 0.0, 0.0, 0.0))
+        assert e.value.state.error == ErrorCode.STEP_LIMIT
+        with pytest.raises(ControllerRefused, match="joint would move"):
+            robot.move_joints(np.asarray(before) + np.radians([30.0, 0, 0, 0, 0, 0]))
+        emu.signals["doMotorsOn"] = 0
+        with pytest.raises(ControllerRefused, match="motors are off"):
+            robot.move_tool([0.1, 0, 0, 0, 1])
+        emu.signals["doMotorsOn"] = 1
+        np.testing.assert_allclose(settled(robot).joints, before, atol=1e-9)
+
+
+def test_random_outward_pushing_never_leaves_the_box_on_the_controller_side(emulator):
+    emu, url = emulator
+    low, high = np.asarray(WORKSPACE_LOW), np.asarray(WORKSPACE_HIGH)
+    rng = np.random.default_rng(2)
+    refused = set()
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        robot.check_envelope = False
+        for _ in range(3):
+            bias = rng.uniform(-1, 1, 4)
+            for _ in range(25):
+                try:
+                    robot.move_tool(np.r_[np.clip(bias + rng.normal(0, 0.3, 4), -1, 1), 1.0])
+                except ControllerRefused as e:
+                    refused.add(e.state.error)
+                p = np.asarray(robot.state().tcp_pos)
+                assert np.all(p >= low - 1e-4) and np.all(p <= high + 1e-4)
+            time.sleep(0.05)
+    assert refused  # the pushing did reach the limits
+
+
+def test_a_repeated_frame_is_answered_but_not_executed_twice(emulator):
+    emu, url = emulator
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        start = np.asarray(robot.state().tcp_pos)
+        raw = command_frame(ToolStep(0.005, 0.0, 0.0, 0.0), 77).encode()
+        for _ in range(3):
+            robot.port.write(raw)
+            time.sleep(0.1)
+        robot.port.reset_input_buffer()
+        moved = np.linalg.norm(np.asarray(robot.state().tcp_pos) - start)
+        assert moved == pytest.approx(0.005, abs=5e-4)
+
+
+def test_watchdog_stops_a_silent_pc(emulator):
+    emu, url = emulator
+    with ABBRobot.connect(url, timeout=1.0) as robot:
+        robot.move_tool([0.5, 0, 0, 0, 1])
+        time.sleep(0.8)  # no frame for longer than the module's HEARTBEAT_S while moving
+        with pytest.raises(ControllerRefused, match="heartbeat") as e:
+            robot.move_tool([0.5, 0, 0, 0, 1])
+        assert e.value.state.status == Status.HELD
+        assert robot.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK  # the next command runs
+
+
+def test_editing_the_module_changes_the_emulator(tmp_path):
+    patched = tmp_path / "server.mod"
+    patched.write_text(
+        shipped_module().read_text().replace("CONST num STEP_POS_MM := 10;", "CONST num STEP_POS_MM := 5;")
+    )
+    for path, refused in ((None, False), (patched, True)):
+        emu = ControllerEmulator("tcp", rapid=path)
+        with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
+            robot.check_envelope = False
+            if refused:
+                with pytest.raises(ControllerRefused, match="per-step limit"):
+                    robot.move_tool([0.7, 0, 0, 0, 1])
+            else:
+                assert robot.move_tool([0.7, 0, 0, 0, 1]).error == ErrorCode.OK
+        emu.stop()
+    broken = tmp_path / "broken.mod"
+    broken.write_text(shipped_module().read_text().replace("ENDWHILE", "ENDWHIL", 1))
+    with pytest.raises(RapidSyntaxError, match="line"):
+        ControllerEmulator("tcp", rapid=broken)
