@@ -1,0 +1,88 @@
+"""Round trip per action through the controller emulator running our RAPID module: TCP loopback and a pty,
+plus the wire time the frames need at 9600 and 115200 baud (a pty has no baud rate: that part is computed
+from the frame sizes, 10 bits per byte). Prints a table, writes JSON.
+
+    .venv/bin/python benchmarks/adapter_latency.py --steps 200 --json benchmarks/results/adapter_latency.json
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from maniskill_irb120.real.client import ABBRobot
+from maniskill_irb120.real.emulator import ControllerEmulator
+from maniskill_irb120.real.protocol import OVERHEAD, GetState, ToolStep, command_frame
+
+REPLY_BYTES = OVERHEAD + 26
+
+
+@dataclass
+class Args:
+    steps: int = 200
+    """timed tool steps per channel (small steps back and forth, inside the envelope)"""
+    json: Optional[Path] = None
+
+
+def measure(channel: str, steps: int) -> dict:
+    emu = ControllerEmulator(channel)
+    times = []
+    with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
+        for i in range(steps):
+            a = [0.2 if (i // 10) % 2 == 0 else -0.2, 0, 0, 0, 1.0]
+            t0 = time.perf_counter()
+            robot.move_tool(a)
+            times.append(time.perf_counter() - t0)
+    emu.stop()
+    t = np.asarray(times) * 1000
+    return dict(
+        channel=channel,
+        mean_ms=float(t.mean()),
+        p50_ms=float(np.median(t)),
+        p95_ms=float(np.percentile(t, 95)),
+        max_ms=float(t.max()),
+    )
+
+
+def main(args: Args) -> dict:
+    step_bytes = len(command_frame(ToolStep(0, 0, 0, 0), 1).encode())
+    wire = {b: 1000 * (step_bytes + REPLY_BYTES) * 10 / b for b in (9600, 19200, 115200)}
+    rows = [measure(c, args.steps) for c in ("tcp", "serial")]
+    out = dict(
+        date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        command=" ".join(sys.argv),
+        machine=platform.platform(),
+        step_frame_bytes=step_bytes,
+        state_frame_bytes=len(command_frame(GetState(), 1).encode()),
+        reply_bytes=REPLY_BYTES,
+        wire_ms_per_step=wire,
+        round_trip=rows,
+    )
+    print("| channel | mean (ms) | p50 | p95 | max |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        cells = " | ".join(f"{r[k]:.2f}" for k in ("mean_ms", "p50_ms", "p95_ms", "max_ms"))
+        print(f"| {r['channel']} (emulator) | {cells} |")
+    print(
+        "wire time per tool step + reply: "
+        + ", ".join(f"{b} baud {ms:.1f} ms" for b, ms in wire.items())
+        + " (the 50 ms period at 9600 baud holds the bytes alone, with ~1 ms to spare)"
+    )
+    print(f"frames: tool step {step_bytes} B, reply {REPLY_BYTES} B")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    import tyro
+
+    main(tyro.cli(Args))

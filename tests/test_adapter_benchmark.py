@@ -1,0 +1,26 @@
+"""benchmarks/adapter_latency.py runs and writes its JSON (smoke: timings are never asserted)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_adapter_latency_runs(tmp_path):
+    out = tmp_path / "lat.json"
+    run = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "adapter_latency.py"), "--steps", "5", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert {x["channel"] for x in r["round_trip"]} == {"tcp", "serial"} and r["reply_bytes"] == 32
