@@ -6,21 +6,19 @@ shared scene and contacts, edge-triggered events, render-ahead on the CPU and st
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 import sapien
 import torch
 from gymnasium.utils import seeding as gym_seeding
 from mani_skill.envs.sapien_env import BaseEnv
-from mani_skill.envs.utils.observations import ALL_VISUAL_TEXTURES, parse_obs_mode_to_struct
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.contract import as_action_array, check_env_idx
+from maniskill_irb120.envs.checks import EnvContractMixin
 from maniskill_irb120.envs.table_scene import (
     CONTACT_FORCE_EPS,
     SOURCE_TRAY_XY,
@@ -42,10 +40,9 @@ from maniskill_irb120.maniskill_compat import (
 # the first is the default (BaseEnv takes SUPPORTED_REWARD_MODES[0]): normalized_dense, as in ManiSkill's own tasks,
 # whose PPO examples pass no reward_mode; TableClearing's original reward (-1000 per collision) is reward_mode="dense"
 REWARD_MODES = ["normalized_dense", "dense", "sparse", "none"]
-VIDEO_BLOCK = 16  # render_mode="all" frames are padded to multiples of this (video encoders' macro block)
 
 
-class IRB120TableEnv(BaseEnv):
+class IRB120TableEnv(EnvContractMixin, BaseEnv):
     """Base of the IRB 120 table tasks. Subclasses implement ManiSkill's ``_load_scene``,
     ``_initialize_episode``, ``evaluate``, ``_get_obs_extra`` and the reward methods, using the helpers here.
 
@@ -296,93 +293,6 @@ class IRB120TableEnv(BaseEnv):
         """ManiSkill's (which goes through ``set_state_dict`` without the controller part), plus that part."""
         super().set_state(state, env_idx)
         restore_controller_state(self, state, env_idx)
-
-    # ------------------------------------------------------------------ input checks (the env contract)
-    def step(self, action: Any):
-        """ManiSkill's step, for lists and tuples of numbers too: BaseEnv takes only arrays, tensors and dicts
-        and raises a bare ``TypeError: <class 'list'>``. Strings and other objects get a TypeError naming them."""
-        self._check_open()
-        if action is not None and not isinstance(action, dict):
-            action = as_action_array(action)
-        return super().step(action)
-
-    _closed: bool = False
-
-    def close(self):
-        self._closed = True
-        super().close()
-
-    def render(self):
-        self._check_open()
-        return super().render()
-
-    def render_all(self):
-        """ManiSkill's overview + hand-camera composite (512 x 596 by default) padded with black on the right
-        and bottom to multiples of 16: video encoders (imageio/ffmpeg, macro_block_size 16) would otherwise
-        rescale every frame, with a warning."""
-        img = super().render_all()
-        h, w = img.shape[-3], img.shape[-2]
-        ph, pw = -h % VIDEO_BLOCK, -w % VIDEO_BLOCK
-        if not ph and not pw:
-            return img
-        pad = [(0, 0)] * (img.ndim - 3) + [(0, ph), (0, pw), (0, 0)]
-        if isinstance(img, torch.Tensor):
-            return torch.nn.functional.pad(img, [p for pair in reversed(pad) for p in pair])
-        return np.pad(img, pad)
-
-    def _check_open(self) -> None:
-        """After ``close()`` ManiSkill has dropped the scene and agent: say so instead of failing on ``None``."""
-        if self._closed:
-            raise RuntimeError("the env is closed; make a new one with gym.make(...)")
-
-    # obs modes ManiSkill 3.0.1 accepts by name: its SUPPORTED_OBS_MODES lacks "rgbd" and the single textures,
-    # which parse_obs_mode_to_struct handles ("any_textures" there is a flag, not a mode)
-    NAMED_OBS_MODES = ("rgbd", "state", "state_dict", "none", "sensor_data", "pointcloud", *ALL_VISUAL_TEXTURES)
-
-    @classmethod
-    def _check_obs_mode(cls, obs_mode: str | None) -> None:
-        """ValueError listing every valid mode: ManiSkill asserts, or fails on ``str.split``, deep in its init."""
-        if obs_mode is None or obs_mode in cls.NAMED_OBS_MODES:
-            return
-        try:  # combinations such as "rgb+depth" or "rgb+state_dict" (ManiSkill asserts on bad ones)
-            if isinstance(obs_mode, str) and obs_mode:
-                parse_obs_mode_to_struct(obs_mode)
-                return
-        except AssertionError:
-            pass
-        raise ValueError(
-            f"obs_mode={obs_mode!r} is not supported; use one of {list(cls.NAMED_OBS_MODES)} or a '+'-joined "
-            f"combination of {ALL_VISUAL_TEXTURES} with optional 'state' / 'state_dict', e.g. 'rgb+depth+state'"
-        )
-
-    @staticmethod
-    def _check_batching(num_envs: Any, sim_backend: str) -> None:
-        """Clear errors for ``num_envs``: ManiSkill fails on 0 with a bare IndexError, and on num_envs > 1
-        without CUDA with ``failed to find device "cuda"``, which does not say that CPUs need worker processes."""
-        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if num_envs == 1:
-            return
-        on_gpu = sim_backend == "auto" or "cuda" in str(sim_backend) or sim_backend == "gpu"
-        if not on_gpu or not torch.cuda.is_available():
-            why = f"sim_backend={sim_backend!r} was given" if not on_gpu else "no CUDA GPU is available here"
-            raise ValueError(
-                f"num_envs={num_envs}: batched envs (num_envs > 1) need a CUDA GPU (sim_backend='physx_cuda'), and "
-                f'{why}. On CPUs use maniskill_irb120.make_vec_env(env_id, num_envs, backend="cpu"): one worker '
-                "process per env behind the same batched interface."
-            )
-
-    def _checked_reset_options(self, options: dict | None) -> dict | None:
-        """``options["env_idx"]`` checked (ValueError naming the valid range instead of a bare IndexError) and
-        handed on as an index tensor on the env's device."""
-        if options is None:
-            return None
-        if not isinstance(options, dict):
-            raise TypeError(f"reset options must be a dict, got {type(options).__name__}")
-        if "env_idx" not in options:
-            return options
-        idx = check_env_idx(options["env_idx"], self.num_envs)
-        return {**options, "env_idx": torch.as_tensor(idx, device=self.device)}
 
 
 def yaw_quat(yaw: torch.Tensor) -> torch.Tensor:
