@@ -13,7 +13,7 @@ pytest.importorskip("serial")
 pytest.importorskip("lark")
 
 from maniskill_irb120.controllers import scale_tool_action  # noqa: E402
-from maniskill_irb120.real.client import ABBRobot, ControllerRefused  # noqa: E402
+from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotDisconnected, RobotError, RobotTimeout  # noqa: E402
 from maniskill_irb120.real.emulator import ControllerEmulator, shipped_module  # noqa: E402
 from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope  # noqa: E402
 from maniskill_irb120.real.protocol import ErrorCode, Status, ToolStep, command_frame  # noqa: E402
@@ -146,3 +146,55 @@ def test_editing_the_module_changes_the_emulator(tmp_path):
     broken.write_text(shipped_module().read_text().replace("ENDWHILE", "ENDWHIL", 1))
     with pytest.raises(RapidSyntaxError, match="line"):
         ControllerEmulator("tcp", rapid=broken)
+
+
+# --------------------------------------------------------------------------- injected faults (reply numbers: 1 is
+# the state read by connect(), 2 the first command after it)
+@pytest.mark.parametrize("channel", ["serial", "tcp"])
+@pytest.mark.parametrize("fault", ["drop@2", "corrupt@2", "delay@2:400", "dup@2"])
+def test_lost_bad_late_or_doubled_replies_run_the_step_once(channel, fault):
+    emu = ControllerEmulator(channel, faults=fault)
+    with ABBRobot.connect(emu.start(), timeout=0.25) as robot:
+        start = np.asarray(robot.state().tcp_pos)
+        robot.move_tool([0.5, 0, 0, 0, 1])  # retried where needed, never repeated
+        assert robot.state().error == ErrorCode.OK  # a doubled reply does not confuse the next exchange
+        assert emu.moves == 1
+        assert np.linalg.norm(np.asarray(settled(robot).tcp_pos) - start) == pytest.approx(0.005, abs=5e-4)
+    emu.stop()
+    assert emu.error is None
+
+
+def test_disconnect_mid_frame_holds_the_robot_and_a_new_client_gets_in():
+    emu = ControllerEmulator("tcp", faults="disconnect@3")
+    url = emu.start()
+    robot = ABBRobot.connect(url, timeout=0.25, retries=1)
+    robot.move_tool([0.5, 0, 0, 0, 1])
+    with pytest.raises((RobotTimeout, RobotDisconnected), match="no valid reply|connection to the controller lost"):
+        robot.move_tool([0.5, 0, 0, 0, 1])  # half a reply, then the line is dead
+    robot.port.close()
+    with ABBRobot.connect(url, timeout=1.0) as again:  # the module waits for its peer again
+        assert again.state().status == Status.HELD
+        assert again.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK
+    emu.stop()
+    assert emu.error is None
+
+
+@pytest.mark.parametrize("fault, code", [("motors_off@2", ErrorCode.MOTORS_OFF), ("estop@2", ErrorCode.ESTOP)])
+def test_controller_faults_refuse_motion(fault, code):
+    emu = ControllerEmulator("tcp", faults=fault)
+    robot = ABBRobot.connect(emu.start(), timeout=1.0)
+    robot.state()  # reply 2 sets the fault
+    with pytest.raises(ControllerRefused) as e:
+        robot.move_tool([0.5, 0, 0, 0, 1])
+    assert e.value.state.error == code and e.value.state.status == Status.FAULT and emu.moves == 0
+    with pytest.raises(RobotError, match="fault"):
+        robot.state()
+    emu.signals.update(doMotorsOn=1, doEmergencyStop=0)  # the operator clears it
+    assert robot.state().status != Status.FAULT
+    robot.close()
+    emu.stop()
+
+
+def test_bad_fault_spec_is_named():
+    with pytest.raises(ValueError, match="fault 'melt@2'"):
+        ControllerEmulator("tcp", faults="melt@2")

@@ -46,6 +46,10 @@ class RobotTimeout(RobotError):
     pass
 
 
+class RobotDisconnected(RobotError):
+    pass
+
+
 class ControllerRefused(RobotError):
     def __init__(self, state: RobotState):
         super().__init__(f"controller refused the command: {ERROR_MEANINGS[state.error]} (code {int(state.error)})")
@@ -144,8 +148,14 @@ class ABBRobot:
         want = MsgType.REPLY | msg.TYPE
         bad_before = self.parser.bad_frames
         for _attempt in range(1 + self.retries):
-            self.port.write(raw)  # a retry is the same bytes: the controller answers it without executing it
-            state = self._await_reply(want, self.seq)
+            try:
+                self.port.write(raw)  # a retry is the same bytes: the controller answers it without executing it
+                state = self._await_reply(want, self.seq)
+            except (OSError, ValueError) as e:  # pyserial's SerialException is an OSError
+                raise RobotDisconnected(
+                    f"connection to the controller lost during {type(msg).__name__} "
+                    f"(seq {self.seq}): {e}; reconnect with ABBRobot.connect"
+                ) from None
             if state is not None:
                 return self._checked(state)
         corrupt = self.parser.bad_frames - bad_before

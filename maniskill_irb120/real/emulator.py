@@ -16,6 +16,7 @@ import re
 import select
 import socket
 import threading
+import time
 from importlib import resources
 from pathlib import Path
 
@@ -50,13 +51,31 @@ def _joints(jt) -> np.ndarray:
     return np.array([r.rax_1, r.rax_2, r.rax_3, r.rax_4, r.rax_5, r.rax_6], dtype=np.float64)
 
 
-class Channel:
-    """The controller's end of the link: a pty master (serial) or an accepted TCP connection."""
+FAULTS = ("drop", "corrupt", "dup", "delay", "disconnect", "motors_off", "estop")
 
-    def __init__(self) -> None:
+
+def parse_faults(spec: str | None) -> dict[int, tuple[str, float]]:
+    """``"drop@2,corrupt@3,dup@4,delay@5:300,disconnect@6,motors_off@7,estop@8"``: what happens to the N-th reply
+    the controller sends (1-based). delay takes milliseconds; motors_off and estop set that signal as the reply
+    goes out, so the following commands meet it."""
+    faults: dict[int, tuple[str, float]] = {}
+    for item in filter(None, (spec or "").split(",")):
+        m = re.fullmatch(r"(\w+)@(\d+)(?::(\d+(?:\.\d+)?))?", item.strip())
+        if not m or m.group(1) not in FAULTS:
+            raise ValueError(f"fault {item!r}: use KIND@N[:MS] with KIND one of {FAULTS}, e.g. delay@3:300")
+        faults[int(m.group(2))] = (m.group(1), float(m.group(3) or 0))
+    return faults
+
+
+class Channel:
+    """The controller's end of the link: a pty master (serial) or an accepted TCP connection; injects
+    ``faults`` into the replies it sends (see :func:`parse_faults`)."""
+
+    def __init__(self, faults: dict[int, tuple[str, float]], signals: dict[str, int]) -> None:
         self.fd: int | None = None
         self.conn: socket.socket | None = None
         self.buf = bytearray()
+        self.faults, self.signals, self.replies = faults, signals, 0
 
     def read_byte(self, timeout: float) -> int | None:
         if not self.buf:
@@ -70,6 +89,26 @@ class Channel:
         return self.buf.pop(0)
 
     def write(self, data: bytes) -> None:
+        self.replies += 1
+        kind, arg = self.faults.get(self.replies, (None, 0.0))
+        if kind == "drop":
+            return
+        if kind == "corrupt":
+            data = data[:8] + bytes([data[8] ^ 0x5A]) + data[9:]
+        elif kind == "dup":
+            data = data + data
+        elif kind == "delay":
+            time.sleep(arg / 1000)
+        elif kind in ("motors_off", "estop"):
+            self.signals["doMotorsOn" if kind == "motors_off" else "doEmergencyStop"] = int(kind == "estop")
+        elif kind == "disconnect":  # half a frame, then the line goes dead
+            self._send(data[: len(data) // 2])
+            if self.conn is not None:
+                self.conn.shutdown(socket.SHUT_RDWR)
+            return
+        self._send(data)
+
+    def _send(self, data: bytes) -> None:
         if self.conn is None:
             os.write(self.fd, data)
         else:
@@ -79,7 +118,14 @@ class Channel:
 class ControllerEmulator:
     """Runs ``rapid`` (default: the shipped module) on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1)."""
 
-    def __init__(self, channel: str = "serial", rapid: str | Path | None = None, port: int = 0, q0_deg=REST_DEG):
+    def __init__(
+        self,
+        channel: str = "serial",
+        rapid: str | Path | None = None,
+        port: int = 0,
+        q0_deg=REST_DEG,
+        faults: str | None = None,
+    ):
         if channel not in ("serial", "tcp"):
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
         self.channel_kind, self.port = channel, port
@@ -95,7 +141,8 @@ class ControllerEmulator:
             raise ValueError("the RAPID module must declare CONST bool USE_SOCKET exactly once")
         self.robot = EmulatedIRB120(q0_deg)
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
-        self.link = Channel()
+        self.link = Channel(parse_faults(faults), self.signals)
+        self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         self.interp = Interpreter(source, self._builtins())  # syntax errors surface here, with their line
         self.error: BaseException | None = None
         self._server: socket.socket | None = None
@@ -165,6 +212,7 @@ class ControllerEmulator:
                 raise RapidError("ERR_ROBLIMIT" if e.kind == "joint_limit" else "ERR_OUTSIDE_REACH", str(e)) from None
 
         def move(q, speed, zone, tool, tcp_s=0.0):
+            self.moves += 1
             robot.zone_tool = _tframe(tool)
             try:
                 robot.move(q, tool_speed_s=tcp_s)
@@ -264,12 +312,12 @@ class ControllerEmulator:
         return reg
 
 
-def main(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None) -> int:
+def main(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line."""
     if listen.startswith("tcp://"):
-        emu = ControllerEmulator("tcp", rapid, port=int(listen.rsplit(":", 1)[1]))
+        emu = ControllerEmulator("tcp", rapid, port=int(listen.rsplit(":", 1)[1]), faults=fault)
     elif listen.startswith("serial://"):
-        emu = ControllerEmulator("serial", rapid)
+        emu = ControllerEmulator("serial", rapid, faults=fault)
     else:
         raise ValueError(f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty")
     print(emu.start(), flush=True)
