@@ -16,7 +16,8 @@ pytest.importorskip("serial")
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork  # noqa: E402
 from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotError, RobotTimeout, open_port  # noqa: E402
-from maniskill_irb120.real.envelope import EnvelopeError  # noqa: E402
+from maniskill_irb120.real.emulated_robot import matrix_to_quat  # noqa: E402
+from maniskill_irb120.real.envelope import Envelope, EnvelopeError  # noqa: E402
 from maniskill_irb120.real.protocol import (  # noqa: E402
     ErrorCode,
     FrameParser,
@@ -28,6 +29,8 @@ from maniskill_irb120.real.protocol import (  # noqa: E402
 )
 
 REST = tuple(float(v) for v in IRB120Metalwork.keyframes["rest"].qpos[:6])
+_REST_TCP = Envelope().tcp_pose(REST)  # the peer reports a consistent pose: the client steps from it
+REST_POS, REST_QUAT = tuple(_REST_TCP[:3, 3]), tuple(matrix_to_quat(_REST_TCP[:3, :3]))
 
 
 class ScriptedPeer:
@@ -53,7 +56,7 @@ class ScriptedPeer:
                 if self.last is None or frame.seq != self.last[0]:
                     self.executed.append(frame.seq)
                     self.commands.append(decode_command(frame))
-                    state = RobotState(REST, (0.35, 0.0, 0.25), (0.0, 0.0, 1.0, 0.0), True, Status.IDLE, self.error)
+                    state = RobotState(REST, REST_POS, REST_QUAT, True, Status.IDLE, self.error)
                     self.last = (frame.seq, reply_frame(frame.type, frame.seq, state).encode())
                 reply = self.last[1]
                 fault = self.faults.get(self.received)

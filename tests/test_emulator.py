@@ -15,7 +15,7 @@ pytest.importorskip("lark")
 from maniskill_irb120.controllers import scale_tool_action  # noqa: E402
 from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotDisconnected, RobotError, RobotTimeout  # noqa: E402
 from maniskill_irb120.real.emulator import ControllerEmulator, shipped_module  # noqa: E402
-from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope  # noqa: E402
+from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError  # noqa: E402
 from maniskill_irb120.real.protocol import ErrorCode, Status, ToolStep, command_frame  # noqa: E402
 from maniskill_irb120.real.rapid import RapidSyntaxError  # noqa: E402
 
@@ -83,24 +83,58 @@ def test_controller_refuses_alone(emulator):
         np.testing.assert_allclose(settled(robot).joints, before, atol=1e-9)
 
 
-def test_random_outward_pushing_never_leaves_the_box_on_the_controller_side(emulator):
-    emu, url = emulator
+def push_outwards(robot: ABBRobot, sequences: int, steps: int, seed: int) -> set:
+    """Random action sequences, each biased in one random direction; after every step the TCP must be inside
+    the workspace box. Returns the refusals met (the pushing must reach the limits)."""
     low, high = np.asarray(WORKSPACE_LOW), np.asarray(WORKSPACE_HIGH)
-    rng = np.random.default_rng(2)
+    rng = np.random.default_rng(seed)
     refused = set()
-    with ABBRobot.connect(url, timeout=1.0) as robot:
+    for _ in range(sequences):
+        bias = rng.uniform(-1, 1, 4)
+        for _ in range(steps):
+            try:
+                robot.move_tool(np.r_[np.clip(bias + rng.normal(0, 0.3, 4), -1, 1), 1.0])
+            except ControllerRefused as e:
+                refused.add(e.state.error.name)
+            except EnvelopeError as e:
+                refused.add(e.limit)
+            p = np.asarray(robot.state().tcp_pos)
+            assert np.all(p >= low - 1e-4) and np.all(p <= high + 1e-4), p
+    return refused
+
+
+def without_rapid_box(tmp_path):
+    """A copy of the module whose workspace check and world zone are opened up to ±10 m: the client alone holds."""
+    text = shipped_module().read_text()
+    text = text.replace("CONST pos WORKSPACE_LOW := [150, -320, 10];", "CONST pos WORKSPACE_LOW := [-1E4, -1E4, -1E4];")
+    text = text.replace("CONST pos WORKSPACE_HIGH := [600, 320, 450];", "CONST pos WORKSPACE_HIGH := [1E4, 1E4, 1E4];")
+    path = tmp_path / "no_box.mod"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("side", ["controller", "client"])
+def test_random_outward_pushing_never_leaves_the_box_with_one_side_alone(side, tmp_path):
+    emu = ControllerEmulator("tcp", rapid=without_rapid_box(tmp_path) if side == "client" else None)
+    with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
+        robot.check_envelope = side == "client"
+        refused = push_outwards(robot, sequences=3, steps=25, seed=2)
+    emu.stop()
+    assert refused and emu.error is None
+    assert ("WORKSPACE" in refused) if side == "controller" else ("workspace" in refused)
+
+
+@pytest.mark.slow
+def test_thousand_random_sequences_with_the_controller_side_alone():
+    """(The client side alone is run short above: over 1000 sequences its prediction from a reply a few ms old
+    has let the TCP end up to ~1.5 mm past the box; the controller side, which checks the pose it measures,
+    holds. Open in issue 10.)"""
+    emu = ControllerEmulator("tcp")
+    with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         robot.check_envelope = False
-        for _ in range(3):
-            bias = rng.uniform(-1, 1, 4)
-            for _ in range(25):
-                try:
-                    robot.move_tool(np.r_[np.clip(bias + rng.normal(0, 0.3, 4), -1, 1), 1.0])
-                except ControllerRefused as e:
-                    refused.add(e.state.error)
-                p = np.asarray(robot.state().tcp_pos)
-                assert np.all(p >= low - 1e-4) and np.all(p <= high + 1e-4)
-            time.sleep(0.05)
-    assert refused  # the pushing did reach the limits
+        refused = push_outwards(robot, sequences=1000, steps=4, seed=3)
+    emu.stop()
+    assert refused and emu.error is None
 
 
 def test_a_repeated_frame_is_answered_but_not_executed_twice(emulator):

@@ -5,10 +5,10 @@ quaternions) and conventions: ``tool0`` is the flange with its z axis out of the
 points along base +x), a tool's ``tframe`` is given in ``tool0``. Kinematics are the simulator's own
 (``maniskill_irb120.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
 
-Simplifications, said plainly: a MoveL segment is interpolated in joint space (for the 1 cm steps the adapter
-streams the straight-line deviation is below 0.01 mm; long MoveL paths are not straight); configuration data
-(``robconf``) is ignored and IK keeps the current arm branch; acceleration is not modelled (each segment runs
-at constant joint speed); the world zone is checked at each segment's end and on ten points along it.
+Simplifications, said plainly: a MoveL runs through IK waypoints every millimetre / degree of its straight line
+and is joint-interpolated between them; after StopMove + StartMove the rest of a segment is joint-interpolated;
+configuration data (``robconf``) is ignored and IK keeps the current arm branch; acceleration is not modelled
+(each segment runs at constant joint speed); the world zone is checked on ten points between waypoints.
 """
 
 from __future__ import annotations
@@ -63,10 +63,17 @@ class Segment:
     q1: np.ndarray
     t0: float
     duration: float
+    via: np.ndarray | None = None  # (k, 6) waypoints at equal spacing between q0 and q1 (a MoveL's line)
+
+    def points(self) -> np.ndarray:
+        return np.vstack([self.q0, *([] if self.via is None else self.via), self.q1])
 
     def at(self, t: float) -> np.ndarray:
         s = 1.0 if self.duration <= 0 else min(1.0, max(0.0, (t - self.t0) / self.duration))
-        return self.q0 + s * (self.q1 - self.q0)
+        pts = self.points()
+        x = s * (len(pts) - 1)
+        i = min(int(x), len(pts) - 2)
+        return pts[i] + (x - i) * (pts[i + 1] - pts[i])
 
 
 class EmulatedIRB120:
@@ -134,34 +141,43 @@ class EmulatedIRB120:
             self._advance(self.clock())
             return bool(self.queue) and not self.stopped
 
-    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0) -> None:
-        """Queue a joint-space segment to ``q_target``: as fast as the slowest axis allows at
-        ``speed_fraction`` of ABB's speeds, and no faster than ``tool_speed_s`` (from the speeddata)."""
+    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0, via=None) -> None:
+        """Queue a segment to ``q_target`` (through ``via`` joint waypoints, e.g. IK along a MoveL's line): as
+        fast as the slowest axis allows at ``speed_fraction`` of ABB's speeds, no faster than ``tool_speed_s``."""
         q1 = np.asarray(q_target_deg, dtype=np.float64)
-        if np.any(q1 < self.low - 1e-9) or np.any(q1 > self.high + 1e-9):
-            raise MotionError("joint_limit", f"joint target {np.round(q1, 2)} deg breaks a joint limit")
+        via = None if via is None or len(via) == 0 else np.asarray(via, dtype=np.float64)
+        for q in [q1, *([] if via is None else via)]:
+            if np.any(q < self.low - 1e-9) or np.any(q > self.high + 1e-9):
+                raise MotionError("joint_limit", f"joint target {np.round(q, 2)} deg breaks a joint limit")
         with self.lock:
             now = self.clock()
             q0 = self.queue[-1].q1 if self.queue else self._advance(now).copy()
-            duration = max(float(np.max(np.abs(q1 - q0) / (self.max_speed * speed_fraction))), tool_speed_s)
-            q1 = self._clip_to_zone(q0, q1)
-            start = max(now, self.queue[-1].t0 + self.queue[-1].duration) if self.queue else now
-            self.queue.append(Segment(q0, q1, start, duration))
+            seg = Segment(q0, q1, 0.0, 0.0, via)
+            pts = seg.points()
+            duration = max(
+                float(np.max(np.abs(np.diff(pts, axis=0)).sum(0) / (self.max_speed * speed_fraction))), tool_speed_s
+            )
+            seg = self._clip_to_zone(seg)
+            seg.t0 = max(now, self.queue[-1].t0 + self.queue[-1].duration) if self.queue else now
+            seg.duration = duration
+            self.queue.append(seg)
 
-    def _clip_to_zone(self, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    def _clip_to_zone(self, seg: Segment) -> Segment:
         """World-zone supervision: the segment ends at its last point inside the box (flagging a violation)."""
         if self.zone is None:
-            return q1
+            return seg
         low, high = self.zone
-        last = q0
-        for s in np.linspace(0.1, 1.0, 10):
-            q = q0 + s * (q1 - q0)
-            p = self.tool_pose(q, self.zone_tool)[:3, 3]
-            if np.any(p < low) or np.any(p > high):
-                self.zone_violation = True
-                return last
-            last = q
-        return q1
+        pts = seg.points()
+        kept = [pts[0]]
+        for a, b in zip(pts[:-1], pts[1:]):
+            for s in np.linspace(0.1, 1.0, 10):
+                q = a + s * (b - a)
+                p = self.tool_pose(q, self.zone_tool)[:3, 3]
+                if np.any(p < low) or np.any(p > high):
+                    self.zone_violation = True
+                    return Segment(kept[0], kept[-1], 0.0, 0.0, np.asarray(kept[1:-1]) if len(kept) > 2 else None)
+                kept.append(q)
+        return seg
 
     def wait_done(self, timeout: float = 10.0) -> None:
         deadline = self.clock() + timeout
@@ -198,4 +214,16 @@ def rel_tool(
             i, j = (axis + 1) % 3, (axis + 2) % 3  # cyclic, so each is a right-handed rotation
             r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
             out[:3, :3] = out[:3, :3] @ r
+    return out
+
+
+def interpolate_pose(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    """The pose a fraction ``s`` along MoveL's path from ``a`` to ``b``: position on the line, orientation slerped."""
+    qa, qb = matrix_to_quat(a[:3, :3]), matrix_to_quat(b[:3, :3])
+    if qa @ qb < 0:
+        qb = -qb
+    theta = math.acos(min(1.0, float(qa @ qb)))
+    q = qa if theta < 1e-9 else (math.sin((1 - s) * theta) * qa + math.sin(s * theta) * qb) / math.sin(theta)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = quat_to_matrix(q), a[:3, 3] + s * (b[:3, 3] - a[:3, 3])
     return out

@@ -23,7 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, matrix_to_quat, pose, rel_tool
+from maniskill_irb120.real.emulated_robot import (
+    EmulatedIRB120,
+    MotionError,
+    interpolate_pose,
+    matrix_to_quat,
+    pose,
+    rel_tool,
+)
 from maniskill_irb120.real.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
 
 REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # where the sim's episodes start
@@ -211,11 +218,11 @@ class ControllerEmulator:
             except MotionError as e:
                 raise RapidError("ERR_ROBLIMIT" if e.kind == "joint_limit" else "ERR_OUTSIDE_REACH", str(e)) from None
 
-        def move(q, speed, zone, tool, tcp_s=0.0):
+        def move(q, speed, zone, tool, tcp_s=0.0, via=None):
             self.moves += 1
             robot.zone_tool = _tframe(tool)
             try:
-                robot.move(q, tool_speed_s=tcp_s)
+                robot.move(q, tool_speed_s=tcp_s, via=via)
             except MotionError as e:
                 raise RapidError("ERR_ROBLIMIT", str(e)) from None
             if robot.zone_violation:  # world-zone supervision: the IRC5 stops the robot and the program
@@ -226,11 +233,20 @@ class ControllerEmulator:
                 robot.wait_done(0.002)
 
         def move_l(to, speed, zone, tool, WObj=None):
-            here, target = robot.tool_pose(robot.joints(), _tframe(tool)), _pose_of(to)
+            tframe = _tframe(tool)
+            here, target = robot.tool_pose(robot.queue[-1].q1 if robot.queue else robot.joints(), tframe), _pose_of(to)
             dist = np.linalg.norm(target[:3, 3] - here[:3, 3]) * 1000
             cos = (np.trace(here[:3, :3].T @ target[:3, :3]) - 1) / 2
             angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-            move(solve(to, tool), speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori))
+            q1 = solve(to, tool)
+            # a straight line with the orientation turning evenly: IK every millimetre or degree along it
+            n = int(min(50, max(1, math.ceil(max(dist, angle)))))
+            q, via = robot.joints(), []
+            for s in np.arange(1, n) / n:
+                waypoint = interpolate_pose(here, target, s)
+                q = robot.solve(waypoint, tframe, q)
+                via.append(q)
+            move(q1, speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori), via)
 
         reg.add("CJointT", lambda **_: make_value("jointtarget", [list(robot.joints()), [9e9] * 6]))
         reg.add(

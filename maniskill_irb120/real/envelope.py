@@ -41,6 +41,9 @@ class Envelope:
     step_pos: float = TOOL_POS_LIMIT
     step_rot: float = TOOL_ROT_LIMIT
     control_period: float = CONTROL_PERIOD_S
+    margin: float = 0.001
+    """m the TCP keeps inside the box on this side: the PC predicts from a reply that is a few ms old and
+    quantised (0.05 mm, 0.02 deg per axis), while the controller steps from the pose it measures on arrival"""
 
     def __post_init__(self):
         chain = SerialChain(urdf_path(), "tcp", dtype=torch.float64)
@@ -60,9 +63,10 @@ class Envelope:
         """(4, 4) TCP pose in the base frame for joint angles ``q`` (6,)."""
         return self._chain.forward_kinematics(torch.as_tensor(np.asarray(q, dtype=np.float64))[None])[0].numpy()
 
-    def check_tool_step(self, q_now, d, rot: float) -> np.ndarray:
+    def check_tool_step(self, q_now, d, rot: float, tcp_now: np.ndarray | None = None) -> np.ndarray:
         """Joint angles (6,) the tool step (``d`` m in the tool frame, then ``rot`` rad about the approach axis)
-        leads to from ``q_now``; ``EnvelopeError`` if any limit would be broken."""
+        leads to from ``q_now``; ``EnvelopeError`` if any limit would be broken. ``tcp_now`` (4x4): the TCP pose
+        to step from when it is known better than FK of ``q_now`` (a reply's pose is finer than its joints)."""
         d = np.asarray(d, dtype=np.float64)
         if d.shape != (3,) or not np.all(np.isfinite(d)) or not math.isfinite(rot):
             raise EnvelopeError("step", f"a tool step is 3 finite distances and a finite angle, got {d}, {rot}")
@@ -74,7 +78,8 @@ class Envelope:
             )
         q_now = self._check_joint_vector(q_now, "current joints")
         action = np.concatenate([d, [rot]])[None]
-        target = apply_tool_delta(np, self.tcp_pose(q_now)[None], action)
+        ref = self.tcp_pose(q_now) if tcp_now is None else np.asarray(tcp_now, dtype=np.float64)
+        target = apply_tool_delta(np, ref[None], action)
         self.check_tcp(target[0, :3, 3])
         q, ok = self._ik.solve(torch.as_tensor(target), torch.as_tensor(q_now)[None])
         if not bool(ok[0]):
@@ -103,7 +108,7 @@ class Envelope:
 
     def check_tcp(self, p) -> None:
         p = np.asarray(p, dtype=np.float64)
-        low, high = np.asarray(self.workspace_low), np.asarray(self.workspace_high)
+        low, high = np.asarray(self.workspace_low) + self.margin, np.asarray(self.workspace_high) - self.margin
         if np.any(p < low) or np.any(p > high):
             raise EnvelopeError("workspace", f"TCP {np.round(p, 4)} m is outside the box {low}..{high} m")
 
