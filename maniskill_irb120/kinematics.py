@@ -20,6 +20,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 
 
 def run_batched(fn, consts, *tensors: torch.Tensor):
@@ -468,3 +469,21 @@ def matrix_to_quaternion(m: torch.Tensor) -> torch.Tensor:
     best = q_abs.argmax(1)[:, None, None].expand(-1, 1, 4)
     q = torch.gather(cand, 1, best)[:, 0]
     return q * torch.where(q[:, :1] < 0, -1.0, 1.0)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """(3, 3) rotation of a wxyz quaternion (normalised first), numpy; ManiSkill's conversion underneath."""
+    q = torch.as_tensor(np.asarray(q, dtype=np.float64))
+    return quaternion_to_matrix(q / q.norm()).numpy()
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """wxyz quaternion (w >= 0) of a (3, 3) rotation, numpy."""
+    return matrix_to_quaternion(torch.as_tensor(m[None], dtype=torch.float64))[0].numpy()
+
+
+def pose_mm(pos_mm, quat) -> np.ndarray:
+    """(4, 4) pose in metres from RAPID's units: a position in mm and a wxyz quaternion."""
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = quat_to_matrix(quat), np.asarray(pos_mm, dtype=np.float64) / 1000
+    return t

@@ -15,8 +15,8 @@ import pytest
 pytest.importorskip("serial")
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork  # noqa: E402
+from maniskill_irb120.kinematics import matrix_to_quat  # noqa: E402
 from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotError, RobotTimeout, open_port  # noqa: E402
-from maniskill_irb120.real.emulated_robot import matrix_to_quat  # noqa: E402
 from maniskill_irb120.real.envelope import Envelope, EnvelopeError  # noqa: E402
 from maniskill_irb120.real.protocol import (  # noqa: E402
     ErrorCode,

@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.kinematics import SerialChain, apply_tool_delta
-from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, pose, rel_tool
+from maniskill_irb120.kinematics import SerialChain, apply_tool_delta, pose_mm
+from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, rel_tool
 from maniskill_irb120.robot_description import urdf_path
 
 REST = np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6])
-T_GRIPPER = pose([0, 0, 57], [0.707107, 0, -0.707107, 0])  # the module's tGripper tframe
+T_GRIPPER = pose_mm([0, 0, 57], [0.707107, 0, -0.707107, 0])  # the module's tGripper tframe
 
 
 class FakeClock:

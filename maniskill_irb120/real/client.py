@@ -19,7 +19,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from maniskill_irb120.controllers import gripper_opens, scale_tool_action
-from maniskill_irb120.real.emulated_robot import pose
+from maniskill_irb120.kinematics import pose_mm
 from maniskill_irb120.real.envelope import Envelope
 from maniskill_irb120.real.protocol import (
     ERROR_MEANINGS,
@@ -41,7 +41,7 @@ from maniskill_irb120.real.protocol import (
 
 def _pose(state: RobotState) -> np.ndarray:
     """The TCP pose (4x4, m) a reply carries: finer than FK of its joints (0.05 mm against 0.02 deg per axis)."""
-    return pose(np.asarray(state.tcp_pos) * 1000, state.tcp_quat)
+    return pose_mm(np.asarray(state.tcp_pos) * 1000, state.tcp_quat)
 
 
 class RobotError(RuntimeError):

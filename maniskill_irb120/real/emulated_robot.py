@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, matrix_to_quaternion
+from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, matrix_to_quat, quat_to_matrix
 from maniskill_irb120.robot_description import urdf_path
 
 # tool0 = flange · R_y(+90°): tool0 z = our flange x (approach), tool0 x = -our flange z
@@ -34,27 +34,6 @@ class MotionError(RuntimeError):
     def __init__(self, kind: str, detail: str):
         super().__init__(detail)
         self.kind = kind
-
-
-def quat_to_matrix(q) -> np.ndarray:
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    return matrix_to_quaternion(torch.as_tensor(m[None], dtype=torch.float64))[0].numpy()
-
-
-def pose(pos_mm, quat) -> np.ndarray:
-    t = np.eye(4)
-    t[:3, :3], t[:3, 3] = quat_to_matrix(quat), np.asarray(pos_mm, dtype=np.float64) / 1000
-    return t
 
 
 @dataclass

@@ -23,14 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.real.emulated_robot import (
-    EmulatedIRB120,
-    MotionError,
-    interpolate_pose,
-    matrix_to_quat,
-    pose,
-    rel_tool,
-)
+from maniskill_irb120.kinematics import matrix_to_quat, pose_mm
+from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, interpolate_pose, rel_tool
 from maniskill_irb120.real.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
 
 REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # where the sim's episodes start
@@ -41,12 +35,12 @@ def shipped_module() -> Path:
 
 
 def _pose_of(rt) -> np.ndarray:
-    return pose([rt.trans.x, rt.trans.y, rt.trans.z], [rt.rot.q1, rt.rot.q2, rt.rot.q3, rt.rot.q4])
+    return pose_mm([rt.trans.x, rt.trans.y, rt.trans.z], [rt.rot.q1, rt.rot.q2, rt.rot.q3, rt.rot.q4])
 
 
 def _tframe(tool) -> np.ndarray:
     f = tool.tframe
-    return pose([f.trans.x, f.trans.y, f.trans.z], [f.rot.q1, f.rot.q2, f.rot.q3, f.rot.q4])
+    return pose_mm([f.trans.x, f.trans.y, f.trans.z], [f.rot.q1, f.rot.q2, f.rot.q3, f.rot.q4])
 
 
 def _robtarget(t: np.ndarray):
