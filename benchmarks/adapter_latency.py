@@ -1,6 +1,7 @@
-"""Round trip per action through the controller emulator running our RAPID module: TCP loopback and a pty,
-plus the wire time the frames need at 9600 and 115200 baud (a pty has no baud rate: that part is computed
-from the frame sizes, 10 bits per byte). Prints a table, writes JSON.
+"""Round trip per action through the controller emulator running our RAPID module: TCP loopback, a bare pty,
+and a pty paced at 9600 and 115200 baud by the emulator (a pty has no line speed of its own: the emulator
+holds every byte for 10 bit times, each way), beside the wire time computed from the frame sizes. Prints a
+table, writes JSON.
 
     .venv/bin/python benchmarks/adapter_latency.py --steps 200 --json benchmarks/results/adapter_latency.json
 """
@@ -31,8 +32,8 @@ class Args:
     json: Optional[Path] = None
 
 
-def measure(channel: str, steps: int) -> dict:
-    emu = ControllerEmulator(channel)
+def measure(channel: str, steps: int, baud: int | None = None) -> dict:
+    emu = ControllerEmulator(channel, baud=baud)
     times = []
     with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         for i in range(steps):
@@ -43,7 +44,7 @@ def measure(channel: str, steps: int) -> dict:
     emu.stop()
     t = np.asarray(times) * 1000
     return dict(
-        channel=channel,
+        channel=channel if baud is None else f"{channel} @ {baud} baud",
         mean_ms=float(t.mean()),
         p50_ms=float(np.median(t)),
         p95_ms=float(np.percentile(t, 95)),
@@ -54,7 +55,8 @@ def measure(channel: str, steps: int) -> dict:
 def main(args: Args) -> dict:
     step_bytes = len(command_frame(ToolStep(0, 0, 0, 0), 1).encode())
     wire = {b: 1000 * (step_bytes + REPLY_BYTES) * 10 / b for b in (9600, 19200, 115200)}
-    rows = [measure(c, args.steps) for c in ("tcp", "serial")]
+    rows = [measure("tcp", args.steps), measure("serial", args.steps)]
+    rows += [measure("serial", args.steps, baud) for baud in (115200, 9600)]
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
         command=" ".join(sys.argv),
@@ -73,7 +75,7 @@ def main(args: Args) -> dict:
     print(
         "wire time per tool step + reply: "
         + ", ".join(f"{b} baud {ms:.1f} ms" for b, ms in wire.items())
-        + " (the 50 ms period at 9600 baud holds the bytes alone, with ~1 ms to spare)"
+        + " (at 9600 baud the bytes alone take 49 ms of the 50 ms period: the paced row shows what is left)"
     )
     print(f"frames: tool step {step_bytes} B, reply {REPLY_BYTES} B")
     if args.json:

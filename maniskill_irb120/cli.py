@@ -68,14 +68,18 @@ def expert(
     return 0
 
 
-def emulator(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None) -> int:
+def emulator(
+    listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None, latency_ms: float = 0.0
+) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
-    emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair).
+    emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
+    ``serial://pty?baudrate=9600`` paces its bytes at that line speed). ``--latency-ms X`` holds every command
+    back X ms before the controller sees it.
     Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
     faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop)."""
     from maniskill_irb120.real.emulator import main as emulator_main
 
-    return emulator_main(listen, rapid, fault)
+    return emulator_main(listen, rapid, fault, latency_ms)
 
 
 COMMANDS = {"doctor": doctor, "collect-demos": collect_demos, "expert": expert, "emulator": emulator}

@@ -44,8 +44,8 @@ def message_from(d: dict):
     if kind == "RobotState":
         return RobotState(
             tuple(math.radians(v) for v in d["joints_deg"]),
-            tuple(d["tcp_pos"]),
-            tuple(d["tcp_quat"]),
+            tuple(d["target_pos"]),
+            tuple(d["target_quat"]),
             d["gripper_open"],
             Status[d["status"]],
             ErrorCode[d["error"]],
@@ -74,10 +74,10 @@ def test_vectors_both_ways(vec):
 
 def same_state(a: RobotState, b: RobotState) -> bool:
     """Equal to the protocol's resolution; the quaternion as a rotation (q and -q, ties of the largest part)."""
-    dot = abs(sum(x * y for x, y in zip(a.tcp_quat, b.tcp_quat)))
+    dot = abs(sum(x * y for x, y in zip(a.target_quat, b.target_quat)))
     return (
         max(abs(x - y) for x, y in zip(a.joints, b.joints)) <= math.radians(0.01) + 1e-9
-        and max(abs(x - y) for x, y in zip(a.tcp_pos, b.tcp_pos)) <= 2.5e-5 + 1e-9
+        and max(abs(x - y) for x, y in zip(a.target_pos, b.target_pos)) <= 2.5e-5 + 1e-9
         and 2 * math.degrees(math.acos(min(1.0, dot))) < 0.01
         and (a.gripper_open, a.status, a.error) == (b.gripper_open, b.status, b.error)
     )

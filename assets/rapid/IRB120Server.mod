@@ -82,6 +82,9 @@ MODULE IRB120Server
     VAR bool watchdogFired := FALSE;
     VAR bool connected := FALSE;
     VAR num refusal := 0;
+    ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
+    ! carries it, so the PC knows every pose a next step could be taken from (docs/protocol.md)
+    VAR robtarget lastTarget;
 
     PROC main()
         InitServer;
@@ -109,6 +112,7 @@ MODULE IRB120Server
         ! the TCP may not leave the box: the controller stops it even if this program misbehaves
         WZBoxDef\Outside, shBox, low, high;
         WZLimSup\Temp, wzBox, shBox;
+        lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
         OpenChannel;
     ENDPROC
 
@@ -139,6 +143,7 @@ MODULE IRB120Server
         StopMove;
         ClearPath;
         StartMove;
+        lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
         IF status <> S_FAULT status := S_HELD;
     ENDPROC
 
@@ -289,6 +294,7 @@ MODULE IRB120Server
         refusal := CheckJoints(jNow, jTarget);
         IF refusal <> E_OK RETURN;
         MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        lastTarget := target;
         status := S_MOVING;
         IF rx{12} <> 2 SetGripper rx{12};
     ERROR
@@ -322,6 +328,7 @@ MODULE IRB120Server
             RETURN;
         ENDIF
         MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        lastTarget := tcp;
         status := S_MOVING;
         IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
@@ -362,7 +369,7 @@ MODULE IRB120Server
         VAR num sign := 1;
         VAR num k := 0;
         j := CJointT();
-        p := CRobT(\Tool:=tGripper\WObj:=wobj0);
+        p := lastTarget;
         q := [p.rot.q1, p.rot.q2, p.rot.q3, p.rot.q4];
         FOR i FROM 2 TO 4 DO
             IF Abs(q{i}) > Abs(q{big}) big := i;

@@ -14,12 +14,14 @@ repeated number without executing it again, so a retry never repeats a motion.
 from __future__ import annotations
 
 import time
+from collections import deque
+from dataclasses import replace
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
 from maniskill_irb120.controllers import gripper_opens, scale_tool_action
-from maniskill_irb120.kinematics import pose_mm
+from maniskill_irb120.kinematics import matrix_to_quat, pose_mm
 from maniskill_irb120.real.envelope import Envelope
 from maniskill_irb120.real.protocol import (
     ERROR_MEANINGS,
@@ -39,9 +41,12 @@ from maniskill_irb120.real.protocol import (
 )
 
 
-def _pose(state: RobotState) -> np.ndarray:
-    """The TCP pose (4x4, m) a reply carries: finer than FK of its joints (0.05 mm against 0.02 deg per axis)."""
-    return pose_mm(np.asarray(state.tcp_pos) * 1000, state.tcp_quat)
+def _target(state: RobotState) -> np.ndarray:
+    """The pose (4x4, m) the controller is taking the TCP to, as its reply says."""
+    return pose_mm(np.asarray(state.target_pos) * 1000, state.target_quat)
+
+
+LOOKAHEAD_TARGETS = 3
 
 
 class RobotError(RuntimeError):
@@ -91,7 +96,10 @@ class ABBRobot:
         self.parser = FrameParser()
         self.seq = 0
         self.last_state: RobotState | None = None
-        self.last_target: np.ndarray | None = None  # joints the last accepted motion is heading for
+        # the motion targets the last replies reported (4x4): the robot may still be on its way through them
+        # when the next frame arrives (the module's MoveL returns with one segment of look-ahead, so up to two
+        # are queued; one more is kept for a real IRC5's deeper path planning)
+        self.pending: deque[np.ndarray] = deque(maxlen=LOOKAHEAD_TARGETS)
 
     @classmethod
     def connect(cls, url: str, timeout: float = 0.25, retries: int = 2, envelope: Envelope | None = None) -> ABBRobot:
@@ -115,30 +123,29 @@ class ABBRobot:
         if a.shape != (5,) or not np.all(np.isfinite(a)):
             raise ValueError(f"a tool action is 5 finite numbers, got {action!r}")
         step = scale_tool_action(a[:4])
-        target = None
         if self.check_envelope:
-            # the controller applies the step to the pose it measures when the frame arrives, somewhere between
-            # the last reply's pose and the last target: both ends must stay inside the envelope
-            for q in [self.last_target] if self.last_target is not None else []:
-                self.envelope.check_tool_step(q, step[:3], float(step[3]))
+            # the controller applies the step to the pose it measures when the frame arrives: somewhere on the
+            # path from the last reply's joints through the targets still queued. The step taken from each
+            # corner of that path must stay inside the envelope (between corners the margin covers the bow of
+            # the slerped orientation, < 0.1 mm for a full step)
             q_now = self._joints_now()
-            target = self.envelope.check_tool_step(q_now, step[:3], float(step[3]), tcp_now=_pose(self.last_state))
-        state = self._request(ToolStep(*map(float, step), bool(gripper_opens(a[4]))))
-        self.last_target = target
-        return state
+            self.envelope.check_tool_step(q_now, step[:3], float(step[3]))
+            for pose in self.pending:
+                q = self.envelope.solve(pose, q_now)
+                self.envelope.check_tool_step(q, step[:3], float(step[3]), tcp_now=pose)
+        return self._request(ToolStep(*map(float, step), bool(gripper_opens(a[4]))))
 
     def move_joints(self, q, gripper_open: bool | None = None) -> RobotState:
         q = np.asarray(q, dtype=np.float64)
         if self.check_envelope:
             self.envelope.check_joints(self._joints_now(), q)
-        state = self._request(Joints(tuple(map(float, q)), gripper_open))
-        self.last_target = q if self.check_envelope else None
-        return state
+        return self._request(Joints(tuple(map(float, q)), gripper_open))
 
     def set_gripper(self, open_: bool) -> RobotState:
         return self._request(Gripper(bool(open_)))
 
     def stop(self) -> RobotState:
+        self.pending.clear()  # the controller clears its path: the robot holds where the reply says
         return self._request(Stop())
 
     def close(self) -> None:
@@ -196,6 +203,11 @@ class ABBRobot:
         return None
 
     def _checked(self, state: RobotState) -> RobotState:
+        tcp = self.envelope.tcp_pose(state.joints)
+        state = replace(state, tcp_pos=tuple(tcp[:3, 3]), tcp_quat=tuple(matrix_to_quat(tcp[:3, :3])))
+        target = _target(state)
+        if not self.pending or np.abs(self.pending[-1] - target).max() > 1e-9:
+            self.pending.append(target)
         self.last_state = state
         if state.error != ErrorCode.OK:
             raise ControllerRefused(state)

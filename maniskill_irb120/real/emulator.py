@@ -17,8 +17,10 @@ import select
 import socket
 import threading
 import time
+from collections import deque
 from importlib import resources
 from pathlib import Path
+from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
@@ -70,13 +72,19 @@ def parse_faults(spec: str | None) -> dict[int, tuple[str, float]]:
 
 class Channel:
     """The controller's end of the link: a pty master (serial) or an accepted TCP connection; injects
-    ``faults`` into the replies it sends (see :func:`parse_faults`)."""
+    ``faults`` into the replies it sends (see :func:`parse_faults`). With ``baud`` a serial line's speed is
+    emulated (a pty has none): 10 bit times per byte (8N1), each way, one byte after the other. ``latency_s``
+    holds every incoming byte back that long (a slow network, a busy controller: the command latency sysid fits)."""
 
-    def __init__(self, faults: dict[int, tuple[str, float]], signals: dict[str, int]) -> None:
+    def __init__(
+        self, faults: dict[int, tuple[str, float]], signals: dict[str, int], baud: int | None = None, latency_s=0.0
+    ):
         self.fd: int | None = None
         self.conn: socket.socket | None = None
-        self.buf = bytearray()
+        self.buf: deque[tuple[int, float]] = deque()  # (byte, when its stop bit has arrived)
         self.faults, self.signals, self.replies = faults, signals, 0
+        self.byte_s, self.latency_s = (10.0 / baud if baud else 0.0), latency_s
+        self._rx_free = 0.0  # when the receive line is free for the next byte
 
     def read_byte(self, timeout: float) -> int | None:
         if not self.buf:
@@ -86,8 +94,17 @@ class Channel:
             data = os.read(self.fd, 256) if self.conn is None else self.conn.recv(256)
             if not data:
                 raise EOFError("peer closed")
-            self.buf += data
-        return self.buf.pop(0)
+            now = time.monotonic()
+            for b in data:
+                self._rx_free = max(now + self.latency_s, self._rx_free) + self.byte_s
+                self.buf.append((b, self._rx_free))
+        b, arrives = self.buf.popleft()
+        if (wait := arrives - time.monotonic()) > 0:
+            time.sleep(wait)
+        return b
+
+    def clear(self) -> None:
+        self.buf.clear()
 
     def write(self, data: bytes) -> None:
         self.replies += 1
@@ -110,6 +127,7 @@ class Channel:
         self._send(data)
 
     def _send(self, data: bytes) -> None:
+        time.sleep(len(data) * self.byte_s)  # the peer has the frame once its last byte is through
         if self.conn is None:
             os.write(self.fd, data)
         else:
@@ -126,9 +144,16 @@ class ControllerEmulator:
         port: int = 0,
         q0_deg=REST_DEG,
         faults: str | None = None,
+        baud: int | None = None,
+        latency_ms: float = 0.0,
     ):
         if channel not in ("serial", "tcp"):
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
+        if baud is not None and (channel != "serial" or baud <= 0):
+            raise ValueError(f"baud={baud!r}: a positive line speed, for the serial channel only")
+        if not (math.isfinite(latency_ms) and latency_ms >= 0):
+            raise ValueError(f"latency_ms={latency_ms!r}: a finite delay >= 0 ms")
+        self.baud = baud
         self.channel_kind, self.port = channel, port
         source = Path(rapid or shipped_module()).read_text()
         # choose the channel the way an integrator does: the module's one constant
@@ -142,7 +167,7 @@ class ControllerEmulator:
             raise ValueError("the RAPID module must declare CONST bool USE_SOCKET exactly once")
         self.robot = EmulatedIRB120(q0_deg)
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
-        self.link = Channel(parse_faults(faults), self.signals)
+        self.link = Channel(parse_faults(faults), self.signals, baud, latency_ms / 1000)
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         self.interp = Interpreter(source, self._builtins())  # syntax errors surface here, with their line
         self.error: BaseException | None = None
@@ -156,7 +181,7 @@ class ControllerEmulator:
         """Start the RAPID program; returns the URL a client connects to."""
         if self.channel_kind == "serial":
             self.link.fd, self._slave = os.openpty()
-            url = f"serial://{os.ttyname(self._slave)}?baudrate=115200"
+            url = f"serial://{os.ttyname(self._slave)}?baudrate={self.baud or 115200}"
         else:
             self._server = socket.create_server(("127.0.0.1", self.port))
             url = f"tcp://127.0.0.1:{self._server.getsockname()[1]}"
@@ -281,7 +306,7 @@ class ControllerEmulator:
             return b
 
         reg.add("Open", lambda name, dev, Bin=False, **_: setattr(dev, "value", name))
-        reg.add("ClearIOBuff", lambda dev: link.buf.clear())
+        reg.add("ClearIOBuff", lambda dev: link.clear())
         reg.add("ReadBin", io(read_bin))
         reg.add("WriteBin", io(lambda dev, buffer, n: link.write(bytes(int(b) for b in buffer[: int(n)]))))
 
@@ -290,7 +315,7 @@ class ControllerEmulator:
             while True:
                 try:
                     link.conn, _ = self._server.accept()
-                    link.buf.clear()
+                    link.clear()
                     return
                 except TimeoutError:
                     raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client") from None
@@ -322,14 +347,22 @@ class ControllerEmulator:
         return reg
 
 
-def main(listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None) -> int:
+def main(
+    listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None, latency_ms: float = 0.0
+) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line."""
-    if listen.startswith("tcp://"):
-        emu = ControllerEmulator("tcp", rapid, port=int(listen.rsplit(":", 1)[1]), faults=fault)
-    elif listen.startswith("serial://"):
-        emu = ControllerEmulator("serial", rapid, faults=fault)
+    u = urlparse(listen)
+    if u.scheme == "tcp":
+        emu = ControllerEmulator("tcp", rapid, port=u.port or 0, faults=fault, latency_ms=latency_ms)
+    elif u.scheme == "serial":
+        baud = parse_qs(u.query).get("baudrate")
+        emu = ControllerEmulator(
+            "serial", rapid, faults=fault, baud=int(baud[0]) if baud else None, latency_ms=latency_ms
+        )
     else:
-        raise ValueError(f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty")
+        raise ValueError(
+            f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty[?baudrate=N]"
+        )
     print(emu.start(), flush=True)
     try:
         emu.thread.join()

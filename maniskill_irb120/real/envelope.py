@@ -42,8 +42,9 @@ class Envelope:
     step_rot: float = TOOL_ROT_LIMIT
     control_period: float = CONTROL_PERIOD_S
     margin: float = 0.001
-    """m the TCP keeps inside the box on this side: the PC predicts from a reply that is a few ms old and
-    quantised (0.05 mm, 0.02 deg per axis), while the controller steps from the pose it measures on arrival"""
+    """m the TCP keeps inside the box on this side: the PC checks a step from the corners of the path the robot
+    may be on (the reply's joints, quantised to 0.02 deg: < 0.3 mm at the TCP; its targets, 0.05 mm), while
+    the controller steps from the pose it measures on arrival, somewhere between them (the bow: < 0.1 mm)"""
 
     def __post_init__(self):
         chain = SerialChain(urdf_path(), "tcp", dtype=torch.float64)
@@ -87,6 +88,16 @@ class Envelope:
         q = q[0].numpy()
         self._check_speed(q_now, q)
         return q
+
+    def solve(self, pose: np.ndarray, q_seed) -> np.ndarray:
+        """Joint angles (6,) for the TCP ``pose`` (4x4) on ``q_seed``'s branch; ``EnvelopeError`` if none."""
+        q, ok = self._ik.solve(
+            torch.as_tensor(np.asarray(pose, dtype=np.float64))[None],
+            torch.as_tensor(np.asarray(q_seed, dtype=np.float64))[None],
+        )
+        if not bool(ok[0]):
+            raise EnvelopeError("reach", f"no joint solution within ABB's joint limits for TCP {pose[:3, 3]}")
+        return q[0].numpy()
 
     def check_joints(self, q_now, q_target) -> np.ndarray:
         """``q_target`` (6,) if it is within the joint limits, one control period's motion from ``q_now`` at

@@ -242,31 +242,37 @@ class Stop(GetState):
 
 COMMANDS = {c.TYPE: c for c in (GetState, ToolStep, Joints, Gripper, Stop)}
 # head byte: status (bits 0-1) | index of the quaternion's largest component (bits 2-3) | gripper open (bit 7);
-# error; joints; TCP position; the quaternion's other three components, with the largest made positive
+# error; joints; target TCP position; the quaternion's other three components, with the largest made positive
 STATE_FORMAT = "<BB6h3h3h"
 
 
 @dataclass(frozen=True)
 class RobotState:
-    """The controller's reply to every command: its state when it answered, and the command's outcome."""
+    """The controller's reply to every command: its state when it answered, and the command's outcome.
 
-    joints: tuple[float, ...]  # rad
-    tcp_pos: tuple[float, float, float]  # m, robot base frame
-    tcp_quat: tuple[float, float, float, float]  # wxyz (decoded with its largest component positive)
+    ``target_*`` is the TCP pose the controller is taking the robot to (its last queued motion; where the TCP
+    stands once the robot is still): the pose a next step may start from, which the PC's envelope needs. The
+    measured TCP is not on the wire (it is the joints' forward kinematics): ``ABBRobot`` fills ``tcp_*`` in."""
+
+    joints: tuple[float, ...]  # rad, measured
+    target_pos: tuple[float, float, float]  # m, robot base frame
+    target_quat: tuple[float, float, float, float]  # wxyz (decoded with its largest component positive)
     gripper_open: bool
     status: Status
     error: ErrorCode
+    tcp_pos: tuple[float, float, float] | None = None  # m, measured: FK of ``joints`` (client side)
+    tcp_quat: tuple[float, float, float, float] | None = None
 
     def payload(self) -> bytes:
         # "smallest three": dropping the largest component (>= 1/2, recovered well conditioned) keeps the
         # other three in ±1/√2, so int16 carries them to 2e-5 whatever the orientation
-        quat = list(self.tcp_quat)
+        quat = list(self.target_quat)
         big = max(range(4), key=lambda i: abs(quat[i]))
         sign = -1.0 if quat[big] < 0 else 1.0
         rest = [sign * v for i, v in enumerate(quat) if i != big]
         head = int(self.status) | big << 2 | (0x80 if self.gripper_open else 0)
         q = [_fixed(v, JOINT_UNIT_RAD, f"joint {i + 1}") for i, v in enumerate(self.joints)]
-        p = [_fixed(v, POS_UNIT_M, n) for v, n in zip(self.tcp_pos, "xyz")]
+        p = [_fixed(v, POS_UNIT_M, n) for v, n in zip(self.target_pos, "xyz")]
         r = [_fixed(v, QUAT_UNIT, "quaternion component") for v in rest]
         return struct.pack(STATE_FORMAT, head, int(self.error), *q, *p, *r)
 
