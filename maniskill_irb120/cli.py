@@ -82,7 +82,38 @@ def emulator(
     return emulator_main(listen, rapid, fault, latency_ms)
 
 
-COMMANDS = {"doctor": doctor, "collect-demos": collect_demos, "expert": expert, "emulator": emulator}
+def sim2real_eval(
+    robot: str = "emulator",
+    policy: str = "expert",
+    episodes: int = 10,
+    seed: int = 1000,
+    shift: str | None = None,
+    env_id: str = DEFAULT_ENV_ID,
+    camera: str = "twin",
+    command_mode: str = "tool_delta",
+    out: str = "runs/sim2real",
+    operator_timeout_s: float = 60.0,
+) -> int:
+    """Run a policy on the same seeds in simulation and through the ABB adapter and measure the gap: writes
+    OUT/report.json, OUT/report.md (+ pictures) and OUT/logs/ (what ``sysid`` fits). ``--robot emulator``: our
+    RAPID module on the emulator with a digital twin as the world (``--shift "camera_fov=80,latency=0.02"``
+    makes it differ from the sim); ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
+    IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo
+    checkpoint. Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
+    from maniskill_irb120.sim2real_eval import EvalConfig
+    from maniskill_irb120.sim2real_eval import main as eval_main
+
+    cfg = EvalConfig(robot, policy, episodes, seed, shift, env_id, camera, command_mode, Path(out), operator_timeout_s)
+    return eval_main(cfg)
+
+
+COMMANDS = {
+    "doctor": doctor,
+    "collect-demos": collect_demos,
+    "expert": expert,
+    "emulator": emulator,
+    "sim2real-eval": sim2real_eval,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

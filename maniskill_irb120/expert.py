@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 import torch
 from mani_skill.utils.structs.actor import Actor
 
+from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
 from maniskill_irb120.envs import grasp_lift, stack_cube, table_clearing
 from maniskill_irb120.envs.base import IRB120TableEnv
 from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
@@ -168,8 +169,11 @@ class PickPlaceExpert:
 
         target, gripper = self._targets(nxt, tcp_p, place)
         yaw = torch.where((nxt == APPROACH) | (nxt == DESCEND), yaw_err, torch.zeros_like(yaw_err))
-        limits = self.env.agent.arm_controller.config  # the action space's own scale
-        return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, limits.pos_limit, limits.rot_limit)
+        # the tool action's own scale; the default one when the env this expert reads runs another control mode
+        # (a digital twin driven in joint targets: its actions go to a robot in pd_ee_delta_tool's units)
+        cfg = self.env.agent.arm_controller.config
+        pos_limit, rot_limit = getattr(cfg, "pos_limit", TOOL_POS_LIMIT), getattr(cfg, "rot_limit", TOOL_ROT_LIMIT)
+        return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, pos_limit, rot_limit)
 
     @staticmethod
     def _to_action(

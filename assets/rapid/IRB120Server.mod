@@ -21,6 +21,8 @@ MODULE IRB120Server
     CONST string MOTORS_ON_SIGNAL := "doMotorsOn";
     CONST string ESTOP_SIGNAL := "doEmergencyStop";
     CONST num HEARTBEAT_S := 0.5;
+    ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
+    CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/real/envelope.py)
     CONST num STEP_POS_MM := 10;
     CONST num STEP_ROT_DEG := 10;
@@ -85,6 +87,7 @@ MODULE IRB120Server
     ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
     ! carries it, so the PC knows every pose a next step could be taken from (docs/protocol.md)
     VAR robtarget lastTarget;
+    VAR jointtarget lastJoints;
 
     PROC main()
         InitServer;
@@ -198,10 +201,24 @@ MODULE IRB120Server
         ! while the robot is commanded to move, the PC must send a frame (a STATE request will do) at least every
         ! HEARTBEAT_S; if it does not, the robot stops and holds, and the next motion command is refused
         IF status = S_MOVING THEN
-            HoldRobot;
-            watchdogFired := TRUE;
+            IF Arrived() THEN
+                status := S_IDLE;
+            ELSE
+                HoldRobot;
+                watchdogFired := TRUE;
+            ENDIF
         ENDIF
     ENDPROC
+
+    FUNC bool Arrived()
+        ! the last motion is done: every axis within ARRIVED_DEG of its target (nothing left for a watchdog to stop)
+        VAR jointtarget now;
+        now := CJointT();
+        RETURN Abs(now.robax.rax_1 - lastJoints.robax.rax_1) < ARRIVED_DEG AND Abs(now.robax.rax_2 - lastJoints.robax.rax_2) <
+            ARRIVED_DEG AND Abs(now.robax.rax_3 - lastJoints.robax.rax_3) < ARRIVED_DEG AND Abs(now.robax.rax_4 -
+            lastJoints.robax.rax_4) < ARRIVED_DEG AND Abs(now.robax.rax_5 - lastJoints.robax.rax_5) < ARRIVED_DEG AND
+            Abs(now.robax.rax_6 - lastJoints.robax.rax_6) < ARRIVED_DEG;
+    ENDFUNC
 
     ! ---------------------------------------------------------------- commands
     PROC HandleFrame()
@@ -295,6 +312,7 @@ MODULE IRB120Server
         IF refusal <> E_OK RETURN;
         MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
         lastTarget := target;
+        lastJoints := jTarget;
         status := S_MOVING;
         IF rx{12} <> 2 SetGripper rx{12};
     ERROR
@@ -329,6 +347,7 @@ MODULE IRB120Server
         ENDIF
         MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
         lastTarget := tcp;
+        lastJoints := jTarget;
         status := S_MOVING;
         IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
@@ -368,6 +387,7 @@ MODULE IRB120Server
         VAR num big := 1;
         VAR num sign := 1;
         VAR num k := 0;
+        IF status = S_MOVING AND Arrived() status := S_IDLE;
         j := CJointT();
         p := lastTarget;
         q := [p.rot.q1, p.rot.q2, p.rot.q3, p.rot.q4];

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.utils.observations import ALL_VISUAL_TEXTURES, parse_obs_mode_to_struct
 
 from maniskill_irb120.contract import as_action_array, check_env_idx
@@ -16,29 +17,33 @@ VIDEO_BLOCK = 16  # render_mode="all" frames are padded to multiples of this (vi
 
 
 class EnvContractMixin:
+    """Explicit ``BaseEnv.method(self, ...)`` calls instead of ``super()``: ManiSkill's ``Sim2RealEnv`` runs a
+    task's methods with itself as ``self`` (``type(sim_env).step(real_env, action)``), where zero-argument
+    ``super()`` raises ``TypeError``."""
+
     def step(self, action: Any):
         """ManiSkill's step, for lists and tuples of numbers too: BaseEnv takes only arrays, tensors and dicts
         and raises a bare ``TypeError: <class 'list'>``. Strings and other objects get a TypeError naming them."""
         self._check_open()
         if action is not None and not isinstance(action, dict):
             action = as_action_array(action)
-        return super().step(action)
+        return BaseEnv.step(self, action)
 
     _closed: bool = False
 
     def close(self):
         self._closed = True
-        super().close()
+        BaseEnv.close(self)
 
     def render(self):
         self._check_open()
-        return super().render()
+        return BaseEnv.render(self)
 
     def render_all(self):
         """ManiSkill's overview + hand-camera composite (512 x 596 by default) padded with black on the right
         and bottom to multiples of 16: video encoders (imageio/ffmpeg, macro_block_size 16) would otherwise
         rescale every frame, with a warning."""
-        img = super().render_all()
+        img = BaseEnv.render_all(self)
         h, w = img.shape[-3], img.shape[-2]
         ph, pw = -h % VIDEO_BLOCK, -w % VIDEO_BLOCK
         if not ph and not pw:

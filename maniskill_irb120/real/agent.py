@@ -1,0 +1,183 @@
+"""``IRB120RealAgent``: ManiSkill's ``BaseRealAgent`` on an IRB 120 behind our RAPID server (``ABBRobot``).
+
+ManiSkill's ``Sim2RealEnv`` drives it. Two command modes, one action space:
+
+- ``tool_delta`` (default): the env's ``pd_ee_delta_tool`` action goes over the wire as it is, and the
+  controller's ``RelTool`` + ``MoveL`` do the rest (the original report's semantics; no sim IK in the loop).
+  ``IRB120Sim2RealEnv`` sends it through :meth:`send_tool_action`.
+- ``joint_target``: ManiSkill's default path. The sim controller's IK runs on the PC and its joint drive
+  targets go out as ``MoveAbsJ`` (:meth:`set_target_qpos`).
+
+The MetalWork gripper is pneumatic with no position feedback: the finger joints in ``qpos`` are the open or
+closed stroke the last gripper command selected, unless ``finger_qpos`` (e.g. the digital twin's fingers)
+says better.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+import torch
+from mani_skill.agents.base_real_agent import BaseRealAgent
+
+from maniskill_irb120.agents.irb120 import FINGER_STROKE
+from maniskill_irb120.controllers import gripper_opens
+from maniskill_irb120.real.client import ABBRobot
+from maniskill_irb120.real.protocol import RobotState, Status
+from maniskill_irb120.robot_description import geometry
+
+CommandMode = Literal["tool_delta", "joint_target"]
+COMMAND_MODES = ("tool_delta", "joint_target")
+FINGER_CLOSED_HALF_GAP = geometry()["finger_closed_half_gap"]
+RESET_STEP_FRACTION = 0.5  # a reset moves each axis at most this share of its per-period envelope limit
+
+
+class IRB120RealAgent(BaseRealAgent):
+    """``robot``: a connected ``ABBRobot`` or a URL to connect to on :meth:`start`. ``camera``: any object with
+    ``start()``, ``stop()`` and ``read() -> (rgb uint8 (H, W, 3), depth int16 mm (H, W, 1))`` (``RealSenseCamera``,
+    ``TwinCamera``), or None for state-only policies."""
+
+    def __init__(
+        self,
+        robot: ABBRobot | str,
+        camera=None,
+        command_mode: CommandMode = "tool_delta",
+        camera_name: str = "hand_camera",
+        finger_qpos: Callable[[], np.ndarray] | None = None,
+        sensor_configs: dict | None = None,
+    ):
+        if command_mode not in COMMAND_MODES:
+            raise ValueError(f"command_mode={command_mode!r}: use one of {COMMAND_MODES}")
+        super().__init__(sensor_configs or {})
+        self._robot_or_url = robot
+        self.abb: ABBRobot | None = robot if isinstance(robot, ABBRobot) else None
+        self.camera, self.camera_name, self.command_mode = camera, camera_name, command_mode
+        self.finger_qpos = finger_qpos
+        self.state: RobotState | None = None
+        self._prev: tuple[float, np.ndarray] | None = None  # (time, joints) of the read before, for qvel
+        self._now: tuple[float, np.ndarray] | None = None
+        self._frame: tuple[np.ndarray, np.ndarray] | None = None
+        # every exchange with the controller: (kind, t_sent, t_replied, command, joints in the reply), with
+        # times from time.perf_counter(); what sim2real-eval logs and sysid fits
+        self.log: list[tuple[str, float, float, np.ndarray, np.ndarray]] = []
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        if self.abb is None:
+            self.abb = ABBRobot.connect(self._robot_or_url, timeout=1.0)
+        if self.camera is not None:
+            self.camera.start()
+        self.refresh()
+
+    def stop(self) -> None:
+        """Stop the robot and close the link (the controller holds the robot where it is)."""
+        if self.camera is not None:
+            self.camera.stop()
+        if self.abb is not None:
+            self.abb.close()
+
+    # ------------------------------------------------------------------ commands
+    def refresh(self) -> RobotState:
+        """Read the controller's state now (joints for ``qpos``, ``qvel`` by finite difference)."""
+        t0 = time.perf_counter()
+        return self._record(self.abb.state(), "state", t0, np.zeros(0))
+
+    def send_tool_action(self, action) -> RobotState:
+        """The env's normalised 5-vector, checked by the client's envelope, executed by the controller."""
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        t0 = time.perf_counter()
+        return self._record(self.abb.move_tool(a), "tool", t0, a)
+
+    def set_target_qpos(self, qpos) -> None:
+        """Sim2RealEnv's path: the sim controller's drive targets (arm 6 + fingers 2) as one ``MoveAbsJ``."""
+        q = np.asarray(torch.as_tensor(qpos).detach().cpu(), dtype=np.float64).reshape(-1)
+        if q.shape != (8,):
+            raise ValueError(f"joint targets are 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
+        t0 = time.perf_counter()
+        state = self.abb.move_joints(q[:6], gripper_open=bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
+        self._record(state, "joints", t0, q)
+
+    def set_target_qvel(self, qvel) -> None:
+        raise NotImplementedError("the RAPID server takes position targets only; use a pd_*_pos control mode")
+
+    def reset(self, qpos) -> None:
+        """Move to ``qpos`` slowly: joint moves of at most half the envelope's per-period limit, one per control
+        period, then open or close the gripper as the fingers in ``qpos`` say."""
+        q = np.asarray(torch.as_tensor(qpos).detach().cpu(), dtype=np.float64).reshape(-1)
+        if q.shape != (8,):
+            raise ValueError(f"a reset pose is 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
+        env = self.abb.envelope
+        limit = env._max_joint_step * RESET_STEP_FRACTION
+        env.check_joints(q[:6], q[:6])  # the goal itself inside the envelope before anything moves
+        now = np.asarray(self.refresh().joints)
+        for _ in range(10_000):
+            delta = q[:6] - now
+            if np.abs(delta).max() < 1e-4:
+                break
+            step = now + np.clip(delta, -limit, limit)
+            self.abb.move_joints(step)
+            time.sleep(env.control_period)
+            now = step
+        else:
+            raise RuntimeError(f"reset did not reach {q[:6]} (last command {now})")
+        deadline = time.monotonic() + 5.0
+        while self.abb.state().status == Status.MOVING:
+            if time.monotonic() > deadline:
+                raise RuntimeError("reset: the robot did not come to rest within 5 s of its last command")
+            time.sleep(0.01)
+        self.abb.set_gripper(bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
+        self._prev = None
+        self.refresh()
+
+    # ------------------------------------------------------------------ readings
+    def _record(self, state: RobotState, kind: str, t0: float, command: np.ndarray) -> RobotState:
+        self.log.append((kind, t0, time.perf_counter(), command, np.asarray(state.joints)))
+        self.state = state
+        self._prev, self._now = self._now, (time.perf_counter(), np.asarray(state.joints))
+        return state
+
+    def get_qpos(self) -> torch.Tensor:
+        fingers = self.finger_qpos() if self.finger_qpos is not None else None
+        if fingers is None:
+            fingers = np.full(2, FINGER_STROKE if self.state.gripper_open else 0.0)
+        return torch.as_tensor(np.r_[self.state.joints, fingers], dtype=torch.float32)[None]
+
+    def get_qvel(self) -> torch.Tensor:
+        """Joint velocity from the last two readings (the protocol carries no velocities); fingers 0."""
+        v = np.zeros(8)
+        if self._prev is not None and self._now[0] > self._prev[0]:
+            v[:6] = (self._now[1] - self._prev[1]) / (self._now[0] - self._prev[0])
+        return torch.as_tensor(v, dtype=torch.float32)[None]
+
+    def get_proprioception(self) -> dict:
+        """ManiSkill's (qpos, qvel, controller state) plus the sim agent's ``gripper_opening``, from the fingers."""
+        obs = super().get_proprioception()
+        obs["gripper_opening"] = obs["qpos"][:, -2:].sum(dim=1, keepdim=True) + 2 * FINGER_CLOSED_HALF_GAP
+        return obs
+
+    def capture_sensor_data(self, sensor_names=None) -> None:
+        if self.camera is None:
+            raise RuntimeError("this real agent has no camera: use a state obs mode or pass camera=...")
+        self._frame = self.camera.read()
+
+    def get_sensor_params(self, sensor_names=None) -> dict:
+        """The camera's own (the twin renders with known parameters), else the sim camera's at the synced joints:
+        the nominal mount and the intrinsics ``to_sim_frame`` produces."""
+        if self.camera is None:
+            return {}
+        params = self.camera.params() if hasattr(self.camera, "params") else None
+        if params is None:
+            params = self._sim_agent.scene.sensors[self.camera_name].get_params()
+        return {self.camera_name: params}
+
+    def get_sensor_data(self, sensor_names=None) -> dict:
+        rgb, depth = self._frame
+        return {
+            self.camera_name: dict(
+                rgb=torch.as_tensor(np.ascontiguousarray(rgb))[None],
+                depth=torch.as_tensor(np.ascontiguousarray(depth))[None],
+            )
+        }

@@ -1,0 +1,159 @@
+"""``IRB120Sim2RealEnv``: ManiSkill's ``Sim2RealEnv`` for the IRB 120 behind our RAPID server.
+
+What it changes in ManiSkill's class, and why:
+
+- ``tool_delta`` (default): ``_step_action`` sends the env's action itself (the controller's ``RelTool`` does
+  the rest), instead of the sim controller's IK joint targets; ``joint_target`` keeps ManiSkill's path.
+- Timing: the command goes out at the start of a control period and the robot is read at its end, so the
+  observation a step returns shows that step's motion (ManiSkill's class sleeps before sending).
+- ``get_info``: Sim2RealEnv reports only ``elapsed_steps``. Ours adds what the tasks' observations need
+  (``grasped``, the TCP pose) and, with a digital ``world`` (the emulator's twin), the twin's evaluation:
+  success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real_eval``).
+- State observations need the object's pose: the twin has it; a real robot has no perception, so they are
+  refused with that reason instead of silently reading the sim's stale pose.
+
+    env = IRB120Sim2RealEnv(sim_env, agent, world=twin)   # agent: IRB120RealAgent
+    obs, info = env.reset(seed=0)
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from mani_skill.envs.sapien_env import BaseEnv
+from mani_skill.envs.sim2real_env import Sim2RealEnv
+
+from maniskill_irb120.real.agent import IRB120RealAgent
+from maniskill_irb120.real.client import ControllerRefused
+from maniskill_irb120.real.envelope import EnvelopeError
+
+# task attributes that hold privileged object state (obs "state"): the real side takes them from the world
+PRIVILEGED = ("_obj_pose", "_a_pose", "_b_pose", "obj_start_pos")
+
+
+class IRB120Sim2RealEnv(Sim2RealEnv):
+    def __init__(self, sim_env, agent: IRB120RealAgent, world=None, on_refusal: str = "raise", **kwargs):
+        """``sim_env``: the task on ``physx_cpu`` in ``pd_ee_delta_tool`` (tool_delta) or any pd_*_pos mode
+        (joint_target). ``world``: a ``DigitalTwin`` on the emulator, or None on a real robot. ``on_refusal``:
+        a command the envelope or the controller refuses raises (``"raise"``), or the robot holds for that
+        period and the refusal is recorded in ``refusals`` and ``info["refused"]`` (``"hold"``, for evaluation)."""
+        if on_refusal not in ("raise", "hold"):
+            raise ValueError(f"on_refusal={on_refusal!r}: use 'raise' or 'hold'")
+        mode = sim_env.unwrapped.control_mode
+        if agent.command_mode == "tool_delta" and mode != "pd_ee_delta_tool":
+            raise ValueError(f"command_mode='tool_delta' sends pd_ee_delta_tool actions; the sim env uses {mode!r}")
+        if agent.abb is None:
+            agent.start()  # connect (and start the camera) before ManiSkill's first reset needs the robot
+        self.world, self.on_refusal = world, on_refusal
+        self.refusals: list[str] = []
+        self._refused = False
+        self._world_info: dict = {}
+        self._tcp_pose = None
+        kwargs.setdefault("real_reset_function", _reset_both_sides)
+        kwargs.setdefault("sensor_data_preprocessing_function", _check_sensor_frames(sim_env))
+        super().__init__(sim_env, agent, **kwargs)
+
+    # ------------------------------------------------------------------ acting
+    def _step_action(self, action):
+        self._refused = False
+        try:
+            if self.last_control_time is None:
+                self.last_control_time = time.perf_counter()
+            if self.agent.command_mode == "joint_target":
+                # ManiSkill's path without its sleep before sending: the sim controller's IK, then its drive
+                # targets as one MoveAbsJ
+                self.base_sim_env.agent.set_action(torch.as_tensor(action, dtype=torch.float32).reshape(1, -1))
+                self.agent.set_target_qpos(self.agent.controller.articulation.drive_targets)
+            else:
+                a = torch.as_tensor(action).detach().cpu().reshape(-1).numpy()
+                if a.shape != self._orig_single_action_space.shape or not np.all(np.isfinite(a)):
+                    raise ValueError(f"action must be 5 finite numbers, got {a}")
+                self.agent.send_tool_action(np.clip(a, -1.0, 1.0))
+        except (EnvelopeError, ControllerRefused) as e:
+            if self.on_refusal == "raise":
+                raise
+            self.refusals.append(e.limit if isinstance(e, EnvelopeError) else e.state.error.name)
+            self._refused = True
+        # the rest of the period: the robot moves; then read it (and the world follows it)
+        left = self.control_dt - (time.perf_counter() - self.last_control_time)
+        if left > 0:
+            time.sleep(left)
+        self.last_control_time = time.perf_counter()
+        self.agent.refresh()
+        if self.world is not None:
+            self._world_info = self.world.follow()
+        return action
+
+    # ------------------------------------------------------------------ what the tasks' observations read
+    def get_info(self) -> dict:
+        sim = self.base_sim_env
+        sim.agent.robot.set_qpos(self.agent.get_qpos().to(sim.device))
+        self._tcp_pose = sim.agent.tcp_pose.raw_pose.clone()
+        info = dict(elapsed_steps=self._elapsed_steps, refused=torch.tensor([self._refused]))
+        if self.world is not None:
+            info.update({k: v for k, v in self._world_info.items() if k != "elapsed_steps"})
+        else:
+            closed = torch.tensor([not self.agent.state.gripper_open])
+            info["grasped"] = closed  # pneumatic gripper, no sensing: closed is the best a real robot tells
+        return info
+
+    def _get_obs_state_dict(self, info: dict) -> dict:
+        """ManiSkill's class leaves this to ``__getattr__``, i.e. to the *sim* env's state: the real side's obs
+        would silently be the simulation's. Built here from the real agent and the world."""
+        return BaseEnv._get_obs_state_dict(self, info)
+
+    def _get_obs_extra(self, info: dict) -> dict:
+        # the task's own, without ManiSkill's wrapper that turns any error into a print and exit(-1)
+        return type(self.base_sim_env)._get_obs_extra(self, info)
+
+    def get_reward(self, obs, action, info):
+        """The world's reward on the twin (it knows where the object is); none on a real robot."""
+        return self.world.reward if self.world is not None else torch.zeros(1)
+
+    def __getattr__(self, name: str) -> Any:
+        if name in PRIVILEGED:
+            world = self.__dict__.get("world")
+            if world is None:
+                raise RuntimeError(
+                    f"{name} is privileged object state: a real robot has no perception of it, so state "
+                    "observations cannot be formed; use obs_mode='rgbd' (or run on the emulator's digital twin)"
+                )
+            return world.privileged(name)
+        return super().__getattr__(name)
+
+
+def _reset_both_sides(env: IRB120Sim2RealEnv, seed=None, options=None) -> None:
+    """The sim episode ``seed``; the world laid out for the same seed (the twin; a person on a real robot); the
+    robot moved slowly to the sim's start pose."""
+    env.sim_env.reset(seed=seed, options=options)
+    if env.world is not None:
+        start = env.world.reset(seed=seed)
+        env._world_info = env.world.info
+    else:
+        start = env.base_sim_env.agent.robot.get_qpos()[0].cpu().numpy()
+    env.agent.reset(start)
+    env.last_control_time = None
+
+
+def _check_sensor_frames(sim_env):
+    """The cameras return the sim's format already (``to_sim_frame``); say so if one does not, rather than let
+    ManiSkill's default resize drop the depth channel."""
+
+    def check(data: dict) -> dict:
+        configs = sim_env.unwrapped._sensor_configs
+        for name, frames in data.items():
+            cfg = configs[name]
+            for key, dtype, ch in (("rgb", torch.uint8, 3), ("depth", torch.int16, 1)):
+                if key in frames:
+                    want = (1, cfg.height, cfg.width, ch)
+                    got = frames[key]
+                    if tuple(got.shape) != want or got.dtype != dtype:
+                        raise ValueError(
+                            f"{name}.{key}: got {got.dtype} {tuple(got.shape)}, the sim gives {dtype} {want}"
+                        )
+        return data
+
+    return check

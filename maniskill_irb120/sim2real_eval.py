@@ -1,0 +1,257 @@
+"""``maniskill-irb120 sim2real-eval``: the same seeds in simulation and through the ABB adapter, side by side.
+
+    maniskill-irb120 sim2real-eval --robot emulator --policy expert --episodes 10 --seed 1000 --out runs/s2r
+    maniskill-irb120 sim2real-eval --robot emulator --shift "camera_fov=80,latency=0.02" --policy expert ...
+    maniskill-irb120 sim2real-eval --robot tcp://192.168.125.1:5000 --camera realsense --policy CKPT ...
+
+``--robot emulator`` (or ``emulator+serial``) starts the controller emulator running our RAPID module with a
+digital twin behind it (the real side's world: ``real/twin.py``); a URL drives a real IRC5, whose episodes the
+operator scores at a prompt. Writes ``report.json``, ``report.md`` (+ pictures) and, per real episode, the
+exchange log ``logs/real_SEED.npz`` that ``sysid`` fits. Ctrl-C stops the robot and still writes the report.
+"""
+
+from __future__ import annotations
+
+import json
+import select
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import maniskill_irb120  # noqa: F401  (registers the tasks)
+from maniskill_irb120.envs.randomization import Randomization
+from maniskill_irb120.sim2real_policy import load_policy
+
+EVENTS = ("success", "grasped", "dropped", "collided")
+
+
+@dataclass
+class EvalConfig:
+    robot: str = "emulator"
+    """'emulator' (TCP) or 'emulator+serial' (a pty): our RAPID module on the emulator with a digital twin;
+    or a controller URL (tcp://HOST:PORT, serial:///dev/ttyUSB0?baudrate=N) for a real IRC5"""
+    policy: str = "expert"
+    """'expert' (the task's scripted expert; it reads the twin's object pose, so emulator only) or the path
+    of an agents.ppo checkpoint"""
+    episodes: int = 10
+    seed: int = 1000
+    """first seed; episode k runs seed + k on both sides"""
+    shift: str | None = None
+    """how the twin's world differs from the sim (Randomization.parse syntax, e.g. 'camera_fov=80,light=0.6');
+    'latency' goes to the emulator as command latency"""
+    env_id: str = "TableClearing-IRB120-v1"
+    camera: str = "twin"
+    """twin (the twin's render; emulator only), realsense, or none (state-free policies that need no image)"""
+    command_mode: str = "tool_delta"
+    """tool_delta (the action goes over the wire, RelTool on the controller) or joint_target (sim IK, MoveAbsJ)"""
+    out: Path = Path("runs/sim2real")
+    operator_timeout_s: float = 60.0
+    """real robot: seconds to answer 'delivered? [y/n]' after each episode (no answer: scored unknown)"""
+
+
+def _episode(env, policy, seed: int, real: bool) -> dict:
+    """One episode; per-step TCP (m, world), joints (rad), actions, events, three hand-camera frames."""
+    obs, info = env.reset(seed=seed)
+    policy.reset()
+    tcp, joints, actions, frames, seen = [], [], [], [], {k: False for k in EVENTS}
+    u = env.unwrapped
+    limit = env.spec.max_episode_steps if env.spec is not None else 250
+    for t in range(limit):
+        a = policy.act(obs)
+        obs, _, term, trunc, info = env.step(a)
+        tcp.append((u._tcp_pose[0, :3] if real else u.agent.tcp_pose.p[0]).cpu().numpy().copy())
+        joints.append((u.agent.get_qpos() if real else u.agent.robot.get_qpos())[0, :6].cpu().numpy().copy())
+        actions.append(np.asarray(torch.as_tensor(a).reshape(-1).cpu()))
+        for k in EVENTS:
+            seen[k] |= bool(info.get(k, torch.zeros(1))[0])
+        if t in (0, 30) and isinstance(obs, dict):
+            frames.append(_rgb(obs))
+        if bool(term[0]) or bool(trunc[0]):
+            break
+    if isinstance(obs, dict):
+        frames.append(_rgb(obs))
+    out = dict(steps=t + 1, success=bool(info["success"][0]), tcp=np.array(tcp), joints=np.array(joints))
+    out.update(actions=np.array(actions), frames=frames, **{k: seen[k] for k in EVENTS if k != "success"})
+    return out
+
+
+def _rgb(obs) -> np.ndarray:
+    rgb = obs["rgb"] if "rgb" in obs else obs["sensor_data"]["hand_camera"]["rgb"]
+    return rgb[0, ..., :3].cpu().numpy().copy()
+
+
+def _ask_operator(seed: int, timeout: float) -> bool | None:
+    print(f"episode seed {seed}: was the object delivered? [y/n] ({timeout:.0f} s) ", end="", flush=True)
+    ready, _, _ = select.select([sys.stdin], [], [], timeout)
+    if not ready:
+        print("(no answer: unknown)")
+        return None
+    return sys.stdin.readline().strip().lower().startswith("y")
+
+
+def _deviation(sim: dict, real: dict) -> dict:
+    n = min(sim["steps"], real["steps"])
+    tcp = np.linalg.norm(sim["tcp"][:n] - real["tcp"][:n], axis=1)
+    joint = np.abs(sim["joints"][:n] - real["joints"][:n]).max(axis=1)
+    act = np.linalg.norm(sim["actions"][:n] - real["actions"][:n], axis=1)
+    return dict(tcp_m=tcp, joint_rad=joint, action=act)
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = np.asarray(x, dtype=np.float64)
+    if x.size == 0:
+        return {}
+    return dict(mean=float(x.mean()), p50=float(np.median(x)), p95=float(np.percentile(x, 95)), max=float(x.max()))
+
+
+def _make_real_side(cfg: EvalConfig, sim_env, shift: Randomization):
+    """(Sim2RealEnv, agent, twin or None, emulator or None)."""
+    from maniskill_irb120.real.agent import IRB120RealAgent
+    from maniskill_irb120.sim2real import IRB120Sim2RealEnv
+
+    emulator = twin = None
+    if cfg.robot.startswith("emulator"):
+        from maniskill_irb120.real.emulator import ControllerEmulator
+        from maniskill_irb120.real.twin import DigitalTwin
+
+        channel = "serial" if cfg.robot == "emulator+serial" else "tcp"
+        if cfg.robot not in ("emulator", "emulator+serial"):
+            raise ValueError(f"--robot {cfg.robot!r}: use emulator, emulator+serial or a controller URL")
+        latency = shift.latency if isinstance(shift.latency, (int, float)) else float(np.mean(shift.latency))
+        emulator = ControllerEmulator(channel, latency_ms=1000 * latency)
+        url = emulator.start()
+        twin = DigitalTwin(cfg.env_id, emulator, obs_mode="rgbd", randomization=shift.without_latency())
+        camera = twin.camera if cfg.camera == "twin" else None
+    else:
+        url = cfg.robot
+        if cfg.camera == "twin":
+            raise ValueError("--camera twin needs --robot emulator: a real robot has no twin; use realsense or none")
+        if cfg.policy == "expert":
+            raise ValueError("--policy expert reads the object's pose, which only the emulator's twin knows")
+        camera = None
+        if cfg.camera == "realsense":
+            from maniskill_irb120.real.cameras import RealSenseCamera
+
+            camera = RealSenseCamera()
+    agent = IRB120RealAgent(
+        url, camera=camera, command_mode=cfg.command_mode, finger_qpos=twin.finger_qpos if twin else None
+    )
+    env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold")
+    return env, agent, twin, emulator
+
+
+def evaluate(cfg: EvalConfig) -> dict:
+    from tqdm import tqdm
+
+    from maniskill_irb120.sim2real_report import write_report
+
+    shift = Randomization.from_any(cfg.shift)
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    (cfg.out / "logs").mkdir(exist_ok=True)
+    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode)
+    real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift)
+    rows, interrupted, t_start = [], False, time.time()
+    bar = tqdm(range(cfg.episodes), desc="sim2real", unit="episode")
+    try:
+        for k in bar:
+            seed = cfg.seed + k
+            sim = _episode(sim_env, make_policy(sim_env), seed, real=False)
+            agent.log.clear()
+            n_refused = len(real_env.refusals)
+            real = _episode(real_env, make_policy(twin.env if twin else real_env), seed, real=True)
+            if twin is None:
+                real["success"] = _ask_operator(seed, cfg.operator_timeout_s)
+            np.savez(cfg.out / "logs" / f"real_{seed}.npz", **_log_arrays(agent.log, real_env.control_dt))
+            rows.append(dict(seed=seed, sim=sim, real=real, refused=real_env.refusals[n_refused:]))
+            rows[-1]["deviation"] = _deviation(sim, real)
+            bar.set_postfix(
+                sim=sum(r["sim"]["success"] for r in rows), real=sum(bool(r["real"]["success"]) for r in rows)
+            )
+    except KeyboardInterrupt:
+        interrupted = True
+        print("\ninterrupted: stopping the robot and writing what was measured", file=sys.stderr)
+    finally:
+        real_env.close()  # the agent stops the robot
+        if emulator is not None:
+            emulator.stop()
+        if twin is not None:
+            twin.close()
+    report = _summarise(cfg, shift, rows, agent.log, interrupted, time.time() - t_start)
+    write_report(cfg.out, report, rows)
+    return report
+
+
+def _log_arrays(log: list, control_dt: float) -> dict:
+    kinds = np.array([e[0] for e in log])
+    width = max((len(e[3]) for e in log), default=0)
+    cmds = np.full((len(log), width), np.nan)
+    for i, e in enumerate(log):
+        cmds[i, : len(e[3])] = e[3]
+    return dict(
+        kind=kinds,
+        t_sent=np.array([e[1] for e in log]),
+        t_replied=np.array([e[2] for e in log]),
+        command=cmds,
+        joints=np.array([e[4] for e in log]).reshape(-1, 6),
+        control_dt=np.array(control_dt),
+    )
+
+
+def _summarise(cfg: EvalConfig, shift: Randomization, rows: list, log: list, interrupted: bool, wall: float) -> dict:
+    def rate(side: str, key: str) -> float | None:
+        vals = [r[side][key] for r in rows if r[side][key] is not None]
+        return float(np.mean(vals)) if vals else None
+
+    cat = {
+        k: np.concatenate([r["deviation"][k] for r in rows]) if rows else np.zeros(0)
+        for k in ("tcp_m", "joint_rad", "action")
+    }
+    refused = [x for r in rows for x in r["refused"]]
+    latency = [1000 * (e[2] - e[1]) for e in log if e[0] != "state"]
+    return dict(
+        config={k: str(v) for k, v in asdict(cfg).items()},
+        shift=shift.as_dict(),
+        episodes=len(rows),
+        interrupted=interrupted,
+        wall_clock_s=wall,
+        sim={k: rate("sim", k) for k in EVENTS},
+        real={k: rate("real", k) for k in EVENTS},
+        unscored_real=sum(r["real"]["success"] is None for r in rows),
+        mean_steps=dict(
+            sim=float(np.mean([r["sim"]["steps"] for r in rows] or [0])),
+            real=float(np.mean([r["real"]["steps"] for r in rows] or [0])),
+        ),
+        deviation=dict(tcp_m=_stats(cat["tcp_m"]), joint_rad=_stats(cat["joint_rad"]), action=_stats(cat["action"])),
+        command_latency_ms=_stats(np.array(latency)),
+        refused=dict(total=len(refused), by_limit={x: refused.count(x) for x in sorted(set(refused))}),
+        per_episode=[
+            dict(
+                seed=r["seed"],
+                sim_success=r["sim"]["success"],
+                real_success=r["real"]["success"],
+                sim_steps=r["sim"]["steps"],
+                real_steps=r["real"]["steps"],
+                refused=len(r["refused"]),
+            )
+            for r in rows
+        ],
+    )
+
+
+def main(cfg: EvalConfig) -> int:
+    report = evaluate(cfg)
+    print(
+        json.dumps(
+            dict(
+                sim_success=report["sim"]["success"],
+                real_success=report["real"]["success"],
+                episodes=report["episodes"],
+                report=str(cfg.out / "report.md"),
+            )
+        )
+    )
+    return 1 if report["interrupted"] else 0

@@ -1,0 +1,106 @@
+"""``report.json`` and ``report.md`` (+ small PNGs) for ``sim2real-eval``: rates per side, deviations, latency,
+refusals; TCP paths sim vs real overlaid, hand-camera frames side by side, deviation over time."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+PLOT_EPISODES = 4
+
+
+def write_report(out: Path, report: dict, rows: list) -> None:
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    pictures = _plots(out, rows) if rows else []
+    (out / "report.md").write_text(_markdown(report, pictures))
+
+
+def _fmt(x, pct: bool = False) -> str:
+    if x is None:
+        return "–"
+    return f"{100 * x:.0f} %" if pct else f"{x:.3g}"
+
+
+def _markdown(r: dict, pictures: list[str]) -> str:
+    c = r["config"]
+    lines = [
+        f"# sim vs real: {c['env_id']}, policy `{c['policy']}`, robot `{c['robot']}`",
+        "",
+        f"{r['episodes']} episodes from seed {c['seed']}; shift: `{c['shift']}`; "
+        f"{r['wall_clock_s']:.0f} s{' (interrupted)' if r['interrupted'] else ''}.",
+        "",
+        "| | success | grasp | drop | collision | mean steps |",
+        "|---|---|---|---|---|---|",
+    ]
+    for side in ("sim", "real"):
+        s = r[side]
+        cells = " | ".join(_fmt(s[k], pct=True) for k in ("success", "grasped", "dropped", "collided"))
+        lines.append(f"| {side} | {cells} | {r['mean_steps'][side]:.1f} |")
+    if r["unscored_real"]:
+        lines.append(f"\n{r['unscored_real']} real episodes were not scored by the operator.")
+    lines += ["", "| per step, same step index | mean | p50 | p95 | max |", "|---|---|---|---|---|"]
+    names = dict(tcp_m="TCP distance (m)", joint_rad="largest joint difference (rad)", action="action difference (L2)")
+    for key, label in names.items():
+        d = r["deviation"][key]
+        lines.append(f"| {label} | " + " | ".join(_fmt(d.get(k)) for k in ("mean", "p50", "p95", "max")) + " |")
+    lat = r["command_latency_ms"]
+    lines += [
+        "",
+        "Command round trip (ms): " + ", ".join(f"{k} {_fmt(v)}" for k, v in lat.items()),
+        "",
+        f"Refused commands: {r['refused']['total']} {r['refused']['by_limit'] or ''}",
+        "",
+    ]
+    lines += [f"![{Path(p).stem}]({p})" for p in pictures]
+    return "\n".join(lines) + "\n"
+
+
+def _plots(out: Path, rows: list) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.6), dpi=80)
+    for i, row in enumerate(rows[:PLOT_EPISODES]):
+        for side, style in (("sim", "-"), ("real", "--")):
+            p = row[side]["tcp"]
+            if len(p):
+                label = f"{side} {row['seed']}"
+                axes[0].plot(p[:, 0], p[:, 1], style, color=f"C{i}", label=label)
+                axes[1].plot(p[:, 0], p[:, 2], style, color=f"C{i}")
+    axes[0].set(xlabel="x (m)", ylabel="y (m)", title="TCP path, top view")
+    axes[1].set(xlabel="x (m)", ylabel="z (m)", title="side view")
+    axes[0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(out / "tcp_paths.png")
+    plt.close(fig)
+    names.append("tcp_paths.png")
+
+    fig, ax = plt.subplots(figsize=(6, 3), dpi=80)
+    for i, row in enumerate(rows[:PLOT_EPISODES]):
+        ax.plot(1000 * row["deviation"]["tcp_m"], color=f"C{i}", label=f"seed {row['seed']}")
+    ax.set(xlabel="step", ylabel="TCP sim - real (mm)", title="deviation over time")
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(out / "deviation.png")
+    plt.close(fig)
+    names.append("deviation.png")
+
+    sim_frames, real_frames = rows[0]["sim"]["frames"], rows[0]["real"]["frames"]
+    if sim_frames and real_frames:
+        n = min(len(sim_frames), len(real_frames))
+        fig, axes = plt.subplots(2, n, figsize=(1.6 * n, 3.4), dpi=80, squeeze=False)
+        for j in range(n):
+            for k, (side, frames) in enumerate((("sim", sim_frames), ("real", real_frames))):
+                axes[k, j].imshow(np.asarray(frames[j]))
+                axes[k, j].set_axis_off()
+                axes[k, j].set_title(f"{side} {('start', 'step 30', 'end')[j] if n == 3 else j}", fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "hand_camera.png")
+        plt.close(fig)
+        names.append("hand_camera.png")
+    return names
