@@ -151,15 +151,38 @@ def test_a_repeated_frame_is_answered_but_not_executed_twice(emulator):
         assert moved == pytest.approx(0.005, abs=5e-4)
 
 
-def test_watchdog_stops_a_silent_pc(emulator):
+def test_watchdog_stops_a_silent_pc_mid_motion(tmp_path):
+    """A step lasts 40 ms, so the shipped 0.5 s heartbeat can only catch queued motion; a copy of the module
+    with a 20 ms heartbeat shows the mechanism: silence mid-step stops the robot short and holds it, the next
+    motion command is refused so the PC learns of it, the one after runs."""
+    fast = tmp_path / "fast_watchdog.mod"
+    fast.write_text(
+        shipped_module().read_text().replace("CONST num HEARTBEAT_S := 0.5;", "CONST num HEARTBEAT_S := 0.02;")
+    )
+    emu = ControllerEmulator("tcp", rapid=fast)
+    with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
+        start = np.asarray(robot.state().tcp_pos)
+        robot.move_tool([1.0, 0, 0, 0, 1])
+        time.sleep(0.3)  # silent
+        state = robot.state()
+        assert state.status == Status.HELD
+        assert np.linalg.norm(np.asarray(state.tcp_pos) - start) < 0.009  # stopped short of the 10 mm step
+        with pytest.raises(ControllerRefused, match="heartbeat"):
+            robot.move_tool([0.5, 0, 0, 0, 1])
+        assert robot.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK  # the next command runs
+    emu.stop()
+    assert emu.error is None
+
+
+def test_a_pause_after_the_robot_arrived_is_not_a_fault(emulator):
+    """MOVING ends when the robot arrives: a PC that pauses longer than the heartbeat between episodes (an
+    operator, a scene reset) finds the robot IDLE and its next command runs."""
     emu, url = emulator
     with ABBRobot.connect(url, timeout=1.0) as robot:
-        robot.move_tool([0.5, 0, 0, 0, 1])
-        time.sleep(0.8)  # no frame for longer than the module's HEARTBEAT_S while moving
-        with pytest.raises(ControllerRefused, match="heartbeat") as e:
-            robot.move_tool([0.5, 0, 0, 0, 1])
-        assert e.value.state.status == Status.HELD
-        assert robot.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK  # the next command runs
+        assert robot.move_tool([0.5, 0, 0, 0, 1]).status == Status.MOVING
+        time.sleep(0.8)
+        assert robot.state().status == Status.IDLE
+        assert robot.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK
 
 
 def test_editing_the_module_changes_the_emulator(tmp_path):
