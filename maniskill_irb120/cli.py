@@ -69,17 +69,21 @@ def expert(
 
 
 def emulator(
-    listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None, latency_ms: float = 0.0
+    listen: str = "tcp://127.0.0.1:0",
+    rapid: str | None = None,
+    fault: str | None = None,
+    latency_ms: float = 0.0,
+    speed_scale: float = 1.0,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
     ``serial://pty?baudrate=9600`` paces its bytes at that line speed). ``--latency-ms X`` holds every command
-    back X ms before the controller sees it.
+    back X ms before the controller sees it; ``--speed-scale 0.8`` makes every motion take 1/0.8 of its time.
     Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
     faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop)."""
     from maniskill_irb120.real.emulator import main as emulator_main
 
-    return emulator_main(listen, rapid, fault, latency_ms)
+    return emulator_main(listen, rapid, fault, latency_ms, speed_scale)
 
 
 def sim2real_eval(
@@ -107,12 +111,23 @@ def sim2real_eval(
     return eval_main(cfg)
 
 
+def sysid(log: str) -> int:
+    """Fit the robot's command latency and speed scaling to a sim2real-eval run's logs (LOG/logs/real_*.npz):
+    prints one JSON line (latency_s, speed_scale, RMS joint error of the fit and of the nominal robot) and
+    writes LOG/sysid.json."""
+    from maniskill_irb120.sysid import main as sysid_main
+
+    sysid_main(log)
+    return 0
+
+
 COMMANDS = {
     "doctor": doctor,
     "collect-demos": collect_demos,
     "expert": expert,
     "emulator": emulator,
     "sim2real-eval": sim2real_eval,
+    "sysid": sysid,
 }
 
 

@@ -25,6 +25,7 @@ import torch
 import maniskill_irb120  # noqa: F401  (registers the tasks)
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.sim2real_policy import load_policy
+from maniskill_irb120.sysid import log_arrays
 
 EVENTS = ("success", "grasped", "dropped", "collided")
 
@@ -165,7 +166,7 @@ def evaluate(cfg: EvalConfig) -> dict:
             real = _episode(real_env, make_policy(twin.env if twin else real_env), seed, real=True)
             if twin is None:
                 real["success"] = _ask_operator(seed, cfg.operator_timeout_s)
-            np.savez(cfg.out / "logs" / f"real_{seed}.npz", **_log_arrays(agent.log, real_env.control_dt))
+            np.savez(cfg.out / "logs" / f"real_{seed}.npz", **log_arrays(agent.log, real_env.control_dt))
             rows.append(dict(seed=seed, sim=sim, real=real, refused=real_env.refusals[n_refused:]))
             rows[-1]["deviation"] = _deviation(sim, real)
             bar.set_postfix(
@@ -183,22 +184,6 @@ def evaluate(cfg: EvalConfig) -> dict:
     report = _summarise(cfg, shift, rows, agent.log, interrupted, time.time() - t_start)
     write_report(cfg.out, report, rows)
     return report
-
-
-def _log_arrays(log: list, control_dt: float) -> dict:
-    kinds = np.array([e[0] for e in log])
-    width = max((len(e[3]) for e in log), default=0)
-    cmds = np.full((len(log), width), np.nan)
-    for i, e in enumerate(log):
-        cmds[i, : len(e[3])] = e[3]
-    return dict(
-        kind=kinds,
-        t_sent=np.array([e[1] for e in log]),
-        t_replied=np.array([e[2] for e in log]),
-        command=cmds,
-        joints=np.array([e[4] for e in log]).reshape(-1, 6),
-        control_dt=np.array(control_dt),
-    )
 
 
 def _summarise(cfg: EvalConfig, shift: Randomization, rows: list, log: list, interrupted: bool, wall: float) -> dict:

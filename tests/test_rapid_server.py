@@ -55,7 +55,9 @@ def test_rapid_reply_decodes_to_the_state(quat):
     n = math.sqrt(sum(v * v for v in quat))
     quat = tuple(v / n for v in quat)
     joints = (10.0, -20.5, 30.24, -140.0, 95.5, -380.0)  # multiples of the 0.02 deg unit
-    interp = server(joints, (412.35, -101.2, 88.05), quat, gripper=1)
+    interp = server(joints, gripper=1)
+    # the reply carries the motion target (where the controller is taking the TCP), not CRobT
+    interp.set("lastTarget", make_value("robtarget", [[412.35, -101.2, 88.05], list(quat), [0, 0, 0, 0], [9e9] * 6]))
     interp.set("refusal", 2)
     interp.set("status", 2)
     interp.call("BuildReply", MsgType.TOOL_STEP, 9)
@@ -64,6 +66,6 @@ def test_rapid_reply_decodes_to_the_state(quat):
     assert frame.type == MsgType.REPLY | MsgType.TOOL_STEP and frame.seq == 9
     state = decode_reply(frame)
     assert [round(math.degrees(v), 2) for v in state.joints] == list(joints)
-    assert [round(v * 1000, 2) for v in state.tcp_pos] == [412.35, -101.2, 88.05]
-    assert abs(sum(a * b for a, b in zip(state.tcp_quat, quat))) > 1 - 1e-8
+    assert [round(v * 1000, 2) for v in state.target_pos] == [412.35, -101.2, 88.05]
+    assert abs(sum(a * b for a, b in zip(state.target_quat, quat))) > 1 - 1e-8
     assert state.gripper_open and state.status == Status.HELD and state.error == 2

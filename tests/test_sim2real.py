@@ -3,7 +3,9 @@ twin: the real agent, the twin, the env subclass, the cameras' conversion, and t
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import cv2
 import gymnasium as gym
@@ -177,3 +179,46 @@ def test_bad_modes_are_named():
     sim = gym.make(ENV_ID, obs_mode="state", control_mode="pd_joint_pos", render_backend="none")
     with pytest.raises(ValueError, match="tool_delta"):
         IRB120Sim2RealEnv(sim, IRB120RealAgent("tcp://127.0.0.1:1"))
+
+
+# --------------------------------------------------------------------------- system identification
+from maniskill_irb120.sysid import log_arrays  # noqa: E402
+from maniskill_irb120.sysid import main as sysid  # noqa: E402
+
+
+def logged_steps(tmp_path, latency_ms: float, speed_scale: float) -> Path:
+    """A 20 Hz loop of tool steps of random size and direction through the emulator, logged as sim2real-eval
+    logs it; the state is read twice in each period (sizes and reads tell dead time from slowness)."""
+    emu = ControllerEmulator("tcp", latency_ms=latency_ms, speed_scale=speed_scale)
+    agent = IRB120RealAgent(emu.start())
+    agent.start()
+    rng = np.random.default_rng(0)
+    try:
+        for i in range(60):
+            t0 = time.perf_counter()
+            size = rng.uniform(0.15, 1.0)
+            agent.send_tool_action(np.r_[rng.uniform(-1, 1, 3) * size * (1 if i % 20 < 10 else -1), 0.0, 1.0])
+            agent.refresh()
+            time.sleep(max(0.0, 0.05 - (time.perf_counter() - t0)))
+            agent.refresh()
+        out = tmp_path / f"run_{latency_ms:g}_{speed_scale:g}"
+        (out / "logs").mkdir(parents=True)
+        np.savez(out / "logs" / "real_0.npz", **log_arrays(agent.log, 0.05))
+    finally:
+        agent.stop()
+        emu.stop()
+    return out
+
+
+def test_sysid_recovers_injected_latency_and_speed_scale(tmp_path):
+    """The emulator has a latency of its own (its RAPID interpreter: the nominal run's fit); what is injected
+    on top is recovered within 10 %, and so is the speed scale; the fitted model tracks the logged joints closer
+    than the nominal robot."""
+    base = sysid(str(logged_steps(tmp_path, 0.0, 1.0)))
+    shifted_dir = logged_steps(tmp_path, 40.0, 0.6)
+    shifted = sysid(str(shifted_dir))
+    assert shifted["latency_s"] - base["latency_s"] == pytest.approx(0.040, rel=0.1)
+    assert base["speed_scale"] == pytest.approx(1.0, rel=0.1)
+    assert shifted["speed_scale"] == pytest.approx(0.6, rel=0.1)
+    assert shifted["rms_joint_error_fit_rad"] < 0.5 * shifted["rms_joint_error_nominal_rad"]
+    assert json.loads((shifted_dir / "sysid.json").read_text()) == shifted

@@ -60,9 +60,9 @@ class IRB120RealAgent(BaseRealAgent):
         self._prev: tuple[float, np.ndarray] | None = None  # (time, joints) of the read before, for qvel
         self._now: tuple[float, np.ndarray] | None = None
         self._frame: tuple[np.ndarray, np.ndarray] | None = None
-        # every exchange with the controller: (kind, t_sent, t_replied, command, joints in the reply), with
-        # times from time.perf_counter(); what sim2real-eval logs and sysid fits
-        self.log: list[tuple[str, float, float, np.ndarray, np.ndarray]] = []
+        # every exchange with the controller: (kind, t_sent, t_replied, command, joints in the reply, the reply's
+        # motion target as position + wxyz), times from time.perf_counter(); what sim2real-eval logs, sysid fits
+        self.log: list[tuple[str, float, float, np.ndarray, np.ndarray, np.ndarray]] = []
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -134,7 +134,8 @@ class IRB120RealAgent(BaseRealAgent):
 
     # ------------------------------------------------------------------ readings
     def _record(self, state: RobotState, kind: str, t0: float, command: np.ndarray) -> RobotState:
-        self.log.append((kind, t0, time.perf_counter(), command, np.asarray(state.joints)))
+        target = np.r_[state.target_pos, state.target_quat]
+        self.log.append((kind, t0, time.perf_counter(), command, np.asarray(state.joints), target))
         self.state = state
         self._prev, self._now = self._now, (time.perf_counter(), np.asarray(state.joints))
         return state

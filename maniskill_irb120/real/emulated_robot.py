@@ -65,6 +65,7 @@ class EmulatedIRB120:
         wide.lower, wide.upper = wide.lower - 100.0, wide.upper + 100.0
         self.ik_unlimited = SphericalWristIK(wide)  # tells "out of reach" from "breaks a joint limit"
         self.max_speed = np.degrees(self.chain.velocity.numpy())  # ABB's axis speeds, deg/s
+        self.speed_scale = 1.0  # every motion takes 1/speed_scale times its nominal time (a slower robot)
         self.low, self.high = np.degrees(self.chain.lower.numpy()), np.degrees(self.chain.upper.numpy())
         self.clock = clock
         self.lock = threading.Lock()
@@ -120,21 +121,25 @@ class EmulatedIRB120:
             self._advance(self.clock())
             return bool(self.queue) and not self.stopped
 
-    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0, via=None) -> None:
+    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0, via=None, t_call=None) -> None:
         """Queue a segment to ``q_target`` (through ``via`` joint waypoints, e.g. IK along a MoveL's line): as
-        fast as the slowest axis allows at ``speed_fraction`` of ABB's speeds, no faster than ``tool_speed_s``."""
+        fast as the slowest axis allows at ``speed_fraction`` of ABB's speeds, no faster than ``tool_speed_s``.
+        ``t_call``: when the instruction was issued (the emulator's own waypoint IK is not controller time)."""
         q1 = np.asarray(q_target_deg, dtype=np.float64)
         via = None if via is None or len(via) == 0 else np.asarray(via, dtype=np.float64)
         for q in [q1, *([] if via is None else via)]:
             if np.any(q < self.low - 1e-9) or np.any(q > self.high + 1e-9):
                 raise MotionError("joint_limit", f"joint target {np.round(q, 2)} deg breaks a joint limit")
         with self.lock:
-            now = self.clock()
+            now = self.clock() if t_call is None else min(t_call, self.clock())
             q0 = self.queue[-1].q1 if self.queue else self._advance(now).copy()
             seg = Segment(q0, q1, 0.0, 0.0, via)
             pts = seg.points()
-            duration = max(
-                float(np.max(np.abs(np.diff(pts, axis=0)).sum(0) / (self.max_speed * speed_fraction))), tool_speed_s
+            duration = (
+                max(
+                    float(np.max(np.abs(np.diff(pts, axis=0)).sum(0) / (self.max_speed * speed_fraction))), tool_speed_s
+                )
+                / self.speed_scale
             )
             seg = self._clip_to_zone(seg)
             seg.t0 = max(now, self.queue[-1].t0 + self.queue[-1].duration) if self.queue else now

@@ -146,6 +146,7 @@ class ControllerEmulator:
         faults: str | None = None,
         baud: int | None = None,
         latency_ms: float = 0.0,
+        speed_scale: float = 1.0,
     ):
         if channel not in ("serial", "tcp"):
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
@@ -153,6 +154,8 @@ class ControllerEmulator:
             raise ValueError(f"baud={baud!r}: a positive line speed, for the serial channel only")
         if not (math.isfinite(latency_ms) and latency_ms >= 0):
             raise ValueError(f"latency_ms={latency_ms!r}: a finite delay >= 0 ms")
+        if not (math.isfinite(speed_scale) and speed_scale > 0):
+            raise ValueError(f"speed_scale={speed_scale!r}: a positive factor on the robot's speed")
         self.baud = baud
         self.channel_kind, self.port = channel, port
         source = Path(rapid or shipped_module()).read_text()
@@ -166,6 +169,7 @@ class ControllerEmulator:
         if n != 1:
             raise ValueError("the RAPID module must declare CONST bool USE_SOCKET exactly once")
         self.robot = EmulatedIRB120(q0_deg)
+        self.robot.speed_scale = speed_scale
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
         self.link = Channel(parse_faults(faults), self.signals, baud, latency_ms / 1000)
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
@@ -237,11 +241,11 @@ class ControllerEmulator:
             except MotionError as e:
                 raise RapidError("ERR_ROBLIMIT" if e.kind == "joint_limit" else "ERR_OUTSIDE_REACH", str(e)) from None
 
-        def move(q, speed, zone, tool, tcp_s=0.0, via=None):
+        def move(q, speed, zone, tool, tcp_s=0.0, via=None, t_call=None):
             self.moves += 1
             robot.zone_tool = _tframe(tool)
             try:
-                robot.move(q, tool_speed_s=tcp_s, via=via)
+                robot.move(q, tool_speed_s=tcp_s, via=via, t_call=t_call)
             except MotionError as e:
                 raise RapidError("ERR_ROBLIMIT", str(e)) from None
             if robot.zone_violation:  # world-zone supervision: the IRC5 stops the robot and the program
@@ -252,6 +256,7 @@ class ControllerEmulator:
                 robot.wait_done(0.002)
 
         def move_l(to, speed, zone, tool, WObj=None):
+            t_call = robot.clock()  # an IRC5 plans the line in its own time: the waypoint IK below is ours
             tframe = _tframe(tool)
             here, target = robot.tool_pose(robot.queue[-1].q1 if robot.queue else robot.joints(), tframe), _pose_of(to)
             dist = np.linalg.norm(target[:3, 3] - here[:3, 3]) * 1000
@@ -265,7 +270,7 @@ class ControllerEmulator:
                 waypoint = interpolate_pose(here, target, s)
                 q = robot.solve(waypoint, tframe, q)
                 via.append(q)
-            move(q1, speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori), via)
+            move(q1, speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori), via, t_call)
 
         reg.add("CJointT", lambda **_: make_value("jointtarget", [list(robot.joints()), [9e9] * 6]))
         reg.add(
@@ -348,16 +353,27 @@ class ControllerEmulator:
 
 
 def main(
-    listen: str = "tcp://127.0.0.1:0", rapid: str | None = None, fault: str | None = None, latency_ms: float = 0.0
+    listen: str = "tcp://127.0.0.1:0",
+    rapid: str | None = None,
+    fault: str | None = None,
+    latency_ms: float = 0.0,
+    speed_scale: float = 1.0,
 ) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line."""
     u = urlparse(listen)
     if u.scheme == "tcp":
-        emu = ControllerEmulator("tcp", rapid, port=u.port or 0, faults=fault, latency_ms=latency_ms)
+        emu = ControllerEmulator(
+            "tcp", rapid, port=u.port or 0, faults=fault, latency_ms=latency_ms, speed_scale=speed_scale
+        )
     elif u.scheme == "serial":
         baud = parse_qs(u.query).get("baudrate")
         emu = ControllerEmulator(
-            "serial", rapid, faults=fault, baud=int(baud[0]) if baud else None, latency_ms=latency_ms
+            "serial",
+            rapid,
+            faults=fault,
+            baud=int(baud[0]) if baud else None,
+            latency_ms=latency_ms,
+            speed_scale=speed_scale,
         )
     else:
         raise ValueError(
