@@ -16,14 +16,14 @@ import json
 import select
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the tasks)
-from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.sim2real_policy import load_policy
 from maniskill_irb120.sysid import log_arrays
 
@@ -54,13 +54,12 @@ class EvalConfig:
     """real robot: seconds to answer 'delivered? [y/n]' after each episode (no answer: scored unknown)"""
 
 
-def _episode(env, policy, seed: int, real: bool) -> dict:
+def _episode(env, policy, seed: int, real: bool, limit: int) -> dict:
     """One episode; per-step TCP (m, world), joints (rad), actions, events, three hand-camera frames."""
     obs, info = env.reset(seed=seed)
     policy.reset()
     tcp, joints, actions, frames, seen = [], [], [], [], {k: False for k in EVENTS}
     u = env.unwrapped
-    limit = env.spec.max_episode_steps if env.spec is not None else 250
     for t in range(limit):
         a = policy.act(obs)
         obs, _, term, trunc, info = env.step(a)
@@ -109,7 +108,18 @@ def _stats(x: np.ndarray) -> dict:
     return dict(mean=float(x.mean()), p50=float(np.median(x)), p95=float(np.percentile(x, 95)), max=float(x.max()))
 
 
-def _make_real_side(cfg: EvalConfig, sim_env, shift: Randomization):
+def _parse_shift(spec: str | None):
+    """(the twin's randomisation or None, command latency in s for the emulator)."""
+    if not spec:
+        return None, 0.0
+    from maniskill_irb120.envs.randomization import Randomization
+
+    shift = Randomization.parse(spec)
+    latency = float(np.mean(shift.latency)) if shift.latency else 0.0
+    return replace(shift, latency=0.0), latency
+
+
+def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
     """(Sim2RealEnv, agent, twin or None, emulator or None)."""
     from maniskill_irb120.real.agent import IRB120RealAgent
     from maniskill_irb120.sim2real import IRB120Sim2RealEnv
@@ -122,10 +132,9 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift: Randomization):
         channel = "serial" if cfg.robot == "emulator+serial" else "tcp"
         if cfg.robot not in ("emulator", "emulator+serial"):
             raise ValueError(f"--robot {cfg.robot!r}: use emulator, emulator+serial or a controller URL")
-        latency = shift.latency if isinstance(shift.latency, (int, float)) else float(np.mean(shift.latency))
         emulator = ControllerEmulator(channel, latency_ms=1000 * latency)
         url = emulator.start()
-        twin = DigitalTwin(cfg.env_id, emulator, obs_mode="rgbd", randomization=shift.without_latency())
+        twin = DigitalTwin(cfg.env_id, emulator, obs_mode="rgbd", **({"randomization": shift} if shift else {}))
         camera = twin.camera if cfg.camera == "twin" else None
     else:
         url = cfg.robot
@@ -150,23 +159,29 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     from maniskill_irb120.sim2real_report import write_report
 
-    shift = Randomization.from_any(cfg.shift)
+    shift, latency = _parse_shift(cfg.shift)
     cfg.out.mkdir(parents=True, exist_ok=True)
     (cfg.out / "logs").mkdir(exist_ok=True)
     sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode)
-    real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift)
-    rows, interrupted, t_start = [], False, time.time()
+    try:
+        real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)
+    except BaseException:
+        sim_env.close()
+        raise
+    rows, latencies, interrupted, error, t_start = [], [], False, None, time.time()
+    limit = REGISTERED_ENVS[cfg.env_id].max_episode_steps
     bar = tqdm(range(cfg.episodes), desc="sim2real", unit="episode")
     try:
         for k in bar:
             seed = cfg.seed + k
-            sim = _episode(sim_env, make_policy(sim_env), seed, real=False)
+            sim = _episode(sim_env, make_policy(sim_env), seed, False, limit)
             agent.log.clear()
             n_refused = len(real_env.refusals)
-            real = _episode(real_env, make_policy(twin.env if twin else real_env), seed, real=True)
+            real = _episode(real_env, make_policy(twin.env if twin else real_env), seed, True, limit)
             if twin is None:
                 real["success"] = _ask_operator(seed, cfg.operator_timeout_s)
             np.savez(cfg.out / "logs" / f"real_{seed}.npz", **log_arrays(agent.log, real_env.control_dt))
+            latencies += [e[2] - e[1] for e in agent.log if e[0] != "state"]
             rows.append(dict(seed=seed, sim=sim, real=real, refused=real_env.refusals[n_refused:]))
             rows[-1]["deviation"] = _deviation(sim, real)
             bar.set_postfix(
@@ -175,18 +190,24 @@ def evaluate(cfg: EvalConfig) -> dict:
     except KeyboardInterrupt:
         interrupted = True
         print("\ninterrupted: stopping the robot and writing what was measured", file=sys.stderr)
+    except Exception as e:  # the report of what was measured is still written, then the error goes on
+        error = e
     finally:
         real_env.close()  # the agent stops the robot
         if emulator is not None:
             emulator.stop()
         if twin is not None:
             twin.close()
-    report = _summarise(cfg, shift, rows, agent.log, interrupted, time.time() - t_start)
+    shift_dict = dict(shift.as_dict(), latency=latency) if shift else {}
+    report = _summarise(cfg, shift_dict, rows, latencies, interrupted, time.time() - t_start)
+    report["error"] = None if error is None else f"{type(error).__name__}: {error}"
     write_report(cfg.out, report, rows)
+    if error is not None:
+        raise error
     return report
 
 
-def _summarise(cfg: EvalConfig, shift: Randomization, rows: list, log: list, interrupted: bool, wall: float) -> dict:
+def _summarise(cfg: EvalConfig, shift: dict, rows: list, latencies: list, interrupted: bool, wall: float) -> dict:
     def rate(side: str, key: str) -> float | None:
         vals = [r[side][key] for r in rows if r[side][key] is not None]
         return float(np.mean(vals)) if vals else None
@@ -196,10 +217,10 @@ def _summarise(cfg: EvalConfig, shift: Randomization, rows: list, log: list, int
         for k in ("tcp_m", "joint_rad", "action")
     }
     refused = [x for r in rows for x in r["refused"]]
-    latency = [1000 * (e[2] - e[1]) for e in log if e[0] != "state"]
+    latency = [1000 * x for x in latencies]
     return dict(
         config={k: str(v) for k, v in asdict(cfg).items()},
-        shift=shift.as_dict(),
+        shift=shift,
         episodes=len(rows),
         interrupted=interrupted,
         wall_clock_s=wall,

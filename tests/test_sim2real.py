@@ -222,3 +222,51 @@ def test_sysid_recovers_injected_latency_and_speed_scale(tmp_path):
     assert shifted["speed_scale"] == pytest.approx(0.6, rel=0.1)
     assert shifted["rms_joint_error_fit_rad"] < 0.5 * shifted["rms_joint_error_nominal_rad"]
     assert json.loads((shifted_dir / "sysid.json").read_text()) == shifted
+
+
+# --------------------------------------------------------------------------- the eval script
+def test_sim2real_eval_on_the_emulator_twin(tmp_path):
+    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+
+    report = evaluate(EvalConfig(episodes=2, seed=0, out=tmp_path))
+    assert report["episodes"] == 2 and not report["interrupted"] and report["error"] is None
+    assert report["sim"]["success"] == report["real"]["success"] == 1.0  # the expert, no shift
+    assert report["command_latency_ms"]["p50"] > 0 and report["refused"]["total"] == 0
+    assert 0 < report["deviation"]["tcp_m"]["mean"] < 0.05
+    assert json.loads((tmp_path / "report.json").read_text())["per_episode"][1]["seed"] == 1
+    md = (tmp_path / "report.md").read_text()
+    for picture in ("tcp_paths.png", "deviation.png", "hand_camera.png"):
+        assert picture in md and (tmp_path / picture).stat().st_size > 1000
+    logs = sorted((tmp_path / "logs").glob("real_*.npz"))
+    assert [p.name for p in logs] == ["real_0.npz", "real_1.npz"]
+    assert sysid(str(tmp_path))["exchanges"] > 100  # what the eval logged is what sysid reads
+
+
+def test_ctrl_c_stops_the_robot_and_still_writes_the_report(tmp_path, monkeypatch):
+    from maniskill_irb120 import sim2real_eval
+
+    calls = []
+    real_episode = sim2real_eval._episode
+
+    def interrupted_on_the_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:  # sim 0, real 0, then Ctrl-C in episode 1
+            raise KeyboardInterrupt
+        return real_episode(*args, **kwargs)
+
+    stopped = []
+    monkeypatch.setattr(sim2real_eval, "_episode", interrupted_on_the_third)
+    monkeypatch.setattr(IRB120RealAgent, "stop", lambda self: stopped.append(self.abb.stop().status))
+    report = sim2real_eval.evaluate(sim2real_eval.EvalConfig(episodes=3, seed=0, out=tmp_path))
+    assert report["interrupted"] and report["episodes"] == 1
+    assert stopped == [Status.HELD]  # the robot was stopped and holds
+    assert json.loads((tmp_path / "report.json").read_text())["interrupted"]
+
+
+def test_sim2real_eval_names_bad_setups(tmp_path):
+    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+
+    with pytest.raises(ValueError, match="only the emulator's twin knows"):
+        evaluate(EvalConfig(robot="tcp://127.0.0.1:1", camera="none", out=tmp_path))
+    with pytest.raises(FileNotFoundError, match="neither 'expert' nor"):
+        evaluate(EvalConfig(policy=str(tmp_path / "missing.pt"), out=tmp_path))
