@@ -19,6 +19,7 @@ from mani_skill.utils.structs.pose import Pose
 
 from maniskill_irb120.agents.irb120 import IRB120Metalwork
 from maniskill_irb120.envs.checks import EnvContractMixin
+from maniskill_irb120.envs.randomization import RandomizationMixin
 from maniskill_irb120.envs.table_scene import (
     CONTACT_FORCE_EPS,
     SOURCE_TRAY_XY,
@@ -42,14 +43,15 @@ from maniskill_irb120.maniskill_compat import (
 REWARD_MODES = ["normalized_dense", "dense", "sparse", "none"]
 
 
-class IRB120TableEnv(EnvContractMixin, BaseEnv):
+class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     """Base of the IRB 120 table tasks. Subclasses implement ManiSkill's ``_load_scene``,
     ``_initialize_episode``, ``evaluate``, ``_get_obs_extra`` and the reward methods, using the helpers here.
 
     Shared keyword arguments: ``robot_init_qpos_noise`` (uniform joint noise around the ``rest`` keyframe,
     rad), ``object_shape`` ("cube", "cylinder" or "random": per env, drawn when the scene is built),
     ``object_half_size`` (cube half side, cylinder radius and half height, 3..12 mm), ``object_mass`` (kg),
-    ``object_friction``, ``spawn_margin`` (object centre to the source tray's inner walls, m).
+    ``object_friction``, ``spawn_margin`` (object centre to the source tray's inner walls, m), ``randomization``
+    (domain randomisation, off by default: a ``Randomization``, a dict or a spec string; envs/randomization.py).
 
     ``enhanced_determinism`` defaults to True (ManiSkill's default is False) so that an unseeded ``reset()``
     after ``reset(seed=s)`` draws its episode seed from the seeded main RNG: the gymnasium contract (and its
@@ -75,6 +77,7 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
         object_mass: float = 0.02,
         object_friction: float = 1.0,
         spawn_margin: float = SPAWN_MARGIN,
+        randomization=None,
         enhanced_determinism: bool = True,
         **kwargs,
     ):
@@ -89,10 +92,11 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
             raise ValueError(f"spawn_margin={spawn_margin} must be in [0, {TRAY_INNER / 2})")
         self.robot_init_qpos_noise = robot_init_qpos_noise
         self.object_shape = object_shape
-        self.object_half_size = object_half_size
+        self.object_half_size = self._nominal_half_size = object_half_size
         self.object_mass = object_mass
         self.object_friction = object_friction
         self.spawn_margin = spawn_margin
+        self._init_randomization(randomization)
         super().__init__(
             *args,
             robot_uids=robot_uids,
@@ -137,7 +141,7 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
         ]
 
     def _build_object(self, name: str, color) -> Actor:
-        return build_object(
+        obj = build_object(
             self.scene,
             name,
             self._object_shapes(),
@@ -146,13 +150,16 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
             self.object_friction,
             color,
         )
+        self._randomize_bodies(obj, self.object_mass, self.object_friction)
+        return obj
 
     def _build_table_scene(self, build_objects) -> list[Actor]:
         """Trays, then ``build_objects()`` (returns the task's objects), then table and floor (drawn last);
         sets up the contact watch over those objects and the per-step event state."""
         self.table_scene = TableScene(self.scene)
         self.table_scene.build_trays()
-        objects = build_objects()
+        self.object_half_size = self._randomized_build(self._nominal_half_size)
+        objects = self._dr_objects = build_objects()
         self.table_scene.build_background()
         self.source_tray, self.dest_tray = self.table_scene.source_tray, self.table_scene.dest_tray
         self.scene_actors = self.table_scene.actors
@@ -199,6 +206,7 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
         self.agent.invalid_action[env_idx] = False
         self._fresh[env_idx] = True
         self._captured_ahead = False  # a reset's observation is always captured afresh
+        self._randomize_episode(env_idx)
 
     def _spawn_in_source_tray(self, u: torch.Tensor) -> Pose:
         """Resting poses in the source tray's inner square shrunk by ``spawn_margin``, uniform yaw; u: (b, 3).
@@ -279,9 +287,9 @@ class IRB120TableEnv(EnvContractMixin, BaseEnv):
 
     def _get_obs_sensor_data(self, apply_texture_transforms: bool = True) -> dict:
         if not self._captured_ahead:
-            return super()._get_obs_sensor_data(apply_texture_transforms)
+            return self._randomize_sensor_data(super()._get_obs_sensor_data(apply_texture_transforms))
         self._captured_ahead = False
-        return read_sensor_obs(self, apply_texture_transforms)
+        return self._randomize_sensor_data(read_sensor_obs(self, apply_texture_transforms))
 
     # ------------------------------------------------------------------ state
     def set_state_dict(self, state: dict, env_idx: torch.Tensor | None = None):

@@ -1,0 +1,315 @@
+"""Domain randomisation for every IRB 120 task: one set of names for training with randomisation and for the
+digital twin's shift (``sim2real-eval --shift``).
+
+Each field is off by default (the env is then bit-identical to one without randomisation), a fixed value, or a
+``(low, high)`` range drawn uniformly per env. Draws come from a generator seeded by ManiSkill's per-env
+episode seed, so the same seed draws the same values on CPU and GPU, apart from the task's own draws.
+
+| field | unit | drawn | granularity in ManiSkill 3.0.1 |
+|---|---|---|---|
+| ``camera_pos`` | m, per axis of the mount | each episode | per env |
+| ``camera_rot`` | deg, per axis (x, y, z of the camera frame) | each episode | per env |
+| ``camera_fov`` | deg (absolute; off: the agent's 90°) | each episode | per env |
+| ``light`` | scale of every light's intensity | each episode | per env on the CPU; GPU: env 0's (shared lights) |
+| ``color`` | max RGB jitter of the objects and trays | each episode | first env reset's draw (shared materials) |
+| ``depth_noise`` | std of Gaussian depth noise, mm | each step | per pixel |
+| ``depth_dropout`` | probability a depth pixel reads 0 | each step | per pixel |
+| ``object_size`` | scale of ``object_half_size`` | scene build | one draw for all envs |
+| ``object_mass`` | scale of ``object_mass`` | scene build | per env |
+| ``object_friction`` | scale of ``object_friction`` | scene build | per env |
+| ``latency`` | s: how far into a control period new targets reach the drives | each episode | per env, 10 ms steps |
+
+Scene-build draws are redrawn every episode with ``reconfiguration_freq=1`` (as ``object_shape="random"``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import sapien
+import torch
+
+Value = float | tuple[float, ...] | None
+VECTOR_FIELDS = ("camera_pos", "camera_rot")
+OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
+OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0)
+SCALES = ("light", "object_size", "object_mass", "object_friction")
+
+
+@dataclass(frozen=True)
+class Randomization:
+    camera_pos: Value = 0.0
+    camera_rot: Value = 0.0
+    camera_fov: Value = None
+    light: Value = 1.0
+    color: Value = 0.0
+    depth_noise: Value = 0.0
+    depth_dropout: Value = 0.0
+    object_size: Value = 1.0
+    object_mass: Value = 1.0
+    object_friction: Value = 1.0
+    latency: Value = 0.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None:
+                if f.name != "camera_fov":
+                    raise ValueError(f"{f.name}: None is only 'off' for camera_fov")
+                continue
+            vals = (float(v),) if np.isscalar(v) else tuple(float(x) for x in v)
+            if not all(math.isfinite(x) for x in vals):
+                raise ValueError(f"{f.name}={v!r}: not finite")
+            if len(vals) == 3 and f.name not in VECTOR_FIELDS or len(vals) not in (1, 2, 3):
+                raise ValueError(
+                    f"{f.name}={v!r}: a value or a (low, high) range"
+                    + (", or an x;y;z vector" if f.name in VECTOR_FIELDS else "")
+                )
+            if len(vals) == 2 and vals[0] > vals[1]:
+                raise ValueError(f"{f.name}={v!r}: low > high")
+            if f.name in SCALES and min(vals) <= 0:
+                raise ValueError(f"{f.name}={v!r}: a scale must be > 0")
+            if f.name in ("color", "depth_noise", "latency") and min(vals) < 0:
+                raise ValueError(f"{f.name}={v!r}: must be >= 0")
+            if f.name == "depth_dropout" and not 0 <= min(vals) <= max(vals) <= 1:
+                raise ValueError(f"{f.name}={v!r}: a probability in [0, 1]")
+            if f.name == "camera_fov" and not 1 <= min(vals) <= max(vals) < 180:
+                raise ValueError(f"{f.name}={v!r}: degrees in [1, 180)")
+            object.__setattr__(self, f.name, vals[0] if len(vals) == 1 else vals)
+
+    @classmethod
+    def parse(cls, spec: str) -> Randomization:
+        """``"camera_fov=80,depth_noise=2,object_mass=0.5:2,camera_pos=0.01;0;0"``: ``a:b`` a range, ``x;y;z``
+        a fixed vector."""
+        kw = {}
+        names = {f.name for f in fields(cls)}
+        for item in filter(None, (p.strip() for p in spec.split(","))):
+            name, eq, text = item.partition("=")
+            if not eq or name.strip() not in names:
+                raise ValueError(f"randomisation {item!r}: use NAME=VALUE with NAME one of {sorted(names)}")
+            try:
+                parts = [float(x) for x in text.replace(":", ";").split(";")]
+            except ValueError:
+                raise ValueError(f"randomisation {item!r}: {text!r} is not a number, LOW:HIGH or X;Y;Z") from None
+            if ":" in text and len(parts) != 2:
+                raise ValueError(f"randomisation {item!r}: a range is LOW:HIGH")
+            kw[name.strip()] = parts[0] if len(parts) == 1 else tuple(parts)
+        return cls(**kw)
+
+    @classmethod
+    def from_any(cls, spec) -> Randomization:
+        if spec is None:
+            return cls()
+        if isinstance(spec, cls):
+            return spec
+        if isinstance(spec, str):
+            return cls.parse(spec)
+        if isinstance(spec, dict):
+            unknown = set(spec) - {f.name for f in fields(cls)}
+            if unknown:
+                raise ValueError(f"unknown randomisation fields {sorted(unknown)}")
+            return cls(**spec)
+        raise TypeError(f"randomization must be None, a dict, a string or a Randomization, got {type(spec).__name__}")
+
+    def active(self) -> list[str]:
+        return [f.name for f in fields(self) if getattr(self, f.name) != OFF[f.name]]
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def draw(self, name: str, rng: np.random.Generator, n: int = 1) -> np.ndarray:
+        """(n,) or (n, 3) values of ``name`` for n envs (vector fields per axis)."""
+        v = getattr(self, name)
+        dim = 3 if name in VECTOR_FIELDS else 1
+        if np.isscalar(v):
+            out = np.full((n, dim), float(v))
+        elif len(v) == 3:
+            out = np.tile(np.asarray(v, dtype=np.float64), (n, 1))
+        else:
+            out = rng.uniform(v[0], v[1], size=(n, dim))
+        return out if dim == 3 else out[:, 0]
+
+
+def _rng(env, i: int) -> np.random.Generator:
+    """The randomisation stream of env ``i``'s episode: its own, so the task's draws are untouched."""
+    seeds = getattr(env, "_episode_seed", None)
+    seed = int(seeds[i]) if seeds is not None else 0
+    return np.random.default_rng([seed, 0xD0]) if seeds is not None else np.random.default_rng()
+
+
+def _build_rng(env, i: int):
+    """Env ``i``'s RNG at scene build: ManiSkill's per-env episode RNG, as ``object_shape="random"`` uses."""
+    rngs = getattr(env, "_batched_episode_rng", None)
+    return rngs[i] if rngs is not None else np.random.default_rng()
+
+
+def _euler_quat(deg: np.ndarray) -> list[float]:
+    q = sapien.Pose()
+    for axis, a in zip(np.eye(3), np.radians(deg)):
+        q = q * sapien.Pose(q=[math.cos(a / 2), *(math.sin(a / 2) * axis)])
+    return list(q.q)
+
+
+class RandomizationMixin:
+    """The hooks ``IRB120TableEnv`` calls: at scene build, at episode reset, on sensor data, around the sim
+    steps of a control period. All of them do nothing while ``randomization`` is off."""
+
+    randomization: Randomization = Randomization()
+    randomization_draws: dict
+
+    def _init_randomization(self, spec) -> None:
+        self.randomization = Randomization.from_any(spec)
+        self.randomization_draws = {}
+        self._dr_generator: torch.Generator | None = None
+        self._dr_delay: torch.Tensor | None = None
+        self._dr_max_delay = 0  # sim steps: the most any env holds its old targets (a Python int, no sync)
+        self._dr_substep = 0
+
+    # ------------------------------------------------------------------ scene build
+    def _randomized_build(self, nominal_half_size: float) -> float:
+        """The object half size for this build (shared by the envs); checks latency against the period."""
+        r = self.randomization
+        period = 1.0 / self.control_freq
+        lat = r.latency if np.isscalar(r.latency) else max(r.latency)
+        if lat >= period:
+            raise ValueError(f"latency={r.latency!r}: must be shorter than the control period ({period} s)")
+        if r.object_size == 1.0:
+            return nominal_half_size
+        scale = float(r.draw("object_size", _build_rng(self, 0))[0])
+        self.randomization_draws["object_size"] = torch.full((self.num_envs,), scale)
+        return nominal_half_size * scale
+
+    def _randomize_bodies(self, actor, mass: float, friction: float) -> None:
+        r = self.randomization
+        if r.object_mass == 1.0 and r.object_friction == 1.0:
+            return
+        env_of = actor._scene_idxs.cpu().numpy()
+        for key, nominal in (("object_mass", mass), ("object_friction", friction)):
+            if getattr(r, key) == 1.0:
+                continue
+            scale = np.array([r.draw(key, _build_rng(self, i))[0] for i in range(self.num_envs)])
+            self.randomization_draws[key] = torch.as_tensor(scale * nominal, dtype=torch.float32)
+            for body, i in zip(actor._bodies, env_of):
+                if key == "object_mass":
+                    body.set_mass(float(nominal * scale[i]))
+                else:
+                    mu = float(nominal * scale[i])
+                    for shape in body.get_collision_shapes():
+                        shape.set_physical_material(sapien.physx.PhysxMaterial(mu, mu, 0.0))
+
+    # ------------------------------------------------------------------ episode reset
+    def _randomize_episode(self, env_idx: torch.Tensor) -> None:
+        r = self.randomization
+        active = r.active()
+        if not active:
+            return
+        idx = env_idx.cpu().numpy()
+        rngs = {int(i): _rng(self, int(i)) for i in idx}
+        cam = self._sensors["hand_camera"].camera if "hand_camera" in self._sensors else None
+        if cam is not None and {"camera_pos", "camera_rot", "camera_fov"} & set(active):
+            base = self.agent.hand_camera_cfg
+            for i in idx:
+                pos = r.draw("camera_pos", rngs[i])[0]
+                rot = r.draw("camera_rot", rngs[i])[0]
+                cam._render_cameras[i].set_local_pose(
+                    sapien.Pose(p=list(np.asarray(base["offset"]) + pos), q=_euler_quat(rot))
+                )
+                fov = base["fov"] if r.camera_fov is None else math.radians(r.draw("camera_fov", rngs[i])[0])
+                cam._render_cameras[i].set_fovy(fov, compute_x=True)
+                self._record_draw("camera_pos", i, pos)
+                self._record_draw("camera_rot", i, rot)
+                self._record_draw("camera_fov", i, math.degrees(fov))
+            cam._cached_local_pose = None
+        if "light" in active:
+            self._scale_lights({int(i): r.draw("light", rngs[i])[0] for i in idx})
+        if "color" in active:
+            self._jitter_colors(rngs[int(idx[0])])
+        if "latency" in active:
+            if self._dr_delay is None:
+                self._dr_delay = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+            steps = [round(r.draw("latency", rngs[i])[0] * self.sim_freq) for i in idx]
+            self._dr_delay[env_idx] = torch.as_tensor(steps, dtype=torch.long, device=self.device)
+            self.randomization_draws["latency"] = self._dr_delay.float() / self.sim_freq
+            self._dr_max_delay = max(self._dr_max_delay, max(steps))
+        if {"depth_noise", "depth_dropout"} & set(active):
+            if self._dr_generator is None:
+                self._dr_depth = torch.zeros(self.num_envs, 2, device=self.device)  # (std mm, dropout p) per env
+                self._dr_generator = torch.Generator(device=self.device)
+            for i in idx:
+                self._dr_depth[i, 0] = float(r.draw("depth_noise", rngs[i])[0])
+                self._dr_depth[i, 1] = float(r.draw("depth_dropout", rngs[i])[0])
+            self._dr_generator.manual_seed(int(rngs[int(idx[0])].integers(2**62)))
+            self.randomization_draws["depth_noise"] = self._dr_depth[:, 0].clone()
+            self.randomization_draws["depth_dropout"] = self._dr_depth[:, 1].clone()
+
+    def _record_draw(self, key: str, i: int, value) -> None:
+        v = torch.as_tensor(np.asarray(value, dtype=np.float32))
+        if key not in self.randomization_draws:
+            self.randomization_draws[key] = torch.zeros((self.num_envs, *v.shape))
+        self.randomization_draws[key][i] = v
+
+    def _scale_lights(self, scales: dict[int, float]) -> None:
+        if not hasattr(self, "_dr_light_base"):
+            self._dr_light_base = {}
+        for i, scale in scales.items():
+            s = self.scene.sub_scenes[i if len(self.scene.sub_scenes) > 1 else 0]
+            lights = [c for e in s.entities for c in e.components if isinstance(c, sapien.render.RenderLightComponent)]
+            base = self._dr_light_base.setdefault(
+                i, ([np.array(c.color) for c in lights], np.array(s.render_system.ambient_light))
+            )
+            for c, col in zip(lights, base[0]):
+                c.color = list(col * scale)
+            s.render_system.ambient_light = list(base[1] * scale)
+            self._record_draw("light", i, scale)
+
+    def _jitter_colors(self, rng: np.random.Generator) -> None:
+        if not hasattr(self, "_dr_color_base"):
+            self._dr_color_base = {}
+        for actor in [*self._dr_objects, self.source_tray, self.dest_tray]:
+            for k, obj in enumerate(actor._objs):
+                body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
+                for j, shape in enumerate(body.render_shapes if body is not None else []):
+                    base = self._dr_color_base.setdefault((actor.name, k, j), np.array(shape.material.base_color))
+                    jitter = rng.uniform(-1, 1, 3) * self.randomization.draw("color", rng)[0]
+                    shape.material.base_color = [*np.clip(base[:3] + jitter, 0, 1), base[3]]
+                    self.randomization_draws.setdefault(
+                        "color_" + actor.name, torch.as_tensor(jitter, dtype=torch.float32)
+                    )
+
+    # ------------------------------------------------------------------ each step
+    def _randomize_sensor_data(self, data: dict) -> dict:
+        """Depth noise and dropout, per pixel, from a generator seeded at reset (deterministic per seed; one
+        stream for the batch). No host sync: the per-env std and p live on the device."""
+        if self._dr_generator is None or "hand_camera" not in data or "depth" not in data["hand_camera"]:
+            return data
+        depth = data["hand_camera"]["depth"]
+        g, std, p = self._dr_generator, self._dr_depth[:, 0, None, None, None], self._dr_depth[:, 1, None, None, None]
+        noisy = depth.float() + torch.randn(depth.shape, generator=g, device=depth.device) * std
+        noisy = torch.where(torch.rand(depth.shape, generator=g, device=depth.device) < p, 0.0, noisy)
+        keep = depth > 0  # "no reading" stays no reading
+        data["hand_camera"]["depth"] = torch.where(keep, noisy.round().clamp(0, 32767), 0).to(depth.dtype)
+        return data
+
+    def _step_action(self, action):
+        if self._dr_delay is not None:
+            # the targets in force: after a reset the drives have none yet, the robot holds where it stands
+            robot = self.agent.robot
+            self._dr_old_targets = torch.where(self._fresh[:, None], robot.get_qpos(), robot.get_drive_targets())
+            self._dr_substep = 0
+        return super()._step_action(action)
+
+    def _before_simulation_step(self):
+        if self._dr_delay is not None and self._dr_substep <= self._dr_max_delay:
+            if self._dr_substep == 0:
+                self._dr_new_targets = self.agent.robot.get_drive_targets().clone()
+            held = (self._dr_delay > self._dr_substep)[:, None]
+            robot = self.agent.robot
+            robot.set_joint_drive_targets(
+                torch.where(held, self._dr_old_targets, self._dr_new_targets), robot.active_joints
+            )
+            if self.gpu_sim_enabled:
+                self.scene.px.gpu_apply_articulation_target_position()
+        self._dr_substep += 1
+        super()._before_simulation_step()

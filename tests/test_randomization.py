@@ -1,0 +1,154 @@
+"""Domain randomisation (envs/randomization.py): each parameter changes what it should, nothing changes when
+it is off, draws follow the seed, bad specs are named."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import sapien
+import torch
+
+import maniskill_irb120  # noqa: F401
+from maniskill_irb120.envs.randomization import Randomization
+
+ENV_ID = "TableClearing-IRB120-v1"
+SHIFT = (
+    "camera_pos=0.01;0;0,camera_rot=0;0;10,camera_fov=70,light=0.5,color=0.3,"
+    "object_size=1.2,object_mass=0.5,object_friction=0.4"
+)
+
+
+def make(spec=None, obs_mode="rgbd", **kw):
+    return gym.make(ENV_ID, obs_mode=obs_mode, randomization=spec, **kw)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    nominal, shifted = make(), make(SHIFT)
+    yield nominal, shifted
+    nominal.close()
+    shifted.close()
+
+
+def test_off_is_bit_identical():
+    a, b = make(None, "state", render_backend="none"), make(Randomization(), "state", render_backend="none")
+    oa, _ = a.reset(seed=3)
+    ob, _ = b.reset(seed=3)
+    for t in range(5):
+        act = torch.tensor([0.3, -0.2, 0.1 * t, 0.2, 1.0])
+        oa, ra, *_ = a.step(act)
+        ob, rb, *_ = b.step(act)
+        assert torch.equal(oa, ob) and torch.equal(ra, rb)
+    assert b.unwrapped.randomization_draws == {} and b.unwrapped.randomization.active() == []
+
+
+def test_camera_mount_and_field_of_view(pair):
+    nominal, shifted = pair
+    nominal.reset(seed=0)
+    obs, _ = shifted.reset(seed=0)
+    cam = shifted.unwrapped._sensors["hand_camera"].camera._render_cameras[0]
+    np.testing.assert_allclose(cam.local_pose.p, [-0.02, 0.0, 0.02], atol=1e-6)
+    angle = 2 * math.degrees(math.acos(min(1.0, abs(cam.local_pose.q[0]))))
+    assert angle == pytest.approx(10.0, abs=1e-3)
+    fx = float(obs["sensor_param"]["hand_camera"]["intrinsic_cv"][0, 0, 0])
+    assert fx == pytest.approx(42 / math.tan(math.radians(35)), rel=1e-3)  # 84 px across 70 deg
+    nominal_cam = nominal.unwrapped._sensors["hand_camera"].camera._render_cameras[0]
+    np.testing.assert_allclose(nominal_cam.local_pose.p, [-0.03, 0.0, 0.02], atol=1e-6)
+    assert nominal_cam.fovy == pytest.approx(math.pi / 2)
+
+
+def test_light_and_colour_change_the_image(pair):
+    nominal, shifted = pair
+    o_nom, _ = nominal.reset(seed=1)
+    o_shift, _ = shifted.reset(seed=1)
+    assert (
+        o_shift["sensor_data"]["hand_camera"]["rgb"].float().mean()
+        < 0.8 * o_nom["sensor_data"]["hand_camera"]["rgb"].float().mean()
+    )
+    body = shifted.unwrapped.obj._objs[0].find_component_by_type(sapien.render.RenderBodyComponent)
+    jitter = np.array(body.render_shapes[0].material.base_color[:3]) - [0.8, 0.1, 0.1]  # the object's red
+    assert 0 < np.abs(jitter).max() <= 0.3 + 1e-6
+    draws = shifted.unwrapped.randomization_draws
+    assert float(draws["light"][0]) == 0.5 and "color_source_tray" in draws
+
+
+def test_object_size_mass_and_friction(pair):
+    nominal, shifted = pair
+    u, n = shifted.unwrapped, nominal.unwrapped
+    assert u.object_half_size == pytest.approx(0.012) and n.object_half_size == pytest.approx(0.01)
+    shifted.reset(seed=2)
+    assert float(u.obj.pose.p[0, 2] - n.source_center[0, 2]) == pytest.approx(0.012, abs=1e-4)  # spawned resting
+    assert u.obj._bodies[0].mass == pytest.approx(0.01) and n.obj._bodies[0].mass == pytest.approx(0.02)
+    mu = u.obj._bodies[0].get_collision_shapes()[0].physical_material.static_friction
+    assert mu == pytest.approx(0.4)
+
+
+def test_depth_noise_and_dropout_follow_the_request():
+    clean = make(None)
+    noisy = make("depth_noise=4,depth_dropout=0.2")
+    d0 = clean.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"].float()
+    d1 = noisy.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"].float()
+    dropped = (d1 == 0) & (d0 > 0)
+    assert dropped.float().mean() == pytest.approx(0.2, abs=0.03)
+    assert (d1 - d0)[~dropped].std() == pytest.approx(4.0, rel=0.15)
+    again = noisy.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"]
+    assert torch.equal(again, d1.to(again.dtype))  # the same seed, the same noise
+    clean.close()
+    noisy.close()
+
+
+def test_latency_holds_the_previous_targets_into_the_period():
+    def first_substeps(spec):
+        env = make(spec, "state", render_backend="none")
+        env.reset(seed=0)
+        u, seen = env.unwrapped, []
+        after = u._after_simulation_step
+        u._after_simulation_step = lambda: (seen.append(u.agent.robot.get_qpos()[0, :6].clone()), after())[1]
+        start = u.agent.robot.get_qpos()[0, :6].clone()
+        env.step(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0]))
+        env.close()
+        return [float((q - start).abs().max()) for q in seen]
+
+    prompt, late = first_substeps(None), first_substeps("latency=0.03")
+    assert prompt[0] > 1e-4 and max(late[:3]) < 1e-5  # held for 3 of the 5 sim steps
+    assert late[4] > 1e-4
+
+
+def test_ranges_follow_the_episode_seed():
+    env = make("camera_fov=60:80,light=0.5:1.5", "rgbd")
+    draws = []
+    for seed in (0, 1, 0):
+        env.reset(seed=seed)
+        d = env.unwrapped.randomization_draws
+        draws.append((float(d["camera_fov"][0]), float(d["light"][0])))
+    env.close()
+    assert draws[0] == draws[2] and draws[0] != draws[1]
+    assert all(60 <= f <= 80 and 0.5 <= s <= 1.5 for f, s in draws)
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("warp=3", "NAME one of"),
+        ("light=0", "scale must be > 0"),
+        ("depth_noise=-1", ">= 0"),
+        ("depth_dropout=1.5", "probability"),
+        ("object_mass=2:1", "low > high"),
+        ("light=nan", "not finite"),
+        ("camera_fov=abc", "not a number"),
+        ("light=1;2;3", "a value or a"),
+    ],
+)
+def test_bad_specs_are_named(spec, message):
+    with pytest.raises(ValueError, match=message):
+        Randomization.parse(spec)
+
+
+def test_latency_longer_than_a_period_is_refused():
+    with pytest.raises(ValueError, match="shorter than the control period"):
+        make("latency=0.06", "state", render_backend="none")
+    with pytest.raises(ValueError, match="unknown randomisation"):
+        Randomization.from_any({"lights": 1.0})
