@@ -9,6 +9,7 @@ What it changes in ManiSkill's class, and why:
 - ``get_info``: Sim2RealEnv reports only ``elapsed_steps``. Ours adds what the tasks' observations need
   (``grasped``, the TCP pose) and, with a digital ``world`` (the emulator's twin), the twin's evaluation:
   success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real_eval``).
+- ``reset`` restarts the step count (ManiSkill's never does: its time limit then cuts later episodes short).
 - State observations need the object's pose: the twin has it; a real robot has no perception, so they are
   refused with that reason instead of silently reading the sim's stale pose.
 
@@ -55,6 +56,12 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         kwargs.setdefault("real_reset_function", _reset_both_sides)
         kwargs.setdefault("sensor_data_preprocessing_function", _check_sensor_frames(sim_env))
         super().__init__(sim_env, agent, **kwargs)
+
+    def reset(self, seed=None, options=None):
+        """ManiSkill 3.0.1's Sim2RealEnv never resets its step count, so its TimeLimit truncated every episode
+        after the first 250 steps in all; each episode counts from 0 here."""
+        self._elapsed_steps = torch.zeros_like(self._elapsed_steps)
+        return super().reset(seed=seed, options=options)
 
     # ------------------------------------------------------------------ acting
     def _step_action(self, action):

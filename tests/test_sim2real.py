@@ -93,6 +93,8 @@ def run(env, policy_env, seed: int, limit: int = 250) -> tuple[bool, int]:
 def test_expert_delivers_on_the_emulator_twin_as_in_sim(rig):
     """The issue's check on a few episodes: the real side's success equals the sim's within 1 in 10."""
     real = [run(rig["env"], rig["twin"].env, seed) for seed in (0, 1)]
+    rig["env"].reset(seed=2)
+    assert int(rig["env"].unwrapped.elapsed_steps[0]) == 0  # each episode counts its own steps
     sim = [run(rig["sim"], rig["sim"], seed) for seed in (0, 1)]
     assert [s for s, _ in real] == [s for s, _ in sim] == [True, True]
     assert all(abs(r[1] - s[1]) <= 25 for r, s in zip(real, sim))  # a few steps of lag, not another strategy

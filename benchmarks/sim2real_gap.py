@@ -1,0 +1,101 @@
+"""The sim-vs-real table on the emulator's digital twin: ``sim2real-eval`` for one policy with no shift, each
+shift alone, and all of them together. Prints a markdown table, writes JSON (and each run's report under
+``--out``).
+
+    .venv/bin/python benchmarks/sim2real_gap.py --episodes 10 --json benchmarks/results/sim2real_gap.json
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import tyro
+
+from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+
+SHIFTS = {
+    "none": None,
+    "camera mount": "camera_pos=0.01;-0.01;0.005,camera_rot=3;-3;5",
+    "field of view": "camera_fov=75",
+    "lighting": "light=0.5",
+    "colours": "color=0.25",
+    "depth noise + dropout": "depth_noise=4,depth_dropout=0.05",
+    "object size/mass/friction": "object_size=1.2,object_mass=2,object_friction=0.5",
+    "command latency 30 ms": "latency=0.03",
+}
+SHIFTS["all together"] = ",".join(v for v in SHIFTS.values() if v)
+
+
+@dataclass
+class Args:
+    policy: str = "expert"
+    """'expert' or an agents.ppo checkpoint"""
+    episodes: int = 10
+    seed: int = 1000
+    out: Path = Path("runs/sim2real_gap")
+    json: Optional[Path] = None
+
+
+def main(args: Args) -> dict:
+    rows = []
+    for name, shift in SHIFTS.items():
+        t0 = time.time()
+        r = evaluate(
+            EvalConfig(
+                policy=args.policy,
+                episodes=args.episodes,
+                seed=args.seed,
+                shift=shift,
+                out=args.out / name.replace(" ", "_").replace("/", "_"),
+            )
+        )
+        rows.append(
+            dict(
+                shift=name,
+                spec=shift,
+                sim_success=r["sim"]["success"],
+                real_success=r["real"]["success"],
+                real_grasp=r["real"]["grasped"],
+                real_drop=r["real"]["dropped"],
+                real_collision=r["real"]["collided"],
+                tcp_dev_mean_mm=1000 * r["deviation"]["tcp_m"].get("mean", float("nan")),
+                latency_p50_ms=r["command_latency_ms"].get("p50"),
+                refused=r["refused"]["total"],
+                wall_s=time.time() - t0,
+            )
+        )
+    out = dict(
+        date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        command=" ".join(sys.argv),
+        machine=platform.platform(),
+        policy=args.policy,
+        episodes=args.episodes,
+        seed=args.seed,
+        rows=rows,
+    )
+    print(f"policy {args.policy}, {args.episodes} episodes from seed {args.seed}, emulator twin")
+    print(
+        "| shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
+        "| round trip p50 (ms) | refused |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['shift']} | {100 * r['sim_success']:.0f} % | {100 * r['real_success']:.0f} % | "
+            f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
+            f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} |"
+        )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
