@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,7 +82,8 @@ def load_log(path: Path, envelope: Envelope | None = None) -> Exchanges:
 
 
 def predict(ex: Exchanges, latency: float, speed_scale: float) -> np.ndarray:
-    """(n, 6) joints the model expects in each reply (sampled when the reply leaves, ``t_replied``)."""
+    """(n, 6) joints the model expects in each reply (read as the reply leaves: ``t_replied``). A fitted
+    reply age (joints read earlier than that) traded off against latency and made the fit unstable."""
     idx = np.flatnonzero(ex.motion)
     if idx.size == 0:
         return np.repeat(ex.joints[:1], len(ex.joints), axis=0)
@@ -92,10 +94,11 @@ def predict(ex: Exchanges, latency: float, speed_scale: float) -> np.ndarray:
         ends[k] = t_free = starts[k] + ex.nominal[i] / speed_scale
     q1 = ex.target[idx]
     q0 = np.vstack([ex.joints[:1], q1[:-1]])
-    seg = np.searchsorted(starts, ex.t_replied, side="right") - 1
+    t = ex.t_replied
+    seg = np.searchsorted(starts, t, side="right") - 1
     k = np.clip(seg, 0, None)
     span = np.maximum(ends[k] - starts[k], 1e-9)
-    frac = np.clip((ex.t_replied - starts[k]) / span, 0.0, 1.0)[:, None]
+    frac = np.clip((t - starts[k]) / span, 0.0, 1.0)[:, None]
     return np.where((seg < 0)[:, None], ex.joints[:1], q0[k] + frac * (q1[k] - q0[k]))
 
 
@@ -105,7 +108,7 @@ def rms_error(logs: list[Exchanges], latency: float, speed_scale: float) -> floa
 
 
 def fit(logs: list[Exchanges]) -> dict:
-    """Coarse grid, then a finer one around the best point; returns the fit and both errors."""
+    """Coarse grid, then finer ones around the best point; returns the fit and the nominal robot's error."""
     lat_grid, scale_grid = np.linspace(0.0, 0.2, 41), np.linspace(0.2, 2.0, 37)
     for _ in range(3):
         errs = np.array([[rms_error(logs, a, b) for b in scale_grid] for a in lat_grid])
@@ -117,11 +120,25 @@ def fit(logs: list[Exchanges]) -> dict:
     return dict(
         latency_s=float(lat),
         speed_scale=float(scale),
-        rms_joint_error_fit_rad=rms_error(logs, lat, scale),
+        rms_joint_error_fit_rad=float(errs.min()),
         rms_joint_error_nominal_rad=rms_error(logs, 0.0, 1.0),
         exchanges=int(sum(len(ex.t_sent) for ex in logs)),
         episodes=len(logs),
     )
+
+
+def excite(agent, steps: int = 60, seed: int = 0, period: float = 0.05) -> None:
+    """Drive ``agent`` (a started ``IRB120RealAgent``) with tool steps of random size and direction at 20 Hz,
+    reading the state twice a period, so its log separates dead time from slowness. Small steps, inside the
+    envelope both sides check; meant for the emulator or a cleared cell at reduced speed."""
+    rng = np.random.default_rng(seed)
+    for i in range(steps):
+        t0 = time.perf_counter()
+        size = rng.uniform(0.15, 1.0)
+        agent.send_tool_action(np.r_[rng.uniform(-1, 1, 3) * size * (1 if i % 20 < 10 else -1), 0.0, 1.0])
+        agent.refresh()
+        time.sleep(max(0.0, period - (time.perf_counter() - t0)))
+        agent.refresh()
 
 
 def main(log: str) -> dict:

@@ -184,25 +184,17 @@ def test_bad_modes_are_named():
 
 
 # --------------------------------------------------------------------------- system identification
-from maniskill_irb120.sysid import log_arrays  # noqa: E402
+from maniskill_irb120.sysid import excite, log_arrays  # noqa: E402
 from maniskill_irb120.sysid import main as sysid  # noqa: E402
 
 
 def logged_steps(tmp_path, latency_ms: float, speed_scale: float) -> Path:
-    """A 20 Hz loop of tool steps of random size and direction through the emulator, logged as sim2real-eval
-    logs it; the state is read twice in each period (sizes and reads tell dead time from slowness)."""
+    """``sysid.excite`` through the emulator, logged as sim2real-eval logs it."""
     emu = ControllerEmulator("tcp", latency_ms=latency_ms, speed_scale=speed_scale)
     agent = IRB120RealAgent(emu.start())
     agent.start()
-    rng = np.random.default_rng(0)
     try:
-        for i in range(60):
-            t0 = time.perf_counter()
-            size = rng.uniform(0.15, 1.0)
-            agent.send_tool_action(np.r_[rng.uniform(-1, 1, 3) * size * (1 if i % 20 < 10 else -1), 0.0, 1.0])
-            agent.refresh()
-            time.sleep(max(0.0, 0.05 - (time.perf_counter() - t0)))
-            agent.refresh()
+        excite(agent, steps=60, seed=0)
         out = tmp_path / f"run_{latency_ms:g}_{speed_scale:g}"
         (out / "logs").mkdir(parents=True)
         np.savez(out / "logs" / "real_0.npz", **log_arrays(agent.log, 0.05))

@@ -99,6 +99,20 @@ class EmulatedIRB120:
             )
         raise MotionError("reach", f"tool position {np.round(tool_target[:3, 3] * 1000, 1)} mm is out of reach")
 
+    def solve_line(self, tool_poses: np.ndarray, tframe: np.ndarray, q_ref_deg) -> np.ndarray:
+        """(k, 6) joint angles (deg) for k tool poses along a line, one batched IK call on ``q_ref``'s branch (a
+        controller plans a MoveL in well under a millisecond; k single solves took this emulator ~40 ms)."""
+        flange = tool_poses @ np.linalg.inv(tframe)
+        flange[:, :3, :3] = flange[:, :3, :3] @ _R_FLANGE_TOOL0.T
+        seed = torch.as_tensor(np.radians(np.asarray(q_ref_deg, dtype=np.float64))).expand(len(flange), 6)
+        q, ok = self.ik.solve(torch.as_tensor(flange), seed)
+        if not bool(ok.all()):
+            bad = int(np.flatnonzero(~ok.numpy())[0])
+            raise MotionError(
+                "reach", f"no joint solution along the line at {np.round(tool_poses[bad, :3, 3] * 1000, 1)} mm"
+            )
+        return np.degrees(q.numpy())
+
     # ------------------------------------------------------------------ motion over wall-clock time
     def joints(self) -> np.ndarray:
         """Current joint angles (deg), advancing the motion queue to now."""
@@ -152,16 +166,17 @@ class EmulatedIRB120:
             return seg
         low, high = self.zone
         pts = seg.points()
-        kept = [pts[0]]
-        for a, b in zip(pts[:-1], pts[1:]):
-            for s in np.linspace(0.1, 1.0, 10):
-                q = a + s * (b - a)
-                p = self.tool_pose(q, self.zone_tool)[:3, 3]
-                if np.any(p < low) or np.any(p > high):
-                    self.zone_violation = True
-                    return Segment(kept[0], kept[-1], 0.0, 0.0, np.asarray(kept[1:-1]) if len(kept) > 2 else None)
-                kept.append(q)
-        return seg
+        frac = np.linspace(0.1, 1.0, 10)
+        samples = (pts[:-1, None] + frac[None, :, None] * (pts[1:] - pts[:-1])[:, None]).reshape(-1, 6)
+        flange = self.chain.forward_kinematics(torch.as_tensor(np.radians(samples)))  # one batched FK
+        f = flange.numpy()
+        p = f[:, :3, :3] @ (_R_FLANGE_TOOL0 @ self.zone_tool[:3, 3]) + f[:, :3, 3]  # the tool's TCP, in metres
+        out = np.flatnonzero(np.any((p < low) | (p > high), axis=1))
+        if out.size == 0:
+            return seg
+        self.zone_violation = True
+        kept = [pts[0], *samples[: out[0]]]
+        return Segment(kept[0], kept[-1], 0.0, 0.0, np.asarray(kept[1:-1]) if len(kept) > 2 else None)
 
     def wait_done(self, timeout: float = 10.0) -> None:
         deadline = self.clock() + timeout

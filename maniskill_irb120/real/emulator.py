@@ -265,11 +265,13 @@ class ControllerEmulator:
             q1 = solve(to, tool)
             # a straight line with the orientation turning evenly: IK every millimetre or degree along it
             n = int(min(50, max(1, math.ceil(max(dist, angle)))))
-            q, via = robot.joints(), []
-            for s in np.arange(1, n) / n:
-                waypoint = interpolate_pose(here, target, s)
-                q = robot.solve(waypoint, tframe, q)
-                via.append(q)
+            via = []
+            if n > 1:
+                line = np.stack([interpolate_pose(here, target, s) for s in np.arange(1, n) / n])
+                try:
+                    via = robot.solve_line(line, tframe, q1)
+                except MotionError as e:
+                    raise RapidError("ERR_OUTSIDE_REACH", str(e)) from None
             move(q1, speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori), via, t_call)
 
         reg.add("CJointT", lambda **_: make_value("jointtarget", [list(robot.joints()), [9e9] * 6]))
