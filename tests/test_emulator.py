@@ -153,13 +153,13 @@ def test_a_repeated_frame_is_answered_but_not_executed_twice(emulator):
 
 def test_watchdog_stops_a_silent_pc_mid_motion(tmp_path):
     """A step lasts 40 ms, so the shipped 0.5 s heartbeat can only catch queued motion; a copy of the module
-    with a 20 ms heartbeat shows the mechanism: silence mid-step stops the robot short and holds it, the next
-    motion command is refused so the PC learns of it, the one after runs."""
+    with a 20 ms heartbeat on a slowed robot shows the mechanism: silence mid-step stops the robot short and
+    holds it, the next motion command is refused so the PC learns of it, the one after runs."""
     fast = tmp_path / "fast_watchdog.mod"
     fast.write_text(
         shipped_module().read_text().replace("CONST num HEARTBEAT_S := 0.5;", "CONST num HEARTBEAT_S := 0.02;")
     )
-    emu = ControllerEmulator("tcp", rapid=fast)
+    emu = ControllerEmulator("tcp", rapid=fast, speed_scale=0.3)  # a 133 ms step: silence surely falls within it
     with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         start = np.asarray(robot.state().tcp_pos)
         robot.move_tool([1.0, 0, 0, 0, 1])
