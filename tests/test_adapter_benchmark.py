@@ -23,4 +23,5 @@ def test_adapter_latency_runs(tmp_path):
     )
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
-    assert {x["channel"] for x in r["round_trip"]} == {"tcp", "serial"} and r["reply_bytes"] == 32
+    channels = {x["channel"] for x in r["round_trip"]}
+    assert channels == {"tcp", "serial", "serial @ 115200 baud", "serial @ 9600 baud"} and r["reply_bytes"] == 32
