@@ -142,6 +142,8 @@ def _reset_both_sides(env: IRB120Sim2RealEnv, seed=None, options=None) -> None:
     else:
         start = env.base_sim_env.agent.robot.get_qpos()[0].cpu().numpy()
     env.agent.reset(start)
+    if env.world is None:  # a person lays the scene out, then says so (ManiSkill's default does the same)
+        input(f"Lay out the scene for episode seed {seed} (see the sim's first frame), then press Enter ")
     env.last_control_time = None
 
 
