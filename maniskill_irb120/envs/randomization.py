@@ -166,6 +166,9 @@ class RandomizationMixin:
         self._dr_delay: torch.Tensor | None = None
         self._dr_max_delay = 0  # sim steps: the most any env holds its old targets (a Python int, no sync)
         self._dr_substep = 0
+        # nominal light colours per env and material colours per (actor, env, shape), read on first use
+        self._dr_light_base: dict = {}
+        self._dr_color_base: dict = {}
 
     # ------------------------------------------------------------------ scene build
     def _randomized_build(self, nominal_half_size: float) -> float:
@@ -251,8 +254,6 @@ class RandomizationMixin:
         self.randomization_draws[key][i] = v
 
     def _scale_lights(self, scales: dict[int, float]) -> None:
-        if not hasattr(self, "_dr_light_base"):
-            self._dr_light_base = {}
         for i, scale in scales.items():
             s = self.scene.sub_scenes[i if len(self.scene.sub_scenes) > 1 else 0]
             lights = [c for e in s.entities for c in e.components if isinstance(c, sapien.render.RenderLightComponent)]
@@ -265,8 +266,6 @@ class RandomizationMixin:
             self._record_draw("light", i, scale)
 
     def _jitter_colors(self, rng: np.random.Generator) -> None:
-        if not hasattr(self, "_dr_color_base"):
-            self._dr_color_base = {}
         for actor in [*self._dr_objects, self.source_tray, self.dest_tray]:
             for k, obj in enumerate(actor._objs):
                 body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
