@@ -57,14 +57,22 @@ def expert(
     seed: int = 0,
     obs_mode: str = "state",
     object_shape: str = "cube",
+    reactive: bool = False,
 ) -> int:
     """Run a task's scripted expert on seeds seed..seed+episodes-1; print one JSON line (success_rate,
-    episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode."""
+    episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode.
+    ``--reactive``: the expert reads its phase from the state each step (the one DAgger relabels with)."""
     import maniskill_irb120  # noqa: F401
     from maniskill_irb120.rollout import run_expert
 
     kwargs = dict(reconfiguration_freq=1) if object_shape == "random" else {}
-    print(json.dumps(run_expert(env_id, episodes, seed, obs_mode=obs_mode, object_shape=object_shape, **kwargs)))
+    print(
+        json.dumps(
+            run_expert(
+                env_id, episodes, seed, obs_mode=obs_mode, reactive=reactive, object_shape=object_shape, **kwargs
+            )
+        )
+    )
     return 0
 
 

@@ -22,7 +22,7 @@ from mani_skill.utils.structs.actor import Actor
 
 from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
 from maniskill_irb120.envs import grasp_lift, stack_cube, table_clearing
-from maniskill_irb120.envs.base import IRB120TableEnv
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
 from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
 
 # gripper_base collision box half extents across the approach axis: along the fingers / across them
@@ -47,6 +47,17 @@ class ExpertConfig:
     release_steps: int = 3
     pos_tol: float = 0.002
     yaw_tol: float = math.radians(2.0)
+    align_tol: float = 0.004
+    """reactive: TCP-to-object horizontal distance within which the gripper descends (or keeps closing)"""
+    carry_tol: float = 0.005
+    """reactive: a held object this far below the carry height is lifted again before it is carried"""
+    funnel_xy: tuple[float, float] = (0.002, 0.012)
+    """reactive: horizontal TCP-to-object distance at which the descent target starts to rise above the grasp
+    height, and at which it reaches the hover height (a continuous funnel, so a learner can regress it)"""
+    funnel_yaw: tuple[float, float] = (math.radians(2.0), math.radians(12.0))
+    """reactive: the same funnel for the yaw error"""
+    grasp_tol: float = 0.003
+    """reactive: TCP height slack around the grasp height within which an aligned open gripper closes"""
 
 
 class PickPlaceExpert:
@@ -57,13 +68,15 @@ class PickPlaceExpert:
 
     default_config = ExpertConfig()
 
-    def __init__(self, env: IRB120TableEnv, config: ExpertConfig | None = None):
+    def __init__(self, env: IRB120TableEnv, config: ExpertConfig | None = None, reactive: bool = False):
         self.env = env
         self.cfg = config or self.default_config
+        self.reactive = reactive
         n, dev = env.num_envs, env.device
         self.phase = torch.zeros(n, dtype=torch.long, device=dev)
         self.counter = torch.zeros(n, dtype=torch.long, device=dev)
         self.grasp_xy = torch.zeros(n, 2, device=dev)
+        self.funnel = torch.zeros(n, device=dev)  # reactive: 0 = descend to the grasp, 1 = hover
 
     def reset(self, env_idx: torch.Tensor | None = None):
         idx = slice(None) if env_idx is None else env_idx
@@ -85,16 +98,9 @@ class PickPlaceExpert:
         """
         env = self.env
         obj = self._object()
-        obj_rot = obj.pose.to_transformation_matrix()[:, :3, :3]
-        # the object's most horizontal axis is a side-face normal (any resting pose of a cube)
-        axis_idx = obj_rot[:, 2, :].abs().argmin(dim=1)
-        normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
         fingers = tcp_rot[:, :, 1]
         finger_ang = torch.atan2(fingers[:, 1], fingers[:, 0])
-        e1 = (
-            torch.remainder(torch.atan2(normal[:, 1], normal[:, 0]) - finger_ang + math.pi / 4, math.pi / 2)
-            - math.pi / 4
-        )
+        e1 = grasp_yaw_error(obj.pose.raw_pose, env.agent.tcp_pose.raw_pose)
         e2 = e1 - torch.where(e1 >= 0, 1.0, -1.0) * (math.pi / 2)
         rel = (obj.pose.p[:, :2] - env.source_center[:, :2]).abs()
         wall_gap = TRAY_INNER / 2 - rel  # (N, 2) distance from the object centre to the nearest x / y wall
@@ -124,6 +130,9 @@ class PickPlaceExpert:
         m = phase == DESCEND
         target[m, :2] = obj_p[m, :2]
         target[m, 2] = floor[m] + h + c.grasp_offset
+        if self.reactive:  # one funnel from the hover point down to the grasp, its height set by the misalignment
+            m = (phase == APPROACH) | (phase == DESCEND)
+            target[m, 2] = floor[m] + h + c.grasp_offset + (c.hover - c.grasp_offset) * self.funnel[m]
         m = (phase == LIFT) | (phase == HOLD)
         target[m, :2] = self.grasp_xy[m]
         target[m, 2] = floor[m] + c.carry_height
@@ -147,6 +156,8 @@ class PickPlaceExpert:
         tcp_rot = tcp.to_transformation_matrix()[:, :3, :3]
         yaw_err = self._yaw_error(tcp_rot)
         place = self._place()
+        if self.reactive:
+            self.phase = self._infer_phase(tcp_p, yaw_err, place)
         ph = self.phase
 
         target, _ = self._targets(ph, tcp_p, place)
@@ -154,13 +165,14 @@ class PickPlaceExpert:
         reached = dist < c.pos_tol
         aligned = yaw_err.abs() < c.yaw_tol
         nxt = ph.clone()
-        nxt[(ph == APPROACH) & reached & aligned] = DESCEND
-        nxt[(ph == DESCEND) & reached & aligned] = CLOSE
-        nxt[(ph == CLOSE) & (self.counter >= c.close_steps)] = LIFT
+        if not self.reactive:  # a reactive expert's pick phases and its CLOSE and RELEASE come from the state
+            nxt[(ph == APPROACH) & reached & aligned] = DESCEND
+            nxt[(ph == DESCEND) & reached & aligned] = CLOSE
+            nxt[(ph == CLOSE) & (self.counter >= c.close_steps)] = LIFT
+            nxt[(ph == RELEASE) & (self.counter >= c.release_steps)] = RETREAT
         nxt[(ph == LIFT) & (dist < 0.005)] = CARRY if place is not None else HOLD
         nxt[(ph == CARRY) & (dist < 0.003)] = LOWER
         nxt[(ph == LOWER) & reached] = RELEASE
-        nxt[(ph == RELEASE) & (self.counter >= c.release_steps)] = RETREAT
         entered = nxt != ph
         self.counter[entered] = 0
         self.grasp_xy[entered & (nxt == LIFT)] = tcp_p[entered & (nxt == LIFT), :2]
@@ -174,6 +186,43 @@ class PickPlaceExpert:
         cfg = self.env.agent.arm_controller.config
         pos_limit, rot_limit = getattr(cfg, "pos_limit", TOOL_POS_LIMIT), getattr(cfg, "rot_limit", TOOL_ROT_LIMIT)
         return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, pos_limit, rot_limit)
+
+    def _infer_phase(self, tcp_p: torch.Tensor, yaw_err: torch.Tensor, place: torch.Tensor | None) -> torch.Tensor:
+        """Each env's phase read from the state alone (no step counter, no memory), so the expert can label
+        any state a learner visits (DAgger). The transitions in :meth:`act` then run from it as usual."""
+        env, c = self.env, self.cfg
+        obj = self._object()
+        obj_p = obj.pose.p
+        holding = env.agent.is_grasping(obj)
+        opening = env.agent.gripper_opening
+        width = 2 * torch.as_tensor(env.object_half_size, device=env.device)
+        floor = env.source_center[:, 2]
+        carry_z = floor + c.carry_height
+        xy_obj = torch.linalg.norm(tcp_p[:, :2] - obj_p[:, :2], dim=1)
+        grasp_z = floor + env.object_half_size + c.grasp_offset
+
+        def ramp(x: torch.Tensor, lo_hi: tuple[float, float]) -> torch.Tensor:
+            return ((x - lo_hi[0]) / (lo_hi[1] - lo_hi[0])).clamp(0, 1)
+
+        self.funnel = torch.maximum(ramp(xy_obj, c.funnel_xy), ramp(yaw_err.abs(), c.funnel_yaw))
+        phase = torch.full_like(self.phase, APPROACH)
+        phase[self.funnel < 1] = DESCEND
+        aligned = (xy_obj < c.align_tol) & (yaw_err.abs() < 2 * c.yaw_tol)
+        at_grasp = aligned & (tcp_p[:, 2] - grasp_z < c.grasp_tol)
+        phase[at_grasp & (opening > 0.5 * width)] = CLOSE  # open or closing, not yet squeezing
+        low = tcp_p[:, 2] < carry_z - c.carry_tol
+        if place is None:
+            phase[holding] = LIFT
+        else:
+            xy_place = torch.linalg.norm(obj_p[:, :2] - place[:, :2], dim=1)
+            placed = ~holding & (torch.linalg.norm(obj_p - place, dim=1) < 0.02)
+            phase[placed] = RETREAT
+            lowering = holding & ((xy_place < 0.003) | ((xy_place < 0.01) & low))
+            phase[holding & ~lowering] = CARRY
+            phase[holding & ~lowering & low] = LIFT
+            phase[lowering] = LOWER
+        self.grasp_xy[phase == LIFT] = tcp_p[phase == LIFT, :2]
+        return phase
 
     @staticmethod
     def _to_action(
@@ -227,13 +276,14 @@ EXPERTS: dict[str, type[PickPlaceExpert]] = {
 }
 
 
-def expert_for(env) -> PickPlaceExpert:
-    """The scripted expert of ``env``'s task (a gym env or its unwrapped ManiSkill env)."""
+def expert_for(env, reactive: bool = False) -> PickPlaceExpert:
+    """The scripted expert of ``env``'s task (a gym env or its unwrapped ManiSkill env); ``reactive``: its
+    phase is read from the state every step (see :meth:`PickPlaceExpert._infer_phase`)."""
     u = env.unwrapped
     env_id = u.spec.id if u.spec is not None else None
     if env_id not in EXPERTS:
         raise ValueError(f"no scripted expert for env {env_id!r}; experts exist for {sorted(EXPERTS)}")
-    return EXPERTS[env_id](u)
+    return EXPERTS[env_id](u, reactive=reactive)
 
 
 if __name__ == "__main__":  # python -m maniskill_irb120.expert ... = maniskill-irb120 expert ...

@@ -71,6 +71,7 @@ def run_expert(
     obs_mode: str = "state",
     max_steps: int | None = None,
     record: bool = False,
+    reactive: bool = False,
     **env_kwargs,
 ) -> dict:
     """The task's scripted expert for ``episodes`` single-env episodes seeded ``seed, seed+1, ...``.
@@ -80,7 +81,7 @@ def run_expert(
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     env = gym.make(env_id, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **env_kwargs)
-    expert = expert_for(env)
+    expert = expert_for(env, reactive=reactive)
     runs, trajs = [], []
     t0 = time.perf_counter()
     for ep in range(episodes):

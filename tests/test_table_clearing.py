@@ -371,6 +371,20 @@ def test_state_obs_has_privileged_fields():
     e.close()
 
 
+def test_grasp_yaw_observation_tracks_the_tool_turn():
+    """tcp_to_obj_yaw is the turn that aligns the fingers with a cube face: turning the tool by a yaw action
+    changes it by that much (modulo the cube's 90° symmetry), and it stays within ±45°."""
+    e = make(obs_mode="state_dict")
+    obs, _ = e.reset(seed=2)
+    before = float(obs["extra"]["tcp_to_obj_yaw"][0, 0])
+    assert abs(before) <= math.pi / 4
+    obs, *_ = e.step(torch.tensor([[0.0, 0.0, 0.0, 0.5, 1.0]]))  # +5° about the approach axis
+    turned = float(obs["extra"]["tcp_to_obj_yaw"][0, 0]) - before
+    turned = (turned + math.pi / 4) % (math.pi / 2) - math.pi / 4
+    assert abs(abs(turned) - math.radians(5)) < math.radians(1.0), math.degrees(turned)
+    e.close()
+
+
 @pytest.mark.parametrize(
     "kwargs,bad",
     [

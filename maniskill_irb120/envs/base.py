@@ -14,6 +14,7 @@ from gymnasium.utils import seeding as gym_seeding
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
+from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
@@ -306,3 +307,20 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
 def yaw_quat(yaw: torch.Tensor) -> torch.Tensor:
     """(b, 4) wxyz quaternions of rotations by ``yaw`` about world z."""
     return torch.stack([torch.cos(yaw / 2), 0 * yaw, 0 * yaw, torch.sin(yaw / 2)], 1)
+
+
+def grasp_yaw_error(obj_pose: torch.Tensor, tcp_pose: torch.Tensor) -> torch.Tensor:
+    """(N,) rotation about world z (radians, in [-π/4, π/4)) that turns the finger axis onto the nearest side
+    face normal of a cube-like object (its 90° symmetry) — the smallest turn before a side grasp.
+
+    A state observation: from two raw quaternions this angle is a function of four times the object's yaw
+    (period 90°), which an MLP policy barely learns; given directly, the grasp alignment is one input.
+    ``obj_pose``/``tcp_pose``: (N, 7) raw poses (position, wxyz quaternion)."""
+    obj_rot = quaternion_to_matrix(obj_pose[:, 3:])
+    tcp_rot = quaternion_to_matrix(tcp_pose[:, 3:])
+    # the object's most horizontal axis is a side-face normal (any resting pose of a cube)
+    axis_idx = obj_rot[:, 2, :].abs().argmin(dim=1)
+    normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
+    fingers = tcp_rot[:, :, 1]
+    delta = torch.atan2(normal[:, 1], normal[:, 0]) - torch.atan2(fingers[:, 1], fingers[:, 0])
+    return torch.remainder(delta + math.pi / 4, math.pi / 2) - math.pi / 4

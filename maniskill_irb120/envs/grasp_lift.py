@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
 
 ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
@@ -69,6 +69,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
                 obj_pose=self._obj_pose.clone(),
                 source_tray_pos=self.source_center.clone(),
                 tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
+                tcp_to_obj_yaw=grasp_yaw_error(self._obj_pose, self._tcp_pose)[:, None],
                 hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None],
             )
         return obs

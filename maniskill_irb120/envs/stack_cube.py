@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
 from maniskill_irb120.envs.table_scene import TRAY_INNER
 
 ENV_ID = "StackCube-IRB120-v1"
@@ -99,6 +99,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
                 cube_a_pose=self._a_pose.clone(),
                 cube_b_pose=self._b_pose.clone(),
                 tcp_to_a_pos=self._a_pose[:, :3] - self._tcp_pose[:, :3],
+                tcp_to_a_yaw=grasp_yaw_error(self._a_pose, self._tcp_pose)[:, None],
                 a_to_goal_pos=self._place_target() - self._a_pose[:, :3],
             )
         return obs

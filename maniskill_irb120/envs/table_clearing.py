@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
 from maniskill_irb120.envs.table_scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -126,6 +126,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
                 source_tray_pos=self.source_center.clone(),
                 dest_tray_pos=self.dest_center.clone(),
                 tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
+                tcp_to_obj_yaw=grasp_yaw_error(self._obj_pose, self._tcp_pose)[:, None],
                 obj_to_dest_pos=self.dest_center - self._obj_pose[:, :3],
             )
         return obs
