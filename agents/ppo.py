@@ -14,15 +14,13 @@ normalisation, ``normalized_dense`` reward, partial resets, separate eval envs.
 from __future__ import annotations
 
 import json
-import os
 import random
 import time
 from collections import defaultdict
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
-import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn as nn
@@ -31,11 +29,20 @@ import tyro
 from torch.distributions.normal import Normal
 
 import maniskill_irb120  # noqa: F401  (registers the env)
+from agents.common import (
+    EpisodeTracker,
+    Logger,
+    args_json,
+    atomic_save,
+    flatten_obs,
+    load_torch,
+    obs_to,
+    resolve_device,
+    rng_state,
+    set_rng_state,
+)
+from agents.nets import NatureCNN, layer_init, shapes_of
 from maniskill_irb120.vector import make_vec_env
-
-# events the task reports per step in info; logged as per-episode rates ("did it happen")
-EVENT_KEYS = ("success", "fail", "grasped", "dropped", "collided")
-REWARD_TERM_PREFIX = "r_"
 
 
 @dataclass
@@ -106,52 +113,6 @@ class Args:
 
 
 # ----------------------------------------------------------------------------- networks
-def layer_init(layer: nn.Module, std: float = np.sqrt(2), bias: float = 0.0) -> nn.Module:
-    nn.init.orthogonal_(layer.weight, std)
-    nn.init.constant_(layer.bias, bias)
-    return layer
-
-
-class NatureCNN(nn.Module):
-    """The seed's 3-layer CNN over the 84x84x4 RGB-D image, plus a small MLP for proprioception."""
-
-    def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, feature_dim: int = 256):
-        super().__init__()
-        self.out_dim = 0
-        self.cnn = None
-        if image_shape is not None:
-            h, w, c = image_shape
-            self.cnn = nn.Sequential(
-                nn.Conv2d(c, 32, 8, stride=4),
-                nn.ReLU(),
-                nn.Conv2d(32, 64, 4, stride=2),
-                nn.ReLU(),
-                nn.Conv2d(64, 64, 3, stride=1),
-                nn.ReLU(),
-                nn.Flatten(),
-            )
-            with torch.no_grad():
-                n = self.cnn(torch.zeros(1, c, h, w)).shape[1]
-            self.cnn.append(nn.Linear(n, feature_dim))
-            self.cnn.append(nn.ReLU())
-            self.out_dim += feature_dim
-        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
-        self.out_dim += 256
-
-    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        feats = [self.mlp(obs["state"].float())]
-        if self.cnn is not None:
-            feats.insert(0, self.cnn(image_tensor(obs)))
-        return torch.cat(feats, dim=1)
-
-
-def image_tensor(obs: dict[str, torch.Tensor], max_depth_mm: float = 2000.0) -> torch.Tensor:
-    """(N,H,W,3) uint8 RGB + (N,H,W,1) int16 depth in mm -> (N,4,H,W) floats in [0,1]."""
-    rgb = obs["rgb"].float() / 255.0
-    depth = obs["depth"].float().clamp(0, max_depth_mm) / max_depth_mm
-    return torch.cat([rgb, depth], dim=-1).permute(0, 3, 1, 2)
-
-
 class Agent(nn.Module):
     """Shared encoder, separate policy and value heads, state-independent log-std."""
 
@@ -189,18 +150,6 @@ class Agent(nn.Module):
         if action is None:
             action = dist.sample()
         return action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.critic(x)
-
-
-# ----------------------------------------------------------------------------- observations
-def flatten_obs(obs) -> dict[str, torch.Tensor]:
-    """Normalise both obs layouts to a dict with 'state' (and 'rgb'/'depth' for rgbd)."""
-    if isinstance(obs, torch.Tensor):
-        return {"state": obs}
-    return obs
-
-
-def obs_to(obs: dict, device) -> dict[str, torch.Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in obs.items()}
 
 
 def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
@@ -264,13 +213,7 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
 
 
 def agent_for(envs, device) -> Agent:
-    space = envs.single_observation_space
-    if isinstance(space, gym.spaces.Dict):
-        rgb, depth, state = space["rgb"].shape, space["depth"].shape, space["state"].shape
-        image_shape = (rgb[0], rgb[1], rgb[2] + depth[2])
-        state_dim = state[0]
-    else:
-        image_shape, state_dim = None, space.shape[0]
+    image_shape, state_dim = shapes_of(envs.single_observation_space)
     return Agent(image_shape, state_dim, int(np.prod(envs.single_action_space.shape))).to(device)
 
 
@@ -366,51 +309,26 @@ def compute_gae(rewards, values, dones, next_value, next_done, final_values, arg
 
 
 # ----------------------------------------------------------------------------- checkpoints
-def rng_state() -> dict:
-    s = dict(python=random.getstate(), numpy=np.random.get_state(), torch=torch.get_rng_state())
-    if torch.cuda.is_available():
-        s["cuda"] = torch.cuda.get_rng_state_all()
-    return s
-
-
-def set_rng_state(s: dict) -> None:
-    random.setstate(s["python"])
-    np.random.set_state(s["numpy"])
-    torch.set_rng_state(s["torch"])
-    if "cuda" in s and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(s["cuda"])
+FORMAT = "maniskill_irb120.ppo/1"
 
 
 def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: Args) -> None:
-    """Write to a temporary file and rename, so a crash never leaves a truncated checkpoint."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(
+    atomic_save(
         dict(
             model=agent.state_dict(),
             optimizer=optimizer.state_dict(),
             counters=counters,
             rng=rng_state(),
-            args=json.loads(json.dumps(asdict(args), default=str)),
+            args=args_json(args),
             signature=agent.signature(),
-            format="maniskill_irb120.ppo/1",
+            format=FORMAT,
         ),
-        tmp,
+        path,
     )
-    os.replace(tmp, path)
 
 
 def load_checkpoint(path: Path, agent: Agent, args: Args) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ValueError(f"checkpoint {path} is not a readable torch checkpoint: {e}") from e
-    if not isinstance(ckpt, dict) or ckpt.get("format") != "maniskill_irb120.ppo/1":
-        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt)
-        raise ValueError(f"checkpoint {path} was not written by agents.ppo (format {found})")
+    ckpt = load_torch(path, FORMAT, "agents.ppo")
     if ckpt["signature"] != agent.signature():
         raise ValueError(
             f"checkpoint {path} does not match this run: it has {ckpt['signature']}, the env gives "
@@ -418,80 +336,6 @@ def load_checkpoint(path: Path, agent: Agent, args: Args) -> dict:
         )
     agent.load_state_dict(ckpt["model"])
     return ckpt
-
-
-# ----------------------------------------------------------------------------- logging
-class Logger:
-    """TensorBoard always; W&B and Comet only when asked (imported lazily)."""
-
-    def __init__(self, run_dir: Path, args: Args):
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(run_dir))
-        self.tb.add_text("args", json.dumps(json.loads(json.dumps(asdict(args), default=str)), indent=1))
-        self.wandb = self.comet = None
-        config = json.loads(json.dumps(asdict(args), default=str))
-        if args.wandb:
-            import wandb
-
-            self.wandb = wandb.init(project=args.wandb_project, name=run_dir.name, config=config, dir=str(run_dir))
-        if args.comet:
-            import comet_ml
-
-            self.comet = comet_ml.Experiment(project_name=args.comet_project)
-            self.comet.set_name(run_dir.name)
-            self.comet.log_parameters(config)
-
-    def scalars(self, values: dict[str, float], step: int) -> None:
-        for k, v in values.items():
-            self.tb.add_scalar(k, v, step)
-        if self.wandb is not None:
-            self.wandb.log(values, step=step)
-        if self.comet is not None:
-            self.comet.log_metrics(values, step=step)
-
-    def close(self) -> None:
-        self.tb.close()
-        if self.wandb is not None:
-            self.wandb.finish()
-        if self.comet is not None:
-            self.comet.end()
-
-
-class EpisodeTracker:
-    """Per-env running sums of the task's reward terms and 'did it ever happen' event flags,
-    emitted per finished episode (rates of success, grasp, drop, collision; each term's return)."""
-
-    def __init__(self, num_envs: int, device):
-        self.n, self.device = num_envs, device
-        self.sums: dict[str, torch.Tensor] = {}
-        self.once: dict[str, torch.Tensor] = {}
-
-    def update(self, step_info: dict, done: torch.Tensor) -> dict[str, list[float]]:
-        done = done.to(self.device).bool()
-        for k, v in step_info.items():
-            if not isinstance(v, torch.Tensor) or v.shape[:1] != (self.n,) or v.dim() != 1:
-                continue
-            if k.startswith(REWARD_TERM_PREFIX):
-                self.sums.setdefault(k, torch.zeros(self.n, device=self.device))
-                self.sums[k] += v.to(self.device).float()
-            elif k in EVENT_KEYS:
-                self.once.setdefault(k, torch.zeros(self.n, dtype=torch.bool, device=self.device))
-                self.once[k] |= v.to(self.device).bool()
-        out: dict[str, list[float]] = defaultdict(list)
-        if not done.any():
-            return out
-        ep = step_info.get("episode", {})
-        for k in ("return", "episode_len"):
-            if k in ep:
-                out[k] += ep[k].to(self.device)[done].float().cpu().tolist()
-        for k, v in self.once.items():
-            out[f"{k}_rate"] += v[done].float().cpu().tolist()
-            v[done] = False
-        for k, v in self.sums.items():
-            out[f"return_{k}"] += v[done].cpu().tolist()
-            v[done] = 0
-        return out
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -515,16 +359,10 @@ def evaluate(agent: Agent, envs, num_episodes: int, device) -> dict:
 
 
 # ----------------------------------------------------------------------------- main loop
-def resolve_device(args: Args) -> torch.device:
-    if args.device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(args.device)
-
-
 def run_evaluation_only(args: Args) -> dict:
     if args.checkpoint is None:
         raise ValueError("--evaluate needs --checkpoint PATH")
-    device = resolve_device(args)
+    device = resolve_device(args.device)
     out_dir = (
         Path(args.checkpoint).resolve().parent.parent / "eval"
         if args.exp_name is None
@@ -560,7 +398,7 @@ def train(args: Args) -> dict:
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = resolve_device(args)
+    device = resolve_device(args.device)
 
     envs = make_envs(args, args.num_envs)
     eval_envs = None

@@ -1,0 +1,411 @@
+"""DAgger with DART noise: imitation that recovers from its own mistakes, from state or from the RGB-D camera.
+
+Round 0 rolls the scripted expert out with Gaussian noise on the executed arm actions (DART, Laskey et al.
+2017) and records the expert's *clean* action for every visited state. Every later round rolls the learner out
+(mixed with the expert with probability beta, decaying), and the reactive expert (its phase read from the
+state, ``maniskill_irb120.expert``) labels each state the learner reached; the labels join one aggregated
+dataset and the policy is trained further on all of it. The labels come from a wrapper inside each env
+worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
+proprioception, no privileged state) while the expert reads the simulator.
+
+    python -m agents.dagger --obs state --budget-min 60                 # the state recipe
+    python -m agents.dagger --obs rgbd --budget-min 120                 # from the 84x84 RGB-D camera
+    python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
+    python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
+
+The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Literal, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn.functional as F
+import tyro
+
+import maniskill_irb120  # noqa: F401  (registers the envs)
+from agents.common import (
+    EVAL_SEED,
+    EpisodeTracker,
+    Logger,
+    args_json,
+    atomic_save,
+    evaluate_on_seeds,
+    flatten_obs,
+    load_torch,
+    obs_to,
+    resolve_device,
+    rng_state,
+    set_rng_state,
+    train_seed,
+)
+from agents.nets import DeterministicActor, random_shift, shapes_of
+from maniskill_irb120.expert import expert_for
+from maniskill_irb120.vector import make_vec_env
+from maniskill_irb120.wrappers import WorldFrameToolAction, tcp_rotation, tool_to_world
+
+FORMAT = "maniskill_irb120.dagger/1"
+
+
+@dataclass
+class Args:
+    env_id: str = "TableClearing-IRB120-v1"
+    obs: Literal["state", "rgbd"] = "state"
+    """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
+    action_frame: Literal["world", "tool"] = "world"
+    """world: the policy's translation is in world axes, rotated into the tool action by
+    maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action"""
+    seed: int = 1
+    budget_min: float = 60.0
+    """wall-clock minutes for data collection and training together (the final evaluation is extra)"""
+    eval_episodes: int = 100
+    """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    num_envs: int = 2
+    """CPU worker processes that collect episodes (1: one env in this process)"""
+    expert_episodes: int = 50
+    """round 0: noisy expert episodes"""
+    dart_noise: float = 0.2
+    """round 0: std of the Gaussian added to the expert's arm actions (in action units, limits ±1)"""
+    episodes_per_round: int = 10
+    """later rounds: learner episodes labelled by the expert"""
+    beta: float = 0.5
+    """round 1's probability that a step executes the expert's action instead of the learner's"""
+    beta_decay: float = 0.7
+    """beta is multiplied by this every round"""
+    learner_noise: float = 0.05
+    """std of the Gaussian added to the learner's arm actions (widens the states it labels)"""
+    updates_per_round: int = 500
+    batch_size: int = 256
+    learning_rate: float = 3e-4
+    weight_decay: float = 1e-5
+    augment: bool = True
+    """rgbd: DrQ random-shift augmentation of the images while training"""
+    capacity: int = 300_000
+    """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
+    save_freq: int = 10
+    """checkpoint (with the dataset) every N rounds, and always at the end"""
+    device: str = "auto"
+    exp_name: Optional[str] = None
+    runs_dir: Path = Path("runs")
+    resume: Optional[Path] = None
+    """continue a run: weights, optimiser, dataset, counters and RNG; the budget counts the time already spent"""
+    evaluate: bool = False
+    """only evaluate --checkpoint (videos + summary.json)"""
+    checkpoint: Optional[Path] = None
+    capture_video: bool = True
+    progress: bool = True
+    wandb: bool = False
+    comet: bool = False
+    wandb_project: str = "maniskill_irb120"
+    comet_project: str = "maniskill_irb120"
+    env_kwargs: dict = field(default_factory=dict)
+
+
+class ExpertLabels(gym.Wrapper):
+    """Puts the reactive expert's action for the state just reached into ``info["expert_action"]``, in the
+    learner's action frame (``world``: its translation rotated out of the tool frame)."""
+
+    def __init__(self, env: gym.Env, frame: str = "tool"):
+        super().__init__(env)
+        if frame not in ("tool", "world"):
+            raise ValueError(f"unknown action frame {frame!r}; expected 'tool' or 'world'")
+        self.expert = expert_for(env, reactive=True)
+        self.frame = frame
+
+    def _label(self) -> torch.Tensor:
+        a = self.expert.act()
+        return tool_to_world(a, tcp_rotation(self.env)) if self.frame == "world" else a
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.expert.reset()
+        info["expert_action"] = self._label()
+        return obs, info
+
+    def step(self, action):
+        obs, rew, term, trunc, info = self.env.step(action)
+        info["expert_action"] = self._label()
+        return obs, rew, term, trunc, info
+
+
+class Dataset:
+    """Aggregated (observation, expert action) pairs in preallocated CPU tensors, a ring when full."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.size, self.pos = capacity, 0, 0
+        self.obs: dict[str, torch.Tensor] = {}
+        self.act: Optional[torch.Tensor] = None
+
+    def add(self, obs: dict[str, torch.Tensor], act: torch.Tensor) -> None:
+        if self.act is None:
+            self.obs = {k: torch.empty((self.capacity,) + v.shape[1:], dtype=v.dtype) for k, v in obs.items()}
+            self.act = torch.empty((self.capacity,) + act.shape[1:], dtype=torch.float32)
+        idx = (self.pos + torch.arange(act.shape[0])) % self.capacity
+        for k, v in obs.items():
+            self.obs[k][idx] = v.cpu()
+        self.act[idx] = act.float().cpu()
+        self.pos = int(idx[-1] + 1) % self.capacity
+        self.size = min(self.size + act.shape[0], self.capacity)
+
+    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        idx = torch.randint(0, self.size, (n,))
+        return {k: v[idx].to(device) for k, v in self.obs.items()}, self.act[idx].to(device)
+
+    def state_dict(self) -> dict:
+        n = self.size
+        return dict(
+            capacity=self.capacity,
+            pos=self.pos,
+            size=n,
+            # clones: torch.save writes a view's whole storage, i.e. the empty capacity too
+            obs={k: v[:n].clone() for k, v in self.obs.items()},
+            act=self.act[:n].clone() if n else None,
+        )
+
+    def load_state_dict(self, d: dict) -> None:
+        self.__init__(d["capacity"])
+        if d["size"]:
+            self.add(d["obs"], d["act"])
+            self.pos = d["pos"]
+
+
+def action_wrappers(frame: str) -> list:
+    return [WorldFrameToolAction] if frame == "world" else []
+
+
+def make_envs(args: Args, num_envs: int):
+    kwargs = dict(obs_mode=args.obs, control_mode="pd_ee_delta_tool", **args.env_kwargs)
+    if args.obs == "rgbd":
+        kwargs["render_mode"] = "rgb_array"
+    else:
+        kwargs.setdefault("render_backend", "none")
+    wrappers = [*action_wrappers(args.action_frame), partial(ExpertLabels, frame=args.action_frame)]
+    if args.obs == "rgbd":
+        from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
+
+        wrappers.insert(0, FlattenRGBDObservationWrapper)
+    backend = "inprocess" if num_envs == 1 else "cpu"
+    return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+
+
+def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float, noise: float, device) -> dict:
+    """Step ``envs`` until ``episodes`` episodes end: each step executes the expert's action with probability
+    ``beta`` (else the learner's), plus Gaussian noise on the arm; every visited state is stored with the
+    expert's clean label. ``state`` carries the envs' current obs and labels between calls."""
+    n = envs.num_envs
+    tracker = EpisodeTracker(n, torch.device("cpu"))
+    stats: dict[str, list[float]] = defaultdict(list)
+    finished = steps = 0
+    while finished < episodes:
+        obs, label = state["obs"], state["label"]
+        data.add(obs, label)
+        action = label.clone()
+        if beta < 1.0:
+            with torch.no_grad():
+                learner = policy(obs_to(obs, device)).cpu()
+            use_learner = torch.rand(n) >= beta
+            action[use_learner] = learner[use_learner]
+        action[:, :4] += noise * torch.randn(n, 4)
+        o, _, term, trunc, info = envs.step(action.clamp(-1, 1))
+        done = (term | trunc).bool()
+        state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
+        for k, v in tracker.update(info.get("final_info", info), done).items():
+            stats[k] += v
+        finished += int(done.sum())
+        steps += n
+    out = {k: float(np.mean(v)) for k, v in stats.items()}
+    out["steps"] = steps
+    return out
+
+
+def train_round(policy, optimizer, data: Dataset, args: Args, device) -> float:
+    """``updates_per_round`` minibatch steps of behaviour cloning (MSE to the expert's actions)."""
+    policy.train()
+    total = 0.0
+    for _ in range(args.updates_per_round):
+        obs, act = data.sample(args.batch_size, device)
+        if args.obs == "rgbd" and args.augment:
+            obs = random_shift(obs)
+        loss = F.mse_loss(policy(obs), act)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        total += loss.item()
+    policy.eval()
+    return total / max(1, args.updates_per_round)
+
+
+def policy_for(space, action_dim: int, device) -> DeterministicActor:
+    image_shape, state_dim = shapes_of(space)
+    return DeterministicActor(image_shape, state_dim, action_dim).to(device)
+
+
+def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args) -> None:
+    atomic_save(
+        dict(
+            format=FORMAT,
+            model=policy.state_dict(),
+            optimizer=optimizer.state_dict(),
+            data=data.state_dict(),
+            counters=counters,
+            rng=rng_state(),
+            args=args_json(args),
+            signature=policy.signature(),
+        ),
+        path,
+    )
+
+
+def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
+    """A trained DAgger policy (eval mode) and its checkpoint dict."""
+    ckpt = load_torch(path, FORMAT, "agents.dagger")
+    sig = ckpt["signature"]
+    image_shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
+    policy = DeterministicActor(image_shape, sig["state_dim"], sig["action_dim"]).to(device)
+    policy.load_state_dict(ckpt["model"])
+    return policy.eval(), ckpt
+
+
+def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:
+    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    return evaluate_on_seeds(
+        lambda o: policy(obs_to(o, device)).cpu(),
+        args.env_id,
+        args.obs,
+        seeds,
+        video_dir=video_dir,
+        progress=args.progress,
+        wrappers=action_wrappers(args.action_frame),
+        **args.env_kwargs,
+    )
+
+
+def run_evaluation_only(args: Args) -> dict:
+    if args.checkpoint is None:
+        raise ValueError("--evaluate needs --checkpoint PATH")
+    device = resolve_device(args.device)
+    policy, ckpt = load_policy(args.checkpoint, device)
+    for name in ("obs", "action_frame"):
+        trained = ckpt["args"].get(name, "tool")
+        if trained != getattr(args, name):
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(
+                f"checkpoint {args.checkpoint} was trained with {flag} {trained}, not {getattr(args, name)}"
+            )
+    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
+    result = final_evaluation(policy, args, device, out_dir / "videos" if args.capture_video else None)
+    result["checkpoint"] = str(args.checkpoint)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def train(args: Args) -> dict:
+    t_start = time.perf_counter()
+    saved = load_torch(args.resume, FORMAT, "agents.dagger") if args.resume is not None else None
+    if saved is not None:
+        run_dir = Path(args.resume).resolve().parent.parent
+    else:
+        run_dir = args.runs_dir / (
+            args.exp_name or f"dagger__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
+        )
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    device = resolve_device(args.device)
+    envs = make_envs(args, args.num_envs)
+    policy = policy_for(envs.single_observation_space, int(np.prod(envs.single_action_space.shape)), device)
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=args.learning_rate, weight_decay=args.weight_decay)
+    data = Dataset(args.capacity)
+    counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
+    if saved is not None:
+        if saved["signature"] != policy.signature():
+            raise ValueError(
+                f"--resume {args.resume}: checkpoint {saved['signature']} != this run {policy.signature()}"
+            )
+        policy.load_state_dict(saved["model"])
+        optimizer.load_state_dict(saved["optimizer"])
+        data.load_state_dict(saved["data"])
+        counters = dict(saved["counters"])
+        set_rng_state(saved["rng"])
+    logger = Logger(run_dir, args)
+    ckpt_dir = run_dir / "checkpoints"
+    budget_s = args.budget_min * 60
+    elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
+    o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
+    state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
+    bar = None
+    if args.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(budget_s), initial=int(counters["wall_s"]), unit="s", desc="dagger", dynamic_ncols=True)
+    last_round_s, stats = 0.0, {}
+    try:
+        while True:
+            r = counters["round"]
+            if r > 0 and elapsed() + last_round_s > budget_s:
+                break
+            t0 = time.perf_counter()
+            if r == 0:
+                stats = collect(envs, state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
+                policy.norm.fit(data.obs["state"][: data.size])
+            else:
+                beta = args.beta * args.beta_decay ** (r - 1)
+                stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
+            loss = train_round(policy, optimizer, data, args, device)
+            counters["round"] = r + 1
+            counters["env_steps"] += stats.pop("steps")
+            counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
+            last_round_s = time.perf_counter() - t0
+            scalars = {f"train/{k}": v for k, v in stats.items()}
+            scalars.update({"losses/bc": loss, "charts/dataset": data.size, "charts/round_s": last_round_s})
+            logger.scalars(scalars, counters["env_steps"])
+            if bar is not None:
+                bar.n = min(int(elapsed()), int(budget_s))
+                bar.set_postfix(
+                    round=r, data=data.size, loss=f"{loss:.4f}", success=f"{stats.get('success_rate', 0):.2f}"
+                )
+            if counters["round"] % args.save_freq == 0:
+                save(ckpt_dir / "latest.pt", policy, optimizer, data, dict(counters, wall_s=elapsed()), args)
+    finally:
+        if bar is not None:
+            bar.close()
+        envs.close()
+        counters["wall_s"] = elapsed()
+        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args)
+    t_eval = time.perf_counter()
+    result = final_evaluation(policy, args, device, None)
+    logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])
+    logger.close()
+    result.update(
+        env_steps=counters["env_steps"],
+        wall_clock_s=counters["wall_s"],
+        eval_wall_s=time.perf_counter() - t_eval,
+        rounds=counters["round"],
+        train_episodes=counters["episodes"],
+        dataset=data.size,
+        checkpoint=str(ckpt_dir / "latest.pt"),
+        run_dir=str(run_dir),
+    )
+    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def main(args: Args) -> dict:
+    return run_evaluation_only(args) if args.evaluate else train(args)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,128 @@
+"""Network pieces every trainer in ``agents/`` shares (PPO, DAgger, SAC, RLlib's RLModule): one definition
+of the RGB-D + proprioception encoder, so a checkpoint's encoder means the same thing everywhere."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+def layer_init(layer: nn.Module, std: float = np.sqrt(2), bias: float = 0.0) -> nn.Module:
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+def image_tensor(obs: dict[str, torch.Tensor], max_depth_mm: float = 2000.0) -> torch.Tensor:
+    """(N,H,W,3) uint8 RGB + (N,H,W,1) int16 depth in mm -> (N,4,H,W) floats in [0,1]."""
+    rgb = obs["rgb"].float() / 255.0
+    depth = obs["depth"].float().clamp(0, max_depth_mm) / max_depth_mm
+    return torch.cat([rgb, depth], dim=-1).permute(0, 3, 1, 2)
+
+
+class NatureCNN(nn.Module):
+    """The seed's 3-layer CNN over the 84x84x4 RGB-D image, plus a small MLP for proprioception."""
+
+    def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, feature_dim: int = 256):
+        super().__init__()
+        self.out_dim = 0
+        self.cnn = None
+        if image_shape is not None:
+            h, w, c = image_shape
+            self.cnn = nn.Sequential(
+                nn.Conv2d(c, 32, 8, stride=4),
+                nn.ReLU(),
+                nn.Conv2d(32, 64, 4, stride=2),
+                nn.ReLU(),
+                nn.Conv2d(64, 64, 3, stride=1),
+                nn.ReLU(),
+                nn.Flatten(),
+            )
+            with torch.no_grad():
+                n = self.cnn(torch.zeros(1, c, h, w)).shape[1]
+            self.cnn.append(nn.Linear(n, feature_dim))
+            self.cnn.append(nn.ReLU())
+            self.out_dim += feature_dim
+        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
+        self.out_dim += 256
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        feats = [self.mlp(obs["state"].float())]
+        if self.cnn is not None:
+            feats.insert(0, self.cnn(image_tensor(obs)))
+        return torch.cat(feats, dim=1)
+
+
+def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.Tensor]:
+    """DrQ's augmentation: replicate-pad each image by ``pad`` pixels and crop it back at a random offset
+    (one offset per sample, shared by RGB and depth so they stay registered)."""
+    rgb, depth = obs["rgb"], obs["depth"]
+    n, h, w, _ = rgb.shape
+    img = torch.cat([rgb.float(), depth.float()], dim=-1).permute(0, 3, 1, 2)
+    img = F.pad(img, (pad, pad, pad, pad), mode="replicate")
+    dx = torch.randint(0, 2 * pad + 1, (n,), device=img.device)
+    dy = torch.randint(0, 2 * pad + 1, (n,), device=img.device)
+    rows = (dy[:, None] + torch.arange(h, device=img.device)[None]).view(n, 1, h, 1)
+    cols = (dx[:, None] + torch.arange(w, device=img.device)[None]).view(n, 1, 1, w)
+    c = img.shape[1]
+    out = img.gather(2, rows.expand(n, c, h, img.shape[3])).gather(3, cols.expand(n, c, h, w))
+    out = out.permute(0, 2, 3, 1)
+    return dict(obs, rgb=out[..., :3].to(rgb.dtype), depth=out[..., 3:].to(depth.dtype))
+
+
+class StateNorm(nn.Module):
+    """Fixed per-dimension standardisation of the ``state`` vector, fitted once on the first data
+    (joint velocities and positions differ by orders of magnitude; an MLP learns faster on unit scales)."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    def fit(self, x: torch.Tensor) -> None:
+        self.mean.copy_(x.float().mean(0))
+        self.std.copy_(x.float().std(0).clamp(min=1e-3))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return dict(obs, state=(obs["state"].float() - self.mean) / self.std)
+
+
+class DeterministicActor(nn.Module):
+    """Observation -> action in [-1, 1]: the shared encoder, then a 2-layer MLP and tanh (BC, DAgger)."""
+
+    def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, action_dim: int, hidden: int = 512):
+        super().__init__()
+        self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
+        self.norm = StateNorm(state_dim)
+        self.encoder = NatureCNN(image_shape, state_dim)
+        self.head = nn.Sequential(
+            nn.Linear(self.encoder.out_dim, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, action_dim),
+        )
+
+    def signature(self) -> dict:
+        return dict(
+            image_shape=list(self.image_shape) if self.image_shape else None,
+            state_dim=self.state_dim,
+            action_dim=self.action_dim,
+        )
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.tanh(self.head(self.encoder(self.norm(obs))))
+
+
+def shapes_of(space) -> tuple[Optional[tuple[int, int, int]], int]:
+    """(image shape H,W,4 or None, state dim) of a single-env observation space (flattened rgbd or state)."""
+    import gymnasium as gym
+
+    if isinstance(space, gym.spaces.Dict):
+        rgb, depth, state = space["rgb"].shape, space["depth"].shape, space["state"].shape
+        return (rgb[0], rgb[1], rgb[2] + depth[2]), state[0]
+    return None, space.shape[0]

@@ -1,0 +1,65 @@
+"""World-frame translation for the tool action: a learner's view of ``pd_ee_delta_tool``.
+
+The original report's action moves the TCP along its own axes. Which world direction a tool-axis command
+means depends on the tool's yaw, which changes every episode (the gripper turns to the object's faces), so
+"move towards the tray" is a product of the tool's rotation and a world vector: a bilinear map an MLP
+regresses poorly (the state DAgger policy reached 2 % in tool frame). ManiSkill's own EE controllers offer
+the same choice (``frame="root_translation:..."``). :class:`WorldFrameToolAction` takes the translation in
+world axes and rotates it into the tool frame before the controller, so the executed action is still a
+``pd_ee_delta_tool`` action within its limits (the real-robot adapter and its safety envelope see nothing new).
+
+Layout, both frames: ``[dx, dy, dz, yaw, gripper]`` in [-1, 1], ±1 cm per axis, ±10° yaw about the approach
+axis (unchanged), gripper > 0 opens. A translation rotated out of the unit box is shrunk uniformly (its
+direction kept), as the scripted expert does.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+
+def _shrink(v: torch.Tensor) -> torch.Tensor:
+    return v / v.abs().amax(dim=-1, keepdim=True).clamp(min=1.0)
+
+
+def world_to_tool(action: torch.Tensor, tcp_rot: torch.Tensor) -> torch.Tensor:
+    """(N, 5) world-frame actions -> tool-frame ones for TCP rotations ``tcp_rot`` (N, 3, 3)."""
+    out = action.clone()
+    out[:, :3] = _shrink((tcp_rot.transpose(1, 2) @ action[:, :3].unsqueeze(2)).squeeze(2))
+    return out
+
+
+def tool_to_world(action: torch.Tensor, tcp_rot: torch.Tensor) -> torch.Tensor:
+    """The inverse map (labels: the expert's tool-frame action expressed in world axes)."""
+    out = action.clone()
+    out[:, :3] = _shrink((tcp_rot @ action[:, :3].unsqueeze(2)).squeeze(2))
+    return out
+
+
+def tcp_rotation(env: gym.Env) -> torch.Tensor:
+    return env.unwrapped.agent.tcp_pose.to_transformation_matrix()[:, :3, :3]
+
+
+class WorldFrameToolAction(gym.ActionWrapper):
+    """Wrap a ``pd_ee_delta_tool`` env so its translation commands are in world axes (see the module doc)."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        mode = env.unwrapped.control_mode
+        if mode != "pd_ee_delta_tool":
+            raise ValueError(f"WorldFrameToolAction needs control_mode='pd_ee_delta_tool', the env runs {mode!r}")
+
+    def action(self, action):
+        u = self.env.unwrapped
+        a = torch.as_tensor(np.asarray(action) if not isinstance(action, torch.Tensor) else action)
+        a = a.to(device=u.device, dtype=torch.float32)
+        single = a.ndim == 1
+        a = a.reshape(1, -1) if single else a
+        if a.shape[-1] != 5:
+            raise ValueError(f"expected actions of shape (5,) or (N, 5), got {tuple(a.shape)}")
+        if not torch.isfinite(a).all():
+            raise ValueError("action contains NaN or inf")
+        out = world_to_tool(a.clamp(-1, 1), tcp_rotation(self.env))
+        return out[0] if single else out
