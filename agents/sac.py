@@ -1,0 +1,491 @@
+"""SAC with demonstrations in the RLPD style (Ball et al. 2023), from state or from the RGB-D camera.
+
+RLPD's recipe, sized for a 2-core CPU: the reactive expert's episodes seed a demo buffer; every minibatch
+draws ``--demo-ratio`` of its samples from it ("symmetric sampling"); LayerNorm critics (clipped double Q)
+keep the Q-values bounded when updates outrun data (``--updates-per-step``). Against the wash-out IBRL
+(arXiv 2311.02198) describes — a fresh critic drags a cloned actor away from the demos before it knows better
+— the actor is first cloned from the demos, the critic then warms up alone on them, and the actor loss keeps
+a behaviour-cloning term on the demo half of each batch (``--bc-weight``, TD3+BC-style). The policy acts in
+world axes (``WorldFrameToolAction``, like agents.dagger) on the staged ``normalized_dense`` reward.
+``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0 --bc-weight 0`` is plain SAC.
+
+    python -m agents.sac --obs state --budget-min 120
+    python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
+    python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
+    python -m agents.sac --obs state --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
+
+The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+
+import maniskill_irb120  # noqa: F401  (registers the envs)
+from agents.common import (
+    EVAL_SEED,
+    EpisodeTracker,
+    Logger,
+    args_json,
+    atomic_save,
+    evaluate_on_seeds,
+    flatten_obs,
+    load_torch,
+    obs_to,
+    resolve_device,
+    rng_state,
+    set_rng_state,
+    train_seed,
+)
+from agents.dagger import Dataset, action_wrappers, make_envs
+from agents.nets import NatureCNN, StateNorm, random_shift, shapes_of
+
+FORMAT = "maniskill_irb120.sac/1"
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+@dataclass
+class Args:
+    env_id: str = "TableClearing-IRB120-v1"
+    obs: Literal["state", "rgbd"] = "state"
+    """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
+    action_frame: Literal["world", "tool"] = "world"
+    """world: translation in world axes (WorldFrameToolAction); tool: the raw tool-frame action"""
+    seed: int = 1
+    budget_min: float = 120.0
+    """wall-clock minutes for everything before the final evaluation"""
+    eval_episodes: int = 100
+    """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    num_envs: int = 2
+    """CPU worker processes (1: one env in this process)"""
+    demo_episodes: int = 30
+    """reactive-expert episodes in the demo buffer (0: plain SAC)"""
+    demo_ratio: float = 0.5
+    """fraction of every minibatch drawn from the demo buffer (RLPD's symmetric sampling)"""
+    bc_pretrain_updates: int = 2000
+    """actor behaviour-cloning updates on the demos before RL"""
+    critic_warmup_updates: int = 2000
+    """critic-only updates on the demos (actor fixed) before RL"""
+    bc_weight: float = 1.0
+    """weight of the MSE-to-demo-action term in the actor loss, on the demo half of each batch"""
+    updates_per_step: float = 0.5
+    """gradient updates per environment transition (update-to-data ratio)"""
+    learning_starts: int = 1000
+    """online transitions before updates begin"""
+    buffer_size: int = 300_000
+    batch_size: int = 256
+    gamma: float = 0.95
+    """discount for the ~75-step episodes"""
+    tau: float = 0.005
+    policy_lr: float = 3e-4
+    q_lr: float = 3e-4
+    init_alpha: float = 0.05
+    reward_mode: str = "normalized_dense"
+    augment: bool = True
+    """rgbd: DrQ random shifts of the images in every update"""
+    log_freq: int = 1000
+    """env steps between TensorBoard points"""
+    save_freq: int = 20_000
+    """env steps between checkpoints (with both buffers); always at the end"""
+    device: str = "auto"
+    exp_name: Optional[str] = None
+    runs_dir: Path = Path("runs")
+    resume: Optional[Path] = None
+    """continue a run: networks, optimisers, buffers, counters and RNG; the budget counts the time already spent"""
+    evaluate: bool = False
+    """only evaluate --checkpoint (videos + summary.json)"""
+    checkpoint: Optional[Path] = None
+    capture_video: bool = True
+    progress: bool = True
+    wandb: bool = False
+    comet: bool = False
+    wandb_project: str = "maniskill_irb120"
+    comet_project: str = "maniskill_irb120"
+    env_kwargs: dict = field(default_factory=dict)
+
+
+class Critic(nn.Module):
+    """Two LayerNorm Q-heads over one encoder (the encoder learns from the critic loss only, as in DrQ)."""
+
+    def __init__(self, image_shape, state_dim: int, action_dim: int, hidden: int = 256):
+        super().__init__()
+        self.norm = StateNorm(state_dim)
+        self.encoder = NatureCNN(image_shape, state_dim)
+
+        def head() -> nn.Sequential:
+            return nn.Sequential(
+                nn.Linear(self.encoder.out_dim + action_dim, hidden),
+                nn.LayerNorm(hidden),
+                nn.ReLU(),
+                nn.Linear(hidden, hidden),
+                nn.LayerNorm(hidden),
+                nn.ReLU(),
+                nn.Linear(hidden, 1),
+            )
+
+        self.q1, self.q2 = head(), head()
+
+    def features(self, obs: dict) -> torch.Tensor:
+        return self.encoder(self.norm(obs))
+
+    def forward(self, feats: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([feats, action], dim=1)
+        return self.q1(x).squeeze(1), self.q2(x).squeeze(1)
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian over the critic's (detached) features."""
+
+    def __init__(self, feature_dim: int, action_dim: int, hidden: int = 256):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(feature_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
+        self.mean = nn.Linear(hidden, action_dim)
+        self.log_std = nn.Linear(hidden, action_dim)
+
+    def forward(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sampled action, its log-probability, the deterministic action)."""
+        h = self.net(feats)
+        mean = self.mean(h)
+        log_std = self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
+        normal = torch.distributions.Normal(mean, log_std.exp())
+        u = normal.rsample()
+        a = torch.tanh(u)
+        logp = (normal.log_prob(u) - torch.log(1 - a.pow(2) + 1e-6)).sum(1)
+        return a, logp, torch.tanh(mean)
+
+
+class SAC(nn.Module):
+    def __init__(self, image_shape, state_dim: int, action_dim: int, init_alpha: float):
+        super().__init__()
+        self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
+        self.critic = Critic(image_shape, state_dim, action_dim)
+        self.target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor = Actor(self.critic.encoder.out_dim, action_dim)
+        self.log_alpha = nn.Parameter(torch.tensor(float(np.log(init_alpha))))
+
+    def signature(self) -> dict:
+        shape = list(self.image_shape) if self.image_shape else None
+        return dict(image_shape=shape, state_dim=self.state_dim, action_dim=self.action_dim)
+
+    def act(self, obs: dict, deterministic: bool) -> torch.Tensor:
+        with torch.no_grad():
+            a, _, mean = self.actor(self.critic.features(obs))
+        return mean if deterministic else a
+
+
+def split(batch: dict) -> tuple[dict, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
+    """A replay sample stored as one dict: (obs, reward, terminated, next obs) and the action."""
+    obs = {k: v for k, v in batch.items() if not k.startswith("next_") and k not in ("rew", "term")}
+    nxt = {k[5:]: v for k, v in batch.items() if k.startswith("next_")}
+    return obs, batch["rew"], batch["term"], nxt
+
+
+def sample(online: Dataset, demos: Dataset, args: Args, device) -> tuple[dict, torch.Tensor, int]:
+    """A minibatch with ``demo_ratio`` of it from the demos (first ``n_demo`` rows)."""
+    n_demo = int(round(args.batch_size * args.demo_ratio)) if demos.size else 0
+    if online.size == 0:
+        n_demo = args.batch_size
+    parts = []
+    if n_demo:
+        parts.append(demos.sample(n_demo, device))
+    if args.batch_size - n_demo:
+        parts.append(online.sample(args.batch_size - n_demo, device))
+    obs = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
+    act = torch.cat([p[1] for p in parts])
+    if args.obs == "rgbd" and args.augment:
+        obs = random_shift(obs)
+        nxt = random_shift({k[5:]: v for k, v in obs.items() if k.startswith("next_")})
+        obs.update({f"next_{k}": v for k, v in nxt.items()})
+    return obs, act, n_demo
+
+
+def update(model: SAC, opts: dict, batch: dict, act: torch.Tensor, n_demo: int, args: Args, actor: bool) -> dict:
+    obs, rew, term, nxt = split(batch)
+    alpha = model.log_alpha.exp().detach()
+    with torch.no_grad():
+        nf = model.critic.features(nxt)
+        na, nlogp, _ = model.actor(nf)
+        tq1, tq2 = model.target(model.target.features(nxt), na)
+        target = rew + args.gamma * (1 - term) * (torch.min(tq1, tq2) - alpha * nlogp)
+    feats = model.critic.features(obs)
+    q1, q2 = model.critic(feats, act)
+    q_loss = F.mse_loss(q1, target) + F.mse_loss(q2, target)
+    opts["q"].zero_grad()
+    q_loss.backward()
+    opts["q"].step()
+    with torch.no_grad():
+        for p, tp in zip(model.critic.parameters(), model.target.parameters()):
+            tp.lerp_(p, args.tau)
+    out = dict(q_loss=q_loss.item(), q=q1.mean().item())
+    if not actor:
+        return out
+    f = feats.detach()
+    a, logp, mean = model.actor(f)
+    qa1, qa2 = model.critic(f, a)
+    pi_loss = (alpha * logp - torch.min(qa1, qa2)).mean()
+    if n_demo and args.bc_weight > 0:
+        # scaled by |Q| so the BC term keeps its weight as the Q-values grow (TD3+BC's normalisation)
+        scale = torch.min(qa1, qa2).abs().mean().detach().clamp(min=1.0)
+        pi_loss = pi_loss + args.bc_weight * scale * F.mse_loss(mean[:n_demo], act[:n_demo])
+    opts["pi"].zero_grad()
+    pi_loss.backward()
+    opts["pi"].step()
+    alpha_loss = -(model.log_alpha * (logp.detach() - model.action_dim).mean()).mean()  # target entropy -|A|
+    opts["alpha"].zero_grad()
+    alpha_loss.backward()
+    opts["alpha"].step()
+    out.update(pi_loss=pi_loss.item(), alpha=alpha.item(), entropy=-logp.mean().item())
+    return out
+
+
+def transitions(obs: dict, action, reward, term, o, info) -> tuple[dict, torch.Tensor]:
+    """The replay rows of one vector step (the real next observation where an episode ended)."""
+    nxt = flatten_obs(o)
+    if "final_observation" in info:
+        done = info["_final_observation"] if "_final_observation" in info else torch.ones(len(reward), dtype=bool)
+        fin = flatten_obs(info["final_observation"])
+        nxt = {k: torch.where(done.view(-1, *[1] * (v.dim() - 1)), fin[k], v) for k, v in nxt.items()}
+    row = dict(obs, rew=reward.float(), term=term.float(), **{f"next_{k}": v for k, v in nxt.items()})
+    return row, action
+
+
+def bc_step(model: SAC, opt, demos: Dataset, args: Args, device) -> float:
+    """One behaviour-cloning update of the actor (and the shared encoder) on a demo minibatch."""
+    batch, act = demos.sample(args.batch_size, device)
+    obs, *_ = split(batch)
+    if args.obs == "rgbd" and args.augment:
+        obs = random_shift(obs)
+    _, _, mean = model.actor(model.critic.features(obs))
+    loss = F.mse_loss(mean, act)
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    return loss.item()
+
+
+def pretrain(model: SAC, opts: dict, online: Dataset, demos: Dataset, args: Args, device) -> float:
+    """Clone the actor from the demos, then warm the critic up on them; the cloning continues through the
+    warm-up, since the critic's updates move the encoder the actor reads."""
+    bc_opt = torch.optim.Adam(list(model.actor.parameters()) + list(model.critic.encoder.parameters()), args.policy_lr)
+    loss = float("nan")
+    for _ in range(args.bc_pretrain_updates):
+        loss = bc_step(model, bc_opt, demos, args, device)
+    for _ in range(args.critic_warmup_updates):
+        batch, act, _ = sample(online, demos, args, device)
+        update(model, opts, batch, act, 0, args, actor=False)
+        if args.bc_pretrain_updates:
+            loss = bc_step(model, bc_opt, demos, args, device)
+    return loss
+
+
+def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, counters: dict, args: Args) -> None:
+    atomic_save(
+        dict(
+            format=FORMAT,
+            model=model.state_dict(),
+            opts={k: o.state_dict() for k, o in opts.items()},
+            online=online.state_dict(),
+            demos=demos.state_dict(),
+            counters=counters,
+            rng=rng_state(),
+            args=args_json(args),
+            signature=model.signature(),
+        ),
+        path,
+    )
+
+
+def load_model(path: Path, device) -> tuple[SAC, dict]:
+    ckpt = load_torch(path, FORMAT, "agents.sac")
+    sig = ckpt["signature"]
+    shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
+    model = SAC(shape, sig["state_dim"], sig["action_dim"], 1.0).to(device)
+    model.load_state_dict(ckpt["model"])
+    return model.eval(), ckpt
+
+
+def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:
+    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode)
+    return evaluate_on_seeds(
+        lambda o: model.act(obs_to(o, device), deterministic=True).cpu(),
+        args.env_id,
+        args.obs,
+        seeds,
+        video_dir=video_dir,
+        progress=args.progress,
+        wrappers=action_wrappers(args.action_frame),
+        **kwargs,
+    )
+
+
+def run_evaluation_only(args: Args) -> dict:
+    if args.checkpoint is None:
+        raise ValueError("--evaluate needs --checkpoint PATH")
+    device = resolve_device(args.device)
+    model, ckpt = load_model(args.checkpoint, device)
+    for name in ("obs", "action_frame"):
+        if ckpt["args"][name] != getattr(args, name):
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(f"checkpoint {args.checkpoint} was trained with {flag} {ckpt['args'][name]}")
+    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
+    result = final_evaluation(model, args, device, out_dir / "videos" if args.capture_video else None)
+    result["checkpoint"] = str(args.checkpoint)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def collect_demos(envs, state: dict, demos: Dataset, episodes: int) -> int:
+    """Clean reactive-expert episodes into ``demos``; returns the env steps taken."""
+    finished = steps = 0
+    while finished < episodes:
+        action = state["label"]
+        o, rew, term, trunc, info = envs.step(action)
+        row, act = transitions(state["obs"], action, rew, term, o, info)
+        demos.add(row, act)
+        state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
+        finished += int((term | trunc).sum())
+        steps += envs.num_envs
+    return steps
+
+
+def train(args: Args) -> dict:
+    from dataclasses import replace
+
+    t_start = time.perf_counter()
+    saved = load_torch(args.resume, FORMAT, "agents.sac") if args.resume is not None else None
+    run_dir = (
+        Path(args.resume).resolve().parent.parent
+        if saved is not None
+        else args.runs_dir / (args.exp_name or f"sac__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}")
+    )
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    device = resolve_device(args.device)
+    envs = make_envs(replace(args, env_kwargs={**args.env_kwargs, "reward_mode": args.reward_mode}), args.num_envs)
+    image_shape, state_dim = shapes_of(envs.single_observation_space)
+    model = SAC(image_shape, state_dim, int(np.prod(envs.single_action_space.shape)), args.init_alpha).to(device)
+    opts = dict(
+        q=torch.optim.Adam(model.critic.parameters(), lr=args.q_lr),
+        pi=torch.optim.Adam(model.actor.parameters(), lr=args.policy_lr),
+        alpha=torch.optim.Adam([model.log_alpha], lr=args.q_lr),
+    )
+    online, demos = Dataset(args.buffer_size), Dataset(args.buffer_size)
+    counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
+    if saved is not None:
+        if saved["signature"] != model.signature():
+            raise ValueError(f"--resume {args.resume}: checkpoint {saved['signature']} != this run {model.signature()}")
+        model.load_state_dict(saved["model"])
+        for k, o in opts.items():
+            o.load_state_dict(saved["opts"][k])
+        online.load_state_dict(saved["online"])
+        demos.load_state_dict(saved["demos"])
+        counters = dict(saved["counters"])
+        set_rng_state(saved["rng"])
+    logger = Logger(run_dir, args)
+    ckpt_path = run_dir / "checkpoints" / "latest.pt"
+    elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
+    budget_s = 60 * args.budget_min
+    o, info = envs.reset(seed=train_seed(args.seed, counters["episodes"]))
+    state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
+    if not counters["pretrained"]:
+        if args.demo_episodes > 0:
+            counters["env_steps"] += collect_demos(envs, state, demos, args.demo_episodes)
+            model.critic.norm.fit(demos.obs["state"][: demos.size])
+            model.target.norm.load_state_dict(model.critic.norm.state_dict())
+            bc = pretrain(model, opts, online, demos, args, device)
+            logger.scalars({"losses/bc_pretrain": bc}, counters["env_steps"])
+        counters["pretrained"] = True
+    tracker = EpisodeTracker(envs.num_envs, torch.device("cpu"))
+    recent: dict[str, list[float]] = {}
+    losses: dict[str, float] = {}
+    owed, next_log, next_save = 0.0, counters["env_steps"] + args.log_freq, counters["env_steps"] + args.save_freq
+    bar = None
+    if args.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(budget_s), initial=int(counters["wall_s"]), unit="s", desc="sac", dynamic_ncols=True)
+    try:
+        while elapsed() < budget_s:
+            obs = state["obs"]
+            if online.size < args.learning_starts and demos.size == 0:
+                action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
+            else:
+                action = model.act(obs_to(obs, device), deterministic=False).cpu()
+            o, rew, term, trunc, info = envs.step(action)
+            row, act = transitions(obs, action, rew, term, o, info)
+            online.add(row, act)
+            state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
+            done = (term | trunc).bool()
+            counters["env_steps"] += envs.num_envs
+            counters["episodes"] += int(done.sum())
+            for k, v in tracker.update(info.get("final_info", info), done).items():
+                recent.setdefault(k, []).extend(v)
+            if online.size >= args.learning_starts or demos.size:
+                owed += args.updates_per_step * envs.num_envs
+                while owed >= 1:
+                    batch, act, n_demo = sample(online, demos, args, device)
+                    losses = update(model, opts, batch, act, n_demo, args, actor=True)
+                    counters["updates"] += 1
+                    owed -= 1
+            if counters["env_steps"] >= next_log:
+                next_log += args.log_freq
+                scalars = {f"train/{k}": float(np.mean(v)) for k, v in recent.items()}
+                scalars.update({f"losses/{k}": v for k, v in losses.items()})
+                scalars["charts/updates"] = counters["updates"]
+                logger.scalars(scalars, counters["env_steps"])
+                if bar is not None:
+                    bar.n = min(int(elapsed()), int(budget_s))
+                    bar.set_postfix(steps=counters["env_steps"], success=f"{scalars.get('train/success_rate', 0):.2f}")
+                recent = {}
+            if counters["env_steps"] >= next_save:
+                next_save += args.save_freq
+                save(ckpt_path, model, opts, online, demos, dict(counters, wall_s=elapsed()), args)
+    finally:
+        if bar is not None:
+            bar.close()
+        envs.close()
+        counters["wall_s"] = elapsed()
+        save(ckpt_path, model, opts, online, demos, counters, args)
+    t_eval = time.perf_counter()
+    model.eval()
+    result = final_evaluation(model, args, device, None)
+    logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])
+    logger.close()
+    result.update(
+        env_steps=counters["env_steps"],
+        wall_clock_s=counters["wall_s"],
+        eval_wall_s=time.perf_counter() - t_eval,
+        updates=counters["updates"],
+        train_episodes=counters["episodes"],
+        checkpoint=str(ckpt_path),
+        run_dir=str(run_dir),
+    )
+    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def main(args: Args) -> dict:
+    if not 0.0 <= args.demo_ratio <= 1.0:
+        raise ValueError(f"--demo-ratio must be in [0, 1], got {args.demo_ratio}")
+    return run_evaluation_only(args) if args.evaluate else train(args)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

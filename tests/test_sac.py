@@ -1,0 +1,119 @@
+"""agents.sac (RLPD-style SAC with demos): replay rows use the real final observation, minibatches mix demos
+at the asked ratio, cloning from the demos moves the actor onto the expert, and tiny state and rgbd runs
+write results, checkpoints and logs that resume and evaluate; bad input is named."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.dagger import Dataset
+from agents.sac import SAC, Args, collect_demos, main, make_envs, pretrain, sample, split, transitions
+
+
+def tiny(tmp_path: Path, **kw) -> dict:
+    base = dict(
+        budget_min=0.1,
+        num_envs=1,
+        demo_episodes=1,
+        bc_pretrain_updates=5,
+        critic_warmup_updates=5,
+        learning_starts=10,
+        batch_size=16,
+        log_freq=20,
+        save_freq=40,
+        eval_episodes=1,
+        runs_dir=tmp_path,
+        exp_name="t",
+        progress=False,
+        capture_video=False,
+    )
+    base.update(kw)
+    return main(Args(**base))
+
+
+def test_replay_rows_take_the_final_observation_where_an_episode_ended():
+    obs = {"state": torch.zeros(2, 3)}
+    after_reset = torch.full((2, 3), 5.0)
+    info = {"final_observation": torch.full((2, 3), 9.0), "_final_observation": torch.tensor([False, True])}
+    row, _ = transitions(
+        obs, torch.zeros(2, 5), torch.tensor([0.1, 1.0]), torch.tensor([False, True]), after_reset, info
+    )
+    assert row["next_state"][0].tolist() == [5.0] * 3 and row["next_state"][1].tolist() == [9.0] * 3
+    assert row["term"].tolist() == [0.0, 1.0] and row["rew"].tolist() == pytest.approx([0.1, 1.0])
+
+
+def test_minibatches_mix_demos_at_the_asked_ratio():
+    demos, online = Dataset(100), Dataset(100)
+    rows = lambda v: dict(
+        state=torch.full((50, 2), v), rew=torch.zeros(50), term=torch.zeros(50), next_state=torch.zeros(50, 2)
+    )  # noqa: E731
+    demos.add(rows(1.0), torch.zeros(50, 5))
+    online.add(rows(2.0), torch.zeros(50, 5))
+    batch, _, n_demo = sample(online, demos, Args(batch_size=40, demo_ratio=0.25), "cpu")
+    assert n_demo == 10 and (batch["state"][:10] == 1).all() and (batch["state"][10:] == 2).all()
+    obs, *_ = split(batch)
+    assert set(obs) == {"state"}
+    only_demos, _, n = sample(Dataset(10), demos, Args(batch_size=8), "cpu")  # no online data yet
+    assert n == 8 and (only_demos["state"] == 1).all()
+
+
+def test_cloning_moves_the_actor_onto_the_expert():
+    args = Args(num_envs=1, batch_size=64, bc_pretrain_updates=300, critic_warmup_updates=0)
+    envs = make_envs(args, 1)
+    try:
+        o, info = envs.reset(seed=5)
+        state = dict(obs={"state": o}, label=info["expert_action"].float())
+        demos = Dataset(10_000)
+        collect_demos(envs, state, demos, 2)
+    finally:
+        envs.close()
+    torch.manual_seed(0)
+    model = SAC(None, demos.obs["state"].shape[1], 5, 0.1)
+    model.critic.norm.fit(demos.obs["state"][: demos.size])
+    obs = {"state": demos.obs["state"][: demos.size]}
+    target = demos.act[: demos.size]
+
+    def error() -> float:
+        return float(((model.act(obs, deterministic=True) - target) ** 2).mean())
+
+    before = error()
+    opts = dict(q=torch.optim.Adam(model.critic.parameters()))
+    pretrain(model, opts, Dataset(1), demos, args, "cpu")
+    assert error() < 0.3 * before, (before, error())
+
+
+def test_state_run_resume_and_evaluate(tmp_path, capsys):
+    res = tiny(tmp_path)
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert {"success_rate", "successes", "env_steps", "wall_clock_s"} <= set(last) and last["env_steps"] > 0
+    assert res["updates"] > 0 and (Path(res["run_dir"]) / "summary.json").is_file()
+    assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["demos"]["size"] > 0 and saved["online"]["size"] > 0
+    again = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.3)
+    assert again["env_steps"] > res["env_steps"] and again["updates"] > res["updates"]
+    assert again["wall_clock_s"] > res["wall_clock_s"]
+    ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=True)
+    assert ev["episodes"] == 1 and list((tmp_path / "t" / "eval" / "videos").glob("*.mp4"))
+
+
+def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):
+    res = tiny(tmp_path, obs="rgbd", batch_size=8, bc_pretrain_updates=2, critic_warmup_updates=2)
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["signature"]["image_shape"] == [84, 84, 4] and saved["signature"]["state_dim"] < 40
+    assert res["updates"] > 0
+
+
+def test_bad_input_is_named(tmp_path):
+    with pytest.raises(ValueError, match="demo-ratio"):
+        main(Args(demo_ratio=1.5))
+    with pytest.raises(ValueError, match="--checkpoint"):
+        main(Args(evaluate=True))
+    wrong = tmp_path / "dagger.pt"
+    torch.save(dict(format="maniskill_irb120.dagger/1"), wrong)
+    with pytest.raises(ValueError, match="not written by agents.sac"):
+        main(Args(evaluate=True, checkpoint=wrong))
