@@ -184,7 +184,8 @@ def evaluate_on_seeds(
 
     import maniskill_irb120  # noqa: F401
 
-    kwargs = dict(obs_mode=obs, control_mode="pd_ee_delta_tool", **env_kwargs)
+    kwargs = dict(obs_mode=obs, control_mode="pd_ee_delta_tool")
+    kwargs.update(env_kwargs)
     if obs == "rgbd" or video_dir is not None:
         kwargs["render_mode"] = "rgb_array"
     else:

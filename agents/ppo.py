@@ -30,10 +30,12 @@ from torch.distributions.normal import Normal
 
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
+    EVAL_SEED,
     EpisodeTracker,
     Logger,
     args_json,
     atomic_save,
+    evaluate_on_seeds,
     flatten_obs,
     load_torch,
     obs_to,
@@ -101,6 +103,11 @@ class Args:
     """iterations that update only the value function (keeps a warm-started policy while its critic learns)"""
     max_wall_s: Optional[float] = None
     """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
+    budget_min: Optional[float] = None
+    """the same limit in minutes (the flag every trainer here shares); overrides --max-wall-s"""
+    eval_episodes: int = 0
+    """after training: deterministic episodes on held-out seeds (agents.common.EVAL_SEED onwards), one env;
+    their success_rate, env_steps and wall_clock_s end the printed JSON (0: skip)"""
     env_kwargs: dict = field(default_factory=dict)
 
     @property
@@ -436,8 +443,9 @@ def train(args: Args) -> dict:
     history: list[dict] = []
     start_iteration = counters["iteration"]
     t_start = time.perf_counter()
+    max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
-        if args.max_wall_s is not None and time.perf_counter() - t_start > args.max_wall_s:
+        if max_wall_s is not None and time.perf_counter() - t_start > max_wall_s:
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
             break
         it = counters["iteration"] + 1
@@ -542,9 +550,26 @@ def train(args: Args) -> dict:
         last_eval=last_eval,
         checkpoint=str(ckpt_dir / "latest.pt"),
     )
+    if args.eval_episodes > 0:
+        result.update(final_evaluation(agent, args, device), env_steps=counters["global_step"])
+        (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    result["wall_clock_s"] = time.perf_counter() - t_start
     print(json.dumps(result))
     result["history"] = history
     return result
+
+
+def final_evaluation(agent: Agent, args: Args, device) -> dict:
+    """The deterministic policy on held-out seeds, scored like every other trainer (agents.common)."""
+    agent.eval()
+    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+
+    def act(obs: dict) -> torch.Tensor:
+        with torch.no_grad():
+            return agent.get_action(obs_to(obs, device), deterministic=True).cpu()
+
+    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, control_mode=args.control_mode)
+    return evaluate_on_seeds(act, args.env_id, args.obs, seeds, progress=args.progress, **kwargs)
 
 
 def main(args: Args) -> dict:

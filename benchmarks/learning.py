@@ -1,312 +1,285 @@
-"""Does it learn? A fixed wall-clock budget of PPO on this machine, against a random policy measured
-in the same run.
+"""Does it learn? Every recipe x seeds under one wall-clock budget, scored on held-out seeds, with intervals.
 
-Arms (state observations, CPU worker processes, ``normalized_dense`` reward):
+Each recipe is a trainer CLI in ``agents/`` run as a subprocess with ``--budget-min``, ``--seed`` and
+``--eval-episodes``; the last line it prints is its JSON result (``success_rate``, ``successes`` per
+episode, ``env_steps``, ``wall_clock_s``), and its TensorBoard log gives the curve (training-episode success
+against env steps and wall clock). References measured in the same run on the same held-out seeds: uniform
+random actions and the scripted expert.
 
-- ``random``: uniform random actions (the floor);
-- ``ppo``: PPO from scratch for half the budget;
-- ``bc+ppo``: PPO for the other half, warm-started by behaviour cloning on scripted-expert
-  demonstrations (the seed estimated 80M steps for PPO from scratch; a few thousand expert
-  transitions put the policy where PPO's reward signal is dense enough to improve it in minutes).
+Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
+episodes within each (a two-level stratified bootstrap, the method of ``rliable``; written here in numpy
+because rliable pins its own scipy/seaborn stack), and the interquartile mean over all episodes of all seeds.
 
-Every arm ends with the same deterministic evaluation (success, grasp rate, the seed's dense return).
-Writes ``--out-dir``/learning.json and learning.png (curves against wall time and env steps).
+    python benchmarks/learning.py                                  # every recipe x 3 seeds (hours: see below)
+    python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
+    python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
 
-    python benchmarks/learning.py --budget-min 30          # the reported run
-    python benchmarks/learning.py --budget-min 2 --eval-episodes 5   # a smoke run
+Budgets (the issue's targets): state recipes ``--budget-min`` (60), rgbd recipes ``--rgbd-budget-min`` (120);
+the final evaluation is extra. ``--update-results`` rewrites the Learning section of benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
 
-import functools
 import json
+import platform
+import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+import tyro
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agents.ppo import Agent, evaluate, make_envs, save_checkpoint, train  # noqa: E402
-from agents.ppo import Args as PPOArgs  # noqa: E402
+from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 
-ENV_ID = "TableClearing-IRB120-v1"
+# recipe -> (module, fixed flags, observation); the budget, seed and evaluation flags are added per run
+RECIPES: dict[str, tuple[str, list[str], str]] = {
+    "dagger-state": ("agents.dagger", ["--obs", "state"], "state"),
+    "dagger-rgbd": ("agents.dagger", ["--obs", "rgbd"], "rgbd"),
+    "ppo-state": ("agents.ppo", ["--obs", "state", "--num-envs", "2", "--total-timesteps", "100000000"], "state"),
+}
+REFERENCES = ("random", "expert")
+# --quick: the same code paths at toy sizes
+QUICK_FLAGS = {
+    "agents.dagger": [
+        "--num-envs",
+        "1",
+        "--expert-episodes",
+        "1",
+        "--episodes-per-round",
+        "1",
+        "--updates-per-round",
+        "5",
+        "--batch-size",
+        "16",
+    ],  # fmt: skip
+    "agents.ppo": ["--num-envs", "1", "--num-steps", "8", "--total-timesteps", "16", "--eval-freq", "0"],
+}
 
 
 @dataclass
 class Args:
-    budget_min: float = 30.0
-    """total wall-clock minutes for the two PPO arms (split evenly)"""
-    num_envs: int = 4
-    """CPU worker processes per PPO arm"""
-    bc_episodes: int = 100
-    """expert episodes for the behaviour-cloning warm start"""
-    bc_epochs: int = 100
-    critic_warmup_iters: int = 15
-    """bc+ppo: iterations fitting only the value function before the cloned policy is updated"""
-    eval_episodes: int = 20
-    seed: int = 0
+    recipes: list[str] = field(default_factory=lambda: list(RECIPES))
+    """which of dagger-state, dagger-rgbd, ppo-state to train (random and the expert always run)"""
+    seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
+    budget_min: float = 60.0
+    """wall-clock minutes per state run (data collection and training)"""
+    rgbd_budget_min: float = 120.0
+    """wall-clock minutes per rgbd run"""
+    eval_episodes: int = 100
+    """held-out episodes per run and per reference (seeds agents.common.EVAL_SEED onwards)"""
+    env_id: str = "TableClearing-IRB120-v1"
     out_dir: Path = Path("benchmarks/results/learning")
+    update_results: bool = False
+    """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
+    quick: bool = False
+    """smoke run: dagger-state and ppo-state, one seed, toy sizes, 2 evaluation episodes"""
+    bootstrap: int = 10_000
+    """bootstrap resamples"""
 
 
-def ppo_args(
-    args: Args,
-    name: str,
-    minutes: float,
-    checkpoint: Path | None = None,
-    lr: float = 3e-4,
-    critic_warmup_iters: int = 0,
-) -> PPOArgs:
-    return PPOArgs(
-        obs="state",
-        num_envs=args.num_envs,
-        num_steps=100,
-        num_minibatches=4,
-        update_epochs=8,
-        learning_rate=lr,
-        total_timesteps=10**9,
-        max_wall_s=60 * minutes,
-        eval_freq=0,
-        save_freq=20,
-        critic_warmup_iters=critic_warmup_iters,
-        seed=args.seed,
-        exp_name=name,
-        runs_dir=args.out_dir / "runs",
-        checkpoint=checkpoint,
-        capture_video=False,
-        progress=False,
-        backend="cpu",
-    )
+# ----------------------------------------------------------------------------- statistics
+def bootstrap_ci(per_seed: list[list[int]], n: int, rng: np.random.Generator) -> tuple[float, float]:
+    """95 % interval of the mean success: resample seeds, then episodes within each resampled seed."""
+    runs = [np.asarray(s, dtype=float) for s in per_seed if len(s)]
+    if not runs:
+        return float("nan"), float("nan")
+    means = np.empty(n)
+    for i in range(n):
+        pick = rng.integers(0, len(runs), len(runs))
+        means[i] = np.mean([runs[j][rng.integers(0, len(runs[j]), len(runs[j]))].mean() for j in pick])
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return float(lo), float(hi)
 
 
-def summary_from_eval(m: dict) -> dict:
-    """agents.ppo.evaluate() means -> rates, normalized return and the seed's dense return (sum of terms)."""
+def iqm(values: list[float]) -> float:
+    """Interquartile mean (rliable's aggregate): the mean of the middle 50 % of the sorted values."""
+    v = np.sort(np.asarray(values, dtype=float))
+    if len(v) == 0:
+        return float("nan")
+    k = int(np.floor(0.25 * len(v)))
+    return float(v[k : len(v) - k].mean())
+
+
+def summarise(name: str, obs: str, runs: list[dict], args: Args, rng: np.random.Generator) -> dict:
+    per_seed = [r["successes"] for r in runs]
+    lo, hi = bootstrap_ci(per_seed, args.bootstrap, rng)
     return dict(
-        episodes=m["episodes"],
-        success_rate=m.get("success_rate_mean", 0.0),
-        grasp_rate=m.get("grasped_rate_mean", 0.0),
-        collision_rate=m.get("collided_rate_mean", 0.0),
-        normalized_return=m.get("return_mean", 0.0),
-        dense_return=sum(v for k, v in m.items() if k.startswith("return_r_")),
+        recipe=name,
+        obs=obs,
+        seeds=[r.get("seed") for r in runs],
+        success_mean=float(np.mean([r["success_rate"] for r in runs])),
+        success_ci95=[lo, hi],
+        success_iqm=iqm([x for s in per_seed for x in s]),
+        per_seed=[r["success_rate"] for r in runs],
+        env_steps_mean=float(np.mean([r.get("env_steps", 0) for r in runs])),
+        wall_clock_min_mean=float(np.mean([r.get("wall_clock_s", 0.0) for r in runs])) / 60,
+        runs=runs,
     )
 
 
-class RandomPolicy:
-    """Uniform random actions through the same evaluation loop as the trained agents."""
+# ----------------------------------------------------------------------------- runs
+def reference(name: str, args: Args) -> dict:
+    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    if name == "random":
+        gen = torch.Generator().manual_seed(0)
+        act = lambda obs: torch.rand(1, 5, generator=gen) * 2 - 1  # noqa: E731
+        r = evaluate_on_seeds(act, args.env_id, "state", seeds)
+    else:
+        from maniskill_irb120.rollout import run_expert
 
-    def __init__(self, seed: int):
-        self.rng = np.random.default_rng(seed)
-
-    def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
-        n = next(iter(obs.values())).shape[0]
-        return torch.from_numpy(self.rng.uniform(-1, 1, (n, 5)).astype(np.float32))
-
-
-def evaluate_policy(policy, episodes: int) -> dict:
-    envs = make_envs(PPOArgs(obs="state", backend="cpu", capture_video=False), 1, evaluate=True)
-    try:
-        return summary_from_eval(evaluate(policy, envs, episodes, torch.device("cpu")))
-    finally:
-        envs.close()
+        e = run_expert(args.env_id, args.eval_episodes, EVAL_SEED)
+        failed = set(e["failed_seeds"])
+        r = dict(success_rate=e["success_rate"], successes=[int(s not in failed) for s in seeds])
+    return dict(r, seed=None, env_steps=0, wall_clock_s=0.0)
 
 
-def random_baseline(episodes: int, seed: int) -> dict:
-    return evaluate_policy(RandomPolicy(seed), episodes)
+def curve(run_dir: Path, t0_wall: float) -> dict:
+    """Training-episode success (as logged) against env steps and wall-clock minutes."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-
-def expert_dataset(episodes: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """(obs, action) pairs from the scripted expert, in the PPO env's flattened state observation."""
-    import gymnasium as gym
-
-    import maniskill_irb120  # noqa: F401
-    from maniskill_irb120.expert import TableClearingExpert
-
-    env = gym.make(ENV_ID, obs_mode="state", reward_mode="normalized_dense", render_backend="none")
-    expert = TableClearingExpert(env.unwrapped)
-    obs_l, act_l, ok = [], [], 0
-    for ep in range(episodes):
-        obs, _ = env.reset(seed=10_000 + seed + ep)  # seeds disjoint from evaluation's
-        expert.reset()
-        while True:
-            a = expert.act()
-            obs_l.append(obs.clone())
-            act_l.append(a.clone())
-            obs, _, term, trunc, info = env.step(a)
-            if bool(term[0]) or bool(trunc[0]):
-                ok += bool(info["success"][0])
-                break
-    env.close()
-    return torch.cat(obs_l), torch.cat(act_l), ok / episodes
-
-
-def behaviour_clone(obs: torch.Tensor, act: torch.Tensor, epochs: int, seed: int, path: Path) -> dict:
-    """Fit the PPO actor's mean to the expert's actions (MSE); save as a PPO checkpoint."""
-    torch.manual_seed(seed)
-    agent = Agent(None, obs.shape[1], act.shape[1])
-    opt = torch.optim.Adam(list(agent.encoder.parameters()) + list(agent.actor_mean.parameters()), lr=1e-3)
-    n, losses = obs.shape[0], []
-    for _ in range(epochs):
-        perm = torch.randperm(n)
-        for i in range(0, n, 256):
-            idx = perm[i : i + 256]
-            loss = ((agent.actor_mean(agent.encoder({"state": obs[idx]})) - act[idx]) ** 2).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        losses.append(loss.item())
-    with torch.no_grad():  # start PPO's exploration narrow around the cloned behaviour
-        agent.actor_logstd.fill_(-1.6)
-    save_checkpoint(
-        path, agent, torch.optim.Adam(agent.parameters()), dict(global_step=0, iteration=0), ppo_args(Args(), "bc", 0)
-    )
-    return dict(transitions=n, final_mse=losses[-1], first_mse=losses[0])
-
-
-def final_eval(checkpoint: Path, episodes: int) -> dict:
-    from agents.ppo import load_checkpoint
-
-    agent = Agent(None, state_dim(), 5)
-    load_checkpoint(checkpoint, agent, PPOArgs(obs="state"))
-    agent.eval()
-    return evaluate_policy(agent, episodes)
-
-
-@functools.lru_cache(maxsize=1)
-def state_dim() -> int:
-    import gymnasium as gym
-
-    import maniskill_irb120  # noqa: F401
-
-    env = gym.make(ENV_ID, obs_mode="state", render_backend="none")
-    try:
-        return env.observation_space.shape[-1]
-    finally:
-        env.close()
-
-
-def curve(history: list[dict]) -> dict:
-    keys = ("train/success_rate", "train/grasped_rate", "train/return")
-    pts = [h for h in history if "train/return" in h]
+    files = sorted(run_dir.glob("events.out.tfevents.*"))
+    if not files:
+        return dict(env_steps=[], wall_min=[], success=[])
+    acc = EventAccumulator(str(files[0]), size_guidance={"scalars": 0})
+    acc.Reload()
+    if "train/success_rate" not in acc.Tags()["scalars"]:
+        return dict(env_steps=[], wall_min=[], success=[])
+    ev = acc.Scalars("train/success_rate")
     return dict(
-        wall_s=[h["wall_s"] for h in pts],
-        global_step=[h["global_step"] for h in pts],
-        **{k.split("/")[1]: [h.get(k, float("nan")) for h in pts] for k in keys},
+        env_steps=[e.step for e in ev],
+        wall_min=[(e.wall_time - t0_wall) / 60 for e in ev],
+        success=[e.value for e in ev],
     )
 
 
-def plot(result: dict, path: Path) -> None:
+def train_run(recipe: str, seed: int, args: Args) -> dict:
+    module, flags, obs = RECIPES[recipe]
+    budget = args.rgbd_budget_min if obs == "rgbd" else args.budget_min
+    name = f"{recipe}__s{seed}"
+    cmd = [sys.executable, "-m", module, *flags, "--env-id", args.env_id, "--seed", str(seed)]
+    cmd += ["--budget-min", str(budget), "--eval-episodes", str(args.eval_episodes)]
+    cmd += ["--runs-dir", str(args.out_dir / "runs"), "--exp-name", name, "--no-progress", "--no-capture-video"]
+    if args.quick:
+        cmd += QUICK_FLAGS[module]
+    print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
+    t0 = time.time()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    log = args.out_dir / "logs" / f"{name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{name} exited with {proc.returncode}; its output is in {log}")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    missing = {"success_rate", "successes", "env_steps", "wall_clock_s"} - set(result)
+    if missing:
+        raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
+    keep = ("success_rate", "successes", "env_steps", "wall_clock_s", "grasped_rate", "collided_rate", "checkpoint")
+    out = {k: result[k] for k in keep if k in result}
+    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(args.out_dir / "runs" / name, t0))
+    return out
+
+
+# ----------------------------------------------------------------------------- report
+def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    def smooth(y, k=5):
-        y = np.asarray(y, dtype=float)
-        return np.convolve(y, np.ones(k) / k, mode="valid") if len(y) >= k else y
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for name, arm in result["arms"].items():
-        c = arm["curve"]
-        if not c["wall_s"]:
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2), dpi=80)
+    for row in rows:
+        if row["recipe"] in REFERENCES:
+            for ax in axes:
+                ax.axhline(row["success_mean"], ls="--", lw=1, color="k" if row["recipe"] == "expert" else "grey")
             continue
-        t = np.asarray(c["wall_s"]) / 60
-        for ax, key in zip(axes, ("success_rate", "grasped_rate", "return")):
-            y = smooth(c[key])
-            ax.plot(t[len(t) - len(y) :], y, label=name)
-    base = result["random"]
-    for ax, key, title in zip(
-        axes,
-        ("success_rate", "grasp_rate", "normalized_return"),
-        ("delivery success (training episodes)", "grasp rate", "normalized return per episode"),
-    ):
-        ax.axhline(base[key], color="k", ls="--", lw=1, label="random policy")
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("wall-clock minutes (2 CPU cores)")
-    axes[0].legend(fontsize=8)
+        for i, run in enumerate(row["runs"]):
+            c = run["curve"]
+            label = row["recipe"] if i == 0 else None
+            color = f"C{list(RECIPES).index(row['recipe'])}"
+            axes[0].plot(c["env_steps"], c["success"], color=color, lw=1, alpha=0.8, label=label)
+            axes[1].plot(c["wall_min"], c["success"], color=color, lw=1, alpha=0.8)
+    axes[0].set(xlabel="env steps", ylabel="training-episode success", ylim=(-0.05, 1.05))
+    axes[1].set(xlabel="wall clock (min)", ylim=(-0.05, 1.05))
+    axes[0].legend(fontsize=7)
+    fig.suptitle("dashed: expert (black), random (grey), held-out seeds", fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = [
+        "| recipe | obs | seeds | success mean | 95 % CI | IQM | per seed | env steps | wall clock (min) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lo, hi = r["success_ci95"]
+        seeds = "–" if r["recipe"] in REFERENCES else len(r["seeds"])
+        per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
+        lines.append(
+            f"| {r['recipe']} | {r['obs']} | {seeds} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] | "
+            f"{r['success_iqm']:.2f} | {per} | {r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def update_results(report: dict, table: str, results: Path) -> None:
+    """Replace the ``## Learning`` section of RESULTS.md (up to the next ``## ``) with this run's."""
+    head = "## Learning — `benchmarks/learning.py`"
+    section = (
+        f"{head}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}, "
+        f"{report['wall_min']:.0f} min). Held-out seeds {EVAL_SEED}.. ({report['eval_episodes']} episodes per run); "
+        f"raw data: [`results/learning/learning.json`](results/learning/learning.json).\n\n{table}\n\n"
+        "![learning curves](results/learning/learning.png)\n\n"
+    )
+    text = results.read_text()
+    start = text.find(head)
+    if start < 0:
+        text = text.rstrip() + "\n\n" + section
+    else:
+        end = text.find("\n## ", start + len(head))
+        text = text[:start] + section + (text[end + 1 :] if end >= 0 else "")
+    results.write_text(text)
 
 
 def main(args: Args) -> dict:
+    unknown = set(args.recipes) - set(RECIPES)
+    if unknown:
+        raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
+    if args.quick:
+        args.recipes = [r for r in args.recipes if r in ("dagger-state", "ppo-state")] or ["dagger-state"]
+        args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    result: dict = dict(
+    rng = np.random.default_rng(0)
+    t0 = time.time()
+    rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
+    for recipe in args.recipes:
+        runs = [train_run(recipe, seed, args) for seed in args.seeds]
+        rows.append(summarise(recipe, RECIPES[recipe][2], runs, args, rng))
+    report = dict(
+        command="python benchmarks/learning.py " + " ".join(sys.argv[1:]),
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        machine=f"{platform.node()} {platform.machine()}, {torch.get_num_threads()} torch threads",
+        wall_min=(time.time() - t0) / 60,
+        eval_episodes=args.eval_episodes,
         budget_min=args.budget_min,
-        num_envs=args.num_envs,
-        seed=args.seed,
-        date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=" ".join(sys.argv),
-        arms={},
+        rgbd_budget_min=args.rgbd_budget_min,
+        rows=rows,
     )
-    result["random"] = random_baseline(args.eval_episodes, args.seed)
-    print("random:", json.dumps(result["random"]), flush=True)
-
-    half = args.budget_min / 2
-    scratch = train(ppo_args(args, "ppo", half))
-    result["arms"]["ppo"] = dict(
-        curve=curve(scratch["history"]),
-        global_step=scratch["global_step"],
-        final=final_eval(Path(scratch["checkpoint"]), args.eval_episodes),
-    )
-    print("ppo:", json.dumps(result["arms"]["ppo"]["final"]), flush=True)
-
-    t_bc = time.perf_counter()
-    obs, act, expert_success = expert_dataset(args.bc_episodes, args.seed)
-    bc_ckpt = args.out_dir / "bc.pt"
-    bc = behaviour_clone(obs, act, args.bc_epochs, args.seed, bc_ckpt)
-    bc.update(
-        expert_success=expert_success, seconds=time.perf_counter() - t_bc, final=final_eval(bc_ckpt, args.eval_episodes)
-    )
-    result["bc"] = bc
-    print("bc:", json.dumps(bc), flush=True)
-    warm = train(
-        ppo_args(
-            args,
-            "bc_ppo",
-            max(0.5, half - bc["seconds"] / 60),
-            checkpoint=bc_ckpt,
-            lr=1e-4,
-            critic_warmup_iters=args.critic_warmup_iters,
-        )
-    )
-    result["arms"]["bc+ppo"] = dict(
-        curve=curve(warm["history"]),
-        global_step=warm["global_step"],
-        final=final_eval(Path(warm["checkpoint"]), args.eval_episodes),
-    )
-    print("bc+ppo:", json.dumps(result["arms"]["bc+ppo"]["final"]), flush=True)
-    result["wall_s"] = time.perf_counter() - t0
-    (args.out_dir / "learning.json").write_text(json.dumps(result, indent=1))
-    plot(result, args.out_dir / "learning.png")
-    print(markdown(result))
-    return result
-
-
-def markdown(r: dict) -> str:
-    rows = [
-        "| policy | env steps | success | grasp rate | collision rate | normalized return | seed's dense return |",
-        "|---|---|---|---|---|---|---|",
-    ]
-
-    def row(name, steps, f):
-        return (
-            f"| {name} | {steps} | {f['success_rate']:.2f} | {f['grasp_rate']:.2f} | {f['collision_rate']:.2f} | "
-            f"{f['normalized_return']:.2f} | {f['dense_return']:.0f} |"
-        )
-
-    rows.append(row("random", "-", r["random"]))
-    rows.append(row("PPO from scratch", r["arms"]["ppo"]["global_step"], r["arms"]["ppo"]["final"]))
-    rows.append(row(f"BC only ({r['bc']['transitions']} expert transitions)", 0, r["bc"]["final"]))
-    rows.append(row("BC + PPO", r["arms"]["bc+ppo"]["global_step"], r["arms"]["bc+ppo"]["final"]))
-    return "\n".join(rows)
+    (args.out_dir / "learning.json").write_text(json.dumps(report, indent=1))
+    plot(rows, args.out_dir / "learning.png")
+    table = markdown(rows)
+    print(table)
+    if args.update_results:
+        update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")
+    return report
 
 
 if __name__ == "__main__":
-    import tyro
-
     main(tyro.cli(Args))

@@ -38,3 +38,27 @@ def test_sim_speed_quick_writes_json(tmp_path):
     assert r["reference_steps_per_s"]["pickcube_rgbd_84"] > 0
     assert r["ratios"]["two_workers_vs_one"] > 0 and len(r["cpu_workers"]) == 4
     assert "## Action time" in run.stdout and (tmp_path / "p.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_learning_quick_writes_json(tmp_path):
+    """The recipe runner end to end at toy sizes: trainers as subprocesses, references, intervals, plot."""
+    run = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "learning.py"), "--quick", "--out-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads((tmp_path / "learning.json").read_text())
+    rows = {row["recipe"]: row for row in r["rows"]}
+    assert set(rows) == {"random", "expert", "dagger-state", "ppo-state"}
+    for row in rows.values():
+        lo, hi = row["success_ci95"]
+        assert 0.0 <= lo <= row["success_mean"] <= hi <= 1.0
+        assert all(len(one["successes"]) == 2 for one in row["runs"])
+    assert rows["expert"]["success_mean"] == 1.0  # the scripted expert on the held-out seeds
+    for name in ("dagger-state", "ppo-state"):
+        one = rows[name]["runs"][0]
+        assert one["env_steps"] > 0 and one["wall_clock_s"] > 0 and Path(one["checkpoint"]).is_file()
+    assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
