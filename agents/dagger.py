@@ -84,9 +84,9 @@ class Args:
     """beta is multiplied by this every round"""
     learner_noise: float = 0.05
     """std of the Gaussian added to the learner's arm actions (widens the states it labels)"""
-    updates_per_round: int = 500
+    updates_per_round: int = 1000
     batch_size: int = 256
-    learning_rate: float = 3e-4
+    learning_rate: float = 1e-3
     weight_decay: float = 1e-5
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
