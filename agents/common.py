@@ -9,7 +9,7 @@ import os
 import random
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -238,3 +238,77 @@ def evaluate_on_seeds(
     out["episodes"] = len(seeds)
     out["successes"] = [int(s) for s in stats["success_rate"]]
     return out
+
+
+@dataclass
+class RunArgs:
+    """The flags agents.dagger and agents.sac share (where runs go, resuming, evaluating, loggers); each
+    trainer's own Args extends it."""
+
+    device: str = "auto"
+    """torch device of the learner (auto: CUDA when available); the envs stay on CPU workers"""
+    exp_name: Optional[str] = None
+    """run folder under --runs-dir (default: algorithm__env__obs__seed__time)"""
+    runs_dir: Path = Path("runs")
+    """TensorBoard logs, checkpoints and summary.json go to runs_dir/exp_name"""
+    resume: Optional[Path] = None
+    """continue a run: networks, optimisers, data, counters and RNG; the budget counts the time already spent"""
+    evaluate: bool = False
+    """only evaluate --checkpoint on the held-out seeds (videos + summary.json)"""
+    checkpoint: Optional[Path] = None
+    """the checkpoint --evaluate reads"""
+    capture_video: bool = True
+    """--evaluate: record an mp4 per episode"""
+    progress: bool = True
+    """a tqdm bar over the wall-clock budget"""
+    wandb: bool = False
+    """also log to Weights & Biases (imported only when set)"""
+    comet: bool = False
+    """also log to Comet, as the original report did (imported only when set)"""
+    wandb_project: str = "maniskill_irb120"
+    comet_project: str = "maniskill_irb120"
+    env_kwargs: dict = field(default_factory=dict)
+    """extra gym.make keyword arguments, e.g. domain randomisation ranges"""
+
+
+def evaluate_checkpoint(
+    args: RunArgs,
+    load: Callable[[Path], tuple[Any, dict]],
+    run: Callable[[Any, Optional[Path]], dict],
+    must_match: Sequence[str] = ("obs", "action_frame"),
+) -> dict:
+    """``--evaluate``: ``load(path) -> (policy, checkpoint)``, refuse a checkpoint trained with other ``must_match``
+    flags, ``run(policy, video_dir)``; writes ``eval/summary.json`` beside the run and prints it."""
+    if args.checkpoint is None:
+        raise ValueError("--evaluate needs --checkpoint PATH")
+    policy, ckpt = load(args.checkpoint)
+    for name in must_match:
+        trained = ckpt["args"].get(name)
+        if trained != getattr(args, name):
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(
+                f"checkpoint {args.checkpoint} was trained with {flag} {trained}, not {getattr(args, name)}"
+            )
+    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
+    result = run(policy, out_dir / "videos" if args.capture_video else None)
+    result["checkpoint"] = str(args.checkpoint)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def budget_bar(args: RunArgs, budget_s: float, spent_s: float, desc: str):
+    """A tqdm bar over the wall-clock budget (None with --no-progress)."""
+    if not args.progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=int(budget_s), initial=int(spent_s), unit="s", desc=desc, dynamic_ncols=True)
+
+
+def finish(result: dict, run_dir: Path) -> dict:
+    """The run's ``summary.json`` and its last printed line (one JSON object)."""
+    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result

@@ -18,11 +18,10 @@ The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``e
 
 from __future__ import annotations
 
-import json
 import random
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Literal, Optional
@@ -38,9 +37,13 @@ from agents.common import (
     EVAL_SEED,
     EpisodeTracker,
     Logger,
+    RunArgs,
     args_json,
     atomic_save,
+    budget_bar,
+    evaluate_checkpoint,
     evaluate_on_seeds,
+    finish,
     flatten_obs,
     load_torch,
     obs_to,
@@ -58,7 +61,7 @@ FORMAT = "maniskill_irb120.dagger/1"
 
 
 @dataclass
-class Args:
+class Args(RunArgs):
     env_id: str = "TableClearing-IRB120-v1"
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
@@ -66,6 +69,7 @@ class Args:
     """world: the policy's translation is in world axes, rotated into the tool action by
     maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action"""
     seed: int = 1
+    """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
     budget_min: float = 60.0
     """wall-clock minutes for data collection and training together (the final evaluation is extra)"""
     eval_episodes: int = 100
@@ -85,8 +89,10 @@ class Args:
     learner_noise: float = 0.05
     """std of the Gaussian added to the learner's arm actions (widens the states it labels)"""
     updates_per_round: int = 1000
+    """minibatch updates on the whole aggregated dataset after each round"""
     batch_size: int = 256
     learning_rate: float = 1e-3
+    """AdamW learning rate (MSE to the expert's actions)"""
     weight_decay: float = 1e-5
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
@@ -94,21 +100,6 @@ class Args:
     """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
     save_freq: int = 10
     """checkpoint (with the dataset) every N rounds, and always at the end"""
-    device: str = "auto"
-    exp_name: Optional[str] = None
-    runs_dir: Path = Path("runs")
-    resume: Optional[Path] = None
-    """continue a run: weights, optimiser, dataset, counters and RNG; the budget counts the time already spent"""
-    evaluate: bool = False
-    """only evaluate --checkpoint (videos + summary.json)"""
-    checkpoint: Optional[Path] = None
-    capture_video: bool = True
-    progress: bool = True
-    wandb: bool = False
-    comet: bool = False
-    wandb_project: str = "maniskill_irb120"
-    comet_project: str = "maniskill_irb120"
-    env_kwargs: dict = field(default_factory=dict)
 
 
 class ExpertLabels(gym.Wrapper):
@@ -291,24 +282,12 @@ def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> d
 
 
 def run_evaluation_only(args: Args) -> dict:
-    if args.checkpoint is None:
-        raise ValueError("--evaluate needs --checkpoint PATH")
     device = resolve_device(args.device)
-    policy, ckpt = load_policy(args.checkpoint, device)
-    for name in ("obs", "action_frame"):
-        trained = ckpt["args"].get(name, "tool")
-        if trained != getattr(args, name):
-            flag = "--" + name.replace("_", "-")
-            raise ValueError(
-                f"checkpoint {args.checkpoint} was trained with {flag} {trained}, not {getattr(args, name)}"
-            )
-    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
-    result = final_evaluation(policy, args, device, out_dir / "videos" if args.capture_video else None)
-    result["checkpoint"] = str(args.checkpoint)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
+    return evaluate_checkpoint(
+        args,
+        lambda path: load_policy(path, device),
+        lambda policy, videos: final_evaluation(policy, args, device, videos),
+    )
 
 
 def train(args: Args) -> dict:
@@ -345,11 +324,7 @@ def train(args: Args) -> dict:
     elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
     o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
     state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
-    bar = None
-    if args.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=int(budget_s), initial=int(counters["wall_s"]), unit="s", desc="dagger", dynamic_ncols=True)
+    bar = budget_bar(args, budget_s, counters["wall_s"], "dagger")
     last_round_s, stats = 0.0, {}
     try:
         while True:
@@ -398,9 +373,7 @@ def train(args: Args) -> dict:
         checkpoint=str(ckpt_dir / "latest.pt"),
         run_dir=str(run_dir),
     )
-    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
+    return finish(result, run_dir)
 
 
 def main(args: Args) -> dict:

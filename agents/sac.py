@@ -20,10 +20,9 @@ The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``e
 from __future__ import annotations
 
 import copy
-import json
 import random
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -38,9 +37,13 @@ from agents.common import (
     EVAL_SEED,
     EpisodeTracker,
     Logger,
+    RunArgs,
     args_json,
     atomic_save,
+    budget_bar,
+    evaluate_checkpoint,
     evaluate_on_seeds,
+    finish,
     flatten_obs,
     load_torch,
     obs_to,
@@ -57,13 +60,14 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
 
 @dataclass
-class Args:
+class Args(RunArgs):
     env_id: str = "TableClearing-IRB120-v1"
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
     """world: translation in world axes (WorldFrameToolAction); tool: the raw tool-frame action"""
     seed: int = 1
+    """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
     budget_min: float = 120.0
     """wall-clock minutes for everything before the final evaluation"""
     eval_episodes: int = 100
@@ -85,35 +89,27 @@ class Args:
     learning_starts: int = 1000
     """online transitions before updates begin"""
     buffer_size: int = 300_000
+    """online transitions kept (oldest dropped first); the demo buffer has the same capacity"""
     batch_size: int = 256
+    """minibatch size, demos and online data together"""
     gamma: float = 0.95
     """discount for the ~75-step episodes"""
     tau: float = 0.005
+    """Polyak rate of the target critic"""
     policy_lr: float = 3e-4
+    """Adam learning rate of the actor (and of the cloning before RL)"""
     q_lr: float = 3e-4
+    """Adam learning rate of the critics and of the entropy temperature"""
     init_alpha: float = 0.05
+    """initial entropy temperature (tuned towards entropy -|A| from there)"""
     reward_mode: str = "normalized_dense"
+    """the task reward SAC maximises (normalized_dense: staged, in [0, 1] per step)"""
     augment: bool = True
     """rgbd: DrQ random shifts of the images in every update"""
     log_freq: int = 1000
     """env steps between TensorBoard points"""
     save_freq: int = 20_000
     """env steps between checkpoints (with both buffers); always at the end"""
-    device: str = "auto"
-    exp_name: Optional[str] = None
-    runs_dir: Path = Path("runs")
-    resume: Optional[Path] = None
-    """continue a run: networks, optimisers, buffers, counters and RNG; the budget counts the time already spent"""
-    evaluate: bool = False
-    """only evaluate --checkpoint (videos + summary.json)"""
-    checkpoint: Optional[Path] = None
-    capture_video: bool = True
-    progress: bool = True
-    wandb: bool = False
-    comet: bool = False
-    wandb_project: str = "maniskill_irb120"
-    comet_project: str = "maniskill_irb120"
-    env_kwargs: dict = field(default_factory=dict)
 
 
 class Critic(nn.Module):
@@ -332,21 +328,12 @@ def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) 
 
 
 def run_evaluation_only(args: Args) -> dict:
-    if args.checkpoint is None:
-        raise ValueError("--evaluate needs --checkpoint PATH")
     device = resolve_device(args.device)
-    model, ckpt = load_model(args.checkpoint, device)
-    for name in ("obs", "action_frame"):
-        if ckpt["args"][name] != getattr(args, name):
-            flag = "--" + name.replace("_", "-")
-            raise ValueError(f"checkpoint {args.checkpoint} was trained with {flag} {ckpt['args'][name]}")
-    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
-    result = final_evaluation(model, args, device, out_dir / "videos" if args.capture_video else None)
-    result["checkpoint"] = str(args.checkpoint)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
+    return evaluate_checkpoint(
+        args,
+        lambda path: load_model(path, device),
+        lambda policy, videos: final_evaluation(policy, args, device, videos),
+    )
 
 
 def collect_demos(envs, state: dict, demos: Dataset, episodes: int) -> int:
@@ -415,11 +402,7 @@ def train(args: Args) -> dict:
     recent: dict[str, list[float]] = {}
     losses: dict[str, float] = {}
     owed, next_log, next_save = 0.0, counters["env_steps"] + args.log_freq, counters["env_steps"] + args.save_freq
-    bar = None
-    if args.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=int(budget_s), initial=int(counters["wall_s"]), unit="s", desc="sac", dynamic_ncols=True)
+    bar = budget_bar(args, budget_s, counters["wall_s"], "sac")
     try:
         while elapsed() < budget_s:
             obs = state["obs"]
@@ -476,9 +459,7 @@ def train(args: Args) -> dict:
         checkpoint=str(ckpt_path),
         run_dir=str(run_dir),
     )
-    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
+    return finish(result, run_dir)
 
 
 def main(args: Args) -> dict:
