@@ -549,11 +549,12 @@ def train(args: Args) -> dict:
         iterations_this_run=counters["iteration"] - start_iteration,
         last_eval=last_eval,
         checkpoint=str(ckpt_dir / "latest.pt"),
+        env_steps=counters["global_step"],
+        wall_clock_s=time.perf_counter() - t_start,  # training only, as the other trainers report it
     )
     if args.eval_episodes > 0:
-        result.update(final_evaluation(agent, args, device), env_steps=counters["global_step"])
+        result.update(final_evaluation(agent, args, device))
         (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    result["wall_clock_s"] = time.perf_counter() - t_start
     print(json.dumps(result))
     result["history"] = history
     return result
