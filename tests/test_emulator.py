@@ -259,8 +259,12 @@ def test_bad_fault_spec_is_named():
 
 
 # --------------------------------------------------------------------------- line speed and latency
-def round_trip(emu: ControllerEmulator, n: int = 4) -> float:
-    """Median seconds per tiny tool step, back and forth."""
+def round_trips(emu: ControllerEmulator, n: int = 8) -> np.ndarray:
+    """Seconds per tiny tool step, back and forth, n times.
+
+    Delay the link adds shows in every sample; a loaded 2-core box only ever adds
+    more, so lower bounds hold for all samples and upper bounds for the fastest.
+    """
     times = []
     with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         for i in range(n):
@@ -268,22 +272,24 @@ def round_trip(emu: ControllerEmulator, n: int = 4) -> float:
             robot.move_tool([0.05 * (-1) ** i, 0, 0, 0, 1])
             times.append(time.perf_counter() - t0)
     emu.stop()
-    return float(np.median(times))
+    return np.asarray(times)
 
 
 def test_baud_rate_paces_the_pty_like_a_serial_line():
     wire = (15 + 32) * 10 / 9600  # a tool step and its reply, 10 bits a byte
-    slow = round_trip(ControllerEmulator("serial", baud=9600))
-    fast = round_trip(ControllerEmulator("serial", baud=115200))
-    assert wire <= slow < wire + 0.04
-    assert fast < slow - 0.03
+    slow = round_trips(ControllerEmulator("serial", baud=9600))
+    fast = round_trips(ControllerEmulator("serial", baud=115200))
+    assert slow.min() >= wire
+    assert slow.min() < wire + 0.04
+    assert fast.min() < slow.min() - 0.03
     with pytest.raises(ValueError, match="serial channel only"):
         ControllerEmulator("tcp", baud=9600)
 
 
 def test_latency_holds_every_command_back():
-    emu = ControllerEmulator("tcp", latency_ms=60)
-    assert 0.06 <= round_trip(emu) < 0.1
+    times = round_trips(ControllerEmulator("tcp", latency_ms=60))
+    assert times.min() >= 0.06
+    assert times.min() < 0.1
     with pytest.raises(ValueError, match="latency_ms"):
         ControllerEmulator("tcp", latency_ms=float("nan"))
 
