@@ -37,7 +37,7 @@ class EvalConfig:
     or a controller URL (tcp://HOST:PORT, serial:///dev/ttyUSB0?baudrate=N) for a real IRC5"""
     policy: str = "expert"
     """'expert' (the task's scripted expert; it reads the twin's object pose, so emulator only) or the path
-    of an agents.ppo checkpoint"""
+    of an agents.ppo, agents.dagger or agents.sac checkpoint"""
     episodes: int = 10
     seed: int = 1000
     """first seed; episode k runs seed + k on both sides"""

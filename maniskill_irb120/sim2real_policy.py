@@ -1,5 +1,5 @@
-"""Policies for ``sim2real-eval``: the task's scripted expert, or an ``agents.ppo`` checkpoint, with the sim env
-each expects (same obs layout and control mode on both sides)."""
+"""Policies for ``sim2real-eval``: the task's scripted expert, or a checkpoint of ``agents.ppo``, ``agents.dagger``
+or ``agents.sac``, with the sim env each expects (same obs layout and control mode on both sides)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,9 @@ import gymnasium as gym
 import torch
 
 from maniskill_irb120.expert import expert_for
+from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
+
+TRAINERS = {"maniskill_irb120.ppo/1": "ppo", "maniskill_irb120.dagger/1": "dagger", "maniskill_irb120.sac/1": "sac"}
 
 
 class ExpertPolicy:
@@ -28,17 +31,43 @@ class ExpertPolicy:
 
 
 class CheckpointPolicy:
-    """An ``agents.ppo`` agent, deterministic (its mean action)."""
+    """A trained agent, deterministic. A world-frame policy (``agents.dagger``/``agents.sac`` default) is turned
+    into the tool-frame action that goes over the wire with the TCP rotation of ``env``: the sim's, or on the
+    real side the robot's (through the twin's kinematic copy, or the Sim2RealEnv's FK of the read joints)."""
 
-    def __init__(self, agent, flatten: Callable):
-        self.agent, self.flatten = agent, flatten
+    def __init__(self, act: Callable[[dict], torch.Tensor], env=None, world_frame: bool = False):
+        self._act, self.env, self.world_frame = act, env, world_frame
 
     def reset(self) -> None:
         pass
 
     @torch.no_grad()
     def act(self, obs) -> torch.Tensor:
-        return self.agent.get_action(self.flatten(obs), deterministic=True)[0].clamp(-1.0, 1.0)
+        obs = {"state": obs} if isinstance(obs, torch.Tensor) else obs
+        a = self._act(obs).reshape(1, -1).float().clamp(-1.0, 1.0)
+        if self.world_frame:
+            a = world_to_tool(a, _tcp_rot(self.env))
+        return a[0]
+
+
+def _tcp_rot(env) -> torch.Tensor:
+    from mani_skill.utils.structs.pose import Pose
+
+    from maniskill_irb120.sim2real import IRB120Sim2RealEnv
+
+    u = env.unwrapped
+    if isinstance(u, IRB120Sim2RealEnv):  # FK of the joints the robot reported this step
+        return Pose.create(u._tcp_pose).to_transformation_matrix()[:, :3, :3].cpu()
+    return tcp_rotation(env).cpu()
+
+
+def _import_agents(name: str):
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())  # agents/ is training code in the repository, not in the installed package
+    try:
+        return __import__(f"agents.{name}", fromlist=[name])
+    except ImportError:
+        raise ImportError(f"checkpoint policies need agents/{name}.py: run from the repository's root") from None
 
 
 def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, Callable[[gym.Env], object]]:
@@ -49,28 +78,41 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
     path = Path(policy)
     if not path.is_file():
         raise FileNotFoundError(f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file")
-    if os.getcwd() not in sys.path:
-        sys.path.insert(0, os.getcwd())  # agents/ is training code in the repository, not in the installed package
     try:
-        from agents import ppo
-    except ImportError:
-        raise ImportError("checkpoint policies need agents/ppo.py: run from the repository's root directory") from None
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(ckpt, dict) or ckpt.get("format") != "maniskill_irb120.ppo/1":
-        raise ValueError(f"{path} is not an agents.ppo checkpoint")
-    args = ppo.Args(**{k: v for k, v in ckpt["args"].items() if k in ppo.Args.__dataclass_fields__})
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise ValueError(f"--policy {path} is not a readable torch checkpoint: {e}") from e
+    fmt = ckpt.get("format") if isinstance(ckpt, dict) else None
+    if fmt not in TRAINERS:
+        raise ValueError(f"--policy {path}: format {fmt!r} is none of {sorted(TRAINERS)}")
+    trainer = _import_agents(TRAINERS[fmt])
+    args = trainer.Args(**{k: v for k, v in ckpt["args"].items() if k in trainer.Args.__dataclass_fields__})
     if args.env_id != env_id:
         raise ValueError(f"{path} was trained on {args.env_id}, not {env_id}")
-    if command_mode == "tool_delta" and args.control_mode != "pd_ee_delta_tool":
-        raise ValueError(f"{path} acts in {args.control_mode}; tool_delta sends pd_ee_delta_tool actions")
-    kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=args.control_mode)
-    sim_env = gym.make(env_id, sim_backend="physx_cpu", render_mode="rgb_array", **kwargs, **args.env_kwargs)
+    control_mode = getattr(args, "control_mode", "pd_ee_delta_tool")
+    if command_mode == "tool_delta" and control_mode != "pd_ee_delta_tool":
+        raise ValueError(f"{path} acts in {control_mode}; tool_delta sends pd_ee_delta_tool actions")
+    env_kwargs = dict(args.env_kwargs)
+    if hasattr(args, "reward_mode"):
+        env_kwargs.setdefault("reward_mode", args.reward_mode)
+    kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=control_mode)
+    sim_env = gym.make(env_id, sim_backend="physx_cpu", render_mode="rgb_array", **kwargs, **env_kwargs)
     if args.obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 
         sim_env = FlattenRGBDObservationWrapper(sim_env)
-    sig = ckpt["signature"]
-    agent = ppo.Agent(tuple(sig["image_shape"]) if sig["image_shape"] else None, sig["state_dim"], sig["action_dim"])
-    agent.load_state_dict(ckpt["model"])
-    agent.eval()
-    return sim_env, lambda env: CheckpointPolicy(agent, ppo.flatten_obs)
+    world_frame = getattr(args, "action_frame", "tool") == "world"
+    if fmt == "maniskill_irb120.ppo/1":
+        sig = ckpt["signature"]
+        shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
+        agent = trainer.Agent(shape, sig["state_dim"], sig["action_dim"])
+        agent.load_state_dict(ckpt["model"])
+        agent.eval()
+        act = lambda obs: agent.get_action(obs, deterministic=True)  # noqa: E731
+    elif fmt == "maniskill_irb120.dagger/1":
+        net, _ = trainer.load_policy(path, torch.device("cpu"))
+        act = net
+    else:
+        model, _ = trainer.load_model(path, torch.device("cpu"))
+        act = lambda obs: model.act(obs, deterministic=True)  # noqa: E731
+    return sim_env, lambda env: CheckpointPolicy(act, env, world_frame)

@@ -128,6 +128,20 @@ def test_tool_step_moves_the_real_tcp_like_the_sim(rig):
     assert kinds == ["tool", "state"]  # the command, then the read at the end of the period
 
 
+def test_qvel_of_a_robot_at_rest_is_zero_as_in_sim(rig):
+    """A 2 mm step ends inside the period; the sim's drives have settled by then too. The difference of the
+    period's two readings (its mean speed) would show joint speeds a sim-trained policy never saw."""
+    env, sim = rig["env"], rig["sim"]
+    small = torch.tensor([0.2, 0.0, 0.0, 0.0, 1.0])
+    for e in (env, sim):
+        e.reset(seed=4)
+    real_obs = env.step(small)[0]
+    sim_obs = sim.step(small)[0]
+    assert rig["agent"].state.status == Status.IDLE
+    assert torch.count_nonzero(real_obs["agent"]["qvel"]) == 0
+    assert sim_obs["agent"]["qvel"].abs().max() < 0.05
+
+
 def test_refused_command_raises_or_holds(rig):
     env, agent = rig["env"], rig["agent"]
     env.reset(seed=5)
@@ -265,3 +279,34 @@ def test_sim2real_eval_names_bad_setups(tmp_path):
         evaluate(EvalConfig(robot="tcp://127.0.0.1:1", camera="none", out=tmp_path))
     with pytest.raises(FileNotFoundError, match="neither 'expert' nor"):
         evaluate(EvalConfig(policy=str(tmp_path / "missing.pt"), out=tmp_path))
+    bogus = tmp_path / "bogus.pt"
+    torch.save(dict(format="someone-else/1"), bogus)
+    with pytest.raises(ValueError, match="none of"):
+        evaluate(EvalConfig(policy=str(bogus), out=tmp_path))
+
+
+def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
+    """A learned world-frame policy through the adapter: what goes over the wire is its action rotated into the
+    tool frame by the TCP at that state, the same on both sides."""
+    from agents.dagger import Args, main
+
+    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+    from maniskill_irb120.sim2real_policy import load_policy
+    from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
+
+    small = dict(num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32)
+    res = main(Args(budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, exp_name="d", progress=False, **small))
+    sim_env, make_policy = load_policy(res["checkpoint"], ENV_ID, "tool_delta")
+    obs, _ = sim_env.reset(seed=3)
+    policy = make_policy(sim_env)
+    sent = policy.act(obs)
+    with torch.no_grad():
+        raw = policy._act({"state": obs}).clamp(-1, 1)
+    np.testing.assert_allclose(sent, world_to_tool(raw, tcp_rotation(sim_env))[0], atol=1e-6)
+    assert not torch.allclose(sent[:3], raw[0, :3], atol=1e-3)  # the tool is turned: the frames differ
+    sim_env.close()
+    report = evaluate(EvalConfig(policy=res["checkpoint"], episodes=1, seed=3, camera="none", out=tmp_path / "s2r"))
+    assert report["episodes"] == 1 and report["error"] is None
+    log = np.load(tmp_path / "s2r" / "logs" / "real_3.npz")
+    first = log["command"][list(log["kind"]).index("tool"), :5]
+    np.testing.assert_allclose(first, sent, atol=2e-3)

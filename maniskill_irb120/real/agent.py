@@ -147,9 +147,13 @@ class IRB120RealAgent(BaseRealAgent):
         return torch.as_tensor(np.r_[self.state.joints, fingers], dtype=torch.float32)[None]
 
     def get_qvel(self) -> torch.Tensor:
-        """Joint velocity from the last two readings (the protocol carries no velocities); fingers 0."""
+        """Joint velocity (the protocol carries none; fingers 0): zero when the controller says the robot stands
+        still, as the sim's drives have settled by the end of a control period (the difference of the period's
+        two readings is the period's mean speed, metres from anything a sim-trained policy has seen); while it
+        still moves, the difference of the last two readings."""
         v = np.zeros(8)
-        if self._prev is not None and self._now[0] > self._prev[0]:
+        moving = self.state is not None and self.state.status == Status.MOVING
+        if moving and self._prev is not None and self._now[0] > self._prev[0]:
             v[:6] = (self._now[1] - self._prev[1]) / (self._now[0] - self._prev[0])
         return torch.as_tensor(v, dtype=torch.float32)[None]
 
