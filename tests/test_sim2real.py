@@ -289,7 +289,6 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     """A learned world-frame policy through the adapter: what goes over the wire is its action rotated into the
     tool frame by the TCP at that state, the same on both sides."""
     from agents.dagger import Args, main
-
     from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
     from maniskill_irb120.sim2real_policy import load_policy
     from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
