@@ -55,7 +55,7 @@ from agents.common import (
 from agents.nets import DeterministicActor, random_shift, shapes_of
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.vector import make_vec_env
-from maniskill_irb120.wrappers import WorldFrameToolAction, tcp_rotation, tool_to_world
+from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup, tcp_rotation, tool_to_world
 
 FORMAT = "maniskill_irb120.dagger/1"
 
@@ -68,6 +68,9 @@ class Args(RunArgs):
     action_frame: Literal["world", "tool"] = "world"
     """world: the policy's translation is in world axes, rotated into the tool action by
     maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action"""
+    obs_without: tuple[str, ...] = ()
+    """observation keys the policy does not see, e.g. agent/qvel: a real IRB 120 reports joint angles only
+    (maniskill_irb120.wrappers.DropObservationKeys; sim2real-eval applies the same)"""
     seed: int = 1
     """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
     budget_min: float = 60.0
@@ -175,16 +178,17 @@ def action_wrappers(frame: str) -> list:
 
 
 def make_envs(args: Args, num_envs: int):
-    kwargs = dict(obs_mode=args.obs, control_mode="pd_ee_delta_tool", **args.env_kwargs)
+    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
+    kwargs = dict(obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **args.env_kwargs)
     if args.obs == "rgbd":
         kwargs["render_mode"] = "rgb_array"
     else:
         kwargs.setdefault("render_backend", "none")
-    wrappers = [*action_wrappers(args.action_frame), partial(ExpertLabels, frame=args.action_frame)]
+    wrappers = [*obs_wrappers, *action_wrappers(args.action_frame), partial(ExpertLabels, frame=args.action_frame)]
     if args.obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 
-        wrappers.insert(0, FlattenRGBDObservationWrapper)
+        wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
     backend = "inprocess" if num_envs == 1 else "cpu"
     return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
 
@@ -269,6 +273,7 @@ def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
 
 def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:
     seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
     return evaluate_on_seeds(
         lambda o: policy(obs_to(o, device)).cpu(),
         args.env_id,
@@ -276,16 +281,22 @@ def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> d
         seeds,
         video_dir=video_dir,
         progress=args.progress,
-        wrappers=action_wrappers(args.action_frame),
-        **args.env_kwargs,
+        wrappers=[*obs_wrappers, *action_wrappers(args.action_frame)],
+        **dict(args.env_kwargs, obs_mode=obs_mode),
     )
 
 
 def run_evaluation_only(args: Args) -> dict:
     device = resolve_device(args.device)
+
+    def load(path: Path):
+        policy, ckpt = load_policy(path, device)
+        args.obs_without = tuple(ckpt["args"].get("obs_without") or ())  # what the policy was trained to see
+        return policy, ckpt
+
     return evaluate_checkpoint(
         args,
-        lambda path: load_policy(path, device),
+        load,
         lambda policy, videos: final_evaluation(policy, args, device, videos),
     )
 

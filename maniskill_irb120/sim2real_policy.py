@@ -12,7 +12,7 @@ import gymnasium as gym
 import torch
 
 from maniskill_irb120.expert import expert_for
-from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
+from maniskill_irb120.wrappers import observation_setup, tcp_rotation, world_to_tool
 
 TRAINERS = {"maniskill_irb120.ppo/1": "ppo", "maniskill_irb120.dagger/1": "dagger", "maniskill_irb120.sac/1": "sac"}
 
@@ -95,8 +95,13 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
     env_kwargs = dict(args.env_kwargs)
     if hasattr(args, "reward_mode"):
         env_kwargs.setdefault("reward_mode", args.reward_mode)
-    kwargs = dict(obs_mode="rgbd" if args.obs == "rgbd" else "state", control_mode=control_mode)
+    obs_mode, obs_wrappers = observation_setup(
+        "rgbd" if args.obs == "rgbd" else "state", getattr(args, "obs_without", ())
+    )
+    kwargs = dict(obs_mode=obs_mode, control_mode=control_mode)
     sim_env = gym.make(env_id, sim_backend="physx_cpu", render_mode="rgb_array", **kwargs, **env_kwargs)
+    for wrap in obs_wrappers:  # Sim2RealEnv applies the sim env's wrappers to the real side's observations too
+        sim_env = wrap(sim_env)
     if args.obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 

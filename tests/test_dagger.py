@@ -144,6 +144,14 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert json.loads((tmp_path / "t" / "eval" / "summary.json").read_text())["episodes"] == 1
 
 
+def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path):
+    res = tiny(tmp_path, obs_without=("agent/qvel",))
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["signature"]["state_dim"] == 37 and saved["data"]["obs"]["state"].shape[1] == 37  # 45 - 8 speeds
+    ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]))  # the checkpoint says what it sees
+    assert ev["episodes"] == 1
+
+
 def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path):
     res = tiny(tmp_path, obs="rgbd", updates_per_round=2, batch_size=8)
     saved = torch.load(res["checkpoint"], weights_only=False)

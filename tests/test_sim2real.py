@@ -286,17 +286,22 @@ def test_sim2real_eval_names_bad_setups(tmp_path):
 
 
 def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
-    """A learned world-frame policy through the adapter: what goes over the wire is its action rotated into the
-    tool frame by the TCP at that state, the same on both sides."""
+    """A learned world-frame policy that sees no joint speeds, through the adapter: what goes over the wire is its
+    action rotated into the tool frame by the TCP at that state, the same on both sides."""
     from agents.dagger import Args, main
     from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
     from maniskill_irb120.sim2real_policy import load_policy
     from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
 
-    small = dict(num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32)
-    res = main(Args(budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, exp_name="d", progress=False, **small))
+    small = dict(
+        num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32, progress=False
+    )
+    res = main(
+        Args(obs_without=("agent/qvel",), budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, exp_name="d", **small)
+    )
     sim_env, make_policy = load_policy(res["checkpoint"], ENV_ID, "tool_delta")
     obs, _ = sim_env.reset(seed=3)
+    assert obs.shape == (1, 37)  # the policy's own view: no joint speeds, on both sides (the wrapper travels)
     policy = make_policy(sim_env)
     sent = policy.act(obs)
     with torch.no_grad():

@@ -1,5 +1,6 @@
 """WorldFrameToolAction: a world-axis translation command moves the TCP along that world axis whatever the
-tool's yaw (in physics), the label map is its inverse, and bad input is refused with the env still usable."""
+tool's yaw (in physics), the label map is its inverse, and bad input is refused with the env still usable.
+DropObservationKeys: the state without joint speeds is the full state with those entries cut out."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.wrappers import WorldFrameToolAction, tool_to_world, world_to_tool
+from maniskill_irb120.wrappers import DropObservationKeys, WorldFrameToolAction, tool_to_world, world_to_tool
 
 ENV = "TableClearing-IRB120-v1"
 
@@ -68,3 +69,26 @@ def test_needs_the_tool_control_mode():
             WorldFrameToolAction(e)
     finally:
         e.close()
+
+
+def test_state_without_qvel_is_the_state_with_those_entries_cut_out():
+    full = gym.make(ENV, obs_mode="state", render_backend="none")
+    lean = DropObservationKeys(gym.make(ENV, obs_mode="state_dict", render_backend="none"), ["agent/qvel"])
+    a, _ = full.reset(seed=1)
+    b, _ = lean.reset(seed=1)
+    step = torch.tensor([[1.0, 0.0, 0.0, 0.0, 1.0]])
+    a2, b2 = full.step(step)[0], lean.step(step)[0]
+    qvel = slice(8, 16)  # after the 8 joint angles (6 arm, 2 fingers)
+    assert a2[0, qvel].abs().max() > 0  # there was something to cut
+    for x, y in ((a, b), (a2, b2)):
+        assert torch.equal(torch.cat([x[:, : qvel.start], x[:, qvel.stop :]], dim=1), y)
+    assert lean.observation_space.shape == (1, 37) and lean.unwrapped.single_observation_space.shape == (37,)
+    full.close()
+    lean.close()
+
+
+def test_drop_keys_names_a_missing_key_and_a_wrong_obs_mode():
+    with pytest.raises(ValueError, match="agent has .*qvel"):
+        DropObservationKeys(gym.make(ENV, obs_mode="state_dict", render_backend="none"), ["agent/qacc"])
+    with pytest.raises(ValueError, match="'state_dict' or 'rgbd'"):
+        DropObservationKeys(gym.make(ENV, obs_mode="state", render_backend="none"), ["agent/qvel"])
