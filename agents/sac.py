@@ -54,6 +54,7 @@ from agents.common import (
 )
 from agents.dagger import Dataset, action_wrappers, make_envs
 from agents.nets import NatureCNN, StateNorm, random_shift, shapes_of
+from maniskill_irb120.wrappers import observation_setup
 
 FORMAT = "maniskill_irb120.sac/1"
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -66,6 +67,8 @@ class Args(RunArgs):
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
     """world: translation in world axes (WorldFrameToolAction); tool: the raw tool-frame action"""
+    obs_without: tuple[str, ...] = ()
+    """observation keys the policy does not see, e.g. agent/qvel (as agents.dagger)"""
     seed: int = 1
     """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
     budget_min: float = 120.0
@@ -314,7 +317,8 @@ def load_model(path: Path, device) -> tuple[SAC, dict]:
 
 def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:
     seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
-    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode)
+    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
+    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, obs_mode=obs_mode)
     return evaluate_on_seeds(
         lambda o: model.act(obs_to(o, device), deterministic=True).cpu(),
         args.env_id,
@@ -322,16 +326,22 @@ def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) 
         seeds,
         video_dir=video_dir,
         progress=args.progress,
-        wrappers=action_wrappers(args.action_frame),
+        wrappers=[*obs_wrappers, *action_wrappers(args.action_frame)],
         **kwargs,
     )
 
 
 def run_evaluation_only(args: Args) -> dict:
     device = resolve_device(args.device)
+
+    def load(path: Path):
+        model, ckpt = load_model(path, device)
+        args.obs_without = tuple(ckpt["args"].get("obs_without") or ())  # what the policy was trained to see
+        return model, ckpt
+
     return evaluate_checkpoint(
         args,
-        lambda path: load_model(path, device),
+        load,
         lambda policy, videos: final_evaluation(policy, args, device, videos),
     )
 
