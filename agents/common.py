@@ -276,12 +276,17 @@ def evaluate_checkpoint(
     load: Callable[[Path], tuple[Any, dict]],
     run: Callable[[Any, Optional[Path]], dict],
     must_match: Sequence[str] = ("obs", "action_frame"),
+    adopt: Sequence[str] = ("obs_without",),
 ) -> dict:
     """``--evaluate``: ``load(path) -> (policy, checkpoint)``, refuse a checkpoint trained with other ``must_match``
-    flags, ``run(policy, video_dir)``; writes ``eval/summary.json`` beside the run and prints it."""
+    flags, take the ``adopt`` settings from it (what the policy was trained to see, not the command line's),
+    ``run(policy, video_dir)``; writes ``eval/summary.json`` beside the run and prints it."""
     if args.checkpoint is None:
         raise ValueError("--evaluate needs --checkpoint PATH")
     policy, ckpt = load(args.checkpoint)
+    for name in adopt:
+        if hasattr(args, name):
+            setattr(args, name, tuple(ckpt["args"].get(name) or ()))
     for name in must_match:
         trained = ckpt["args"].get(name)
         if trained != getattr(args, name):

@@ -264,11 +264,15 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
     """A trained DAgger policy (eval mode) and its checkpoint dict."""
     ckpt = load_torch(path, FORMAT, "agents.dagger")
+    return policy_from_checkpoint(ckpt, device), ckpt
+
+
+def policy_from_checkpoint(ckpt: dict, device) -> DeterministicActor:
     sig = ckpt["signature"]
     image_shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
     policy = DeterministicActor(image_shape, sig["state_dim"], sig["action_dim"]).to(device)
     policy.load_state_dict(ckpt["model"])
-    return policy.eval(), ckpt
+    return policy.eval()
 
 
 def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:
@@ -288,15 +292,9 @@ def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> d
 
 def run_evaluation_only(args: Args) -> dict:
     device = resolve_device(args.device)
-
-    def load(path: Path):
-        policy, ckpt = load_policy(path, device)
-        args.obs_without = tuple(ckpt["args"].get("obs_without") or ())  # what the policy was trained to see
-        return policy, ckpt
-
     return evaluate_checkpoint(
         args,
-        load,
+        lambda path: load_policy(path, device),
         lambda policy, videos: final_evaluation(policy, args, device, videos),
     )
 

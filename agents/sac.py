@@ -308,11 +308,15 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
 
 def load_model(path: Path, device) -> tuple[SAC, dict]:
     ckpt = load_torch(path, FORMAT, "agents.sac")
+    return model_from_checkpoint(ckpt, device), ckpt
+
+
+def model_from_checkpoint(ckpt: dict, device) -> SAC:
     sig = ckpt["signature"]
     shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
     model = SAC(shape, sig["state_dim"], sig["action_dim"], 1.0).to(device)
     model.load_state_dict(ckpt["model"])
-    return model.eval(), ckpt
+    return model.eval()
 
 
 def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:
@@ -333,15 +337,9 @@ def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) 
 
 def run_evaluation_only(args: Args) -> dict:
     device = resolve_device(args.device)
-
-    def load(path: Path):
-        model, ckpt = load_model(path, device)
-        args.obs_without = tuple(ckpt["args"].get("obs_without") or ())  # what the policy was trained to see
-        return model, ckpt
-
     return evaluate_checkpoint(
         args,
-        load,
+        lambda path: load_model(path, device),
         lambda policy, videos: final_evaluation(policy, args, device, videos),
     )
 

@@ -115,9 +115,8 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
         agent.eval()
         act = lambda obs: agent.get_action(obs, deterministic=True)  # noqa: E731
     elif fmt == "maniskill_irb120.dagger/1":
-        net, _ = trainer.load_policy(path, torch.device("cpu"))
-        act = net
+        act = trainer.policy_from_checkpoint(ckpt, torch.device("cpu"))
     else:
-        model, _ = trainer.load_model(path, torch.device("cpu"))
+        model = trainer.model_from_checkpoint(ckpt, torch.device("cpu"))
         act = lambda obs: model.act(obs, deterministic=True)  # noqa: E731
     return sim_env, lambda env: CheckpointPolicy(act, env, world_frame)
