@@ -228,7 +228,8 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             )
 
     def close_extras(self, **kwargs):
-        self._venv.close(**kwargs)
+        if hasattr(self, "_venv"):  # not when __init__ failed before the workers existed
+            self._venv.close(**kwargs)
 
 
 def make_vec_env(

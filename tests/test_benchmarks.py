@@ -62,3 +62,27 @@ def test_learning_quick_writes_json(tmp_path):
         one = rows[name]["runs"][0]
         assert one["env_steps"] > 0 and one["wall_clock_s"] > 0 and Path(one["checkpoint"]).is_file()
     assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
+
+
+def test_rllib_speed_quick_writes_json(tmp_path):
+    """RLlib against agents.ppo at toy sizes: both trainers measured, per-step timers and RSS read back."""
+    pytest.importorskip("ray", reason="needs the ray extra")
+    out = tmp_path / "r.json"
+    run = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "rllib_speed.py"), "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert {(row["trainer"], row["runners"]) for row in r["rows"]} == {
+        ("agents.ppo", 1),
+        ("rllib PPO", 0),
+        ("rllib PPO", 1),
+    }
+    for row in r["rows"]:
+        assert row["sampled"] > 0 and row["trained"] > 0 and row["startup_s"] > 0
+    remote = [row for row in r["rows"] if row["runners"] == 1 and row["trainer"] == "rllib PPO"][0]
+    assert remote["rss_mb_per_runner"] > 100 and remote["per_step_ms"]["env_step"] > 0
+    assert r["versions"]["ray"] == "2.60.0" and "| rllib PPO | 1 | 1 |" in run.stdout

@@ -1,0 +1,362 @@
+"""Ray RLlib (new API stack) on our tasks: PPO, APPO or SAC, from one process to a Ray cluster.
+
+    python -m agents.rllib --iterations 20                                   # PPO, state, this process samples
+    python -m agents.rllib --algo SAC --num-env-runners 2 --budget-min 30   # two env-runner processes
+    python -m agents.rllib --obs rgbd --num-env-runners 2                   # 84x84 RGB-D, our CNN encoder
+    python -m agents.rllib --address auto --num-env-runners 32              # join a running Ray cluster
+    python -m agents.rllib --resume runs/NAME/checkpoints/latest --iterations 40
+    python -m agents.rllib --evaluate runs/NAME/checkpoints/latest --eval-episodes 20
+
+Training runs Algorithm.train() in this process (no Tune), so runs land in --out-dir, metrics go to our
+TensorBoard logger with the names agents.ppo uses, and checkpoints are RLlib's own (save_to_path).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import numpy as np
+import torch
+
+from agents.common import EVAL_SEED, Logger, evaluate_on_seeds
+from agents.rllib.env import ENV_NAME, register
+
+ROOT = Path(__file__).resolve().parents[2]
+CKPT_EXCLUDES = ["runs/", ".venv/", ".git/", "videos/", "*.mp4", "*.h5", "__pycache__/"]
+
+
+@dataclass
+class Args:
+    algo: Literal["PPO", "APPO", "SAC"] = "PPO"
+    """RLlib algorithm; each runs on both --obs modes"""
+    env_id: str = "TableClearing-IRB120-v1"
+    """any task registered by maniskill_irb120 (or ManiSkill)"""
+    obs: Literal["state", "rgbd"] = "state"
+    """state: RLlib's default MLP; rgbd: 84x84 RGB-D + proprioception through agents.nets.NatureCNN"""
+    env_kwargs: dict = field(default_factory=dict)
+    """extra gym.make keyword arguments for every env (e.g. domain randomisation ranges)"""
+    num_env_runners: int = 0
+    """env-runner processes (0: sample in this process); each takes one CPU of the Ray cluster"""
+    num_envs_per_env_runner: int = 1
+    """envs each runner steps in lockstep (gymnasium sync vector env, or one batched env: --vector-backend)"""
+    vector_backend: Optional[Literal["gpu", "cpu"]] = None
+    """opt-in: each runner drives one batched ManiSkill env (gpu: physx_cuda; cpu: our worker processes)
+    through agents.rllib.env.NextStepAutoreset, RLlib's vector entry point"""
+    num_learners: int = 0
+    """remote learner processes (0: learn in this process)"""
+    num_gpus_per_learner: float = 0.0
+    """GPUs for each learner (or for this process when --num-learners 0)"""
+    address: Optional[str] = None
+    """None: a local Ray sized to this machine; 'auto' or 'host:port': join a running cluster, shipping this
+    repository to it as the runtime_env working_dir"""
+    num_cpus: Optional[int] = None
+    """CPUs of the local Ray (default: this machine's, at least runners + learners)"""
+    iterations: Optional[int] = None
+    """stop after this many training iterations in all (counting a resumed run's); default 100 when no
+    --timesteps or --budget-min is given"""
+    timesteps: Optional[int] = None
+    """stop once this many env steps were sampled in all"""
+    budget_min: Optional[float] = None
+    """stop after this many minutes of training in this invocation"""
+    seed: int = 1
+    """seeds RLlib (env runners seed their envs from it) and torch"""
+    gamma: float = 0.9
+    """discount; our episodes are ~75 steps (ManiSkill's PPO default 0.8 is for shorter horizons)"""
+    lr: float = 3e-4
+    gae_lambda: float = 0.9
+    """PPO/APPO: GAE lambda (agents.ppo's default)"""
+    train_batch_size: Optional[int] = None
+    """env steps per learner update (PPO/APPO) or transitions per SGD batch (SAC); None: RLlib's default"""
+    minibatch_size: Optional[int] = None
+    """PPO/APPO SGD minibatch (None: RLlib's default)"""
+    num_epochs: Optional[int] = None
+    """PPO/APPO passes over each batch (None: RLlib's default)"""
+    rollout_fragment_length: Union[int, Literal["auto"]] = "auto"
+    """steps each env collects per sample() call (auto: RLlib sizes it to the batch; APPO: 50)"""
+    learning_starts: int = 1000
+    """SAC: env steps in the replay buffer before the first update"""
+    replay_capacity: int = 100_000
+    """SAC: replay buffer size in transitions"""
+    checkpoint_freq: int = 10
+    """save a checkpoint every N iterations (and always at the end)"""
+    max_env_runner_restarts: int = 100
+    """fault tolerance: a crashed env runner is restarted (up to this many times) and training goes on"""
+    resume: Optional[Path] = None
+    """continue from a checkpoint folder: weights, optimiser, connector state, counters"""
+    evaluate: Optional[Path] = None
+    """only evaluate this checkpoint folder on held-out seeds (videos + summary.json) and exit"""
+    eval_episodes: int = 0
+    """after training (or with --evaluate; default 10 there): deterministic episodes on held-out seeds
+    (agents.common.EVAL_SEED onwards); their success_rate ends the printed JSON"""
+    capture_video: bool = True
+    """--evaluate: record an mp4 per episode"""
+    out_dir: Path = Path("runs")
+    """runs go to out_dir/exp_name (TensorBoard logs, checkpoints, summary.json), not ~/ray_results"""
+    exp_name: Optional[str] = None
+    """run folder name (default: rllib_ALGO__env__obs__seed__time)"""
+    progress: bool = True
+    """a tqdm bar over iterations"""
+    wandb: bool = False
+    """also log to Weights & Biases (imported only when set)"""
+    comet: bool = False
+    """also log to Comet, as the original report did (imported only when set)"""
+    wandb_project: str = "maniskill_irb120"
+    comet_project: str = "maniskill_irb120"
+
+
+def env_config(args: Args) -> dict:
+    cfg = dict(env_id=args.env_id, obs=args.obs, env_kwargs=dict(args.env_kwargs))
+    if args.vector_backend is not None:
+        cfg["vector_backend"] = args.vector_backend
+    return cfg
+
+
+def build_config(args: Args):
+    """The AlgorithmConfig for ``args``, without starting Ray (so it can be built and validated in tests)."""
+    import gymnasium as gym
+    from ray.rllib.algorithms.appo import APPOConfig
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.algorithms.sac import SACConfig
+
+    from agents.rllib.callbacks import TaskMetrics
+    from agents.rllib.module import module_spec
+
+    if args.num_env_runners < 0 or args.num_envs_per_env_runner < 1 or args.num_learners < 0:
+        raise ValueError("need --num-env-runners >= 0, --num-envs-per-env-runner >= 1 and --num-learners >= 0")
+    if args.algo == "APPO" and args.num_env_runners < 1:
+        raise ValueError("APPO samples asynchronously on remote env runners: give --num-env-runners >= 1")
+    configs = {"PPO": PPOConfig, "APPO": APPOConfig, "SAC": SACConfig}
+    if args.algo not in configs:
+        raise ValueError(f"unknown --algo {args.algo!r}; use one of {sorted(configs)}")
+    cfg = configs[args.algo]()
+    cfg.environment(ENV_NAME, env_config=env_config(args))
+    cfg.framework("torch")
+    fragment = args.rollout_fragment_length
+    if args.algo == "APPO" and fragment == "auto":
+        fragment = 50  # APPO's own default; its minibatch must be a multiple of a numeric fragment length
+    runners = dict(
+        num_env_runners=args.num_env_runners,
+        num_envs_per_env_runner=args.num_envs_per_env_runner,
+        rollout_fragment_length=fragment,
+    )
+    if args.vector_backend is not None:
+        runners["gym_env_vectorize_mode"] = gym.VectorizeMode.VECTOR_ENTRY_POINT
+    cfg.env_runners(**runners)
+    cfg.learners(num_learners=args.num_learners, num_gpus_per_learner=args.num_gpus_per_learner)
+    cfg.rl_module(rl_module_spec=module_spec(args.algo))
+    train = dict(gamma=args.gamma, lr=args.lr)
+    if args.train_batch_size is not None:
+        train["train_batch_size_per_learner"] = args.train_batch_size
+    if args.algo in ("PPO", "APPO"):
+        train["lambda_"] = args.gae_lambda
+        if args.minibatch_size is not None:
+            train["minibatch_size"] = args.minibatch_size
+        if args.num_epochs is not None:
+            train["num_epochs"] = args.num_epochs
+    else:
+        train.update(
+            actor_lr=args.lr,
+            critic_lr=args.lr,
+            alpha_lr=args.lr,
+            num_steps_sampled_before_learning_starts=args.learning_starts,
+            replay_buffer_config={"type": "PrioritizedEpisodeReplayBuffer", "capacity": args.replay_capacity},
+        )
+        train.pop("lr")
+    cfg.training(**train)
+    cfg.callbacks(TaskMetrics)
+    cfg.fault_tolerance(
+        restart_failed_env_runners=True,
+        max_num_env_runner_restarts=args.max_env_runner_restarts,
+    )
+    cfg.debugging(seed=args.seed)
+    return cfg
+
+
+def init_ray(args: Args) -> None:
+    """A local Ray sized so every runner and learner gets its CPU, or a connection to a cluster that gets
+    this repository shipped to it (its workers then import ``agents`` from the shipped copy)."""
+    import ray
+
+    if ray.is_initialized():
+        return
+    # env runners import agents.* (the callback, the catalog) by name: on this machine they find it here
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    if args.address is None:
+        need = args.num_env_runners + args.num_learners
+        num_cpus = args.num_cpus or max(os.cpu_count() or 1, need)
+        if num_cpus < need:
+            raise ValueError(f"--num-cpus {num_cpus} < {need} (one per env runner and remote learner)")
+        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=True)
+    else:
+        ray.init(address=args.address, runtime_env={"working_dir": str(ROOT), "excludes": CKPT_EXCLUDES})
+
+
+def save_checkpoint(algo, ckpt_dir: Path, args: Args) -> Path:
+    """RLlib's checkpoint plus what it was trained on (for --evaluate) into a fresh folder, then renamed over
+    ``latest``: a crash mid-save never leaves a half-written ``latest``."""
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    tmp, latest, old = ckpt_dir / "latest.tmp", ckpt_dir / "latest", ckpt_dir / "latest.old"
+    shutil.rmtree(tmp, ignore_errors=True)
+    algo.save_to_path(str(tmp.resolve()))
+    meta = dict(algo=args.algo, env_id=args.env_id, obs=args.obs, env_kwargs=args.env_kwargs, seed=args.seed)
+    (tmp / "agents_rllib_args.json").write_text(json.dumps(meta, indent=2))
+    if latest.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        latest.rename(old)
+    tmp.rename(latest)
+    shutil.rmtree(old, ignore_errors=True)
+    return latest
+
+
+def load_module(path: Path):
+    """The trained RLModule from a checkpoint folder (no env runners, no Ray needed)."""
+    from ray.rllib.core import COMPONENT_LEARNER, COMPONENT_LEARNER_GROUP, COMPONENT_RL_MODULE, DEFAULT_MODULE_ID
+    from ray.rllib.core.rl_module.rl_module import RLModule
+
+    sub = Path(path) / COMPONENT_LEARNER_GROUP / COMPONENT_LEARNER / COMPONENT_RL_MODULE / DEFAULT_MODULE_ID
+    if not sub.is_dir():
+        raise FileNotFoundError(f"{path} is not an agents.rllib checkpoint folder (no {sub.relative_to(path)})")
+    return RLModule.from_checkpoint(sub)
+
+
+def module_policy(module, obs_mode: str):
+    """Batched obs dict -> deterministic action in [-1, 1] (the mean, squashed as the algorithm squashes)."""
+    from ray.rllib.core.columns import Columns
+
+    dist_cls = module.get_inference_action_dist_cls()
+
+    def act(obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        x = obs["state"].float() if obs_mode == "state" else obs
+        out = module.forward_inference({Columns.OBS: x})
+        action = dist_cls.from_logits(out[Columns.ACTION_DIST_INPUTS]).to_deterministic().sample()
+        return action.clamp(-1.0, 1.0)
+
+    return act
+
+
+def held_out_eval(args: Args, path: Path, episodes: int, video_dir: Optional[Path]) -> dict:
+    meta = Path(path) / "agents_rllib_args.json"
+    if not meta.is_file():
+        raise FileNotFoundError(f"{path} is not an agents.rllib checkpoint folder (no {meta.name})")
+    saved = json.loads(meta.read_text())
+    for name in ("obs", "env_id"):
+        if saved[name] != getattr(args, name):
+            raise ValueError(f"checkpoint {path} was trained with --{name.replace('_', '-')} {saved[name]}")
+    module = load_module(path)
+    module.eval()
+    seeds = [EVAL_SEED + i for i in range(episodes)]
+    env_kwargs = dict(reward_mode="normalized_dense", **saved.get("env_kwargs", {}))
+    return evaluate_on_seeds(
+        module_policy(module, args.obs), args.env_id, args.obs, seeds, video_dir=video_dir, **env_kwargs
+    )
+
+
+def evaluate(args: Args) -> dict:
+    """``--evaluate PATH``: held-out episodes with videos; ``summary.json`` beside the run, like agents.ppo."""
+    path = Path(args.evaluate)
+    out_dir = path.resolve().parent.parent / "eval"
+    result = held_out_eval(args, path, args.eval_episodes or 10, out_dir / "videos" if args.capture_video else None)
+    result["checkpoint"] = str(path)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
+    print(json.dumps(result))
+    return result
+
+
+def scalars_of(result: dict) -> dict[str, float]:
+    """One training result as TensorBoard scalars under agents.ppo's names (train/..., losses/..., charts/...)."""
+    from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, LEARNER_RESULTS
+
+    runners = result.get(ENV_RUNNER_RESULTS, {})
+    out = {}
+    for k, v in runners.items():
+        if k.endswith("_rate") or k.startswith("return_r_"):
+            out[f"train/{k}"] = float(v)
+    for ours, theirs in (("return", "episode_return_mean"), ("episode_len", "episode_len_mean")):
+        if theirs in runners:
+            out[f"train/{ours}"] = float(runners[theirs])
+    for k, v in result.get(LEARNER_RESULTS, {}).get("default_policy", {}).items():
+        if isinstance(v, (int, float, np.floating)) and np.isfinite(v):
+            out[f"losses/{k}"] = float(v)
+    return out
+
+
+def env_steps_of(result: dict) -> int:
+    from ray.rllib.utils.metrics import ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME
+
+    return int(result.get(ENV_RUNNER_RESULTS, {}).get(NUM_ENV_STEPS_SAMPLED_LIFETIME, 0))
+
+
+def main(args: Args) -> dict:
+    if args.evaluate is not None:
+        return evaluate(args)
+    if args.iterations is None and args.timesteps is None and args.budget_min is None:
+        args.iterations = 100
+    config = build_config(args)  # argument errors before Ray starts
+    name = args.exp_name or f"rllib_{args.algo}__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
+    run_dir = Path(args.out_dir) / name
+    ckpt_dir = run_dir / "checkpoints"
+    torch.manual_seed(args.seed)
+    init_ray(args)
+    register()
+    algo = config.build_algo()
+    if args.resume is not None:
+        algo.restore_from_path(str(Path(args.resume).resolve()))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    logger = Logger(run_dir, args)
+    bar = None
+    if args.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=args.iterations, initial=algo.iteration, unit="iter", desc=f"rllib {args.algo}")
+    t0, result, latest = time.time(), {}, None
+    env_steps = 0
+    try:
+        while True:
+            if args.iterations is not None and algo.iteration >= args.iterations:
+                break
+            if args.timesteps is not None and env_steps >= args.timesteps:
+                break
+            if args.budget_min is not None and time.time() - t0 >= 60 * args.budget_min:
+                break
+            t_iter, steps_before = time.time(), env_steps
+            result = algo.train()
+            env_steps = env_steps_of(result)
+            scalars = scalars_of(result)
+            scalars["charts/SPS"] = (env_steps - steps_before) / max(time.time() - t_iter, 1e-9)
+            logger.scalars(scalars, env_steps)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(steps=env_steps, success=f"{scalars.get('train/success_rate', float('nan')):.2f}")
+            if algo.iteration % args.checkpoint_freq == 0:
+                latest = save_checkpoint(algo, ckpt_dir, args)
+    finally:
+        # Ctrl-C or a crash still leaves the last complete iteration on disk
+        if algo.iteration > 0:
+            latest = save_checkpoint(algo, ckpt_dir, args)
+        if bar is not None:
+            bar.close()
+        logger.close()
+        algo.stop()
+    summary = dict(
+        algo=args.algo,
+        obs=args.obs,
+        iterations=algo.iteration,
+        env_steps=env_steps,
+        checkpoint=str(latest) if latest else None,
+        train_success_rate=scalars_of(result).get("train/success_rate"),
+        wall_clock_s=round(time.time() - t0, 1),
+    )
+    summary["success_rate"] = summary["train_success_rate"]
+    if args.eval_episodes > 0 and latest is not None:
+        final = held_out_eval(args, latest, args.eval_episodes, None)
+        summary.update(success_rate=final["success_rate"], eval=final)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary))
+    return summary

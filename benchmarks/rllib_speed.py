@@ -1,0 +1,275 @@
+"""RLlib against our own trainer on the same machine, in the same run (state obs, TableClearing-IRB120-v1).
+
+For RLlib PPO with 0/1/2 env runners x 1/2 envs each: start-up time (``build_algo``), env steps/s *sampled*
+(every runner's ``sample()`` in parallel, the policy in the loop), env steps/s *trained* (whole
+``Algorithm.train()`` iterations), RSS per env-runner process, and where a sampled step's time goes (RLlib's
+own timers). Reference in the same run: our CPU vector env (``make_vec_env``, W worker processes) stepped by
+``agents.ppo``'s policy network (sampled), and ``agents.ppo`` training iterations (trained), W = 1, 2.
+
+Target (issue 13): RLlib sampling with 2 env runners >= 0.8x our vector env with 2 workers.
+
+    python benchmarks/rllib_speed.py                      # ~6 min on 2 cores
+    python benchmarks/rllib_speed.py --quick --json /tmp/r.json
+    python benchmarks/rllib_speed.py --update-results     # also rewrites its section of RESULTS.md
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+ENV_ID = "TableClearing-IRB120-v1"
+HEAD = "## Ray RLlib against our trainer — `benchmarks/rllib_speed.py`"
+
+
+@dataclass
+class Args:
+    steps: int = 400
+    """env steps each runner (or each of our workers) samples per timed round"""
+    iterations: int = 3
+    """timed training iterations per configuration (after one untimed warm-up iteration)"""
+    batch: int = 400
+    """env steps per training iteration, RLlib and agents.ppo alike"""
+    rounds: int = 2
+    """repeat the whole grid; the table shows each configuration's median, the ratio each round's"""
+    quick: bool = False
+    """tiny sizes, 0/1 runners only: checks the script runs and writes well-formed JSON"""
+    json: Path = ROOT / "benchmarks" / "results" / "rllib_speed.json"
+    update_results: bool = False
+    """rewrite this benchmark's section of benchmarks/RESULTS.md"""
+
+
+def rss_mb(pid: Optional[int] = None) -> float:
+    import psutil
+
+    return psutil.Process(pid or os.getpid()).memory_info().rss / 2**20
+
+
+def ours(workers: int, args: Args) -> dict:
+    """Our CPU vector env of ``workers`` processes, stepped by agents.ppo's network (sampled), then
+    agents.ppo's own training iterations (trained: rollout + update, its charts/SPS)."""
+    from agents.ppo import Agent
+    from maniskill_irb120.vector import make_vec_env
+
+    t0 = time.perf_counter()
+    venv = make_vec_env(ENV_ID, workers, backend="cpu", obs_mode="state", render_backend="none", record_metrics=False)
+    startup = time.perf_counter() - t0
+    agent = Agent(None, venv.single_observation_space.shape[0], 5)
+    obs, _ = venv.reset(seed=0)
+    with torch.no_grad():
+        for i in range(args.steps + 10):
+            if i == 10:
+                t0 = time.perf_counter()
+            obs, *_ = venv.step(agent.get_action({"state": obs.float()}).clamp(-1, 1))
+    sampled = workers * args.steps / (time.perf_counter() - t0)
+    venv.close()
+    trained = ppo_trained(workers, args)
+    return dict(
+        trainer="agents.ppo", runners=workers, envs_per_runner=1, startup_s=startup, sampled=sampled, trained=trained
+    )
+
+
+def ppo_trained(workers: int, args: Args) -> float:
+    import tempfile
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from agents import ppo
+
+    with tempfile.TemporaryDirectory() as d:
+        a = ppo.Args(
+            obs="state",
+            num_envs=workers,
+            num_steps=args.batch // workers,
+            update_epochs=1,
+            total_timesteps=args.batch * (args.iterations + 1),
+            eval_freq=0,
+            num_eval_episodes=0,
+            capture_video=False,
+            progress=False,
+            runs_dir=Path(d),
+            exp_name="p",
+            save_freq=1000,
+        )
+        ppo.main(a)
+        ea = EventAccumulator(str(Path(d) / "p"))
+        ea.Reload()
+        return statistics.median(s.value for s in ea.Scalars("charts/SPS")[1:])
+
+
+def rllib(runners: int, envs: int, args: Args) -> dict:
+    from agents.rllib.train import Args as RArgs
+    from agents.rllib.train import build_config
+
+    cfg = build_config(
+        RArgs(
+            num_env_runners=runners,
+            num_envs_per_env_runner=envs,
+            train_batch_size=args.batch,
+            minibatch_size=args.batch // 4,
+            num_epochs=1,
+        )
+    )
+    t0 = time.perf_counter()
+    algo = cfg.build_algo()
+    startup = time.perf_counter() - t0
+    group = algo.env_runner_group
+    local = runners == 0
+    per = max(args.steps // envs, 1) * envs
+    try:
+        group.foreach_env_runner(lambda r: r.sample(num_timesteps=50), local_env_runner=local)  # warm-up
+        t0 = time.perf_counter()
+        group.foreach_env_runner(lambda r: r.sample(num_timesteps=per), local_env_runner=local)
+        sampled = per * max(runners, 1) / (time.perf_counter() - t0)
+        rss = group.foreach_env_runner(
+            lambda r: __import__("psutil").Process().memory_info().rss / 2**20, local_env_runner=local
+        )
+        result = algo.train()
+        steps0, t0 = result["env_runners"]["num_env_steps_sampled_lifetime"], time.perf_counter()
+        for _ in range(args.iterations):
+            result = algo.train()
+        trained = (result["env_runners"]["num_env_steps_sampled_lifetime"] - steps0) / (time.perf_counter() - t0)
+        er = result["env_runners"]
+        per_step_ms = dict(
+            env_step=1e3 * er.get("env_step_timer", float("nan")),
+            inference=1e3 * er.get("rlmodule_inference_timer", float("nan")),
+            connectors=1e3
+            * (
+                er.get("env_to_module_connector", {}).get("connector_pipeline_timer", 0.0)
+                + er.get("module_to_env_connector", {}).get("connector_pipeline_timer", 0.0)
+            ),
+        )
+        per_step_ms["total"] = 1e3 * max(runners, 1) * envs / sampled  # one step of a runner's envs
+    finally:
+        algo.stop()
+    return dict(
+        trainer="rllib PPO",
+        runners=runners,
+        envs_per_runner=envs,
+        startup_s=startup,
+        sampled=sampled,
+        trained=trained,
+        rss_mb_per_runner=float(np.mean(rss)),
+        per_step_ms=per_step_ms,
+    )
+
+
+def median_row(same: list[dict]) -> dict:
+    """One configuration's row, every number the median over rounds."""
+    out = dict(same[0])
+    for k, v in same[0].items():
+        if isinstance(v, (int, float)) and k not in ("runners", "envs_per_runner"):
+            out[k] = float(np.median([r[k] for r in same]))
+        elif isinstance(v, dict):
+            out[k] = {kk: float(np.median([r[k][kk] for r in same])) for kk in v}
+    return out
+
+
+def two_vs_two(rows: list[dict]) -> float:
+    """RLlib sampling with 2 runners x 1 env over our vector env with 2 workers (nan when not measured)."""
+    ours = [r for r in rows if r["trainer"] == "agents.ppo" and r["runners"] == 2]
+    theirs = [r for r in rows if r["trainer"] != "agents.ppo" and r["runners"] == 2 and r["envs_per_runner"] == 1]
+    return theirs[0]["sampled"] / ours[0]["sampled"] if ours and theirs else float("nan")
+
+
+def markdown(rows: list[dict], ratio: float) -> str:
+    out = [
+        "| trainer | env runners / workers | envs each | start-up (s) | sampled (steps/s) | trained (steps/s) "
+        "| RSS per runner (MB) | per step: env / inference / connectors / all (ms) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        p = r.get("per_step_ms")
+        ps = f"{p['env_step']:.1f} / {p['inference']:.2f} / {p['connectors']:.2f} / {p['total']:.1f}" if p else "–"
+        rss = f"{r['rss_mb_per_runner']:.0f}" if "rss_mb_per_runner" in r else "–"
+        out.append(
+            f"| {r['trainer']} | {r['runners']} | {r['envs_per_runner']} | {r['startup_s']:.1f} | "
+            f"{r['sampled']:.0f} | {r['trained']:.0f} | {rss} | {ps} |"
+        )
+    out.append(
+        f"\nRLlib sampling, 2 env runners x 1 env, against our vector env with 2 workers: **{ratio:.2f}x** "
+        "(median over rounds; target >= 0.8x)."
+    )
+    return "\n".join(out)
+
+
+def main(args: Args) -> dict:
+    import ray
+
+    from agents.rllib.env import register
+    from agents.rllib.train import Args as RArgs
+    from agents.rllib.train import init_ray
+
+    if args.quick:
+        args.steps, args.iterations, args.batch, args.rounds = 100, 1, 100, 1
+    grid = [(0, 1), (1, 1)] if args.quick else [(0, 1), (0, 2), (1, 1), (1, 2), (2, 1), (2, 2)]
+    workers = [1] if args.quick else [1, 2]
+    t0 = time.time()
+    rounds = []
+    for _ in range(args.rounds):
+        rows = [ours(w, args) for w in workers]
+        init_ray(RArgs(num_env_runners=2))
+        register()
+        rows += [rllib(r, e, args) for r, e in grid]
+        ray.shutdown()
+        rounds.append(rows)
+    rows = [median_row([rnd[i] for rnd in rounds]) for i in range(len(rounds[0]))]
+    ratios = [two_vs_two(rnd) for rnd in rounds]
+    ratio = float(np.median(ratios))
+    report = dict(
+        command="python benchmarks/rllib_speed.py " + " ".join(sys.argv[1:]),
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        machine=f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs",
+        versions={m: __import__(m).__version__ for m in ("ray", "gymnasium", "torch", "mani_skill")},
+        wall_min=(time.time() - t0) / 60,
+        ratio_2_runners_vs_2_workers=ratio,
+        ratio_each_round=ratios,
+        rows=rows,
+        rounds=rounds,
+    )
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(report, indent=1))
+    table = markdown(rows, ratio)
+    print(table)
+    if args.update_results:
+        update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")
+    return report
+
+
+def update_results(report: dict, table: str, results: Path) -> None:
+    """Replace this benchmark's section of RESULTS.md (up to the next ``## ``) with this run's."""
+    v = report["versions"]
+    section = (
+        f"{HEAD}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}; ray {v['ray']}, "
+        f"gymnasium {v['gymnasium']}, torch {v['torch']}, mani_skill {v['mani_skill']}; {report['wall_min']:.1f} min). "
+        "State observations, PPO, random initial weights; *sampled* = every runner's `sample()` in parallel, "
+        "*trained* = whole training iterations (sampling + update) after a warm-up iteration. Raw data: "
+        "[`results/rllib_speed.json`](results/rllib_speed.json).\n\n"
+        f"{table}\n\n"
+    )
+    text = results.read_text()
+    start = text.find(HEAD)
+    if start < 0:
+        text = text.rstrip() + "\n\n" + section
+    else:
+        end = text.find("\n## ", start + len(HEAD))
+        text = text[:start] + section + (text[end + 1 :] if end >= 0 else "")
+    results.write_text(text)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
