@@ -35,6 +35,9 @@ import tyro
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from results_md import replace_section  # noqa: E402
 
 from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 
@@ -253,14 +256,7 @@ def update_results(report: dict, table: str, results: Path) -> None:
         f"raw data: [`results/learning/learning.json`](results/learning/learning.json).\n\n{table}\n\n"
         "![learning curves](results/learning/learning.png)\n\n"
     )
-    text = results.read_text()
-    start = text.find(head)
-    if start < 0:
-        text = text.rstrip() + "\n\n" + section
-    else:
-        end = text.find("\n## ", start + len(head))
-        text = text[:start] + section + (text[end + 1 :] if end >= 0 else "")
-    results.write_text(text)
+    replace_section(results, head, section)
 
 
 def main(args: Args) -> dict:

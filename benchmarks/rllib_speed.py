@@ -31,6 +31,9 @@ import tyro
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from results_md import replace_section  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
 HEAD = "## Ray RLlib against our trainer — `benchmarks/rllib_speed.py`"
@@ -261,14 +264,7 @@ def update_results(report: dict, table: str, results: Path) -> None:
         "[`results/rllib_speed.json`](results/rllib_speed.json).\n\n"
         f"{table}\n\n"
     )
-    text = results.read_text()
-    start = text.find(HEAD)
-    if start < 0:
-        text = text.rstrip() + "\n\n" + section
-    else:
-        end = text.find("\n## ", start + len(HEAD))
-        text = text[:start] + section + (text[end + 1 :] if end >= 0 else "")
-    results.write_text(text)
+    replace_section(results, HEAD, section)
 
 
 if __name__ == "__main__":

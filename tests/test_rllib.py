@@ -112,7 +112,7 @@ def test_task_metrics_use_agents_ppo_names(ray_local, tmp_path):
 def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path):
     first = main(Args(iterations=2, out_dir=tmp_path, exp_name="a", **TINY))
     ckpt = tmp_path / "a" / "checkpoints" / "latest"
-    from agents.rllib.train import load_module
+    from agents.rllib.checkpoint import load_module
 
     saved = {k: v.clone() for k, v in load_module(ckpt).state_dict().items()}
     again = main(Args(iterations=3, resume=ckpt, out_dir=tmp_path, exp_name="b", **TINY))
@@ -129,6 +129,8 @@ def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path):
         main(Args(evaluate=ckpt, obs="rgbd", eval_episodes=1, progress=False))
     with pytest.raises(FileNotFoundError, match="not an agents.rllib checkpoint"):
         main(Args(evaluate=tmp_path, eval_episodes=1, progress=False))
+    with pytest.raises(ValueError, match="trained with --algo PPO"):
+        main(Args(algo="SAC", resume=ckpt, iterations=4, out_dir=tmp_path, **TINY))
 
 
 def test_a_killed_env_runner_is_restarted_and_training_goes_on(ray_local, tmp_path):
@@ -189,3 +191,25 @@ def test_next_step_autoreset_episode_boundaries():
         assert env.metadata["autoreset_mode"].name == "NEXT_STEP"
     finally:
         env.close()
+
+
+def test_a_batched_env_trains_through_the_vector_entry_point(ray_local, tmp_path):
+    """The opt-in path for ManiSkill's GPU env, here on our CPU vector env: RLlib steps one batched env
+    through NextStepAutoreset and sees whole 30-step episodes."""
+    summary = main(
+        Args(
+            iterations=2,
+            vector_backend="cpu",
+            num_envs_per_env_runner=2,
+            env_kwargs=dict(max_episode_steps=30),
+            out_dir=tmp_path,
+            exp_name="v",
+            **TINY,
+        )
+    )
+    assert summary["env_steps"] == 200 and summary["train_success_rate"] is not None
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(str(tmp_path / "v"))
+    ea.Reload()
+    assert 30 <= ea.Scalars("train/episode_len")[-1].value <= 31  # 31: RLlib's count of a chunked episode

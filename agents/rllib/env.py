@@ -124,7 +124,8 @@ class NextStepAutoreset(gym.vector.VectorEnv):
         info = step_info
         if self._pending.any():
             idx = np.flatnonzero(self._pending)
-            first, first_info = self.venv.reset(options=dict(env_idx=torch.as_tensor(idx)))
+            device = getattr(self.venv, "device", "cpu")  # ManiSkill indexes its GPU state with it as given
+            first, first_info = self.venv.reset(options=dict(env_idx=torch.as_tensor(idx, device=device)))
             obs = _splice(self._pending, _numpy(first), obs)
             first_info = self._info(first_info)
             info = {k: _splice(self._pending, first_info[k], v) if k in first_info else v for k, v in info.items()}

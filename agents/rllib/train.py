@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from agents.common import EVAL_SEED, Logger, evaluate_on_seeds
+from agents.rllib.checkpoint import checkpoint_args, load_module, module_policy, save_checkpoint
 from agents.rllib.env import ENV_NAME, register
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -48,6 +48,8 @@ class Args:
     vector_backend: Optional[Literal["gpu", "cpu"]] = None
     """opt-in: each runner drives one batched ManiSkill env (gpu: physx_cuda; cpu: our worker processes)
     through agents.rllib.env.NextStepAutoreset, RLlib's vector entry point"""
+    num_gpus_per_env_runner: Optional[float] = None
+    """GPUs for each env runner (default: 1 with --vector-backend gpu and remote runners, else 0)"""
     num_learners: int = 0
     """remote learner processes (0: learn in this process)"""
     num_gpus_per_learner: float = 0.0
@@ -147,6 +149,10 @@ def build_config(args: Args):
     )
     if args.vector_backend is not None:
         runners["gym_env_vectorize_mode"] = gym.VectorizeMode.VECTOR_ENTRY_POINT
+    gpus = args.num_gpus_per_env_runner
+    if gpus is None:
+        gpus = 1.0 if args.vector_backend == "gpu" and args.num_env_runners > 0 else 0.0
+    runners["num_gpus_per_env_runner"] = gpus
     cfg.env_runners(**runners)
     cfg.learners(num_learners=args.num_learners, num_gpus_per_learner=args.num_gpus_per_learner)
     cfg.rl_module(rl_module_spec=module_spec(args.algo))
@@ -197,57 +203,8 @@ def init_ray(args: Args) -> None:
         ray.init(address=args.address, runtime_env={"working_dir": str(ROOT), "excludes": CKPT_EXCLUDES})
 
 
-def save_checkpoint(algo, ckpt_dir: Path, args: Args) -> Path:
-    """RLlib's checkpoint plus what it was trained on (for --evaluate) into a fresh folder, then renamed over
-    ``latest``: a crash mid-save never leaves a half-written ``latest``."""
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    tmp, latest, old = ckpt_dir / "latest.tmp", ckpt_dir / "latest", ckpt_dir / "latest.old"
-    shutil.rmtree(tmp, ignore_errors=True)
-    algo.save_to_path(str(tmp.resolve()))
-    meta = dict(algo=args.algo, env_id=args.env_id, obs=args.obs, env_kwargs=args.env_kwargs, seed=args.seed)
-    (tmp / "agents_rllib_args.json").write_text(json.dumps(meta, indent=2))
-    if latest.exists():
-        shutil.rmtree(old, ignore_errors=True)
-        latest.rename(old)
-    tmp.rename(latest)
-    shutil.rmtree(old, ignore_errors=True)
-    return latest
-
-
-def load_module(path: Path):
-    """The trained RLModule from a checkpoint folder (no env runners, no Ray needed)."""
-    from ray.rllib.core import COMPONENT_LEARNER, COMPONENT_LEARNER_GROUP, COMPONENT_RL_MODULE, DEFAULT_MODULE_ID
-    from ray.rllib.core.rl_module.rl_module import RLModule
-
-    sub = Path(path) / COMPONENT_LEARNER_GROUP / COMPONENT_LEARNER / COMPONENT_RL_MODULE / DEFAULT_MODULE_ID
-    if not sub.is_dir():
-        raise FileNotFoundError(f"{path} is not an agents.rllib checkpoint folder (no {sub.relative_to(path)})")
-    return RLModule.from_checkpoint(sub)
-
-
-def module_policy(module, obs_mode: str):
-    """Batched obs dict -> deterministic action in [-1, 1] (the mean, squashed as the algorithm squashes)."""
-    from ray.rllib.core.columns import Columns
-
-    dist_cls = module.get_inference_action_dist_cls()
-
-    def act(obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        x = obs["state"].float() if obs_mode == "state" else obs
-        out = module.forward_inference({Columns.OBS: x})
-        action = dist_cls.from_logits(out[Columns.ACTION_DIST_INPUTS]).to_deterministic().sample()
-        return action.clamp(-1.0, 1.0)
-
-    return act
-
-
 def held_out_eval(args: Args, path: Path, episodes: int, video_dir: Optional[Path]) -> dict:
-    meta = Path(path) / "agents_rllib_args.json"
-    if not meta.is_file():
-        raise FileNotFoundError(f"{path} is not an agents.rllib checkpoint folder (no {meta.name})")
-    saved = json.loads(meta.read_text())
-    for name in ("obs", "env_id"):
-        if saved[name] != getattr(args, name):
-            raise ValueError(f"checkpoint {path} was trained with --{name.replace('_', '-')} {saved[name]}")
+    saved = checkpoint_args(path, args, ("obs", "env_id"))
     module = load_module(path)
     module.eval()
     seeds = [EVAL_SEED + i for i in range(episodes)]
@@ -299,6 +256,8 @@ def main(args: Args) -> dict:
     if args.iterations is None and args.timesteps is None and args.budget_min is None:
         args.iterations = 100
     config = build_config(args)  # argument errors before Ray starts
+    if args.resume is not None:
+        checkpoint_args(args.resume, args, ("algo", "obs", "env_id"))
     name = args.exp_name or f"rllib_{args.algo}__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
     run_dir = Path(args.out_dir) / name
     ckpt_dir = run_dir / "checkpoints"
@@ -315,7 +274,7 @@ def main(args: Args) -> dict:
         from tqdm import tqdm
 
         bar = tqdm(total=args.iterations, initial=algo.iteration, unit="iter", desc=f"rllib {args.algo}")
-    t0, result, latest = time.time(), {}, None
+    t0, result, latest, saved_at = time.time(), {}, None, None
     env_steps = 0
     try:
         while True:
@@ -335,10 +294,10 @@ def main(args: Args) -> dict:
                 bar.update(1)
                 bar.set_postfix(steps=env_steps, success=f"{scalars.get('train/success_rate', float('nan')):.2f}")
             if algo.iteration % args.checkpoint_freq == 0:
-                latest = save_checkpoint(algo, ckpt_dir, args)
+                latest, saved_at = save_checkpoint(algo, ckpt_dir, args), algo.iteration
     finally:
         # Ctrl-C or a crash still leaves the last complete iteration on disk
-        if algo.iteration > 0:
+        if algo.iteration > 0 and algo.iteration != saved_at:
             latest = save_checkpoint(algo, ckpt_dir, args)
         if bar is not None:
             bar.close()
