@@ -6,7 +6,8 @@ For RLlib PPO with 0/1/2 env runners x 1/2 envs each: start-up time (``build_alg
 own timers). Reference in the same run: our CPU vector env (``make_vec_env``, W worker processes) stepped by
 ``agents.ppo``'s policy network (sampled), and ``agents.ppo`` training iterations (trained), W = 1, 2.
 
-Target (issue 13): RLlib sampling with 2 env runners >= 0.8x our vector env with 2 workers.
+Target (issue 13): RLlib sampling with 2 env runners >= 0.8x our vector env with 2 workers, measured in alternating
+turns with both kept running (the grid above runs minutes apart; these machines drift by up to 1.7x over minutes).
 
     python benchmarks/rllib_speed.py                      # ~6 min on 2 cores
     python benchmarks/rllib_speed.py --quick --json /tmp/r.json
@@ -48,7 +49,11 @@ class Args:
     batch: int = 400
     """env steps per training iteration, RLlib and agents.ppo alike"""
     rounds: int = 2
-    """repeat the whole grid; the table shows each configuration's median, the ratio each round's"""
+    """repeat the whole grid; the table shows each configuration's median"""
+    paired_steps: int = 1000
+    """the target's comparison: steps per env in each alternating turn"""
+    paired_rounds: int = 5
+    """the target's comparison: alternating turns of ours and RLlib's (the ratio is their median)"""
     quick: bool = False
     """tiny sizes, 0/1 runners only: checks the script runs and writes well-formed JSON"""
     json: Path = ROOT / "benchmarks" / "results" / "rllib_speed.json"
@@ -171,6 +176,40 @@ def rllib(runners: int, envs: int, args: Args) -> dict:
     )
 
 
+def paired(args: Args) -> dict:
+    """The target's comparison, alternated: our 2-worker vector env and RLlib's 2 env runners both stay up and
+    take turns sampling ``paired_steps`` steps per env, so a drifting machine slows both sides of each ratio."""
+    from agents.ppo import Agent
+    from agents.rllib.train import Args as RArgs
+    from agents.rllib.train import build_config
+    from maniskill_irb120.vector import make_vec_env
+
+    n = args.paired_steps
+    venv = make_vec_env(ENV_ID, 2, backend="cpu", obs_mode="state", render_backend="none", record_metrics=False)
+    agent = Agent(None, venv.single_observation_space.shape[0], 5)
+    obs, _ = venv.reset(seed=0)
+    cfg = RArgs(num_env_runners=2, train_batch_size=args.batch, minibatch_size=args.batch // 4, num_epochs=1)
+    algo = build_config(cfg).build_algo()
+    group = algo.env_runner_group
+    ours, theirs = [], []
+    try:
+        group.foreach_env_runner(lambda r: r.sample(num_timesteps=50), local_env_runner=False)
+        for _ in range(args.paired_rounds):
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                for _ in range(n):
+                    obs, *_ = venv.step(agent.get_action({"state": obs.float()}).clamp(-1, 1))
+            ours.append(2 * n / (time.perf_counter() - t0))
+            t0 = time.perf_counter()
+            group.foreach_env_runner(lambda r: r.sample(num_timesteps=n), local_env_runner=False)
+            theirs.append(2 * n / (time.perf_counter() - t0))
+    finally:
+        venv.close()
+        algo.stop()
+    ratios = [t / o for o, t in zip(ours, theirs)]
+    return dict(steps_per_env=n, ours=ours, rllib=theirs, ratios=ratios, ratio=float(np.median(ratios)))
+
+
 def median_row(same: list[dict]) -> dict:
     """One configuration's row, every number the median over rounds."""
     out = dict(same[0])
@@ -189,7 +228,7 @@ def two_vs_two(rows: list[dict]) -> float:
     return theirs[0]["sampled"] / ours[0]["sampled"] if ours and theirs else float("nan")
 
 
-def markdown(rows: list[dict], ratio: float) -> str:
+def markdown(rows: list[dict], pair: dict) -> str:
     out = [
         "| trainer | env runners / workers | envs each | start-up (s) | sampled (steps/s) | trained (steps/s) "
         "| RSS per runner (MB) | per step: env / inference / connectors / all (ms) |",
@@ -203,9 +242,12 @@ def markdown(rows: list[dict], ratio: float) -> str:
             f"| {r['trainer']} | {r['runners']} | {r['envs_per_runner']} | {r['startup_s']:.1f} | "
             f"{r['sampled']:.0f} | {r['trained']:.0f} | {rss} | {ps} |"
         )
+    ours = ", ".join(f"{v:.0f}" for v in pair["ours"])
+    theirs = ", ".join(f"{v:.0f}" for v in pair["rllib"])
     out.append(
-        f"\nRLlib sampling, 2 env runners x 1 env, against our vector env with 2 workers: **{ratio:.2f}x** "
-        "(median over rounds; target >= 0.8x)."
+        f"\n**Target** (RLlib sampling with 2 env runners >= 0.8x our vector env with 2 workers), measured in "
+        f"alternating turns of {pair['steps_per_env']} steps per env, both kept running: ours {ours} steps/s, RLlib "
+        f"{theirs} steps/s; ratio **{pair['ratio']:.2f}x** (median of {', '.join(f'{r:.2f}' for r in pair['ratios'])})."
     )
     return "\n".join(out)
 
@@ -219,6 +261,7 @@ def main(args: Args) -> dict:
 
     if args.quick:
         args.steps, args.iterations, args.batch, args.rounds = 100, 1, 100, 1
+        args.paired_steps, args.paired_rounds = 50, 1
     grid = [(0, 1), (1, 1)] if args.quick else [(0, 1), (0, 2), (1, 1), (1, 2), (2, 1), (2, 2)]
     workers = [1] if args.quick else [1, 2]
     t0 = time.time()
@@ -231,8 +274,11 @@ def main(args: Args) -> dict:
         ray.shutdown()
         rounds.append(rows)
     rows = [median_row([rnd[i] for rnd in rounds]) for i in range(len(rounds[0]))]
-    ratios = [two_vs_two(rnd) for rnd in rounds]
-    ratio = float(np.median(ratios))
+    init_ray(RArgs(num_env_runners=2))
+    register()
+    pair = paired(args)
+    ray.shutdown()
+    ratio = pair["ratio"]
     report = dict(
         command="python benchmarks/rllib_speed.py " + " ".join(sys.argv[1:]),
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
@@ -240,13 +286,14 @@ def main(args: Args) -> dict:
         versions={m: __import__(m).__version__ for m in ("ray", "gymnasium", "torch", "mani_skill")},
         wall_min=(time.time() - t0) / 60,
         ratio_2_runners_vs_2_workers=ratio,
-        ratio_each_round=ratios,
+        paired=pair,
+        grid_ratio_each_round=[two_vs_two(rnd) for rnd in rounds],
         rows=rows,
         rounds=rounds,
     )
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=1))
-    table = markdown(rows, ratio)
+    table = markdown(rows, pair)
     print(table)
     if args.update_results:
         update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")

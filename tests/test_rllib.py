@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -109,7 +110,7 @@ def test_task_metrics_use_agents_ppo_names(ray_local, tmp_path):
     assert 40 <= ea.Scalars("train/episode_len")[-1].value <= 41
 
 
-def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path):
+def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path, monkeypatch):
     first = main(Args(iterations=2, out_dir=tmp_path, exp_name="a", **TINY))
     ckpt = tmp_path / "a" / "checkpoints" / "latest"
     from agents.rllib.checkpoint import load_module
@@ -122,9 +123,10 @@ def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path):
     restored = load_module(ckpt).state_dict()
     assert all(torch.equal(saved[k], restored[k]) for k in saved)
 
-    result = main(Args(evaluate=ckpt, eval_episodes=1, capture_video=False, progress=False))
+    monkeypatch.chdir(tmp_path)  # a relative checkpoint path, as a user types it
+    result = main(Args(evaluate=Path("a/checkpoints/latest"), eval_episodes=1, capture_video=False, progress=False))
     assert 0.0 <= result["success_rate"] <= 1.0 and result["episodes"] == 1
-    assert json.loads((tmp_path / "a" / "eval" / "summary.json").read_text())["checkpoint"] == str(ckpt)
+    assert json.loads((tmp_path / "a" / "eval" / "summary.json").read_text())["checkpoint"] == "a/checkpoints/latest"
     with pytest.raises(ValueError, match="trained with --obs state"):
         main(Args(evaluate=ckpt, obs="rgbd", eval_episodes=1, progress=False))
     with pytest.raises(FileNotFoundError, match="not an agents.rllib checkpoint"):

@@ -34,7 +34,8 @@ def load_module(path: Path):
     from ray.rllib.core import COMPONENT_LEARNER, COMPONENT_LEARNER_GROUP, COMPONENT_RL_MODULE, DEFAULT_MODULE_ID
     from ray.rllib.core.rl_module.rl_module import RLModule
 
-    sub = Path(path) / COMPONENT_LEARNER_GROUP / COMPONENT_LEARNER / COMPONENT_RL_MODULE / DEFAULT_MODULE_ID
+    path = Path(path).resolve()  # RLlib reads checkpoints through pyarrow, which takes only absolute paths
+    sub = path / COMPONENT_LEARNER_GROUP / COMPONENT_LEARNER / COMPONENT_RL_MODULE / DEFAULT_MODULE_ID
     if not sub.is_dir():
         raise FileNotFoundError(f"{path} is not an agents.rllib checkpoint folder (no {sub.relative_to(path)})")
     return RLModule.from_checkpoint(sub)

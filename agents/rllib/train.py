@@ -233,10 +233,10 @@ def scalars_of(result: dict) -> dict[str, float]:
     runners = result.get(ENV_RUNNER_RESULTS, {})
     out = {}
     for k, v in runners.items():
-        if k.endswith("_rate") or k.startswith("return_r_"):
+        if (k.endswith("_rate") or k.startswith("return_r_")) and np.isfinite(v):
             out[f"train/{k}"] = float(v)
     for ours, theirs in (("return", "episode_return_mean"), ("episode_len", "episode_len_mean")):
-        if theirs in runners:
+        if theirs in runners and np.isfinite(runners[theirs]):  # NaN: no episode ended in the window yet
             out[f"train/{ours}"] = float(runners[theirs])
     for k, v in result.get(LEARNER_RESULTS, {}).get("default_policy", {}).items():
         if isinstance(v, (int, float, np.floating)) and np.isfinite(v):
