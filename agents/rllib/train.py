@@ -13,7 +13,6 @@ TensorBoard logger with the names agents.ppo uses, and checkpoints are RLlib's o
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,7 +22,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 import torch
 
-from agents.common import EVAL_SEED, Logger, evaluate_on_seeds
+from agents.common import EVAL_SEED, Logger, evaluate_on_seeds, finish
 from agents.rllib.checkpoint import checkpoint_args, load_module, module_policy, save_checkpoint
 from agents.rllib.env import ENV_NAME, register
 
@@ -221,9 +220,7 @@ def evaluate(args: Args) -> dict:
     result = held_out_eval(args, path, args.eval_episodes or 10, out_dir / "videos" if args.capture_video else None)
     result["checkpoint"] = str(path)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
+    return finish(result, out_dir)
 
 
 def scalars_of(result: dict) -> dict[str, float]:
@@ -316,6 +313,4 @@ def main(args: Args) -> dict:
     if args.eval_episodes > 0 and latest is not None:
         final = held_out_eval(args, latest, args.eval_episodes, None)
         summary.update(success_rate=final["success_rate"], eval=final)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary))
-    return summary
+    return finish(summary, run_dir)
