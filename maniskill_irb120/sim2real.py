@@ -20,6 +20,7 @@ What it changes in ManiSkill's class, and why:
 from __future__ import annotations
 
 import time
+import types
 from typing import Any
 
 import numpy as np
@@ -129,7 +130,22 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
                     "observations cannot be formed; use obs_mode='rgbd' (or run on the emulator's digital twin)"
                 )
             return world.privileged(name)
+        helper = _task_helper(type(self.__dict__.get("base_sim_env")), name)
+        if helper is not None:  # a task's helper reads this env's state, not the idle sim's
+            return types.MethodType(helper, self)
         return super().__getattr__(name)
+
+
+def _task_helper(task: type, name: str):
+    """The plain function ``name`` if one of our task classes defines it (``_common_obs``, ``_place_target``).
+    ManiSkill's ``__getattr__`` hands out the *sim env's* bound method, whose ``self`` is the sim: called from
+    the task's ``_get_obs_extra`` on the real side, it read the sim's TCP (the reset pose all episode long)."""
+    for cls in task.__mro__:
+        func = cls.__dict__.get(name)
+        if func is not None:
+            ours = cls.__module__.startswith("maniskill_irb120.envs")
+            return func if ours and isinstance(func, types.FunctionType) else None
+    return None
 
 
 def _reset_both_sides(env: IRB120Sim2RealEnv, seed=None, options=None) -> None:
