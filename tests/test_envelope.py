@@ -102,3 +102,36 @@ def test_random_pushing_never_leaves_the_box(env_):
             p = env_.tcp_pose(q)[:3, 3]
             assert np.all(p >= low - 1e-9) and np.all(p <= high + 1e-9)
     assert "workspace" in refused
+
+
+# an episode's last pose through the emulator (a learned policy, seed 1003): TCP (0.31, -0.30, 0.45) m at the
+# box's corner, wrist turned -207 deg
+WRIST_TURNED = np.array([-0.7728, 0.4726, -0.3892, -0.0003, 1.4877, -3.6107])
+
+
+def test_plan_move_is_a_straight_joint_line_inside_the_box(env_):
+    step = env_._max_joint_step * 0.5
+    path = env_.plan_move(WRIST_TURNED, REST, step)
+    np.testing.assert_array_equal(path[-1], REST)
+    moves = np.diff(np.vstack([WRIST_TURNED, path]), axis=0)
+    assert np.all(np.abs(moves) <= step + 1e-12)
+    np.testing.assert_allclose(moves / moves[:, 5:6], np.tile(moves[0] / moves[0, 5], (len(moves), 1)), atol=1e-9)
+    for q in path:
+        env_.check_tcp(env_.tcp_pose(q)[:3, 3])
+    # what the reset did before: each axis clipped on its own, so the short moves finish first and the path
+    # bends; from here it left the box over the top (the refusal that stopped an evaluation)
+    now, left = WRIST_TURNED.copy(), False
+    while np.abs(REST - now).max() > 1e-9:
+        now = now + np.clip(REST - now, -step, step)
+        p = env_.tcp_pose(now)[:3, 3]
+        left |= bool(np.any(p > np.asarray(WORKSPACE_HIGH) - env_.margin))
+    assert left
+
+
+def test_plan_move_refuses_before_moving(env_):
+    flipped = np.array([-0.32, -0.55, 0.8, -2.27, -0.52, -2.94])  # inside the box, the wrist flipped over
+    env_.check_tcp(env_.tcp_pose(flipped)[:3, 3])
+    with pytest.raises(EnvelopeError, match=r"\(workspace\): the joint line .* waypoint 1 of 17"):
+        env_.plan_move(flipped, REST, env_._max_joint_step * 0.5)
+    with pytest.raises(EnvelopeError, match="joint_limit"):
+        env_.plan_move(REST, REST + np.r_[0, 0, 0, 0, 0, 10.0], env_._max_joint_step)

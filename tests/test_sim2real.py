@@ -175,7 +175,11 @@ def test_reset_moves_slowly_and_arrives(rig):
     assert len(agent.log) > n
     with pytest.raises(ValueError, match="8 numbers"):
         agent.reset(goal[:6])
+    # from the corner of the box with the wrist turned -207 deg, where an evaluation's reset was refused
+    turned = np.r_[-0.7728, 0.4726, -0.3892, -0.0003, 1.4877, -3.6107, 0.02, 0.02]
+    agent.reset(turned)
     agent.reset(start)
+    np.testing.assert_allclose(np.radians(emu.robot.joints()), start[:6], atol=1e-3)
 
 
 def test_state_obs_on_a_real_robot_is_refused_with_its_reason():

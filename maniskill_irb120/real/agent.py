@@ -104,25 +104,17 @@ class IRB120RealAgent(BaseRealAgent):
         raise NotImplementedError("the RAPID server takes position targets only; use a pd_*_pos control mode")
 
     def reset(self, qpos) -> None:
-        """Move to ``qpos`` slowly: joint moves of at most half the envelope's per-period limit, one per control
-        period, then open or close the gripper as the fingers in ``qpos`` say."""
+        """Move to ``qpos`` slowly: waypoints on the straight joint line at most half the envelope's per-period
+        joint motion apart, one per control period, all checked against the envelope before the robot moves
+        (``Envelope.plan_move``); then open or close the gripper as the fingers in ``qpos`` say."""
         q = np.asarray(torch.as_tensor(qpos).detach().cpu(), dtype=np.float64).reshape(-1)
         if q.shape != (8,):
             raise ValueError(f"a reset pose is 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
         env = self.abb.envelope
-        limit = env._max_joint_step * RESET_STEP_FRACTION
-        env.check_joints(q[:6], q[:6])  # the goal itself inside the envelope before anything moves
-        now = np.asarray(self.refresh().joints)
-        for _ in range(10_000):
-            delta = q[:6] - now
-            if np.abs(delta).max() < 1e-4:
-                break
-            step = now + np.clip(delta, -limit, limit)
+        path = env.plan_move(np.asarray(self.refresh().joints), q[:6], env._max_joint_step * RESET_STEP_FRACTION)
+        for step in path:
             self.abb.move_joints(step)
             time.sleep(env.control_period)
-            now = step
-        else:
-            raise RuntimeError(f"reset did not reach {q[:6]} (last command {now})")
         deadline = time.monotonic() + 5.0
         while self.abb.state().status == Status.MOVING:
             if time.monotonic() > deadline:

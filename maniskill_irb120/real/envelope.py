@@ -117,6 +117,27 @@ class Envelope:
         self.check_tcp(self.tcp_pose(q_target)[:3, 3])
         return q_target
 
+    def plan_move(self, q_now, q_goal, max_step: np.ndarray) -> list[np.ndarray]:
+        """Waypoints (each (6,), the last ``q_goal``) on the straight joint line from ``q_now``: every axis moves
+        in proportion, none more than ``max_step`` between two, every TCP inside the box. Planned whole before
+        anything moves; ``EnvelopeError`` names the first waypoint outside. (Axes clipped one by one instead
+        finish at different times, and that bent path left the box over the top: an episode ending with the
+        wrist turned 200 degrees, measured.)"""
+        q_now = self._check_joint_vector(q_now, "current joints")
+        q_goal = self.check_joints(q_goal, q_goal)
+        n = max(1, int(np.ceil((np.abs(q_goal - q_now) / np.asarray(max_step, dtype=np.float64)).max())))
+        path = [q_now + (q_goal - q_now) * k / n for k in range(1, n)] + [q_goal]
+        low, high = np.asarray(self.workspace_low) + self.margin, np.asarray(self.workspace_high) - self.margin
+        for k, q in enumerate(path):
+            p = self.tcp_pose(q)[:3, 3]
+            if np.any(p < low) or np.any(p > high):
+                raise EnvelopeError(
+                    "workspace",
+                    f"the joint line to {np.round(q_goal, 4)} rad puts the TCP at {np.round(p, 4)} m at waypoint "
+                    f"{k + 1} of {n}, outside the box {low}..{high} m; move the robot nearer first",
+                )
+        return path
+
     def check_tcp(self, p) -> None:
         p = np.asarray(p, dtype=np.float64)
         low, high = np.asarray(self.workspace_low) + self.margin, np.asarray(self.workspace_high) - self.margin
