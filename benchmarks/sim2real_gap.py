@@ -3,6 +3,7 @@ shift alone, and all of them together. Prints a markdown table, writes JSON (and
 ``--out``).
 
     .venv/bin/python benchmarks/sim2real_gap.py --episodes 10 --json benchmarks/results/sim2real_gap.json
+    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera none --shifts none "all together"
 """
 
 from __future__ import annotations
@@ -35,7 +36,11 @@ SHIFTS["all together"] = ",".join(v for v in SHIFTS.values() if v)
 @dataclass
 class Args:
     policy: str = "expert"
-    """'expert' or an agents.ppo checkpoint"""
+    """'expert' or a checkpoint of agents.ppo, agents.dagger or agents.sac"""
+    camera: str = "twin"
+    """twin (the twin's render) or none (a state policy: no frames rendered for it)"""
+    shifts: tuple[str, ...] = ()
+    """rows to run, by name (default: all of SHIFTS)"""
     episodes: int = 10
     seed: int = 1000
     out: Path = Path("runs/sim2real_gap")
@@ -43,12 +48,18 @@ class Args:
 
 
 def main(args: Args) -> dict:
+    unknown = sorted(set(args.shifts) - set(SHIFTS))
+    if unknown:
+        raise ValueError(f"--shifts {unknown}: the rows are {list(SHIFTS)}")
     rows = []
     for name, shift in SHIFTS.items():
+        if args.shifts and name not in args.shifts:
+            continue
         t0 = time.time()
         r = evaluate(
             EvalConfig(
                 policy=args.policy,
+                camera=args.camera,
                 episodes=args.episodes,
                 seed=args.seed,
                 shift=shift,
@@ -79,7 +90,7 @@ def main(args: Args) -> dict:
         seed=args.seed,
         rows=rows,
     )
-    print(f"policy {args.policy}, {args.episodes} episodes from seed {args.seed}, emulator twin")
+    print(f"policy {args.policy} (camera {args.camera}), {args.episodes} episodes from seed {args.seed}, emulator twin")
     print(
         "| shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
         "| round trip p50 (ms) | refused |"

@@ -93,6 +93,9 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
     if command_mode == "tool_delta" and control_mode != "pd_ee_delta_tool":
         raise ValueError(f"{path} acts in {control_mode}; tool_delta sends pd_ee_delta_tool actions")
     env_kwargs = dict(args.env_kwargs)
+    # the sim side is the nominal task: a policy trained with domain randomisation is compared with the sim
+    # it was meant for, and the world's differences are the --shift's
+    env_kwargs.pop("randomization", None)
     if hasattr(args, "reward_mode"):
         env_kwargs.setdefault("reward_mode", args.reward_mode)
     obs_mode, obs_wrappers = observation_setup(

@@ -86,3 +86,17 @@ def test_rllib_speed_quick_writes_json(tmp_path):
     remote = [row for row in r["rows"] if row["runners"] == 1 and row["trainer"] == "rllib PPO"][0]
     assert remote["rss_mb_per_runner"] > 100 and remote["per_step_ms"]["env_step"] > 0
     assert r["versions"]["ray"] == "2.60.0" and "| rllib PPO | 1 | 1 |" in run.stdout
+
+
+def test_sim2real_gap_runs_the_named_rows(tmp_path):
+    out = tmp_path / "gap.json"
+    cmd = [sys.executable, str(REPO / "benchmarks" / "sim2real_gap.py"), "--episodes", "1", "--out", str(tmp_path)]
+    run = subprocess.run(
+        [*cmd, "--shifts", "none", "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=REPO
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert [row["shift"] for row in r["rows"]] == ["none"] and r["rows"][0]["real_success"] in (0.0, 1.0)
+    assert "| none |" in run.stdout
+    bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
