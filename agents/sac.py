@@ -31,6 +31,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 import tyro
+from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents.common import (
@@ -91,8 +92,10 @@ class Args(RunArgs):
     """gradient updates per environment transition (update-to-data ratio)"""
     learning_starts: int = 1000
     """online transitions before updates begin"""
-    buffer_size: int = 300_000
-    """online transitions kept (oldest dropped first); the demo buffer has the same capacity"""
+    buffer_size: Optional[int] = None
+    """online transitions kept (oldest dropped first). Default 300,000 from state, 50,000 from rgbd: a camera
+    transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would ask for 21 GB; the demo buffer
+    holds exactly the demo episodes"""
     batch_size: int = 256
     """minibatch size, demos and online data together"""
     gamma: float = 0.95
@@ -358,10 +361,25 @@ def collect_demos(envs, state: dict, demos: Dataset, episodes: int) -> int:
     return steps
 
 
+def online_rows(args: Args) -> int:
+    """--buffer-size, or its default for the observation (a camera row is ~70 kB: 300k of them are 21 GB)."""
+    if args.buffer_size is None:
+        return 50_000 if args.obs == "rgbd" else 300_000
+    if args.buffer_size < 1:
+        raise ValueError(f"--buffer-size {args.buffer_size}: keep at least one transition")
+    return args.buffer_size
+
+
+def demo_rows(args: Args) -> int:
+    """Every demo step: the envs still mid-episode when the last demo ends keep adding theirs."""
+    return max(1, (args.demo_episodes + args.num_envs) * REGISTERED_ENVS[args.env_id].max_episode_steps)
+
+
 def train(args: Args) -> dict:
     from dataclasses import replace
 
     t_start = time.perf_counter()
+    args = replace(args, buffer_size=online_rows(args))
     saved = load_torch(args.resume, FORMAT, "agents.sac") if args.resume is not None else None
     run_dir = (
         Path(args.resume).resolve().parent.parent
@@ -380,7 +398,7 @@ def train(args: Args) -> dict:
         pi=torch.optim.Adam(model.actor.parameters(), lr=args.policy_lr),
         alpha=torch.optim.Adam([model.log_alpha], lr=args.q_lr),
     )
-    online, demos = Dataset(args.buffer_size), Dataset(args.buffer_size)
+    online, demos = Dataset(args.buffer_size), Dataset(demo_rows(args))
     counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
     if saved is not None:
         if saved["signature"] != model.signature():

@@ -11,7 +11,19 @@ import pytest
 import torch
 
 from agents.dagger import Dataset
-from agents.sac import SAC, Args, collect_demos, main, make_envs, pretrain, sample, split, transitions
+from agents.sac import (
+    SAC,
+    Args,
+    collect_demos,
+    demo_rows,
+    main,
+    make_envs,
+    online_rows,
+    pretrain,
+    sample,
+    split,
+    transitions,
+)
 
 
 def tiny(tmp_path: Path, **kw) -> dict:
@@ -94,6 +106,9 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["demos"]["size"] > 0 and saved["online"]["size"] > 0
+    # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, 250 steps each)
+    assert saved["online"]["capacity"] == 300_000 and saved["demos"]["capacity"] == 500
+    assert saved["args"]["buffer_size"] == 300_000
     again = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.3)
     assert again["env_steps"] > res["env_steps"] and again["updates"] > res["updates"]
     assert again["wall_clock_s"] > res["wall_clock_s"]
@@ -102,8 +117,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
 
 
 def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):
-    # a small replay: the default 300k RGB-D rows are two ~10 GB buffers, and after the RLlib tests (Ray's
-    # object store holds shared memory) allocating them took 29 s of the budget (profiled: torch.empty)
+    # a small replay: allocating RGB-D rows is slow after the RLlib tests (Ray's object store holds shared
+    # memory; the old 300k-row default took 29 s of the budget, profiled: torch.empty)
     res = tiny(tmp_path, obs="rgbd", batch_size=8, bc_pretrain_updates=2, critic_warmup_updates=2, buffer_size=2000)
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["signature"]["image_shape"] == [84, 84, 4] and saved["signature"]["state_dim"] < 40
@@ -115,7 +130,15 @@ def test_bad_input_is_named(tmp_path):
         main(Args(demo_ratio=1.5))
     with pytest.raises(ValueError, match="--checkpoint"):
         main(Args(evaluate=True))
+    with pytest.raises(ValueError, match="--buffer-size 0"):
+        main(Args(buffer_size=0))
     wrong = tmp_path / "dagger.pt"
     torch.save(dict(format="maniskill_irb120.dagger/1"), wrong)
     with pytest.raises(ValueError, match="not written by agents.sac"):
         main(Args(evaluate=True, checkpoint=wrong))
+
+
+def test_replay_sizes_fit_the_observation():
+    assert online_rows(Args(obs="state")) == 300_000 and online_rows(Args(obs="rgbd")) == 50_000  # ~3.5 GB
+    assert online_rows(Args(obs="rgbd", buffer_size=100_000)) == 100_000
+    assert demo_rows(Args(demo_episodes=30, num_envs=2)) == 32 * 250 and demo_rows(Args(demo_episodes=0)) >= 1
