@@ -87,6 +87,9 @@ class Args:
     """held-out episodes per run and per reference (seeds agents.common.EVAL_SEED onwards)"""
     env_id: str = "TableClearing-IRB120-v1"
     out_dir: Path = Path("benchmarks/results/learning")
+    merge: bool = False
+    """keep the rows of recipes this run does not train from the existing learning.json (each with the command
+    and date it came from): a 2-core machine runs the recipes one session at a time"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
@@ -247,12 +250,28 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def carried_rows(path: Path, retrained: list[str]) -> list[dict]:
+    """The trained rows of an earlier report that this run does not replace, stamped with their provenance."""
+    if not path.is_file():
+        raise FileNotFoundError(f"--merge: no earlier report at {path}")
+    old = json.loads(path.read_text())
+    rows = [r for r in old["rows"] if r["recipe"] not in REFERENCES and r["recipe"] not in retrained]
+    return [dict(r, command=r.get("command", old["command"]), date=r.get("date", old["date"])) for r in rows]
+
+
 def update_results(report: dict, table: str, results: Path) -> None:
     """Replace the ``## Learning`` section of RESULTS.md (up to the next ``## ``) with this run's."""
     head = "## Learning — `benchmarks/learning.py`"
+    earlier = "".join(
+        f"{r['recipe']}: `{r['command']}` ({r['date']}); "
+        for r in report["rows"]
+        if r.get("date") not in (None, report["date"])
+    )
+    earlier = f" Rows carried over (`--merge`) from earlier runs: {earlier.rstrip('; ')}." if earlier else ""
     section = (
         f"{head}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}, "
-        f"{report['wall_min']:.0f} min). Held-out seeds {EVAL_SEED}.. ({report['eval_episodes']} episodes per run); "
+        f"{report['wall_min']:.0f} min).{earlier} Held-out seeds {EVAL_SEED}.. "
+        f"({report['eval_episodes']} episodes per run); "
         f"raw data: [`results/learning/learning.json`](results/learning/learning.json).\n\n{table}\n\n"
         "![learning curves](results/learning/learning.png)\n\n"
     )
@@ -270,12 +289,16 @@ def main(args: Args) -> dict:
     rng = np.random.default_rng(0)
     t0 = time.time()
     rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
+    command = "python benchmarks/learning.py " + " ".join(sys.argv[1:])
+    date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    kept = carried_rows(args.out_dir / "learning.json", args.recipes) if args.merge else []
     for recipe in args.recipes:
         runs = [train_run(recipe, seed, args) for seed in args.seeds]
-        rows.append(summarise(recipe, RECIPES[recipe][2], runs, args, rng))
+        rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
+    rows += kept
     report = dict(
-        command="python benchmarks/learning.py " + " ".join(sys.argv[1:]),
-        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        command=command,
+        date=date,
         machine=f"{platform.node()} {platform.machine()}, {torch.get_num_threads()} torch threads",
         wall_min=(time.time() - t0) / 60,
         eval_episodes=args.eval_episodes,

@@ -100,3 +100,29 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert "| none |" in run.stdout
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
+
+
+def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+
+    row = dict(success_ci95=[0.9, 1.0], seeds=[1], per_seed=[0.97], success_mean=0.97, success_iqm=1.0)
+    row.update(obs="state", env_steps_mean=1000, wall_clock_min_mean=60.0)
+    old = dict(command="python benchmarks/learning.py --recipes dagger-state sac-state", date="2026-11-23 09:06 UTC")
+    old["rows"] = [dict(row, recipe="expert"), dict(row, recipe="dagger-state"), dict(row, recipe="sac-state")]
+    with pytest.raises(FileNotFoundError, match="--merge"):
+        learning.carried_rows(tmp_path / "learning.json", ["dagger-rgbd"])
+    (tmp_path / "learning.json").write_text(json.dumps(old))
+    kept = learning.carried_rows(tmp_path / "learning.json", ["sac-state"])  # sac-state is retrained
+    assert [r["recipe"] for r in kept] == ["dagger-state"]
+    assert kept[0]["command"] == old["command"] and kept[0]["date"] == old["date"]
+    new = dict(row, recipe="sac-state", command="python benchmarks/learning.py --recipes sac-state --merge")
+    report = dict(command=new["command"], date="2026-11-24 10:00 UTC", machine="m", wall_min=120, eval_episodes=100)
+    report["rows"] = [dict(row, recipe="expert"), dict(new, date=report["date"]), *kept]
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\nold\n\n## Next\n")
+    learning.update_results(report, learning.markdown(report["rows"]), results)
+    text = results.read_text()
+    assert "Rows carried over (`--merge`) from earlier runs: dagger-state: `python benchmarks/learning.py" in text
+    assert "| sac-state | state |" in text and "| dagger-state | state |" in text and "## Next" in text
+    assert "old" not in text.split("## Next")[0] and "expert: `" not in text
