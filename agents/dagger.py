@@ -223,11 +223,14 @@ def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float
     return out
 
 
-def train_round(policy, optimizer, data: Dataset, args: Args, device) -> float:
-    """``updates_per_round`` minibatch steps of behaviour cloning (MSE to the expert's actions)."""
+def train_round(policy, optimizer, data: Dataset, args: Args, device, out_of_time=lambda: False) -> float:
+    """``updates_per_round`` minibatch steps of behaviour cloning (MSE to the expert's actions), fewer when
+    ``out_of_time()`` (the wall-clock budget: from the camera, 1000 updates take ~5 min on 2 cores)."""
     policy.train()
-    total = 0.0
+    total, done = 0.0, 0
     for _ in range(args.updates_per_round):
+        if done and out_of_time():
+            break
         obs, act = data.sample(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
@@ -236,8 +239,9 @@ def train_round(policy, optimizer, data: Dataset, args: Args, device) -> float:
         loss.backward()
         optimizer.step()
         total += loss.item()
+        done += 1
     policy.eval()
-    return total / max(1, args.updates_per_round)
+    return total / max(1, done)
 
 
 def policy_for(space, action_dim: int, device) -> DeterministicActor:
@@ -347,7 +351,7 @@ def train(args: Args) -> dict:
             else:
                 beta = args.beta * args.beta_decay ** (r - 1)
                 stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
-            loss = train_round(policy, optimizer, data, args, device)
+            loss = train_round(policy, optimizer, data, args, device, lambda: elapsed() > budget_s)
             counters["round"] = r + 1
             counters["env_steps"] += stats.pop("steps")
             counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
