@@ -152,3 +152,22 @@ def test_latency_longer_than_a_period_is_refused():
         make("latency=0.06", "state", render_backend="none")
     with pytest.raises(ValueError, match="unknown randomisation"):
         Randomization.from_any({"lights": 1.0})
+
+
+def test_build_time_ranges_are_redrawn_every_episode():
+    env = make("object_size=0.8:1.25,object_mass=0.5:2", "state", render_backend="none")
+    u = env.unwrapped
+    sizes, masses = set(), set()
+    for seed in range(4):
+        env.reset(seed=seed)
+        sizes.add(round(u.object_half_size, 6))
+        masses.add(round(u.obj._bodies[0].mass, 6))
+        assert 0.008 - 1e-9 <= u.object_half_size <= 0.0125 + 1e-9
+        # the object is built at the drawn size: it rests on the tray floor at its half size
+        assert float(u.obj.pose.p[0, 2] - u.source_center[0, 2]) == pytest.approx(u.object_half_size, abs=2e-4)
+    assert len(sizes) == 4 and len(masses) == 4
+    env.close()
+    once = make("object_size=0.8:1.25", "state", render_backend="none", reconfiguration_freq=0)
+    drawn = {(once.reset(seed=s), round(once.unwrapped.object_half_size, 6))[1] for s in range(3)}
+    assert len(drawn) == 1  # asked for one draw per build: kept
+    once.close()

@@ -98,6 +98,8 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         self.object_friction = object_friction
         self.spawn_margin = spawn_margin
         self._init_randomization(randomization)
+        if self.randomization.build_ranges() and "reconfiguration_freq" not in kwargs:
+            kwargs["reconfiguration_freq"] = 1  # a new draw each episode (envs/randomization.py says why)
         super().__init__(
             *args,
             robot_uids=robot_uids,

@@ -19,7 +19,10 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``object_friction`` | scale of ``object_friction`` | scene build | per env |
 | ``latency`` | s: how far into a control period new targets reach the drives | each episode | per env, 10 ms steps |
 
-Scene-build draws are redrawn every episode with ``reconfiguration_freq=1`` (as ``object_shape="random"``).
+A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
+as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
+size would be one size for a whole training run (measured: a DAgger policy trained so delivered 88 % on its
+own draw and 10 % on the nominal cube). ``reconfiguration_freq=0`` keeps one draw per build on purpose.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ VECTOR_FIELDS = ("camera_pos", "camera_rot")
 OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
 OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0)
 SCALES = ("light", "object_size", "object_mass", "object_friction")
+BUILD_FIELDS = ("object_size", "object_mass", "object_friction")  # drawn when the scene is built
 
 
 @dataclass(frozen=True)
@@ -112,6 +116,10 @@ class Randomization:
                 raise ValueError(f"unknown randomisation fields {sorted(unknown)}")
             return cls(**spec)
         raise TypeError(f"randomization must be None, a dict, a string or a Randomization, got {type(spec).__name__}")
+
+    def build_ranges(self) -> list[str]:
+        """The scene-build fields given as a (low, high) range: one draw per scene build."""
+        return [k for k in BUILD_FIELDS if not np.isscalar(getattr(self, k))]
 
     def active(self) -> list[str]:
         return [f.name for f in fields(self) if getattr(self, f.name) != OFF[f.name]]
