@@ -31,7 +31,7 @@ class EnvelopeError(ValueError):
 
     def __init__(self, limit: str, detail: str):
         super().__init__(f"refused by the safety envelope ({limit}): {detail}")
-        self.limit = limit
+        self.limit, self.detail = limit, detail
 
 
 @dataclass(frozen=True)
@@ -127,15 +127,15 @@ class Envelope:
         q_goal = self.check_joints(q_goal, q_goal)
         n = max(1, int(np.ceil((np.abs(q_goal - q_now) / np.asarray(max_step, dtype=np.float64)).max())))
         path = [q_now + (q_goal - q_now) * k / n for k in range(1, n)] + [q_goal]
-        low, high = np.asarray(self.workspace_low) + self.margin, np.asarray(self.workspace_high) - self.margin
         for k, q in enumerate(path):
-            p = self.tcp_pose(q)[:3, 3]
-            if np.any(p < low) or np.any(p > high):
+            try:
+                self.check_tcp(self.tcp_pose(q)[:3, 3])
+            except EnvelopeError as e:
                 raise EnvelopeError(
                     "workspace",
-                    f"the joint line to {np.round(q_goal, 4)} rad puts the TCP at {np.round(p, 4)} m at waypoint "
-                    f"{k + 1} of {n}, outside the box {low}..{high} m; move the robot nearer first",
-                )
+                    f"the joint line to {np.round(q_goal, 4)} rad, waypoint {k + 1} of {n}: {e.detail}; "
+                    "move the robot nearer first",
+                ) from None
         return path
 
     def check_tcp(self, p) -> None:
