@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from agents.dagger import Args, Dataset, main, make_envs
-from agents.nets import random_shift
+from agents.dagger import Args, Dataset, main, make_envs, train_round
+from agents.nets import DeterministicActor, random_shift
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.wrappers import tcp_rotation, tool_to_world
 
@@ -108,6 +108,20 @@ def test_random_shift_moves_rgb_and_depth_together():
         ys, xs = torch.nonzero(out["rgb"][i, :, :, 0] == 255, as_tuple=True)
         assert len(ys) == 1 and abs(int(ys[0]) - 40) <= 4 and abs(int(xs[0]) - 40) <= 4
         assert out["depth"][i, ys[0], xs[0], 0] == 500  # the same pixel in both
+
+
+def test_round_updates_stop_at_the_budget():
+    data = Dataset(64)
+    data.add({"state": torch.randn(64, 6)}, torch.rand(64, 5) * 2 - 1)
+    policy = DeterministicActor(None, 6, 5)
+    opt = torch.optim.AdamW(policy.parameters(), lr=1e-3)
+    args = Args(updates_per_round=20, batch_size=8)
+    calls = []
+    train_round(policy, opt, data, args, torch.device("cpu"), lambda: calls.append(1) or len(calls) > 3)
+    steps = {int(v["step"]) for v in opt.state.values()}
+    assert steps == {4}  # one update, then three more while in budget; the 5th check says out of time
+    train_round(policy, opt, data, args, torch.device("cpu"))  # no budget: every update
+    assert {int(v["step"]) for v in opt.state.values()} == {24}
 
 
 def tiny(tmp_path: Path, **kw) -> dict:

@@ -302,8 +302,9 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     small = dict(
         num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32, progress=False
     )
+    # 15 s: round 0's updates stop at the budget, and the frame check below needs a policy that has trained
     res = main(
-        Args(obs_without=("agent/qvel",), budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, exp_name="d", **small)
+        Args(obs_without=("agent/qvel",), budget_min=0.25, eval_episodes=1, runs_dir=tmp_path, exp_name="d", **small)
     )
     sim_env, make_policy = load_policy(res["checkpoint"], ENV_ID, "tool_delta")
     obs, _ = sim_env.reset(seed=3)
