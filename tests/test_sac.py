@@ -23,6 +23,7 @@ from agents.sac import (
     sample,
     split,
     transitions,
+    update,
 )
 
 
@@ -83,6 +84,9 @@ def test_cloning_moves_the_actor_onto_the_expert():
         collect_demos(envs, state, demos, 2)
     finally:
         envs.close()
+    rows = demos.obs
+    # the expert delivers both: each episode's last row is an absorbing success, never a plain terminal
+    assert rows["succ"][: demos.size].sum() == 2 and (rows["succ"][: demos.size] <= rows["term"][: demos.size]).all()
     torch.manual_seed(0)
     model = SAC(None, demos.obs["state"].shape[1], 5, 0.1)
     model.critic.norm.fit(demos.obs["state"][: demos.size])
@@ -96,6 +100,25 @@ def test_cloning_moves_the_actor_onto_the_expert():
     opts = dict(q=torch.optim.Adam(model.critic.parameters()))
     pretrain(model, opts, Dataset(1), demos, args, "cpu")
     assert error() < 0.3 * before, (before, error())
+
+
+def test_success_targets_its_absorbing_return_and_failure_has_no_future():
+    torch.manual_seed(0)
+    model = SAC(None, 3, 5, 0.1)
+    opts = dict(q=torch.optim.Adam(model.critic.parameters(), lr=0.0))  # lr 0: read the loss, move nothing
+    obs, act = {"state": torch.zeros(1, 3)}, torch.zeros(1, 5)
+    with torch.no_grad():
+        q1, q2 = model.critic(model.critic.features(obs), act)
+
+    def q_loss(rew: float, term: float, succ: float) -> float:
+        row = dict(state=obs["state"], next_state=obs["state"], rew=torch.tensor([rew]), term=torch.tensor([term]))
+        row["succ"] = torch.tensor([succ])
+        return update(model, opts, row, act, 0, Args(gamma=0.9), actor=False)["q_loss"]
+
+    # a delivery (reward 1.0) is worth 1 / (1 - 0.9) = 10, the value of staying at the maximum reward
+    assert q_loss(1.0, 1.0, 1.0) == pytest.approx(float((q1 - 10) ** 2 + (q2 - 10) ** 2), rel=1e-4)
+    # a collision (reward 0, terminal) is worth nothing after it
+    assert q_loss(0.0, 1.0, 0.0) == pytest.approx(float(q1**2 + q2**2), rel=1e-4)
 
 
 def test_state_run_resume_and_evaluate(tmp_path, capsys):
