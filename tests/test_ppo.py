@@ -136,3 +136,54 @@ def test_critic_warmup_leaves_policy_untouched():
     assert losses[-1] < 0.5 * losses[0]
     now = list(agent.actor_mean.parameters()) + list(agent.encoder.parameters())
     assert all(torch.equal(a, b) for a, b in zip(frozen, now))
+
+
+def test_a_residual_policy_starts_at_its_base_and_its_kl_pulls_back():
+    torch.manual_seed(0)
+    agent = Agent(None, 6, 5, residual=True, init_logstd=-2.0)
+    obs = {"state": torch.randn(32, 6)}
+    base = agent.base_action(obs)
+    assert torch.equal(agent.get_action(obs, deterministic=True), base)  # the residual head starts at zero
+    _, _, _, _, mean = agent.get_action_and_value(obs, with_mean=True)
+    assert agent.kl_to_base(obs, mean).abs().max() < 1e-6
+    with torch.no_grad():
+        agent.actor_mean[-1].bias.fill_(0.3)  # a policy that drifted 0.3 from the base on every axis
+    _, _, _, _, mean = agent.get_action_and_value(obs, with_mean=True)
+    kl = agent.kl_to_base(obs, mean)
+    assert kl.mean().item() == pytest.approx(5 * 0.3**2 / (2 * torch.exp(torch.tensor(-4.0)).item()), rel=1e-4)
+    # the base is frozen: an update moves the residual and the std only
+    before = [p.clone() for p in agent.base.parameters()]
+    opt = optim.Adam([p for p in agent.parameters() if p.requires_grad], lr=1e-2)
+    kl.mean().backward()
+    opt.step()
+    assert all(torch.equal(a, b) for a, b in zip(before, agent.base.parameters()))
+    assert agent.actor_mean[-1].bias.abs().max() < 0.3
+
+
+def test_fine_tuning_a_dagger_policy_with_kl_resume_and_evaluate(tmp_path):
+    from agents import dagger
+
+    base = dagger.main(
+        dagger.Args(
+            budget_min=0.05, num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=5,
+            batch_size=16, eval_episodes=1, runs_dir=tmp_path, exp_name="base", progress=False, capture_video=False,
+        )
+    )  # fmt: skip
+    kw = dict(obs="state", action_frame="world", base_checkpoint=Path(base["checkpoint"]), kl_coef=1.0)
+    res = run(tmp_path, init_logstd=-2.0, eval_episodes=1, **kw)
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["signature"]["residual"] and any(k.startswith("base.") for k in saved["model"])
+    assert "losses/kl_to_base" in res["history"][-1]
+    # the base travels in the checkpoint: resuming and evaluating need no --base-checkpoint
+    again = run(tmp_path, obs="state", action_frame="world", kl_coef=1.0, resume=Path(res["checkpoint"]),
+                total_timesteps=32)  # fmt: skip
+    assert again["global_step"] > res["global_step"]
+    ev = run(tmp_path, obs="state", action_frame="world", evaluate=True, checkpoint=Path(res["checkpoint"]),
+             capture_video=False)  # fmt: skip
+    assert ev["episodes"] == 1
+    with pytest.raises(ValueError, match="'world' frame; pass --action-frame world"):
+        run(tmp_path, obs="state", evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=False)
+    with pytest.raises(ValueError, match="acts in the 'world' frame"):  # a base from another frame
+        run(tmp_path, obs="state", base_checkpoint=Path(base["checkpoint"]))
+    with pytest.raises(ValueError, match="give --base-checkpoint"):
+        run(tmp_path, obs="state", kl_coef=1.0)
