@@ -78,8 +78,11 @@ class Args(RunArgs):
     """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
     num_envs: int = 2
     """CPU worker processes (1: one env in this process)"""
-    demo_episodes: int = 30
+    demo_episodes: int = 50
     """reactive-expert episodes in the demo buffer (0: plain SAC)"""
+    dart_noise: float = 0.2
+    """std of the Gaussian on the demo episodes' executed arm actions (DART, as agents.dagger's round 0); the
+    cloning learns the clean labels. 30 clean demos cloned to 20 % success and 77 % collisions"""
     demo_ratio: float = 0.5
     """fraction of every minibatch drawn from the demo buffer (RLPD's symmetric sampling)"""
     bc_pretrain_updates: int = 2000
@@ -94,7 +97,18 @@ class Args(RunArgs):
     updates_per_step: float = 0.5
     """gradient updates per environment transition (update-to-data ratio)"""
     learning_starts: int = 1000
-    """online transitions before updates begin"""
+    """online transitions before updates begin (without demos; with them updates begin at once)"""
+    reference: bool = True
+    """IBRL (arXiv 2311.02198): keep the clone frozen after pretraining, and act and bootstrap with whichever of
+    its action and the actor's the critic values higher (needs demos). Without it the actor left the clone as
+    soon as it learned: 60-77 % training success fell to 0 within 4,000 steps"""
+    reference_weight: float = 1.0
+    """weight of the MSE from the actor's action to the frozen clone's on every state of the batch (the demo
+    term covers only demo states; the online states are where the actor left the clone)"""
+    actor_delay: int = 5000
+    """online transitions during which only the critic learns, on the cloned policy's own rollouts: warmed up
+    on the demos alone it has never seen another action, and the actor that followed it straight away
+    collided in 90 % of its first episodes"""
     buffer_size: Optional[int] = None
     """online transitions kept (oldest dropped first). Default 300,000 from state, 50,000 from rgbd: a camera
     transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would ask for 21 GB; the demo buffer
@@ -105,12 +119,16 @@ class Args(RunArgs):
     """discount for the ~75-step episodes"""
     tau: float = 0.005
     """Polyak rate of the target critic"""
-    policy_lr: float = 3e-4
+    policy_lr: float = 1e-4
     """Adam learning rate of the actor (and of the cloning before RL)"""
     q_lr: float = 3e-4
     """Adam learning rate of the critics and of the entropy temperature"""
-    init_alpha: float = 0.05
-    """initial entropy temperature (tuned towards entropy -|A| from there)"""
+    init_alpha: float = 0.001
+    """initial entropy temperature (tuned towards entropy -|A| from there); at 0.05 the entropy bonus widened the
+    cloned policy's std faster than the temperature fell"""
+    eval_deterministic: bool = True
+    """evaluate the mean action (with a reference: the better of it and the clone's); --no-eval-deterministic
+    evaluates the policy as it acts in training (its sample, or the clone's action with --init-std noise)"""
     reward_mode: str = "normalized_dense"
     """the task reward SAC maximises (normalized_dense: staged, in [0, 1] per step)"""
     augment: bool = True
@@ -174,26 +192,63 @@ class Actor(nn.Module):
         return a, logp, torch.tanh(mean)
 
 
+class Reference(nn.Module):
+    """The cloned policy, frozen (IBRL), with its own copy of the encoder the critic goes on training."""
+
+    def __init__(self, critic: Critic, actor: Actor):
+        super().__init__()
+        self.norm, self.encoder, self.actor = (
+            copy.deepcopy(m).requires_grad_(False) for m in (critic.norm, critic.encoder, actor)
+        )
+
+    def forward(self, obs: dict) -> torch.Tensor:
+        return self.actor(self.encoder(self.norm(obs)))[2]
+
+
 class SAC(nn.Module):
-    def __init__(self, image_shape, state_dim: int, action_dim: int, init_alpha: float):
+    def __init__(self, image_shape, state_dim: int, action_dim: int, init_alpha: float, reference: bool = False):
         super().__init__()
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
         self.critic = Critic(image_shape, state_dim, action_dim)
         self.target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor = Actor(self.critic.encoder.out_dim, action_dim)
         self.log_alpha = nn.Parameter(torch.tensor(float(np.log(init_alpha))))
+        self.reference = Reference(self.critic, self.actor) if reference else None
+
+    def freeze_reference(self) -> None:
+        """Keep the actor as cloned so far as IBRL's reference policy."""
+        self.reference = Reference(self.critic, self.actor)
 
     def signature(self) -> dict:
         shape = list(self.image_shape) if self.image_shape else None
-        return dict(image_shape=shape, state_dim=self.state_dim, action_dim=self.action_dim)
+        return dict(
+            image_shape=shape,
+            state_dim=self.state_dim,
+            action_dim=self.action_dim,
+            reference=self.reference is not None,
+        )
 
-    def act(self, obs: dict, deterministic: bool) -> torch.Tensor:
+    def better(self, critic: Critic, feats: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
+        """Per sample, whichever of ``a`` and ``b`` ``critic`` values higher (clipped double Q), and its value."""
+        qa, qb = torch.min(*critic(feats, a)), torch.min(*critic(feats, b))
+        return torch.where((qb > qa)[:, None], b, a), torch.max(qa, qb)
+
+    def act(self, obs: dict, deterministic: bool, noise: float = 0.0) -> torch.Tensor:
+        """The actor's action or, with a reference, the better of it and the clone's (``noise``: std of the
+        Gaussian on the clone's arm actions when exploring)."""
         with torch.no_grad():
-            a, _, mean = self.actor(self.critic.features(obs))
-        return mean if deterministic else a
+            feats = self.critic.features(obs)
+            a, _, mean = self.actor(feats)
+            a = mean if deterministic else a
+            if self.reference is None:
+                return a
+            ref = self.reference(obs)
+            if not deterministic and noise > 0:
+                ref[:, :4] = (ref[:, :4] + noise * torch.randn_like(ref[:, :4])).clamp(-1, 1)
+            return self.better(self.critic, feats, a, ref)[0]
 
 
-ROW_FIELDS = ("rew", "term", "succ")
+ROW_FIELDS = ("rew", "term", "succ", "label")
 
 
 def split(batch: dict) -> tuple[dict, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
@@ -213,8 +268,11 @@ def sample(online: Dataset, demos: Dataset, args: Args, device) -> tuple[dict, t
         parts.append(demos.sample(n_demo, device))
     if args.batch_size - n_demo:
         parts.append(online.sample(args.batch_size - n_demo, device))
-    obs = {k: torch.cat([p[0][k] for p in parts]) for k in parts[0][0]}
+    label = parts[0][0].pop("label", parts[0][1])[:n_demo] if n_demo else None
+    obs = {k: torch.cat([p[0][k] for p in parts]) for k in parts[-1][0] if k != "label"}
     act = torch.cat([p[1] for p in parts])
+    if label is not None:  # the expert's clean action on the demo rows (the BC term's target)
+        obs["label"] = torch.cat([label, act[n_demo:]])
     if args.obs == "rgbd" and args.augment:
         obs = random_shift(obs)
         nxt = random_shift({k[5:]: v for k, v in obs.items() if k.startswith("next_")})
@@ -228,8 +286,11 @@ def update(model: SAC, opts: dict, batch: dict, act: torch.Tensor, n_demo: int, 
     with torch.no_grad():
         nf = model.critic.features(nxt)
         na, nlogp, _ = model.actor(nf)
-        tq1, tq2 = model.target(model.target.features(nxt), na)
-        target = rew + args.gamma * (1 - term) * (torch.min(tq1, tq2) - alpha * nlogp)
+        tf = model.target.features(nxt)
+        next_v = torch.min(*model.target(tf, na)) - alpha * nlogp
+        if model.reference is not None:  # IBRL: bootstrap from the better of the actor's and the clone's action
+            next_v = torch.max(next_v, torch.min(*model.target(tf, model.reference(nxt))))
+        target = rew + args.gamma * (1 - term) * next_v
         if "succ" in batch:  # success is absorbing at the maximum reward (see transitions)
             target = torch.where(batch["succ"] > 0, rew / (1 - args.gamma), target)
     feats = model.critic.features(obs)
@@ -248,10 +309,15 @@ def update(model: SAC, opts: dict, batch: dict, act: torch.Tensor, n_demo: int, 
     a, logp, mean = model.actor(f)
     qa1, qa2 = model.critic(f, a)
     pi_loss = (alpha * logp - torch.min(qa1, qa2)).mean()
+    # scaled by |Q| so the cloning terms keep their weight as the Q-values grow (TD3+BC's normalisation)
+    scale = torch.min(qa1, qa2).abs().mean().detach().clamp(min=1.0)
     if n_demo and args.bc_weight > 0:
-        # scaled by |Q| so the BC term keeps its weight as the Q-values grow (TD3+BC's normalisation)
-        scale = torch.min(qa1, qa2).abs().mean().detach().clamp(min=1.0)
-        pi_loss = pi_loss + args.bc_weight * scale * F.mse_loss(mean[:n_demo], act[:n_demo])
+        target = batch.get("label", act)[:n_demo]
+        pi_loss = pi_loss + args.bc_weight * scale * F.mse_loss(mean[:n_demo], target)
+    if model.reference is not None and args.reference_weight > 0:  # stay near the clone on every state
+        with torch.no_grad():
+            clone = model.reference(obs)
+        pi_loss = pi_loss + args.reference_weight * scale * F.mse_loss(mean, clone)
     opts["pi"].zero_grad()
     pi_loss.backward()
     opts["pi"].step()
@@ -287,6 +353,7 @@ def transitions(obs: dict, action, reward, term, o, info) -> tuple[dict, torch.T
 def bc_step(model: SAC, opt, demos: Dataset, args: Args, device) -> float:
     """One behaviour-cloning update of the actor (and the shared encoder) on a demo minibatch."""
     batch, act = demos.sample(args.batch_size, device)
+    act = batch.get("label", act)
     obs, *_ = split(batch)
     if args.obs == "rgbd" and args.augment:
         obs = random_shift(obs)
@@ -339,7 +406,7 @@ def load_model(path: Path, device) -> tuple[SAC, dict]:
 def model_from_checkpoint(ckpt: dict, device) -> SAC:
     sig = ckpt["signature"]
     shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-    model = SAC(shape, sig["state_dim"], sig["action_dim"], 1.0).to(device)
+    model = SAC(shape, sig["state_dim"], sig["action_dim"], 1.0, sig.get("reference", False)).to(device)
     model.load_state_dict(ckpt["model"])
     return model.eval()
 
@@ -348,8 +415,9 @@ def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) 
     seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
     obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
     kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, obs_mode=obs_mode)
+    torch.manual_seed(EVAL_SEED)  # a stochastic evaluation's noise is seeded too
     return evaluate_on_seeds(
-        lambda o: model.act(obs_to(o, device), deterministic=True).cpu(),
+        lambda o: model.act(obs_to(o, device), deterministic=args.eval_deterministic, noise=args.init_std).cpu(),
         args.env_id,
         args.obs,
         seeds,
@@ -369,13 +437,19 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
-def collect_demos(envs, state: dict, demos: Dataset, episodes: int) -> int:
-    """Clean reactive-expert episodes into ``demos``; returns the env steps taken."""
+def collect_demos(envs, state: dict, demos: Dataset, episodes: int, noise: float = 0.0) -> int:
+    """Reactive-expert episodes into ``demos``, with DART noise on the executed arm actions: each row keeps the
+    executed action (the critic's) and the expert's clean ``label`` (the cloning's), so the clone also learns to
+    recover from the states noise leads to. Returns the env steps taken."""
     finished = steps = 0
     while finished < episodes:
-        action = state["label"]
+        label = state["label"]
+        action = label.clone()
+        action[:, :4] += noise * torch.randn(len(action), 4)
+        action = action.clamp(-1, 1)
         o, rew, term, trunc, info = envs.step(action)
         row, act = transitions(state["obs"], action, rew, term, o, info)
+        row["label"] = label
         demos.add(row, act)
         state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
         finished += int((term | trunc).sum())
@@ -414,7 +488,9 @@ def train(args: Args) -> dict:
     device = resolve_device(args.device)
     envs = make_envs(replace(args, env_kwargs={**args.env_kwargs, "reward_mode": args.reward_mode}), args.num_envs)
     image_shape, state_dim = shapes_of(envs.single_observation_space)
-    model = SAC(image_shape, state_dim, int(np.prod(envs.single_action_space.shape)), args.init_alpha).to(device)
+    reference = saved is not None and saved["signature"].get("reference", False)
+    action_dim = int(np.prod(envs.single_action_space.shape))
+    model = SAC(image_shape, state_dim, action_dim, args.init_alpha, reference).to(device)
     opts = dict(
         q=torch.optim.Adam(model.critic.parameters(), lr=args.q_lr),
         pi=torch.optim.Adam(model.actor.parameters(), lr=args.policy_lr),
@@ -440,11 +516,13 @@ def train(args: Args) -> dict:
     state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
     if not counters["pretrained"]:
         if args.demo_episodes > 0:
-            counters["env_steps"] += collect_demos(envs, state, demos, args.demo_episodes)
+            counters["env_steps"] += collect_demos(envs, state, demos, args.demo_episodes, args.dart_noise)
             model.critic.norm.fit(demos.obs["state"][: demos.size])
             model.target.norm.load_state_dict(model.critic.norm.state_dict())
             bc = pretrain(model, opts, online, demos, args, device)
             logger.scalars({"losses/bc_pretrain": bc}, counters["env_steps"])
+            if args.reference:
+                model.freeze_reference()
         counters["pretrained"] = True
     tracker = EpisodeTracker(envs.num_envs, torch.device("cpu"))
     recent: dict[str, list[float]] = {}
@@ -457,7 +535,7 @@ def train(args: Args) -> dict:
             if online.size < args.learning_starts and demos.size == 0:
                 action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
             else:
-                action = model.act(obs_to(obs, device), deterministic=False).cpu()
+                action = model.act(obs_to(obs, device), deterministic=False, noise=args.init_std).cpu()
             o, rew, term, trunc, info = envs.step(action)
             row, act = transitions(obs, action, rew, term, o, info)
             online.add(row, act)
@@ -471,7 +549,7 @@ def train(args: Args) -> dict:
                 owed += args.updates_per_step * envs.num_envs
                 while owed >= 1:
                     batch, act, n_demo = sample(online, demos, args, device)
-                    losses = update(model, opts, batch, act, n_demo, args, actor=True)
+                    losses = update(model, opts, batch, act, n_demo, args, actor=online.size >= args.actor_delay)
                     counters["updates"] += 1
                     owed -= 1
             if counters["env_steps"] >= next_log:

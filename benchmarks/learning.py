@@ -54,7 +54,8 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "rgbd",
         "long",
     ),
-    "sac-state": ("agents.sac", ["--obs", "state"], "state", "long"),
+    # evaluated as it acts in training (see agents.sac --eval-deterministic: the mean action stalls)
+    "sac-state": ("agents.sac", ["--obs", "state", "--no-eval-deterministic"], "state", "long"),
     "ppo-state": (
         "agents.ppo",
         ["--obs", "state", "--num-envs", "2", "--total-timesteps", "100000000"],

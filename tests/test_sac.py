@@ -81,17 +81,20 @@ def test_cloning_moves_the_actor_onto_the_expert():
         o, info = envs.reset(seed=5)
         state = dict(obs={"state": o}, label=info["expert_action"].float())
         demos = Dataset(10_000)
-        collect_demos(envs, state, demos, 2)
+        collect_demos(envs, state, demos, 2, noise=0.2)
     finally:
         envs.close()
     rows = demos.obs
     # the expert delivers both: each episode's last row is an absorbing success, never a plain terminal
     assert rows["succ"][: demos.size].sum() == 2 and (rows["succ"][: demos.size] <= rows["term"][: demos.size]).all()
+    # DART: the executed arm actions carry the noise, the clean labels (the cloning's targets) do not
+    gap = demos.act[: demos.size] - rows["label"][: demos.size]
+    assert 0.1 < gap[:, :4].std() < 0.3 and (gap[:, 4] == 0).all()
     torch.manual_seed(0)
     model = SAC(None, demos.obs["state"].shape[1], 5, 0.1)
     model.critic.norm.fit(demos.obs["state"][: demos.size])
     obs = {"state": demos.obs["state"][: demos.size]}
-    target = demos.act[: demos.size]
+    target = demos.obs["label"][: demos.size]
 
     def error() -> float:
         return float(((model.act(obs, deterministic=True) - target) ** 2).mean())
@@ -121,6 +124,29 @@ def test_success_targets_its_absorbing_return_and_failure_has_no_future():
     assert q_loss(0.0, 1.0, 0.0) == pytest.approx(float(q1**2 + q2**2), rel=1e-4)
 
 
+def test_the_clone_acts_and_bootstraps_where_the_critic_values_it_higher():
+    torch.manual_seed(0)
+    model = SAC(None, 3, 5, 0.1)
+    model.freeze_reference()
+    obs = {"state": torch.randn(64, 3)}
+    clone = model.reference(obs)
+    with torch.no_grad():
+        model.actor.mean.bias.add_(0.5)  # the actor moves on; the frozen clone does not
+        model.critic.encoder.mlp[0].bias.add_(0.5)
+    assert torch.equal(model.reference(obs), clone)
+    feats = model.critic.features(obs)
+    actor = model.actor(feats)[2]
+    chosen = model.act(obs, deterministic=True)
+    with torch.no_grad():
+        q_actor, q_clone = torch.min(*model.critic(feats, actor)), torch.min(*model.critic(feats, clone))
+    pick_clone = q_clone > q_actor
+    assert torch.equal(chosen[pick_clone], clone[pick_clone]) and torch.equal(chosen[~pick_clone], actor[~pick_clone])
+    # bootstrapping takes the better of the two as well: a critic that prefers a[:, 0] picks per sample
+    better, v = model.better(lambda f, a: (a[:, 0], a[:, 0] + 1), feats, actor, clone)
+    assert torch.equal(v, torch.max(actor[:, 0], clone[:, 0]))
+    assert torch.equal(better[:, 0], torch.max(actor[:, 0], clone[:, 0]))
+
+
 def test_state_run_resume_and_evaluate(tmp_path, capsys):
     res = tiny(tmp_path)
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -129,6 +155,7 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["demos"]["size"] > 0 and saved["online"]["size"] > 0
+    assert saved["signature"]["reference"] and any(k.startswith("reference.") for k in saved["model"])
     # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, 250 steps each)
     assert saved["online"]["capacity"] == 300_000 and saved["demos"]["capacity"] == 500
     assert saved["args"]["buffer_size"] == 300_000
