@@ -4,10 +4,13 @@ RLPD's recipe, sized for a 2-core CPU: the reactive expert's episodes seed a dem
 draws ``--demo-ratio`` of its samples from it ("symmetric sampling"); LayerNorm critics (clipped double Q)
 keep the Q-values bounded when updates outrun data (``--updates-per-step``). Against the wash-out IBRL
 (arXiv 2311.02198) describes — a fresh critic drags a cloned actor away from the demos before it knows better
-— the actor is first cloned from the demos, the critic then warms up alone on them, and the actor loss keeps
-a behaviour-cloning term on the demo half of each batch (``--bc-weight``, TD3+BC-style). The policy acts in
-world axes (``WorldFrameToolAction``, like agents.dagger) on the staged ``normalized_dense`` reward.
-``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0 --bc-weight 0`` is plain SAC.
+— the actor is first cloned from DART-noise demos, the critic then warms up alone on them and on the clone's
+own rollouts (``--actor-delay``), the frozen clone acts and bootstraps wherever the critic values its action
+above the actor's (IBRL's reference policy, ``--reference``), and the actor loss keeps cloning terms toward
+the demo labels and the clone (``--bc-weight``, ``--reference-weight``, TD3+BC-style). A delivery is absorbing
+at the maximum reward. The policy acts in world axes (``WorldFrameToolAction``, like agents.dagger) on the
+staged ``normalized_dense`` reward. ``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0
+--bc-weight 0`` is plain SAC.
 
     python -m agents.sac --obs state --budget-min 120
     python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
@@ -549,7 +552,9 @@ def train(args: Args) -> dict:
                 owed += args.updates_per_step * envs.num_envs
                 while owed >= 1:
                     batch, act, n_demo = sample(online, demos, args, device)
-                    losses = update(model, opts, batch, act, n_demo, args, actor=online.size >= args.actor_delay)
+                    losses = update(
+                        model, opts, batch, act, n_demo, args, actor=online.size >= args.actor_delay or not demos.size
+                    )
                     counters["updates"] += 1
                     owed -= 1
             if counters["env_steps"] >= next_log:

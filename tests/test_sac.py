@@ -164,6 +164,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert again["wall_clock_s"] > res["wall_clock_s"]
     ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=True)
     assert ev["episodes"] == 1 and list((tmp_path / "t" / "eval" / "videos").glob("*.mp4"))
+    noisy = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), eval_deterministic=False)
+    assert noisy["episodes"] == 1
 
 
 def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):
