@@ -51,9 +51,9 @@ from agents.common import (
     rng_state,
     set_rng_state,
 )
+from agents.dagger import action_wrappers, load_policy
 from agents.nets import DeterministicActor, NatureCNN, layer_init, shapes_of
 from maniskill_irb120.vector import make_vec_env
-from maniskill_irb120.wrappers import WorldFrameToolAction
 
 
 @dataclass
@@ -219,8 +219,7 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     wrappers = []
     if args.obs == "rgbd":
         wrappers.append(FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
-    if args.action_frame == "world":
-        wrappers.append(WorldFrameToolAction)
+    wrappers += action_wrappers(args.action_frame)
     if evaluate:
         if args.eval_reconfiguration_freq is not None:
             kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
@@ -270,8 +269,6 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
     residual = residual or args.base_checkpoint is not None
     agent = Agent(image_shape, state_dim, int(np.prod(envs.single_action_space.shape)), residual, args.init_logstd)
     if args.base_checkpoint is not None:
-        from agents.dagger import load_policy
-
         base, ckpt = load_policy(args.base_checkpoint, "cpu")
         trained = ckpt["args"]
         if base.signature() != {k: v for k, v in agent.signature().items() if k != "residual"}:
@@ -412,6 +409,15 @@ def read_checkpoint(path: Path, args: Args) -> dict:
         raise ValueError(f"checkpoint {path} acts in the {frame!r} frame; pass --action-frame {frame}")
     ckpt["signature"] = dict(dict(residual=False), **ckpt["signature"])  # written before residual policies
     return ckpt
+
+
+def agent_from_checkpoint(ckpt: dict, device) -> Agent:
+    """The trained agent (eval mode) a checkpoint holds, its base included, without building envs."""
+    sig = ckpt["signature"]
+    shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
+    agent = Agent(shape, sig["state_dim"], sig["action_dim"], residual=sig.get("residual", False)).to(device)
+    agent.load_state_dict(ckpt["model"])
+    return agent.eval()
 
 
 def load_checkpoint(path: Path, agent: Agent, args: Args, ckpt: Optional[dict] = None) -> dict:
@@ -657,7 +663,7 @@ def final_evaluation(agent: Agent, args: Args, device) -> dict:
             return agent.get_action(obs_to(obs, device), deterministic=True).cpu()
 
     kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, control_mode=args.control_mode)
-    wrappers = [WorldFrameToolAction] if args.action_frame == "world" else []
+    wrappers = action_wrappers(args.action_frame)
     return evaluate_on_seeds(act, args.env_id, args.obs, seeds, progress=args.progress, wrappers=wrappers, **kwargs)
 
 

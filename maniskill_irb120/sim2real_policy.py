@@ -111,11 +111,7 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
         sim_env = FlattenRGBDObservationWrapper(sim_env)
     world_frame = getattr(args, "action_frame", "tool") == "world"
     if fmt == "maniskill_irb120.ppo/1":
-        sig = ckpt["signature"]
-        shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-        agent = trainer.Agent(shape, sig["state_dim"], sig["action_dim"])
-        agent.load_state_dict(ckpt["model"])
-        agent.eval()
+        agent = trainer.agent_from_checkpoint(ckpt, torch.device("cpu"))
         act = lambda obs: agent.get_action(obs, deterministic=True)  # noqa: E731
     elif fmt == "maniskill_irb120.dagger/1":
         act = trainer.policy_from_checkpoint(ckpt, torch.device("cpu"))

@@ -181,6 +181,14 @@ def test_fine_tuning_a_dagger_policy_with_kl_resume_and_evaluate(tmp_path):
     ev = run(tmp_path, obs="state", action_frame="world", evaluate=True, checkpoint=Path(res["checkpoint"]),
              capture_video=False)  # fmt: skip
     assert ev["episodes"] == 1
+    # sim2real-eval loads the fine-tuned policy, base and all, in its frame
+    from maniskill_irb120.sim2real_policy import load_policy
+
+    sim_env, make_policy = load_policy(res["checkpoint"], "TableClearing-IRB120-v1", "tool_delta")
+    try:
+        assert make_policy(sim_env).world_frame
+    finally:
+        sim_env.close()
     with pytest.raises(ValueError, match="'world' frame; pass --action-frame world"):
         run(tmp_path, obs="state", evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=False)
     with pytest.raises(ValueError, match="acts in the 'world' frame"):  # a base from another frame
