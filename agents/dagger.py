@@ -53,6 +53,7 @@ from agents.common import (
     train_seed,
 )
 from agents.nets import DeterministicActor, random_shift, shapes_of
+from maniskill_irb120.envs.base import grasp_yaw_error
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.vector import make_vec_env
 from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup, tcp_rotation, tool_to_world
@@ -67,7 +68,8 @@ class Args(RunArgs):
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
     """world: the policy's translation is in world axes, rotated into the tool action by
-    maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action"""
+    maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action (the
+    hand camera's axes: an image offset is a tool-frame offset, learnable from rgbd)"""
     obs_without: tuple[str, ...] = ()
     """observation keys the policy does not see, e.g. agent/qvel: a real IRB 120 reports joint angles only
     (maniskill_irb120.wrappers.DropObservationKeys; sim2real-eval applies the same)"""
@@ -93,67 +95,106 @@ class Args(RunArgs):
     """std of the Gaussian added to the learner's arm actions (widens the states it labels)"""
     updates_per_round: int = 1000
     """minibatch updates on the whole aggregated dataset after each round"""
+    initial_updates: int = 0
+    """round 0's updates on the expert's episodes (0: ``updates_per_round``): the first learner's rollouts are
+    only as informative as that first fit"""
     batch_size: int = 256
     learning_rate: float = 1e-3
     """AdamW learning rate (MSE to the expert's actions)"""
     weight_decay: float = 1e-5
+    encoder: Literal["nature", "keypoints"] = "nature"
+    """rgbd image encoder: nature (the Nature CNN every trainer shares) or keypoints (conv + spatial softmax,
+    agents.nets.KeypointCNN: image coordinates of learned features, for the cube's precise position)"""
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
+    aux_weight: float = 0.0
+    """weight of an auxiliary loss: the policy's features also predict the object's position relative to the TCP
+    and the grasp yaw error (privileged state, read in the workers, training only; the policy never sees it).
+    From the camera it makes the encoder find the cube (0: off)"""
     capacity: int = 300_000
     """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
     save_freq: int = 10
     """checkpoint (with the dataset) every N rounds, and always at the end"""
 
 
+AUX_DIM = 5
+
+
+def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
+    """(N, 5) what a camera policy has to find in its image: the object's position relative to the TCP (in the
+    learner's action frame: world or tool axes; in decimetres, so about unit scale) and the grasp yaw error as
+    sin/cos of four times it (continuous across the cube's 90° symmetry)."""
+    u = env.unwrapped
+    rel = (u._obj_pose[:, :3] - u._tcp_pose[:, :3]) * 10.0
+    if frame == "tool":  # the hand camera's own axes: an offset in the image is one in the tool frame
+        rel = (tcp_rotation(env).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
+    yaw = 4.0 * grasp_yaw_error(u._obj_pose, u._tcp_pose)
+    return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
+
+
 class ExpertLabels(gym.Wrapper):
     """Puts the reactive expert's action for the state just reached into ``info["expert_action"]``, in the
-    learner's action frame (``world``: its translation rotated out of the tool frame)."""
+    learner's action frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the
+    auxiliary targets (:func:`privileged_aux`) into ``info["expert_aux"]``."""
 
-    def __init__(self, env: gym.Env, frame: str = "tool"):
+    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
         super().__init__(env)
         if frame not in ("tool", "world"):
             raise ValueError(f"unknown action frame {frame!r}; expected 'tool' or 'world'")
+        if aux and not hasattr(env.unwrapped, "_obj_pose"):
+            raise ValueError(f"--aux-weight needs a task with one object to grasp; {env.unwrapped.spec.id} has none")
         self.expert = expert_for(env, reactive=True)
-        self.frame = frame
+        self.frame, self.aux = frame, aux
 
-    def _label(self) -> torch.Tensor:
+    def _label(self, info: dict) -> None:
         a = self.expert.act()
-        return tool_to_world(a, tcp_rotation(self.env)) if self.frame == "world" else a
+        info["expert_action"] = tool_to_world(a, tcp_rotation(self.env)) if self.frame == "world" else a
+        if self.aux:
+            info["expert_aux"] = privileged_aux(self.env, self.frame)
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.expert.reset()
-        info["expert_action"] = self._label()
+        self._label(info)
         return obs, info
 
     def step(self, action):
         obs, rew, term, trunc, info = self.env.step(action)
-        info["expert_action"] = self._label()
+        self._label(info)
         return obs, rew, term, trunc, info
 
 
 class Dataset:
-    """Aggregated (observation, expert action) pairs in preallocated CPU tensors, a ring when full."""
+    """Aggregated (observation, expert action[, auxiliary target]) rows in preallocated CPU tensors, a ring
+    when full."""
 
     def __init__(self, capacity: int):
         self.capacity, self.size, self.pos = capacity, 0, 0
         self.obs: dict[str, torch.Tensor] = {}
         self.act: Optional[torch.Tensor] = None
+        self.aux: Optional[torch.Tensor] = None
 
-    def add(self, obs: dict[str, torch.Tensor], act: torch.Tensor) -> None:
+    def add(self, obs: dict[str, torch.Tensor], act: torch.Tensor, aux: Optional[torch.Tensor] = None) -> None:
         if self.act is None:
             self.obs = {k: torch.empty((self.capacity,) + v.shape[1:], dtype=v.dtype) for k, v in obs.items()}
             self.act = torch.empty((self.capacity,) + act.shape[1:], dtype=torch.float32)
+            if aux is not None:
+                self.aux = torch.empty((self.capacity,) + aux.shape[1:], dtype=torch.float32)
+        if (aux is None) != (self.aux is None):
+            raise ValueError("a dataset's rows either all carry auxiliary targets or none does")
         idx = (self.pos + torch.arange(act.shape[0])) % self.capacity
         for k, v in obs.items():
             self.obs[k][idx] = v.cpu()
         self.act[idx] = act.float().cpu()
+        if aux is not None:
+            self.aux[idx] = aux.float().cpu()
         self.pos = int(idx[-1] + 1) % self.capacity
         self.size = min(self.size + act.shape[0], self.capacity)
 
-    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor, Optional[torch.Tensor]]:
         idx = torch.randint(0, self.size, (n,))
-        return {k: v[idx].to(device) for k, v in self.obs.items()}, self.act[idx].to(device)
+        aux = self.aux[idx].to(device) if self.aux is not None else None
+        return {k: v[idx].to(device) for k, v in self.obs.items()}, self.act[idx].to(device), aux
 
     def state_dict(self) -> dict:
         n = self.size
@@ -164,12 +205,13 @@ class Dataset:
             # clones: torch.save writes a view's whole storage, i.e. the empty capacity too
             obs={k: v[:n].clone() for k, v in self.obs.items()},
             act=self.act[:n].clone() if n else None,
+            aux=self.aux[:n].clone() if n and self.aux is not None else None,
         )
 
     def load_state_dict(self, d: dict) -> None:
         self.__init__(d["capacity"])
         if d["size"]:
-            self.add(d["obs"], d["act"])
+            self.add(d["obs"], d["act"], d.get("aux"))
             self.pos = d["pos"]
 
 
@@ -184,7 +226,8 @@ def make_envs(args: Args, num_envs: int):
         kwargs["render_mode"] = "rgb_array"
     else:
         kwargs.setdefault("render_backend", "none")
-    wrappers = [*obs_wrappers, *action_wrappers(args.action_frame), partial(ExpertLabels, frame=args.action_frame)]
+    labels = partial(ExpertLabels, frame=args.action_frame, aux=args.aux_weight > 0)
+    wrappers = [*obs_wrappers, *action_wrappers(args.action_frame), labels]
     if args.obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 
@@ -203,7 +246,7 @@ def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float
     finished = steps = 0
     while finished < episodes:
         obs, label = state["obs"], state["label"]
-        data.add(obs, label)
+        data.add(obs, label, state.get("aux"))
         action = label.clone()
         if beta < 1.0:
             with torch.no_grad():
@@ -213,7 +256,7 @@ def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float
         action[:, :4] += noise * torch.randn(n, 4)
         o, _, term, trunc, info = envs.step(action.clamp(-1, 1))
         done = (term | trunc).bool()
-        state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
+        state.update(labels(o, info))
         for k, v in tracker.update(info.get("final_info", info), done).items():
             stats[k] += v
         finished += int(done.sum())
@@ -223,37 +266,60 @@ def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float
     return out
 
 
-def train_round(policy, optimizer, data: Dataset, args: Args, device, out_of_time=lambda: False) -> float:
-    """``updates_per_round`` minibatch steps of behaviour cloning (MSE to the expert's actions), fewer when
-    ``out_of_time()`` (the wall-clock budget: from the camera, 1000 updates take ~5 min on 2 cores)."""
+def labels(obs, info: dict) -> dict:
+    """What ``collect`` carries from one step to the next: the observation and the worker's labels."""
+    out = dict(obs=flatten_obs(obs), label=info["expert_action"].float())
+    if "expert_aux" in info:
+        out["aux"] = info["expert_aux"].float()
+    return out
+
+
+def train_round(
+    policy, optimizer, data: Dataset, args: Args, device, out_of_time=lambda: False, aux_head=None, updates=None
+) -> dict[str, float]:
+    """``updates`` (default ``updates_per_round``) minibatch steps of behaviour cloning (MSE to the expert's
+    actions), plus ``aux_weight`` x the auxiliary head's MSE when there is one; fewer when ``out_of_time()``
+    (the wall-clock budget: from the camera, 1000 updates take ~5 min on 2 cores). Mean losses."""
     policy.train()
-    total, done = 0.0, 0
-    for _ in range(args.updates_per_round):
+    sums, done = defaultdict(float), 0
+    for _ in range(updates or args.updates_per_round):
         if done and out_of_time():
             break
-        obs, act = data.sample(args.batch_size, device)
+        obs, act, aux = data.sample(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
-        loss = F.mse_loss(policy(obs), act)
+        feats = policy.features(obs)
+        loss = bc = F.mse_loss(torch.tanh(policy.head(feats)), act)
+        if aux_head is not None:
+            aux_loss = F.mse_loss(aux_head(feats), aux)
+            loss = loss + args.aux_weight * aux_loss
+            sums["aux"] += aux_loss.item()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-        total += loss.item()
+        sums["bc"] += bc.item()
         done += 1
     policy.eval()
-    return total / max(1, done)
+    return {k: v / max(1, done) for k, v in sums.items()}
 
 
-def policy_for(space, action_dim: int, device) -> DeterministicActor:
+def policy_for(space, action_dim: int, device, encoder: str = "nature") -> DeterministicActor:
     image_shape, state_dim = shapes_of(space)
-    return DeterministicActor(image_shape, state_dim, action_dim).to(device)
+    return DeterministicActor(image_shape, state_dim, action_dim, encoder=encoder).to(device)
 
 
-def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args) -> None:
+def aux_head_for(policy: DeterministicActor, device) -> torch.nn.Module:
+    """A small MLP from the policy's features to the :func:`privileged_aux` targets (training only)."""
+    n = policy.encoder.out_dim
+    return torch.nn.Sequential(torch.nn.Linear(n, 256), torch.nn.ReLU(), torch.nn.Linear(256, AUX_DIM)).to(device)
+
+
+def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args, aux_head=None) -> None:
     atomic_save(
         dict(
             format=FORMAT,
             model=policy.state_dict(),
+            aux_head=aux_head.state_dict() if aux_head is not None else None,
             optimizer=optimizer.state_dict(),
             data=data.state_dict(),
             counters=counters,
@@ -274,7 +340,8 @@ def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
 def policy_from_checkpoint(ckpt: dict, device) -> DeterministicActor:
     sig = ckpt["signature"]
     image_shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-    policy = DeterministicActor(image_shape, sig["state_dim"], sig["action_dim"]).to(device)
+    policy = DeterministicActor(image_shape, sig["state_dim"], sig["action_dim"], encoder=sig.get("encoder", "nature"))
+    policy = policy.to(device)
     policy.load_state_dict(ckpt["model"])
     return policy.eval()
 
@@ -317,8 +384,13 @@ def train(args: Args) -> dict:
     torch.manual_seed(args.seed)
     device = resolve_device(args.device)
     envs = make_envs(args, args.num_envs)
-    policy = policy_for(envs.single_observation_space, int(np.prod(envs.single_action_space.shape)), device)
-    optimizer = torch.optim.AdamW(policy.parameters(), lr=args.learning_rate, weight_decay=args.weight_decay)
+    action_dim = int(np.prod(envs.single_action_space.shape))
+    policy = policy_for(
+        envs.single_observation_space, action_dim, device, args.encoder if args.obs == "rgbd" else "nature"
+    )
+    aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
+    params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
+    optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
     data = Dataset(args.capacity)
     counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
     if saved is not None:
@@ -326,7 +398,11 @@ def train(args: Args) -> dict:
             raise ValueError(
                 f"--resume {args.resume}: checkpoint {saved['signature']} != this run {policy.signature()}"
             )
+        if (saved.get("aux_head") is None) != (aux_head is None):
+            raise ValueError(f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0")
         policy.load_state_dict(saved["model"])
+        if aux_head is not None:
+            aux_head.load_state_dict(saved["aux_head"])
         optimizer.load_state_dict(saved["optimizer"])
         data.load_state_dict(saved["data"])
         counters = dict(saved["counters"])
@@ -336,7 +412,7 @@ def train(args: Args) -> dict:
     budget_s = args.budget_min * 60
     elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
     o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
-    state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
+    state = labels(o, info)
     bar = budget_bar(args, budget_s, counters["wall_s"], "dagger")
     last_round_s, stats = 0.0, {}
     try:
@@ -351,27 +427,33 @@ def train(args: Args) -> dict:
             else:
                 beta = args.beta * args.beta_decay ** (r - 1)
                 stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
-            loss = train_round(policy, optimizer, data, args, device, lambda: elapsed() > budget_s)
+            updates = (args.initial_updates or None) if r == 0 else None
+            out_of_time = lambda: elapsed() > budget_s  # noqa: E731
+            losses = train_round(policy, optimizer, data, args, device, out_of_time, aux_head, updates)
             counters["round"] = r + 1
             counters["env_steps"] += stats.pop("steps")
             counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
             last_round_s = time.perf_counter() - t0
             scalars = {f"train/{k}": v for k, v in stats.items()}
-            scalars.update({"losses/bc": loss, "charts/dataset": data.size, "charts/round_s": last_round_s})
+            scalars.update({f"losses/{k}": v for k, v in losses.items()})
+            scalars.update({"charts/dataset": data.size, "charts/round_s": last_round_s})
             logger.scalars(scalars, counters["env_steps"])
             if bar is not None:
                 bar.n = min(int(elapsed()), int(budget_s))
                 bar.set_postfix(
-                    round=r, data=data.size, loss=f"{loss:.4f}", success=f"{stats.get('success_rate', 0):.2f}"
+                    round=r,
+                    data=data.size,
+                    loss=f"{losses.get('bc', 0):.4f}",
+                    success=f"{stats.get('success_rate', 0):.2f}",
                 )
             if counters["round"] % args.save_freq == 0:
-                save(ckpt_dir / "latest.pt", policy, optimizer, data, dict(counters, wall_s=elapsed()), args)
+                save(ckpt_dir / "latest.pt", policy, optimizer, data, dict(counters, wall_s=elapsed()), args, aux_head)
     finally:
         if bar is not None:
             bar.close()
         envs.close()
         counters["wall_s"] = elapsed()
-        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args)
+        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args, aux_head)
     t_eval = time.perf_counter()
     result = final_evaluation(policy, args, device, None)
     logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])

@@ -57,6 +57,53 @@ class NatureCNN(nn.Module):
         return torch.cat(feats, dim=1)
 
 
+class SpatialSoftmax(nn.Module):
+    """(N, C, H, W) feature maps -> (N, 2C): each map's expected image coordinates in [-1, 1] under a softmax
+    over its pixels (Levine et al. 2016), with a learned temperature -- where a feature is, to sub-pixel precision."""
+
+    def __init__(self, h: int, w: int):
+        super().__init__()
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")
+        self.register_buffer("grid", torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=1))  # (HW, 2)
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, c, h, w = x.shape
+        attn = torch.softmax(x.reshape(n * c, h * w) / self.log_temperature.exp(), dim=1)
+        return (attn @ self.grid).reshape(n, 2 * c)
+
+
+class KeypointCNN(nn.Module):
+    """The camera encoder for precise positioning (``encoder="keypoints"``): a small conv stack at 21x21
+    resolution and a spatial softmax, so the features are where things are in the image (the cube a few pixels
+    wide, the fingers over it) rather than a flattened map; plus the same proprioception MLP as
+    :class:`NatureCNN`. About the Nature CNN's cost per image on a CPU."""
+
+    def __init__(self, image_shape: tuple[int, int, int], state_dim: int, keypoints: int = 32):
+        super().__init__()
+        h, w, c = image_shape
+        self.cnn = nn.Sequential(
+            nn.Conv2d(c, 32, 5, stride=2, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(32, 32, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(32, 32, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(32, keypoints, 1),
+        )
+        with torch.no_grad():
+            _, _, fh, fw = self.cnn(torch.zeros(1, c, h, w)).shape
+        self.keypoints = SpatialSoftmax(fh, fw)
+        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
+        self.out_dim = 2 * keypoints + 256
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([self.keypoints(self.cnn(image_tensor(obs))), self.mlp(obs["state"].float())], dim=1)
+
+
+ENCODERS = ("nature", "keypoints")
+
+
 def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.Tensor]:
     """DrQ's augmentation: replicate-pad each image by ``pad`` pixels and crop it back at a random offset
     (one offset per sample, shared by RGB and depth so they stay registered)."""
@@ -94,11 +141,25 @@ class StateNorm(nn.Module):
 class DeterministicActor(nn.Module):
     """Observation -> action in [-1, 1]: the shared encoder, then a 2-layer MLP and tanh (BC, DAgger)."""
 
-    def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, action_dim: int, hidden: int = 512):
+    def __init__(
+        self,
+        image_shape: Optional[tuple[int, int, int]],
+        state_dim: int,
+        action_dim: int,
+        hidden: int = 512,
+        encoder: str = "nature",
+    ):
         super().__init__()
+        if encoder not in ENCODERS:
+            raise ValueError(f"unknown encoder {encoder!r}; expected one of {ENCODERS}")
+        if encoder == "keypoints" and image_shape is None:
+            raise ValueError("encoder 'keypoints' reads the camera; a state policy has no image (use 'nature')")
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
+        self.encoder_kind = encoder
         self.norm = StateNorm(state_dim)
-        self.encoder = NatureCNN(image_shape, state_dim)
+        self.encoder = (
+            KeypointCNN(image_shape, state_dim) if encoder == "keypoints" else NatureCNN(image_shape, state_dim)
+        )
         self.head = nn.Sequential(
             nn.Linear(self.encoder.out_dim, hidden),
             nn.ReLU(),
@@ -108,14 +169,21 @@ class DeterministicActor(nn.Module):
         )
 
     def signature(self) -> dict:
-        return dict(
+        sig = dict(
             image_shape=list(self.image_shape) if self.image_shape else None,
             state_dim=self.state_dim,
             action_dim=self.action_dim,
         )
+        if self.encoder_kind != "nature":  # the Nature CNN's signature predates the choice: old checkpoints load
+            sig["encoder"] = self.encoder_kind
+        return sig
+
+    def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The encoder's output: what an auxiliary head (agents.dagger ``--aux-weight``) reads too."""
+        return self.encoder(self.norm(obs))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.tanh(self.head(self.encoder(self.norm(obs))))
+        return torch.tanh(self.head(self.features(obs)))
 
 
 def shapes_of(space) -> tuple[Optional[tuple[int, int, int]], int]:

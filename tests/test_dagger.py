@@ -11,8 +11,8 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from agents.dagger import Args, Dataset, main, make_envs, train_round
-from agents.nets import DeterministicActor, random_shift
+from agents.dagger import Args, Dataset, ExpertLabels, main, make_envs, train_round
+from agents.nets import DeterministicActor, SpatialSoftmax, random_shift
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.wrappers import tcp_rotation, tool_to_world
 
@@ -172,6 +172,66 @@ def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path):
     assert saved["signature"]["image_shape"] == [84, 84, 4]
     # no privileged state: the camera policy's state vector is proprioception + TCP pose + grasp flag only
     assert saved["signature"]["state_dim"] < 40 and set(saved["data"]["obs"]) == {"rgb", "depth", "state"}
+
+
+def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, tmp_path):
+    """The workers' auxiliary targets are the privileged geometry of the state just reached; a camera run with
+    --aux-weight learns them alongside the actions, keeps its head across --resume, and refuses a mismatch."""
+    envs = make_envs(Args(num_envs=2, aux_weight=1.0), 2)
+    try:
+        _, info = envs.reset(seed=50)
+        for i in range(2):
+            env.reset(seed=50 + i)
+            u = env.unwrapped
+            rel = (u.obj.pose.p - u.agent.tcp_pose.p)[0] * 10
+            assert torch.allclose(info["expert_aux"][i, :3], rel, atol=1e-4)
+            assert torch.allclose(info["expert_aux"][i, 3:].norm(), torch.tensor(1.0), atol=1e-5)  # sin/cos
+    finally:
+        envs.close()
+    tool = ExpertLabels(env, frame="tool", aux=True)  # the hand camera's axes: the TCP frame
+    _, info = tool.reset(seed=50)
+    rel = (env.unwrapped.obj.pose.p - env.unwrapped.agent.tcp_pose.p) * 10
+    assert torch.allclose(info["expert_aux"][:, :3], (tcp_rotation(env).transpose(1, 2) @ rel[..., None])[..., 0])
+    kw = dict(obs="rgbd", encoder="keypoints", updates_per_round=2, batch_size=8)
+    res = tiny(tmp_path, aux_weight=1.0, initial_updates=3, **kw)
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["aux_head"] is not None and saved["data"]["aux"].shape == (res["dataset"], 5)
+    assert saved["signature"]["encoder"] == "keypoints"
+    with pytest.raises(ValueError, match="aux-weight"):
+        tiny(tmp_path, resume=Path(res["checkpoint"]), **kw)
+    ev = tiny(tmp_path, obs="rgbd", evaluate=True, checkpoint=Path(res["checkpoint"]))  # the checkpoint's encoder
+    assert ev["episodes"] == 1
+
+
+def test_aux_loss_fits_a_target_the_actions_do_not_need():
+    torch.manual_seed(0)
+    data = Dataset(256)
+    x = torch.randn(256, 6)
+    data.add({"state": x}, torch.zeros(256, 5), aux=x[:, :5] * 2)
+    policy = DeterministicActor(None, 6, 5)
+    head = torch.nn.Sequential(torch.nn.Linear(policy.encoder.out_dim, 5))
+    opt = torch.optim.AdamW([*policy.parameters(), *head.parameters()], lr=1e-3)
+    args = Args(batch_size=64, aux_weight=1.0)
+    first = train_round(policy, opt, data, args, torch.device("cpu"), aux_head=head, updates=1)
+    last = train_round(policy, opt, data, args, torch.device("cpu"), aux_head=head, updates=300)
+    assert last["aux"] < 0.1 * first["aux"] and {"bc", "aux"} == set(last)
+    with pytest.raises(ValueError, match="auxiliary"):
+        data.add({"state": x[:1]}, torch.zeros(1, 5))  # a row without its target
+
+
+def test_spatial_softmax_finds_a_bright_pixel():
+    maps = torch.full((2, 1, 21, 21), -10.0)
+    maps[0, 0, 0, 20] = maps[1, 0, 10, 5] = 10.0  # top right; the middle row, a quarter from the left
+    xy = SpatialSoftmax(21, 21)(maps)
+    assert torch.allclose(xy, torch.tensor([[1.0, -1.0], [-0.5, 0.0]]), atol=1e-3)
+
+
+def test_keypoint_encoder_needs_a_camera_and_names_itself():
+    with pytest.raises(ValueError, match="unknown encoder"):
+        DeterministicActor((84, 84, 4), 6, 5, encoder="resnet")
+    with pytest.raises(ValueError, match="camera"):
+        DeterministicActor(None, 6, 5, encoder="keypoints")
+    assert "encoder" not in DeterministicActor((84, 84, 4), 6, 5).signature()  # older checkpoints still match
 
 
 def test_bad_checkpoints_are_named(tmp_path):
