@@ -46,11 +46,13 @@ from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 # seed and evaluation flags are added per run
 RECIPES: dict[str, tuple[str, list[str], str, str]] = {
     "dagger-state": ("agents.dagger", ["--obs", "state"], "state", "short"),
-    # from the camera one 256-row update takes 0.24 s on 2 cores (64 rows: 0.05 s): 1000 of them a round would
-    # leave ~25 rounds in the budget, so smaller batches and fewer updates buy many more DAgger rounds
+    # from the camera one 64-row update takes ~0.09 s on 2 cores, so small batches and 500 updates a round buy
+    # many DAgger rounds; the tool frame (the camera's axes), the keypoint encoder and the auxiliary object-pose
+    # loss are what let the policy localise the cube (benchmarks/RESULTS.md, "the camera recipe")
     "dagger-rgbd": (
         "agents.dagger",
-        ["--obs", "rgbd", "--batch-size", "64", "--updates-per-round", "500"],
+        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
+        "--batch-size 64 --updates-per-round 500".split(),
         "rgbd",
         "long",
     ),
@@ -166,10 +168,10 @@ def curve(run_dir: Path, t0_wall: float) -> dict:
     """Training-episode success (as logged) against env steps and wall-clock minutes."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    files = sorted(run_dir.glob("events.out.tfevents.*"))
+    files = sorted(run_dir.glob("events.out.tfevents.*"), key=lambda f: f.stat().st_mtime)
     if not files:
         return dict(env_steps=[], wall_min=[], success=[])
-    acc = EventAccumulator(str(files[0]), size_guidance={"scalars": 0})
+    acc = EventAccumulator(str(files[-1]), size_guidance={"scalars": 0})  # this run's (a resumed run appends one)
     acc.Reload()
     if "train/success_rate" not in acc.Tags()["scalars"]:
         return dict(env_steps=[], wall_min=[], success=[])
@@ -181,6 +183,17 @@ def curve(run_dir: Path, t0_wall: float) -> dict:
     )
 
 
+def make_room(run_dir: Path) -> Path:
+    """``run_dir``, empty: an earlier run of the same recipe and seed is kept, renamed after its last change (its
+    event files would otherwise mix into this run's curve)."""
+    if run_dir.exists():
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(run_dir.stat().st_mtime))
+        old = run_dir.with_name(f"{run_dir.name}.before-{stamp}")
+        run_dir.rename(old)
+        print(f"[learning] the earlier {run_dir.name} run was moved to {old}", flush=True)
+    return run_dir
+
+
 def train_run(recipe: str, seed: int, args: Args) -> dict:
     module, flags, obs, kind = RECIPES[recipe]
     budget = args.long_budget_min if kind == "long" else args.budget_min
@@ -190,6 +203,7 @@ def train_run(recipe: str, seed: int, args: Args) -> dict:
     cmd += ["--runs-dir", str(args.out_dir / "runs"), "--exp-name", name, "--no-progress", "--no-capture-video"]
     if args.quick:
         cmd += QUICK_FLAGS[module]
+    run_dir = make_room(args.out_dir / "runs" / name)
     print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
     t0 = time.time()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -204,7 +218,7 @@ def train_run(recipe: str, seed: int, args: Args) -> dict:
         raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
     keep = ("success_rate", "successes", "env_steps", "wall_clock_s", "grasped_rate", "collided_rate", "checkpoint")
     out = {k: result[k] for k in keep if k in result}
-    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(args.out_dir / "runs" / name, t0))
+    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(run_dir, t0))
     return out
 
 

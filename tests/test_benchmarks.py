@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -100,6 +101,24 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert "| none |" in run.stdout
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
+
+
+def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    from torch.utils.tensorboard import SummaryWriter
+
+    run = tmp_path / "runs" / "dagger-rgbd__s1"
+    with SummaryWriter(run) as w:
+        w.add_scalar("train/success_rate", 0.0, 100)
+    assert learning.make_room(run) == run and not run.exists()
+    (old,) = (tmp_path / "runs").glob("dagger-rgbd__s1.before-*")
+    assert list(old.glob("events.out.tfevents.*"))  # nothing of the earlier run is lost
+    for value in (0.25, 0.75):  # a resumed run appends a second event file: the newest is this run's
+        with SummaryWriter(run) as w:
+            w.add_scalar("train/success_rate", value, 200)
+        time.sleep(0.05)
+    assert learning.curve(run, time.time())["success"] == [0.75]
 
 
 def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
