@@ -67,23 +67,35 @@ def rss_mb(pid: Optional[int] = None) -> float:
     return psutil.Process(pid or os.getpid()).memory_info().rss / 2**20
 
 
-def ours(workers: int, args: Args) -> dict:
-    """Our CPU vector env of ``workers`` processes, stepped by agents.ppo's network (sampled), then
-    agents.ppo's own training iterations (trained: rollout + update, its charts/SPS)."""
+def our_sampler(workers: int):
+    """Our CPU vector env of ``workers`` processes and agents.ppo's (untrained) network: (venv, step), where
+    ``step(n)`` samples ``n`` steps per env with the network and returns the seconds it took."""
     from agents.ppo import Agent
     from maniskill_irb120.vector import make_vec_env
 
-    t0 = time.perf_counter()
     venv = make_vec_env(ENV_ID, workers, backend="cpu", obs_mode="state", render_backend="none", record_metrics=False)
-    startup = time.perf_counter() - t0
     agent = Agent(None, venv.single_observation_space.shape[0], 5)
-    obs, _ = venv.reset(seed=0)
-    with torch.no_grad():
-        for i in range(args.steps + 10):
-            if i == 10:
-                t0 = time.perf_counter()
-            obs, *_ = venv.step(agent.get_action({"state": obs.float()}).clamp(-1, 1))
-    sampled = workers * args.steps / (time.perf_counter() - t0)
+    obs = venv.reset(seed=0)[0]
+
+    def step(n: int) -> float:
+        nonlocal obs
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            for _ in range(n):
+                obs, *_ = venv.step(agent.get_action({"state": obs.float()}).clamp(-1, 1))
+        return time.perf_counter() - t0
+
+    return venv, step
+
+
+def ours(workers: int, args: Args) -> dict:
+    """Our CPU vector env of ``workers`` processes, stepped by agents.ppo's network (sampled), then
+    agents.ppo's own training iterations (trained: rollout + update, its charts/SPS)."""
+    t0 = time.perf_counter()
+    venv, step = our_sampler(workers)
+    startup = time.perf_counter() - t0
+    step(10)  # warm-up
+    sampled = workers * args.steps / step(args.steps)
     venv.close()
     trained = ppo_trained(workers, args)
     return dict(
@@ -179,15 +191,11 @@ def rllib(runners: int, envs: int, args: Args) -> dict:
 def paired(args: Args) -> dict:
     """The target's comparison, alternated: our 2-worker vector env and RLlib's 2 env runners both stay up and
     take turns sampling ``paired_steps`` steps per env, so a drifting machine slows both sides of each ratio."""
-    from agents.ppo import Agent
     from agents.rllib.train import Args as RArgs
     from agents.rllib.train import build_config
-    from maniskill_irb120.vector import make_vec_env
 
     n = args.paired_steps
-    venv = make_vec_env(ENV_ID, 2, backend="cpu", obs_mode="state", render_backend="none", record_metrics=False)
-    agent = Agent(None, venv.single_observation_space.shape[0], 5)
-    obs, _ = venv.reset(seed=0)
+    venv, step = our_sampler(2)
     cfg = RArgs(num_env_runners=2, train_batch_size=args.batch, minibatch_size=args.batch // 4, num_epochs=1)
     algo = build_config(cfg).build_algo()
     group = algo.env_runner_group
@@ -195,11 +203,7 @@ def paired(args: Args) -> dict:
     try:
         group.foreach_env_runner(lambda r: r.sample(num_timesteps=50), local_env_runner=False)
         for _ in range(args.paired_rounds):
-            t0 = time.perf_counter()
-            with torch.no_grad():
-                for _ in range(n):
-                    obs, *_ = venv.step(agent.get_action({"state": obs.float()}).clamp(-1, 1))
-            ours.append(2 * n / (time.perf_counter() - t0))
+            ours.append(2 * n / step(n))
             t0 = time.perf_counter()
             group.foreach_env_runner(lambda r: r.sample(num_timesteps=n), local_env_runner=False)
             theirs.append(2 * n / (time.perf_counter() - t0))
