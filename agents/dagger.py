@@ -9,7 +9,8 @@ worker (:class:`ExpertLabels`), so the learner acts on the observation it is giv
 proprioception, no privileged state) while the expert reads the simulator.
 
     python -m agents.dagger --obs state --budget-min 60                 # the state recipe
-    python -m agents.dagger --obs rgbd --budget-min 120 --batch-size 64 --updates-per-round 500  # camera, CPU
+    python -m agents.dagger --obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 \\
+        --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 
