@@ -371,7 +371,18 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
+def check_args(args: Args) -> None:
+    """Flags that would otherwise be ignored or break a long run late are refused up front, by name."""
+    if args.encoder != "nature" and args.obs != "rgbd":
+        raise ValueError(f"--encoder {args.encoder} reads the camera; --obs {args.obs} has no image")
+    if not (args.aux_weight >= 0 and np.isfinite(args.aux_weight)):
+        raise ValueError(f"--aux-weight must be a finite number >= 0, got {args.aux_weight}")
+    if args.initial_updates < 0:
+        raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
+
+
 def train(args: Args) -> dict:
+    check_args(args)
     t_start = time.perf_counter()
     saved = load_torch(args.resume, FORMAT, "agents.dagger") if args.resume is not None else None
     if saved is not None:
@@ -386,9 +397,7 @@ def train(args: Args) -> dict:
     device = resolve_device(args.device)
     envs = make_envs(args, args.num_envs)
     action_dim = int(np.prod(envs.single_action_space.shape))
-    policy = policy_for(
-        envs.single_observation_space, action_dim, device, args.encoder if args.obs == "rgbd" else "nature"
-    )
+    policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
     aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
     params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
     optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)

@@ -232,6 +232,14 @@ def test_keypoint_encoder_needs_a_camera_and_names_itself():
     with pytest.raises(ValueError, match="camera"):
         DeterministicActor(None, 6, 5, encoder="keypoints")
     assert "encoder" not in DeterministicActor((84, 84, 4), 6, 5).signature()  # older checkpoints still match
+    for bad, match in (
+        (dict(encoder="keypoints"), "--obs state has no image"),
+        (dict(aux_weight=float("nan")), "--aux-weight"),
+        (dict(aux_weight=-1.0), "--aux-weight"),
+        (dict(initial_updates=-5), "--initial-updates"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            main(Args(**bad))  # refused before any env starts
 
 
 def test_bad_checkpoints_are_named(tmp_path):
