@@ -8,7 +8,9 @@ random actions and the scripted expert.
 
 Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
 episodes within each (a two-level stratified bootstrap, the method of ``rliable``; written here in numpy
-because rliable pins its own scipy/seaborn stack), and the interquartile mean over all episodes of all seeds.
+because rliable pins its own scipy/seaborn stack), and the interquartile mean of the seeds' success rates
+(rliable's aggregate over runs; over single episodes, each 0 or 1, it would only say whether success is above
+75 % or below 25 %).
 
     python benchmarks/learning.py                                  # every recipe x 3 seeds (hours: see below)
     python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
@@ -140,7 +142,7 @@ def summarise(name: str, obs: str, runs: list[dict], args: Args, rng: np.random.
         seeds=[r.get("seed") for r in runs],
         success_mean=float(np.mean([r["success_rate"] for r in runs])),
         success_ci95=[lo, hi],
-        success_iqm=iqm([x for s in per_seed for x in s]),
+        success_iqm=iqm([r["success_rate"] for r in runs]),
         per_seed=[r["success_rate"] for r in runs],
         env_steps_mean=float(np.mean([r.get("env_steps", 0) for r in runs])),
         wall_clock_min_mean=float(np.mean([r.get("wall_clock_s", 0.0) for r in runs])) / 60,

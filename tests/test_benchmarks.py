@@ -121,6 +121,17 @@ def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     assert learning.curve(run, time.time())["success"] == [0.75]
 
 
+def test_learning_iqm_is_over_seeds_not_single_episodes():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import numpy as np
+
+    runs = [dict(successes=[1] * 76 + [0] * 24, success_rate=0.76, seed=1)]
+    row = learning.summarise("x", "rgbd", runs, learning.Args(bootstrap=100), np.random.default_rng(0))
+    assert row["success_iqm"] == 0.76  # over the 100 episodes (0 or 1 each) it would read 1.00
+    assert learning.iqm([0.1, 0.5, 0.6, 0.9]) == 0.55
+
+
 def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
     sys.path.insert(0, str(REPO / "benchmarks"))
     import learning
