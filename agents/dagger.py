@@ -192,7 +192,12 @@ class Dataset:
         self.pos = int(idx[-1] + 1) % self.capacity
         self.size = min(self.size + act.shape[0], self.capacity)
 
-    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor, Optional[torch.Tensor]]:
+    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """(observations, actions) of ``n`` random rows (agents.sac's replay reads it too)."""
+        obs, act, _ = self.sample_with_aux(n, device)
+        return obs, act
+
+    def sample_with_aux(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor, Optional[torch.Tensor]]:
         idx = torch.randint(0, self.size, (n,))
         aux = self.aux[idx].to(device) if self.aux is not None else None
         return {k: v[idx].to(device) for k, v in self.obs.items()}, self.act[idx].to(device), aux
@@ -227,7 +232,8 @@ def make_envs(args: Args, num_envs: int):
         kwargs["render_mode"] = "rgb_array"
     else:
         kwargs.setdefault("render_backend", "none")
-    labels = partial(ExpertLabels, frame=args.action_frame, aux=args.aux_weight > 0)
+    # agents.sac builds its envs here too, from its own Args (no auxiliary targets)
+    labels = partial(ExpertLabels, frame=args.action_frame, aux=getattr(args, "aux_weight", 0.0) > 0)
     wrappers = [*obs_wrappers, *action_wrappers(args.action_frame), labels]
     if args.obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
@@ -286,7 +292,7 @@ def train_round(
     for _ in range(updates or args.updates_per_round):
         if done and out_of_time():
             break
-        obs, act, aux = data.sample(args.batch_size, device)
+        obs, act, aux = data.sample_with_aux(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
         feats = policy.features(obs)
