@@ -97,6 +97,7 @@ def emulator(
 def sim2real_eval(
     robot: str = "emulator",
     policy: str = "expert",
+    actions: str = "as-trained",
     episodes: int = 10,
     seed: int = 1000,
     shift: str | None = None,
@@ -110,12 +111,26 @@ def sim2real_eval(
     OUT/report.json, OUT/report.md (+ pictures) and OUT/logs/ (what ``sysid`` fits). ``--robot emulator``: our
     RAPID module on the emulator with a digital twin as the world (``--shift "camera_fov=80,latency=0.02"``
     makes it differ from the sim); ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
-    IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo
-    checkpoint. Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
+    IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo,
+    agents.dagger or agents.sac checkpoint. ``--actions``: a checkpoint's action as its trainer evaluated it
+    (as-trained), its mean, or a sample (agents.sac/agents.ppo; seeded by the episode seed on both sides).
+    Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
     from maniskill_irb120.sim2real_eval import EvalConfig
     from maniskill_irb120.sim2real_eval import main as eval_main
 
-    cfg = EvalConfig(robot, policy, episodes, seed, shift, env_id, camera, command_mode, Path(out), operator_timeout_s)
+    cfg = EvalConfig(
+        robot=robot,
+        policy=policy,
+        actions=actions,
+        episodes=episodes,
+        seed=seed,
+        shift=shift,
+        env_id=env_id,
+        camera=camera,
+        command_mode=command_mode,
+        out=Path(out),
+        operator_timeout_s=operator_timeout_s,
+    )
     return eval_main(cfg)
 
 

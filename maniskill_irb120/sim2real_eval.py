@@ -38,6 +38,10 @@ class EvalConfig:
     policy: str = "expert"
     """'expert' (the task's scripted expert; it reads the twin's object pose, so emulator only) or the path
     of an agents.ppo, agents.dagger or agents.sac checkpoint"""
+    actions: str = "as-trained"
+    """a checkpoint's action: as-trained (as its trainer evaluated it: agents.sac's --eval-deterministic, else
+    the mean), mean, or sample (agents.sac/agents.ppo; the noise is seeded by the episode seed, alike on both
+    sides)"""
     episodes: int = 10
     seed: int = 1000
     """first seed; episode k runs seed + k on both sides"""
@@ -57,7 +61,7 @@ class EvalConfig:
 def _episode(env, policy, seed: int, real: bool, limit: int) -> dict:
     """One episode; per-step TCP (m, world), joints (rad), actions, events, three hand-camera frames."""
     obs, info = env.reset(seed=seed)
-    policy.reset()
+    policy.reset(seed)
     tcp, joints, actions, frames, seen = [], [], [], [], {k: False for k in EVENTS}
     u = env.unwrapped
     for t in range(limit):
@@ -162,7 +166,7 @@ def evaluate(cfg: EvalConfig) -> dict:
     shift, latency = _parse_shift(cfg.shift)
     cfg.out.mkdir(parents=True, exist_ok=True)
     (cfg.out / "logs").mkdir(exist_ok=True)
-    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode)
+    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions)
     try:
         real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)
     except BaseException:

@@ -9,12 +9,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import torch
 
 from maniskill_irb120.expert import expert_for
 from maniskill_irb120.wrappers import observation_setup, tcp_rotation, world_to_tool
 
 TRAINERS = {"maniskill_irb120.ppo/1": "ppo", "maniskill_irb120.dagger/1": "dagger", "maniskill_irb120.sac/1": "sac"}
+# how a checkpoint's action is chosen: as its trainer evaluated it (agents.sac: its --eval-deterministic; the
+# others: the mean), the mean, or a sample of the policy's distribution (agents.sac, agents.ppo)
+ACTIONS = ("as-trained", "mean", "sample")
 
 
 class ExpertPolicy:
@@ -23,7 +27,7 @@ class ExpertPolicy:
     def __init__(self, env):
         self.expert = expert_for(env)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         self.expert.reset()
 
     def act(self, obs) -> torch.Tensor:
@@ -31,20 +35,30 @@ class ExpertPolicy:
 
 
 class CheckpointPolicy:
-    """A trained agent, deterministic. A world-frame policy (``agents.dagger``/``agents.sac`` default) is turned
-    into the tool-frame action that goes over the wire with the TCP rotation of ``env``: the sim's, or on the
-    real side the robot's (through the twin's kinematic copy, or the Sim2RealEnv's FK of the read joints)."""
+    """A trained agent. A world-frame policy (``agents.dagger``/``agents.sac`` default) is turned into the
+    tool-frame action that goes over the wire with the TCP rotation of ``env``: the sim's, or on the real side
+    the robot's (through the twin's kinematic copy, or the Sim2RealEnv's FK of the read joints).
 
-    def __init__(self, act: Callable[[dict], torch.Tensor], env=None, world_frame: bool = False):
-        self._act, self.env, self.world_frame = act, env, world_frame
+    A sampling policy (``sampled``) draws its noise from a generator seeded by the episode's seed, apart from
+    torch's global one, so the sim and the real side of one seed get the same draws: their gap is not noise."""
 
-    def reset(self) -> None:
-        pass
+    def __init__(self, act: Callable[[dict], torch.Tensor], env=None, world_frame: bool = False, sampled: bool = False):
+        self._act, self.env, self.world_frame, self.sampled = act, env, world_frame, sampled
+        self._draws = np.random.default_rng(0)
+
+    def reset(self, seed: int | None = None) -> None:
+        self._draws = np.random.default_rng(seed)
 
     @torch.no_grad()
     def act(self, obs) -> torch.Tensor:
         obs = {"state": obs} if isinstance(obs, torch.Tensor) else obs
-        a = self._act(obs).reshape(1, -1).float().clamp(-1.0, 1.0)
+        if self.sampled:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(int(self._draws.integers(2**63)))
+                a = self._act(obs)
+        else:
+            a = self._act(obs)
+        a = a.reshape(1, -1).float().clamp(-1.0, 1.0)
         if self.world_frame:
             a = world_to_tool(a, _tcp_rot(self.env))
         return a[0]
@@ -70,9 +84,16 @@ def _import_agents(name: str):
         raise ImportError(f"checkpoint policies need agents/{name}.py: run from the repository's root") from None
 
 
-def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, Callable[[gym.Env], object]]:
-    """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path."""
+def load_policy(
+    policy: str, env_id: str, command_mode: str, actions: str = "as-trained"
+) -> tuple[gym.Env, Callable[[gym.Env], object]]:
+    """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path;
+    ``actions``: one of :data:`ACTIONS`."""
+    if actions not in ACTIONS:
+        raise ValueError(f"--actions {actions!r}: use one of {', '.join(ACTIONS)}")
     if policy == "expert":
+        if actions == "sample":
+            raise ValueError("--actions sample: the scripted expert has no distribution to sample; use as-trained")
         sim_env = gym.make(env_id, obs_mode="rgbd", control_mode="pd_ee_delta_tool", sim_backend="physx_cpu")
         return sim_env, ExpertPolicy
     path = Path(policy)
@@ -110,12 +131,16 @@ def load_policy(policy: str, env_id: str, command_mode: str) -> tuple[gym.Env, C
 
         sim_env = FlattenRGBDObservationWrapper(sim_env)
     world_frame = getattr(args, "action_frame", "tool") == "world"
+    sampled = actions == "sample" or (actions == "as-trained" and not getattr(args, "eval_deterministic", True))
     if fmt == "maniskill_irb120.ppo/1":
         agent = trainer.agent_from_checkpoint(ckpt, torch.device("cpu"))
-        act = lambda obs: agent.get_action(obs, deterministic=True)  # noqa: E731
+        act = lambda obs: agent.get_action(obs, deterministic=not sampled)  # noqa: E731
     elif fmt == "maniskill_irb120.dagger/1":
+        if actions == "sample":
+            sim_env.close()
+            raise ValueError(f"--actions sample: {path} is an agents.dagger policy, deterministic; use as-trained")
         act = trainer.policy_from_checkpoint(ckpt, torch.device("cpu"))
-    else:
+    else:  # with a reference, sampling explores around the clone as in training (its --init-std)
         model = trainer.model_from_checkpoint(ckpt, torch.device("cpu"))
-        act = lambda obs: model.act(obs, deterministic=True)  # noqa: E731
-    return sim_env, lambda env: CheckpointPolicy(act, env, world_frame)
+        act = lambda obs: model.act(obs, deterministic=not sampled, noise=args.init_std)  # noqa: E731
+    return sim_env, lambda env: CheckpointPolicy(act, env, world_frame, sampled)

@@ -166,6 +166,39 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert ev["episodes"] == 1 and list((tmp_path / "t" / "eval" / "videos").glob("*.mp4"))
     noisy = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), eval_deterministic=False)
     assert noisy["episodes"] == 1
+    sim2real_acts_as_trained(Path(res["checkpoint"]), tmp_path)
+
+
+def sim2real_acts_as_trained(ckpt: Path, tmp_path: Path) -> None:
+    """sim2real-eval's --actions on this checkpoint: the mean, or samples seeded by the episode alone."""
+    from maniskill_irb120.sim2real_policy import load_policy
+
+    env_id = "TableClearing-IRB120-v1"
+    sim_env, make_policy = load_policy(str(ckpt), env_id, "tool_delta", "sample")
+    obs, _ = sim_env.reset(seed=0)
+    policy, other = make_policy(sim_env), make_policy(sim_env)
+    before = torch.random.get_rng_state()
+    policy.reset(5), other.reset(5)
+    first = policy.act(obs)
+    assert torch.equal(first, other.act(obs))  # sim and real draw alike on one episode seed
+    other.reset(6)
+    assert not torch.equal(first, other.act(obs))
+    assert torch.equal(before, torch.random.get_rng_state())  # torch's global draws are left alone
+    sim_env.close()
+    for actions, sampled in (("mean", False), ("as-trained", False)):
+        sim_env, make_policy = load_policy(str(ckpt), env_id, "tool_delta", actions)
+        assert make_policy(sim_env).sampled is sampled
+        sim_env.close()
+    saved = torch.load(ckpt, weights_only=False)
+    saved["args"]["eval_deterministic"] = False  # as the sac-state recipe trains it
+    torch.save(saved, tmp_path / "noisy.pt")
+    sim_env, make_policy = load_policy(str(tmp_path / "noisy.pt"), env_id, "tool_delta")
+    assert make_policy(sim_env).sampled
+    sim_env.close()
+    with pytest.raises(ValueError, match="--actions 'greedy'"):
+        load_policy(str(ckpt), env_id, "tool_delta", "greedy")
+    with pytest.raises(ValueError, match="no distribution to sample"):
+        load_policy("expert", env_id, "tool_delta", "sample")
 
 
 def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):

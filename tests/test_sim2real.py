@@ -316,6 +316,8 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     np.testing.assert_allclose(sent, world_to_tool(raw, tcp_rotation(sim_env))[0], atol=1e-6)
     assert not torch.allclose(sent[:3], raw[0, :3], atol=1e-3)  # the tool is turned: the frames differ
     sim_env.close()
+    with pytest.raises(ValueError, match="deterministic"):
+        load_policy(res["checkpoint"], ENV_ID, "tool_delta", "sample")
     report = evaluate(EvalConfig(policy=res["checkpoint"], episodes=1, seed=3, camera="none", out=tmp_path / "s2r"))
     assert report["episodes"] == 1 and report["error"] is None
     log = np.load(tmp_path / "s2r" / "logs" / "real_3.npz")
