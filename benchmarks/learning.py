@@ -16,7 +16,8 @@ because rliable pins its own scipy/seaborn stack), and the interquartile mean of
     python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
     python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
 
-Budgets (the issue's targets): dagger-state and ppo-state ``--budget-min`` (60), dagger-rgbd and sac-state
+Budgets (the issue's targets): dagger-state, ppo-state and ppo-finetune-state ``--budget-min`` (60; the last
+trains its DAgger base for half of it, then fine-tunes with PPO for the rest), dagger-rgbd and sac-state
 ``--long-budget-min`` (120); the final evaluation is extra. ``--update-results`` rewrites the Learning section
 of benchmarks/RESULTS.md.
 """
@@ -66,7 +67,19 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "state",
         "short",
     ),
+    # PPO fine-tuning of a DAgger policy (the base below), within the same budget: a frozen base plus a residual
+    # held near it by the KL term, little exploration noise and a critic warm-up (README, "without the wash-out")
+    "ppo-finetune-state": (
+        "agents.ppo",
+        "--obs state --num-envs 2 --action-frame world --kl-coef 1 --init-logstd -2 --critic-warmup-iters 10 "
+        "--total-timesteps 100000000".split(),
+        "state",
+        "short",
+    ),
 }
+# recipe -> (recipe that trains its --base-checkpoint, that run's share of the budget); the row's env steps
+# and wall clock are both stages', its curve the two joined, and the base's own held-out success is kept
+BASES: dict[str, tuple[str, float]] = {"ppo-finetune-state": ("dagger-state", 0.5)}
 REFERENCES = ("random", "expert")
 # --quick: the same code paths at toy sizes
 QUICK_FLAGS = {
@@ -84,15 +97,18 @@ QUICK_FLAGS = {
     ],  # fmt: skip
     "agents.ppo": ["--num-envs", "1", "--num-steps", "8", "--total-timesteps", "16", "--eval-freq", "0"],
 }
+QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state")
 
 
 @dataclass
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
-    """which of dagger-state, dagger-rgbd, sac-state, ppo-state to train (random and the expert always run)"""
+    """which of dagger-state, dagger-rgbd, sac-state, ppo-state, ppo-finetune-state to train (random and the
+    expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
     budget_min: float = 60.0
-    """wall-clock minutes per run of dagger-state and ppo-state (data collection and training)"""
+    """wall-clock minutes per run of dagger-state, ppo-state and ppo-finetune-state (its base and fine-tuning
+    together; data collection and training)"""
     long_budget_min: float = 120.0
     """wall-clock minutes per run of dagger-rgbd and sac-state"""
     eval_episodes: int = 100
@@ -105,7 +121,7 @@ class Args:
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
-    """smoke run: dagger-state and ppo-state, one seed, toy sizes, 2 evaluation episodes"""
+    """smoke run: dagger-state, ppo-state and ppo-finetune-state, one seed, toy sizes, 2 evaluation episodes"""
     bootstrap: int = 10_000
     """bootstrap resamples"""
 
@@ -199,9 +215,36 @@ def make_room(run_dir: Path) -> Path:
 def train_run(recipe: str, seed: int, args: Args) -> dict:
     module, flags, obs, kind = RECIPES[recipe]
     budget = args.long_budget_min if kind == "long" else args.budget_min
-    name = f"{recipe}__s{seed}"
+    if recipe not in BASES:
+        return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
+    base_recipe, share = BASES[recipe]
+    base_module, base_flags = RECIPES[base_recipe][:2]
+    base = run_trainer(f"{recipe}__s{seed}__base", base_module, base_flags, seed, share * budget, args)
+    flags = [*flags, "--base-checkpoint", base["checkpoint"]]
+    rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)  # an overrun of the base shows in the row's time
+    tuned = run_trainer(f"{recipe}__s{seed}", module, flags, seed, rest, args)
+    return joined(base, tuned)
+
+
+def joined(base: dict, tuned: dict) -> dict:
+    """One run of a two-stage recipe: the fine-tuned policy's evaluation, both stages' steps, time and curve."""
+    shift_steps, shift_min = base["env_steps"], base["wall_clock_s"] / 60
+    curve = {
+        "env_steps": base["curve"]["env_steps"] + [x + shift_steps for x in tuned["curve"]["env_steps"]],
+        "wall_min": base["curve"]["wall_min"] + [x + shift_min for x in tuned["curve"]["wall_min"]],
+        "success": base["curve"]["success"] + tuned["curve"]["success"],
+    }
+    out = dict(tuned, env_steps=base["env_steps"] + tuned["env_steps"], curve=curve)
+    out.update(
+        wall_clock_s=base["wall_clock_s"] + tuned["wall_clock_s"], command=f"{base['command']} && {tuned['command']}"
+    )
+    out["base"] = {k: base[k] for k in ("success_rate", "env_steps", "wall_clock_s", "checkpoint")}
+    return out
+
+
+def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: float, args: Args) -> dict:
     cmd = [sys.executable, "-m", module, *flags, "--env-id", args.env_id, "--seed", str(seed)]
-    cmd += ["--budget-min", str(budget), "--eval-episodes", str(args.eval_episodes)]
+    cmd += ["--budget-min", f"{budget:.4g}", "--eval-episodes", str(args.eval_episodes)]
     cmd += ["--runs-dir", str(args.out_dir / "runs"), "--exp-name", name, "--no-progress", "--no-capture-video"]
     if args.quick:
         cmd += QUICK_FLAGS[module]
@@ -307,7 +350,7 @@ def main(args: Args) -> dict:
     if unknown:
         raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
     if args.quick:
-        args.recipes = [r for r in args.recipes if r in ("dagger-state", "ppo-state")] or ["dagger-state"]
+        args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
         args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
     args.out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)

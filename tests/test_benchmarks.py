@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -53,15 +54,20 @@ def test_learning_quick_writes_json(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads((tmp_path / "learning.json").read_text())
     rows = {row["recipe"]: row for row in r["rows"]}
-    assert set(rows) == {"random", "expert", "dagger-state", "ppo-state"}
+    assert set(rows) == {"random", "expert", "dagger-state", "ppo-state", "ppo-finetune-state"}
     for row in rows.values():
         lo, hi = row["success_ci95"]
         assert 0.0 <= lo <= row["success_mean"] <= hi <= 1.0
         assert all(len(one["successes"]) == 2 for one in row["runs"])
     assert rows["expert"]["success_mean"] == 1.0  # the scripted expert on the held-out seeds
-    for name in ("dagger-state", "ppo-state"):
+    for name in ("dagger-state", "ppo-state", "ppo-finetune-state"):
         one = rows[name]["runs"][0]
         assert one["env_steps"] > 0 and one["wall_clock_s"] > 0 and Path(one["checkpoint"]).is_file()
+    # the fine-tuning starts from its own DAgger run, and the row counts both stages
+    tuned, base = rows["ppo-finetune-state"]["runs"][0], rows["ppo-finetune-state"]["runs"][0]["base"]
+    assert f"--base-checkpoint {base['checkpoint']}" in tuned["command"] and "__base" in base["checkpoint"]
+    assert tuned["env_steps"] > base["env_steps"] and tuned["wall_clock_s"] > base["wall_clock_s"]
+    assert torch.load(tuned["checkpoint"], weights_only=False)["args"]["base_checkpoint"] == base["checkpoint"]
     assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
 
 
