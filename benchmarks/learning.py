@@ -116,8 +116,9 @@ class Args:
     env_id: str = "TableClearing-IRB120-v1"
     out_dir: Path = Path("benchmarks/results/learning")
     merge: bool = False
-    """keep the rows of recipes this run does not train from the existing learning.json (each with the command
-    and date it came from): a 2-core machine runs the recipes one session at a time"""
+    """keep the rows of recipes this run does not train from the existing learning.json, and a retrained recipe's
+    runs of seeds this run does not train (each with the command and date it came from): a 2-core machine runs
+    the recipes and seeds one session at a time"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
@@ -326,6 +327,21 @@ def carried_rows(path: Path, retrained: list[str]) -> list[dict]:
     return [dict(r, command=r.get("command", old["command"]), date=r.get("date", old["date"])) for r in rows]
 
 
+def earlier_runs(path: Path, recipe: str, seeds: list[int]) -> list[dict]:
+    """The runs of an earlier report's ``recipe`` row whose seeds this run does not retrain, stamped with their
+    provenance, so one row can gather its seeds from several sessions."""
+    old = json.loads(path.read_text())
+    for row in old["rows"]:
+        if row["recipe"] == recipe:
+            cmd, date = row.get("command", old["command"]), row.get("date", old["date"])
+            return [
+                dict(run, benchmark_command=run.get("benchmark_command", cmd), date=run.get("date", date))
+                for run in row.get("runs", [])
+                if run.get("seed") not in seeds
+            ]
+    return []
+
+
 def update_results(report: dict, table: str, results: Path) -> None:
     """Replace the ``## Learning`` section of RESULTS.md (up to the next ``## ``) with this run's."""
     head = "## Learning — `benchmarks/learning.py`"
@@ -333,6 +349,13 @@ def update_results(report: dict, table: str, results: Path) -> None:
         f"{r['recipe']}: `{r['command']}` ({r['date']}); "
         for r in report["rows"]
         if r.get("date") not in (None, report["date"])
+    )
+    earlier += "".join(
+        f"{r['recipe']} seed {run['seed']}: `{run['benchmark_command']}` ({run['date']}); "
+        for r in report["rows"]
+        if r.get("date") == report["date"]
+        for run in r.get("runs", [])
+        if run.get("date") not in (None, report["date"])
     )
     earlier = f" Rows carried over (`--merge`) from earlier runs: {earlier.rstrip('; ')}." if earlier else ""
     section = (
@@ -360,7 +383,10 @@ def main(args: Args) -> dict:
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     kept = carried_rows(args.out_dir / "learning.json", args.recipes) if args.merge else []
     for recipe in args.recipes:
-        runs = [train_run(recipe, seed, args) for seed in args.seeds]
+        runs = [dict(train_run(recipe, seed, args), benchmark_command=command, date=date) for seed in args.seeds]
+        if args.merge:
+            runs = earlier_runs(args.out_dir / "learning.json", recipe, args.seeds) + runs
+            runs.sort(key=lambda r: r["seed"])
         rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
     rows += kept
     report = dict(

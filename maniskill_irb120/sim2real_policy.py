@@ -106,6 +106,8 @@ def load_policy(
     fmt = ckpt.get("format") if isinstance(ckpt, dict) else None
     if fmt not in TRAINERS:
         raise ValueError(f"--policy {path}: format {fmt!r} is none of {sorted(TRAINERS)}")
+    if fmt == "maniskill_irb120.dagger/1" and actions == "sample":  # refused before a sim env is built
+        raise ValueError(f"--actions sample: {path} is an agents.dagger policy, deterministic; use as-trained")
     trainer = _import_agents(TRAINERS[fmt])
     args = trainer.Args(**{k: v for k, v in ckpt["args"].items() if k in trainer.Args.__dataclass_fields__})
     if args.env_id != env_id:
@@ -136,9 +138,6 @@ def load_policy(
         agent = trainer.agent_from_checkpoint(ckpt, torch.device("cpu"))
         act = lambda obs: agent.get_action(obs, deterministic=not sampled)  # noqa: E731
     elif fmt == "maniskill_irb120.dagger/1":
-        if actions == "sample":
-            sim_env.close()
-            raise ValueError(f"--actions sample: {path} is an agents.dagger policy, deterministic; use as-trained")
         act = trainer.policy_from_checkpoint(ckpt, torch.device("cpu"))
     else:  # with a reference, sampling explores around the clone as in training (its --init-std)
         model = trainer.model_from_checkpoint(ckpt, torch.device("cpu"))

@@ -162,3 +162,35 @@ def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
     assert "Rows carried over (`--merge`) from earlier runs: dagger-state: `python benchmarks/learning.py" in text
     assert "| sac-state | state |" in text and "| dagger-state | state |" in text and "## Next" in text
     assert "old" not in text.split("## Next")[0] and "expert: `" not in text
+
+
+def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import numpy as np
+
+    first = "python benchmarks/learning.py --recipes dagger-state --seeds 2"
+    runs = [dict(seed=2, success_rate=0.97, successes=[1] * 97 + [0] * 3, env_steps=10, wall_clock_s=3600.0)]
+    row = learning.summarise("dagger-state", "state", runs, learning.Args(bootstrap=100), np.random.default_rng(0))
+    old = dict(command=first, date="2026-11-23 09:06 UTC", rows=[dict(row, command=first, date="2026-11-23 09:06 UTC")])
+    (tmp_path / "learning.json").write_text(json.dumps(old))
+    assert learning.earlier_runs(tmp_path / "learning.json", "dagger-state", [2, 3]) == []  # seed 2 is retrained
+    assert learning.earlier_runs(tmp_path / "learning.json", "sac-state", [1]) == []
+    (kept,) = learning.earlier_runs(tmp_path / "learning.json", "dagger-state", [1, 3])
+    assert kept["seed"] == 2 and kept["benchmark_command"] == first and kept["date"] == old["date"]
+
+    date, cmd = "2026-11-24 18:30 UTC", "python benchmarks/learning.py --recipes dagger-state --seeds 1 --merge"
+    new = dict(seed=1, success_rate=0.91, successes=[1] * 91 + [0] * 9, env_steps=30, wall_clock_s=3500.0)
+    merged = sorted([kept, dict(new, benchmark_command=cmd, date=date)], key=lambda r: r["seed"])
+    both = learning.summarise("dagger-state", "state", merged, learning.Args(bootstrap=200), np.random.default_rng(0))
+    assert both["seeds"] == [1, 2] and both["per_seed"] == [0.91, 0.97] and both["env_steps_mean"] == 20
+    lo, hi = both["success_ci95"]
+    assert 0.87 < lo < 0.94 < hi <= 1.0
+    report = dict(command=cmd, date=date, machine="m", wall_min=60, eval_episodes=100)
+    report["rows"] = [dict(both, command=cmd, date=date)]
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\nold\n")
+    learning.update_results(report, learning.markdown(report["rows"]), results)
+    text = results.read_text()
+    assert f"from earlier runs: dagger-state seed 2: `{first}` (2026-11-23 09:06 UTC)." in text
+    assert "| dagger-state | state | 2 | 0.94 |" in text
