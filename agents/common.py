@@ -11,7 +11,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import numpy as np
 import torch
@@ -246,7 +246,11 @@ class RunArgs:
     trainer's own Args extends it."""
 
     device: str = "auto"
-    """torch device of the learner (auto: CUDA when available); the envs stay on CPU workers"""
+    """torch device of the learner (auto: CUDA when available)"""
+    backend: Literal["auto", "cpu", "gpu"] = "auto"
+    """the envs: gpu, ManiSkill's GPU-batched physx_cuda env (--num-envs in one process, its tensors copied to
+    the host-side dataset each step); cpu, --num-envs worker processes (1: one env in this process); auto: gpu
+    when CUDA is available"""
     exp_name: Optional[str] = None
     """run folder under --runs-dir (default: algorithm__env__obs__seed__time)"""
     runs_dir: Path = Path("runs")

@@ -56,7 +56,7 @@ from agents.common import (
 from agents.nets import DeterministicActor, random_shift, shapes_of
 from maniskill_irb120.envs.base import grasp_yaw_error
 from maniskill_irb120.expert import expert_for
-from maniskill_irb120.vector import make_vec_env
+from maniskill_irb120.vector import OnHost, make_vec_env
 from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup, tcp_rotation, tool_to_world
 
 FORMAT = "maniskill_irb120.dagger/1"
@@ -81,7 +81,8 @@ class Args(RunArgs):
     eval_episodes: int = 100
     """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
     num_envs: int = 2
-    """CPU worker processes that collect episodes (1: one env in this process)"""
+    """envs that collect episodes: CPU worker processes (1: one env in this process), or one GPU-batched env
+    (--backend gpu)"""
     expert_episodes: int = 50
     """round 0: noisy expert episodes"""
     dart_noise: float = 0.2
@@ -155,7 +156,7 @@ class ExpertLabels(gym.Wrapper):
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
-        self.expert.reset()
+        self.expert.reset((kwargs.get("options") or {}).get("env_idx"))  # a batched env resets ended envs only
         self._label(info)
         return obs, info
 
@@ -239,8 +240,11 @@ def make_envs(args: Args, num_envs: int):
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 
         wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
-    backend = "inprocess" if num_envs == 1 else "cpu"
-    return make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+    gpu = args.backend == "gpu" or (args.backend == "auto" and torch.cuda.is_available())
+    backend = "gpu" if gpu else ("inprocess" if num_envs == 1 else "cpu")
+    envs = make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+    # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
+    return envs if backend == "cpu" else OnHost(envs)
 
 
 def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float, noise: float, device) -> dict:

@@ -80,7 +80,7 @@ class Args(RunArgs):
     eval_episodes: int = 100
     """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
     num_envs: int = 2
-    """CPU worker processes (1: one env in this process)"""
+    """CPU worker processes (1: one env in this process), or the size of one GPU-batched env (--backend gpu)"""
     demo_episodes: int = 50
     """reactive-expert episodes in the demo buffer (0: plain SAC)"""
     dart_noise: float = 0.2

@@ -29,6 +29,34 @@ def _to_torch(x: Any) -> Any:
     return x
 
 
+def _to_host(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _to_host(v) for k, v in x.items()}
+    if isinstance(x, torch.Tensor):
+        return x.cpu()
+    return x
+
+
+class OnHost(gym.vector.VectorWrapper):
+    """A batched env seen from training code that keeps its data in host memory (agents.dagger's dataset,
+    agents.sac's replay): observations, rewards, flags and infos (``final_info`` too) come back as CPU tensors,
+    actions go to the env's device. On a GPU-batched env that is one copy per step; on a CPU env, nothing."""
+
+    def __init__(self, env: gym.vector.VectorEnv):
+        super().__init__(env)
+        self.env_device = torch.device(getattr(env, "device", "cpu"))
+        self.device = torch.device("cpu")
+
+    def reset(self, *, seed: Optional[int | list[int]] = None, options: Optional[dict] = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        return _to_host(obs), _to_host(info)
+
+    def step(self, actions):
+        if isinstance(actions, torch.Tensor):
+            actions = actions.to(self.env_device)
+        return tuple(_to_host(x) for x in self.env.step(actions))
+
+
 def _select(where: torch.Tensor, new: Any, old: Any) -> Any:
     """Per-env choice between two batched (possibly nested) tensors: ``new`` where ``where``."""
     if isinstance(new, dict):

@@ -85,6 +85,30 @@ def test_expert_labels_come_from_the_workers(env):
         envs.close()
 
 
+def test_one_batched_env_labels_the_state_an_auto_reset_starts_from():
+    """The in-process (and GPU-batched) path: ManiSkill's vector env resets an ended episode within the step;
+    the labels that come back are the expert's for the new episode's first state, as CPU tensors."""
+    envs = make_envs(Args(num_envs=1, backend="cpu", env_kwargs=dict(max_episode_steps=3)), 1)
+    try:
+        o, info = envs.reset(seed=3)
+        for _ in range(3):
+            o, _, term, trunc, info = envs.step(info["expert_action"])
+        assert bool(trunc[0]) and "final_info" in info
+        base = envs.env.base_env
+        expected = tool_to_world(expert_for(base, reactive=True).act(), tcp_rotation(base))
+        assert info["expert_action"].device.type == "cpu" and o.device.type == "cpu"
+        assert torch.allclose(info["expert_action"], expected, atol=1e-5)
+        assert not torch.allclose(info["final_observation"], o)  # the episode's last state is not the new start
+    finally:
+        envs.close()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_gpu_backend_without_cuda_is_refused_by_name():
+    with pytest.raises(ValueError, match="needs CUDA"):
+        make_envs(Args(num_envs=4, backend="gpu"), 4)
+
+
 def test_dataset_is_a_ring_and_round_trips():
     d = Dataset(10)
     for start in (0, 7):
