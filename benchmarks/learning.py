@@ -272,6 +272,14 @@ def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: flo
 
 
 # ----------------------------------------------------------------------------- report
+def smoothed(values: list[float], points: int = 60) -> np.ndarray:
+    """A trailing mean over ~1/``points`` of the curve: PPO logs a point per handful of episodes (each 0 or 1),
+    which drawn raw fills the plot with a solid band."""
+    v = np.asarray(values, dtype=float)
+    w = max(1, len(v) // points)
+    return np.array([v[max(0, i - w + 1) : i + 1].mean() for i in range(len(v))])
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -289,14 +297,15 @@ def plot(rows: list[dict], path: Path) -> None:
             c = run["curve"]
             label = row["recipe"] if i == 0 else None
             color = f"C{list(RECIPES).index(row['recipe'])}"
-            axes[0].plot(c["env_steps"], c["success"], color=color, lw=1, alpha=0.8, label=label)
-            axes[1].plot(c["wall_min"], c["success"], color=color, lw=1, alpha=0.8)
+            success = smoothed(c["success"])
+            axes[0].plot(c["env_steps"], success, color=color, lw=1, alpha=0.8, label=label)
+            axes[1].plot(c["wall_min"], success, color=color, lw=1, alpha=0.8)
     axes[0].set(xlabel="env steps (thousands)", ylabel="training-episode success", ylim=(-0.05, 1.05))
     axes[0].xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:g}"))
     axes[1].set(xlabel="wall clock (min)", ylim=(-0.05, 1.05))
     axes[0].legend(fontsize=7)
     fig.suptitle(
-        "training episodes (DAgger: β-mixed with the expert in early rounds, then the noisy learner); "
+        "training episodes, trailing mean (DAgger: β-mixed with the expert in early rounds, then the noisy learner); "
         "dashed: expert (black), random (grey) on the held-out seeds",
         fontsize=7,
     )
