@@ -57,7 +57,7 @@ from agents.common import (
 from agents.nets import DeterministicActor, random_shift, shapes_of
 from maniskill_irb120.envs.base import grasp_yaw_error
 from maniskill_irb120.expert import expert_for
-from maniskill_irb120.vector import OnHost, make_vec_env
+from maniskill_irb120.vector import CPUVectorEnv, OnHost, make_vec_env
 from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup, tcp_rotation, tool_to_world
 
 FORMAT = "maniskill_irb120.dagger/1"
@@ -241,11 +241,10 @@ def make_envs(args: Args, num_envs: int):
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
 
         wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
-    gpu = args.backend == "gpu" or (args.backend == "auto" and torch.cuda.is_available())
-    backend = "gpu" if gpu else ("inprocess" if num_envs == 1 else "cpu")
+    backend = "inprocess" if args.backend == "cpu" and num_envs == 1 else args.backend  # auto: make_vec_env's
     envs = make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
     # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
-    return envs if backend == "cpu" else OnHost(envs)
+    return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
 
 
 def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float, noise: float, device) -> dict:
