@@ -48,6 +48,9 @@ class OnHost(gym.vector.VectorWrapper):
         self.device = torch.device("cpu")
 
     def reset(self, *, seed: Optional[int | list[int]] = None, options: Optional[dict] = None):
+        if options and "env_idx" in options:
+            # ManiSkill indexes its device-side buffers with env_idx as given; host indices would mix devices
+            options = {**options, "env_idx": torch.as_tensor(options["env_idx"], device=self.env_device)}
         obs, info = self.env.reset(seed=seed, options=options)
         return _to_host(obs), _to_host(info)
 

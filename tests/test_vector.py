@@ -85,3 +85,35 @@ def test_bad_inputs(venv):
             make_vec_env(ENV, 2, backend="gpu")
         else:
             raise ValueError("CUDA present: nothing to check")
+
+
+def test_on_host_partial_reset_takes_host_indices():
+    """Trainers hand OnHost host-side indices (lists, numpy); ManiSkill indexes its device buffers with
+    env_idx as given, so OnHost must pass it on as a tensor on the env's device."""
+    import gymnasium as gym
+    import numpy as np
+
+    from maniskill_irb120.vector import OnHost
+
+    class Spy(gym.vector.VectorWrapper):
+        seen: list = []
+
+        def reset(self, *, seed=None, options=None):
+            self.seen.append((options or {}).get("env_idx"))
+            return self.env.reset(seed=seed, options=options)
+
+    inner = make_vec_env(ENV, 1, backend="inprocess", obs_mode="state", max_episode_steps=4)
+    env = OnHost(Spy(inner))
+    try:
+        first, _ = env.reset(seed=21)
+        for _ in range(2):
+            moved, *_ = env.step(torch.ones(1, 5))
+        assert not torch.allclose(moved, first)
+        for idx in ([0], np.array([0])):
+            again, _ = env.reset(seed=21, options=dict(env_idx=idx))
+            got = Spy.seen[-1]
+            assert isinstance(got, torch.Tensor) and got.device == torch.device(inner.device)
+            assert again.device.type == "cpu"
+            torch.testing.assert_close(again, first)
+    finally:
+        env.close()
