@@ -44,7 +44,8 @@ class OnHost(gym.vector.VectorWrapper):
 
     def __init__(self, env: gym.vector.VectorEnv):
         super().__init__(env)
-        self.env_device = torch.device(getattr(env, "device", "cpu"))
+        # from the base env: a VectorWrapper between it and OnHost does not forward ``device``
+        self.env_device = torch.device(getattr(env.unwrapped, "device", "cpu"))
         self.device = torch.device("cpu")
 
     def reset(self, *, seed: Optional[int | list[int]] = None, options: Optional[dict] = None):

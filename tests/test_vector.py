@@ -96,22 +96,26 @@ def test_on_host_partial_reset_takes_host_indices():
     from maniskill_irb120.vector import OnHost
 
     class Spy(gym.vector.VectorWrapper):
-        seen: list = []
+        def __init__(self, env):
+            super().__init__(env)
+            self.seen: list = []
 
         def reset(self, *, seed=None, options=None):
             self.seen.append((options or {}).get("env_idx"))
             return self.env.reset(seed=seed, options=options)
 
     inner = make_vec_env(ENV, 1, backend="inprocess", obs_mode="state", max_episode_steps=4)
-    env = OnHost(Spy(inner))
+    spy = Spy(inner)
+    env = OnHost(spy)
     try:
+        assert env.env_device == torch.device(inner.device)  # read through the wrapper, from the base env
         first, _ = env.reset(seed=21)
         for _ in range(2):
             moved, *_ = env.step(torch.ones(1, 5))
         assert not torch.allclose(moved, first)
         for idx in ([0], np.array([0])):
             again, _ = env.reset(seed=21, options=dict(env_idx=idx))
-            got = Spy.seen[-1]
+            got = spy.seen[-1]
             assert isinstance(got, torch.Tensor) and got.device == torch.device(inner.device)
             assert again.device.type == "cpu"
             torch.testing.assert_close(again, first)
