@@ -3,7 +3,7 @@
 Round 0 rolls the scripted expert out with Gaussian noise on the executed arm actions (DART, Laskey et al.
 2017) and records the expert's *clean* action for every visited state. Every later round rolls the learner out
 (mixed with the expert with probability beta, decaying), and the reactive expert (its phase read from the
-state, ``maniskill_irb120.expert``) labels each state the learner reached; the labels join one aggregated
+state, ``maniskill_irb120.experts.pick_place``) labels each state the learner reached; the labels join one aggregated
 dataset and the policy is trained further on all of it. The labels come from a wrapper inside each env
 worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
 proprioception, no privileged state) while the expert reads the simulator.
@@ -55,10 +55,11 @@ from agents.common import (
     train_seed,
 )
 from agents.nets import DeterministicActor, random_shift, shapes_of
+from maniskill_irb120.action import tcp_rotation, tool_to_world
 from maniskill_irb120.envs.base import grasp_yaw_error
-from maniskill_irb120.expert import expert_for
+from maniskill_irb120.experts import expert_for
 from maniskill_irb120.vector import CPUVectorEnv, OnHost, make_vec_env
-from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup, tcp_rotation, tool_to_world
+from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup
 
 FORMAT = "maniskill_irb120.dagger/1"
 
@@ -130,7 +131,7 @@ def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
     u = env.unwrapped
     rel = (u._obj_pose[:, :3] - u._tcp_pose[:, :3]) * 10.0
     if frame == "tool":  # the hand camera's own axes: an offset in the image is one in the tool frame
-        rel = (tcp_rotation(env).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
+        rel = (tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
     yaw = 4.0 * grasp_yaw_error(u._obj_pose, u._tcp_pose)
     return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
 
@@ -151,7 +152,9 @@ class ExpertLabels(gym.Wrapper):
 
     def _label(self, info: dict) -> None:
         a = self.expert.act()
-        info["expert_action"] = tool_to_world(a, tcp_rotation(self.env)) if self.frame == "world" else a
+        info["expert_action"] = (
+            tool_to_world(a, tcp_rotation(self.env.unwrapped.agent.tcp_pose.raw_pose)) if self.frame == "world" else a
+        )
         if self.aux:
             info["expert_aux"] = privileged_aux(self.env, self.frame)
 

@@ -18,9 +18,9 @@ from typing import Optional
 
 import numpy as np
 
-from maniskill_irb120.real.client import ABBRobot
-from maniskill_irb120.real.emulator import ControllerEmulator
-from maniskill_irb120.real.protocol import OVERHEAD, GetState, ToolStep, command_frame
+from maniskill_irb120.abb.client import ABBRobot
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+from maniskill_irb120.abb.protocol import OVERHEAD, GetState, ToolStep, command_frame
 
 REPLY_BYTES = OVERHEAD + 26
 

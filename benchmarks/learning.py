@@ -178,7 +178,7 @@ def reference(name: str, args: Args) -> dict:
         act = lambda obs: torch.rand(1, 5, generator=gen) * 2 - 1  # noqa: E731
         r = evaluate_on_seeds(act, args.env_id, "state", seeds)
     else:
-        from maniskill_irb120.rollout import run_expert
+        from maniskill_irb120.experts.rollout import run_expert
 
         e = run_expert(args.env_id, args.eval_episodes, EVAL_SEED)
         failed = set(e["failed_seeds"])

@@ -18,7 +18,7 @@ tool-frame pose increment, executed to convergence before the next action was ac
 
 This module rebuilds that loop from the description, with the seed's full scene (plane, table,
 yellow source tray, green destination tray, a cube, the robot on a 0.3 m foundation) but with *our*
-robot description (``maniskill_irb120.robot_description.urdf_path()``), so the comparison with the
+robot description (``maniskill_irb120.robot.description.urdf_path()``), so the comparison with the
 ManiSkill env measures the simulator loop and not two different robot models.
 
 Choices where the description leaves room (documented, none makes PyBullet slower):
@@ -91,7 +91,7 @@ class SeedPyBulletEnv:
 
     def __init__(self, render: bool = True, realtime: bool = False, seed: int = 0):
         _require_pybullet()
-        from maniskill_irb120.robot_description import urdf_path
+        from maniskill_irb120.robot.description import urdf_path
 
         self.render = render
         self.realtime = realtime

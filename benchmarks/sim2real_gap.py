@@ -18,7 +18,7 @@ from typing import Optional
 
 import tyro
 
-from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
 
 SHIFTS = {
     "none": None,

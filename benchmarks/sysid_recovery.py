@@ -19,9 +19,9 @@ from typing import Optional
 import numpy as np
 import tyro
 
-from maniskill_irb120.real.agent import IRB120RealAgent
-from maniskill_irb120.real.emulator import ControllerEmulator
-from maniskill_irb120.sysid import excite, fit, load_log, log_arrays
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+from maniskill_irb120.sim2real.agent import IRB120RealAgent
+from maniskill_irb120.sim2real.sysid import excite, fit, load_log, log_arrays
 
 CASES = [(0.0, 1.0), (20.0, 1.0), (40.0, 0.6), (0.0, 0.5), (30.0, 0.8)]
 

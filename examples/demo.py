@@ -17,8 +17,8 @@ import torch
 import tyro
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.expert import expert_for
-from maniskill_irb120.rollout import run_episode
+from maniskill_irb120.experts import expert_for
+from maniskill_irb120.experts.rollout import run_episode
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """``maniskill-irb120``: the package's one command line (tyro subcommands, as ManiSkill's own scripts use
-tyro). ``python -m maniskill_irb120`` and ``python -m maniskill_irb120.expert`` forward here."""
+tyro). ``python -m maniskill_irb120`` forwards here."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def collect_demos(
     object_shape: str = "cube",
 ) -> int:
     """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json)."""
-    from maniskill_irb120.demos import collect_demos as collect
+    from maniskill_irb120.experts.demos import collect_demos as collect
 
     print(
         json.dumps(
@@ -63,7 +63,7 @@ def expert(
     episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode.
     ``--reactive``: the expert reads its phase from the state each step (the one DAgger relabels with)."""
     import maniskill_irb120  # noqa: F401
-    from maniskill_irb120.rollout import run_expert
+    from maniskill_irb120.experts.rollout import run_expert
 
     kwargs = dict(reconfiguration_freq=1) if object_shape == "random" else {}
     print(
@@ -89,7 +89,7 @@ def emulator(
     back X ms before the controller sees it; ``--speed-scale 0.8`` makes every motion take 1/0.8 of its time.
     Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
     faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop)."""
-    from maniskill_irb120.real.emulator import main as emulator_main
+    from maniskill_irb120.abb.emulator.controller import main as emulator_main
 
     return emulator_main(listen, rapid, fault, latency_ms, speed_scale)
 
@@ -115,8 +115,8 @@ def sim2real_eval(
     agents.dagger or agents.sac checkpoint. ``--actions``: a checkpoint's action as its trainer evaluated it
     (as-trained), its mean, or a sample (agents.sac/agents.ppo; seeded by the episode seed on both sides).
     Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
-    from maniskill_irb120.sim2real_eval import EvalConfig
-    from maniskill_irb120.sim2real_eval import main as eval_main
+    from maniskill_irb120.sim2real.eval import EvalConfig
+    from maniskill_irb120.sim2real.eval import main as eval_main
 
     cfg = EvalConfig(
         robot=robot,
@@ -138,7 +138,7 @@ def sysid(log: str) -> int:
     """Fit the robot's command latency and speed scaling to a sim2real-eval run's logs (LOG/logs/real_*.npz):
     prints one JSON line (latency_s, speed_scale, RMS joint error of the fit and of the nominal robot) and
     writes LOG/sysid.json."""
-    from maniskill_irb120.sysid import main as sysid_main
+    from maniskill_irb120.sim2real.sysid import main as sysid_main
 
     sysid_main(log)
     return 0

@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_irb120.contract import as_action_array, check_env_idx, check_finite_actions
+from maniskill_irb120.envs.contract import as_action_array, check_env_idx, check_finite_actions
 
 
 def _to_torch(x: Any) -> Any:

@@ -22,27 +22,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-
-def _shrink(v: torch.Tensor) -> torch.Tensor:
-    return v / v.abs().amax(dim=-1, keepdim=True).clamp(min=1.0)
-
-
-def world_to_tool(action: torch.Tensor, tcp_rot: torch.Tensor) -> torch.Tensor:
-    """(N, 5) world-frame actions -> tool-frame ones for TCP rotations ``tcp_rot`` (N, 3, 3)."""
-    out = action.clone()
-    out[:, :3] = _shrink((tcp_rot.transpose(1, 2) @ action[:, :3].unsqueeze(2)).squeeze(2))
-    return out
-
-
-def tool_to_world(action: torch.Tensor, tcp_rot: torch.Tensor) -> torch.Tensor:
-    """The inverse map (labels: the expert's tool-frame action expressed in world axes)."""
-    out = action.clone()
-    out[:, :3] = _shrink((tcp_rot @ action[:, :3].unsqueeze(2)).squeeze(2))
-    return out
-
-
-def tcp_rotation(env: gym.Env) -> torch.Tensor:
-    return env.unwrapped.agent.tcp_pose.to_transformation_matrix()[:, :3, :3]
+from maniskill_irb120.action import ACTION_DIM, tcp_rotation, world_to_tool
 
 
 class WorldFrameToolAction(gym.ActionWrapper):
@@ -60,11 +40,11 @@ class WorldFrameToolAction(gym.ActionWrapper):
         a = a.to(device=u.device, dtype=torch.float32)
         single = a.ndim == 1
         a = a.reshape(1, -1) if single else a
-        if a.shape[-1] != 5:
+        if a.shape[-1] != ACTION_DIM:
             raise ValueError(f"expected actions of shape (5,) or (N, 5), got {tuple(a.shape)}")
         if not torch.isfinite(a).all():
             raise ValueError("action contains NaN or inf")
-        out = world_to_tool(a.clamp(-1, 1), tcp_rotation(self.env))
+        out = world_to_tool(a.clamp(-1, 1), tcp_rotation(u.agent.tcp_pose.raw_pose))
         return out[0] if single else out
 
 

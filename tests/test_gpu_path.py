@@ -21,11 +21,11 @@ from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120 import make_vec_env
-from maniskill_irb120.agents.irb120 import hand_camera_shader
 from maniskill_irb120.envs.base import IRB120TableEnv
-from maniskill_irb120.kinematics import matrix_to_quaternion
 from maniskill_irb120.maniskill_compat import episode_reset
-from maniskill_irb120.rendering import FORWARD
+from maniskill_irb120.robot.irb120 import hand_camera_shader
+from maniskill_irb120.robot.kinematics import matrix_to_quaternion
+from maniskill_irb120.robot.shaders import FORWARD
 
 ENV = "TableClearing-IRB120-v1"
 

@@ -35,7 +35,7 @@ def test_maniskill_resets_controllers_with_an_all_true_mask(monkeypatch):
     monkeypatch.setattr(PDJointPosController, "reset", spy)
     # the controller's own reset runs inside true_reset_mask, so look at what BaseEnv set before that
     monkeypatch.setattr(compat, "true_reset_mask", _passthrough)
-    import maniskill_irb120.controllers as controllers
+    import maniskill_irb120.robot.controllers as controllers
 
     monkeypatch.setattr(controllers, "true_reset_mask", _passthrough)
     u.reset(options=dict(env_idx=torch.tensor([0])))

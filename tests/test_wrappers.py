@@ -11,7 +11,8 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.wrappers import DropObservationKeys, WorldFrameToolAction, tool_to_world, world_to_tool
+from maniskill_irb120.action import tool_to_world, world_to_tool
+from maniskill_irb120.wrappers import DropObservationKeys, WorldFrameToolAction
 
 ENV = "TableClearing-IRB120-v1"
 

@@ -23,7 +23,7 @@ MODULE IRB120Server
     CONST num HEARTBEAT_S := 0.5;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
     CONST num ARRIVED_DEG := 0.05;
-    ! the safety envelope (the PC checks the same numbers: maniskill_irb120/real/envelope.py)
+    ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
     CONST num STEP_POS_MM := 10;
     CONST num STEP_ROT_DEG := 10;
     CONST pos WORKSPACE_LOW := [150, -320, 10];

@@ -1,3 +1,6 @@
-"""The real-robot side (ABB IRC5): wire protocol, client, safety envelope, emulated robot, RAPID interpreter.
+"""The ABB side, what a robot PC runs: the wire protocol, the client (``ABBRobot``) and the safety envelope, plus
+the controller emulator (``abb/emulator``: our RAPID executed on an emulated IRC5, for CI and dry runs).
 
-Submodules are imported on demand, so importing this package stays light."""
+The wire side (everything here but ``emulator/``) imports neither ManiSkill nor SAPIEN, only ``action`` and
+``robot.kinematics`` / ``robot.description``: a robot PC needs no simulator. Nothing here imports ``envs/``,
+``sim2real/`` or ``agents/``."""

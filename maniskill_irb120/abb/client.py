@@ -20,10 +20,8 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from maniskill_irb120.controllers import gripper_opens, scale_tool_action
-from maniskill_irb120.kinematics import matrix_to_quat, pose_mm
-from maniskill_irb120.real.envelope import Envelope
-from maniskill_irb120.real.protocol import (
+from maniskill_irb120.abb.envelope import Envelope
+from maniskill_irb120.abb.protocol import (
     ERROR_MEANINGS,
     ErrorCode,
     FrameParser,
@@ -39,6 +37,8 @@ from maniskill_irb120.real.protocol import (
     command_frame,
     decode_reply,
 )
+from maniskill_irb120.action import gripper_opens, scale_tool_action
+from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 
 
 def _target(state: RobotState) -> np.ndarray:

@@ -3,7 +3,7 @@ the same limits again on the controller: each side holds alone).
 
 Limits: per-step tool motion (the action space's ±1 cm / ±10°), a workspace box for the TCP in the robot base
 frame (both trays with margin, never below the table top), ABB's joint limits, and ABB's axis speeds over one
-control period. Predictions use the robot's own kinematics (``maniskill_irb120.kinematics``, the same closed
+control period. Predictions use the robot's own kinematics (``maniskill_irb120.robot.kinematics``, the same closed
 form the simulator's controller uses), so a step the envelope accepts is the step the sim would take.
 """
 
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, apply_tool_delta
-from maniskill_irb120.robot_description import urdf_path
+from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, apply_tool_delta
+from maniskill_irb120.robot.description import urdf_path
+from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK
 
 CONTROL_PERIOD_S = 0.05  # 20 Hz, the env's control rate
 # TCP box in the robot base frame (m): both trays (x 0.27..0.43, |y| <= 0.21) with margin, the TCP at least

@@ -18,10 +18,9 @@ from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.envs.checks import EnvContractMixin
+from maniskill_irb120.envs.contract import EnvContractMixin
 from maniskill_irb120.envs.randomization import RandomizationMixin
-from maniskill_irb120.envs.table_scene import (
+from maniskill_irb120.envs.scene import (
     CONTACT_FORCE_EPS,
     SOURCE_TRAY_XY,
     SPAWN_MARGIN,
@@ -38,6 +37,7 @@ from maniskill_irb120.maniskill_compat import (
     reset_mask_from_options,
     restore_controller_state,
 )
+from maniskill_irb120.robot.irb120 import IRB120Metalwork
 
 # the first is the default (BaseEnv takes SUPPORTED_REWARD_MODES[0]): normalized_dense, as in ManiSkill's own tasks,
 # whose PPO examples pass no reward_mode; TableClearing's original reward (-1000 per collision) is reward_mode="dense"

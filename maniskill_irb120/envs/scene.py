@@ -20,7 +20,7 @@ from mani_skill.envs.scene import ManiSkillScene
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.link import Link
 
-from maniskill_irb120.robot_description import merged_box_mesh
+from maniskill_irb120.robot.description import merged_box_mesh
 
 # --------------------------------------------------------------------------- geometry (metres)
 TABLE_SIZE = (1.2, 1.0, 0.75)  # x, y, height; the top is at world z = 0

@@ -10,7 +10,7 @@ import torch
 from mani_skill.utils.registration import register_env
 
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
-from maniskill_irb120.envs.table_scene import TRAY_INNER
+from maniskill_irb120.envs.scene import TRAY_INNER
 
 ENV_ID = "StackCube-IRB120-v1"
 MIN_GAP = 0.045  # m between the centres at the start: the open fingers (±18 mm) clear the other object

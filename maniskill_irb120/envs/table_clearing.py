@@ -12,7 +12,7 @@ import torch
 from mani_skill.utils.registration import register_env
 
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
-from maniskill_irb120.envs.table_scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
+from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 
 ENV_ID = "TableClearing-IRB120-v1"
 GRASP_LIFT = 0.05  # "grasped" needs the object centre >= 5 cm above the source tray floor

@@ -16,8 +16,8 @@ from mani_skill.utils.wrappers.record import RecordEpisode
 
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
-from maniskill_irb120.expert import expert_for
-from maniskill_irb120.rollout import run_episode
+from maniskill_irb120.experts import expert_for
+from maniskill_irb120.experts.rollout import run_episode
 
 
 def collect_demos(

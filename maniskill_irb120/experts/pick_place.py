@@ -20,10 +20,10 @@ from dataclasses import dataclass, replace
 import torch
 from mani_skill.utils.structs.actor import Actor
 
-from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
+from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, action_from_world_motion, tcp_rotation
 from maniskill_irb120.envs import grasp_lift, stack_cube, table_clearing
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
-from maniskill_irb120.envs.table_scene import TRAY_INNER, TRAY_WALL_H
+from maniskill_irb120.envs.scene import TRAY_INNER, TRAY_WALL_H
 
 # gripper_base collision box half extents across the approach axis: along the fingers / across them
 GRIPPER_HALF_LONG, GRIPPER_HALF_SHORT = 0.032, 0.015
@@ -153,7 +153,7 @@ class PickPlaceExpert:
         c = self.cfg
         tcp = self.env.agent.tcp_pose
         tcp_p = tcp.p
-        tcp_rot = tcp.to_transformation_matrix()[:, :3, :3]
+        tcp_rot = tcp_rotation(tcp.raw_pose)
         yaw_err = self._yaw_error(tcp_rot)
         place = self._place()
         if self.reactive:
@@ -185,7 +185,7 @@ class PickPlaceExpert:
         # (a digital twin driven in joint targets: its actions go to a robot in pd_ee_delta_tool's units)
         cfg = self.env.agent.arm_controller.config
         pos_limit, rot_limit = getattr(cfg, "pos_limit", TOOL_POS_LIMIT), getattr(cfg, "rot_limit", TOOL_ROT_LIMIT)
-        return self._to_action(target - tcp_p, yaw, gripper, tcp_rot, pos_limit, rot_limit)
+        return action_from_world_motion(target - tcp_p, yaw, gripper, tcp_rot, pos_limit, rot_limit)
 
     def _infer_phase(self, tcp_p: torch.Tensor, yaw_err: torch.Tensor, place: torch.Tensor | None) -> torch.Tensor:
         """Each env's phase read from the state alone (no step counter, no memory), so the expert can label
@@ -224,21 +224,6 @@ class PickPlaceExpert:
         self.grasp_xy[phase == LIFT] = tcp_p[phase == LIFT, :2]
         return phase
 
-    @staticmethod
-    def _to_action(
-        err: torch.Tensor,
-        yaw: torch.Tensor,
-        gripper: torch.Tensor,
-        tcp_rot: torch.Tensor,
-        pos_limit: float,
-        rot_limit: float,
-    ) -> torch.Tensor:
-        local = (tcp_rot.transpose(1, 2) @ err.unsqueeze(2)).squeeze(2) / pos_limit
-        scale = local.abs().amax(dim=1, keepdim=True).clamp(min=1.0)
-        local = local / scale
-        rot = (yaw / rot_limit).clamp(-1, 1)
-        return torch.cat([local, rot.unsqueeze(1), gripper.unsqueeze(1)], dim=1).clamp(-1, 1)
-
 
 class TableClearingExpert(PickPlaceExpert):
     """Into the destination tray, released ``release_height`` above its floor."""
@@ -269,11 +254,23 @@ class StackCubeExpert(PickPlaceExpert):
         return place
 
 
-EXPERTS: dict[str, type[PickPlaceExpert]] = {
-    table_clearing.ENV_ID: TableClearingExpert,
-    grasp_lift.ENV_ID: GraspLiftExpert,
-    stack_cube.ENV_ID: StackCubeExpert,
-}
+EXPERTS: dict[str, type[PickPlaceExpert]] = {}
+"""env id -> expert class; :func:`register_expert` fills it"""
+
+
+def register_expert(env_id: str):
+    """Class decorator: the scripted expert of task ``env_id`` (a new task's expert is one small subclass)."""
+
+    def deco(cls: type[PickPlaceExpert]) -> type[PickPlaceExpert]:
+        EXPERTS[env_id] = cls
+        return cls
+
+    return deco
+
+
+register_expert(table_clearing.ENV_ID)(TableClearingExpert)
+register_expert(grasp_lift.ENV_ID)(GraspLiftExpert)
+register_expert(stack_cube.ENV_ID)(StackCubeExpert)
 
 
 def expert_for(env, reactive: bool = False) -> PickPlaceExpert:
@@ -284,11 +281,3 @@ def expert_for(env, reactive: bool = False) -> PickPlaceExpert:
     if env_id not in EXPERTS:
         raise ValueError(f"no scripted expert for env {env_id!r}; experts exist for {sorted(EXPERTS)}")
     return EXPERTS[env_id](u, reactive=reactive)
-
-
-if __name__ == "__main__":  # python -m maniskill_irb120.expert ... = maniskill-irb120 expert ...
-    import sys
-
-    from maniskill_irb120.cli import main
-
-    sys.exit(main(["expert", *sys.argv[1:]]))

@@ -13,7 +13,7 @@ import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 from maniskill_irb120.envs import table_clearing
-from maniskill_irb120.expert import PHASE_NAMES, PickPlaceExpert, expert_for
+from maniskill_irb120.experts.pick_place import PHASE_NAMES, PickPlaceExpert, expert_for
 
 
 @dataclass

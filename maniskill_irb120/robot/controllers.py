@@ -1,6 +1,6 @@
-"""Controllers for the seed's action space.
+"""Controllers for the original report's action space (``maniskill_irb120.action``).
 
-ManiSkill's ``PDEEPoseController`` only takes root-frame deltas on the GPU, while the seed acts in
+ManiSkill's ``PDEEPoseController`` only takes root-frame deltas on the GPU, while the original report acts in
 the tool frame: δx, δy, δz along the TCP axes and a rotation about the approach axis (TCP +x).
 ``PDEEDeltaToolController`` composes the tool-frame delta itself and solves inverse kinematics in
 batched torch, so one code path serves ``physx_cpu`` (num_envs=1) and ``physx_cuda`` (num_envs=N):
@@ -23,28 +23,9 @@ from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController, PDJ
 from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.types import Array
 
-from maniskill_irb120.kinematics import ArmIK, DLSParams, SerialChain, matrix_to_quaternion
+from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, gripper_opens, scale_tool_action
 from maniskill_irb120.maniskill_compat import PartialResetControllerMixin, set_drive_targets, true_reset_mask
-
-# the original report's action limits (Table 4.1): ±1 cm along each tool axis, ±10° about the approach axis
-TOOL_POS_LIMIT = 0.01
-TOOL_ROT_LIMIT = math.radians(10.0)
-
-
-def scale_tool_action(action, pos_limit: float = TOOL_POS_LIMIT, rot_limit: float = TOOL_ROT_LIMIT):
-    """Normalised tool actions (..., 4) in [-1, 1] → metres along the tool axes and radians about the approach
-    axis: clipped to the box, then scaled (ManiSkill's normalised-action convention for symmetric limits).
-    numpy or torch. The one definition shared by the controller and the real-robot client."""
-    lib = torch if isinstance(action, torch.Tensor) else np
-    limits = lib.asarray([pos_limit] * 3 + [rot_limit], dtype=action.dtype)
-    if lib is torch:
-        limits = limits.to(action.device)
-    return lib.clip(action, -1.0, 1.0) * limits
-
-
-def gripper_opens(value):
-    """The gripper command of an action: > 0 opens, <= 0 closes (the original report's ``open`` flag)."""
-    return value > 0
+from maniskill_irb120.robot.kinematics import ArmIK, DLSParams, SerialChain, matrix_to_quaternion
 
 
 def _pose_matrix(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:

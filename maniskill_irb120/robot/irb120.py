@@ -15,15 +15,15 @@ from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import common
 from mani_skill.utils.structs.actor import Actor
 
-from maniskill_irb120.controllers import (
+from maniskill_irb120.robot.controllers import (
     BinaryGripperController,
     BinaryGripperControllerConfig,
     PartialResetPDEEPoseControllerConfig,
     PartialResetPDJointPosControllerConfig,
     PDEEDeltaToolControllerConfig,
 )
-from maniskill_irb120.rendering import FORWARD, sensor_shader_config
-from maniskill_irb120.robot_description import geometry, urdf_path
+from maniskill_irb120.robot.description import geometry, urdf_path
+from maniskill_irb120.robot.shaders import FORWARD, sensor_shader_config
 
 ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
 FINGER_STROKE = geometry()["finger_stroke"]  # each finger's travel from closed (2 mm gap) to open (26 mm)

@@ -20,7 +20,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
+
+from maniskill_irb120.action import apply_tool_delta, quaternion_to_rotation
 
 
 def run_batched(fn, consts, *tensors: torch.Tensor):
@@ -313,17 +314,6 @@ class SphericalWristIK:
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
 
 
-def apply_tool_delta(xp, ref, action):
-    """``ref · Δ`` for (N,4,4) poses and (N,4) actions in metres and radians: Δ translates by action[:3]
-    in the tool frame, then rotates by action[3] about the tool's x axis (the original report's
-    ``multiplyTransforms(current, delta)``); ``xp`` is numpy or torch."""
-    r = ref[:, :3, :3]
-    c, s = xp.cos(action[:, 3:4]), xp.sin(action[:, 3:4])
-    pos = ref[:, :3, 3] + (r @ action[:, :3, None])[..., 0]
-    cols = [r[:, :, 0], c * r[:, :, 1] + s * r[:, :, 2], c * r[:, :, 2] - s * r[:, :, 1], pos]
-    return xp.concatenate([xp.stack(cols, 2), ref[:, 3:]], 1)
-
-
 @dataclass
 class DLSParams:
     iterations: int = 6
@@ -474,7 +464,7 @@ def matrix_to_quaternion(m: torch.Tensor) -> torch.Tensor:
 def quat_to_matrix(q) -> np.ndarray:
     """(3, 3) rotation of a wxyz quaternion (normalised first), numpy; ManiSkill's conversion underneath."""
     q = torch.as_tensor(np.asarray(q, dtype=np.float64))
-    return quaternion_to_matrix(q / q.norm()).numpy()
+    return quaternion_to_rotation(q / q.norm()).numpy()
 
 
 def matrix_to_quat(m: np.ndarray) -> np.ndarray:

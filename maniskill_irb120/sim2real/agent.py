@@ -23,11 +23,11 @@ import numpy as np
 import torch
 from mani_skill.agents.base_real_agent import BaseRealAgent
 
-from maniskill_irb120.agents.irb120 import FINGER_STROKE
-from maniskill_irb120.controllers import gripper_opens
-from maniskill_irb120.real.client import ABBRobot
-from maniskill_irb120.real.protocol import RobotState, Status
-from maniskill_irb120.robot_description import geometry
+from maniskill_irb120.abb.client import ABBRobot
+from maniskill_irb120.abb.protocol import RobotState, Status
+from maniskill_irb120.action import gripper_opens
+from maniskill_irb120.robot.description import geometry
+from maniskill_irb120.robot.irb120 import FINGER_STROKE
 
 CommandMode = Literal["tool_delta", "joint_target"]
 COMMAND_MODES = ("tool_delta", "joint_target")

@@ -28,9 +28,9 @@ import torch
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.sim2real_env import Sim2RealEnv
 
-from maniskill_irb120.real.agent import IRB120RealAgent
-from maniskill_irb120.real.client import ControllerRefused
-from maniskill_irb120.real.envelope import EnvelopeError
+from maniskill_irb120.abb.client import ControllerRefused
+from maniskill_irb120.abb.envelope import EnvelopeError
+from maniskill_irb120.sim2real.agent import IRB120RealAgent
 
 # task attributes that hold privileged object state (obs "state"): the real side takes them from the world
 PRIVILEGED = ("_obj_pose", "_a_pose", "_b_pose", "obj_start_pos")

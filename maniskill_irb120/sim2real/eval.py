@@ -24,8 +24,8 @@ import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the tasks)
-from maniskill_irb120.sim2real_policy import load_policy
-from maniskill_irb120.sysid import log_arrays
+from maniskill_irb120.sim2real.policy import load_policy
+from maniskill_irb120.sim2real.sysid import log_arrays
 
 EVENTS = ("success", "grasped", "dropped", "collided")
 
@@ -125,13 +125,13 @@ def _parse_shift(spec: str | None):
 
 def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
     """(Sim2RealEnv, agent, twin or None, emulator or None)."""
-    from maniskill_irb120.real.agent import IRB120RealAgent
-    from maniskill_irb120.sim2real import IRB120Sim2RealEnv
+    from maniskill_irb120.sim2real.agent import IRB120RealAgent
+    from maniskill_irb120.sim2real.env import IRB120Sim2RealEnv
 
     emulator = twin = None
     if cfg.robot.startswith("emulator"):
-        from maniskill_irb120.real.emulator import ControllerEmulator
-        from maniskill_irb120.real.twin import DigitalTwin
+        from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+        from maniskill_irb120.sim2real.twin import DigitalTwin
 
         channel = "serial" if cfg.robot == "emulator+serial" else "tcp"
         if cfg.robot not in ("emulator", "emulator+serial"):
@@ -148,7 +148,7 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
             raise ValueError("--policy expert reads the object's pose, which only the emulator's twin knows")
         camera = None
         if cfg.camera == "realsense":
-            from maniskill_irb120.real.cameras import RealSenseCamera
+            from maniskill_irb120.sim2real.cameras import RealSenseCamera
 
             camera = RealSenseCamera()
     agent = IRB120RealAgent(
@@ -161,7 +161,7 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
 def evaluate(cfg: EvalConfig) -> dict:
     from tqdm import tqdm
 
-    from maniskill_irb120.sim2real_report import write_report
+    from maniskill_irb120.sim2real.report import write_report
 
     shift, latency = _parse_shift(cfg.shift)
     cfg.out.mkdir(parents=True, exist_ok=True)

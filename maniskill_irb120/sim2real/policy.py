@@ -12,8 +12,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_irb120.expert import expert_for
-from maniskill_irb120.wrappers import observation_setup, tcp_rotation, world_to_tool
+from maniskill_irb120.action import tcp_rotation, world_to_tool
+from maniskill_irb120.experts import expert_for
+from maniskill_irb120.wrappers import observation_setup
 
 TRAINERS = {"maniskill_irb120.ppo/1": "ppo", "maniskill_irb120.dagger/1": "dagger", "maniskill_irb120.sac/1": "sac"}
 # how a checkpoint's action is chosen: as its trainer evaluated it (agents.sac: its --eval-deterministic; the
@@ -65,14 +66,12 @@ class CheckpointPolicy:
 
 
 def _tcp_rot(env) -> torch.Tensor:
-    from mani_skill.utils.structs.pose import Pose
-
-    from maniskill_irb120.sim2real import IRB120Sim2RealEnv
+    from maniskill_irb120.sim2real.env import IRB120Sim2RealEnv
 
     u = env.unwrapped
     if isinstance(u, IRB120Sim2RealEnv):  # FK of the joints the robot reported this step
-        return Pose.create(u._tcp_pose).to_transformation_matrix()[:, :3, :3].cpu()
-    return tcp_rotation(env).cpu()
+        return tcp_rotation(u._tcp_pose).cpu()
+    return tcp_rotation(u.agent.tcp_pose.raw_pose).cpu()
 
 
 def _import_agents(name: str):

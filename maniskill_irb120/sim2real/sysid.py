@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from maniskill_irb120.kinematics import pose_mm
-from maniskill_irb120.real.envelope import Envelope
+from maniskill_irb120.abb.envelope import Envelope
+from maniskill_irb120.robot.kinematics import pose_mm
 
 V_TCP_M_S = 0.250  # the module's vStep: 250 mm/s along the path, 250 deg/s in orientation
 V_ORI_RAD_S = math.radians(250.0)

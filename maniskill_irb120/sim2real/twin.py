@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 import maniskill_irb120  # noqa: F401  (registers the tasks)
-from maniskill_irb120.real.cameras import TwinCamera
-from maniskill_irb120.real.emulator import ControllerEmulator
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+from maniskill_irb120.sim2real.cameras import TwinCamera
 
 GRIPPER_SIGNAL = "doGripperOpen"
 

@@ -14,11 +14,9 @@ import pytest
 
 pytest.importorskip("serial")
 
-from maniskill_irb120.agents.irb120 import IRB120Metalwork  # noqa: E402
-from maniskill_irb120.kinematics import matrix_to_quat  # noqa: E402
-from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotError, RobotTimeout, open_port  # noqa: E402
-from maniskill_irb120.real.envelope import Envelope, EnvelopeError  # noqa: E402
-from maniskill_irb120.real.protocol import (  # noqa: E402
+from maniskill_irb120.abb.client import ABBRobot, ControllerRefused, RobotError, RobotTimeout, open_port  # noqa: E402
+from maniskill_irb120.abb.envelope import Envelope, EnvelopeError  # noqa: E402
+from maniskill_irb120.abb.protocol import (  # noqa: E402
     ErrorCode,
     FrameParser,
     RobotState,
@@ -27,6 +25,8 @@ from maniskill_irb120.real.protocol import (  # noqa: E402
     decode_command,
     reply_frame,
 )
+from maniskill_irb120.robot.irb120 import IRB120Metalwork  # noqa: E402
+from maniskill_irb120.robot.kinematics import matrix_to_quat  # noqa: E402
 
 REST = tuple(float(v) for v in IRB120Metalwork.keyframes["rest"].qpos[:6])
 _REST_TCP = Envelope().tcp_pose(REST)  # the peer reports a consistent pose: the client steps from it

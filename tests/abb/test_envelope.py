@@ -11,9 +11,9 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.controllers import scale_tool_action
-from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError
+from maniskill_irb120.abb.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError
+from maniskill_irb120.action import scale_tool_action
+from maniskill_irb120.robot.irb120 import IRB120Metalwork
 
 REST = IRB120Metalwork.keyframes["rest"].qpos[:6].astype(np.float64)
 

@@ -10,7 +10,7 @@ from importlib import resources
 
 import pytest
 
-from maniskill_irb120.real.protocol import (
+from maniskill_irb120.abb.protocol import (
     OVERHEAD,
     ErrorCode,
     Frame,

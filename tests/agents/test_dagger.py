@@ -13,8 +13,8 @@ import torch
 import maniskill_irb120  # noqa: F401
 from agents.dagger import Args, Dataset, ExpertLabels, main, make_envs, train_round
 from agents.nets import DeterministicActor, SpatialSoftmax, random_shift
-from maniskill_irb120.expert import expert_for
-from maniskill_irb120.wrappers import tcp_rotation, tool_to_world
+from maniskill_irb120.action import tcp_rotation, tool_to_world
+from maniskill_irb120.experts import expert_for
 
 ENV = "TableClearing-IRB120-v1"
 
@@ -78,7 +78,9 @@ def test_expert_labels_come_from_the_workers(env):
         for i in range(2):  # worker i was seeded 40 + i: the same state in this process gives the same label
             env.reset(seed=40 + i)
             tool = expert_for(env, reactive=True).act()
-            assert torch.allclose(labels[i], tool_to_world(tool, tcp_rotation(env))[0], atol=1e-5)
+            assert torch.allclose(
+                labels[i], tool_to_world(tool, tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose))[0], atol=1e-5
+            )
         _, _, _, _, info = envs.step(labels)
         assert info["expert_action"].shape == (2, 5) and torch.isfinite(info["expert_action"]).all()
     finally:
@@ -95,7 +97,9 @@ def test_one_batched_env_labels_the_state_an_auto_reset_starts_from():
             o, _, term, trunc, info = envs.step(info["expert_action"])
         assert bool(trunc[0]) and "final_info" in info
         base = envs.env.base_env
-        expected = tool_to_world(expert_for(base, reactive=True).act(), tcp_rotation(base))
+        expected = tool_to_world(
+            expert_for(base, reactive=True).act(), tcp_rotation(base.unwrapped.agent.tcp_pose.raw_pose)
+        )
         assert info["expert_action"].device.type == "cpu" and o.device.type == "cpu"
         assert torch.allclose(info["expert_action"], expected, atol=1e-5)
         assert not torch.allclose(info["final_observation"], o)  # the episode's last state is not the new start
@@ -215,7 +219,10 @@ def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(en
     tool = ExpertLabels(env, frame="tool", aux=True)  # the hand camera's axes: the TCP frame
     _, info = tool.reset(seed=50)
     rel = (env.unwrapped.obj.pose.p - env.unwrapped.agent.tcp_pose.p) * 10
-    assert torch.allclose(info["expert_aux"][:, :3], (tcp_rotation(env).transpose(1, 2) @ rel[..., None])[..., 0])
+    assert torch.allclose(
+        info["expert_aux"][:, :3],
+        (tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose).transpose(1, 2) @ rel[..., None])[..., 0],
+    )
     kw = dict(obs="rgbd", encoder="keypoints", updates_per_round=2, batch_size=8)
     res = tiny(tmp_path, aux_weight=1.0, initial_updates=3, **kw)
     saved = torch.load(res["checkpoint"], weights_only=False)

@@ -182,7 +182,7 @@ def test_fine_tuning_a_dagger_policy_with_kl_resume_and_evaluate(tmp_path):
              capture_video=False)  # fmt: skip
     assert ev["episodes"] == 1
     # sim2real-eval loads the fine-tuned policy, base and all, in its frame
-    from maniskill_irb120.sim2real_policy import load_policy
+    from maniskill_irb120.sim2real.policy import load_policy
 
     sim_env, make_policy = load_policy(res["checkpoint"], "TableClearing-IRB120-v1", "tool_delta")
     try:

@@ -171,7 +171,7 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
 
 def sim2real_acts_as_trained(ckpt: Path, tmp_path: Path) -> None:
     """sim2real-eval's --actions on this checkpoint: the mean, or samples seeded by the episode alone."""
-    from maniskill_irb120.sim2real_policy import load_policy
+    from maniskill_irb120.sim2real.policy import load_policy
 
     env_id = "TableClearing-IRB120-v1"
     sim_env, make_policy = load_policy(str(ckpt), env_id, "tool_delta", "sample")

@@ -12,7 +12,7 @@ import pytest
 
 pb = pytest.importorskip("pybullet")
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "pybullet_seed.py"
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pybullet_seed.py"
 
 
 def _load():

@@ -16,11 +16,11 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401  (registers the env)
+from maniskill_irb120.envs import scene as ts
 from maniskill_irb120.envs import table_clearing as tc
-from maniskill_irb120.envs import table_scene as ts
 from maniskill_irb120.envs.table_clearing import ENV_ID
-from maniskill_irb120.expert import CARRY, TableClearingExpert
-from maniskill_irb120.rollout import run_expert
+from maniskill_irb120.experts.pick_place import CARRY, TableClearingExpert
+from maniskill_irb120.experts.rollout import run_expert
 
 TERMS = tc.REWARD_TERMS
 

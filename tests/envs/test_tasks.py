@@ -10,9 +10,9 @@ import torch
 
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120.envs import grasp_lift, stack_cube
-from maniskill_irb120.envs.table_scene import SOURCE_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER
-from maniskill_irb120.expert import EXPERTS, HOLD, RELEASE, expert_for
-from maniskill_irb120.rollout import run_episode, run_expert
+from maniskill_irb120.envs.scene import SOURCE_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER
+from maniskill_irb120.experts.pick_place import EXPERTS, HOLD, RELEASE, expert_for
+from maniskill_irb120.experts.rollout import run_episode, run_expert
 
 TASKS = sorted(EXPERTS)
 

@@ -9,8 +9,8 @@ import sys
 import h5py
 import pytest
 
-from maniskill_irb120.demos import collect_demos
-from maniskill_irb120.expert import EXPERTS
+from maniskill_irb120.experts.demos import collect_demos
+from maniskill_irb120.experts.pick_place import EXPERTS
 
 ENV_IDS = sorted(EXPERTS)
 

@@ -6,7 +6,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from irb120_bench import make
 
 
 def red_pixels(rgb: torch.Tensor) -> int:
@@ -14,8 +13,8 @@ def red_pixels(rgb: torch.Tensor) -> int:
     return int(((rgb[..., 0] > 120) & (rgb[..., 1] < 60) & (rgb[..., 2] < 60)).sum())
 
 
-def test_hand_camera_shapes_motion_and_sees_cube():
-    env = make(obs_mode="rgbd")
+def test_hand_camera_shapes_motion_and_sees_cube(bench):
+    env = bench.make(obs_mode="rgbd")
     obs, _ = env.reset(seed=0)
     cam = obs["sensor_data"]["hand_camera"]
     assert cam["rgb"].shape == (1, 84, 84, 3) and cam["rgb"].dtype == torch.uint8
@@ -40,7 +39,7 @@ def test_hand_camera_shapes_motion_and_sees_cube():
 def test_forward_shader_renders_what_minimal_renders():
     """The one-pass sensor shader is a speed-up, not a different look: along a random walk of the
     arm, RGB and depth match ManiSkill's two-pass ``minimal`` pack."""
-    from maniskill_irb120.rendering import sensor_shader_config
+    from maniskill_irb120.robot.shaders import sensor_shader_config
 
     envs = [
         gym.make("TableClearing-IRB120-v1", obs_mode="rgbd"),

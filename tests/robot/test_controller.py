@@ -9,44 +9,43 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from irb120_bench import OPEN, make, tcp_matrix
 from mani_skill.utils.geometry.rotation_conversions import matrix_to_axis_angle
 
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
+from maniskill_irb120.robot.irb120 import IRB120Metalwork
 
 
 @pytest.mark.parametrize("solver", ["closed_form", "dls"])
-def test_tool_delta_moves_tcp_as_commanded(solver):
-    env = make()
+def test_tool_delta_moves_tcp_as_commanded(bench, solver):
+    env = bench.make()
     if solver == "dls":  # what ik_solver="dls" (or a chain without a spherical wrist) gets
         env.unwrapped.agent.arm_controller.ik.method = "dls"
     rng = np.random.default_rng(0)
     for _ in range(8):
         a = np.r_[rng.uniform(-1, 1, 4), 1.0].astype(np.float32)
-        t0 = tcp_matrix(env)
+        t0 = bench.tcp_matrix(env)
         env.step(a)
         for _ in range(5):
-            env.step(OPEN)
-        rel = torch.linalg.inv(t0) @ tcp_matrix(env)
+            env.step(bench.OPEN)
+        rel = torch.linalg.inv(t0) @ bench.tcp_matrix(env)
         np.testing.assert_allclose(rel[:3, 3].numpy(), a[:3] * 0.01, atol=2e-3)
         aa = matrix_to_axis_angle(rel[:3, :3][None])[0].numpy()
         np.testing.assert_allclose(aa, [math.radians(10) * a[3], 0, 0], atol=math.radians(1.0))
         assert not env.unwrapped.agent.ik_unreachable.any()
 
 
-def test_out_of_range_actions_are_clipped_to_limits():
-    env = make()
-    t0 = tcp_matrix(env)
+def test_out_of_range_actions_are_clipped_to_limits(bench):
+    env = bench.make()
+    t0 = bench.tcp_matrix(env)
     env.step(np.array([5.0, -7.0, 0, 3.0, 1], dtype=np.float32))  # clipped to [1, -1, 0, 1]
     for _ in range(5):
-        env.step(OPEN)
-    rel = torch.linalg.inv(t0) @ tcp_matrix(env)
+        env.step(bench.OPEN)
+    rel = torch.linalg.inv(t0) @ bench.tcp_matrix(env)
     np.testing.assert_allclose(rel[:3, 3].numpy(), [0.01, -0.01, 0], atol=2e-3)
     assert matrix_to_axis_angle(rel[:3, :3][None])[0, 0].item() == pytest.approx(math.radians(10), abs=math.radians(1))
 
 
-def test_unreachable_target_keeps_last_reachable_and_is_reported():
-    env = make()
+def test_unreachable_target_keeps_last_reachable_and_is_reported(bench):
+    env = bench.make()
     agent = env.unwrapped.agent
     for _ in range(60):  # push the TCP backwards (-x, up) far beyond the 0.58 m reach envelope
         env.step(np.array([-1, 0, 0, 0, 1], dtype=np.float32))
@@ -71,8 +70,8 @@ def test_unreachable_target_keeps_last_reachable_and_is_reported():
         (np.zeros((2, 5), dtype=np.float32), "shape"),
     ],
 )
-def test_bad_actions_raise_clear_errors(bad, msg):
-    env = make()
+def test_bad_actions_raise_clear_errors(bench, bad, msg):
+    env = bench.make()
     with pytest.raises(ValueError, match=msg):
         env.step(bad)
 
@@ -85,8 +84,8 @@ def test_unknown_control_mode_is_rejected():
 @pytest.mark.parametrize(
     "mode", ["pd_ee_delta_tool", "pd_ee_target_delta_tool", "pd_joint_pos", "pd_joint_delta_pos", "pd_ee_delta_pose"]
 )
-def test_all_control_modes_step(mode):
-    env = make(control_mode=mode)
+def test_all_control_modes_step(bench, mode):
+    env = bench.make(control_mode=mode)
     if mode == "pd_joint_pos":
         a = np.r_[IRB120Metalwork.keyframes["rest"].qpos[:6], 1.0].astype(np.float32)
     else:
@@ -101,7 +100,7 @@ def test_tool_action_scaling_is_maniskills_convention():
     """scale_tool_action (shared with the real-robot client) = ManiSkill's clip-and-scale for our limits."""
     from mani_skill.utils import gym_utils
 
-    from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, scale_tool_action
+    from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, scale_tool_action
 
     a = np.random.default_rng(0).uniform(-1.5, 1.5, (64, 4))
     high = np.array([TOOL_POS_LIMIT] * 3 + [TOOL_ROT_LIMIT])

@@ -6,9 +6,8 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from irb120_bench import REPO
 
-from maniskill_irb120 import robot_description as rd
+from maniskill_irb120.robot import description as rd
 
 
 def test_urdf_regenerates_identically(tmp_path):
@@ -25,7 +24,7 @@ def test_robot_is_low_poly():
 
 
 @pytest.mark.slow
-def test_wheel_ships_assets(tmp_path):
+def test_wheel_ships_assets(bench, tmp_path):
     import subprocess
     import sys
 
@@ -40,7 +39,7 @@ def test_wheel_ships_assets(tmp_path):
             "-q",
             "-w",
             str(tmp_path),
-            str(REPO),
+            str(bench.REPO),
         ],
         check=True,
     )

@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from irb120_bench import make
 
-from maniskill_irb120 import robot_description as rd
+from maniskill_irb120.robot import description as rd
 
 
 def rot(axis: str, a: float) -> np.ndarray:
@@ -58,8 +57,8 @@ CONFIGS = [
 ]
 
 
-def test_flange_fk_matches_abb_chain():
-    env = make()
+def test_flange_fk_matches_abb_chain(bench):
+    env = bench.make()
     robot = env.unwrapped.agent.robot
     residuals = []
     for q in CONFIGS:
@@ -72,8 +71,8 @@ def test_flange_fk_matches_abb_chain():
     assert max(residuals) < 1e-3, residuals
 
 
-def test_joint_limits_and_speeds_match_abb():
-    env = make()
+def test_joint_limits_and_speeds_match_abb(bench):
+    env = bench.make()
     lim = env.unwrapped.agent.robot.get_qlimits()[0].numpy()
     deg = np.degrees(lim[:6])
     np.testing.assert_allclose(
@@ -95,7 +94,7 @@ def test_joint_limits_and_speeds_match_abb():
 def test_own_kinematics_matches_pytorch_kinematics():
     import pytorch_kinematics as pk
 
-    from maniskill_irb120.kinematics import SerialChain
+    from maniskill_irb120.robot.kinematics import SerialChain
 
     chain = SerialChain(rd.urdf_path(), "tcp")
     ref = pk.build_serial_chain_from_urdf(Path(rd.urdf_path()).read_bytes(), end_link_name="tcp")
@@ -107,7 +106,7 @@ def test_own_kinematics_matches_pytorch_kinematics():
 
 
 def test_closed_form_ik_inverts_fk_on_its_branch():
-    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+    from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK
 
     chain = SerialChain(rd.urdf_path(), "tcp", dtype=torch.float64)
     ik = SphericalWristIK(chain)
@@ -131,7 +130,7 @@ def test_closed_form_ik_inverts_fk_on_its_branch():
 
 def test_kinematics_numpy_and_torch_backends_agree():
     """CPU tensors run the math in numpy, CUDA tensors in torch: the same function, so both must agree."""
-    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+    from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK
 
     chain = SerialChain(rd.urdf_path(), "tcp")
     ik = SphericalWristIK(chain)
@@ -147,11 +146,11 @@ def test_kinematics_numpy_and_torch_backends_agree():
     torch.testing.assert_close(sol_np, sol_t, atol=1e-4, rtol=0)
 
 
-def test_controller_step_numpy_and_torch_backends_agree():
+def test_controller_step_numpy_and_torch_backends_agree(bench):
     """The fused FK/delta/IK/speed-check pass: numpy (CPU sim) and torch (GPU sim) agree."""
-    from maniskill_irb120.kinematics import ArmIK
+    from maniskill_irb120.robot.kinematics import ArmIK
 
-    env = make()
+    env = bench.make()
     ctrl = env.unwrapped.agent.arm_controller
     ik = ctrl.ik
     gen = torch.Generator().manual_seed(2)
@@ -170,7 +169,7 @@ def test_controller_step_numpy_and_torch_backends_agree():
 def test_closed_form_ik_crosses_the_wrist_singularity_smoothly():
     """Through q5 = 0 the nearer wrist solution keeps q4 and q6 and lets q5 change sign, as DLS would,
     instead of flipping both by half a turn."""
-    from maniskill_irb120.kinematics import SerialChain, SphericalWristIK
+    from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK
 
     chain = SerialChain(rd.urdf_path(), "tcp", dtype=torch.float64)
     ik = SphericalWristIK(chain)
@@ -182,13 +181,13 @@ def test_closed_form_ik_crosses_the_wrist_singularity_smoothly():
     torch.testing.assert_close(sol, q_goal, atol=1e-6, rtol=0)
 
 
-def test_tool_step_needing_a_too_fast_joint_is_refused():
+def test_tool_step_needing_a_too_fast_joint_is_refused(bench):
     """Wrist centre 2 mm in front of axis 1: a 6 mm step back across the axis needs axis 1 to turn half a
     turn in one 50 ms control period (ABB: 250 deg/s): refused and flagged, the arm keeps its target;
     a 1 mm step forward is fine."""
-    from maniskill_irb120.kinematics import SphericalWristIK
+    from maniskill_irb120.robot.kinematics import SphericalWristIK
 
-    env = make()
+    env = bench.make()
     agent = env.unwrapped.agent
     ctrl = agent.arm_controller
     ik = SphericalWristIK(ctrl.chain)

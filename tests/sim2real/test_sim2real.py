@@ -17,13 +17,13 @@ pytest.importorskip("serial")
 pytest.importorskip("lark")
 
 import maniskill_irb120  # noqa: E402, F401
-from maniskill_irb120.expert import expert_for  # noqa: E402
-from maniskill_irb120.real.agent import IRB120RealAgent  # noqa: E402
-from maniskill_irb120.real.cameras import to_sim_frame  # noqa: E402
-from maniskill_irb120.real.emulator import ControllerEmulator  # noqa: E402
-from maniskill_irb120.real.protocol import Status  # noqa: E402
-from maniskill_irb120.real.twin import DigitalTwin  # noqa: E402
-from maniskill_irb120.sim2real import IRB120Sim2RealEnv  # noqa: E402
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator  # noqa: E402
+from maniskill_irb120.abb.protocol import Status  # noqa: E402
+from maniskill_irb120.experts import expert_for  # noqa: E402
+from maniskill_irb120.sim2real.agent import IRB120RealAgent  # noqa: E402
+from maniskill_irb120.sim2real.cameras import to_sim_frame  # noqa: E402
+from maniskill_irb120.sim2real.env import IRB120Sim2RealEnv  # noqa: E402
+from maniskill_irb120.sim2real.twin import DigitalTwin  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
 
@@ -204,8 +204,8 @@ def test_bad_modes_are_named():
 
 
 # --------------------------------------------------------------------------- system identification
-from maniskill_irb120.sysid import excite, log_arrays  # noqa: E402
-from maniskill_irb120.sysid import main as sysid  # noqa: E402
+from maniskill_irb120.sim2real.sysid import excite, log_arrays  # noqa: E402
+from maniskill_irb120.sim2real.sysid import main as sysid  # noqa: E402
 
 
 def logged_steps(tmp_path, latency_ms: float, speed_scale: float) -> Path:
@@ -241,7 +241,7 @@ def test_sysid_finds_injected_latency_and_slowness(tmp_path):
 
 # --------------------------------------------------------------------------- the eval script
 def test_sim2real_eval_on_the_emulator_twin(tmp_path):
-    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+    from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
 
     report = evaluate(EvalConfig(episodes=2, seed=0, out=tmp_path))
     assert report["episodes"] == 2 and not report["interrupted"] and report["error"] is None
@@ -258,7 +258,7 @@ def test_sim2real_eval_on_the_emulator_twin(tmp_path):
 
 
 def test_ctrl_c_stops_the_robot_and_still_writes_the_report(tmp_path, monkeypatch):
-    from maniskill_irb120 import sim2real_eval
+    from maniskill_irb120.sim2real import eval as sim2real_eval
 
     calls = []
     real_episode = sim2real_eval._episode
@@ -279,7 +279,7 @@ def test_ctrl_c_stops_the_robot_and_still_writes_the_report(tmp_path, monkeypatc
 
 
 def test_sim2real_eval_names_bad_setups(tmp_path):
-    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
+    from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
 
     with pytest.raises(ValueError, match="only the emulator's twin knows"):
         evaluate(EvalConfig(robot="tcp://127.0.0.1:1", camera="none", out=tmp_path))
@@ -295,9 +295,9 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     """A learned world-frame policy that sees no joint speeds, through the adapter: what goes over the wire is its
     action rotated into the tool frame by the TCP at that state, the same on both sides."""
     from agents.dagger import Args, main
-    from maniskill_irb120.sim2real_eval import EvalConfig, evaluate
-    from maniskill_irb120.sim2real_policy import load_policy
-    from maniskill_irb120.wrappers import tcp_rotation, world_to_tool
+    from maniskill_irb120.action import tcp_rotation, world_to_tool
+    from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
+    from maniskill_irb120.sim2real.policy import load_policy
 
     small = dict(
         num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32, progress=False
@@ -313,7 +313,9 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     sent = policy.act(obs)
     with torch.no_grad():
         raw = policy._act({"state": obs}).clamp(-1, 1)
-    np.testing.assert_allclose(sent, world_to_tool(raw, tcp_rotation(sim_env))[0], atol=1e-6)
+    np.testing.assert_allclose(
+        sent, world_to_tool(raw, tcp_rotation(sim_env.unwrapped.agent.tcp_pose.raw_pose))[0], atol=1e-6
+    )
     assert not torch.allclose(sent[:3], raw[0, :3], atol=1e-3)  # the tool is turned: the frames differ
     sim_env.close()
     with pytest.raises(ValueError, match="deterministic"):

@@ -24,10 +24,10 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.kinematics import matrix_to_quat, pose_mm
-from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, interpolate_pose, rel_tool
-from maniskill_irb120.real.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
+from maniskill_irb120.abb.emulator.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
+from maniskill_irb120.abb.emulator.robot import EmulatedIRB120, MotionError, interpolate_pose, rel_tool
+from maniskill_irb120.robot.irb120 import IRB120Metalwork
+from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 
 REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # where the sim's episodes start
 

@@ -3,7 +3,7 @@
 Joint state that moves over wall-clock time at ABB's axis speeds, in RAPID's units (mm, degrees, wxyz
 quaternions) and conventions: ``tool0`` is the flange with its z axis out of the flange (at the zero pose it
 points along base +x), a tool's ``tframe`` is given in ``tool0``. Kinematics are the simulator's own
-(``maniskill_irb120.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
+(``maniskill_irb120.robot.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
 
 Simplifications, said plainly: a MoveL runs through IK waypoints every millimetre / degree of its straight line
 and is joint-interpolated between them; after StopMove + StartMove the rest of a segment is joint-interpolated;
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from maniskill_irb120.kinematics import SerialChain, SphericalWristIK, matrix_to_quat, quat_to_matrix
-from maniskill_irb120.robot_description import urdf_path
+from maniskill_irb120.robot.description import urdf_path
+from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK, matrix_to_quat, quat_to_matrix
 
 # tool0 = flange · R_y(+90°): tool0 z = our flange x (approach), tool0 x = -our flange z
 _R_FLANGE_TOOL0 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])

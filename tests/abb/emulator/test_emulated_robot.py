@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from maniskill_irb120.agents.irb120 import IRB120Metalwork
-from maniskill_irb120.kinematics import SerialChain, apply_tool_delta, pose_mm
-from maniskill_irb120.real.emulated_robot import EmulatedIRB120, MotionError, rel_tool
-from maniskill_irb120.robot_description import urdf_path
+from maniskill_irb120.abb.emulator.robot import EmulatedIRB120, MotionError, rel_tool
+from maniskill_irb120.action import apply_tool_delta
+from maniskill_irb120.robot.description import urdf_path
+from maniskill_irb120.robot.irb120 import IRB120Metalwork
+from maniskill_irb120.robot.kinematics import SerialChain, pose_mm
 
 REST = np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6])
 T_GRIPPER = pose_mm([0, 0, 57], [0.707107, 0, -0.707107, 0])  # the module's tGripper tframe

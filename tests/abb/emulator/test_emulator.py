@@ -12,12 +12,12 @@ import pytest
 pytest.importorskip("serial")
 pytest.importorskip("lark")
 
-from maniskill_irb120.controllers import scale_tool_action  # noqa: E402
-from maniskill_irb120.real.client import ABBRobot, ControllerRefused, RobotDisconnected, RobotError, RobotTimeout  # noqa: E402
-from maniskill_irb120.real.emulator import ControllerEmulator, shipped_module  # noqa: E402
-from maniskill_irb120.real.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError  # noqa: E402
-from maniskill_irb120.real.protocol import ErrorCode, Status, ToolStep, command_frame  # noqa: E402
-from maniskill_irb120.real.rapid import RapidSyntaxError  # noqa: E402
+from maniskill_irb120.abb.client import ABBRobot, ControllerRefused, RobotDisconnected, RobotError, RobotTimeout  # noqa: E402
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator, shipped_module  # noqa: E402
+from maniskill_irb120.abb.emulator.rapid import RapidSyntaxError  # noqa: E402
+from maniskill_irb120.abb.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError  # noqa: E402
+from maniskill_irb120.abb.protocol import ErrorCode, Status, ToolStep, command_frame  # noqa: E402
+from maniskill_irb120.action import scale_tool_action  # noqa: E402
 
 
 def settled(robot: ABBRobot, wait: float = 0.08):
@@ -297,7 +297,7 @@ def test_latency_holds_every_command_back():
 
 
 def test_cli_listen_url_sets_the_line_speed(capsys, monkeypatch):
-    from maniskill_irb120.real import emulator as module
+    from maniskill_irb120.abb.emulator import controller as module
 
     seen = {}
 

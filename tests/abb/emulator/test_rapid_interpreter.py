@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from maniskill_irb120.real.rapid import (
+from maniskill_irb120.abb.emulator.rapid import (
     ERROR_CODES,
     Builtins,
     Interpreter,

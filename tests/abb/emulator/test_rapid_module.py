@@ -11,9 +11,9 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from maniskill_irb120.controllers import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
-from maniskill_irb120.real import protocol
-from maniskill_irb120.real.envelope import CONTROL_PERIOD_S, WORKSPACE_HIGH, WORKSPACE_LOW, Envelope
+from maniskill_irb120.abb import protocol
+from maniskill_irb120.abb.envelope import CONTROL_PERIOD_S, WORKSPACE_HIGH, WORKSPACE_LOW, Envelope
+from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
 
 MODULE = resources.files("maniskill_irb120.assets").joinpath("rapid", "IRB120Server.mod").read_text()
 

@@ -11,8 +11,8 @@ from importlib import resources
 
 import pytest
 
-from maniskill_irb120.real.protocol import FrameParser, MsgType, Status, decode_reply
-from maniskill_irb120.real.rapid import Builtins, Interpreter, make_value
+from maniskill_irb120.abb.emulator.rapid import Builtins, Interpreter, make_value
+from maniskill_irb120.abb.protocol import FrameParser, MsgType, Status, decode_reply
 
 ASSETS = resources.files("maniskill_irb120.assets").joinpath("rapid")
 SOURCE = ASSETS.joinpath("IRB120Server.mod").read_text()

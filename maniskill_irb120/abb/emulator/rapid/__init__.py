@@ -4,18 +4,26 @@
 I/O ...) are Python callables registered in a :class:`Builtins` registry. See ``docs/rapid_subset.md``.
 """
 
-from maniskill_irb120.real.rapid.errors import (
+from maniskill_irb120.abb.emulator.rapid.errors import (
     ERROR_CODES,
     RapidError,
     RapidRuntimeError,
     RapidStopped,
     RapidSyntaxError,
 )
-from maniskill_irb120.real.rapid.interpreter import Interpreter
-from maniskill_irb120.real.rapid.parser import parse
-from maniskill_irb120.real.rapid.registry import Builtin, Builtins
-from maniskill_irb120.real.rapid.stdlib import ManualClock, SystemClock
-from maniskill_irb120.real.rapid.values import ClockVar, Opaque, RawBytes, Record, Ref, define_record, make_value
+from maniskill_irb120.abb.emulator.rapid.interpreter import Interpreter
+from maniskill_irb120.abb.emulator.rapid.parser import parse
+from maniskill_irb120.abb.emulator.rapid.registry import Builtin, Builtins
+from maniskill_irb120.abb.emulator.rapid.stdlib import ManualClock, SystemClock
+from maniskill_irb120.abb.emulator.rapid.values import (
+    ClockVar,
+    Opaque,
+    RawBytes,
+    Record,
+    Ref,
+    define_record,
+    make_value,
+)
 
 __all__ = [
     "ERROR_CODES",

@@ -7,12 +7,12 @@ from typing import TYPE_CHECKING, Any
 
 from lark import Tree
 
-from maniskill_irb120.real.rapid.errors import ProgramHalt, RapidError, RapidRuntimeError, RapidStopped
-from maniskill_irb120.real.rapid.registry import Builtin
-from maniskill_irb120.real.rapid.values import Cell, Ref, assign_like, copy_value, default_value, from_python
+from maniskill_irb120.abb.emulator.rapid.errors import ProgramHalt, RapidError, RapidRuntimeError, RapidStopped
+from maniskill_irb120.abb.emulator.rapid.registry import Builtin
+from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, assign_like, copy_value, default_value, from_python
 
 if TYPE_CHECKING:
-    from maniskill_irb120.real.rapid.interpreter import Interpreter
+    from maniskill_irb120.abb.emulator.rapid.interpreter import Interpreter
 
 
 @dataclass

@@ -8,11 +8,11 @@ from typing import TYPE_CHECKING, Any
 
 from lark import Tree
 
-from maniskill_irb120.real.rapid.errors import RapidError, RapidRuntimeError
-from maniskill_irb120.real.rapid.values import Record, Ref, assign_like, copy_value, type_of
+from maniskill_irb120.abb.emulator.rapid.errors import RapidError, RapidRuntimeError
+from maniskill_irb120.abb.emulator.rapid.values import Record, Ref, assign_like, copy_value, type_of
 
 if TYPE_CHECKING:
-    from maniskill_irb120.real.rapid.interpreter import Frame
+    from maniskill_irb120.abb.emulator.rapid.interpreter import Frame
 
 _ESCAPE = re.compile(r'""|\\\\|\\([0-9a-fA-F]{2})')
 

@@ -11,20 +11,20 @@ from typing import Any
 
 from lark import Tree
 
-from maniskill_irb120.real.rapid.calls import CallsMixin, Frame, Propagate, Retry, Return, Routine, TryNext
-from maniskill_irb120.real.rapid.errors import (
+from maniskill_irb120.abb.emulator.rapid.calls import CallsMixin, Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.abb.emulator.rapid.errors import (
     ProgramHalt,
     RapidError,
     RapidRuntimeError,
     RapidStopped,
     errno_name,
 )
-from maniskill_irb120.real.rapid.expressions import ExpressionsMixin
-from maniskill_irb120.real.rapid.parser import parse
-from maniskill_irb120.real.rapid.registry import Builtins
-from maniskill_irb120.real.rapid.statements import StatementsMixin
-from maniskill_irb120.real.rapid.stdlib import STDLIB, SystemClock, system_data
-from maniskill_irb120.real.rapid.values import Cell, Ref, assign_like, copy_value, default_value, define_record
+from maniskill_irb120.abb.emulator.rapid.expressions import ExpressionsMixin
+from maniskill_irb120.abb.emulator.rapid.parser import parse
+from maniskill_irb120.abb.emulator.rapid.registry import Builtins
+from maniskill_irb120.abb.emulator.rapid.statements import StatementsMixin
+from maniskill_irb120.abb.emulator.rapid.stdlib import STDLIB, SystemClock, system_data
+from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, assign_like, copy_value, default_value, define_record
 
 
 class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):

@@ -8,12 +8,12 @@ from importlib.resources import files
 from lark import Lark, Tree
 from lark.exceptions import UnexpectedCharacters, UnexpectedInput, UnexpectedToken
 
-from maniskill_irb120.real.rapid.errors import RapidSyntaxError
+from maniskill_irb120.abb.emulator.rapid.errors import RapidSyntaxError
 
 
 @lru_cache(maxsize=1)
 def _parser() -> Lark:
-    grammar = files("maniskill_irb120.real.rapid").joinpath("grammar.lark").read_text()
+    grammar = files("maniskill_irb120.abb.emulator.rapid").joinpath("grammar.lark").read_text()
     # the basic lexer makes keywords reserved words everywhere, as in RAPID (not just where the parser expects one)
     return Lark(grammar, parser="lalr", lexer="basic", propagate_positions=True, maybe_placeholders=True)
 

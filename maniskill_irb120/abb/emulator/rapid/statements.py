@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 from lark import Tree
 
-from maniskill_irb120.real.rapid.calls import Frame, Propagate, Retry, Return, Routine, TryNext
-from maniskill_irb120.real.rapid.errors import ProgramHalt, RapidError
-from maniskill_irb120.real.rapid.values import Cell, Ref, copy_value
+from maniskill_irb120.abb.emulator.rapid.calls import Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.abb.emulator.rapid.errors import ProgramHalt, RapidError
+from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, copy_value
 
 if TYPE_CHECKING:
-    from maniskill_irb120.real.rapid.interpreter import Interpreter
+    from maniskill_irb120.abb.emulator.rapid.interpreter import Interpreter
 
 
 class StatementsMixin:

@@ -13,9 +13,9 @@ import threading
 import time
 from typing import Any
 
-from maniskill_irb120.real.rapid.errors import ERROR_CODES, USER_ERRNO_BASE, ProgramHalt, RapidError
-from maniskill_irb120.real.rapid.registry import Builtins
-from maniskill_irb120.real.rapid.values import RawBytes, Ref, assign_like, default_value, format_value
+from maniskill_irb120.abb.emulator.rapid.errors import ERROR_CODES, USER_ERRNO_BASE, ProgramHalt, RapidError
+from maniskill_irb120.abb.emulator.rapid.registry import Builtins
+from maniskill_irb120.abb.emulator.rapid.values import RawBytes, Ref, assign_like, default_value, format_value
 
 log = logging.getLogger(__name__)
 STDLIB = Builtins()

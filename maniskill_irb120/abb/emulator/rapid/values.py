@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from maniskill_irb120.real.rapid.errors import RapidError
+from maniskill_irb120.abb.emulator.rapid.errors import RapidError
 
 NUMERIC_TYPES = {"num", "dnum", "byte", "errnum", "intnum"}
 _N = "num"

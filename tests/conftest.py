@@ -1,19 +1,25 @@
-"""Shared pieces of the agent tests: a bare scene with the robot and one cube (the grasp scenario)."""
+"""Shared fixtures of the test suite.
+
+``bench``: a bare scene with the robot on the floor and one 20 mm cube under the rest pose's TCP (the grasp
+scenario the agent's own tests use), as ``bench.make(...)``, with ``bench.OPEN`` (a hold-still action with the
+gripper open), ``bench.tcp_matrix(env)``, ``bench.CUBE_HALF`` and ``bench.REPO`` (the repository root).
+``make_task``: ``make_task(env_id, **kwargs)`` builds a task and closes it after the test.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import gymnasium as gym
-import mani_skill.envs  # noqa: F401
 import numpy as np
+import pytest
 import sapien
 import torch
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.utils.building import actors
 from mani_skill.utils.building.ground import build_ground
 from mani_skill.utils.registration import REGISTERED_ENVS, register_env
-from mani_skill.utils.scene_builder.table import TableSceneBuilder  # noqa: F401  (ManiSkill import check)
 
 import maniskill_irb120  # noqa: F401
 
@@ -57,7 +63,7 @@ if "IRB120CubeBench-test" not in REGISTERED_ENVS:
             return {}
 
 
-def make(obs_mode="none", control_mode="pd_ee_delta_tool", **kw):
+def _make(obs_mode="none", control_mode="pd_ee_delta_tool", **kw):
     env = gym.make("IRB120CubeBench-test", obs_mode=obs_mode, control_mode=control_mode, reward_mode="none", **kw)
     env.reset(seed=0)
     return env
@@ -66,5 +72,25 @@ def make(obs_mode="none", control_mode="pd_ee_delta_tool", **kw):
 OPEN = np.array([0, 0, 0, 0, 1], dtype=np.float32)
 
 
-def tcp_matrix(env) -> torch.Tensor:
+def _tcp_matrix(env) -> torch.Tensor:
     return env.unwrapped.agent.tcp_pose.to_transformation_matrix()[0].double()
+
+
+@pytest.fixture
+def bench() -> SimpleNamespace:
+    return SimpleNamespace(make=_make, OPEN=OPEN, tcp_matrix=_tcp_matrix, CUBE_HALF=CUBE_HALF, REPO=REPO)
+
+
+@pytest.fixture
+def make_task():
+    """``make_task(env_id, **gym_make_kwargs)``: a task env, closed after the test."""
+    made = []
+
+    def make(env_id: str, **kw):
+        env = gym.make(env_id, **kw)
+        made.append(env)
+        return env
+
+    yield make
+    for env in made:
+        env.close()
