@@ -1,11 +1,11 @@
-"""Simulator benchmark: the seed's Table 5.1 for TableClearing-IRB120-v1, with references from the same run.
+"""Simulator benchmark: the original report's Table 5.1 for TableClearing-IRB120-v1, with references from the same run.
 
-Modes (the seed's): ``render_realtime`` (84x84 RGB-D hand camera every action, paced to real time),
+Modes (the original report's): ``render_realtime`` (84x84 RGB-D hand camera every action, paced to real time),
 ``render`` (camera every action, as fast as possible), ``no_render`` (state observations, no camera).
 References measured in the same run, so results are ratios on one machine:
 
 1. ManiSkill's ``PickCube-v1`` with its camera at 84x84 RGB-D (the peer a user would pick instead);
-2. the seed's own action loop re-implemented in PyBullet (``benchmarks/pybullet_seed.py``).
+2. the original report's own action loop re-implemented in PyBullet (``benchmarks/pybullet_original.py``).
 
 Each configuration runs in a fresh process (clean peak memory, no shared renderer state). Actions are
 the same seeded uniform random actions for every simulator; episodes that end are reset, untimed.
@@ -32,7 +32,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from pybullet_seed import random_actions  # noqa: E402  (one action policy for every simulator)
+from pybullet_original import random_actions  # noqa: E402  (one action policy for every simulator)
 
 ENV_ID = "TableClearing-IRB120-v1"
 MODES = ("render_realtime", "render", "no_render")
@@ -205,9 +205,9 @@ def measure_batched(
 
 
 def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
-    import pybullet_seed
+    import pybullet_original
 
-    r = pybullet_seed.measure(mode, steps, seed)
+    r = pybullet_original.measure(mode, steps, seed)
     return dict(
         times=r["times"], resets=r.get("collided", 0), peak_rss_mb=peak_rss_mb(), mean_substeps=r.get("mean_substeps")
     )
@@ -297,7 +297,7 @@ def one_round(args: Args, steps: int) -> dict:
     rate = lambda x: len(x["times"]) / sum(x["times"])  # noqa: E731
     r["ratios"] = dict(
         vs_pickcube_rgbd=rate(r["ours"]["render"]) / rate(r["pick"]),
-        vs_pybullet_seed={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
+        vs_pybullet_original={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
         two_workers_vs_one=r["workers"][1]["env_steps_per_s"] / r["workers"][0]["env_steps_per_s"],
         machine_two_process_ceiling=r["ceiling"]["speedup"],
     )
@@ -372,7 +372,7 @@ def main(args: Args) -> dict:
     med = lambda f: float(np.median([f(r["ratios"]) for r in runs]))  # noqa: E731
     ratios = dict(
         vs_pickcube_rgbd=med(lambda x: x["vs_pickcube_rgbd"]),
-        vs_pybullet_seed={m: med(lambda x, m=m: x["vs_pybullet_seed"][m]) for m in MODES},
+        vs_pybullet_original={m: med(lambda x, m=m: x["vs_pybullet_original"][m]) for m in MODES},
         two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
         machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]),
     )
@@ -382,12 +382,12 @@ def main(args: Args) -> dict:
     out.update(
         env_steps_per_s={m: ours[m]["steps_per_s"] for m in MODES},
         reference_steps_per_s=dict(
-            pickcube_rgbd_84=pick["steps_per_s"], pybullet_seed={m: pyb[m]["steps_per_s"] for m in MODES}
+            pickcube_rgbd_84=pick["steps_per_s"], pybullet_original={m: pyb[m]["steps_per_s"] for m in MODES}
         ),
         ratios=ratios,
         ratios_per_round=[r["ratios"] for r in runs],
         ours=ours,
-        pybullet_seed=pyb,
+        pybullet_original=pyb,
         pickcube_rgbd_84=pick,
         cpu_workers=workers,
         gpu_scaling=gpu,
@@ -409,7 +409,7 @@ def markdown(r: dict) -> str:
     rows = [head]
     for m in MODES:
         rows.append(fmt_row(f"TableClearing-IRB120-v1 (ManiSkill) — {m}", r["ours"][m]))
-        rows.append(fmt_row(f"seed loop (PyBullet) — {m}", r["pybullet_seed"][m]))
+        rows.append(fmt_row(f"original report's loop (PyBullet) — {m}", r["pybullet_original"][m]))
     rows.append(fmt_row("PickCube-v1 (ManiSkill) — rgbd 84x84", r["pickcube_rgbd_84"]))
     lines = [
         f"## Action time (Table 5.1 layout; {r['rounds']} interleaved rounds x {r['steps']} actions, pooled)",
@@ -420,7 +420,7 @@ def markdown(r: dict) -> str:
     ]
     for m in MODES:
         lines.append(
-            f"- TableClearing vs PyBullet seed loop, {m}: {r['ratios']['vs_pybullet_seed'][m]:.2f}x per action"
+            f"- TableClearing vs the original report's PyBullet loop, {m}: {r['ratios']['vs_pybullet_original'][m]:.2f}x per action"
         )
     lines.append(
         f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
@@ -431,7 +431,7 @@ def markdown(r: dict) -> str:
     per_round = ", ".join(f"{x['vs_pickcube_rgbd']:.2f}" for x in r["ratios_per_round"])
     lines.append(
         f"- per round, vs PickCube: {per_round}; vs PyBullet (render): "
-        + ", ".join(f"{x['vs_pybullet_seed']['render']:.2f}" for x in r["ratios_per_round"])
+        + ", ".join(f"{x['vs_pybullet_original']['render']:.2f}" for x in r["ratios_per_round"])
     )
     lines += [
         "",
@@ -473,7 +473,7 @@ def plot(r: dict, path: Path) -> None:
     x = np.arange(len(MODES))
     ax[0].bar(x - 0.2, [r["env_steps_per_s"][m] for m in MODES], 0.4, label="TableClearing (ManiSkill)")
     ax[0].bar(
-        x + 0.2, [r["reference_steps_per_s"]["pybullet_seed"][m] for m in MODES], 0.4, label="seed loop (PyBullet)"
+        x + 0.2, [r["reference_steps_per_s"]["pybullet_original"][m] for m in MODES], 0.4, label="original report's loop (PyBullet)"
     )
     ax[0].axhline(r["reference_steps_per_s"]["pickcube_rgbd_84"], color="k", ls="--", lw=1, label="PickCube-v1 rgbd 84")
     ax[0].set_xticks(x, MODES)

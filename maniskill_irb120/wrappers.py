@@ -1,16 +1,14 @@
-"""World-frame translation for the tool action: a learner's view of ``pd_ee_delta_tool``.
+"""Wrappers a learner puts around a task: world-frame translation for the tool action, and observation filters.
 
 The original report's action moves the TCP along its own axes. Which world direction a tool-axis command
 means depends on the tool's yaw, which changes every episode (the gripper turns to the object's faces), so
 "move towards the tray" is a product of the tool's rotation and a world vector: a bilinear map an MLP
-regresses poorly (the state DAgger policy reached 2 % in tool frame). ManiSkill's own EE controllers offer
+regresses poorly (benchmarks/RESULTS.md has the measurement). ManiSkill's own EE controllers offer
 the same choice (``frame="root_translation:..."``). :class:`WorldFrameToolAction` takes the translation in
 world axes and rotates it into the tool frame before the controller, so the executed action is still a
 ``pd_ee_delta_tool`` action within its limits (the real-robot adapter and its safety envelope see nothing new).
 
-Layout, both frames: ``[dx, dy, dz, yaw, gripper]`` in [-1, 1], ±1 cm per axis, ±10° yaw about the approach
-axis (unchanged), gripper > 0 opens. A translation rotated out of the unit box is shrunk uniformly (its
-direction kept), as the scripted expert does.
+Both frames are ``maniskill_irb120.action``'s layout; the conversion is its ``world_to_tool``.
 """
 
 from __future__ import annotations

@@ -42,7 +42,7 @@ class PDEEDeltaToolController(PDJointPosController):
     Normalised actions in [-1, 1] are clipped to that box, then scaled to ±``pos_limit`` metres
     and ±``rot_limit`` radians. The new TCP target is ``T_ref · Δ`` with ``T_ref`` the current TCP
     pose (or the last target with ``use_target``) and ``Δ`` the translation followed by the rotation,
-    both in the tool frame (the seed's ``multiplyTransforms(current, delta)``). A target that IK
+    both in the tool frame (the original report's ``multiplyTransforms(current, delta)``). A target that IK
     cannot reach within tolerance (outside the workspace or joint limits) is not applied: that env
     keeps its last reachable joint target and ``ik_unreachable`` is set for it. So is a target that
     would need a joint to move faster than its URDF velocity limit (ABB's axis speeds) within one
@@ -151,7 +151,7 @@ class PDEEDeltaToolControllerConfig(PDJointPosControllerConfig):
 
 
 class BinaryGripperController(PartialResetControllerMixin, PDJointPosController):
-    """One continuous value drives both fingers: > 0 opens fully, <= 0 closes (the seed's ``open`` flag).
+    """One continuous value drives both fingers: > 0 opens fully, <= 0 closes (the original report's ``open`` flag).
 
     Closing targets ``closed_target`` (slightly past the closed limit) so the fingers keep squeezing
     a held object with up to ``force_limit`` newtons each.

@@ -29,7 +29,7 @@ ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
 FINGER_STROKE = geometry()["finger_stroke"]  # each finger's travel from closed (2 mm gap) to open (26 mm)
 GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 
-# Hand camera per the seed: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
+# Hand camera per the original report: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
 # SAPIEN cameras look along their local +x with +z up, which is exactly the TCP frame's convention.
 # Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see rendering.py).
 HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0, shader=FORWARD)
@@ -45,7 +45,7 @@ def hand_camera_shader(name: str, render_device: sapien.Device) -> str:
 class IRB120Metalwork(BaseAgent):
     """ABB IRB 120 + MetalWork W155032001. TCP frame: +x approach, +y finger opening (left), +z camera side.
 
-    Control modes: ``pd_ee_delta_tool`` (the seed's action: δx, δy, δz in the TCP frame, ±1 cm;
+    Control modes: ``pd_ee_delta_tool`` (the original report's action: δx, δy, δz in the TCP frame, ±1 cm;
     rotation about the approach axis, ±10°; gripper), ``pd_ee_target_delta_tool`` (same, relative to the
     last target instead of the measured pose), ``pd_joint_pos``, ``pd_joint_delta_pos`` and
     ``pd_ee_delta_pose`` (ManiSkill's own). The gripper is one value in every mode: > 0 open, <= 0 close.
@@ -75,7 +75,7 @@ class IRB120Metalwork(BaseAgent):
     ee_link_name = "tcp"
 
     # Stiff, lightly damped drives: a 1 cm / 10 deg tool step is tracked to >99% within one 50 ms
-    # control period (5 physics steps at 100 Hz), which the seed got by waiting for convergence.
+    # control period (5 physics steps at 100 Hz), which the original report got by waiting for convergence.
     arm_stiffness = 1e5
     arm_damping = 500.0
     arm_force_limit = 800.0

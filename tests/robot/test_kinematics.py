@@ -67,7 +67,7 @@ def test_flange_fk_matches_abb_chain(bench):
         ref = abb_flange(q)
         residuals.append(np.linalg.norm(sim[:3, 3] - ref[:3, 3]))
         assert np.allclose(sim[:3, :3], ref[:3, :3], atol=1e-4)
-    # 0.6 mm: the seed's axis-3 offset is 0.0706 m where ABB quotes 0.070 m
+    # 0.6 mm: the original report's axis-3 offset is 0.0706 m where ABB quotes 0.070 m
     assert max(residuals) < 1e-3, residuals
 
 

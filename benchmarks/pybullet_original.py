@@ -1,6 +1,6 @@
-"""Reference re-implementation of the seed project's PyBullet action loop (for speed comparisons only).
+"""Reference re-implementation of the original report's PyBullet action loop (for speed comparisons only).
 
-The seed (a 2020 M.Tech project) drove an ABB IRB 120 in PyBullet with one *action* = one
+The original report (a 2020 M.Tech project) drove an ABB IRB 120 in PyBullet with one *action* = one
 tool-frame pose increment, executed to convergence before the next action was accepted:
 
 1. read the TCP pose (0.057 m along the gripper frame's x / approach axis);
@@ -16,18 +16,18 @@ tool-frame pose increment, executed to convergence before the next action was ac
 6. the episode state: TCP pose, distances, grasp and collision checks via ``getContactPoints``
    and (when rendering) the 84x84 RGB-D hand camera through ``getCameraImage``.
 
-This module rebuilds that loop from the description, with the seed's full scene (plane, table,
+This module rebuilds that loop from the description, with the original report's full scene (plane, table,
 yellow source tray, green destination tray, a cube, the robot on a 0.3 m foundation) but with *our*
 robot description (``maniskill_irb120.robot.description.urdf_path()``), so the comparison with the
 ManiSkill env measures the simulator loop and not two different robot models.
 
 Choices where the description leaves room (documented, none makes PyBullet slower):
 
-- IK end link: ``gripper_base`` (rigidly fixed to ``link6``, i.e. the flange) with the seed's
+- IK end link: ``gripper_base`` (rigidly fixed to ``link6``, i.e. the flange) with the original report's
   0.057 m offset; the TCP pose is read from the URDF's ``tcp`` link, which sits exactly 0.057 m
-  along ``gripper_base``'s x axis, so step 1 is the same number the seed computed by hand.
+  along ``gripper_base``'s x axis, so step 1 is the same number the original report computed by hand.
 - The URDF's ``tcp`` link is a massless frame (no ``<inertial>``); PyBullet's URDF importer would
-  give it the default 1 kg, a payload the seed's gripper did not have, so its mass is set to 1 g.
+  give it the default 1 kg, a payload the original report's gripper did not have, so its mass is set to 1 g.
 - The cube is pybullet_data's ``cube_small.urdf`` scaled 0.4 (a 2 cm cube): the gripper opens to
   26 mm, the 5 cm original would not fit.
 - The start pose is solved once with PyBullet IK (TCP 0.25 m above the table top between the
@@ -68,13 +68,13 @@ CAM_OFFSET = (-0.03, 0.0, 0.02)  # eye in the TCP frame
 TABLE_POS = (0.0, -0.4, 0.0)
 SOURCE_TRAY_XY = (0.2, -0.4)
 DEST_TRAY_XY = (-0.2, -0.4)
-ROBOT_BASE = (0.0, 0.0, 0.3)  # the seed's 0.3 m foundation
+ROBOT_BASE = (0.0, 0.0, 0.3)  # the original report's 0.3 m foundation
 START_HEIGHT = 0.25  # TCP above the table top at reset
 CUBE_SCALE = 0.4  # cube_small.urdf is 5 cm; 0.4 -> 2 cm
 SETTLE_STEPS = SIM_HZ // 2
 ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
 FINGER_JOINTS = ("finger_left_joint", "finger_right_joint")
-MODES = {  # name -> (render, realtime), the seed's Table 5.1
+MODES = {  # name -> (render, realtime), the original report's Table 5.1
     "render_realtime": (True, True),
     "render": (True, False),
     "no_render": (False, False),
@@ -83,11 +83,11 @@ MODES = {  # name -> (render, realtime), the seed's Table 5.1
 
 def _require_pybullet():
     if p is None:
-        raise ImportError("benchmarks/pybullet_seed.py needs pybullet (pip install pybullet)")
+        raise ImportError("benchmarks/pybullet_original.py needs pybullet (pip install pybullet)")
 
 
 class SeedPyBulletEnv:
-    """The seed's scene and per-action loop in a private PyBullet DIRECT client."""
+    """The original report's scene and per-action loop in a private PyBullet DIRECT client."""
 
     def __init__(self, render: bool = True, realtime: bool = False, seed: int = 0):
         _require_pybullet()
@@ -214,7 +214,7 @@ class SeedPyBulletEnv:
         for _ in range(20):  # IK from the current state, re-seeded with its own result
             q = self._ik(target, down)
             if q is None:
-                raise RuntimeError("seed start pose is unreachable")
+                raise RuntimeError("the original report's start pose is unreachable")
             self._set_joints(q, FINGER_OPEN)
             pos, _ = self.tcp_pose()
             if np.linalg.norm(np.asarray(pos) - target) < 1e-4:
@@ -342,7 +342,7 @@ class SeedPyBulletEnv:
         return out
 
     def camera(self, tcp_pos, tcp_orn) -> dict:
-        """The 84x84 RGB-D hand camera, exactly as the seed called getCameraImage."""
+        """The 84x84 RGB-D hand camera, exactly as the original report called getCameraImage."""
         c = self.cid
         eye, _ = p.multiplyTransforms(tcp_pos, tcp_orn, CAM_OFFSET, (0, 0, 0, 1), physicsClientId=c)
         rot = np.asarray(p.getMatrixFromQuaternion(tcp_orn, physicsClientId=c)).reshape(3, 3)
@@ -441,7 +441,7 @@ def markdown_table(results: list[dict]) -> str:
 
 @dataclass
 class Args:
-    """Time the seed's PyBullet action loop in the three modes of the seed's Table 5.1."""
+    """Time the original report's PyBullet action loop in the three modes of the original report's Table 5.1."""
 
     n_actions: int = 200
     """actions per mode"""

@@ -1,4 +1,4 @@
-"""Quick checks of the PyBullet re-implementation of the seed's action loop (benchmarks/pybullet_seed.py)."""
+"""Quick checks of the PyBullet re-implementation of the original report's action loop (benchmarks/pybullet_original.py)."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ import pytest
 
 pb = pytest.importorskip("pybullet")
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pybullet_seed.py"
+_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pybullet_original.py"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("pybullet_seed", _PATH)
+    spec = importlib.util.spec_from_file_location("pybullet_original", _PATH)
     mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("pybullet_seed", mod)
+    sys.modules.setdefault("pybullet_original", mod)
     spec.loader.exec_module(mod)
     return mod
 
