@@ -420,7 +420,8 @@ def markdown(r: dict) -> str:
     ]
     for m in MODES:
         lines.append(
-            f"- TableClearing vs the original report's PyBullet loop, {m}: {r['ratios']['vs_pybullet_original'][m]:.2f}x per action"
+            f"- TableClearing vs the original report's PyBullet loop, {m}: "
+            f"{r['ratios']['vs_pybullet_original'][m]:.2f}x per action"
         )
     lines.append(
         f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x "
@@ -473,7 +474,10 @@ def plot(r: dict, path: Path) -> None:
     x = np.arange(len(MODES))
     ax[0].bar(x - 0.2, [r["env_steps_per_s"][m] for m in MODES], 0.4, label="TableClearing (ManiSkill)")
     ax[0].bar(
-        x + 0.2, [r["reference_steps_per_s"]["pybullet_original"][m] for m in MODES], 0.4, label="original report's loop (PyBullet)"
+        x + 0.2,
+        [r["reference_steps_per_s"]["pybullet_original"][m] for m in MODES],
+        0.4,
+        label="original report's loop (PyBullet)",
     )
     ax[0].axhline(r["reference_steps_per_s"]["pickcube_rgbd_84"], color="k", ls="--", lw=1, label="PickCube-v1 rgbd 84")
     ax[0].set_xticks(x, MODES)

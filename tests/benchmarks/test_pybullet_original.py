@@ -1,4 +1,5 @@
-"""Quick checks of the PyBullet re-implementation of the original report's action loop (benchmarks/pybullet_original.py)."""
+"""Quick checks of the PyBullet re-implementation of the original report's action loop
+(benchmarks/pybullet_original.py)."""
 
 from __future__ import annotations
 
