@@ -3,11 +3,15 @@
 ``bench``: a bare scene with the robot on the floor and one 20 mm cube under the rest pose's TCP (the grasp
 scenario the agent's own tests use), as ``bench.make(...)``, with ``bench.OPEN`` (a hold-still action with the
 gripper open), ``bench.tcp_matrix(env)``, ``bench.CUBE_HALF`` and ``bench.REPO`` (the repository root).
-``make_task``: ``make_task(env_id, **kwargs)`` builds a task and closes it after the test.
+``make_task``: ``make_task(env_id, **kwargs)`` builds a task (``obs_mode="state"`` unless given) and closes it
+after the test.
+``readme_snippet``: ``readme_snippet(name)`` is the python block marked ``<!-- README snippet "name" ... -->`` in
+README.md, so tests run the README itself.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -83,10 +87,11 @@ def bench() -> SimpleNamespace:
 
 @pytest.fixture
 def make_task():
-    """``make_task(env_id, **gym_make_kwargs)``: a task env, closed after the test."""
+    """``make_task(env_id, **gym_make_kwargs)``: a task env (obs_mode "state" unless given), closed after the test."""
     made = []
 
     def make(env_id: str, **kw):
+        kw.setdefault("obs_mode", "state")
         env = gym.make(env_id, **kw)
         made.append(env)
         return env
@@ -94,3 +99,17 @@ def make_task():
     yield make
     for env in made:
         env.close()
+
+
+def _readme_snippet(name: str) -> str:
+    """The fenced python block right after the marker ``<!-- README snippet "name" ... -->`` in README.md."""
+    text = (REPO / "README.md").read_text()
+    m = re.search(rf'<!-- README snippet "{re.escape(name)}".*?-->\s*```python\n(.*?)```', text, re.S)
+    assert m, f"README.md has no snippet marked {name!r}"
+    return m.group(1)
+
+
+@pytest.fixture
+def readme_snippet():
+    """``readme_snippet(name)``: the README's python block marked with that name, so the tests run the README itself."""
+    return _readme_snippet

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 import mani_skill
+import numpy as np
+import pytest
 import torch
 from mani_skill.agents.controllers.pd_joint_pos import PDJointPosController
 
@@ -102,3 +104,27 @@ def test_sensor_read_back_equals_maniskills_capture():
     for k in ("rgb", "depth"):
         assert torch.equal(ours["hand_camera"][k], theirs["hand_camera"][k])
     env.close()
+
+
+def test_record_episode_info_on_video_writes_a_video(tmp_path):
+    """ManiSkill 3.0.1's RecordEpisode(info_on_video=True) calls float() on a (1,)-shaped reward array each step,
+    a TypeError from numpy 2.4 on: pyproject pins numpy < 2.4."""
+    pytest.importorskip("imageio_ffmpeg", reason="needs imageio[ffmpeg] (dev extras)")
+    from mani_skill.utils.wrappers.record import RecordEpisode
+
+    assert np.lib.NumpyVersion(np.__version__) < "2.4.0", (
+        f"numpy {np.__version__} is installed but pyproject.toml pins numpy<2.4 (ManiSkill 3.0.1's RecordEpisode "
+        "with info_on_video needs it): reinstall with pip install -e '.[dev]'"
+    )
+    e = gym.make(
+        ENV, obs_mode="state", render_mode="rgb_array", human_render_camera_configs=dict(width=128, height=128)
+    )
+    e = RecordEpisode(
+        e, output_dir=str(tmp_path), save_trajectory=False, save_video=True, info_on_video=True, video_fps=20
+    )
+    e.reset(seed=0)
+    for _ in range(3):
+        e.step(np.array([0.0, 0.0, 0.0, 0.0, 1.0], dtype=np.float32))
+    e.close()
+    videos = list(tmp_path.glob("*.mp4"))
+    assert videos and videos[0].stat().st_size > 0

@@ -12,7 +12,7 @@ import pytest
 
 README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
 BLOCKS = re.findall(
-    r"(<!-- README snippet \"[^\"]+\" \(run [^)]*?tests/(\w+)\.py\) -->\s*)?```python\n(.*?)```", README, re.S
+    r"(<!-- README snippet \"[^\"]+\" \(run [^)]*?tests/([\w/]+)\.py\) -->\s*)?```python\n(.*?)```", README, re.S
 )
 OURS = [code for _, test, code in BLOCKS if test in ("", "test_readme")]
 

@@ -1,7 +1,14 @@
-"""The CPU process-vector env behaves like ManiSkillVectorEnv: batched torch, auto-reset, final_info."""
+"""The CPU process-vector env behaves like ManiSkillVectorEnv (batched torch, auto-reset, final_info), and under bad
+input or after close() it raises clear errors and stays usable where it can."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
@@ -121,3 +128,99 @@ def test_on_host_partial_reset_takes_host_indices():
             torch.testing.assert_close(again, first)
     finally:
         env.close()
+
+
+def test_make_vec_env_sim_backend_keyword():
+    envs = make_vec_env(ENV, 1, backend="inprocess", sim_backend="physx_cpu", obs_mode="state")
+    envs.reset(seed=0)
+    envs.close()
+    with pytest.raises(ValueError, match="sim_backend='physx_cuda'"):
+        make_vec_env(ENV, 1, backend="inprocess", sim_backend="physx_cuda")
+    with pytest.raises(ValueError, match="runs physx_cuda"):
+        make_vec_env(ENV, 4, backend="gpu", sim_backend="physx_cpu")
+
+
+# ------------------------------------------------------- bad input: the vector env stays usable after a rejected call
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_vector_env_rejects_non_finite_action_and_stays_usable(venv, bad):
+    venv.reset(seed=0)
+    actions = torch.zeros(2, 5)
+    actions[1, 2] = bad
+    with pytest.raises(ValueError, match=r"NaN or inf for env index \[1\]"):
+        venv.step(actions)
+    obs, rew, term, trunc, info = venv.step(torch.zeros(2, 5))  # the workers are alive
+    assert obs.shape[0] == 2 and torch.isfinite(rew).all()
+
+
+@pytest.mark.parametrize(
+    "bad,err,match",
+    [
+        ("left", TypeError, "str"),
+        ([["a"] * 5] * 2, TypeError, "dtype"),
+        (np.zeros((2, 5), dtype=object), TypeError, "dtype object"),
+        (np.zeros((2, 5), dtype=bool), TypeError, "dtype bool"),
+        (torch.zeros(2, 5, dtype=torch.complex64), TypeError, "complex"),
+        ({"action": 0}, TypeError, "dict"),
+        ([[0.0] * 5, [0.0] * 4], ValueError, "rectangular"),
+        (np.zeros((2, 4)), ValueError, "shape"),
+    ],
+)
+def test_vector_env_rejects_wrong_types_and_stays_usable(venv, bad, err, match):
+    venv.reset(seed=0)
+    with pytest.raises(err, match=match):
+        venv.step(bad)
+    venv.step(np.zeros((2, 5), dtype=np.int64))  # integers are numbers; the workers are alive
+
+
+def test_vector_env_reset_env_idx_checked_and_stays_usable(venv):
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match=r"\[2\] out of range: valid env indices are 0\.\.1"):
+        venv.reset(options={"env_idx": [2]})
+    with pytest.raises(ValueError, match="repeats"):
+        venv.reset(options={"env_idx": [1, 1]})
+    obs, _ = venv.reset(options={"env_idx": torch.tensor([1])})
+    assert obs.shape[0] == 2
+    venv.step(torch.zeros(2, 5))
+
+
+# --------------------------------------------------------------------------- after close() or a dead worker
+def test_vector_env_after_close_raises_clear_error():
+    v = make_vec_env(ENV, 1, backend="cpu", obs_mode="state")
+    v.reset(seed=0)
+    v.close()
+    for call in (lambda: v.step(torch.zeros(1, 5)), lambda: v.reset(seed=0), v.render):
+        with pytest.raises(RuntimeError, match="the vector env is closed"):
+            call()
+    v.close()
+
+
+def test_vector_env_after_a_worker_died_says_so():
+    """An error inside a worker (here an unknown attribute through call()) makes gymnasium shut that worker down;
+    later calls say so instead of failing with 'NoneType' object has no attribute 'send'."""
+    v = make_vec_env(ENV, 1, backend="cpu", obs_mode="state")
+    try:
+        v.reset(seed=0)
+        with pytest.raises(RuntimeError, match="render_mode is not set"):  # checked before dispatch: no harm
+            v.render()
+        v.step(torch.zeros(1, 5))
+        with pytest.raises(AttributeError, match="no_such_method"):
+            v.call("no_such_method")
+        with pytest.raises(RuntimeError, match=r"worker\(s\) \[0\] of this vector env were shut down"):
+            v.step(torch.zeros(1, 5))
+    finally:
+        v.close()
+
+
+# --------------------------------------------------------------------------- README snippet
+def test_readme_vec_env_snippet_runs_as_a_script(tmp_path, readme_snippet):
+    """The README's make_vec_env snippet saved as a script and run: the CPU workers re-import the main
+    module (forkserver), which only works under the ``if __name__ == "__main__":`` guard."""
+    script = tmp_path / "vec_env_snippet.py"
+    script.write_text(readme_snippet("vec-env"))
+    root = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
+    out = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "(2, 84, 84, 3) (2,)" in out.stdout, out.stdout

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -194,3 +196,21 @@ def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
     text = results.read_text()
     assert f"from earlier runs: dagger-state seed 2: `{first}` (2026-11-23 09:06 UTC)." in text
     assert "| dagger-state | state | 2 | 0.94 |" in text
+
+
+def test_batched_benchmark_loop_runs_with_auto_reset():
+    import importlib.util
+
+    bench = REPO / "benchmarks"
+    sys.path.insert(0, str(bench))  # sim_speed imports its sibling pybullet_seed
+    try:
+        spec = importlib.util.spec_from_file_location("sim_speed", bench / "sim_speed.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["sim_speed"] = mod  # dataclasses look their module up while the file executes
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(bench))
+    r = mod.measure_batched("TableClearing-IRB120-v1", 1, steps=260, seed=0, backend="inprocess", obs_mode="state")
+    assert r["env_steps_per_s"] > 0
+    assert r["episodes_finished"] >= 1  # random actions collide or time out at 250 steps: auto-reset ran
+    assert not math.isnan(r["env_steps_per_s"]) and np.isfinite(r["gpu_mem_used_gb"])

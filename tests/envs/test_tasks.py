@@ -4,7 +4,6 @@ what it says (GraspLift: held still 1 s; StackCube: released on top, not held th
 
 from __future__ import annotations
 
-import gymnasium as gym
 import pytest
 import torch
 
@@ -17,11 +16,6 @@ from maniskill_irb120.experts.rollout import run_episode, run_expert
 TASKS = sorted(EXPERTS)
 
 
-def make(env_id, **kw):
-    kw.setdefault("obs_mode", "state")
-    return gym.make(env_id, **kw)
-
-
 @pytest.mark.parametrize("env_id", TASKS)
 @pytest.mark.parametrize("shape", ["cube", "cylinder"])
 def test_expert_succeeds(env_id, shape):
@@ -30,19 +24,19 @@ def test_expert_succeeds(env_id, shape):
 
 
 @pytest.mark.parametrize("env_id", TASKS)
-def test_contract_reward_and_obs_modes(env_id):
-    env = make(env_id)
+def test_contract_reward_and_obs_modes(make_task, env_id):
+    env = make_task(env_id)
     assert env.unwrapped.reward_mode == "normalized_dense"  # ManiSkill's convention: the first mode
     env.close()
     for mode in ("dense", "normalized_dense", "sparse", "none"):
-        env = make(env_id, reward_mode=mode)
+        env = make_task(env_id, reward_mode=mode)
         env.reset(seed=0)
         _, rew, *_ = env.step(torch.zeros(1, 5))
         assert rew.shape == (1,) and bool(torch.isfinite(rew).all())
         if mode == "normalized_dense":
             assert 0.0 <= float(rew[0]) <= 1.0
         env.close()
-    env = make(env_id, obs_mode="rgbd")
+    env = make_task(env_id, obs_mode="rgbd")
     obs, _ = env.reset(seed=0)
     assert obs["sensor_data"]["hand_camera"]["rgb"].shape == (1, 84, 84, 3)
     env.close()
@@ -60,14 +54,14 @@ def test_contract_reward_and_obs_modes(env_id):
         (dict(control_mode="pd_nonsense"), "control_mode"),
     ],
 )
-def test_contract_bad_arguments(env_id, kwargs, match):
+def test_contract_bad_arguments(make_task, env_id, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        make(env_id, **kwargs)
+        make_task(env_id, **kwargs)
 
 
 @pytest.mark.parametrize("env_id", TASKS)
-def test_contract_bad_actions_and_observation_copies(env_id):
-    env = make(env_id, obs_mode="state_dict")
+def test_contract_bad_actions_and_observation_copies(make_task, env_id):
+    env = make_task(env_id, obs_mode="state_dict")
     obs, _ = env.reset(seed=0)
     with pytest.raises(ValueError, match="shape"):
         env.step(torch.zeros(1, 4))
@@ -80,15 +74,15 @@ def test_contract_bad_actions_and_observation_copies(env_id):
     env.close()
 
 
-def test_object_shapes_build_what_they_say():
+def test_object_shapes_build_what_they_say(make_task):
     for shape, kind in (("cube", "PhysxCollisionShapeBox"), ("cylinder", "PhysxCollisionShapeCylinder")):
-        env = make("GraspLift-IRB120-v1", object_shape=shape)
+        env = make_task("GraspLift-IRB120-v1", object_shape=shape)
         env.reset(seed=0)
         shapes = env.unwrapped.obj._bodies[0].get_collision_shapes()
         assert [type(s).__name__ for s in shapes] == [kind]
         env.close()
     seen = set()
-    env = make("GraspLift-IRB120-v1", object_shape="random", reconfiguration_freq=1)
+    env = make_task("GraspLift-IRB120-v1", object_shape="random", reconfiguration_freq=1)
     for seed in range(8):  # drawn per env from the episode RNG when the scene is built
         env.reset(seed=seed)
         seen.add(type(env.unwrapped.obj._bodies[0].get_collision_shapes()[0]).__name__)
@@ -96,8 +90,8 @@ def test_object_shapes_build_what_they_say():
     assert seen == {"PhysxCollisionShapeBox", "PhysxCollisionShapeCylinder"}
 
 
-def test_grasp_lift_needs_one_second_of_still_holding():
-    env = make("GraspLift-IRB120-v1", reward_mode="dense")
+def test_grasp_lift_needs_one_second_of_still_holding(make_task):
+    env = make_task("GraspLift-IRB120-v1", reward_mode="dense")
     u = env.unwrapped
     expert = expert_for(env)
     holds = []
@@ -118,8 +112,8 @@ def test_grasp_lift_needs_one_second_of_still_holding():
     env.close()
 
 
-def test_stack_counts_only_when_released():
-    env = make("StackCube-IRB120-v1")
+def test_stack_counts_only_when_released(make_task):
+    env = make_task("StackCube-IRB120-v1")
     u = env.unwrapped
     expert = expert_for(env)
     env.reset(seed=2)
@@ -142,8 +136,8 @@ def test_stack_counts_only_when_released():
     env.close()
 
 
-def test_stack_spawns_apart_inside_the_source_tray():
-    env = make("StackCube-IRB120-v1")
+def test_stack_spawns_apart_inside_the_source_tray(make_task):
+    env = make_task("StackCube-IRB120-v1")
     u = env.unwrapped
     for seed in range(20):
         env.reset(seed=seed)

@@ -9,8 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from mani_skill.utils.geometry.rotation_conversions import matrix_to_quaternion as ms_matrix_to_quaternion
+from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 
 from maniskill_irb120.robot import description as rd
+from maniskill_irb120.robot.kinematics import matrix_to_quaternion
 
 
 def rot(axis: str, a: float) -> np.ndarray:
@@ -212,3 +215,15 @@ def test_tool_step_needing_a_too_fast_joint_is_refused(bench):
             torch.testing.assert_close(ctrl._target_qpos, before)
         else:
             assert float((ctrl._target_qpos - before).abs().max()) < 0.05
+
+
+def test_matrix_to_quaternion_matches_maniskill_without_masks():
+    g = torch.Generator().manual_seed(0)
+    q = torch.randn(512, 4, generator=g)
+    q = torch.cat([q, torch.tensor([[0.0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]])])  # 180° turns
+    m = quaternion_to_matrix(q / q.norm(dim=1, keepdim=True))
+    ours, ref = matrix_to_quaternion(m), ms_matrix_to_quaternion(m)
+    ref = ref * torch.where(ref[:, :1] < 0, -1.0, 1.0)
+    torch.testing.assert_close(quaternion_to_matrix(ours), m, atol=1e-5, rtol=0)
+    same = torch.minimum((ours - ref).abs().amax(1), (ours + ref).abs().amax(1))  # q and -q: one rotation
+    assert float(same.max()) < 1e-5

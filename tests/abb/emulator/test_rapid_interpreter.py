@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -720,3 +721,12 @@ def test_a_serial_server_module_runs_against_emulated_builtins():
     assert interp.get("com").value == {"port": "COM1:", "binary": True}
     assert moves == [([30.0, 0, 0, 0, 0, 0], 100, True, {})] and sent == [b"\x00", b"\x01"]
     assert interp.get("served") == 2 and interp.get("timeouts") == 3 and incoming == []
+
+
+def test_interpreter_implements_the_runtime_contract_its_parts_are_typed_against():
+    from maniskill_irb120.abb.emulator.rapid.contract import Runtime
+
+    assert isinstance(Interpreter("MODULE M\nENDMODULE"), Runtime)
+    parts = Path(__file__).resolve().parents[3] / "maniskill_irb120/abb/emulator/rapid"
+    for part in ("statements.py", "calls.py", "expressions.py", "frames.py", "contract.py"):
+        assert "rapid.interpreter import" not in (parts / part).read_text(), part

@@ -1,18 +1,18 @@
-"""Expression evaluation and variable resolution (a mixin of :class:`Interpreter`), with RAPID's operator rules."""
+"""Expression evaluation and variable resolution (a mixin typed against :class:`~.contract.Runtime`), with RAPID's
+operator rules."""
 
 from __future__ import annotations
 
 import math
 import re
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from lark import Tree
 
-from maniskill_irb120.abb.emulator.rapid.errors import RapidError, RapidRuntimeError
+from maniskill_irb120.abb.emulator.rapid.contract import Runtime
+from maniskill_irb120.abb.emulator.rapid.errors import RapidError
+from maniskill_irb120.abb.emulator.rapid.frames import Frame
 from maniskill_irb120.abb.emulator.rapid.values import Record, Ref, assign_like, copy_value, type_of
-
-if TYPE_CHECKING:
-    from maniskill_irb120.abb.emulator.rapid.interpreter import Frame
 
 _ESCAPE = re.compile(r'""|\\\\|\\([0-9a-fA-F]{2})')
 
@@ -31,18 +31,9 @@ def _mkpos(x: float, y: float, z: float) -> Record:
 
 
 class ExpressionsMixin:
-    """``eval(tree, frame)`` and ``resolve(target, frame) -> Ref``; the interpreter supplies lookup() and fault()."""
+    """``eval(tree, frame)``, ``condition(tree, frame)`` and ``resolve(target, frame) -> Ref``."""
 
-    def lookup(self, name: str, frame: Frame) -> Ref:  # pragma: no cover - provided by Interpreter
-        raise NotImplementedError
-
-    def fault(self, message: str) -> RapidRuntimeError:  # pragma: no cover - provided by Interpreter
-        raise NotImplementedError
-
-    def call_function(self, tree: Tree, frame: Frame) -> Any:  # pragma: no cover - provided by Interpreter
-        raise NotImplementedError
-
-    def eval(self, t: Tree, frame: Frame) -> Any:
+    def eval(self: Runtime, t: Tree, frame: Frame) -> Any:
         """The value of an expression; records/arrays read from variables are the live objects (copy to keep)."""
         kind = t.data
         if kind == "target":
@@ -59,9 +50,9 @@ class ExpressionsMixin:
         if kind == "aggregate":
             return [copy_value(self.eval(c, frame)) for c in t.children]
         if kind in ("and_", "or_", "xor"):
-            return self._logic(kind, t, frame)
+            return _logic(self, kind, t, frame)
         if kind == "not_":
-            return not self._bool(self.eval(t.children[0], frame), "NOT")
+            return not _bool(self, self.eval(t.children[0], frame), "NOT")
         if kind == "neg":
             v = self.eval(t.children[0], frame)
             if isinstance(v, float):
@@ -70,80 +61,14 @@ class ExpressionsMixin:
                 return _mkpos(-v.x, -v.y, -v.z)
             raise self.fault(f"cannot negate a {type_of(v)}")
         if kind == "compare":
-            return self._compare(self.eval(t.children[0], frame), str(t.children[1]), self.eval(t.children[2], frame))
+            return compare(self, self.eval(t.children[0], frame), str(t.children[1]), self.eval(t.children[2], frame))
         a, b = self.eval(t.children[0], frame), self.eval(t.children[1], frame)
-        return self._arith(kind, a, b)
+        return _arith(self, kind, a, b)
 
-    def condition(self, t: Tree, frame: Frame) -> bool:
-        return self._bool(self.eval(t, frame), "a condition")
+    def condition(self: Runtime, t: Tree, frame: Frame) -> bool:
+        return _bool(self, self.eval(t, frame), "a condition")
 
-    def _bool(self, v: Any, what: str) -> bool:
-        if not isinstance(v, bool):
-            raise self.fault(f"{what} needs a bool, got a {type_of(v)}")
-        return v
-
-    def _logic(self, kind: str, t: Tree, frame: Frame) -> bool:
-        a = self._bool(self.eval(t.children[0], frame), kind.rstrip("_").upper())
-        if kind == "and_" and not a:
-            return False
-        if kind == "or_" and a:
-            return True
-        b = self._bool(self.eval(t.children[1], frame), kind.rstrip("_").upper())
-        return a != b if kind == "xor" else b
-
-    def _compare(self, a: Any, op: str, b: Any) -> bool:
-        if op in ("=", "<>"):
-            if isinstance(b, Record) and isinstance(a, list):
-                a, b = b, a
-            if isinstance(a, Record) and isinstance(b, list):  # record = aggregate: compare in the record's shape
-                try:
-                    b = assign_like(a, b)
-                except TypeError:
-                    pass
-            if type_of(a) != type_of(b):
-                raise self.fault(f"cannot compare a {type_of(a)} with a {type_of(b)}")
-            return (a == b) == (op == "=")
-        if not (isinstance(a, float) and isinstance(b, float)):
-            raise self.fault(f"'{op}' needs two num values, got {type_of(a)} and {type_of(b)}")
-        return {"<": a < b, ">": a > b, "<=": a <= b, ">=": a >= b}[op]
-
-    def _arith(self, kind: str, a: Any, b: Any) -> Any:
-        nums = isinstance(a, float) and isinstance(b, float)
-        if kind == "add":
-            if nums or (isinstance(a, str) and isinstance(b, str)):
-                return a + b
-            if _pos(a) and _pos(b):
-                return _mkpos(a.x + b.x, a.y + b.y, a.z + b.z)
-        elif kind == "sub":
-            if nums:
-                return a - b
-            if _pos(a) and _pos(b):
-                return _mkpos(a.x - b.x, a.y - b.y, a.z - b.z)
-        elif kind == "mul":
-            if nums:
-                return a * b
-            if isinstance(a, float) and _pos(b):
-                a, b = b, a
-            if _pos(a) and isinstance(b, float):
-                return _mkpos(a.x * b, a.y * b, a.z * b)
-        elif kind == "div":
-            if isinstance(b, float) and b == 0.0 and (isinstance(a, float) or _pos(a)):
-                raise RapidError("ERR_DIVZERO", "division by zero")
-            if nums:
-                return a / b
-            if _pos(a) and isinstance(b, float):
-                return _mkpos(a.x / b, a.y / b, a.z / b)
-        elif nums:  # DIV, MOD: integer operands, truncation towards zero (the remainder takes a's sign)
-            if not (a.is_integer() and b.is_integer()):
-                raise RapidError("ERR_ARGVALERR", f"{kind.upper()} needs integer operands, got {a} and {b}")
-            if b == 0.0:
-                raise RapidError("ERR_DIVZERO", "division by zero")
-            q = float(math.trunc(a / b)) if abs(a) < 2**52 else float(int(a) // int(b))
-            return q if kind == "intdiv" else a - b * q
-        op = {"add": "+", "sub": "-", "mul": "*", "div": "/", "intdiv": "DIV", "mod": "MOD"}[kind]
-        raise self.fault(f"operator '{op}' is not defined for {type_of(a)} and {type_of(b)}")
-
-    def resolve(self, t: Tree, frame: Frame) -> Ref:
+    def resolve(self: Runtime, t: Tree, frame: Frame) -> Ref:
         """The location a ``target`` (``a``, ``a{i}``, ``p.trans.x``) denotes, bounds- and field-checked."""
         ref = self.lookup(t.children[0].lower(), frame)
         for sel in t.children[1:]:
@@ -165,3 +90,74 @@ class ExpressionsMixin:
                 ref = ref.child(int(i) - 1)
                 v = v[int(i) - 1]
         return ref
+
+
+def _bool(rt: Runtime, v: Any, what: str) -> bool:
+    if not isinstance(v, bool):
+        raise rt.fault(f"{what} needs a bool, got a {type_of(v)}")
+    return v
+
+
+def _logic(rt: Runtime, kind: str, t: Tree, frame: Frame) -> bool:
+    a = _bool(rt, rt.eval(t.children[0], frame), kind.rstrip("_").upper())
+    if kind == "and_" and not a:
+        return False
+    if kind == "or_" and a:
+        return True
+    b = _bool(rt, rt.eval(t.children[1], frame), kind.rstrip("_").upper())
+    return a != b if kind == "xor" else b
+
+
+def compare(rt: Runtime, a: Any, op: str, b: Any) -> bool:
+    """RAPID's ``= <> < > <= >=`` (also TEST/CASE matching); ``=`` between a record and an aggregate compares fields."""
+    if op in ("=", "<>"):
+        if isinstance(b, Record) and isinstance(a, list):
+            a, b = b, a
+        if isinstance(a, Record) and isinstance(b, list):  # record = aggregate: compare in the record's shape
+            try:
+                b = assign_like(a, b)
+            except TypeError:
+                pass
+        if type_of(a) != type_of(b):
+            raise rt.fault(f"cannot compare a {type_of(a)} with a {type_of(b)}")
+        return (a == b) == (op == "=")
+    if not (isinstance(a, float) and isinstance(b, float)):
+        raise rt.fault(f"'{op}' needs two num values, got {type_of(a)} and {type_of(b)}")
+    return {"<": a < b, ">": a > b, "<=": a <= b, ">=": a >= b}[op]
+
+
+def _arith(rt: Runtime, kind: str, a: Any, b: Any) -> Any:
+    nums = isinstance(a, float) and isinstance(b, float)
+    if kind == "add":
+        if nums or (isinstance(a, str) and isinstance(b, str)):
+            return a + b
+        if _pos(a) and _pos(b):
+            return _mkpos(a.x + b.x, a.y + b.y, a.z + b.z)
+    elif kind == "sub":
+        if nums:
+            return a - b
+        if _pos(a) and _pos(b):
+            return _mkpos(a.x - b.x, a.y - b.y, a.z - b.z)
+    elif kind == "mul":
+        if nums:
+            return a * b
+        if isinstance(a, float) and _pos(b):
+            a, b = b, a
+        if _pos(a) and isinstance(b, float):
+            return _mkpos(a.x * b, a.y * b, a.z * b)
+    elif kind == "div":
+        if isinstance(b, float) and b == 0.0 and (isinstance(a, float) or _pos(a)):
+            raise RapidError("ERR_DIVZERO", "division by zero")
+        if nums:
+            return a / b
+        if _pos(a) and isinstance(b, float):
+            return _mkpos(a.x / b, a.y / b, a.z / b)
+    elif nums:  # DIV, MOD: integer operands, truncation towards zero (the remainder takes a's sign)
+        if not (a.is_integer() and b.is_integer()):
+            raise RapidError("ERR_ARGVALERR", f"{kind.upper()} needs integer operands, got {a} and {b}")
+        if b == 0.0:
+            raise RapidError("ERR_DIVZERO", "division by zero")
+        q = float(math.trunc(a / b)) if abs(a) < 2**52 else float(int(a) // int(b))
+        return q if kind == "intdiv" else a - b * q
+    op = {"add": "+", "sub": "-", "mul": "*", "div": "/", "intdiv": "DIV", "mod": "MOD"}[kind]
+    raise rt.fault(f"operator '{op}' is not defined for {type_of(a)} and {type_of(b)}")

@@ -1,7 +1,8 @@
 """The :class:`Interpreter`: loads a RAPID module, owns its data, and is the Python-facing API.
 
 Statements and error recovery live in :mod:`.statements`, calls in :mod:`.calls`, expressions in
-:mod:`.expressions`.
+:mod:`.expressions`; each types ``self`` as the :class:`~.contract.Runtime` protocol, which this class implements.
+Frames and the control-flow signals (Return, Retry, TryNext, Propagate) are in :mod:`.frames`.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from typing import Any
 
 from lark import Tree
 
-from maniskill_irb120.abb.emulator.rapid.calls import CallsMixin, Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.abb.emulator.rapid.calls import CallsMixin
 from maniskill_irb120.abb.emulator.rapid.errors import (
     ProgramHalt,
     RapidError,
@@ -20,6 +21,7 @@ from maniskill_irb120.abb.emulator.rapid.errors import (
     errno_name,
 )
 from maniskill_irb120.abb.emulator.rapid.expressions import ExpressionsMixin
+from maniskill_irb120.abb.emulator.rapid.frames import Frame, Propagate, Retry, Return, Routine, TryNext
 from maniskill_irb120.abb.emulator.rapid.parser import parse
 from maniskill_irb120.abb.emulator.rapid.registry import Builtins
 from maniskill_irb120.abb.emulator.rapid.statements import StatementsMixin

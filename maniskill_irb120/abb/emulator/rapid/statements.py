@@ -1,4 +1,4 @@
-"""Statements and ERROR-handler recovery (a mixin of :class:`Interpreter`).
+"""Statements and ERROR-handler recovery (a mixin typed against :class:`~.contract.Runtime`).
 
 Error recovery follows RAPID: a :class:`RapidError` raised by the innermost statement of a routine (a builtin, a
 called routine without its own handler, RAISE, DIV by zero ...) runs that routine's ERROR handler at the point
@@ -10,27 +10,24 @@ leaves the entry routine becomes :class:`RapidRuntimeError` (errno, routine and 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
-
 from lark import Tree
 
-from maniskill_irb120.abb.emulator.rapid.calls import Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.abb.emulator.rapid.contract import Args, Options, Runtime
 from maniskill_irb120.abb.emulator.rapid.errors import ProgramHalt, RapidError
+from maniskill_irb120.abb.emulator.rapid.expressions import compare
+from maniskill_irb120.abb.emulator.rapid.frames import Frame, Propagate, Retry, Return, Routine, TryNext
 from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, copy_value
-
-if TYPE_CHECKING:
-    from maniskill_irb120.abb.emulator.rapid.interpreter import Interpreter
 
 
 class StatementsMixin:
     """``execute(statement, frame)`` with RAPID's error recovery; one ``_s_<rule>`` method per statement kind."""
 
-    def block(self: Interpreter, stmts: Tree | None, frame: Frame) -> None:
+    def block(self: Runtime, stmts: Tree | None, frame: Frame) -> None:
         if stmts is not None:
             for st in stmts.children:
                 self.execute(st, frame)
 
-    def execute(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def execute(self: Runtime, st: Tree, frame: Frame) -> None:
         """Run one statement; a RapidError from it enters the routine's ERROR handler (RETRY/TRYNEXT here)."""
         retries = 0
         while True:
@@ -43,15 +40,15 @@ class StatementsMixin:
                 if err.line is None:
                     err.routine, err.line = frame.name, frame.line
                 routine = frame.routine
-                if frame.in_handler or routine is None or routine.handler is None or not self._handles(routine, err):
+                if frame.in_handler or routine is None or routine.handler is None or not _handles(self, routine, err):
                     raise
-                if self._run_handler(frame, err) == "trynext":
+                if _run_handler(self, frame, err) == "trynext":
                     return
                 retries += 1
                 if retries > self.max_retries:
                     raise Propagate(err) from None
 
-    def wait_until(self: Interpreter, positional: list[Any], options: list[tuple[str, Any]]) -> None:
+    def wait_until(self: Runtime, positional: Args, options: Options) -> None:
         """``WaitUntil [\\InPos,] cond [\\MaxTime:=s] [\\TimeFlag:=flag] [\\PollRate:=s]``, polling the condition."""
         if len(positional) != 1:
             raise self.fault("WaitUntil takes one condition")
@@ -68,38 +65,17 @@ class StatementsMixin:
                     raise RapidError("ERR_WAIT_MAXTIME", f"WaitUntil: condition still false after {max_time} s")
                 self.store(flag, True)
                 return
-            self.clock.sleep(poll, self._stop)
+            self.clock.sleep(poll, self.stop_event)
             self.check_stop()
 
-    def _handles(self: Interpreter, routine: Routine, err: RapidError) -> bool:
-        if routine.handler_filter is None:
-            return True
-        return any(self.lookup(n.lower(), Frame(None)).get() == err.errno for n in routine.handler_filter)
-
-    def _run_handler(self: Interpreter, frame: Frame, err: RapidError) -> str:
-        frame.in_handler, frame.error = True, err
-        self._errno.value = float(err.errno)
-        line = frame.line
-        try:
-            self.block(frame.routine.handler, frame)
-        except Retry:
-            return "retry"
-        except TryNext:
-            return "trynext"
-        except RapidError as inner:  # an error inside the handler goes to the caller
-            raise Propagate(inner) from None
-        finally:
-            frame.in_handler, frame.error, frame.line = False, None, line
-        raise Propagate(err)  # end of handler reached: implicit RAISE
-
-    def _s_assign(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_assign(self: Runtime, st: Tree, frame: Frame) -> None:
         target, expr = st.children
         self.store(self.resolve(target, frame), self.eval(expr, frame))
 
-    def _s_proc_call(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_proc_call(self: Runtime, st: Tree, frame: Frame) -> None:
         self.call_statement(st, frame)
 
-    def _s_if_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_if_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         cond, body, *rest = st.children
         if self.condition(cond, frame):
             return self.block(body, frame)
@@ -112,16 +88,16 @@ class StatementsMixin:
             else:
                 return self.block(part.children[0], frame)
 
-    def _s_compact_if(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_compact_if(self: Runtime, st: Tree, frame: Frame) -> None:
         if self.condition(st.children[0], frame):
             self.execute(st.children[1], frame)
 
-    def _s_while_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_while_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         while self.condition(st.children[0], frame):
             self.block(st.children[1], frame)
             frame.line = st.meta.line
 
-    def _s_for_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_for_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         name, start, stop, step, body = st.children
         a, b = self.eval(start, frame), self.eval(stop, frame)
         s = self.eval(step, frame) if step is not None else 0.0
@@ -142,7 +118,7 @@ class StatementsMixin:
             else:
                 frame.vars[key] = saved
 
-    def _s_test_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_test_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         value, *cases = st.children
         v = self.eval(value, frame)
         for case in cases:
@@ -150,14 +126,14 @@ class StatementsMixin:
                 continue
             if case.data == "test_default":
                 return self.block(case.children[0], frame)
-            if any(self._compare(v, "=", self.eval(e, frame)) for e in case.children[:-1]):
+            if any(compare(self, v, "=", self.eval(e, frame)) for e in case.children[:-1]):
                 return self.block(case.children[-1], frame)
 
-    def _s_return_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_return_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         expr = st.children[0]
         raise Return(copy_value(self.eval(expr, frame)) if expr is not None else None)
 
-    def _s_raise_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_raise_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         expr = st.children[0]
         if expr is None:
             if not frame.in_handler:
@@ -170,22 +146,45 @@ class StatementsMixin:
         err.routine, err.line = frame.name, frame.line
         raise Propagate(err) if frame.in_handler else err
 
-    def _s_retry_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_retry_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         if not frame.in_handler:
             raise self.fault("RETRY outside an ERROR handler")
         raise Retry()
 
-    def _s_trynext_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_trynext_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         if not frame.in_handler:
             raise self.fault("TRYNEXT outside an ERROR handler")
         raise TryNext()
 
-    def _s_exit_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_exit_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         raise ProgramHalt("exit")
 
-    def _s_connect_stmt(self: Interpreter, st: Tree, frame: Frame) -> None:
+    def _s_connect_stmt(self: Runtime, st: Tree, frame: Frame) -> None:
         ref = self.resolve(st.children[0], frame)
         self.connections[id(ref.cell)] = str(st.children[1])
+
+
+def _handles(rt: Runtime, routine: Routine, err: RapidError) -> bool:
+    if routine.handler_filter is None:
+        return True
+    return any(rt.lookup(n.lower(), Frame(None)).get() == err.errno for n in routine.handler_filter)
+
+
+def _run_handler(rt: Runtime, frame: Frame, err: RapidError) -> str:
+    frame.in_handler, frame.error = True, err
+    rt._errno.value = float(err.errno)
+    line = frame.line
+    try:
+        rt.block(frame.routine.handler, frame)
+    except Retry:
+        return "retry"
+    except TryNext:
+        return "trynext"
+    except RapidError as inner:  # an error inside the handler goes to the caller
+        raise Propagate(inner) from None
+    finally:
+        frame.in_handler, frame.error, frame.line = False, None, line
+    raise Propagate(err)  # end of handler reached: implicit RAISE
 
 
 _MISSING = object()
