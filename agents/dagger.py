@@ -8,6 +8,16 @@ dataset and the policy is trained further on all of it. The labels come from a w
 worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
 proprioception, no privileged state) while the expert reads the simulator.
 
+The action frame: ``world`` rotates the policy's translation from world axes into the tool action
+(``maniskill_irb120.wrappers.WorldFrameToolAction``), learnable from state; ``tool`` is the raw tool-frame action,
+the hand camera's axes, where an image offset is a tool-frame offset: learnable from rgbd. ``--obs-without
+agent/qvel`` hides the joint speeds a real IRB 120 does not report (sim2real-eval hides the same). The camera
+encoder ``keypoints`` (``maniskill_irb120.policies.nets.KeypointCNN``) gives image coordinates of learned
+features, for the cube's precise position. ``--initial-updates`` sizes round 0's fit: the first learner's
+rollouts are only as informative as it. ``--aux-weight``: the policy's features also predict the object's
+position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
+policy never sees it); from the camera it makes the encoder find the cube.
+
     python -m agents.dagger --obs state --budget-min 60                 # the state recipe
     python -m agents.dagger --obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 \\
         --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
@@ -24,22 +34,24 @@ import random
 import time
 from collections import defaultdict
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 from typing import Literal, Optional
 
-import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn.functional as F
 import tyro
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
+from agents import common
 from agents.common import (
+    AUX_DIM,
     EVAL_SEED,
+    Dataset,
     EpisodeTracker,
     Logger,
     RunArgs,
+    action_wrappers,
     args_json,
     atomic_save,
     budget_bar,
@@ -52,39 +64,28 @@ from agents.common import (
     resolve_device,
     rng_state,
     set_rng_state,
+    shapes_of,
     train_seed,
 )
-from agents.nets import DeterministicActor, random_shift, shapes_of
-from maniskill_irb120.action import tcp_rotation, tool_to_world
-from maniskill_irb120.envs.base import grasp_yaw_error
-from maniskill_irb120.experts import expert_for
-from maniskill_irb120.vector import CPUVectorEnv, OnHost, make_vec_env
-from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup
+from maniskill_irb120.policies import policy_module, policy_section, section_of
+from maniskill_irb120.policies.nets import DeterministicActor, random_shift
+from maniskill_irb120.wrappers import observation_setup
 
 FORMAT = "maniskill_irb120.dagger/1"
 
 
 @dataclass
 class Args(RunArgs):
-    env_id: str = "TableClearing-IRB120-v1"
+    budget_min: float = 60.0
+    """wall-clock minutes for data collection and training together (the final evaluation is extra)"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
-    """world: the policy's translation is in world axes, rotated into the tool action by
-    maniskill_irb120.wrappers.WorldFrameToolAction (learnable from state); tool: the raw tool-frame action (the
-    hand camera's axes: an image offset is a tool-frame offset, learnable from rgbd)"""
+    """world: translation in world axes (WorldFrameToolAction); tool: the raw tool-frame action"""
     obs_without: tuple[str, ...] = ()
-    """observation keys the policy does not see, e.g. agent/qvel: a real IRB 120 reports joint angles only
-    (maniskill_irb120.wrappers.DropObservationKeys; sim2real-eval applies the same)"""
-    seed: int = 1
-    """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
-    budget_min: float = 60.0
-    """wall-clock minutes for data collection and training together (the final evaluation is extra)"""
-    eval_episodes: int = 100
-    """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    """observation keys the policy does not see, e.g. agent/qvel (DropObservationKeys)"""
     num_envs: int = 2
-    """envs that collect episodes: CPU worker processes (1: one env in this process), or one GPU-batched env
-    (--backend gpu)"""
+    """envs that collect episodes: CPU worker processes, or the size of one GPU-batched env (--backend gpu)"""
     expert_episodes: int = 50
     """round 0: noisy expert episodes"""
     dart_noise: float = 0.2
@@ -100,154 +101,37 @@ class Args(RunArgs):
     updates_per_round: int = 1000
     """minibatch updates on the whole aggregated dataset after each round"""
     initial_updates: int = 0
-    """round 0's updates on the expert's episodes (0: ``updates_per_round``): the first learner's rollouts are
-    only as informative as that first fit"""
+    """round 0's updates on the expert's episodes (0: --updates-per-round)"""
     batch_size: int = 256
+    """minibatch size"""
     learning_rate: float = 1e-3
     """AdamW learning rate (MSE to the expert's actions)"""
     weight_decay: float = 1e-5
+    """AdamW weight decay"""
     encoder: Literal["nature", "keypoints"] = "nature"
-    """rgbd image encoder: nature (the Nature CNN every trainer shares) or keypoints (conv + spatial softmax,
-    agents.nets.KeypointCNN: image coordinates of learned features, for the cube's precise position)"""
+    """rgbd image encoder: nature (NatureCNN) or keypoints (KeypointCNN: conv + spatial softmax)"""
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
     aux_weight: float = 0.0
-    """weight of an auxiliary loss: the policy's features also predict the object's position relative to the TCP
-    and the grasp yaw error (privileged state, read in the workers, training only; the policy never sees it).
-    From the camera it makes the encoder find the cube (0: off)"""
+    """weight of the auxiliary loss on privileged targets (0: off)"""
     capacity: int = 300_000
     """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
     save_freq: int = 10
     """checkpoint (with the dataset) every N rounds, and always at the end"""
 
 
-AUX_DIM = 5
-
-
-def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
-    """(N, 5) what a camera policy has to find in its image: the object's position relative to the TCP (in the
-    learner's action frame: world or tool axes; in decimetres, so about unit scale) and the grasp yaw error as
-    sin/cos of four times it (continuous across the cube's 90° symmetry)."""
-    u = env.unwrapped
-    rel = (u._obj_pose[:, :3] - u._tcp_pose[:, :3]) * 10.0
-    if frame == "tool":  # the hand camera's own axes: an offset in the image is one in the tool frame
-        rel = (tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
-    yaw = 4.0 * grasp_yaw_error(u._obj_pose, u._tcp_pose)
-    return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
-
-
-class ExpertLabels(gym.Wrapper):
-    """Puts the reactive expert's action for the state just reached into ``info["expert_action"]``, in the
-    learner's action frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the
-    auxiliary targets (:func:`privileged_aux`) into ``info["expert_aux"]``."""
-
-    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
-        super().__init__(env)
-        if frame not in ("tool", "world"):
-            raise ValueError(f"unknown action frame {frame!r}; expected 'tool' or 'world'")
-        if aux and not hasattr(env.unwrapped, "_obj_pose"):
-            raise ValueError(f"--aux-weight needs a task with one object to grasp; {env.unwrapped.spec.id} has none")
-        self.expert = expert_for(env, reactive=True)
-        self.frame, self.aux = frame, aux
-
-    def _label(self, info: dict) -> None:
-        a = self.expert.act()
-        info["expert_action"] = (
-            tool_to_world(a, tcp_rotation(self.env.unwrapped.agent.tcp_pose.raw_pose)) if self.frame == "world" else a
-        )
-        if self.aux:
-            info["expert_aux"] = privileged_aux(self.env, self.frame)
-
-    def reset(self, **kwargs):
-        obs, info = self.env.reset(**kwargs)
-        self.expert.reset((kwargs.get("options") or {}).get("env_idx"))  # a batched env resets ended envs only
-        self._label(info)
-        return obs, info
-
-    def step(self, action):
-        obs, rew, term, trunc, info = self.env.step(action)
-        self._label(info)
-        return obs, rew, term, trunc, info
-
-
-class Dataset:
-    """Aggregated (observation, expert action[, auxiliary target]) rows in preallocated CPU tensors, a ring
-    when full."""
-
-    def __init__(self, capacity: int):
-        self.capacity, self.size, self.pos = capacity, 0, 0
-        self.obs: dict[str, torch.Tensor] = {}
-        self.act: Optional[torch.Tensor] = None
-        self.aux: Optional[torch.Tensor] = None
-
-    def add(self, obs: dict[str, torch.Tensor], act: torch.Tensor, aux: Optional[torch.Tensor] = None) -> None:
-        if self.act is None:
-            self.obs = {k: torch.empty((self.capacity,) + v.shape[1:], dtype=v.dtype) for k, v in obs.items()}
-            self.act = torch.empty((self.capacity,) + act.shape[1:], dtype=torch.float32)
-            if aux is not None:
-                self.aux = torch.empty((self.capacity,) + aux.shape[1:], dtype=torch.float32)
-        if (aux is None) != (self.aux is None):
-            raise ValueError("a dataset's rows either all carry auxiliary targets or none does")
-        idx = (self.pos + torch.arange(act.shape[0])) % self.capacity
-        for k, v in obs.items():
-            self.obs[k][idx] = v.cpu()
-        self.act[idx] = act.float().cpu()
-        if aux is not None:
-            self.aux[idx] = aux.float().cpu()
-        self.pos = int(idx[-1] + 1) % self.capacity
-        self.size = min(self.size + act.shape[0], self.capacity)
-
-    def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """(observations, actions) of ``n`` random rows (agents.sac's replay reads it too)."""
-        obs, act, _ = self.sample_with_aux(n, device)
-        return obs, act
-
-    def sample_with_aux(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor, Optional[torch.Tensor]]:
-        idx = torch.randint(0, self.size, (n,))
-        aux = self.aux[idx].to(device) if self.aux is not None else None
-        return {k: v[idx].to(device) for k, v in self.obs.items()}, self.act[idx].to(device), aux
-
-    def state_dict(self) -> dict:
-        n = self.size
-        return dict(
-            capacity=self.capacity,
-            pos=self.pos,
-            size=n,
-            # clones: torch.save writes a view's whole storage, i.e. the empty capacity too
-            obs={k: v[:n].clone() for k, v in self.obs.items()},
-            act=self.act[:n].clone() if n else None,
-            aux=self.aux[:n].clone() if n and self.aux is not None else None,
-        )
-
-    def load_state_dict(self, d: dict) -> None:
-        self.__init__(d["capacity"])
-        if d["size"]:
-            self.add(d["obs"], d["act"], d.get("aux"))
-            self.pos = d["pos"]
-
-
-def action_wrappers(frame: str) -> list:
-    return [WorldFrameToolAction] if frame == "world" else []
-
-
 def make_envs(args: Args, num_envs: int):
-    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
-    kwargs = dict(obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **args.env_kwargs)
-    if args.obs == "rgbd":
-        kwargs["render_mode"] = "rgb_array"
-    else:
-        kwargs.setdefault("render_backend", "none")
-    # agents.sac builds its envs here too, from its own Args (no auxiliary targets)
-    labels = partial(ExpertLabels, frame=args.action_frame, aux=getattr(args, "aux_weight", 0.0) > 0)
-    wrappers = [*obs_wrappers, *action_wrappers(args.action_frame), labels]
-    if args.obs == "rgbd":
-        from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
-
-        wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
-    backend = "inprocess" if args.backend == "cpu" and num_envs == 1 else args.backend  # auto: make_vec_env's
-    envs = make_vec_env(args.env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
-    # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
-    return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
+    """The labelled envs of this run (its obs, frame, hidden keys and, with --aux-weight, auxiliary targets)."""
+    return common.make_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=args.backend,
+        action_frame=args.action_frame,
+        obs_without=args.obs_without,
+        aux=args.aux_weight > 0,
+        env_kwargs=args.env_kwargs,
+    )
 
 
 def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float, noise: float, device) -> dict:
@@ -340,6 +224,16 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
             rng=rng_state(),
             args=args_json(args),
             signature=policy.signature(),
+            policy=policy_section(
+                "dagger",
+                policy,
+                policy.signature(),
+                env_id=args.env_id,
+                obs=args.obs,
+                action_frame=args.action_frame,
+                obs_without=args.obs_without,
+                env_kwargs=args.env_kwargs,
+            ),
         ),
         path,
     )
@@ -348,16 +242,7 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
     """A trained DAgger policy (eval mode) and its checkpoint dict."""
     ckpt = load_torch(path, FORMAT, "agents.dagger")
-    return policy_from_checkpoint(ckpt, device), ckpt
-
-
-def policy_from_checkpoint(ckpt: dict, device) -> DeterministicActor:
-    sig = ckpt["signature"]
-    image_shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-    policy = DeterministicActor(image_shape, sig["state_dim"], sig["action_dim"], encoder=sig.get("encoder", "nature"))
-    policy = policy.to(device)
-    policy.load_state_dict(ckpt["model"])
-    return policy.eval()
+    return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 
 def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:

@@ -15,8 +15,13 @@ Fine-tuning a cloned policy: ``--base-checkpoint`` (an agents.dagger checkpoint)
 its frozen policy, zero at the start, so the first rollouts are the cloned policy's; ``--kl-coef`` keeps the
 policy near it (KL to a Gaussian at the base's action with the initial std); ``--init-logstd`` shrinks the
 exploration noise and ``--critic-warmup-iters`` fits the value function before the policy moves. Without
-them a cloned policy washed out (BC alone 55 %, BC + PPO 0 %, 2026-11-21): the first updates follow a random
-critic away from the demonstrations (IBRL, arXiv 2311.02198).
+them a cloned policy washes out: the first updates follow a random critic away from the demonstrations (IBRL,
+arXiv 2311.02198).
+
+``--budget-min`` (the flag every trainer shares) limits training's wall clock and overrides ``--max-wall-s``;
+``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
+ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
+every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import json
 import random
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -34,13 +39,14 @@ import torch
 import torch.nn as nn
 import torch.optim as optim
 import tyro
-from torch.distributions.normal import Normal
 
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
     EpisodeTracker,
     Logger,
+    RunArgs,
+    action_wrappers,
     args_json,
     atomic_save,
     evaluate_on_seeds,
@@ -50,83 +56,83 @@ from agents.common import (
     resolve_device,
     rng_state,
     set_rng_state,
+    shapes_of,
 )
-from agents.dagger import action_wrappers, load_policy
-from agents.nets import DeterministicActor, NatureCNN, layer_init, shapes_of
+from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
+from maniskill_irb120.policies.ppo import Agent
 from maniskill_irb120.vector import make_vec_env
 
 
 @dataclass
-class Args:
-    env_id: str = "TableClearing-IRB120-v1"
+class Args(RunArgs):
+    eval_episodes: int = 0
+    """after training: deterministic episodes on held-out seeds, one env (0: skip)"""
     obs: Literal["rgbd", "state"] = "rgbd"
     """rgbd: 84x84 RGB-D hand camera + proprioception; state: privileged state vector"""
     control_mode: str = "pd_ee_delta_tool"
+    """the env's controller"""
     action_frame: Literal["tool", "world"] = "tool"
-    """tool: the original report's tool-frame action; world: translation in world axes (WorldFrameToolAction,
-    as agents.dagger; a --base-checkpoint must have been trained in the same frame)"""
+    """tool: the original report's tool-frame action; world: translation in world axes (WorldFrameToolAction)"""
     base_checkpoint: Optional[Path] = None
     """an agents.dagger checkpoint: the policy is its frozen action plus a learned residual (zero at the start)"""
     kl_coef: float = 0.0
     """weight of KL(policy || N(base action, exp(init_logstd))) in the loss; needs --base-checkpoint"""
     init_logstd: float = -0.5
     """initial log std of the Gaussian policy (a fine-tuned policy wants little noise, e.g. -2)"""
-    backend: Literal["auto", "gpu", "cpu"] = "auto"
-    """auto: GPU-batched physx_cuda when CUDA is available, else CPU worker processes"""
     num_envs: int = 2
+    """training envs: CPU worker processes, or the size of one GPU-batched env"""
     num_eval_envs: int = 1
+    """envs of the periodic evaluation"""
     num_steps: int = 50
     """rollout length per env per iteration"""
     total_timesteps: int = 100_000
+    """env steps of training"""
     learning_rate: float = 3e-4
+    """Adam learning rate"""
     anneal_lr: bool = False
+    """anneal the learning rate linearly to 0"""
     gamma: float = 0.8
+    """discount"""
     gae_lambda: float = 0.9
+    """GAE lambda"""
     num_minibatches: int = 4
+    """minibatches per epoch"""
     update_epochs: int = 4
+    """epochs over each rollout"""
     norm_adv: bool = True
+    """normalise advantages per minibatch"""
     clip_coef: float = 0.2
+    """surrogate clipping coefficient"""
     clip_vloss: bool = False
+    """clip the value loss too"""
     ent_coef: float = 0.0
+    """entropy bonus weight"""
     vf_coef: float = 0.5
+    """value loss weight"""
     max_grad_norm: float = 0.5
+    """gradient norm clip"""
     target_kl: Optional[float] = 0.2
+    """stop an update's epochs once the approximate KL exceeds this"""
     reward_scale: float = 1.0
+    """rewards are multiplied by this"""
     reward_mode: str = "normalized_dense"
+    """the task reward PPO maximises"""
     partial_reset: bool = True
+    """auto-reset finished envs (training needs it)"""
     eval_freq: int = 25
     """evaluate every N iterations (0: only at the end)"""
     num_eval_episodes: int = 4
+    """episodes of each periodic evaluation (and of --evaluate)"""
     eval_reconfiguration_freq: Optional[int] = None
     """rebuild the eval scene every N resets (None: never; the task samples nothing at scene load)"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
-    seed: int = 1
     torch_deterministic: bool = True
-    device: str = "auto"
-    exp_name: Optional[str] = None
-    runs_dir: Path = Path("runs")
-    checkpoint: Optional[Path] = None
-    """weights to evaluate (--evaluate) or to initialise from"""
-    resume: Optional[Path] = None
-    """continue a run exactly: model, optimiser, counters, RNG"""
-    evaluate: bool = False
-    capture_video: bool = True
-    wandb: bool = False
-    wandb_project: str = "maniskill_irb120"
-    comet: bool = False
-    comet_project: str = "maniskill_irb120"
-    progress: bool = True
+    """cudnn.deterministic"""
     critic_warmup_iters: int = 0
     """iterations that update only the value function (keeps a warm-started policy while its critic learns)"""
     max_wall_s: Optional[float] = None
     """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
-    budget_min: Optional[float] = None
-    """the same limit in minutes (the flag every trainer here shares); overrides --max-wall-s"""
-    eval_episodes: int = 0
-    """after training: deterministic episodes on held-out seeds (agents.common.EVAL_SEED onwards), one env;
-    their success_rate, env_steps and wall_clock_s end the printed JSON (0: skip)"""
-    env_kwargs: dict = field(default_factory=dict)
 
     @property
     def batch_size(self) -> int:
@@ -135,70 +141,6 @@ class Args:
     @property
     def minibatch_size(self) -> int:
         return self.batch_size // self.num_minibatches
-
-
-# ----------------------------------------------------------------------------- networks
-class Agent(nn.Module):
-    """Shared encoder, separate policy and value heads, state-independent log-std; with ``residual`` the mean is a
-    frozen base policy's action plus the actor head's output (a zero-initialised residual)."""
-
-    def __init__(self, image_shape, state_dim: int, action_dim: int, residual: bool = False, init_logstd: float = -0.5):
-        super().__init__()
-        self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
-        self.init_logstd = init_logstd
-        self.base = DeterministicActor(image_shape, state_dim, action_dim).requires_grad_(False) if residual else None
-        self.encoder = NatureCNN(image_shape, state_dim)
-        d = self.encoder.out_dim
-        self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
-        self.actor_mean = nn.Sequential(
-            layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2))
-        )
-        if residual:
-            nn.init.zeros_(self.actor_mean[-1].weight)
-            nn.init.zeros_(self.actor_mean[-1].bias)
-        self.actor_logstd = nn.Parameter(torch.full((1, action_dim), float(init_logstd)))
-
-    def signature(self) -> dict:
-        return dict(
-            image_shape=list(self.image_shape) if self.image_shape else None,
-            state_dim=self.state_dim,
-            action_dim=self.action_dim,
-            residual=self.base is not None,
-        )
-
-    def mean(self, obs, x: torch.Tensor) -> torch.Tensor:
-        m = self.actor_mean(x)
-        return m if self.base is None else m + self.base_action(obs)
-
-    def base_action(self, obs) -> torch.Tensor:
-        with torch.no_grad():
-            return self.base(obs)
-
-    def kl_to_base(self, obs, mean: torch.Tensor) -> torch.Tensor:
-        """KL(N(mean, std) || N(base(obs), exp(init_logstd))) per sample, summed over action dims."""
-        ref_logstd = torch.full_like(mean, self.init_logstd)
-        logstd = self.actor_logstd.expand_as(mean)
-        var, ref_var = (2 * logstd).exp(), (2 * ref_logstd).exp()
-        kl = ref_logstd - logstd + (var + (mean - self.base_action(obs)) ** 2) / (2 * ref_var) - 0.5
-        return kl.sum(1)
-
-    def get_value(self, obs) -> torch.Tensor:
-        return self.critic(self.encoder(obs))
-
-    def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
-        mean = self.mean(obs, self.encoder(obs))
-        if deterministic:
-            return mean
-        return Normal(mean, self.actor_logstd.expand_as(mean).exp()).sample()
-
-    def get_action_and_value(self, obs, action=None, with_mean: bool = False):
-        x = self.encoder(obs)
-        mean = self.mean(obs, x)
-        dist = Normal(mean, self.actor_logstd.expand_as(mean).exp())
-        if action is None:
-            action = dist.sample()
-        out = (action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.critic(x))
-        return (*out, mean) if with_mean else out
 
 
 def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
@@ -269,17 +211,20 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
     residual = residual or args.base_checkpoint is not None
     agent = Agent(image_shape, state_dim, int(np.prod(envs.single_action_space.shape)), residual, args.init_logstd)
     if args.base_checkpoint is not None:
-        base, ckpt = load_policy(args.base_checkpoint, "cpu")
-        trained = ckpt["args"]
+        where = f"--base-checkpoint {args.base_checkpoint}"
+        section = read_policy_section(args.base_checkpoint, where)
+        if section["kind"] != "dagger":
+            raise ValueError(f"{where}: a {section['kind']} policy; the base is a deterministic (dagger) policy")
+        base = policy_module(section, "cpu")
         if base.signature() != {k: v for k, v in agent.signature().items() if k != "residual"}:
             raise ValueError(
                 f"--base-checkpoint {args.base_checkpoint}: its policy takes {base.signature()}, these envs give "
                 f"{agent.signature()} (obs={args.obs}; a base trained with --obs-without does not fit)"
             )
-        if trained.get("action_frame", "tool") != args.action_frame or trained.get("obs_without"):
+        if section["action_frame"] != args.action_frame or section["obs_without"]:
             raise ValueError(
-                f"--base-checkpoint {args.base_checkpoint} acts in the {trained.get('action_frame', 'tool')!r} "
-                f"frame without {trained.get('obs_without') or []}; this run: --action-frame {args.action_frame!r}, "
+                f"--base-checkpoint {args.base_checkpoint} acts in the {section['action_frame']!r} "
+                f"frame without {section['obs_without'] or []}; this run: --action-frame {args.action_frame!r}, "
                 "all observation keys"
             )
         agent.base.load_state_dict(base.state_dict())
@@ -396,6 +341,17 @@ def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: A
             args=args_json(args),
             signature=agent.signature(),
             format=FORMAT,
+            policy=policy_section(
+                "ppo",
+                agent,
+                dict(agent.signature(), init_logstd=agent.init_logstd),
+                env_id=args.env_id,
+                obs=args.obs,
+                action_frame=args.action_frame,
+                control_mode=args.control_mode,
+                reward_mode=args.reward_mode,
+                env_kwargs=args.env_kwargs,
+            ),
         ),
         path,
     )
@@ -409,15 +365,6 @@ def read_checkpoint(path: Path, args: Args) -> dict:
         raise ValueError(f"checkpoint {path} acts in the {frame!r} frame; pass --action-frame {frame}")
     ckpt["signature"] = dict(dict(residual=False), **ckpt["signature"])  # written before residual policies
     return ckpt
-
-
-def agent_from_checkpoint(ckpt: dict, device) -> Agent:
-    """The trained agent (eval mode) a checkpoint holds, its base included, without building envs."""
-    sig = ckpt["signature"]
-    shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-    agent = Agent(shape, sig["state_dim"], sig["action_dim"], residual=sig.get("residual", False)).to(device)
-    agent.load_state_dict(ckpt["model"])
-    return agent.eval()
 
 
 def load_checkpoint(path: Path, agent: Agent, args: Args, ckpt: Optional[dict] = None) -> dict:

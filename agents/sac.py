@@ -12,6 +12,18 @@ at the maximum reward. The policy acts in world axes (``WorldFrameToolAction``, 
 staged ``normalized_dense`` reward. ``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0
 --bc-weight 0`` is plain SAC.
 
+Why the pieces are there: the demos carry DART noise on their executed arm actions, so the clone also learns to
+recover from the states noise leads to (clean demos cloned to a policy that collided). The cloning fits the
+policy's std to ``--init-std`` too: the untrained std head gives about unit noise, which turns a cloned actor
+into a colliding one in its first online episodes. Without the reference (``--reference``) the actor leaves the
+clone as soon as it learns and its training success collapses; ``--reference-weight`` keeps it near the clone on
+online states too, where the demo term does not reach. ``--actor-delay``: a critic warmed up on the demos alone
+has never seen another action, and an actor that follows it at once collides. ``--init-alpha`` starts small:
+a larger entropy bonus widens the cloned policy's std faster than the temperature falls. ``--buffer-size``
+defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would
+ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
+policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
+
     python -m agents.sac --obs state --budget-min 120
     python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
@@ -22,7 +34,6 @@ The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``e
 
 from __future__ import annotations
 
-import copy
 import random
 import time
 from dataclasses import dataclass
@@ -31,17 +42,19 @@ from typing import Literal, Optional
 
 import numpy as np
 import torch
-import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
+from agents import common
 from agents.common import (
     EVAL_SEED,
+    Dataset,
     EpisodeTracker,
     Logger,
     RunArgs,
+    action_wrappers,
     args_json,
     atomic_save,
     budget_bar,
@@ -54,38 +67,33 @@ from agents.common import (
     resolve_device,
     rng_state,
     set_rng_state,
+    shapes_of,
     train_seed,
 )
-from agents.dagger import Dataset, action_wrappers, make_envs
-from agents.nets import NatureCNN, StateNorm, random_shift, shapes_of
+from maniskill_irb120.policies import policy_module, policy_section, section_of
+from maniskill_irb120.policies.nets import random_shift
+from maniskill_irb120.policies.sac import SAC
 from maniskill_irb120.wrappers import observation_setup
 
 FORMAT = "maniskill_irb120.sac/1"
-LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
 
 @dataclass
 class Args(RunArgs):
-    env_id: str = "TableClearing-IRB120-v1"
+    budget_min: float = 120.0
+    """wall-clock minutes for everything before the final evaluation"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
     """world: translation in world axes (WorldFrameToolAction); tool: the raw tool-frame action"""
     obs_without: tuple[str, ...] = ()
-    """observation keys the policy does not see, e.g. agent/qvel (as agents.dagger)"""
-    seed: int = 1
-    """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
-    budget_min: float = 120.0
-    """wall-clock minutes for everything before the final evaluation"""
-    eval_episodes: int = 100
-    """final evaluation episodes, on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    """observation keys the policy does not see, e.g. agent/qvel (DropObservationKeys)"""
     num_envs: int = 2
     """CPU worker processes (1: one env in this process), or the size of one GPU-batched env (--backend gpu)"""
     demo_episodes: int = 50
     """reactive-expert episodes in the demo buffer (0: plain SAC)"""
     dart_noise: float = 0.2
-    """std of the Gaussian on the demo episodes' executed arm actions (DART, as agents.dagger's round 0); the
-    cloning learns the clean labels. 30 clean demos cloned to 20 % success and 77 % collisions"""
+    """std of the Gaussian on the demo episodes' executed arm actions (DART); the cloning learns the clean labels"""
     demo_ratio: float = 0.5
     """fraction of every minibatch drawn from the demo buffer (RLPD's symmetric sampling)"""
     bc_pretrain_updates: int = 2000
@@ -95,27 +103,19 @@ class Args(RunArgs):
     bc_weight: float = 1.0
     """weight of the MSE-to-demo-action term in the actor loss, on the demo half of each batch"""
     init_std: float = 0.1
-    """the cloning also fits the policy's std (before the tanh) to this: the untrained std head gives ~unit noise,
-    which turned a cloned actor into a colliding one in its first online episodes (73 % collisions)"""
+    """the std (before the tanh) the cloning also fits the policy to, and the clone's exploration noise"""
     updates_per_step: float = 0.5
     """gradient updates per environment transition (update-to-data ratio)"""
     learning_starts: int = 1000
     """online transitions before updates begin (without demos; with them updates begin at once)"""
     reference: bool = True
-    """IBRL (arXiv 2311.02198): keep the clone frozen after pretraining, and act and bootstrap with whichever of
-    its action and the actor's the critic values higher (needs demos). Without it the actor left the clone as
-    soon as it learned: 60-77 % training success fell to 0 within 4,000 steps"""
+    """IBRL: keep the clone frozen and act and bootstrap with the better of its and the actor's action"""
     reference_weight: float = 1.0
-    """weight of the MSE from the actor's action to the frozen clone's on every state of the batch (the demo
-    term covers only demo states; the online states are where the actor left the clone)"""
+    """weight of the MSE from the actor's action to the frozen clone's, on every state of the batch"""
     actor_delay: int = 5000
-    """online transitions during which only the critic learns, on the cloned policy's own rollouts: warmed up
-    on the demos alone it has never seen another action, and the actor that followed it straight away
-    collided in 90 % of its first episodes"""
+    """online transitions during which only the critic learns, on the cloned policy's own rollouts"""
     buffer_size: Optional[int] = None
-    """online transitions kept (oldest dropped first). Default 300,000 from state, 50,000 from rgbd: a camera
-    transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would ask for 21 GB; the demo buffer
-    holds exactly the demo episodes"""
+    """online transitions kept, oldest dropped first (default 300,000 from state, 50,000 from rgbd)"""
     batch_size: int = 256
     """minibatch size, demos and online data together"""
     gamma: float = 0.95
@@ -127,11 +127,9 @@ class Args(RunArgs):
     q_lr: float = 3e-4
     """Adam learning rate of the critics and of the entropy temperature"""
     init_alpha: float = 0.001
-    """initial entropy temperature (tuned towards entropy -|A| from there); at 0.05 the entropy bonus widened the
-    cloned policy's std faster than the temperature fell"""
+    """initial entropy temperature (tuned towards entropy -|A| from there)"""
     eval_deterministic: bool = True
-    """evaluate the mean action (with a reference: the better of it and the clone's); --no-eval-deterministic
-    evaluates the policy as it acts in training (its sample, or the clone's action with --init-std noise)"""
+    """evaluate the mean action (with a reference: the better of it and the clone's), else as in training"""
     reward_mode: str = "normalized_dense"
     """the task reward SAC maximises (normalized_dense: staged, in [0, 1] per step)"""
     augment: bool = True
@@ -142,116 +140,20 @@ class Args(RunArgs):
     """env steps between checkpoints (with both buffers); always at the end"""
 
 
-class Critic(nn.Module):
-    """Two LayerNorm Q-heads over one encoder (the encoder learns from the critic loss only, as in DrQ)."""
-
-    def __init__(self, image_shape, state_dim: int, action_dim: int, hidden: int = 256):
-        super().__init__()
-        self.norm = StateNorm(state_dim)
-        self.encoder = NatureCNN(image_shape, state_dim)
-
-        def head() -> nn.Sequential:
-            return nn.Sequential(
-                nn.Linear(self.encoder.out_dim + action_dim, hidden),
-                nn.LayerNorm(hidden),
-                nn.ReLU(),
-                nn.Linear(hidden, hidden),
-                nn.LayerNorm(hidden),
-                nn.ReLU(),
-                nn.Linear(hidden, 1),
-            )
-
-        self.q1, self.q2 = head(), head()
-
-    def features(self, obs: dict) -> torch.Tensor:
-        return self.encoder(self.norm(obs))
-
-    def forward(self, feats: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x = torch.cat([feats, action], dim=1)
-        return self.q1(x).squeeze(1), self.q2(x).squeeze(1)
-
-
-class Actor(nn.Module):
-    """Tanh-squashed Gaussian over the critic's (detached) features."""
-
-    def __init__(self, feature_dim: int, action_dim: int, hidden: int = 256):
-        super().__init__()
-        self.net = nn.Sequential(nn.Linear(feature_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU())
-        self.mean = nn.Linear(hidden, action_dim)
-        self.log_std = nn.Linear(hidden, action_dim)
-
-    def gaussian(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, log std) before the tanh."""
-        h = self.net(feats)
-        return self.mean(h), self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
-
-    def forward(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(sampled action, its log-probability, the deterministic action)."""
-        mean, log_std = self.gaussian(feats)
-        normal = torch.distributions.Normal(mean, log_std.exp())
-        u = normal.rsample()
-        a = torch.tanh(u)
-        logp = (normal.log_prob(u) - torch.log(1 - a.pow(2) + 1e-6)).sum(1)
-        return a, logp, torch.tanh(mean)
-
-
-class Reference(nn.Module):
-    """The cloned policy, frozen (IBRL), with its own copy of the encoder the critic goes on training."""
-
-    def __init__(self, critic: Critic, actor: Actor):
-        super().__init__()
-        self.norm, self.encoder, self.actor = (
-            copy.deepcopy(m).requires_grad_(False) for m in (critic.norm, critic.encoder, actor)
-        )
-
-    def forward(self, obs: dict) -> torch.Tensor:
-        return self.actor(self.encoder(self.norm(obs)))[2]
-
-
-class SAC(nn.Module):
-    def __init__(self, image_shape, state_dim: int, action_dim: int, init_alpha: float, reference: bool = False):
-        super().__init__()
-        self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
-        self.critic = Critic(image_shape, state_dim, action_dim)
-        self.target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor = Actor(self.critic.encoder.out_dim, action_dim)
-        self.log_alpha = nn.Parameter(torch.tensor(float(np.log(init_alpha))))
-        self.reference = Reference(self.critic, self.actor) if reference else None
-
-    def freeze_reference(self) -> None:
-        """Keep the actor as cloned so far as IBRL's reference policy."""
-        self.reference = Reference(self.critic, self.actor)
-
-    def signature(self) -> dict:
-        shape = list(self.image_shape) if self.image_shape else None
-        return dict(
-            image_shape=shape,
-            state_dim=self.state_dim,
-            action_dim=self.action_dim,
-            reference=self.reference is not None,
-        )
-
-    def better(self, critic: Critic, feats: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
-        """Per sample, whichever of ``a`` and ``b`` ``critic`` values higher (clipped double Q), and its value."""
-        qa, qb = torch.min(*critic(feats, a)), torch.min(*critic(feats, b))
-        return torch.where((qb > qa)[:, None], b, a), torch.max(qa, qb)
-
-    def act(self, obs: dict, deterministic: bool, noise: float = 0.0) -> torch.Tensor:
-        """The actor's action or, with a reference, the better of it and the clone's (``noise``: std of the
-        Gaussian on the clone's arm actions when exploring)."""
-        with torch.no_grad():
-            feats = self.critic.features(obs)
-            a, _, mean = self.actor(feats)
-            a = mean if deterministic else a
-            if self.reference is None:
-                return a
-            ref = self.reference(obs)
-            if not deterministic and noise > 0:
-                ref[:, :4] = (ref[:, :4] + noise * torch.randn_like(ref[:, :4])).clamp(-1, 1)
-            return self.better(self.critic, feats, a, ref)[0]
-
-
 ROW_FIELDS = ("rew", "term", "succ", "label")
+
+
+def make_envs(args: Args, num_envs: int):
+    """The envs of this run, each step labelled with the reactive expert's action (the demos' labels)."""
+    return common.make_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=args.backend,
+        action_frame=args.action_frame,
+        obs_without=args.obs_without,
+        env_kwargs=args.env_kwargs,
+    )
 
 
 def split(batch: dict) -> tuple[dict, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
@@ -336,8 +238,8 @@ def transitions(obs: dict, action, reward, term, o, info) -> tuple[dict, torch.T
     """The replay rows of one vector step (the real next observation where an episode ended).
 
     ``succ`` marks a step that ended its episode in success. Its target is the absorbing return of the
-    success reward, ``r / (1 - gamma)``: cut off at the terminal step, success was worth 1.0 once while holding
-    the cube (0.75 a step) was worth ~15, and a 12-min run learned to grasp (80 %) and hold, delivering 7 %.
+    success reward, ``r / (1 - gamma)``: cut off at the terminal step, success would be worth 1.0 once while
+    holding the cube (0.75 a step) is worth ~15, and SAC learns to grasp and hold rather than deliver.
     Failures (a collision) stay terminal with no future, as in agents.ppo's ``bootstrap_mask``."""
     nxt = flatten_obs(o)
     succ = torch.zeros(len(reward), dtype=torch.bool)
@@ -396,6 +298,19 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
             rng=rng_state(),
             args=args_json(args),
             signature=model.signature(),
+            policy=policy_section(
+                "sac",
+                model,
+                dict(model.signature(), init_alpha=1.0),  # log_alpha comes with the weights
+                env_id=args.env_id,
+                obs=args.obs,
+                action_frame=args.action_frame,
+                obs_without=args.obs_without,
+                reward_mode=args.reward_mode,
+                env_kwargs=args.env_kwargs,
+                eval_deterministic=args.eval_deterministic,
+                init_std=args.init_std,
+            ),
         ),
         path,
     )
@@ -403,15 +318,7 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
 
 def load_model(path: Path, device) -> tuple[SAC, dict]:
     ckpt = load_torch(path, FORMAT, "agents.sac")
-    return model_from_checkpoint(ckpt, device), ckpt
-
-
-def model_from_checkpoint(ckpt: dict, device) -> SAC:
-    sig = ckpt["signature"]
-    shape = tuple(sig["image_shape"]) if sig["image_shape"] else None
-    model = SAC(shape, sig["state_dim"], sig["action_dim"], 1.0, sig.get("reference", False)).to(device)
-    model.load_state_dict(ckpt["model"])
-    return model.eval()
+    return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 
 def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:

@@ -1,7 +1,7 @@
 """The layout's rules, read from the code's own imports (each folder's ``__init__`` states its rule in words).
 
 Imports point one way: ``action`` < ``robot/`` < ``envs/`` < ``vector``/``wrappers`` < ``experts/`` <
-``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs neither). Imports
+``policies/`` < ``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs neither). Imports
 inside functions count as much as module-level ones: a lazy import is still a dependency.
 """
 
@@ -82,6 +82,10 @@ RULES = {
     "the emulator never imports envs/, experts/ or sim2real/": (
         files("abb/emulator"),
         (M + ".envs", M + ".experts", M + ".sim2real", "agents"),
+    ),
+    "policies/ (what a deployed policy runs) needs torch only": (
+        files("policies"),
+        ("mani_skill", "sapien", "gymnasium", M + ".envs", M + ".experts", M + ".sim2real", M + ".abb", "agents"),
     ),
     "the library never imports the trainers": (sorted(PKG.rglob("*.py")), ("agents",)),
 }

@@ -1,7 +1,7 @@
 """RLlib's default PPO / APPO / SAC RLModules with our RGB-D + proprioception encoder for dict observations.
 
 RLlib has no default encoder for a ``Dict`` observation (and flattening an 84x84x4 image into an MLP input
-would throw the image structure away). The encoder here *is* :class:`agents.nets.NatureCNN`, the one
+would throw the image structure away). The encoder here *is* :class:`maniskill_irb120.policies.nets.NatureCNN`, the one
 ``agents.ppo`` trains, plugged into RLlib through its Catalog: the default modules keep their heads, value
 function, Q networks and target networks; only the observation encoder is ours. State observations (a flat
 ``Box``) keep RLlib's default MLP encoder."""
@@ -20,7 +20,8 @@ from ray.rllib.core.models.configs import ModelConfig
 from ray.rllib.core.models.torch.base import TorchModel
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
-from agents.nets import NatureCNN, shapes_of
+from agents.common import shapes_of
+from maniskill_irb120.policies.nets import NatureCNN
 
 
 @dataclass

@@ -37,7 +37,7 @@ class Args:
     env_id: str = "TableClearing-IRB120-v1"
     """any task registered by maniskill_irb120 (or ManiSkill)"""
     obs: Literal["state", "rgbd"] = "state"
-    """state: RLlib's default MLP; rgbd: 84x84 RGB-D + proprioception through agents.nets.NatureCNN"""
+    """state: RLlib's default MLP; rgbd: 84x84 RGB-D + proprioception through the shared NatureCNN"""
     env_kwargs: dict = field(default_factory=dict)
     """extra gym.make keyword arguments for every env (e.g. domain randomisation ranges)"""
     num_env_runners: int = 0

@@ -11,10 +11,11 @@ import pytest
 import torch
 
 import maniskill_irb120  # noqa: F401
-from agents.dagger import Args, Dataset, ExpertLabels, main, make_envs, train_round
-from agents.nets import DeterministicActor, SpatialSoftmax, random_shift
+from agents.common import Dataset, ExpertLabels
+from agents.dagger import Args, main, make_envs, train_round
 from maniskill_irb120.action import tcp_rotation, tool_to_world
 from maniskill_irb120.experts import expert_for
+from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, random_shift
 
 ENV = "TableClearing-IRB120-v1"
 

@@ -13,8 +13,8 @@ import torch
 
 ray = pytest.importorskip("ray", reason="needs the ray extra (pip install -e .[ray])")
 
-from agents.nets import NatureCNN  # noqa: E402
 from agents.rllib.train import Args, build_config, main  # noqa: E402
+from maniskill_irb120.policies.nets import NatureCNN  # noqa: E402
 
 TINY = dict(train_batch_size=100, minibatch_size=50, num_epochs=1, learning_starts=50, progress=False)
 

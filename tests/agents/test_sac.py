@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.dagger import Dataset
+from agents.common import Dataset
 from agents.sac import (
     SAC,
     Args,
@@ -191,6 +191,7 @@ def sim2real_acts_as_trained(ckpt: Path, tmp_path: Path) -> None:
         sim_env.close()
     saved = torch.load(ckpt, weights_only=False)
     saved["args"]["eval_deterministic"] = False  # as the sac-state recipe trains it
+    saved["policy"]["eval_deterministic"] = False  # what sim2real-eval reads
     torch.save(saved, tmp_path / "noisy.pt")
     sim_env, make_policy = load_policy(str(tmp_path / "noisy.pt"), env_id, "tool_delta")
     assert make_policy(sim_env).sampled

@@ -1,20 +1,19 @@
-"""What every trainer in ``agents/`` shares besides networks: observation layout, devices, RNG state,
-atomic checkpoint writes, logging (TensorBoard, optional W&B / Comet) with the same metric names, and the
-held-out evaluation every recipe is scored on (so the learning benchmark compares like with like)."""
+"""The held-out evaluation every recipe is scored on (so the learning benchmark compares like with like): the
+seeds, per-episode task metrics, the one-env episode loop and a trainer's ``--evaluate``."""
 
 from __future__ import annotations
 
 import json
-import os
-import random
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
+
+from agents.common.args import RunArgs
+from agents.common.envs import flatten_obs
 
 # events the task reports per step in info; logged as per-episode rates ("did it happen")
 EVENT_KEYS = ("success", "fail", "grasped", "dropped", "collided")
@@ -29,103 +28,6 @@ def train_seed(seed: int, episode: int) -> int:
     if s >= EVAL_SEED:
         raise ValueError(f"training seed {s} (run seed {seed}, episode {episode}) would reach the held-out eval seeds")
     return s
-
-
-def flatten_obs(obs) -> dict[str, torch.Tensor]:
-    """Normalise both obs layouts to a dict with 'state' (and 'rgb'/'depth' for rgbd)."""
-    if isinstance(obs, torch.Tensor):
-        return {"state": obs}
-    return obs
-
-
-def obs_to(obs: dict, device) -> dict[str, torch.Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in obs.items()}
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def args_json(args) -> dict:
-    return json.loads(json.dumps(asdict(args), default=str))
-
-
-def atomic_save(obj: Any, path: Path) -> None:
-    """torch.save to a temporary file, then rename: a crash never leaves a truncated checkpoint."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def load_torch(path: Path, fmt: str, what: str) -> dict:
-    """A checkpoint written by ``what`` in format ``fmt``, or an error that says why not."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ValueError(f"checkpoint {path} is not a readable torch checkpoint: {e}") from e
-    if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
-        found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt)
-        raise ValueError(f"checkpoint {path} was not written by {what} (format {found})")
-    return ckpt
-
-
-def rng_state() -> dict:
-    s = dict(python=random.getstate(), numpy=np.random.get_state(), torch=torch.get_rng_state())
-    if torch.cuda.is_available():
-        s["cuda"] = torch.cuda.get_rng_state_all()
-    return s
-
-
-def set_rng_state(s: dict) -> None:
-    random.setstate(s["python"])
-    np.random.set_state(s["numpy"])
-    torch.set_rng_state(s["torch"])
-    if "cuda" in s and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(s["cuda"])
-
-
-class Logger:
-    """TensorBoard always; W&B and Comet only when asked (imported lazily)."""
-
-    def __init__(self, run_dir: Path, args):
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(run_dir))
-        self.tb.add_text("args", json.dumps(json.loads(json.dumps(asdict(args), default=str)), indent=1))
-        self.wandb = self.comet = None
-        config = json.loads(json.dumps(asdict(args), default=str))
-        if args.wandb:
-            import wandb
-
-            self.wandb = wandb.init(project=args.wandb_project, name=run_dir.name, config=config, dir=str(run_dir))
-        if args.comet:
-            import comet_ml
-
-            self.comet = comet_ml.Experiment(project_name=args.comet_project)
-            self.comet.set_name(run_dir.name)
-            self.comet.log_parameters(config)
-
-    def scalars(self, values: dict[str, float], step: int) -> None:
-        for k, v in values.items():
-            self.tb.add_scalar(k, v, step)
-        if self.wandb is not None:
-            self.wandb.log(values, step=step)
-        if self.comet is not None:
-            self.comet.log_metrics(values, step=step)
-
-    def close(self) -> None:
-        self.tb.close()
-        if self.wandb is not None:
-            self.wandb.finish()
-        if self.comet is not None:
-            self.comet.end()
 
 
 class EpisodeTracker:
@@ -240,41 +142,6 @@ def evaluate_on_seeds(
     return out
 
 
-@dataclass
-class RunArgs:
-    """The flags agents.dagger and agents.sac share (where runs go, resuming, evaluating, loggers); each
-    trainer's own Args extends it."""
-
-    device: str = "auto"
-    """torch device of the learner (auto: CUDA when available)"""
-    backend: Literal["auto", "cpu", "gpu"] = "auto"
-    """the envs: gpu, ManiSkill's GPU-batched physx_cuda env (--num-envs in one process, its tensors copied to
-    the host-side dataset each step); cpu, --num-envs worker processes (1: one env in this process); auto: gpu
-    when CUDA is available"""
-    exp_name: Optional[str] = None
-    """run folder under --runs-dir (default: algorithm__env__obs__seed__time)"""
-    runs_dir: Path = Path("runs")
-    """TensorBoard logs, checkpoints and summary.json go to runs_dir/exp_name"""
-    resume: Optional[Path] = None
-    """continue a run: networks, optimisers, data, counters and RNG; the budget counts the time already spent"""
-    evaluate: bool = False
-    """only evaluate --checkpoint on the held-out seeds (videos + summary.json)"""
-    checkpoint: Optional[Path] = None
-    """the checkpoint --evaluate reads"""
-    capture_video: bool = True
-    """--evaluate: record an mp4 per episode"""
-    progress: bool = True
-    """a tqdm bar over the wall-clock budget"""
-    wandb: bool = False
-    """also log to Weights & Biases (imported only when set)"""
-    comet: bool = False
-    """also log to Comet, as the original report did (imported only when set)"""
-    wandb_project: str = "maniskill_irb120"
-    comet_project: str = "maniskill_irb120"
-    env_kwargs: dict = field(default_factory=dict)
-    """extra gym.make keyword arguments, e.g. domain randomisation ranges"""
-
-
 def evaluate_checkpoint(
     args: RunArgs,
     load: Callable[[Path], tuple[Any, dict]],
@@ -303,21 +170,5 @@ def evaluate_checkpoint(
     result["checkpoint"] = str(args.checkpoint)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
-    return result
-
-
-def budget_bar(args: RunArgs, budget_s: float, spent_s: float, desc: str):
-    """A tqdm bar over the wall-clock budget (None with --no-progress)."""
-    if not args.progress:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=int(budget_s), initial=int(spent_s), unit="s", desc=desc, dynamic_ncols=True)
-
-
-def finish(result: dict, run_dir: Path) -> dict:
-    """The run's ``summary.json`` and its last printed line (one JSON object)."""
-    (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
     print(json.dumps(result))
     return result

@@ -1,5 +1,6 @@
-"""Network pieces every trainer in ``agents/`` shares (PPO, DAgger, SAC, RLlib's RLModule): one definition
-of the RGB-D + proprioception encoder, so a checkpoint's encoder means the same thing everywhere."""
+"""Network pieces every policy shares (PPO, DAgger, SAC, RLlib's RLModule): one definition of the RGB-D +
+proprioception encoder, so a checkpoint's encoder means the same thing everywhere; plus the deterministic actor
+(BC, DAgger) and DrQ's image augmentation."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def image_tensor(obs: dict[str, torch.Tensor], max_depth_mm: float = 2000.0) -> 
 
 
 class NatureCNN(nn.Module):
-    """The seed's 3-layer CNN over the 84x84x4 RGB-D image, plus a small MLP for proprioception."""
+    """The original report's 3-layer CNN over the 84x84x4 RGB-D image, plus a small MLP for proprioception."""
 
     def __init__(self, image_shape: Optional[tuple[int, int, int]], state_dim: int, feature_dim: int = 256):
         super().__init__()
@@ -184,13 +185,3 @@ class DeterministicActor(nn.Module):
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         return torch.tanh(self.head(self.features(obs)))
-
-
-def shapes_of(space) -> tuple[Optional[tuple[int, int, int]], int]:
-    """(image shape H,W,4 or None, state dim) of a single-env observation space (flattened rgbd or state)."""
-    import gymnasium as gym
-
-    if isinstance(space, gym.spaces.Dict):
-        rgb, depth, state = space["rgb"].shape, space["depth"].shape, space["state"].shape
-        return (rgb[0], rgb[1], rgb[2] + depth[2]), state[0]
-    return None, space.shape[0]

@@ -1,0 +1,60 @@
+"""What every trainer in ``agents/`` shares besides the policy networks (those live in the library,
+``maniskill_irb120.policies``): the common flags (``args``), the envs and observation layout (``envs``), the
+replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
+evaluation every recipe is scored on (``evaluation``) and the loggers (``logging``). It may import the library
+``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
+``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
+
+from agents.common.args import RunArgs
+from agents.common.buffers import Dataset
+from agents.common.checkpoints import args_json, atomic_save, load_torch, rng_state, set_rng_state
+from agents.common.envs import (
+    AUX_DIM,
+    ExpertLabels,
+    action_wrappers,
+    flatten_obs,
+    make_envs,
+    obs_to,
+    privileged_aux,
+    resolve_device,
+    shapes_of,
+)
+from agents.common.evaluation import (
+    EVAL_SEED,
+    EVENT_KEYS,
+    REWARD_TERM_PREFIX,
+    EpisodeTracker,
+    evaluate_checkpoint,
+    evaluate_on_seeds,
+    train_seed,
+)
+from agents.common.logging import Logger, budget_bar, finish
+
+__all__ = [
+    "AUX_DIM",
+    "EVAL_SEED",
+    "EVENT_KEYS",
+    "REWARD_TERM_PREFIX",
+    "Dataset",
+    "EpisodeTracker",
+    "ExpertLabels",
+    "Logger",
+    "RunArgs",
+    "action_wrappers",
+    "args_json",
+    "atomic_save",
+    "budget_bar",
+    "evaluate_checkpoint",
+    "evaluate_on_seeds",
+    "finish",
+    "flatten_obs",
+    "load_torch",
+    "make_envs",
+    "obs_to",
+    "privileged_aux",
+    "resolve_device",
+    "rng_state",
+    "set_rng_state",
+    "shapes_of",
+    "train_seed",
+]

@@ -1,0 +1,58 @@
+"""A checkpoint's policy section: each kind's module comes back from it alone and acts as the trained one did,
+a checkpoint from before sections existed reads the same way, and misuse is named."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from maniskill_irb120.policies import acting, policy_module, policy_section, read_policy_section, section_of
+from maniskill_irb120.policies.nets import DeterministicActor
+from maniskill_irb120.policies.ppo import Agent
+from maniskill_irb120.policies.sac import SAC
+
+ENV = "TableClearing-IRB120-v1"
+OBS = {"state": torch.randn(3, 7)}
+
+
+def modules():
+    torch.manual_seed(0)
+    ppo = Agent(None, 7, 5)
+    dagger = DeterministicActor(None, 7, 5)
+    sac = SAC(None, 7, 5, 0.1, reference=True)
+    return dict(
+        ppo=(ppo, dict(ppo.signature(), init_logstd=ppo.init_logstd), "maniskill_irb120.ppo/1"),
+        dagger=(dagger, dagger.signature(), "maniskill_irb120.dagger/1"),
+        sac=(sac, dict(sac.signature(), init_alpha=1.0), "maniskill_irb120.sac/1"),
+    )
+
+
+@pytest.mark.parametrize("kind", ["ppo", "dagger", "sac"])
+def test_a_section_and_a_legacy_checkpoint_act_like_the_module(kind, tmp_path):
+    module, config, fmt = modules()[kind]
+    module.eval()
+    section = policy_section(kind, module, config, env_id=ENV, obs="state", action_frame="world", init_std=0.1)
+    path = tmp_path / "ckpt.pt"
+    torch.save(dict(format=fmt, model=module.state_dict(), policy=section), path)
+    legacy = dict(format=fmt, model=module.state_dict(), signature=module.signature(), args=dict(env_id=ENV))
+    with torch.no_grad():
+        expected = acting(section)(OBS)
+        assert torch.equal(acting(read_policy_section(path))(OBS), expected)
+        assert torch.equal(acting(section_of(legacy))(OBS), expected)
+    assert type(policy_module(section)) is type(module) and not policy_module(section).training
+    assert section_of(legacy)["stochastic"] == (kind != "dagger")
+
+
+def test_misuse_is_named(tmp_path):
+    dagger, config, _ = modules()["dagger"]
+    with pytest.raises(ValueError, match="unknown policy kind"):
+        policy_section("bc", dagger, config, env_id=ENV, obs="state", action_frame="world")
+    with pytest.raises(TypeError, match="DeterministicActor"):
+        policy_section("dagger", Agent(None, 7, 5), config, env_id=ENV, obs="state", action_frame="world")
+    section = policy_section("dagger", dagger, config, env_id=ENV, obs="state", action_frame="world")
+    with pytest.raises(ValueError, match="deterministic"):
+        acting(section, sampled=True)
+    with pytest.raises(ValueError, match="none of"):
+        section_of(dict(format="someone-else/1"))
+    with pytest.raises(FileNotFoundError):
+        read_policy_section(tmp_path / "missing.pt")
