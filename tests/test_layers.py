@@ -1,8 +1,8 @@
 """The layout's rules, read from the code's own imports (each folder's ``__init__`` states its rule in words).
 
 Imports point one way: ``action`` < ``robot/`` < ``envs/`` < ``vector``/``wrappers`` < ``experts/`` <
-``policies/`` < ``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs neither). Imports
-inside functions count as much as module-level ones: a lazy import is still a dependency.
+``policies/`` < ``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs
+neither). Imports inside functions count as much as module-level ones: a lazy import is still a dependency.
 """
 
 from __future__ import annotations
