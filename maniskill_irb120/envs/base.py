@@ -6,6 +6,7 @@ shared scene and contacts, edge-triggered events, render-ahead on the CPU and st
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import sapien
@@ -46,7 +47,9 @@ REWARD_MODES = ["normalized_dense", "dense", "sparse", "none"]
 
 class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     """Base of the IRB 120 table tasks. Subclasses implement ManiSkill's ``_load_scene``,
-    ``_initialize_episode``, ``evaluate``, ``_get_obs_extra`` and the reward methods, using the helpers here.
+    ``_initialize_episode``, ``evaluate`` and ``compute_dense_reward``, and declare what other layers may read:
+    ``target_object``, :meth:`privileged_state` and :meth:`state_observations` (docs/adding_a_task.md). The base
+    gives the observations' common part, the sparse and normalised rewards and the helpers below.
 
     Shared keyword arguments: ``robot_init_qpos_noise`` (uniform joint noise around the ``rest`` keyframe,
     rad), ``object_shape`` ("cube", "cylinder" or "random": per env, drawn when the scene is built),
@@ -156,25 +159,34 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         self._randomize_bodies(obj, self.object_mass, self.object_friction)
         return obj
 
-    def _build_table_scene(self, build_objects) -> list[Actor]:
-        """Trays, then ``build_objects()`` (returns the task's objects), then table and floor (drawn last);
-        sets up the contact watch over those objects and the per-step event state."""
+    def build_trays(self) -> None:
+        """First in draw order: the two trays (then the task's objects, :meth:`build_background` and
+        :meth:`watch_contacts`). Draws the scene-build randomisation of the object size, so build the objects
+        after this."""
         self.table_scene = TableScene(self.scene)
         self.table_scene.build_trays()
-        self.object_half_size = self._randomized_build(self._nominal_half_size)
-        objects = self._dr_objects = build_objects()
-        self.table_scene.build_background()
         self.source_tray, self.dest_tray = self.table_scene.source_tray, self.table_scene.dest_tray
-        self.scene_actors = self.table_scene.actors
-        self.fingers = [self.agent.finger_left, self.agent.finger_right]
-        robot_links = [link for link in self.agent.robot.links if link.name != "base_link"]
-        self.contacts = Contacts(self.scene, robot_links, self.fingers, self.scene_actors, objects)
+        self.object_half_size = self._randomized_build(self._nominal_half_size)
         with torch.device(self.device):
             self.source_center = torch.tensor([*SOURCE_TRAY_XY, TRAY_FLOOR_TOP]).repeat(self.num_envs, 1)
             self._fresh = torch.ones(self.num_envs, dtype=torch.bool)
         self._cur: dict[str, torch.Tensor] = {}
         self._prev: dict[str, torch.Tensor] = {}
-        return objects
+
+    def build_background(self) -> None:
+        """Table and floor, after the objects: built last, they are drawn last, so most of their pixels fail
+        the CPU rasteriser's early depth test (envs/scene.py)."""
+        self.table_scene.build_background()
+        self.scene_actors = self.table_scene.actors
+
+    def watch_contacts(self, objects: list[Actor]) -> None:
+        """``self.contacts`` watches the robot against the scene, ``objects`` against the scene and the fingers
+        against ``objects`` (in this order: ``object_hit[j]`` and ``finger_forces[j]`` are ``objects[j]``'s);
+        the domain randomisation's colour jitter applies to them too."""
+        self._dr_objects = objects
+        self.fingers = [self.agent.finger_left, self.agent.finger_right]
+        robot_links = [link for link in self.agent.robot.links if link.name != "base_link"]
+        self.contacts = Contacts(self.scene, robot_links, self.fingers, self.scene_actors, objects)
 
     # ------------------------------------------------------------------ episodes
     def reset(self, seed: int | list[int] | None = None, options: dict | None = None):
@@ -190,16 +202,26 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         with episode_reset(self.scene, reset_mask_from_options(self.num_envs, options, self.device)):
             return super().reset(seed=seed, options=options)
 
-    def _episode_draws(self, env_idx: torch.Tensor, n: int) -> torch.Tensor:
-        """(b, n) uniform [0, 1) draws per env being reset, from ManiSkill's per-env episode RNG: a GPU env
-        with episode seed s starts where a CPU env reset with seed s does. (On the GPU ManiSkill seeds torch
-        with env 0's episode seed before every reset, so torch draws would repeat one start in every partial
-        reset that leaves env 0 running.)"""
+    def _episode_draws(self, env_idx: torch.Tensor, n: int | None = None, /, **sizes: int):
+        """Uniform [0, 1) draws per env being reset, from ManiSkill's per-env episode RNG: a GPU env with
+        episode seed s starts where a CPU env reset with seed s does. (On the GPU ManiSkill seeds torch with env
+        0's episode seed before every reset, so torch draws would repeat one start in every partial reset that
+        leaves env 0 running.)
+
+        Named: ``_episode_draws(env_idx, joint_noise=6, obj_xy=2, obj_yaw=1)`` returns a dict of ``(b, size)``
+        tensors, drawn in the order named (one stream per env: reordering or resizing a name changes every
+        later draw, and so every seed's start). Positional ``n``: the ``(b, n)`` draws unsplit."""
+        if (n is None) == (not sizes):
+            raise TypeError("_episode_draws takes either named sizes or one total n")
+        total = n if n is not None else sum(sizes.values())
         rng = self._batched_episode_rng[env_idx.cpu().numpy()]
-        return torch.as_tensor(rng.uniform(size=n), dtype=torch.float32, device=self.device).reshape(-1, n)
+        u = torch.as_tensor(rng.uniform(size=total), dtype=torch.float32, device=self.device).reshape(-1, total)
+        if n is not None:
+            return u
+        return dict(zip(sizes, torch.split(u, list(sizes.values()), dim=1)))
 
     def _reset_robot(self, env_idx: torch.Tensor, u: torch.Tensor) -> None:
-        """The ``rest`` keyframe plus ``robot_init_qpos_noise`` · (2u - 1) on the arm joints; u: (b, 6)."""
+        """The ``rest`` keyframe plus ``robot_init_qpos_noise`` · (2u - 1) on the arm joints; u: (b, 6) draws."""
         qpos = torch.as_tensor(self.agent.keyframes["rest"].qpos, dtype=torch.float32, device=self.device)
         qpos = qpos.repeat(len(env_idx), 1)
         if self.robot_init_qpos_noise > 0:
@@ -211,15 +233,16 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         self._captured_ahead = False  # a reset's observation is always captured afresh
         self._randomize_episode(env_idx)
 
-    def _spawn_in_source_tray(self, u: torch.Tensor) -> Pose:
-        """Resting poses in the source tray's inner square shrunk by ``spawn_margin``, uniform yaw; u: (b, 3).
-        Spawned resting rather than dropped: ``_initialize_episode`` cannot step physics, and a falling object
-        at t = 0 would make the first rewards depend on the settling transient."""
+    def _spawn_in_source_tray(self, xy: torch.Tensor, yaw: torch.Tensor) -> Pose:
+        """Resting poses in the source tray's inner square shrunk by ``spawn_margin``, uniform yaw; ``xy``:
+        (b, 2) and ``yaw``: (b, 1) draws in [0, 1). Spawned resting rather than dropped: ``_initialize_episode``
+        cannot step physics, and a falling object at t = 0 would make the first rewards depend on the settling
+        transient."""
         span = TRAY_INNER / 2 - self.spawn_margin
-        b = u.shape[0]
+        b = xy.shape[0]
         xyz = torch.full((b, 3), TRAY_FLOOR_TOP + self.object_half_size, device=self.device)
-        xyz[:, :2] = (u[:, :2] * 2 - 1) * span + torch.tensor(SOURCE_TRAY_XY, device=self.device)
-        return Pose.create_from_pq(xyz, yaw_quat(u[:, 2] * 2 * math.pi))
+        xyz[:, :2] = (xy * 2 - 1) * span + torch.tensor(SOURCE_TRAY_XY, device=self.device)
+        return Pose.create_from_pq(xyz, yaw_quat(yaw[:, 0] * 2 * math.pi))
 
     def _before_control_step(self):
         """The state evaluated after the last step (or reset) becomes the reference for this step."""
@@ -259,15 +282,82 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
             invalid_action=self.agent.invalid_action.clone(),
         )
 
-    def _common_obs(self, info: dict) -> dict[str, torch.Tensor]:
-        """The extra observations every task gives (copies: writing into an observation must not move what
-        the env scores against)."""
-        return dict(tcp_pose=self._tcp_pose.clone(), is_grasped=info["grasped"].clone())
-
     @staticmethod
     def _touches(finger_forces: torch.Tensor) -> torch.Tensor:
         """(N,) either finger touches the object whose (2, N, 3) finger forces these are."""
         return (torch.linalg.norm(finger_forces, dim=2) > CONTACT_FORCE_EPS).any(0)
+
+    # ------------------------------------------------------------------ what other layers may read
+    # The experts, the auxiliary losses and the real side (sim2real/env.py) read a task only through these, so a
+    # task may name its own attributes as it likes: on the real side a private name is an error, not the sim's.
+
+    target_object: Actor
+    """The object the expert picks and auxiliary losses look at (set in ``_load_scene``)."""
+
+    MAX_STAGED_REWARD = 4.0
+    """The staged dense reward's value on success: ``normalized_dense`` = staged reward / this."""
+
+    step_state: dict[str, torch.Tensor]
+    """This step's poses, read once in ``evaluate`` (:meth:`_read_step_state`): :meth:`privileged_state`'s
+    entries plus ``"tcp_pose"``. Observations and rewards read poses only from here; on the real side
+    ``IRB120Sim2RealEnv`` fills it from the robot's FK and the digital twin's :meth:`privileged_state`."""
+
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        """The object poses the task's observations read, ``(N, 7)`` raw poses (position, wxyz quaternion) keyed
+        by names the task chooses: what a perception system (or the emulator's digital twin) must supply for
+        state observations on the real side. Read live from the sim."""
+        raise NotImplementedError(f"{type(self).__name__} must say which object poses it observes")
+
+    @property
+    def tcp_pose(self) -> torch.Tensor:
+        """(N, 7) raw TCP pose of this step (the one the observations and rewards use)."""
+        return self.step_state["tcp_pose"]
+
+    def _read_step_state(self) -> dict[str, torch.Tensor]:
+        """Fetch this step's poses once (call first in ``evaluate``): observations and rewards of a step then
+        read the same values."""
+        state = self.privileged_state()
+        if "tcp_pose" in state:
+            raise ValueError(f"{type(self).__name__}.privileged_state() must not use the name 'tcp_pose'")
+        self.step_state = {**state, "tcp_pose": self.agent.tcp_pose.raw_pose}
+        return self.step_state
+
+    def _get_obs_extra(self, info: dict) -> dict[str, torch.Tensor]:
+        """The TCP pose and the grasp flag, plus :meth:`state_observations` in state obs modes. Copies: writing
+        into an observation must not move what the env scores against. Reads only ``self.step_state``,
+        ``info`` and public attributes, so the real side runs it as it is (``self``: the real env)."""
+        state = self.step_state
+        obs = dict(tcp_pose=state["tcp_pose"].clone(), is_grasped=info["grasped"].clone())
+        if self.obs_mode_struct.use_state:
+            obs.update(self.state_observations(state, info))
+        return obs
+
+    def state_observations(self, state: dict[str, torch.Tensor], info: dict) -> dict[str, torch.Tensor]:
+        """The task's privileged observations (state obs modes), computed from ``state`` (a step state), ``info``
+        and the task's fixed geometry only: on the real side ``state`` is the one built from the robot and the
+        world, and ``self`` is the sim."""
+        return {}
+
+    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        """1 on success, else 0."""
+        return info["success"].float()
+
+    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        """The staged dense reward over :attr:`MAX_STAGED_REWARD`, in [0, 1]."""
+        return self.compute_dense_reward(obs, action, info) / self.MAX_STAGED_REWARD
+
+    # compatibility aliases for readers outside the task layer (agents/dagger.py, sim2real/policy.py,
+    # tests/test_contract.py) until they read ``tcp_pose`` / ``target_object``; remove then
+    @property
+    def _tcp_pose(self) -> torch.Tensor:
+        return self.tcp_pose
+
+    @property
+    def _obj_pose(self) -> torch.Tensor:
+        try:
+            return self.step_state["obj_pose"]
+        except (AttributeError, KeyError):
+            raise AttributeError("_obj_pose: this task observes no 'obj_pose'") from None
 
     # ------------------------------------------------------------------ render-ahead (CPU)
     def _after_control_step(self):

@@ -36,25 +36,32 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     """
 
     def _load_scene(self, options: dict):
-        (self.obj,) = self._build_table_scene(lambda: [self._build_object("object", [0.8, 0.1, 0.1, 1])])
+        self.build_trays()
+        self.obj = self.target_object = self._build_object("object", [0.8, 0.1, 0.1, 1])
+        self.build_background()
+        self.watch_contacts([self.obj])
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
-        u = self._episode_draws(env_idx, 9)  # joint noise, object x, y, yaw
-        self._reset_robot(env_idx, u[:, :6])
-        self.obj.set_pose(self._spawn_in_source_tray(u[:, 6:]))
+        u = self._episode_draws(env_idx, joint_noise=6, obj_xy=2, obj_yaw=1)
+        self._reset_robot(env_idx, u["joint_noise"])
+        self.obj.set_pose(self._spawn_in_source_tray(u["obj_xy"], u["obj_yaw"]))
+
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        return dict(obj_pose=self.obj.pose.raw_pose)
 
     def evaluate(self) -> dict:
-        self._obj_pose, self._tcp_pose = self.obj.pose.raw_pose, self.agent.tcp_pose.raw_pose
-        robot_hit, obj_hit, finger_forces = self.contacts.flags()
-        height = self._obj_pose[:, 2] - self.source_center[:, 2]
-        grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
+        state = self._read_step_state()
+        obj_p = state["obj_pose"][:, :3]
+        contacts = self.contacts.flags()
+        height = obj_p[:, 2] - self.source_center[:, 2]
+        grasped = self._grasped(contacts.finger_forces[0], state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
         lifted = height >= LIFT_HEIGHT
-        still = self._speed("obj_p", self._obj_pose[:, :3]) < STILL_SPEED
+        still = self._speed("obj_p", obj_p) < STILL_SPEED
         held_before = self._last("hold_steps", torch.zeros_like(grasped, dtype=torch.long))
         hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
-        self._previous(dict(hold_steps=hold_steps, obj_p=self._obj_pose[:, :3]))
+        self._previous(dict(hold_steps=hold_steps, obj_p=obj_p))
         return dict(
-            **self._common_info(robot_hit, grasped),
+            **self._common_info(contacts.robot_hit, grasped),
             success=hold_steps >= HOLD_STEPS,
             lifted=lifted,
             still=still,
@@ -62,29 +69,21 @@ class GraspLiftIRB120Env(IRB120TableEnv):
             object_height=height,
         )
 
-    def _get_obs_extra(self, info: dict):
-        obs = self._common_obs(info)
-        if self.obs_mode_struct.use_state:
-            obs.update(
-                obj_pose=self._obj_pose.clone(),
-                source_tray_pos=self.source_center.clone(),
-                tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
-                tcp_to_obj_yaw=grasp_yaw_error(self._obj_pose, self._tcp_pose)[:, None],
-                hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None],
-            )
-        return obs
+    def state_observations(self, state: dict[str, torch.Tensor], info: dict) -> dict[str, torch.Tensor]:
+        obj, tcp = state["obj_pose"], state["tcp_pose"]
+        return dict(
+            obj_pose=obj.clone(),
+            source_tray_pos=self.source_center.clone(),
+            tcp_to_obj_pos=obj[:, :3] - tcp[:, :3],
+            tcp_to_obj_yaw=grasp_yaw_error(obj, tcp)[:, None],
+            hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None],
+        )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         grasped = info["grasped"].float()
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(self._obj_pose[:, :3] - self._tcp_pose[:, :3], dim=1))
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(self.step_state["obj_pose"][:, :3] - self.tcp_pose[:, :3], dim=1))
         lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
         hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
         reward = torch.where(info["grasped"], 1.0, reach) + grasped * (1 + lift + hold)
-        reward = torch.where(info["success"], 4.0, reward)
+        reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         return torch.where(info["fail"], 0.0, reward)
-
-    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return self.compute_dense_reward(obs, action, info) / 4.0
-
-    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return info["success"].float()

@@ -12,6 +12,7 @@ their pixels fail the CPU rasteriser's early depth test (build order is draw ord
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import sapien
@@ -145,6 +146,17 @@ class TableScene:
         return [self.table, self.source_tray, self.dest_tray, self.ground]
 
 
+class ContactFlags(NamedTuple):
+    """One step's contacts (a touch is a force above CONTACT_FORCE_EPS); object j is the j-th watched object."""
+
+    robot_hit: torch.Tensor
+    """(N,) a robot link (base excluded) touches the scene"""
+    object_hit: torch.Tensor
+    """(M, N) object j touches the scene"""
+    finger_forces: torch.Tensor
+    """(M, 2, N, 3) force on finger k from object j"""
+
+
 class Contacts:
     """The contacts a table task watches, batched: robot links (base excluded: it stands on the table)
     against the scene, each object against the scene, and each finger against each object.
@@ -187,19 +199,18 @@ class Contacts:
         # rows are pair-major (each pair's N envs in a row), as the body pairs were listed
         return self._query.cuda_impulses.torch().clone().view(len(self.pairs), self.scene.num_envs, 3)
 
-    def flags(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(robot touches the scene (N,), object j touches the scene (M, N), force on finger k from object j
-        (M, 2, N, 3)). A touch is a force above CONTACT_FORCE_EPS."""
+    def flags(self) -> ContactFlags:
+        """This step's :class:`ContactFlags`."""
         return self.pairwise() if self.scene.gpu_sim_enabled else self.scan()
 
-    def pairwise(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def pairwise(self) -> ContactFlags:
         forces = self.impulses() / self.scene.px.timestep
         hit = torch.linalg.norm(forces, dim=2) > CONTACT_FORCE_EPS  # (P, N)
         m, r, s = len(self.objects), self.n_robot, self.n_scene
         obj_hit = hit[r : r + m * s].view(m, s, -1).any(1)
-        return hit[:r].any(0), obj_hit, forces[r + m * s :].view(m, 2, -1, 3)
+        return ContactFlags(hit[:r].any(0), obj_hit, forces[r + m * s :].view(m, 2, -1, 3))
 
-    def scan(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def scan(self) -> ContactFlags:
         """CPU (one env): one pass over PhysX's contact list, same answer as :meth:`pairwise`."""
         if self._kind is None:
             kind = {a._bodies[0].entity: ("scene", 0) for a in self.scene_actors}
@@ -233,4 +244,4 @@ class Contacts:
                     robot_hit = True
         dev = self.scene.device
         forces = torch.from_numpy((finger / dt).astype(np.float32)).to(dev)[:, :, None]  # (M, 2, 1, 3)
-        return torch.tensor([robot_hit], device=dev), torch.tensor(obj_hit, device=dev)[:, None], forces
+        return ContactFlags(torch.tensor([robot_hit], device=dev), torch.tensor(obj_hit, device=dev)[:, None], forces)

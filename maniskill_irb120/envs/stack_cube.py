@@ -40,82 +40,78 @@ class StackCubeIRB120Env(IRB120TableEnv):
     """
 
     def _load_scene(self, options: dict):
-        self.cube_a, self.cube_b = self._build_table_scene(
-            lambda: [
-                self._build_object("cube_a", [0.8, 0.1, 0.1, 1]),
-                self._build_object("cube_b", [0.15, 0.25, 0.85, 1]),
-            ]
-        )
+        self.build_trays()
+        self.cube_a = self.target_object = self._build_object("cube_a", [0.8, 0.1, 0.1, 1])
+        self.cube_b = self._build_object("cube_b", [0.15, 0.25, 0.85, 1])
+        self.build_background()
+        self.watch_contacts([self.cube_a, self.cube_b])
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
-        u = self._episode_draws(env_idx, 9 + 3 * CANDIDATES)  # joint noise, a (x, y, yaw), b candidates
-        self._reset_robot(env_idx, u[:, :6])
-        pose_a = self._spawn_in_source_tray(u[:, 6:9])
-        self.cube_a.set_pose(pose_a)
+        u = self._episode_draws(env_idx, joint_noise=6, a_xy=2, a_yaw=1, b_candidates=3 * CANDIDATES)
+        self._reset_robot(env_idx, u["joint_noise"])
+        self.cube_a.set_pose(self._spawn_in_source_tray(u["a_xy"], u["a_yaw"]))
         # b at MIN_GAP..MIN_GAP + 4 cm from a in a uniform direction: the first candidate inside the spawn
         # square; else MIN_GAP towards the square's farther side in x (always inside: the square is 10 cm)
         span = TRAY_INNER / 2 - self.spawn_margin
-        a_rel = (u[:, 6:8] * 2 - 1) * span  # a relative to the tray centre
-        cand = u[:, 9:].reshape(-1, CANDIDATES, 3)
+        a_rel = (u["a_xy"] * 2 - 1) * span  # a relative to the tray centre
+        cand = u["b_candidates"].reshape(-1, CANDIDATES, 3)  # (angle, distance, yaw) per candidate
         ang, dist = cand[:, :, 0] * 2 * math.pi, MIN_GAP + cand[:, :, 1] * 0.04
         b_rel = a_rel[:, None] + dist[..., None] * torch.stack([torch.cos(ang), torch.sin(ang)], 2)  # (b, K, 2)
         inside = (b_rel.abs() <= span).all(2)
-        first = torch.where(inside, torch.arange(CANDIDATES, device=u.device), CANDIDATES).amin(1)
+        first = torch.where(inside, torch.arange(CANDIDATES, device=a_rel.device), CANDIDATES).amin(1)
         fallback = a_rel - torch.stack([torch.sign(a_rel[:, 0]) * MIN_GAP, 0 * a_rel[:, 1]], 1)
-        rows = torch.arange(len(first), device=u.device)
-        b_rel = torch.where((first < CANDIDATES)[:, None], b_rel[rows, first.clamp(max=CANDIDATES - 1)], fallback)
-        b_u = torch.cat([(b_rel / span + 1) / 2, cand[rows, first.clamp(max=CANDIDATES - 1), 2:]], 1)
-        self.cube_b.set_pose(self._spawn_in_source_tray(b_u))
+        rows, pick = torch.arange(len(first), device=a_rel.device), first.clamp(max=CANDIDATES - 1)
+        b_rel = torch.where((first < CANDIDATES)[:, None], b_rel[rows, pick], fallback)
+        self.cube_b.set_pose(self._spawn_in_source_tray((b_rel / span + 1) / 2, cand[rows, pick, 2:]))
+
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        return dict(cube_a_pose=self.cube_a.pose.raw_pose, cube_b_pose=self.cube_b.pose.raw_pose)
 
     def evaluate(self) -> dict:
-        self._a_pose, self._b_pose = self.cube_a.pose.raw_pose, self.cube_b.pose.raw_pose
-        self._tcp_pose = self.agent.tcp_pose.raw_pose
-        robot_hit, obj_hit, finger_forces = self.contacts.flags()
+        state = self._read_step_state()
+        a_p, b_p = state["cube_a_pose"][:, :3], state["cube_b_pose"][:, :3]
+        contacts = self.contacts.flags()
         h = self.object_half_size
-        offset = self._a_pose[:, :3] - self._b_pose[:, :3]
+        offset = a_p - b_p
         stacked = (torch.linalg.norm(offset[:, :2], dim=1) < 0.8 * h) & ((offset[:, 2] - 2 * h).abs() < STACK_Z_TOL)
-        released = ~self._touches(finger_forces[0])
-        a_p, b_p = self._a_pose[:, :3], self._b_pose[:, :3]
+        released = ~self._touches(contacts.finger_forces[0])
         still = (self._speed("a_p", a_p) < STILL_SPEED) & (self._speed("b_p", b_p) < STILL_SPEED)
         self._previous(dict(a_p=a_p, b_p=b_p))
-        grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0]
+        grasped = self._grasped(contacts.finger_forces[0], state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
         return dict(
-            **self._common_info(robot_hit, grasped),
+            **self._common_info(contacts.robot_hit, grasped),
             success=stacked & released & still,
             stacked=stacked,
             released=released,
             still=still,
         )
 
-    def _place_target(self) -> torch.Tensor:
-        goal = self._b_pose[:, :3].clone()
-        goal[:, 2] += 2 * self.object_half_size
-        return goal
-
-    def _get_obs_extra(self, info: dict):
-        obs = self._common_obs(info)
-        if self.obs_mode_struct.use_state:
-            obs.update(
-                cube_a_pose=self._a_pose.clone(),
-                cube_b_pose=self._b_pose.clone(),
-                tcp_to_a_pos=self._a_pose[:, :3] - self._tcp_pose[:, :3],
-                tcp_to_a_yaw=grasp_yaw_error(self._a_pose, self._tcp_pose)[:, None],
-                a_to_goal_pos=self._place_target() - self._a_pose[:, :3],
-            )
-        return obs
+    def state_observations(self, state: dict[str, torch.Tensor], info: dict) -> dict[str, torch.Tensor]:
+        a, b, tcp = state["cube_a_pose"], state["cube_b_pose"], state["tcp_pose"]
+        return dict(
+            cube_a_pose=a.clone(),
+            cube_b_pose=b.clone(),
+            tcp_to_a_pos=a[:, :3] - tcp[:, :3],
+            tcp_to_a_yaw=grasp_yaw_error(a, tcp)[:, None],
+            a_to_goal_pos=place_on(b, self.object_half_size) - a[:, :3],
+        )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        a_p = self._a_pose[:, :3]
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(a_p - self._tcp_pose[:, :3], dim=1))
-        place = 1 - torch.tanh(5 * torch.linalg.norm(self._place_target() - a_p, dim=1))
+        a_p = self.step_state["cube_a_pose"][:, :3]
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(a_p - self.tcp_pose[:, :3], dim=1))
+        place = 1 - torch.tanh(
+            5 * torch.linalg.norm(place_on(self.step_state["cube_b_pose"], self.object_half_size) - a_p, dim=1)
+        )
         grasped = info["grasped"].float()
         reward = torch.where(info["grasped"] | info["stacked"], 1.0, reach) + grasped * (1 + place)
         reward = reward + (info["stacked"] & info["released"]).float() * 3.0  # as if reach, grasp, place held
-        reward = torch.where(info["success"], 4.0, reward.clamp(max=4.0))
+        top = self.MAX_STAGED_REWARD
+        reward = torch.where(info["success"], top, reward.clamp(max=top))
         return torch.where(info["fail"], 0.0, reward)
 
-    def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return self.compute_dense_reward(obs, action, info) / 4.0
 
-    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return info["success"].float()
+def place_on(base_pose: torch.Tensor, half_size: float) -> torch.Tensor:
+    """(N, 3) where the centre of an object of ``half_size`` rests on the one at ``base_pose`` (N, 7)."""
+    goal = base_pose[:, :3].clone()
+    goal[:, 2] += 2 * half_size
+    return goal

@@ -1,6 +1,6 @@
 """TableClearing-IRB120-v1: move an object from the yellow source tray to the green destination tray.
 
-The scene, events and dense reward follow the original report (the design report in ``shared/seed``).
+The scene, events and dense reward follow the original report.
 Everything is batched over ``(num_envs, ...)`` torch tensors, on ``physx_cpu`` and ``physx_cuda`` alike.
 """
 
@@ -55,33 +55,39 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     # ------------------------------------------------------------------ scene and episodes
     def _load_scene(self, options: dict):
-        (self.obj,) = self._build_table_scene(lambda: [self._build_object("object", [0.8, 0.1, 0.1, 1])])
+        self.build_trays()
+        self.obj = self.target_object = self._build_object("object", [0.8, 0.1, 0.1, 1])
+        self.build_background()
+        self.watch_contacts([self.obj])
         with torch.device(self.device):
             self.dest_center = torch.tensor([*DEST_TRAY_XY, TRAY_FLOOR_TOP]).repeat(self.num_envs, 1)
             self.obj_start_pos = torch.zeros(self.num_envs, 3)
 
     def _initialize_episode(self, env_idx: torch.Tensor, options: dict):
-        u = self._episode_draws(env_idx, 9)  # joint noise, object x, y, yaw
-        self._reset_robot(env_idx, u[:, :6])
-        pose = self._spawn_in_source_tray(u[:, 6:])
+        u = self._episode_draws(env_idx, joint_noise=6, obj_xy=2, obj_yaw=1)
+        self._reset_robot(env_idx, u["joint_noise"])
+        pose = self._spawn_in_source_tray(u["obj_xy"], u["obj_yaw"])
         self.obj.set_pose(pose)
         self.obj_start_pos[env_idx] = pose.p
 
     # ------------------------------------------------------------------ evaluation
+    def privileged_state(self) -> dict[str, torch.Tensor]:
+        return dict(obj_pose=self.obj.pose.raw_pose)
+
     def _inside_dest_xy(self, p: torch.Tensor) -> torch.Tensor:
         return ((p[:, :2] - self.dest_center[:, :2]).abs() < TRAY_INNER / 2).all(dim=1)
 
     def evaluate(self) -> dict:
         """Events and all reward terms. Idempotent between steps (see ``_previous``)."""
-        # fetched once per step: observations and rewards of this step read the same poses
-        self._obj_pose, self._tcp_pose = self.obj.pose.raw_pose, self.agent.tcp_pose.raw_pose
-        obj_p, tcp_p = self._obj_pose[:, :3], self._tcp_pose[:, :3]
-        robot_hit, obj_hit, finger_forces = self.contacts.flags()
+        state = self._read_step_state()
+        obj_p, tcp_p = state["obj_pose"][:, :3], state["tcp_pose"][:, :3]
+        contacts = self.contacts.flags()
+        robot_hit, forces = contacts.robot_hit, contacts.finger_forces[0]
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
-        grasped = self._grasped(finger_forces[0], self._tcp_pose[:, 3:]) & ~obj_hit[0] & lifted
+        grasped = self._grasped(forces, state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0] & lifted
         over_dest = self._inside_dest_xy(obj_p)
-        delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~self._touches(finger_forces[0])
+        delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~self._touches(forces)
         cur = dict(
             tcp_obj_dist=torch.linalg.norm(obj_p - tcp_p, dim=1),
             tcp_dest_dist=torch.linalg.norm(self.dest_center - tcp_p, dim=1),
@@ -118,18 +124,16 @@ class TableClearingIRB120Env(IRB120TableEnv):
         )
 
     # ------------------------------------------------------------------ observations
-    def _get_obs_extra(self, info: dict):
-        obs = self._common_obs(info)
-        if self.obs_mode_struct.use_state:
-            obs.update(
-                obj_pose=self._obj_pose.clone(),
-                source_tray_pos=self.source_center.clone(),
-                dest_tray_pos=self.dest_center.clone(),
-                tcp_to_obj_pos=self._obj_pose[:, :3] - self._tcp_pose[:, :3],
-                tcp_to_obj_yaw=grasp_yaw_error(self._obj_pose, self._tcp_pose)[:, None],
-                obj_to_dest_pos=self.dest_center - self._obj_pose[:, :3],
-            )
-        return obs
+    def state_observations(self, state: dict[str, torch.Tensor], info: dict) -> dict[str, torch.Tensor]:
+        obj, tcp = state["obj_pose"], state["tcp_pose"]
+        return dict(
+            obj_pose=obj.clone(),
+            source_tray_pos=self.source_center.clone(),
+            dest_tray_pos=self.dest_center.clone(),
+            tcp_to_obj_pos=obj[:, :3] - tcp[:, :3],
+            tcp_to_obj_yaw=grasp_yaw_error(obj, tcp)[:, None],
+            obj_to_dest_pos=self.dest_center - obj[:, :3],
+        )
 
     # ------------------------------------------------------------------ rewards
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
@@ -138,17 +142,15 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged reward in [0, 1] (the default mode, for ManiSkill's PPO): reach, grasp, bring over the
-        destination tray, release in it (1.0). A collision scores 0."""
-        obj_p = self._obj_pose[:, :3]
+        destination tray, release in it (1.0). A collision scores 0. Not the dense reward (that is the original
+        report's), so this one is the task's own rather than the base's dense / MAX_STAGED_REWARD."""
+        obj_p = self.step_state["obj_pose"][:, :3]
         grasped = info["grasped"].float()
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(obj_p - self._tcp_pose[:, :3], dim=1))
+        reach = 1 - torch.tanh(5 * torch.linalg.norm(obj_p - self.tcp_pose[:, :3], dim=1))
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size
         place = 1 - torch.tanh(5 * torch.linalg.norm(goal - obj_p, dim=1))
         reward = torch.where(info["grasped"], torch.ones_like(reach), reach) + grasped + grasped * place
-        reward = torch.where(info["success"], torch.full_like(reward, 4.0), reward)
+        reward = torch.where(info["success"], torch.full_like(reward, self.MAX_STAGED_REWARD), reward)
         reward = torch.where(info["fail"], torch.zeros_like(reward), reward)
-        return reward / 4.0
-
-    def compute_sparse_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        return info["success"].float()
+        return reward / self.MAX_STAGED_REWARD

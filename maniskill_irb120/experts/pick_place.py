@@ -1,6 +1,7 @@
 """Scripted experts for the IRB 120 table tasks: one pick-and-place phase machine, one subclass per task.
 
-They read privileged state (object poses, tray centres) but act only through ``pd_ee_delta_tool`` actions
+They read the task's public interface (``target_object``, the tray centres, the task's public actors; envs/base.py)
+but act only through ``pd_ee_delta_tool`` actions
 in [-1, 1]: a world-frame displacement is rotated into the TCP frame (Rᵀ·d), scaled by the ±1 cm limit, and
 shrunk uniformly so its largest component is 1 (straight-line moves, no axis-wise clipping that would bend
 the path into a tray wall). Yaw uses the ±10° rotation about the approach axis.
@@ -63,8 +64,9 @@ class ExpertConfig:
 class PickPlaceExpert:
     """Batched phase machine; call :meth:`reset` after ``env.reset`` and :meth:`act` each step.
 
-    A task's expert says what to pick (:meth:`_object`) and where to put it (:meth:`_place`: the object
-    centre's resting point there, or None to hold it at the carry height instead)."""
+    It picks the task's ``target_object``; a task's expert says where to put it (:meth:`_place`: the object
+    centre's resting point there, or None to hold it at the carry height instead) and registers itself with
+    :func:`register_expert`."""
 
     default_config = ExpertConfig()
 
@@ -84,7 +86,7 @@ class PickPlaceExpert:
         self.counter[idx] = 0
 
     def _object(self) -> Actor:
-        return self.env.obj
+        return self.env.target_object
 
     def _place(self) -> torch.Tensor | None:
         return None
@@ -225,35 +227,6 @@ class PickPlaceExpert:
         return phase
 
 
-class TableClearingExpert(PickPlaceExpert):
-    """Into the destination tray, released ``release_height`` above its floor."""
-
-    def _place(self) -> torch.Tensor:
-        place = self.env.dest_center.clone()
-        place[:, 2] += self.env.object_half_size
-        return place
-
-
-class GraspLiftExpert(PickPlaceExpert):
-    """Lift the object's centre 12.5 cm above the tray floor (the task asks 10 cm) and hold it there."""
-
-    default_config = replace(ExpertConfig(), carry_height=0.13)
-
-
-class StackCubeExpert(PickPlaceExpert):
-    """cube_a onto cube_b: carried 8 cm above the floor (clears cube_b), released 3 mm above its top."""
-
-    default_config = replace(ExpertConfig(), carry_height=0.08, release_height=0.003)
-
-    def _object(self) -> Actor:
-        return self.env.cube_a
-
-    def _place(self) -> torch.Tensor:
-        place = self.env.cube_b.pose.p.clone()
-        place[:, 2] += 2 * self.env.object_half_size
-        return place
-
-
 EXPERTS: dict[str, type[PickPlaceExpert]] = {}
 """env id -> expert class; :func:`register_expert` fills it"""
 
@@ -268,9 +241,31 @@ def register_expert(env_id: str):
     return deco
 
 
-register_expert(table_clearing.ENV_ID)(TableClearingExpert)
-register_expert(grasp_lift.ENV_ID)(GraspLiftExpert)
-register_expert(stack_cube.ENV_ID)(StackCubeExpert)
+@register_expert(table_clearing.ENV_ID)
+class TableClearingExpert(PickPlaceExpert):
+    """Into the destination tray, released ``release_height`` above its floor."""
+
+    def _place(self) -> torch.Tensor:
+        place = self.env.dest_center.clone()
+        place[:, 2] += self.env.object_half_size
+        return place
+
+
+@register_expert(grasp_lift.ENV_ID)
+class GraspLiftExpert(PickPlaceExpert):
+    """Lift the object's centre 12.5 cm above the tray floor (the task asks 10 cm) and hold it there."""
+
+    default_config = replace(ExpertConfig(), carry_height=0.13)
+
+
+@register_expert(stack_cube.ENV_ID)
+class StackCubeExpert(PickPlaceExpert):
+    """cube_a onto cube_b: carried 8 cm above the floor (clears cube_b), released 3 mm above its top."""
+
+    default_config = replace(ExpertConfig(), carry_height=0.08, release_height=0.003)
+
+    def _place(self) -> torch.Tensor:
+        return stack_cube.place_on(self.env.cube_b.pose.raw_pose, self.env.object_half_size)
 
 
 def expert_for(env, reactive: bool = False) -> PickPlaceExpert:

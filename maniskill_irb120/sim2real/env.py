@@ -10,8 +10,12 @@ What it changes in ManiSkill's class, and why:
   (``grasped``, the TCP pose) and, with a digital ``world`` (the emulator's twin), the twin's evaluation:
   success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real_eval``).
 - ``reset`` restarts the step count (ManiSkill's never does: its time limit then cuts later episodes short).
-- State observations need the object's pose: the twin has it; a real robot has no perception, so they are
-  refused with that reason instead of silently reading the sim's stale pose.
+- The task's observations read ``step_state`` and ``tcp_pose`` (envs/base.py), which ``get_info`` fills here:
+  the TCP pose is the FK of the joints the robot reported, the object poses are the world's
+  ``privileged_state()`` (the twin's task declares them; no list of names here). A real robot has no perception,
+  so state observations are refused with that reason instead of silently reading the sim's stale poses.
+- A private attribute of the task (a ``_name`` this class lacks) is an ``AttributeError`` naming it: ManiSkill's
+  ``__getattr__`` would hand out the idle sim's value (a reset-time pose all episode long).
 
     env = IRB120Sim2RealEnv(sim_env, agent, world=twin)   # agent: IRB120RealAgent
     obs, info = env.reset(seed=0)
@@ -20,7 +24,6 @@ What it changes in ManiSkill's class, and why:
 from __future__ import annotations
 
 import time
-import types
 from typing import Any
 
 import numpy as np
@@ -30,10 +33,21 @@ from mani_skill.envs.sim2real_env import Sim2RealEnv
 
 from maniskill_irb120.abb.client import ControllerRefused
 from maniskill_irb120.abb.envelope import EnvelopeError
+from maniskill_irb120.envs.contract import EnvContractMixin
 from maniskill_irb120.sim2real.agent import IRB120RealAgent
 
-# task attributes that hold privileged object state (obs "state"): the real side takes them from the world
-PRIVILEGED = ("_obj_pose", "_a_pose", "_b_pose", "obj_start_pos")
+# ManiSkill's own private state that its BaseEnv methods (run with this env as ``self``) read from the sim
+_SIM_PRIVATE = frozenset({"_sensors", "_sensor_configs", "_hidden_objects", "_human_render_cameras"})
+
+
+class _Unperceived(dict):
+    """The step state of a robot without a world: the TCP pose only; an object pose is refused by name."""
+
+    def __missing__(self, key: str):
+        raise RuntimeError(
+            f"{key!r} is privileged object state: a real robot has no perception of it, so state "
+            "observations cannot be formed; use obs_mode='rgbd' (or run on the emulator's digital twin)"
+        )
 
 
 class IRB120Sim2RealEnv(Sim2RealEnv):
@@ -53,7 +67,7 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         self.refusals: list[str] = []
         self._refused = False
         self._world_info: dict = {}
-        self._tcp_pose = None
+        self.step_state: dict[str, torch.Tensor] = {}
         kwargs.setdefault("real_reset_function", _reset_both_sides)
         kwargs.setdefault("sensor_data_preprocessing_function", _check_sensor_frames(sim_env))
         super().__init__(sim_env, agent, **kwargs)
@@ -96,10 +110,25 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         return action
 
     # ------------------------------------------------------------------ what the tasks' observations read
+    @property
+    def tcp_pose(self) -> torch.Tensor:
+        """(1, 7) FK of the joints the robot reported at the end of this step (the task's ``tcp_pose``)."""
+        return self.step_state["tcp_pose"]
+
+    @property
+    def _tcp_pose(self) -> torch.Tensor:
+        """Compatibility alias of :attr:`tcp_pose` for sim2real/policy.py until it reads ``tcp_pose``."""
+        return self.tcp_pose
+
     def get_info(self) -> dict:
+        """The task's step state from the robot (FK) and the world, then the info (the world's evaluation)."""
         sim = self.base_sim_env
         sim.agent.robot.set_qpos(self.agent.get_qpos().to(sim.device))
-        self._tcp_pose = sim.agent.tcp_pose.raw_pose.clone()
+        tcp = sim.agent.tcp_pose.raw_pose.clone()
+        if self.world is not None:
+            self.step_state = {**self.world.privileged_state(), "tcp_pose": tcp}
+        else:
+            self.step_state = _Unperceived(tcp_pose=tcp)
         info = dict(elapsed_steps=self._elapsed_steps, refused=torch.tensor([self._refused]))
         if self.world is not None:
             info.update({k: v for k, v in self._world_info.items() if k != "elapsed_steps"})
@@ -122,30 +151,18 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         return self.world.reward if self.world is not None else torch.zeros(1)
 
     def __getattr__(self, name: str) -> Any:
-        if name in PRIVILEGED:
-            world = self.__dict__.get("world")
-            if world is None:
-                raise RuntimeError(
-                    f"{name} is privileged object state: a real robot has no perception of it, so state "
-                    "observations cannot be formed; use obs_mode='rgbd' (or run on the emulator's digital twin)"
-                )
-            return world.privileged(name)
-        helper = _task_helper(type(self.__dict__.get("base_sim_env")), name)
-        if helper is not None:  # a task's helper reads this env's state, not the idle sim's
-            return types.MethodType(helper, self)
+        """Public names (the task's constants: tray centres, ``object_half_size``, ``state_observations``) and
+        ManiSkill's own machinery come from the sim env, as in ManiSkill's class; a task's private attribute does
+        not: on the sim it is the sim's state, never the robot's."""
+        if name.startswith("_") and not (
+            name in _SIM_PRIVATE or hasattr(BaseEnv, name) or hasattr(EnvContractMixin, name) or name.startswith("__")
+        ):
+            raise AttributeError(
+                f"{type(self).__name__} has no {name!r}: the task's private attribute would be the idle sim's "
+                "state, not the robot's. Tasks expose what the real side reads through privileged_state(), "
+                "step_state, tcp_pose and target_object (envs/base.py)."
+            )
         return super().__getattr__(name)
-
-
-def _task_helper(task: type, name: str):
-    """The plain function ``name`` if one of our task classes defines it (``_common_obs``, ``_place_target``).
-    ManiSkill's ``__getattr__`` hands out the *sim env's* bound method, whose ``self`` is the sim: called from
-    the task's ``_get_obs_extra`` on the real side, it read the sim's TCP (the reset pose all episode long)."""
-    for cls in task.__mro__:
-        func = cls.__dict__.get(name)
-        if func is not None:
-            ours = cls.__module__.startswith("maniskill_irb120.envs")
-            return func if ours and isinstance(func, types.FunctionType) else None
-    return None
 
 
 def _reset_both_sides(env: IRB120Sim2RealEnv, seed=None, options=None) -> None:

@@ -67,7 +67,7 @@ def _episode(env, policy, seed: int, real: bool, limit: int) -> dict:
     for t in range(limit):
         a = policy.act(obs)
         obs, _, term, trunc, info = env.step(a)
-        tcp.append((u._tcp_pose[0, :3] if real else u.agent.tcp_pose.p[0]).cpu().numpy().copy())
+        tcp.append((u.tcp_pose[0, :3] if real else u.agent.tcp_pose.p[0]).cpu().numpy().copy())
         joints.append((u.agent.get_qpos() if real else u.agent.robot.get_qpos())[0, :6].cpu().numpy().copy())
         actions.append(np.asarray(torch.as_tensor(a).reshape(-1).cpu()))
         for k in EVENTS:

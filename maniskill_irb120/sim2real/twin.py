@@ -54,9 +54,10 @@ class DigitalTwin:
     def finger_qpos(self) -> np.ndarray:
         return self.u.agent.robot.get_qpos()[0, 6:].cpu().numpy()
 
-    def privileged(self, name: str):
-        """A task's privileged state (object poses) the real side's state observations need."""
-        return getattr(self.u, name)
+    def privileged_state(self) -> dict:
+        """The object poses the task declares (``privileged_state()``, envs/base.py): what the real side's state
+        observations read, as a perception system would report them."""
+        return {k: v.clone() for k, v in self.u.privileged_state().items()}
 
     def close(self) -> None:
         self.env.close()

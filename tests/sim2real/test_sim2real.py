@@ -117,12 +117,12 @@ def test_real_observations_match_the_sim_layout(rig):
 def test_tool_step_moves_the_real_tcp_like_the_sim(rig):
     env, agent = rig["env"], rig["agent"]
     env.reset(seed=4)
-    before = np.asarray(env.unwrapped._tcp_pose[0, :3]).copy()
+    before = np.asarray(env.unwrapped.tcp_pose[0, :3]).copy()
     obs, *_ = env.step(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0]))  # 1 cm along the approach axis (tool x, down)
-    seen = np.asarray(env.unwrapped._tcp_pose[0, :3])
+    seen = np.asarray(env.unwrapped.tcp_pose[0, :3])
     assert before[2] - seen[2] > 0.005  # the step's observation shows most of its motion (read at period end)
     # the policy's input is the robot's TCP (FK of the joints it reported), not the idle sim's reset pose
-    np.testing.assert_allclose(obs["extra"]["tcp_pose"][0], env.unwrapped._tcp_pose[0], atol=1e-6)
+    np.testing.assert_allclose(obs["extra"]["tcp_pose"][0], env.unwrapped.tcp_pose[0], atol=1e-6)
     time.sleep(0.1)
     after = np.asarray(agent.refresh().tcp_pos)  # the robot's base frame is the world's
     np.testing.assert_allclose(after - before, [0.0, 0.0, -0.01], atol=5e-4)
