@@ -41,10 +41,11 @@ def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
     learner's action frame: world or tool axes; in decimetres, so about unit scale) and the grasp yaw error as
     sin/cos of four times it (continuous across the cube's 90° symmetry)."""
     u = env.unwrapped
-    rel = (u._obj_pose[:, :3] - u._tcp_pose[:, :3]) * 10.0
+    obj, tcp = u.target_object.pose.raw_pose, u.tcp_pose  # the task's declared interface (envs/base.py)
+    rel = (obj[:, :3] - tcp[:, :3]) * 10.0
     if frame == "tool":  # the hand camera's own axes: an offset in the image is one in the tool frame
-        rel = (tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
-    yaw = 4.0 * grasp_yaw_error(u._obj_pose, u._tcp_pose)
+        rel = (tcp_rotation(tcp).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
+    yaw = 4.0 * grasp_yaw_error(obj, tcp)
     return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
 
 
@@ -57,8 +58,10 @@ class ExpertLabels(gym.Wrapper):
         super().__init__(env)
         if frame not in ("tool", "world"):
             raise ValueError(f"unknown action frame {frame!r}; expected 'tool' or 'world'")
-        if aux and not hasattr(env.unwrapped, "_obj_pose"):
-            raise ValueError(f"--aux-weight needs a task with one object to grasp; {env.unwrapped.spec.id} has none")
+        if aux and getattr(env.unwrapped, "target_object", None) is None:
+            raise ValueError(
+                f"--aux-weight needs a task that declares a target_object; {env.unwrapped.spec.id} does not"
+            )
         self.expert = expert_for(env, reactive=True)
         self.frame, self.aux = frame, aux
 

@@ -202,7 +202,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         with episode_reset(self.scene, reset_mask_from_options(self.num_envs, options, self.device)):
             return super().reset(seed=seed, options=options)
 
-    def _episode_draws(self, env_idx: torch.Tensor, n: int | None = None, /, **sizes: int):
+    def _episode_draws(self, env_idx: torch.Tensor, **sizes: int) -> dict[str, torch.Tensor]:
         """Uniform [0, 1) draws per env being reset, from ManiSkill's per-env episode RNG: a GPU env with
         episode seed s starts where a CPU env reset with seed s does. (On the GPU ManiSkill seeds torch with env
         0's episode seed before every reset, so torch draws would repeat one start in every partial reset that
@@ -210,14 +210,12 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
 
         Named: ``_episode_draws(env_idx, joint_noise=6, obj_xy=2, obj_yaw=1)`` returns a dict of ``(b, size)``
         tensors, drawn in the order named (one stream per env: reordering or resizing a name changes every
-        later draw, and so every seed's start). Positional ``n``: the ``(b, n)`` draws unsplit."""
-        if (n is None) == (not sizes):
-            raise TypeError("_episode_draws takes either named sizes or one total n")
-        total = n if n is not None else sum(sizes.values())
+        later draw, and so every seed's start)."""
+        if not sizes:
+            raise TypeError("_episode_draws needs named sizes, e.g. joint_noise=6")
+        total = sum(sizes.values())
         rng = self._batched_episode_rng[env_idx.cpu().numpy()]
         u = torch.as_tensor(rng.uniform(size=total), dtype=torch.float32, device=self.device).reshape(-1, total)
-        if n is not None:
-            return u
         return dict(zip(sizes, torch.split(u, list(sizes.values()), dim=1)))
 
     def _reset_robot(self, env_idx: torch.Tensor, u: torch.Tensor) -> None:
@@ -345,19 +343,6 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """The staged dense reward over :attr:`MAX_STAGED_REWARD`, in [0, 1]."""
         return self.compute_dense_reward(obs, action, info) / self.MAX_STAGED_REWARD
-
-    # compatibility aliases for readers outside the task layer (agents/dagger.py, sim2real/policy.py,
-    # tests/test_contract.py) until they read ``tcp_pose`` / ``target_object``; remove then
-    @property
-    def _tcp_pose(self) -> torch.Tensor:
-        return self.tcp_pose
-
-    @property
-    def _obj_pose(self) -> torch.Tensor:
-        try:
-            return self.step_state["obj_pose"]
-        except (AttributeError, KeyError):
-            raise AttributeError("_obj_pose: this task observes no 'obj_pose'") from None
 
     # ------------------------------------------------------------------ render-ahead (CPU)
     def _after_control_step(self):

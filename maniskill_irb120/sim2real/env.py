@@ -115,11 +115,6 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         """(1, 7) FK of the joints the robot reported at the end of this step (the task's ``tcp_pose``)."""
         return self.step_state["tcp_pose"]
 
-    @property
-    def _tcp_pose(self) -> torch.Tensor:
-        """Compatibility alias of :attr:`tcp_pose` for sim2real/policy.py until it reads ``tcp_pose``."""
-        return self.tcp_pose
-
     def get_info(self) -> dict:
         """The task's step state from the robot (FK) and the world, then the info (the world's evaluation)."""
         sim = self.base_sim_env

@@ -5,7 +5,7 @@
     maniskill-irb120 sim2real-eval --robot tcp://192.168.125.1:5000 --camera realsense --policy CKPT ...
 
 ``--robot emulator`` (or ``emulator+serial``) starts the controller emulator running our RAPID module with a
-digital twin behind it (the real side's world: ``real/twin.py``); a URL drives a real IRC5, whose episodes the
+digital twin behind it (the real side's world: ``sim2real/twin.py``); a URL drives a real IRC5, whose episodes the
 operator scores at a prompt. Writes ``report.json``, ``report.md`` (+ pictures) and, per real episode, the
 exchange log ``logs/real_SEED.npz`` that ``sysid`` fits. Ctrl-C stops the robot and still writes the report.
 """

@@ -69,7 +69,7 @@ def _tcp_rot(env) -> torch.Tensor:
 
     u = env.unwrapped
     if isinstance(u, IRB120Sim2RealEnv):  # FK of the joints the robot reported this step
-        return tcp_rotation(u._tcp_pose).cpu()
+        return tcp_rotation(u.tcp_pose).cpu()
     return tcp_rotation(u.agent.tcp_pose.raw_pose).cpu()
 
 

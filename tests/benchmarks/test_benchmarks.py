@@ -202,7 +202,7 @@ def test_batched_benchmark_loop_runs_with_auto_reset():
     import importlib.util
 
     bench = REPO / "benchmarks"
-    sys.path.insert(0, str(bench))  # sim_speed imports its sibling pybullet_seed
+    sys.path.insert(0, str(bench))  # sim_speed imports its sibling pybullet_original
     try:
         spec = importlib.util.spec_from_file_location("sim_speed", bench / "sim_speed.py")
         mod = importlib.util.module_from_spec(spec)
