@@ -50,7 +50,9 @@ def test_wheel_ships_assets(bench, tmp_path):
     for f in ["gbuffer.vert", "gbuffer.frag"]:
         assert f"maniskill_irb120/assets/shaders/rgbd_forward/{f}" in names
     assert "maniskill_irb120/assets/rapid/protocol_vectors.json" in names
-    assert "maniskill_irb120/real/protocol.py" in names
+    assert "maniskill_irb120/assets/rapid/IRB120Server.mod" in names
+    for f in ["abb/protocol.py", "abb/emulator/rapid/grammar.lark", "policies/section.py", "experts/pick_place.py"]:
+        assert f"maniskill_irb120/{f}" in names
 
 
 def test_doctor_finds_render_device():
