@@ -7,11 +7,13 @@ I/O ...) are Python callables registered in a :class:`Builtins` registry. See ``
 from maniskill_irb120.abb.emulator.rapid.errors import (
     ERROR_CODES,
     RapidError,
+    RapidLoadError,
     RapidRuntimeError,
     RapidStopped,
     RapidSyntaxError,
 )
 from maniskill_irb120.abb.emulator.rapid.interpreter import Interpreter
+from maniskill_irb120.abb.emulator.rapid.options import OPTIONS, RobotWareOption, parse_options
 from maniskill_irb120.abb.emulator.rapid.parser import parse
 from maniskill_irb120.abb.emulator.rapid.registry import Builtin, Builtins
 from maniskill_irb120.abb.emulator.rapid.stdlib import ManualClock, SystemClock
@@ -27,6 +29,7 @@ from maniskill_irb120.abb.emulator.rapid.values import (
 
 __all__ = [
     "ERROR_CODES",
+    "OPTIONS",
     "Builtin",
     "Builtins",
     "ClockVar",
@@ -34,14 +37,17 @@ __all__ = [
     "ManualClock",
     "Opaque",
     "RapidError",
+    "RapidLoadError",
     "RapidRuntimeError",
     "RapidStopped",
     "RapidSyntaxError",
     "RawBytes",
+    "RobotWareOption",
     "Record",
     "Ref",
     "SystemClock",
     "define_record",
     "make_value",
     "parse",
+    "parse_options",
 ]

@@ -11,7 +11,16 @@ from maniskill_irb120.abb.emulator.rapid.contract import Args, Options, Runtime
 from maniskill_irb120.abb.emulator.rapid.errors import ProgramHalt, RapidError, RapidRuntimeError, RapidStopped
 from maniskill_irb120.abb.emulator.rapid.frames import Frame, Param, Propagate, Return, Routine
 from maniskill_irb120.abb.emulator.rapid.registry import Builtin
-from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, assign_like, copy_value, default_value, from_python
+from maniskill_irb120.abb.emulator.rapid.values import (
+    ByteRangeError,
+    Cell,
+    Ref,
+    assign_like,
+    check_range,
+    copy_value,
+    default_value,
+    from_python,
+)
 
 
 class TreeArg:
@@ -51,7 +60,7 @@ class CallsMixin:
 
     def call_statement(self: Runtime, st: Tree, frame: Frame) -> None:
         name, args = st.children
-        routine = self.routines.get(name.lower())
+        routine = self.find_routine(name, frame.module)
         if routine is not None:
             if routine.kind != "PROC":
                 raise self.fault(f"{routine.kind} {routine.name} cannot be called as a procedure")
@@ -69,7 +78,7 @@ class CallsMixin:
         name, args = t.children
         if name.lower() == "present":
             return _present(self, args, frame)
-        routine = self.routines.get(name.lower())
+        routine = self.find_routine(name, frame.module)
         if routine is not None:
             if routine.kind != "FUNC":
                 raise self.fault(f"{routine.kind} {routine.name} is not a function")
@@ -83,7 +92,7 @@ class CallsMixin:
         return from_python(result)
 
     def call_from_python(self: Runtime, name: str, args: tuple, options: dict[str, Any]) -> Any:
-        routine = self.routines.get(name.lower())
+        routine = self.find_routine_py(name)
         if routine is None:
             builtin = self.builtins.get(name)
             if builtin is None:
@@ -208,7 +217,13 @@ def _bind_one(rt: Runtime, routine: Routine, p: Param, arg: Any) -> Ref:
             value = assign_like(default_value(p.type), current)
     except TypeError as e:
         raise rt.fault(f"{what}: {e}") from None
-    return ref if p.mode != "IN" else Ref(Cell(p.name, current if p.array else value, "IN"))
+    if p.mode != "IN":
+        return ref
+    try:
+        check_range(p.type, current if p.array else value, f"{p.name} of {routine.name}")
+    except ByteRangeError as e:
+        raise rt.fault(str(e)) from None
+    return Ref(Cell(p.name, current if p.array else value, "IN", p.type))
 
 
 def _py_opts(options: dict[str, Any], routine: Routine | None) -> Options:

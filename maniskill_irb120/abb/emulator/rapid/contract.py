@@ -6,9 +6,11 @@
 * :mod:`.expressions` (``eval``, ``condition``, ``resolve``) needs ``lookup``, ``fault``, ``call_function``;
 * :mod:`.statements` (``execute``, ``block``, ``wait_until``) needs expressions, ``call_statement``, ``store``,
   ``tick``, ``check_stop``, ``clock``, ``max_retries``, ``_errno``, ``connections``;
-* :mod:`.calls` (``call_*``) needs expressions, ``block``, ``wait_until``, ``declare``, ``routines``,
-  ``builtins``, ``_stack``;
-* :mod:`.interpreter` provides the state, names (``lookup``, ``store``, ``declare``, ``fault``) and ``tick``.
+* :mod:`.calls` (``call_*``) needs expressions, ``block``, ``wait_until``, ``declare``, ``find_routine``,
+  ``find_routine_py``, ``builtins``, ``_stack``;
+* :mod:`.interpreter` provides the state, names (``lookup``, ``find_routine``, ``store``, ``declare``,
+  ``fault``) and ``tick``. Names resolve as a task does: the frame's variables, then its module's LOCAL
+  names (``Frame.module``), then the task's global names, then system data.
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ class Runtime(Protocol):
 
     # ---- state (interpreter.py) ----
     builtins: Builtins
-    routines: dict[str, Routine]
+    routines: dict[str, Routine]  # global (task-wide) routines
+    local_routines: dict[str, dict[str, Routine]]  # module (lower case) -> its LOCAL routines
     clock: Clock
     max_retries: int  # RETRYs of one statement before its error goes to the caller
     connections: dict[int, str]  # CONNECT intno WITH trap, keyed by id(cell)
@@ -53,6 +56,14 @@ class Runtime(Protocol):
 
     # ---- names and errors (interpreter.py) ----
     def lookup(self, name: str, frame: Frame) -> Ref: ...
+
+    def find_routine(self, name: str, module: str) -> Routine | None:
+        """``name`` as seen from ``module`` (lower case): its LOCAL routines first, then the task's."""
+        ...
+
+    def find_routine_py(self, name: str) -> Routine | None:
+        """A routine named from Python: global, ``"Module:name"``, or a LOCAL one only one module declares."""
+        ...
 
     def store(self, ref: Ref, value: Any) -> None: ...
 

@@ -64,6 +64,16 @@ class RapidSyntaxError(Exception):
         super().__init__(message)
 
 
+class RapidLoadError(RapidSyntaxError):
+    """The controller refuses to load the task's modules: a name of an option that is not installed, or an
+    ambiguous (twice declared) global name. ``module``, ``line`` and ``name`` locate it; ``options`` lists the
+    RobotWare options (``"616-1 PC Interface"``) any one of which would provide the name (empty otherwise)."""
+
+    def __init__(self, message: str, *, module: str, line: int, name: str, options: tuple[str, ...] = ()):
+        self.module, self.name, self.options = module, name, options
+        super().__init__(f"module {module}, line {line}: {message}", line, 0)
+
+
 class RapidStopped(Exception):
     """The program was stopped from outside (:meth:`Interpreter.request_stop`) or ran out of statement budget."""
 

@@ -44,6 +44,8 @@ class Routine:
     handler: Tree | None
     handler_filter: list[str] | None
     line: int
+    module: str = ""  # the module that declares it (its LOCAL names are visible from here)
+    local: bool = False  # declared LOCAL: visible only inside its module
 
     @property
     def key(self) -> str:
@@ -53,8 +55,9 @@ class Routine:
         return next((p for p in self.params if p.key == key), None)
 
     @classmethod
-    def from_tree(cls, t: Tree) -> Routine:
+    def from_tree(cls, t: Tree, module: str = "") -> Routine:
         kind = t.data.upper()
+        scope = t.children[0]
         if kind == "FUNC":
             _, rtype, name, _, params, body = t.children
         elif kind == "PROC":
@@ -82,16 +85,22 @@ class Routine:
             handler=handler.children[1] if handler is not None else None,
             handler_filter=[str(n) for n in flt.children] if flt is not None else None,
             line=t.meta.line,
+            module=module,
+            local=scope is not None and scope.children[0].upper() == "LOCAL",
         )
 
 
 class Frame:
-    """One routine activation: its variables (None = optional parameter not given) and handler state."""
+    """One routine activation: its variables (None = optional parameter not given) and handler state; ``module``
+    is where names are looked up (the routine's module; for module data, the module being initialised)."""
 
-    __slots__ = ("routine", "vars", "line", "in_handler", "error")
+    __slots__ = ("routine", "vars", "line", "in_handler", "error", "module")
 
-    def __init__(self, routine: Routine | None, variables: dict[str, Ref | None] | None = None):
+    def __init__(
+        self, routine: Routine | None, variables: dict[str, Ref | None] | None = None, module: str | None = None
+    ):
         self.routine = routine
+        self.module = (routine.module if routine else "") if module is None else module
         self.vars: dict[str, Ref | None] = variables if variables is not None else {}
         self.line: int | None = routine.line if routine else None
         self.in_handler = False

@@ -8,6 +8,7 @@ Frames and the control-flow signals (Return, Retry, TryNext, Propagate) are in :
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 from lark import Tree
@@ -16,30 +17,49 @@ from maniskill_irb120.abb.emulator.rapid.calls import CallsMixin
 from maniskill_irb120.abb.emulator.rapid.errors import (
     ProgramHalt,
     RapidError,
+    RapidLoadError,
     RapidRuntimeError,
     RapidStopped,
     errno_name,
 )
 from maniskill_irb120.abb.emulator.rapid.expressions import ExpressionsMixin
 from maniskill_irb120.abb.emulator.rapid.frames import Frame, Propagate, Retry, Return, Routine, TryNext
+from maniskill_irb120.abb.emulator.rapid.options import declared_names, missing_options, parse_options
 from maniskill_irb120.abb.emulator.rapid.parser import parse
 from maniskill_irb120.abb.emulator.rapid.registry import Builtins
 from maniskill_irb120.abb.emulator.rapid.statements import StatementsMixin
 from maniskill_irb120.abb.emulator.rapid.stdlib import STDLIB, SystemClock, system_data
-from maniskill_irb120.abb.emulator.rapid.values import Cell, Ref, assign_like, copy_value, default_value, define_record
+from maniskill_irb120.abb.emulator.rapid.values import (
+    ByteRangeError,
+    Cell,
+    Ref,
+    assign_like,
+    check_range,
+    copy_value,
+    default_value,
+    define_record,
+)
 
 
 class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
-    """Executes a RAPID module. ``builtins`` adds/overrides routines (see :mod:`.registry`)."""
+    """Executes the RAPID modules of one task. ``builtins`` adds/overrides routines (see :mod:`.registry`).
+
+    ``source`` is one source text or several (each may hold several modules; line numbers count per text).
+    Routine and data names are global to the task unless ``LOCAL`` (``TASK`` is treated as global). Loading
+    refuses (:class:`RapidLoadError`) a global name declared twice, and, when ``options`` is given (installed
+    RobotWare option ids such as ``"616-1"``; ``()``: none), any use of a name whose option is missing
+    (:mod:`.options`). ``options=None`` skips that check.
+    """
 
     def __init__(
         self,
-        source: str,
+        source: str | Sequence[str],
         builtins: Builtins | dict[str, Any] | None = None,
         *,
         clock: Any = None,
         max_retries: int = 4,
         max_statements: int | None = None,
+        options: Iterable[str] | None = None,
     ):
         self.builtins = Builtins()
         self.builtins.update(STDLIB)
@@ -58,10 +78,15 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         self._errno = Cell("ERRNO", 0.0, "CONST")
         self.system: dict[str, Ref] = {k: Ref(Cell(k, v, "CONST")) for k, v in system_data().items()}
         self.system["errno"] = Ref(self._errno)
-        self.globals: dict[str, Ref] = {}
-        self.routines: dict[str, Routine] = {}
+        self.options = None if options is None else parse_options(options)
+        self.globals: dict[str, Ref] = {}  # task-wide module data
+        self.routines: dict[str, Routine] = {}  # task-wide routines
+        self.local_data: dict[str, dict[str, Ref]] = {}  # module (lower case) -> its LOCAL data
+        self.local_routines: dict[str, dict[str, Routine]] = {}  # module (lower case) -> its LOCAL routines
         self.module_names: list[str] = []
-        self._load(parse(source))
+        self._owner: dict[str, str] = {}  # global name -> its module (lower case)
+        sources = [source] if isinstance(source, str) else list(source)
+        self._load([m for tree in map(parse, sources) for m in tree.children])
 
     # ---- public API ---------------------------------------------------------------------------------
     @property
@@ -70,8 +95,8 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         return int(self._errno.value)
 
     def run(self, entry: str = "main") -> str:
-        """Run PROC ``entry``; returns 'completed', 'exit' (EXIT) or 'stop' (Stop)."""
-        routine = self.routines.get(entry.lower())
+        """Run PROC ``entry`` (``"Module:name"`` for a LOCAL one); returns 'completed', 'exit' (EXIT) or 'stop'."""
+        routine = self.find_routine_py(entry)
         if routine is None or routine.kind != "PROC":
             raise RapidRuntimeError(f"no PROC {entry} in module(s) {', '.join(self.module_names)}")
         return self._top(lambda: self.call_routine(routine, [], []))[0]
@@ -81,7 +106,8 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         return self._top(lambda: self.call_from_python(name, args, options))[1]
 
     def get(self, name: str) -> Any:
-        """A copy of module data ``name`` (num -> float, records -> Record, arrays -> list)."""
+        """A copy of module data ``name`` (num -> float, records -> Record, arrays -> list); LOCAL data as
+        ``"Module:name"``, or by its bare name when one module only declares it."""
         return copy_value(self._global_ref(name).get())
 
     def set(self, name: str, value: Any) -> None:
@@ -89,6 +115,8 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         ref = self._global_ref(name)
         try:
             ref.set(value)
+        except ByteRangeError as e:
+            raise RapidRuntimeError(str(e)) from None
         except TypeError as e:
             raise RapidRuntimeError(f"cannot set {name}: {e}") from None
 
@@ -111,12 +139,32 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
             raise RapidStopped("stop requested")
 
     # ---- loading --------------------------------------------------------------------------------------
-    def _load(self, tree: Tree) -> None:
+    def _load(self, modules: list[Tree]) -> None:
+        self._check_names(modules)
+        if self.options is not None:
+            own = set().union(*(declared_names(m) for m in modules)) if modules else set()
+            for module in modules:
+                missing = missing_options(module, self.options, own)
+                if missing:
+                    tok, opts = missing[0]
+                    need = " or ".join(str(o) for o in opts)
+                    more = f" ({len(missing) - 1} more such name(s) in this module)" if len(missing) > 1 else ""
+                    raise RapidLoadError(
+                        f"{tok} needs RobotWare option {need}, which is not installed{more}",
+                        module=str(module.children[0]),
+                        line=tok.line,
+                        name=str(tok),
+                        options=tuple(str(o) for o in opts),
+                    )
         frame = Frame(None)
         self._stack = [frame]
         try:
-            for module in tree.children:
+            for module in modules:
+                mod = str(module.children[0]).lower()
+                frame.module = mod
                 self.module_names.append(str(module.children[0]))
+                self.local_data.setdefault(mod, {})
+                self.local_routines.setdefault(mod, {})
                 for item in module.children[2:]:
                     if item.data == "record_decl":
                         try:
@@ -125,16 +173,54 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
                             raise RapidRuntimeError(str(e), line=item.meta.line) from None
                     elif item.data == "data_decl":
                         frame.line = item.meta.line
-                        self.declare(item, frame, self.globals)
+                        local = _is_local(item)
+                        self.declare(item, frame, self.local_data[mod] if local else self.globals)
+                        if not local:
+                            self._owner[item.children[3].lower()] = mod
                     else:
-                        routine = Routine.from_tree(item)
-                        if routine.key in self.routines:
-                            raise RapidRuntimeError(f"routine {routine.name} is defined twice", line=routine.line)
-                        self.routines[routine.key] = routine
+                        routine = Routine.from_tree(item, mod)
+                        table = self.local_routines[mod] if routine.local else self.routines
+                        table[routine.key] = routine
+                        if not routine.local:
+                            self._owner[routine.key] = mod
         except RapidError as e:
             raise RapidRuntimeError(f"error initialising module data: {e}", errno=e.errno, line=frame.line) from None
         finally:
             self._stack = []
+
+    def _check_names(self, modules: list[Tree]) -> None:
+        """A name declared twice where it is visible (globals: the task; LOCAL: the module) is ambiguous."""
+        seen: dict[str, tuple[str, int]] = {}  # global name -> (module, line)
+        for module in modules:
+            mod = str(module.children[0])
+            local_seen: dict[str, int] = {}
+            for item in module.children[2:]:
+                if item.data == "record_decl":
+                    continue
+                name = item.children[3] if item.data == "data_decl" else item.children[2 if item.data == "func" else 1]
+                key, line = name.lower(), item.meta.line
+                if _is_local(item):
+                    if key in local_seen:
+                        raise RapidLoadError(
+                            f"ambiguous name {name}: declared twice in module {mod} (lines {local_seen[key]} and "
+                            f"{line})",
+                            module=mod,
+                            line=line,
+                            name=str(name),
+                        )
+                    local_seen[key] = line
+                    continue
+                if key in seen:
+                    other, other_line = seen[key]
+                    where = (
+                        f"twice in module {mod} (lines {other_line} and {line})"
+                        if other == mod
+                        else (f"in modules {other} (line {other_line}) and {mod} (line {line})")
+                    )
+                    raise RapidLoadError(
+                        f"ambiguous name {name}: declared {where}", module=mod, line=line, name=str(name)
+                    )
+                seen[key] = (mod, line)
 
     def declare(self, decl: Tree, frame: Frame, scope: dict[str, Any]) -> None:
         """Create the variable of a ``data_decl`` (default value, then the initialiser if any) in ``scope``."""
@@ -144,9 +230,12 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         if init is not None:
             try:
                 value = assign_like(value, self.eval(init, frame))
+                check_range(type_name.lower(), value, str(name))
+            except ByteRangeError as e:
+                raise self.fault(str(e)) from None
             except TypeError as e:
                 raise self.fault(f"initialiser of {name}: {e}") from None
-        scope[name.lower()] = Ref(Cell(str(name), value, storage.children[0].upper()))
+        scope[name.lower()] = Ref(Cell(str(name), value, storage.children[0].upper(), str(type_name)))
 
     def _dim(self, v: Any) -> int:
         if not isinstance(v, float) or not v.is_integer() or v < 1:
@@ -155,18 +244,44 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
 
     # ---- names ----------------------------------------------------------------------------------------
     def lookup(self, name: str, frame: Frame) -> Ref:
+        """A name seen from ``frame``: its routine's data, its module's LOCAL data, the task's, system data."""
         if name in frame.vars:
             ref = frame.vars[name]
             if ref is None:
                 raise RapidError("ERR_NOTPRES", f"optional parameter {name} was not given")
             return ref
-        ref = self.globals.get(name) or self.system.get(name)
+        local = self.local_data.get(frame.module)
+        ref = (local and local.get(name)) or self.globals.get(name) or self.system.get(name)
         if ref is None:
             raise self.fault(f"undefined name {name}")
         return ref
 
+    def find_routine(self, name: str, module: str) -> Routine | None:
+        """The routine ``name`` as module ``module`` (lower case) sees it: its own LOCAL ones first."""
+        key = name.lower()
+        local = self.local_routines.get(module)
+        return (local and local.get(key)) or self.routines.get(key)
+
+    def find_routine_py(self, name: str) -> Routine | None:
+        """A routine named from Python: global, ``"Module:name"``, or a LOCAL one only one module declares."""
+        mod, key = _split_name(name)
+        if mod is not None:
+            local = self.local_routines.get(mod, {}).get(key)
+            if local is not None:
+                return local
+            routine = self.routines.get(key)
+            return routine if routine is not None and routine.module == mod else None
+        return self.routines.get(key) or _unique(name, "routine", self.local_routines, self.module_names)
+
     def _global_ref(self, name: str) -> Ref:
-        ref = self.globals.get(name.lower()) or self.system.get(name.lower())
+        mod, key = _split_name(name)
+        if mod is not None:
+            ref = self.local_data.get(mod, {}).get(key)
+            if ref is None and self._owner.get(key) == mod:
+                ref = self.globals.get(key)
+        else:
+            ref = self.globals.get(key) or self.system.get(key)
+            ref = ref or _unique(name, "data", self.local_data, self.module_names)
         if ref is None:
             raise RapidRuntimeError(f"no module data named {name}")
         return ref
@@ -179,6 +294,8 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
     def store(self, ref: Ref, value: Any) -> None:
         try:
             ref.set(value)
+        except ByteRangeError as e:
+            raise self.fault(str(e)) from None
         except TypeError as e:
             raise self.fault(f"cannot assign to {ref.name}: {e}") from None
 
@@ -205,3 +322,27 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         self.statements += 1
         if self.max_statements is not None and self.statements > self.max_statements:
             raise RapidStopped(f"statement budget of {self.max_statements} exhausted")
+
+
+def _is_local(item: Tree) -> bool:
+    scope = item.children[0]
+    return scope is not None and scope.children[0].upper() == "LOCAL"
+
+
+def _split_name(name: str) -> tuple[str | None, str]:
+    """``"Module:name"`` -> (module, name), lower case; a bare name -> (None, name)."""
+    mod, sep, key = name.rpartition(":")
+    return (mod.strip().lower() if sep else None), key.strip().lower()
+
+
+def _unique(name: str, what: str, tables: dict[str, dict[str, Any]], modules: list[str]) -> Any:
+    """The LOCAL ``name`` if exactly one module declares it; several: ambiguous (name the module)."""
+    key = name.lower()
+    found = [(mod, table[key]) for mod, table in tables.items() if key in table]
+    if len(found) > 1:
+        names = {m.lower(): m for m in modules}
+        where = ", ".join(names.get(m, m) for m, _ in found)
+        raise RapidRuntimeError(
+            f"{what} {name} is LOCAL in modules {where}: say which, e.g. '{names.get(found[0][0], found[0][0])}:{name}'"
+        )
+    return found[0][1] if found else None

@@ -167,7 +167,8 @@ class StatementsMixin:
 def _handles(rt: Runtime, routine: Routine, err: RapidError) -> bool:
     if routine.handler_filter is None:
         return True
-    return any(rt.lookup(n.lower(), Frame(None)).get() == err.errno for n in routine.handler_filter)
+    seen_from = Frame(None, module=routine.module)
+    return any(rt.lookup(n.lower(), seen_from).get() == err.errno for n in routine.handler_filter)
 
 
 def _run_handler(rt: Runtime, frame: Frame, err: RapidError) -> str:

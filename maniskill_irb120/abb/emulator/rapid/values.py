@@ -52,6 +52,7 @@ def define_record(name: str, fields: list[tuple[str, str]]) -> None:
     if name.lower() in _PREDEFINED:
         raise ValueError(f"{name} is a predefined type")
     RECORD_TYPES[name.lower()] = [(f.lower(), t.lower(), None) for f, t in fields]
+    _HAS_BYTE.clear()
 
 
 class Record:
@@ -277,13 +278,52 @@ def format_value(v: Any, nested: bool = False) -> str:
     return repr(v)
 
 
+class ByteRangeError(TypeError):
+    """A ``byte`` (variable, element, component, parameter) given a value outside 0..255 or a non-integer: on the
+    IRC5 a run-time error that stops the program (fatal, not an ERRNO a handler could take)."""
+
+
+_HAS_BYTE: dict[str, bool] = {}
+
+
+def _has_byte(t: str) -> bool:
+    if t == "byte":
+        return True
+    if t not in RECORD_TYPES:
+        return False
+    if t not in _HAS_BYTE:
+        _HAS_BYTE[t] = False  # no recursion through a self-referencing record
+        _HAS_BYTE[t] = any(_has_byte(ft) for _, ft, _ in RECORD_TYPES[t])
+    return _HAS_BYTE[t]
+
+
+def check_range(type_name: str | None, value: Any, where: str) -> None:
+    """Raise :class:`ByteRangeError` if ``value`` (of declared type ``type_name``, any array shape) puts a value
+    outside 0..255 into a ``byte``; ``where`` names the location (``tx{3}``, ``rec.b``) for the message."""
+    if type_name is None or not _has_byte(type_name):
+        return
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            check_range(type_name, v, f"{where}{{{i + 1}}}")
+    elif type_name == "byte":
+        if not (isinstance(value, float) and value.is_integer() and 0 <= value <= 255):
+            shown = format_value(value) if isinstance(value, (float, bool, str)) else repr(value)
+            raise ByteRangeError(f"value error: {where} is a byte (0..255) and cannot take {shown}")
+    elif isinstance(value, Record):
+        for (f, ft, _), v in zip(RECORD_TYPES[type_name], value._fields.values()):
+            check_range(ft, v, f"{where}.{f}")
+
+
 class Cell:
-    """Storage of one variable (module data, routine data, an IN parameter or a FOR loop variable)."""
+    """Storage of one variable (module data, routine data, an IN parameter or a FOR loop variable); ``type`` is
+    its declared RAPID type (lower case) when known: a ``byte`` (or a record with byte components) is
+    range-checked on every assignment."""
 
-    __slots__ = ("name", "value", "kind")
+    __slots__ = ("name", "value", "kind", "type")
 
-    def __init__(self, name: str, value: Any, kind: str = "VAR"):
+    def __init__(self, name: str, value: Any, kind: str = "VAR", type_name: str | None = None):
         self.name, self.value, self.kind = name, value, kind  # kind: VAR PERS CONST IN FOR
+        self.type = type_name.lower() if type_name else None
 
 
 class Ref:
@@ -311,14 +351,31 @@ class Ref:
         if self.cell.kind in ("CONST", "FOR"):
             raise TypeError(f"{self.cell.name} is {'a CONST' if self.cell.kind == 'CONST' else 'a loop variable'}")
         if not self.path:
-            self.cell.value = assign_like(self.cell.value, new)
+            value = assign_like(self.cell.value, new)
+            check_range(self.cell.type, value, self.cell.name)
+            self.cell.value = value
             return
         parent = self.cell.value
         for k in self.path[:-1]:
             parent = parent[k]
-        parent[self.path[-1]] = assign_like(parent[self.path[-1]], new)
+        value = assign_like(parent[self.path[-1]], new)
+        if self.cell.type is not None and _has_byte(self.cell.type):
+            check_range(self._leaf_type(), value, self.location)
+        parent[self.path[-1]] = value
 
     value = property(get, set)
+
+    @property
+    def location(self) -> str:
+        """``tx{3}``, ``p.trans.x``: the variable and the path into it, 1-based as RAPID writes it."""
+        return self.cell.name + "".join(f"{{{k + 1}}}" if isinstance(k, int) else f".{k}" for k in self.path)
+
+    def _leaf_type(self) -> str | None:
+        t = self.cell.type
+        for k in self.path:
+            if isinstance(k, str):  # a record component; an int index keeps the array's element type
+                t = next((ft for f, ft, _ in RECORD_TYPES.get(t or "", []) if f == k), None)
+        return t
 
     def child(self, key: str | int) -> Ref:
         return Ref(self.cell, self.path + (key,))
