@@ -82,16 +82,26 @@ def emulator(
     fault: str | None = None,
     latency_ms: float = 0.0,
     speed_scale: float = 1.0,
+    options: str | None = None,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
     ``serial://pty?baudrate=9600`` paces its bytes at that line speed). ``--latency-ms X`` holds every command
     back X ms before the controller sees it; ``--speed-scale 0.8`` makes every motion take 1/0.8 of its time.
     Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
-    faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop)."""
+    faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop). ``--options
+    616-1,608-1``: the RobotWare options the emulated controller has (``""``: none); a module that names anything
+    of a missing option is refused as the IRC5 refuses it: the load error is printed and the exit status is 1."""
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
+    from maniskill_irb120.abb.emulator.rapid import parse_options
 
-    return emulator_main(listen, rapid, fault, latency_ms, speed_scale)
+    if options is not None:
+        try:
+            parse_options(options)
+        except ValueError as e:
+            print(f"--options: {e}", file=sys.stderr)
+            return 2
+    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options)
 
 
 def sim2real_eval(

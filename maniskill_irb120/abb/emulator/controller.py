@@ -24,7 +24,15 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from maniskill_irb120.abb.emulator.rapid import Builtins, Interpreter, RapidError, RapidStopped, make_value
+from maniskill_irb120.abb.emulator.rapid import (
+    Builtins,
+    Interpreter,
+    RapidError,
+    RapidStopped,
+    RapidSyntaxError,
+    make_value,
+    parse_options,
+)
 from maniskill_irb120.abb.emulator.robot import EmulatedIRB120, MotionError, interpolate_pose, rel_tool
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
 from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
@@ -34,6 +42,20 @@ REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # wher
 
 def shipped_module() -> Path:
     return Path(str(resources.files("maniskill_irb120.assets").joinpath("rapid", "IRB120Server.mod")))
+
+
+# The default module of a new IRC5 task (what a fresh controller holds before anything is loaded): a second global
+# PROC main beside it is an ambiguous name, so a server loaded next to it declares its main LOCAL.
+STOCK_MAIN_MODULE = """MODULE MainModule
+    PROC main()
+        !Add your code here
+    ENDPROC
+ENDMODULE
+"""
+
+# TODO(merge): the licence-free default is ``()`` (no RobotWare options); it stays ("616-1", "608-1") until the
+# rewritten server module (no socket / world-zone names) lands, so the shipped module keeps loading.
+DEFAULT_OPTIONS: tuple[str, ...] = ("616-1", "608-1")
 
 
 def _pose_of(rt) -> np.ndarray:
@@ -135,7 +157,12 @@ class Channel:
 
 
 class ControllerEmulator:
-    """Runs ``rapid`` (default: the shipped module) on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1)."""
+    """Runs ``rapid`` (default: the shipped module) on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1).
+
+    ``options``: the RobotWare option ids the controller has (``()``: a licence-free controller; ``None``:
+    :data:`DEFAULT_OPTIONS`); the module is refused at load time (:class:`RapidLoadError`) if it names anything
+    of a missing option. ``extra_modules``: RAPID texts loaded into the same task (e.g. :data:`STOCK_MAIN_MODULE`);
+    ``entry``: the PROC the program starts at (``"Module:name"`` for a LOCAL one)."""
 
     def __init__(
         self,
@@ -147,7 +174,12 @@ class ControllerEmulator:
         baud: int | None = None,
         latency_ms: float = 0.0,
         speed_scale: float = 1.0,
+        options: tuple[str, ...] | None = None,
+        extra_modules: tuple[str, ...] | list[str] = (),
+        entry: str = "main",
     ):
+        self.options = parse_options(DEFAULT_OPTIONS if options is None else options)
+        self.entry = entry
         if channel not in ("serial", "tcp"):
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
         if baud is not None and (channel != "serial" or baud <= 0):
@@ -173,7 +205,8 @@ class ControllerEmulator:
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
         self.link = Channel(parse_faults(faults), self.signals, baud, latency_ms / 1000)
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
-        self.interp = Interpreter(source, self._builtins())  # syntax errors surface here, with their line
+        # syntax and load errors (missing options, ambiguous names) surface here, with their module and line
+        self.interp = Interpreter([source, *extra_modules], self._builtins(), options=self.options)
         self.error: BaseException | None = None
         self._server: socket.socket | None = None
         self._slave: int | None = None
@@ -194,7 +227,7 @@ class ControllerEmulator:
 
     def _run(self) -> None:
         try:
-            self.interp.run("main")
+            self.interp.run(self.entry)
         except RapidStopped:
             pass
         except BaseException as e:  # a fatal program error: the robot stops, as the IRC5 stops the program
@@ -360,27 +393,42 @@ def main(
     fault: str | None = None,
     latency_ms: float = 0.0,
     speed_scale: float = 1.0,
+    options: str | None = None,
 ) -> int:
-    """Run the emulator until interrupted; prints the URL to connect to as its first line."""
+    """Run the emulator until interrupted; prints the URL to connect to as its first line. ``options``:
+    installed RobotWare option ids, comma-separated (``""``: none; None: :data:`DEFAULT_OPTIONS`). A module
+    the controller would refuse to load prints the load error and returns 1."""
+    opts = None if options is None else parse_options(options)  # ValueError names an unknown id
     u = urlparse(listen)
-    if u.scheme == "tcp":
-        emu = ControllerEmulator(
-            "tcp", rapid, port=u.port or 0, faults=fault, latency_ms=latency_ms, speed_scale=speed_scale
-        )
-    elif u.scheme == "serial":
-        baud = parse_qs(u.query).get("baudrate")
-        emu = ControllerEmulator(
-            "serial",
-            rapid,
-            faults=fault,
-            baud=int(baud[0]) if baud else None,
-            latency_ms=latency_ms,
-            speed_scale=speed_scale,
-        )
-    else:
-        raise ValueError(
-            f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty[?baudrate=N]"
-        )
+    try:
+        if u.scheme == "tcp":
+            emu = ControllerEmulator(
+                "tcp",
+                rapid,
+                port=u.port or 0,
+                faults=fault,
+                latency_ms=latency_ms,
+                speed_scale=speed_scale,
+                options=opts,
+            )
+        elif u.scheme == "serial":
+            baud = parse_qs(u.query).get("baudrate")
+            emu = ControllerEmulator(
+                "serial",
+                rapid,
+                faults=fault,
+                baud=int(baud[0]) if baud else None,
+                latency_ms=latency_ms,
+                speed_scale=speed_scale,
+                options=opts,
+            )
+        else:
+            raise ValueError(
+                f"--listen {listen!r}: use tcp://127.0.0.1:PORT (0: any free port) or serial://pty[?baudrate=N]"
+            )
+    except RapidSyntaxError as e:  # RapidLoadError included: the controller refuses the module
+        print(f"RAPID module not loaded: {e}", flush=True)
+        return 1
     print(emu.start(), flush=True)
     try:
         emu.thread.join()
