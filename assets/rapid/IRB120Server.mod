@@ -1,149 +1,147 @@
 MODULE IRB120Server
     !
     ! maniskill_irb120 RAPID server for an ABB IRB 120 on an IRC5: serves the wire protocol of
-    ! docs/protocol.md (frames: sync 0xA5, length, type, sequence, payload, CRC-16/CCITT-FALSE) on ONE channel,
-    ! serial (no RobotWare option needed) or TCP (needs 616-1 PC Interface), chosen by USE_SOCKET below.
+    ! docs/protocol.md (frames: sync 0xA5, length, type, sequence, payload, CRC-16/CCITT-FALSE) on ONE channel.
+    ! This core module names no option's instruction: it reads and writes through a channel module loaded beside it,
+    ! IRB120Serial.mod (serial, no RobotWare option) or IRB120Socket.mod (TCP, 616-1 PC Interface or 672-1 Socket
+    ! Messaging), which provides the global routines IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite,
+    ! IRB120ChanNewPeer and IRB120ChanReopen. The world zone around the workspace is the system module
+    ! IRB120Zone.sys (608-1 World Zones), installed at power on. See docs/deploy_irc5.md.
+    !
+    ! Everything here is LOCAL except the entry routine IRB120Server: set the task's main entry to it, or call it
+    ! from the stock MainModule's main.
     !
     ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
     ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
-    ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed. A world
-    ! zone slightly larger than the box is set at start, and a heartbeat watchdog stops and holds the robot
-    ! when no valid frame arrives within HEARTBEAT_S.
+    ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed. A heartbeat
+    ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves.
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
     !
-    ! ---------------------------------------------------------------- configuration (see README: install)
-    CONST bool USE_SOCKET := FALSE;
-    CONST string SERIAL_CHANNEL := "COM1:";
-    CONST string SERVER_ADDRESS := "192.168.125.1";
-    CONST num SERVER_PORT := 5000;
-    CONST string GRIPPER_SIGNAL := "doGripperOpen";
-    CONST string MOTORS_ON_SIGNAL := "doMotorsOn";
-    CONST string ESTOP_SIGNAL := "doEmergencyStop";
-    CONST num HEARTBEAT_S := 0.5;
+    ! ---------------------------------------------------------------- configuration (see docs/deploy_irc5.md)
+    LOCAL CONST string GRIPPER_SIGNAL := "doGripperOpen";
+    LOCAL CONST string MOTORS_ON_SIGNAL := "doMotorsOn";
+    LOCAL CONST string ESTOP_SIGNAL := "doEmergencyStop";
+    LOCAL CONST num HEARTBEAT_S := 0.5;
+    ! a client silent this long (s) gives way to a new client waiting on the channel (TCP: a PC that crashed)
+    LOCAL CONST num SILENCE_S := 1;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
-    CONST num ARRIVED_DEG := 0.05;
+    LOCAL CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
-    CONST num STEP_POS_MM := 10;
-    CONST num STEP_ROT_DEG := 10;
-    CONST pos WORKSPACE_LOW := [150, -320, 10];
-    CONST pos WORKSPACE_HIGH := [600, 320, 450];
-    CONST num WORLD_ZONE_MARGIN := 10;
-    CONST num JOINT_LOW{6} := [-165, -110, -110, -160, -120, -400];
-    CONST num JOINT_HIGH{6} := [165, 110, 70, 160, 120, 400];
+    LOCAL CONST num STEP_POS_MM := 10;
+    LOCAL CONST num STEP_ROT_DEG := 10;
+    LOCAL CONST pos WORKSPACE_LOW := [150, -320, 10];
+    LOCAL CONST pos WORKSPACE_HIGH := [600, 320, 450];
+    LOCAL CONST num JOINT_LOW{6} := [-165, -110, -110, -160, -120, -400];
+    LOCAL CONST num JOINT_HIGH{6} := [165, 110, 70, 160, 120, 400];
     ! ABB's axis speeds (250, 250, 250, 320, 320, 420 deg/s) over one 50 ms control period
-    CONST num JOINT_STEP_DEG{6} := [12.5, 12.5, 12.5, 16, 16, 21];
+    LOCAL CONST num JOINT_STEP_DEG{6} := [12.5, 12.5, 12.5, 16, 16, 21];
     !
     ! The TCP of the MetalWork gripper, 57 mm out of the flange; its x axis (the approach axis of the
     ! action space) is tool0's z axis, its z axis (camera side) is tool0's -x axis.
-    PERS tooldata tGripper := [TRUE, [[0, 0, 57], [0.707107, 0, -0.707107, 0]], [0.6, [0, 0, 30], [1, 0, 0, 0], 0, 0, 0]];
+    LOCAL PERS tooldata tGripper := [TRUE, [[0, 0, 57], [0.707107, 0, -0.707107, 0]], [0.6, [0, 0, 30], [1, 0, 0, 0], 0, 0, 0]];
     ! A full step (10 mm or 10 deg) at 250 mm/s and 250 deg/s takes 40 ms, inside the 50 ms control period;
     ! zone z1 lets consecutive steps blend, so the program answers as soon as the step is planned.
-    CONST speeddata vStep := [250, 250, 5000, 1000];
-    CONST zonedata zStep := z1;
+    LOCAL CONST speeddata vStep := [250, 250, 5000, 1000];
+    LOCAL CONST zonedata zStep := z1;
     !
     ! ---------------------------------------------------------------- protocol constants
-    CONST num SYNC := 165;
-    CONST num MAX_PAYLOAD := 32;
-    CONST num T_STATE := 1;
-    CONST num T_TOOL_STEP := 2;
-    CONST num T_JOINTS := 3;
-    CONST num T_GRIPPER := 4;
-    CONST num T_STOP := 5;
-    CONST num S_IDLE := 0;
-    CONST num S_MOVING := 1;
-    CONST num S_HELD := 2;
-    CONST num S_FAULT := 3;
-    CONST num E_OK := 0;
-    CONST num E_STEP_LIMIT := 1;
-    CONST num E_WORKSPACE := 2;
-    CONST num E_UNREACHABLE := 3;
-    CONST num E_JOINT_LIMIT := 4;
-    CONST num E_BAD_LENGTH := 5;
-    CONST num E_UNKNOWN_TYPE := 6;
-    CONST num E_WATCHDOG := 7;
-    CONST num E_MOTORS_OFF := 8;
-    CONST num E_ESTOP := 9;
-    CONST num E_JOINT_SPEED := 10;
+    LOCAL CONST num SYNC := 165;
+    LOCAL CONST num MAX_PAYLOAD := 32;
+    LOCAL CONST num T_STATE := 1;
+    LOCAL CONST num T_TOOL_STEP := 2;
+    LOCAL CONST num T_JOINTS := 3;
+    LOCAL CONST num T_GRIPPER := 4;
+    LOCAL CONST num T_STOP := 5;
+    ! a frame whose type has this bit set is a reply (a line echoing the controller's own frames): dropped
+    LOCAL CONST num T_REPLY := 128;
+    LOCAL CONST num S_IDLE := 0;
+    LOCAL CONST num S_MOVING := 1;
+    LOCAL CONST num S_HELD := 2;
+    LOCAL CONST num S_FAULT := 3;
+    LOCAL CONST num E_OK := 0;
+    LOCAL CONST num E_STEP_LIMIT := 1;
+    LOCAL CONST num E_WORKSPACE := 2;
+    LOCAL CONST num E_UNREACHABLE := 3;
+    LOCAL CONST num E_JOINT_LIMIT := 4;
+    LOCAL CONST num E_BAD_LENGTH := 5;
+    LOCAL CONST num E_UNKNOWN_TYPE := 6;
+    LOCAL CONST num E_WATCHDOG := 7;
+    LOCAL CONST num E_MOTORS_OFF := 8;
+    LOCAL CONST num E_ESTOP := 9;
+    LOCAL CONST num E_JOINT_SPEED := 10;
     !
     ! ---------------------------------------------------------------- state
-    VAR iodev serialDev;
-    VAR socketdev serverSocket;
-    VAR socketdev clientSocket;
-    VAR signaldo doGripper;
-    VAR signaldo doMotors;
-    VAR signaldo doEstop;
-    VAR wztemporary wzBox;
-    VAR shapedata shBox;
-    VAR byte rx{40};
-    VAR byte tx{40};
-    VAR num rxLen := 0;
-    VAR num txLen := 0;
-    VAR num lastSeq := -1;
-    VAR num status := 0;
-    VAR bool watchdogFired := FALSE;
-    VAR bool connected := FALSE;
-    VAR num refusal := 0;
+    LOCAL VAR signaldo doGripper;
+    LOCAL VAR signaldo doMotors;
+    LOCAL VAR signaldo doEstop;
+    LOCAL VAR byte rx{40};
+    LOCAL VAR byte tx{40};
+    LOCAL VAR num rxLen := 0;
+    LOCAL VAR num txLen := 0;
+    ! the duplicate cache: the last command executed (sequence number, type, CRC); its reply is still in tx.
+    ! Cleared whenever a connection (re)opens: a new peer's sequence numbers are its own.
+    LOCAL VAR num lastSeq := -1;
+    LOCAL VAR num lastKind := -1;
+    LOCAL VAR num lastCrc := -1;
+    LOCAL VAR num status := 0;
+    LOCAL VAR bool watchdogFired := FALSE;
+    LOCAL VAR num refusal := 0;
+    ! time since the last valid frame (the watchdog's) and since the last byte (the silence before a new peer)
+    LOCAL VAR clock clkValid;
+    LOCAL VAR clock clkHeard;
     ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
     ! carries it, so the PC knows every pose a next step could be taken from (docs/protocol.md)
-    VAR robtarget lastTarget;
-    VAR jointtarget lastJoints;
+    LOCAL VAR robtarget lastTarget;
+    LOCAL VAR jointtarget lastJoints;
 
-    PROC main()
+    PROC IRB120Server()
+        ! the entry routine: the task's main entry, or called from MainModule's main
         InitServer;
         WHILE TRUE DO
             ServeOneFrame;
         ENDWHILE
     ENDPROC
 
-    PROC InitServer()
-        VAR pos low;
-        VAR pos high;
+    LOCAL PROC InitServer()
         AliasIO GRIPPER_SIGNAL, doGripper;
         AliasIO MOTORS_ON_SIGNAL, doMotors;
         AliasIO ESTOP_SIGNAL, doEstop;
         ConfL\Off;
         SingArea\Wrist;
-        low := WORKSPACE_LOW;
-        high := WORKSPACE_HIGH;
-        low.x := low.x - WORLD_ZONE_MARGIN;
-        low.y := low.y - WORLD_ZONE_MARGIN;
-        low.z := low.z - WORLD_ZONE_MARGIN;
-        high.x := high.x + WORLD_ZONE_MARGIN;
-        high.y := high.y + WORLD_ZONE_MARGIN;
-        high.z := high.z + WORLD_ZONE_MARGIN;
-        ! the TCP may not leave the box: the controller stops it even if this program misbehaves
-        WZBoxDef\Outside, shBox, low, high;
-        WZLimSup\Temp, wzBox, shBox;
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
-        OpenChannel;
+        IRB120ChanOpen;
+        NewSession;
     ENDPROC
 
-    PROC OpenChannel()
-        IF USE_SOCKET THEN
-            SocketCreate serverSocket;
-            SocketBind serverSocket, SERVER_ADDRESS, SERVER_PORT;
-            SocketListen serverSocket;
-            SocketAccept serverSocket, clientSocket\Time:=WAIT_MAX;
-        ELSE
-            Open SERIAL_CHANNEL, serialDev\Bin;
-            ClearIOBuff serialDev;
-        ENDIF
-        connected := TRUE;
-    ENDPROC
-
-    PROC Reconnect()
-        ! the peer went away: hold the robot, then wait for it again
-        HoldRobot;
-        IF USE_SOCKET THEN
-            SocketClose clientSocket;
-            SocketAccept serverSocket, clientSocket\Time:=WAIT_MAX;
-        ENDIF
+    LOCAL PROC NewSession()
+        ! a connection (re)opened: nothing of the previous peer's is answered to this one
+        lastSeq := -1;
+        lastKind := -1;
+        lastCrc := -1;
         rxLen := 0;
+        RestartClock clkValid;
+        RestartClock clkHeard;
     ENDPROC
 
-    PROC HoldRobot()
-        StopMove;
+    LOCAL PROC RestartClock(VAR clock c)
+        ClkReset c;
+        ClkStart c;
+    ENDPROC
+
+    LOCAL PROC Reconnect()
+        ! the peer went away, or gives way to a new one: hold the robot, then serve the next peer
+        HoldRobot\Quick;
+        IRB120ChanReopen;
+        NewSession;
+    ENDPROC
+
+    LOCAL PROC HoldRobot(\switch Quick)
+        IF Present(Quick) THEN
+            StopMove\Quick;
+        ELSE
+            StopMove;
+        ENDIF
         ClearPath;
         StartMove;
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
@@ -151,66 +149,93 @@ MODULE IRB120Server
     ENDPROC
 
     ! ---------------------------------------------------------------- receiving
-    FUNC num ReadByte(num timeout)
-        ! the next byte, or -1 when none came within timeout seconds (the watchdog's cue)
-        VAR byte one{1};
-        IF USE_SOCKET THEN
-            SocketReceive clientSocket\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
-            RETURN one{1};
-        ENDIF
-        RETURN ReadBin(serialDev\Time:=timeout);
-    ERROR
-        IF ERRNO = ERR_DEV_MAXTIME OR ERRNO = ERR_SOCK_TIMEOUT THEN
-            RETURN -1;
-        ELSEIF ERRNO = ERR_SOCK_CLOSED THEN
+    LOCAL FUNC num ReadByte(num timeout)
+        ! the next byte; -1 when none came within timeout seconds; -2 when the peer went away (the robot is held
+        ! and the next peer is being served: the frame under way is lost)
+        VAR num b;
+        b := IRB120ChanRead(timeout);
+        IF b >= 0 THEN
+            RestartClock clkHeard;
+        ELSEIF b < -1 THEN
             Reconnect;
-            RETURN -1;
+            RETURN -2;
         ENDIF
-        RAISE;
+        RETURN b;
     ENDFUNC
 
-    PROC ServeOneFrame()
-        ! reads one frame (sync, length, type, seq, payload, crc); any byte arriving later than HEARTBEAT_S
-        ! after the previous one fires the watchdog and restarts the frame
+    LOCAL FUNC num WaitTime()
+        ! how long a read may wait: until the watchdog is due while the robot moves, else one heartbeat
+        VAR num t;
+        t := HEARTBEAT_S;
+        IF status = S_MOVING THEN
+            t := HEARTBEAT_S - ClkRead(clkValid);
+            IF t < 0.01 t := 0.01;
+        ENDIF
+        RETURN t;
+    ENDFUNC
+
+    LOCAL FUNC num FrameByte()
+        ! the next byte of a frame under way, or -1 when none came within HEARTBEAT_S of the previous one (the
+        ! frame is dropped) or the peer went away
+        VAR num b;
+        WHILE TRUE DO
+            b := ReadByte(WaitTime());
+            IF b >= 0 RETURN b;
+            IF b < -1 RETURN -1;
+            Watchdog;
+            IF ClkRead(clkHeard) >= HEARTBEAT_S RETURN -1;
+        ENDWHILE
+        RETURN -1;
+    ENDFUNC
+
+    LOCAL PROC ServeOneFrame()
+        ! reads one frame (sync, length, type, seq, payload, crc); a frame whose bytes stop for HEARTBEAT_S is
+        ! dropped. The watchdog counts from the last valid frame: noise does not keep a moving robot going.
         VAR num b;
         VAR num n;
-        b := ReadByte(HEARTBEAT_S);
-        IF b < 0 THEN
+        IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
+        b := ReadByte(WaitTime());
+        IF b = -1 THEN
             Watchdog;
+            IF ClkRead(clkHeard) >= SILENCE_S THEN
+                ! a silent peer (a PC that crashed without closing) gives way to a new one waiting
+                IF IRB120ChanNewPeer() Reconnect;
+            ENDIF
             RETURN;
         ENDIF
         IF b <> SYNC RETURN;
-        n := ReadByte(HEARTBEAT_S);
+        n := FrameByte();
         IF n < 0 OR n > MAX_PAYLOAD RETURN;
         rx{1} := n;
         FOR i FROM 2 TO n + 5 DO
-            b := ReadByte(HEARTBEAT_S);
-            IF b < 0 THEN
-                Watchdog;
-                RETURN;
-            ENDIF
+            b := FrameByte();
+            IF b < 0 RETURN;
             rx{i} := b;
         ENDFOR
         rxLen := n + 5;
         ! rx: 1 length, 2 type, 3 seq, 4.. payload, then the CRC (low byte first)
         IF Crc16Rx(n + 3) <> rx{n + 4} + 256 * rx{n + 5} RETURN;
+        ! a reply (type bit 0x80: a line echoing our own frames) is never a command: dropped, no reply
+        IF rx{2} >= T_REPLY RETURN;
+        RestartClock clkValid;
         HandleFrame;
     ENDPROC
 
-    PROC Watchdog()
-        ! while the robot is commanded to move, the PC must send a frame (a STATE request will do) at least every
-        ! HEARTBEAT_S; if it does not, the robot stops and holds, and the next motion command is refused
+    LOCAL PROC Watchdog()
+        ! while the robot is commanded to move, the PC must send a valid frame (a STATE request will do) at least
+        ! every HEARTBEAT_S; if it does not, the robot stops at once and holds, and the next motion command is
+        ! refused
         IF status = S_MOVING THEN
             IF Arrived() THEN
                 status := S_IDLE;
-            ELSE
-                HoldRobot;
+            ELSEIF ClkRead(clkValid) >= HEARTBEAT_S THEN
+                HoldRobot\Quick;
                 watchdogFired := TRUE;
             ENDIF
         ENDIF
     ENDPROC
 
-    FUNC bool Arrived()
+    LOCAL FUNC bool Arrived()
         ! the last motion is done: every axis within ARRIVED_DEG of its target (nothing left for a watchdog to stop)
         VAR jointtarget now;
         now := CJointT();
@@ -221,13 +246,15 @@ MODULE IRB120Server
     ENDFUNC
 
     ! ---------------------------------------------------------------- commands
-    PROC HandleFrame()
+    LOCAL PROC HandleFrame()
         VAR num kind;
         VAR num seq;
+        VAR num crc;
         kind := rx{2};
         seq := rx{3};
-        IF seq = lastSeq THEN
-            ! a repeated frame: answer again, never execute again
+        crc := rx{rx{1} + 4} + 256 * rx{rx{1} + 5};
+        IF seq = lastSeq AND kind = lastKind AND crc = lastCrc THEN
+            ! a repeated frame (same number, type and CRC): answer again from the cache, never execute again
             SendTx;
             RETURN;
         ENDIF
@@ -245,11 +272,13 @@ MODULE IRB120Server
             ENDTEST
         ENDIF
         lastSeq := seq;
+        lastKind := kind;
+        lastCrc := crc;
         BuildReply kind, seq;
         SendTx;
     ENDPROC
 
-    FUNC num CheckFrame(num kind, num len)
+    LOCAL FUNC num CheckFrame(num kind, num len)
         VAR num want := -1;
         TEST kind
         CASE T_STATE, T_STOP:
@@ -281,7 +310,7 @@ MODULE IRB120Server
         RETURN E_OK;
     ENDFUNC
 
-    PROC ToolStep()
+    LOCAL PROC ToolStep()
         VAR num dx;
         VAR num dy;
         VAR num dz;
@@ -326,7 +355,7 @@ MODULE IRB120Server
         RAISE;
     ENDPROC
 
-    PROC JointMove()
+    LOCAL PROC JointMove()
         VAR jointtarget jNow;
         VAR jointtarget jTarget;
         VAR robtarget tcp;
@@ -352,7 +381,7 @@ MODULE IRB120Server
         IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
 
-    FUNC num CheckJoints(jointtarget jNow, jointtarget jTarget)
+    LOCAL FUNC num CheckJoints(jointtarget jNow, jointtarget jTarget)
         VAR num now{6};
         VAR num target{6};
         now := [jNow.robax.rax_1, jNow.robax.rax_2, jNow.robax.rax_3, jNow.robax.rax_4, jNow.robax.rax_5, jNow.robax.rax_6];
@@ -365,12 +394,12 @@ MODULE IRB120Server
         RETURN E_OK;
     ENDFUNC
 
-    FUNC bool InsideBox(pos p)
+    LOCAL FUNC bool InsideBox(pos p)
         RETURN p.x >= WORKSPACE_LOW.x AND p.x <= WORKSPACE_HIGH.x AND p.y >= WORKSPACE_LOW.y AND p.y <= WORKSPACE_HIGH.y
             AND p.z >= WORKSPACE_LOW.z AND p.z <= WORKSPACE_HIGH.z;
     ENDFUNC
 
-    PROC SetGripper(num open)
+    LOCAL PROC SetGripper(num open)
         IF open = 1 THEN
             SetDO doGripper, 1;
         ELSE
@@ -379,7 +408,7 @@ MODULE IRB120Server
     ENDPROC
 
     ! ---------------------------------------------------------------- replying
-    PROC BuildReply(num kind, num seq)
+    LOCAL PROC BuildReply(num kind, num seq)
         ! tx: sync, length 26, type 0x80 + kind, seq, state payload, CRC
         VAR jointtarget j;
         VAR robtarget p;
@@ -397,7 +426,12 @@ MODULE IRB120Server
         IF q{big} < 0 sign := -1;
         tx{1} := SYNC;
         tx{2} := 26;
-        tx{3} := 128 + kind;
+        ! 0x80 + type, a byte for every type answered (replies, 0x80 and up, are dropped before)
+        IF kind >= T_STATE AND kind <= T_STOP THEN
+            tx{3} := T_REPLY + kind;
+        ELSE
+            tx{3} := T_REPLY + (kind MOD T_REPLY);
+        ENDIF
         tx{4} := seq;
         tx{5} := status + 4 * (big - 1) + 128 * DOutput(doGripper);
         tx{6} := refusal;
@@ -420,22 +454,12 @@ MODULE IRB120Server
         txLen := 32;
     ENDPROC
 
-    PROC SendTx()
-        IF USE_SOCKET THEN
-            SocketSend clientSocket\Data:=tx\NoOfBytes:=txLen;
-        ELSE
-            WriteBin serialDev, tx, txLen;
-        ENDIF
-    ERROR
-        IF ERRNO = ERR_SOCK_CLOSED THEN
-            Reconnect;
-            RETURN;
-        ENDIF
-        RAISE;
+    LOCAL PROC SendTx()
+        IF NOT IRB120ChanWrite(tx, txLen) Reconnect;
     ENDPROC
 
     ! ---------------------------------------------------------------- bytes
-    FUNC num Int16At(num i)
+    LOCAL FUNC num Int16At(num i)
         ! little-endian int16 at rx{i}, rx{i + 1}
         VAR num v;
         v := rx{i} + 256 * rx{i + 1};
@@ -443,7 +467,7 @@ MODULE IRB120Server
         RETURN v;
     ENDFUNC
 
-    PROC PutInt16(num i, num value)
+    LOCAL PROC PutInt16(num i, num value)
         VAR num v;
         v := Round(value);
         IF v > 32767 v := 32767;
@@ -453,7 +477,7 @@ MODULE IRB120Server
         tx{i + 1} := v DIV 256;
     ENDPROC
 
-    FUNC num Crc16Rx(num count)
+    LOCAL FUNC num Crc16Rx(num count)
         ! CRC-16/CCITT-FALSE of rx{1..count} (length, type, seq, payload)
         VAR byte hi := 255;
         VAR byte lo := 255;
@@ -464,7 +488,7 @@ MODULE IRB120Server
         RETURN 256 * hi + lo;
     ENDFUNC
 
-    PROC PutCrcTx(num count)
+    LOCAL PROC PutCrcTx(num count)
         ! CRC of tx{2..count + 1}, appended low byte first
         VAR byte hi := 255;
         VAR byte lo := 255;
@@ -476,7 +500,7 @@ MODULE IRB120Server
         tx{count + 3} := hi;
     ENDPROC
 
-    PROC CrcShift8(INOUT byte hi, INOUT byte lo)
+    LOCAL PROC CrcShift8(INOUT byte hi, INOUT byte lo)
         ! eight steps of the CRC register (poly 0x1021) held as two bytes
         VAR bool carry;
         FOR k FROM 1 TO 8 DO

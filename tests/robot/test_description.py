@@ -50,7 +50,8 @@ def test_wheel_ships_assets(bench, tmp_path):
     for f in ["gbuffer.vert", "gbuffer.frag"]:
         assert f"maniskill_irb120/assets/shaders/rgbd_forward/{f}" in names
     assert "maniskill_irb120/assets/rapid/protocol_vectors.json" in names
-    assert "maniskill_irb120/assets/rapid/IRB120Server.mod" in names
+    for f in ["IRB120Server.mod", "IRB120Serial.mod", "IRB120Socket.mod", "IRB120Zone.sys"]:
+        assert f"maniskill_irb120/assets/rapid/{f}" in names
     for f in ["abb/protocol.py", "abb/emulator/rapid/grammar.lark", "policies/section.py", "experts/pick_place.py"]:
         assert f"maniskill_irb120/{f}" in names
 

@@ -1,8 +1,10 @@
-"""Controller emulator: executes our RAPID server module (the file users load onto the IRC5) with our RAPID
-interpreter, on an emulated IRB 120, serving a pty (serial) or a loopback TCP socket. The module is the code
-under test; the built-ins here are what an IRC5 provides: kinematics (CRobT, CJointT, CalcJointT, CalcRobT,
-RelTool), motion over wall-clock time (MoveL, MoveAbsJ, StopMove, ClearPath, StartMove), world zones, digital
-outputs, serial and socket I/O.
+"""Controller emulator: executes our RAPID server (the files users load onto the IRC5) with our RAPID
+interpreter, on an emulated IRB 120, serving a pty (serial) or a loopback TCP socket. The modules are the code
+under test, loaded as an integrator loads them: the core ``IRB120Server.mod``, the channel module for the link
+(``IRB120Serial.mod`` or ``IRB120Socket.mod``) and the world-zone system module ``IRB120Zone.sys``, whose POWER
+ON event routine runs before the server's entry routine ``IRB120Server``. The built-ins here are what an IRC5
+provides: kinematics (CRobT, CJointT, CalcJointT, CalcRobT, RelTool), motion over wall-clock time (MoveL,
+MoveAbsJ, StopMove, ClearPath, StartMove), world zones, digital outputs, serial and socket I/O.
 
     maniskill-irb120 emulator --listen tcp://127.0.0.1:0      # first line printed: the URL to connect to
 """
@@ -40,8 +42,28 @@ from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 REST_DEG = tuple(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]))  # where the sim's episodes start
 
 
+ENTRY = "IRB120Server"  # the core module's entry routine (the task's main entry on a controller)
+ZONE_POWER_ON = "IRB120ZonePowerOn"  # IRB120Zone.sys's POWER ON event routine
+CHANNEL_MODULES = {"serial": "IRB120Serial.mod", "tcp": "IRB120Socket.mod"}
+
+
+def rapid_file(name: str) -> Path:
+    """A shipped RAPID file (assets/rapid/NAME)."""
+    return Path(str(resources.files("maniskill_irb120.assets").joinpath("rapid", name)))
+
+
 def shipped_module() -> Path:
-    return Path(str(resources.files("maniskill_irb120.assets").joinpath("rapid", "IRB120Server.mod")))
+    """The shipped core server module (protocol, checks, motion, replies)."""
+    return rapid_file("IRB120Server.mod")
+
+
+def server_source(channel: str, rapid: str | Path | None = None, zone: bool = True) -> str:
+    """The modules a controller running the server on ``channel`` has loaded, as one source: the core (``rapid``
+    instead of the shipped one if given), the channel module and, with ``zone``, the world-zone system module."""
+    files = [Path(rapid) if rapid else shipped_module(), rapid_file(CHANNEL_MODULES[channel])]
+    if zone:
+        files.append(rapid_file("IRB120Zone.sys"))
+    return "\n".join(f.read_text() for f in files)
 
 
 # The default module of a new IRC5 task (what a fresh controller holds before anything is loaded): a second global
@@ -53,9 +75,9 @@ STOCK_MAIN_MODULE = """MODULE MainModule
 ENDMODULE
 """
 
-# TODO(merge): the licence-free default is ``()`` (no RobotWare options); it stays ("616-1", "608-1") until the
-# rewritten server module (no socket / world-zone names) lands, so the shipped module keeps loading.
-DEFAULT_OPTIONS: tuple[str, ...] = ("616-1", "608-1")
+# What each channel's build needs at the least (docs/deploy_irc5.md): serial, nothing (a licence-free controller);
+# tcp, the socket API of 616-1 PC Interface (or 672-1 Socket Messaging).
+CHANNEL_OPTIONS: dict[str, tuple[str, ...]] = {"serial": (), "tcp": ("616-1",)}
 
 
 def _pose_of(rt) -> np.ndarray:
@@ -157,12 +179,14 @@ class Channel:
 
 
 class ControllerEmulator:
-    """Runs ``rapid`` (default: the shipped module) on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1).
+    """Runs the server on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1): the core module ``rapid`` (default: the
+    shipped one), the shipped channel module for the channel and, with ``zone``, the world-zone system module.
 
-    ``options``: the RobotWare option ids the controller has (``()``: a licence-free controller; ``None``:
-    :data:`DEFAULT_OPTIONS`); the module is refused at load time (:class:`RapidLoadError`) if it names anything
-    of a missing option. ``extra_modules``: RAPID texts loaded into the same task (e.g. :data:`STOCK_MAIN_MODULE`);
-    ``entry``: the PROC the program starts at (``"Module:name"`` for a LOCAL one)."""
+    ``options``: the RobotWare option ids the controller has; None: the least the build needs (serial: none, a
+    licence-free controller; tcp: 616-1 PC Interface). The task is refused at load time (:class:`RapidLoadError`)
+    if a module names anything of a missing option. ``zone``: load the world-zone system module (None: when
+    608-1 World Zones is installed). ``extra_modules``: RAPID texts loaded into the same task (e.g.
+    :data:`STOCK_MAIN_MODULE`); ``entry``: the PROC the program starts at (the task's main entry)."""
 
     def __init__(
         self,
@@ -175,10 +199,14 @@ class ControllerEmulator:
         latency_ms: float = 0.0,
         speed_scale: float = 1.0,
         options: tuple[str, ...] | None = None,
+        zone: bool | None = None,
         extra_modules: tuple[str, ...] | list[str] = (),
-        entry: str = "main",
+        entry: str = ENTRY,
     ):
-        self.options = parse_options(DEFAULT_OPTIONS if options is None else options)
+        if channel not in CHANNEL_MODULES:
+            raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
+        self.options = parse_options(CHANNEL_OPTIONS[channel] if options is None else options)
+        zone = "608-1" in self.options if zone is None else zone
         self.entry = entry
         if channel not in ("serial", "tcp"):
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
@@ -190,16 +218,8 @@ class ControllerEmulator:
             raise ValueError(f"speed_scale={speed_scale!r}: a positive factor on the robot's speed")
         self.baud = baud
         self.channel_kind, self.port = channel, port
-        source = Path(rapid or shipped_module()).read_text()
-        # choose the channel the way an integrator does: the module's one constant
-        source, n = re.subn(
-            r"(CONST\s+bool\s+USE_SOCKET\s*:=\s*)(TRUE|FALSE)",
-            rf"\g<1>{str(channel == 'tcp').upper()}",
-            source,
-            flags=re.IGNORECASE,
-        )
-        if n != 1:
-            raise ValueError("the RAPID module must declare CONST bool USE_SOCKET exactly once")
+        self.zone = zone
+        source = server_source(channel, rapid, zone)
         self.robot = EmulatedIRB120(q0_deg)
         self.robot.speed_scale = speed_scale
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
@@ -209,6 +229,7 @@ class ControllerEmulator:
         self.interp = Interpreter([source, *extra_modules], self._builtins(), options=self.options)
         self.error: BaseException | None = None
         self._server: socket.socket | None = None
+        self._conns: list[socket.socket] = []  # every client connection accepted (closed by stop())
         self._slave: int | None = None
         self._listening = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -227,6 +248,8 @@ class ControllerEmulator:
 
     def _run(self) -> None:
         try:
+            if self.zone:  # the controller ran the system module's POWER ON event routine long before
+                self.interp.call(ZONE_POWER_ON)
             self.interp.run(self.entry)
         except RapidStopped:
             pass
@@ -240,7 +263,7 @@ class ControllerEmulator:
         self.robot.stop()
         for closer in (
             lambda: self._server and self._server.close(),
-            lambda: self.link.conn and self.link.conn.close(),
+            *(conn.close for conn in self._conns),
         ):
             closer()
         for fd in (self.link.fd, self._slave):
@@ -322,7 +345,7 @@ class ControllerEmulator:
         )
         reg.add("MoveL", move_l)
         reg.add("MoveAbsJ", lambda jt, speed, zone, tool, WObj=None: move(_joints(jt), speed, zone, tool))
-        reg.add("StopMove", lambda **_: robot.stop())
+        reg.add("StopMove", lambda Quick=False, **_: robot.stop())  # \Quick: the same stop here
         reg.add("ClearPath", lambda: robot.clear_path())
         reg.add("StartMove", lambda **_: robot.start())
         reg.add("ConfL", lambda **_: None)
@@ -350,20 +373,37 @@ class ControllerEmulator:
         reg.add("ReadBin", io(read_bin))
         reg.add("WriteBin", io(lambda dev, buffer, n: link.write(bytes(int(b) for b in buffer[: int(n)]))))
 
+        # a socketdev's value is its connection; the link (faults, latency) follows the socketdev last used, so
+        # a client can be accepted on a second socketdev while the first one's is still open
         def accept(server, client, Time=None):
             self._server.settimeout(None if Time is None or Time >= 8388608 else Time)
-            while True:
-                try:
-                    link.conn, _ = self._server.accept()
+            try:
+                conn, _ = self._server.accept()
+            except TimeoutError:
+                raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client within \\Time") from None
+            except OSError:
+                self.interp.check_stop()
+                raise
+            self._conns.append(conn)
+            client.value = conn
+
+        def use(sock):
+            if sock.value is None:
+                raise RapidError("ERR_SOCK_CLOSED", "socket not connected")
+            if link.conn is not sock.value:
+                link.conn = sock.value
+                link.clear()
+
+        def close(sock):
+            if sock.value is not None:
+                sock.value.close()
+                if link.conn is sock.value:
+                    link.conn = None
                     link.clear()
-                    return
-                except TimeoutError:
-                    raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client") from None
-                except OSError:
-                    self.interp.check_stop()
-                    raise
+                sock.value = None
 
         def receive(sock, Data=None, ReadNoOfBytes=1, Time=None):
+            use(sock)
             for i in range(int(ReadNoOfBytes)):
                 b = link.read_byte(8388608.0 if Time is None else Time)
                 if b is None:
@@ -378,12 +418,13 @@ class ControllerEmulator:
         reg.add(
             "SocketSend",
             io(
-                lambda sock, Data=None, NoOfBytes=None: link.write(
-                    bytes(int(b) for b in Data[: int(NoOfBytes or len(Data))])
+                lambda sock, Data=None, NoOfBytes=None: (
+                    use(sock),
+                    link.write(bytes(int(b) for b in Data[: int(NoOfBytes or len(Data))])),
                 )
             ),
         )
-        reg.add("SocketClose", lambda sock: link.conn and link.conn.close())
+        reg.add("SocketClose", close)
         return reg
 
 
@@ -396,7 +437,7 @@ def main(
     options: str | None = None,
 ) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line. ``options``:
-    installed RobotWare option ids, comma-separated (``""``: none; None: :data:`DEFAULT_OPTIONS`). A module
+    installed RobotWare option ids, comma-separated (``""``: none; None: :data:`CHANNEL_OPTIONS`). A module
     the controller would refuse to load prints the load error and returns 1."""
     opts = None if options is None else parse_options(options)  # ValueError names an unknown id
     u = urlparse(listen)

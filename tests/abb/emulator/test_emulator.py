@@ -105,7 +105,8 @@ def push_outwards(robot: ABBRobot, emu: ControllerEmulator, sequences: int, step
 
 
 def without_rapid_box(tmp_path):
-    """A copy of the module whose workspace check and world zone are opened up to ±10 m: the client alone holds."""
+    """A copy of the core module whose workspace check is opened up to ±10 m; run it without the world-zone module
+    (no 608-1, so no world-zone module): the client alone holds."""
     text = shipped_module().read_text()
     text = text.replace("CONST pos WORKSPACE_LOW := [150, -320, 10];", "CONST pos WORKSPACE_LOW := [-1E4, -1E4, -1E4];")
     text = text.replace("CONST pos WORKSPACE_HIGH := [600, 320, 450];", "CONST pos WORKSPACE_HIGH := [1E4, 1E4, 1E4];")
@@ -116,7 +117,10 @@ def without_rapid_box(tmp_path):
 
 @pytest.mark.parametrize("side", ["controller", "client"])
 def test_random_outward_pushing_never_leaves_the_box_with_one_side_alone(side, tmp_path):
-    emu = ControllerEmulator("tcp", rapid=without_rapid_box(tmp_path) if side == "client" else None)
+    alone = side == "client"
+    emu = ControllerEmulator(
+        "tcp", rapid=without_rapid_box(tmp_path) if alone else None, options=("616-1",) if alone else ("616-1", "608-1")
+    )  # the world zone: 608-1
     with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         robot.check_envelope = side == "client"
         refused = push_outwards(robot, emu, sequences=6, steps=20, seed=1)
@@ -130,7 +134,10 @@ def test_random_outward_pushing_never_leaves_the_box_with_one_side_alone(side, t
 def test_thousand_random_sequences_with_one_side_alone(side, tmp_path):
     """The issue's figure: 1000 random sequences pushing outwards, each side alone. The client side holds
     because it checks the step from every corner of the path the controller may still be on."""
-    emu = ControllerEmulator("tcp", rapid=without_rapid_box(tmp_path) if side == "client" else None)
+    alone = side == "client"
+    emu = ControllerEmulator(
+        "tcp", rapid=without_rapid_box(tmp_path) if alone else None, options=("616-1",) if alone else ("616-1", "608-1")
+    )  # the world zone: 608-1
     with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
         robot.check_envelope = side == "client"
         refused = push_outwards(robot, emu, sequences=1000, steps=4, seed=3)

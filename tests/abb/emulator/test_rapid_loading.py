@@ -247,9 +247,9 @@ def test_beside_the_stock_main_module_a_global_main_is_ambiguous(controller, tmp
         controller.ControllerEmulator("tcp", rapid, extra_modules=[controller.STOCK_MAIN_MODULE])
     rapid.write_text(SERVER.format(scope="LOCAL "))
     emu = controller.ControllerEmulator(
-        "tcp", rapid, options=(), extra_modules=[controller.STOCK_MAIN_MODULE], entry="TinyServer:main"
+        "serial", rapid, options=(), extra_modules=[controller.STOCK_MAIN_MODULE], entry="TinyServer:main"
     )
-    assert emu.interp.module_names == ["TinyServer", "MainModule"]
+    assert emu.interp.module_names == ["TinyServer", "IRB120Serial", "MainModule"]  # core, channel, stock
     assert emu.interp.run("TinyServer:main") == "completed" and emu.interp.get("ran") == 1.0
     assert emu.interp.run("main") == "completed" and emu.interp.get("ran") == 1.0  # the stock main: empty
 
@@ -261,7 +261,9 @@ def test_the_emulator_checks_options_it_is_given(controller, tmp_path):
     with pytest.raises(RapidLoadError, match="SocketClose needs RobotWare option 616-1"):
         controller.ControllerEmulator("serial", rapid, options=())
     controller.ControllerEmulator("serial", rapid, options=("672-1",))
-    assert controller.ControllerEmulator("serial", rapid).options == controller.DEFAULT_OPTIONS
+    assert controller.CHANNEL_OPTIONS["serial"] == ()  # without options=, the serial build's controller has none
+    with pytest.raises(RapidLoadError, match="SocketClose needs RobotWare option 616-1"):
+        controller.ControllerEmulator("serial", rapid, entry="main")
 
 
 def test_cli_options(controller, tmp_path, capsys):
@@ -270,10 +272,10 @@ def test_cli_options(controller, tmp_path, capsys):
     from maniskill_irb120.cli import main
 
     rapid = tmp_path / "server.mod"
-    rapid.write_text(ZONE_MODULE.replace("MODULE Zones", "MODULE Zones\n    CONST bool USE_SOCKET := TRUE;"))
+    rapid.write_text(ZONE_MODULE.replace("PROC main()", "PROC IRB120Server()"))  # the server's entry routine
     assert main(["emulator", "--rapid", str(rapid), "--options", "616-1,609-1"]) == 2
     assert "unknown RobotWare option(s) 609-1" in capsys.readouterr().err
     assert main(["emulator", "--rapid", str(rapid), "--options", "616-1"]) == 1
-    assert "RAPID module not loaded: module Zones, line 3: wztemporary needs" in capsys.readouterr().out
+    assert "RAPID module not loaded: module Zones, line 2: wztemporary needs" in capsys.readouterr().out
     assert main(["emulator", "--rapid", str(rapid), "--options", "616-1,608-1"]) == 0
     assert capsys.readouterr().out.startswith("tcp://127.0.0.1:")

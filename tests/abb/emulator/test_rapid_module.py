@@ -1,6 +1,6 @@
-"""The shipped RAPID server module and the Python side agree on every number they share (the envelope,
-the units): one set of limits on both sides of the wire. Its behaviour is tested by running it in the
-controller emulator."""
+"""The shipped RAPID server modules and the Python side agree on every number they share (the envelope,
+the units): one set of limits on both sides of the wire; each module names only the RobotWare options it is
+meant to need. Their behaviour is tested by running them in the controller emulator."""
 
 from __future__ import annotations
 
@@ -15,12 +15,14 @@ from maniskill_irb120.abb import protocol
 from maniskill_irb120.abb.envelope import CONTROL_PERIOD_S, WORKSPACE_HIGH, WORKSPACE_LOW, Envelope
 from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
 
-MODULE = resources.files("maniskill_irb120.assets").joinpath("rapid", "IRB120Server.mod").read_text()
+RAPID = resources.files("maniskill_irb120.assets").joinpath("rapid")
+MODULE = RAPID.joinpath("IRB120Server.mod").read_text()
+FILES = ("IRB120Server.mod", "IRB120Serial.mod", "IRB120Socket.mod", "IRB120Zone.sys")
 
 
-def const(name: str):
-    m = re.search(rf"CONST\s+\w+\s+{name}(\{{\d+\}})?\s*:=\s*([^;]+);", MODULE, re.IGNORECASE)
-    assert m, f"CONST {name} not found in IRB120Server.mod"
+def const(name: str, module: str = MODULE):
+    m = re.search(rf"CONST\s+\w+\s+{name}(\{{\d+\}})?\s*:=\s*([^;]+);", module, re.IGNORECASE)
+    assert m, f"CONST {name} not found"
     value = m.group(2).strip()
     if value.startswith("["):
         return [float(v) for v in value.strip("[]").split(",")]
@@ -53,3 +55,57 @@ def test_a_full_step_fits_one_control_period():
     speed = const("vStep")  # v_tcp mm/s, v_ori deg/s
     assert const("STEP_POS_MM") / speed[0] <= CONTROL_PERIOD_S
     assert const("STEP_ROT_DEG") / speed[1] <= CONTROL_PERIOD_S
+
+
+def code(name: str) -> str:
+    """A module's text without its comments."""
+    return re.sub(r"!.*", "", RAPID.joinpath(name).read_text())
+
+
+SOCKET_API = r"\b(socketdev|Socket\w+|ERR_SOCK_\w+)\b"
+WORLD_ZONES = r"\b(WZ\w+|wztemporary|wzstationary|shapedata)\b"
+
+
+@pytest.mark.parametrize(
+    "name, socket_api, world_zones",
+    [
+        ("IRB120Server.mod", False, False),
+        ("IRB120Serial.mod", False, False),
+        ("IRB120Socket.mod", True, False),
+        ("IRB120Zone.sys", False, True),
+    ],
+)
+def test_each_file_names_only_its_options(name, socket_api, world_zones):
+    """A controller resolves every name when a module loads: the socket API needs 616-1 or 672-1, world zones
+    608-1. Core + serial must load on a controller with neither."""
+    text = code(name)
+    assert bool(re.search(SOCKET_API, text, re.IGNORECASE)) == socket_api
+    assert bool(re.search(WORLD_ZONES, text, re.IGNORECASE)) == world_zones
+
+
+HOOKS = {"irb120chanopen", "irb120chanread", "irb120chanwrite", "irb120channewpeer", "irb120chanreopen"}
+
+
+def global_names(name: str) -> set[str]:
+    """Module-level data and routines not declared LOCAL."""
+    text = code(name)
+    routines = re.findall(r"^\s*(?!LOCAL)(?:PROC|FUNC\s+\w+|TRAP)\s+(\w+)", text, re.IGNORECASE | re.MULTILINE)
+    data = re.findall(r"^\s{4}(?!LOCAL)(?:VAR|PERS|CONST)\s+\w+\s+(\w+)", text, re.IGNORECASE | re.MULTILINE)
+    return {n.lower() for n in routines + data}
+
+
+def test_only_the_entry_and_the_hooks_are_global():
+    """Names are global to a task unless LOCAL: beside the stock MainModule (its main) and other modules, ours add
+    one entry routine, the channel hooks and the zone's event routine, nothing else."""
+    assert global_names("IRB120Server.mod") == {"irb120server"}
+    assert global_names("IRB120Serial.mod") == HOOKS
+    assert global_names("IRB120Socket.mod") == HOOKS
+    assert global_names("IRB120Zone.sys") == {"irb120zonepoweron"}
+    assert not re.search(r"\bPROC\s+main\b", "".join(code(f) for f in FILES), re.IGNORECASE)
+
+
+def test_world_zone_lies_just_outside_the_workspace():
+    zone = RAPID.joinpath("IRB120Zone.sys").read_text()
+    margin = const("ZONE_MARGIN_MM", zone)
+    np.testing.assert_allclose(const("ZONE_LOW", zone), np.asarray(const("WORKSPACE_LOW")) - margin)
+    np.testing.assert_allclose(const("ZONE_HIGH", zone), np.asarray(const("WORKSPACE_HIGH")) + margin)

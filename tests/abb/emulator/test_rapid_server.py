@@ -1,7 +1,7 @@
-"""Pieces of the shipped RAPID server module (assets/rapid/IRB120Server.mod) executed by our RAPID interpreter:
-it parses, its CRC matches the protocol's on every shared test vector, it decodes command payloads, and the
-state reply it builds decodes in Python to the state it was given. (The full server loop runs in the
-controller emulator.)"""
+"""Pieces of the shipped RAPID server (assets/rapid/IRB120Server.mod, loaded with its serial channel module as on
+a licence-free controller) executed by our RAPID interpreter: it parses, its CRC matches the protocol's on every
+shared test vector, it decodes command payloads, and the state reply it builds decodes in Python to the state it
+was given, with a reply type that fits a byte. (The full server loop runs in the controller emulator.)"""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from maniskill_irb120.abb.emulator.rapid import Builtins, Interpreter, make_valu
 from maniskill_irb120.abb.protocol import FrameParser, MsgType, Status, decode_reply
 
 ASSETS = resources.files("maniskill_irb120.assets").joinpath("rapid")
-SOURCE = ASSETS.joinpath("IRB120Server.mod").read_text()
+SOURCE = ASSETS.joinpath("IRB120Server.mod").read_text() + "\n" + ASSETS.joinpath("IRB120Serial.mod").read_text()
 VECTORS = json.loads(ASSETS.joinpath("protocol_vectors.json").read_text())["frames"]
 
 
@@ -69,3 +69,12 @@ def test_rapid_reply_decodes_to_the_state(quat):
     assert [round(v * 1000, 2) for v in state.target_pos] == [412.35, -101.2, 88.05]
     assert abs(sum(a * b for a, b in zip(state.target_quat, quat))) > 1 - 1e-8
     assert state.gripper_open and state.status == Status.HELD and state.error == 2
+
+
+@pytest.mark.parametrize("kind", [1, 2, 3, 4, 5, 6, 0x7F])
+def test_rapid_reply_type_fits_a_byte(kind):
+    """Finding 1's root: ``tx{3} := 128 + kind`` overflowed a byte for kinds >= 0x80; those frames are dropped
+    before a reply is built, and the reply type is built so it cannot overflow whatever the kind."""
+    interp = server()
+    interp.call("BuildReply", kind, 3)
+    assert int(interp.get("tx")[2]) == 0x80 | kind

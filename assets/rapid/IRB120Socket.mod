@@ -1,0 +1,89 @@
+MODULE IRB120Socket
+    !
+    ! The TCP channel of the maniskill_irb120 RAPID server (IRB120Server.mod): one client at a time on
+    ! SOCK_ADDRESS:SOCK_PORT. Needs RobotWare option 616-1 PC Interface or 672-1 Socket Messaging (the socket
+    ! API's names are resolved when the module loads). Load it beside IRB120Server.mod, never together with
+    ! IRB120Serial.mod (both provide the same routines).
+    !
+    ! Global (called by IRB120Server.mod): IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite, IRB120ChanNewPeer,
+    ! IRB120ChanReopen. Everything else is LOCAL.
+    !
+    ! The client is on one of two sockets (sockCur): a new client that connects while the current one is silent
+    ! (a PC that crashed without closing: a half-open connection only times out) is accepted on the other one.
+    LOCAL CONST string SOCK_ADDRESS := "192.168.125.1";
+    LOCAL CONST num SOCK_PORT := 5000;
+    ! how long IRB120ChanNewPeer waits for a new client (s)
+    LOCAL CONST num SOCK_POLL_S := 0.1;
+    LOCAL VAR socketdev sockListen;
+    LOCAL VAR socketdev sockA;
+    LOCAL VAR socketdev sockB;
+    LOCAL VAR num sockCur := 1;
+    LOCAL VAR bool sockPending := FALSE;
+
+    PROC IRB120ChanOpen()
+        SocketCreate sockListen;
+        SocketBind sockListen, SOCK_ADDRESS, SOCK_PORT;
+        SocketListen sockListen;
+        sockCur := 1;
+        sockPending := FALSE;
+        SocketAccept sockListen, sockA\Time:=WAIT_MAX;
+    ENDPROC
+
+    FUNC num IRB120ChanRead(num timeout)
+        ! the next byte; -1 when none came within timeout seconds; -2 when the client closed the connection
+        VAR byte one{1};
+        IF sockCur = 1 THEN
+            SocketReceive sockA\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
+        ELSE
+            SocketReceive sockB\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
+        ENDIF
+        RETURN one{1};
+    ERROR
+        IF ERRNO = ERR_SOCK_TIMEOUT RETURN -1;
+        IF ERRNO = ERR_SOCK_CLOSED RETURN -2;
+        RAISE;
+    ENDFUNC
+
+    FUNC bool IRB120ChanWrite(byte data{*}, num count)
+        ! the first count bytes of data; FALSE when the client is gone
+        IF sockCur = 1 THEN
+            SocketSend sockA\Data:=data\NoOfBytes:=count;
+        ELSE
+            SocketSend sockB\Data:=data\NoOfBytes:=count;
+        ENDIF
+        RETURN TRUE;
+    ERROR
+        IF ERRNO = ERR_SOCK_CLOSED RETURN FALSE;
+        RAISE;
+    ENDFUNC
+
+    FUNC bool IRB120ChanNewPeer()
+        ! a new client is waiting? (accepted on the spare socket; IRB120ChanReopen serves it)
+        IF NOT sockPending THEN
+            IF sockCur = 1 THEN
+                SocketAccept sockListen, sockB\Time:=SOCK_POLL_S;
+            ELSE
+                SocketAccept sockListen, sockA\Time:=SOCK_POLL_S;
+            ENDIF
+            sockPending := TRUE;
+        ENDIF
+        RETURN TRUE;
+    ERROR
+        IF ERRNO = ERR_SOCK_TIMEOUT RETURN FALSE;
+        RAISE;
+    ENDFUNC
+
+    PROC IRB120ChanReopen()
+        ! drop the current client; serve the one waiting, or wait for the next
+        IF sockCur = 1 THEN
+            SocketClose sockA;
+            IF NOT sockPending SocketAccept sockListen, sockB\Time:=WAIT_MAX;
+            sockCur := 2;
+        ELSE
+            SocketClose sockB;
+            IF NOT sockPending SocketAccept sockListen, sockA\Time:=WAIT_MAX;
+            sockCur := 1;
+        ENDIF
+        sockPending := FALSE;
+    ENDPROC
+ENDMODULE
