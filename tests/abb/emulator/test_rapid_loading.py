@@ -279,3 +279,31 @@ def test_cli_options(controller, tmp_path, capsys):
     assert "RAPID module not loaded: module Zones, line 2: wztemporary needs" in capsys.readouterr().out
     assert main(["emulator", "--rapid", str(rapid), "--options", "616-1,608-1"]) == 0
     assert capsys.readouterr().out.startswith("tcp://127.0.0.1:")
+
+
+@pytest.mark.parametrize(
+    "channel, options, loads",
+    [
+        ("serial", (), True),  # the licence-free controller the serial build is for
+        ("tcp", (), False),  # the socket module needs 616-1 or 672-1
+        ("tcp", ("672-1",), True),
+        ("serial", ("608-1",), True),  # with World Zones the zone system module loads too
+    ],
+)
+def test_the_shipped_server_loads_beside_the_stock_main_module_with_exactly_its_options(
+    controller, channel, options, loads
+):
+    """The option matrix of the shipped files (docs/deploy_irc5.md), loaded as an integrator loads them next to a new
+    task's stock MainModule: what loads serves a STATE request; what does not names the missing option."""
+    from maniskill_irb120.abb.client import ABBRobot
+
+    if not loads:
+        with pytest.raises(RapidLoadError, match="616-1 PC Interface or 672-1 Socket Messaging"):
+            controller.ControllerEmulator(channel, options=options, extra_modules=[controller.STOCK_MAIN_MODULE])
+        return
+    emu = controller.ControllerEmulator(channel, options=options, extra_modules=[controller.STOCK_MAIN_MODULE])
+    assert ("IRB120Zone" in emu.interp.module_names) == ("608-1" in options)
+    with ABBRobot.connect(emu.start(), timeout=1.0) as robot:
+        assert len(robot.state().joints) == 6
+    emu.stop()
+    assert emu.error is None
