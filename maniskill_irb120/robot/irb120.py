@@ -31,7 +31,7 @@ GRIPPER_JOINTS = ["finger_left_joint", "finger_right_joint"]
 
 # Hand camera per the original report: eye 3 cm behind and 2 cm above the TCP, looking along the approach axis.
 # SAPIEN cameras look along their local +x with +z up, which is exactly the TCP frame's convention.
-# Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see rendering.py).
+# Shaded by our one-pass pack (same images as ManiSkill's "minimal", cheaper on a CPU; see shaders.py).
 HAND_CAMERA = dict(offset=(-0.03, 0.0, 0.02), width=84, height=84, fov=math.pi / 2, near=0.001, far=2.0, shader=FORWARD)
 
 

@@ -8,7 +8,7 @@ What it changes in ManiSkill's class, and why:
   observation a step returns shows that step's motion (ManiSkill's class sleeps before sending).
 - ``get_info``: Sim2RealEnv reports only ``elapsed_steps``. Ours adds what the tasks' observations need
   (``grasped``, the TCP pose) and, with a digital ``world`` (the emulator's twin), the twin's evaluation:
-  success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real_eval``).
+  success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real.eval``).
 - ``reset`` restarts the step count (ManiSkill's never does: its time limit then cuts later episodes short).
 - The task's observations read ``step_state`` and ``tcp_pose`` (envs/base.py), which ``get_info`` fills here:
   the TCP pose is the FK of the joints the robot reported, the object poses are the world's
