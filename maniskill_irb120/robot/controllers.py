@@ -194,13 +194,25 @@ class BinaryGripperControllerConfig(PDJointPosControllerConfig):
     controller_cls = BinaryGripperController
 
 
-class PartialResetPDJointPosController(PartialResetControllerMixin, PDJointPosController):
-    """ManiSkill's joint position controller, resetting only the envs being reset."""
+def partial_reset_pd_joint_pos_controller(config, *args, **kwargs) -> PDJointPosController:
+    """ManiSkill's joint position controller, resetting only the envs being reset (what
+    :class:`PartialResetControllerMixin` does), bound to the instance rather than subclassed: ManiSkill's
+    replay tool converts ``pd_joint_pos`` demos to ``pd_joint_delta_pos`` only for a controller whose type is
+    exactly ``PDJointPosController`` (``qpos_to_pd_joint_delta_pos`` asserts it)."""
+    ctrl = PDJointPosController(config, *args, **kwargs)
+    full_reset = ctrl.reset
+
+    def reset() -> None:
+        with true_reset_mask(ctrl.scene):
+            full_reset()
+
+    ctrl.reset = reset
+    return ctrl
 
 
 @dataclass
 class PartialResetPDJointPosControllerConfig(PDJointPosControllerConfig):
-    controller_cls = PartialResetPDJointPosController
+    controller_cls = staticmethod(partial_reset_pd_joint_pos_controller)
 
 
 class PartialResetPDEEPoseController(PartialResetControllerMixin, PDEEPoseController):
