@@ -29,8 +29,11 @@ def collect_demos(
     keep_failures: bool = False,
     save_video: bool = False,
     object_shape: str = "cube",
+    control_mode: str = "pd_ee_delta_tool",
 ) -> int:
-    """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json)."""
+    """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json). ``--control-mode
+    pd_joint_pos`` records the joint targets the expert's tool actions command, which ManiSkill's replay tool
+    converts to its other modes (``-c pd_joint_delta_pos``, ``-c pd_ee_delta_pose``)."""
     from maniskill_irb120.experts.demos import collect_demos as collect
 
     print(
@@ -44,6 +47,7 @@ def collect_demos(
                 not keep_failures,
                 save_video,
                 env_id=env_id,
+                control_mode=control_mode,
                 object_shape=object_shape,
             )
         )
