@@ -87,6 +87,7 @@ def emulator(
     latency_ms: float = 0.0,
     speed_scale: float = 1.0,
     options: str | None = None,
+    op_mode: str = "manual_reduced",
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -95,7 +96,10 @@ def emulator(
     Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
     faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop). ``--options
     616-1,608-1``: the RobotWare options the emulated controller has (``""``: none); a module that names anything
-    of a missing option is refused as the IRC5 refuses it: the load error is printed and the exit status is 1."""
+    of a missing option is refused as the IRC5 refuses it: the load error is printed and the exit status is 1.
+    ``--op-mode auto``: the key switch (``manual_reduced``, the default; ``auto``; ``manual_full``), what the
+    program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO."""
+    from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
 
@@ -105,7 +109,10 @@ def emulator(
         except ValueError as e:
             print(f"--options: {e}", file=sys.stderr)
             return 2
-    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options)
+    if op_mode not in OP_MODE_NAMES:
+        print(f"--op-mode {op_mode!r}: use one of {sorted(OP_MODE_NAMES)}", file=sys.stderr)
+        return 2
+    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode)
 
 
 def sim2real_eval(

@@ -13,7 +13,8 @@ MODULE IRB120Server
     !
     ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
     ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
-    ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed. A heartbeat
+    ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed, the operating mode
+    ! (motion only in manual reduced speed unless ALLOW_AUTO). A heartbeat
     ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves.
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
@@ -40,10 +41,21 @@ MODULE IRB120Server
     ! The TCP of the MetalWork gripper, 57 mm out of the flange; its x axis (the approach axis of the
     ! action space) is tool0's z axis, its z axis (camera side) is tool0's -x axis.
     LOCAL PERS tooldata tGripper := [TRUE, [[0, 0, 57], [0.707107, 0, -0.707107, 0]], [0.6, [0, 0, 30], [1, 0, 0, 0], 0, 0, 0]];
-    ! A full step (10 mm or 10 deg) at 250 mm/s and 250 deg/s takes 40 ms, inside the 50 ms control period;
+    ! A full step (10 mm or 10 deg) at vFull (250 mm/s and 250 deg/s) takes 40 ms, inside the 50 ms control period;
     ! zone z1 lets consecutive steps blend, so the program answers as soon as the step is planned.
-    LOCAL CONST speeddata vStep := [250, 250, 5000, 1000];
+    LOCAL CONST speeddata vFull := [250, 250, 5000, 1000];
+    ! Every motion runs at SPEED_PERCENT of vFull (TCP and reorientation speed). For the first runs of a cell set
+    ! it to 50: a full step then takes 80 ms and the robot lags the policy rather than keeping up with it; back to
+    ! 100 once the cell has been proven (docs/deploy_irc5.md).
+    LOCAL CONST num SPEED_PERCENT := 100;
+    LOCAL VAR speeddata vStep;
     LOCAL CONST zonedata zStep := z1;
+    !
+    ! Motion only in manual reduced speed (OpMode() = OP_MAN_PROG: TCP at most 250 mm/s, the operator holding the
+    ! enabling device): in OP_AUTO or OP_MAN_TEST (manual full speed) every motion command is refused with
+    ! E_OPERATING_MODE, so a policy never runs unattended by default. An integrator sets this TRUE deliberately, after
+    ! a risk assessment of the cell for unattended operation (docs/deploy_irc5.md).
+    LOCAL CONST bool ALLOW_AUTO := FALSE;
     !
     ! ---------------------------------------------------------------- protocol constants
     LOCAL CONST num SYNC := 165;
@@ -70,6 +82,7 @@ MODULE IRB120Server
     LOCAL CONST num E_MOTORS_OFF := 8;
     LOCAL CONST num E_ESTOP := 9;
     LOCAL CONST num E_JOINT_SPEED := 10;
+    LOCAL CONST num E_OPERATING_MODE := 11;
     !
     ! ---------------------------------------------------------------- state
     LOCAL VAR signaldo doGripper;
@@ -109,6 +122,9 @@ MODULE IRB120Server
         AliasIO ESTOP_SIGNAL, doEstop;
         ConfL\Off;
         SingArea\Wrist;
+        vStep := vFull;
+        vStep.v_tcp := vFull.v_tcp * SPEED_PERCENT / 100;
+        vStep.v_ori := vFull.v_ori * SPEED_PERCENT / 100;
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
         IRB120ChanOpen;
         NewSession;
@@ -302,6 +318,8 @@ MODULE IRB120Server
         IF kind = T_STATE OR kind = T_STOP RETURN E_OK;
         IF DOutput(doEstop) = 1 RETURN E_ESTOP;
         IF DOutput(doMotors) = 0 RETURN E_MOTORS_OFF;
+        ! read before every motion command: the key switch can turn at any time
+        IF NOT ALLOW_AUTO AND OpMode() <> OP_MAN_PROG RETURN E_OPERATING_MODE;
         IF watchdogFired THEN
             ! the PC must learn that the robot was stopped: this command is refused, the next one runs
             watchdogFired := FALSE;
@@ -325,6 +343,11 @@ MODULE IRB120Server
         rot := Int16At(10) / 1000;
         IF Abs(dx) > STEP_POS_MM OR Abs(dy) > STEP_POS_MM OR Abs(dz) > STEP_POS_MM OR Abs(rot) > STEP_ROT_DEG THEN
             refusal := E_STEP_LIMIT;
+            RETURN;
+        ENDIF
+        IF dx = 0 AND dy = 0 AND dz = 0 AND rot = 0 THEN
+            ! a zero-length step moves nothing: answered without queuing a motion (the gripper still as asked)
+            IF rx{12} <> 2 SetGripper rx{12};
             RETURN;
         ENDIF
         here := CRobT(\Tool:=tGripper\WObj:=wobj0);

@@ -57,6 +57,18 @@ class RobotTimeout(RobotError):
     pass
 
 
+class ControllerStopped(RobotTimeout):
+    """A motion command (tool step, joints, gripper) got no valid reply: the controller most likely stopped
+    (emergency stop, motors off, enabling device released, program stopped), not just a slow line."""
+
+
+STOPPED_HINT = (
+    "the controller stopped answering after a command: check the pendant "
+    "(emergency stop, motors off, enabling device, program stopped)"
+)
+MOTION_TYPES = (MsgType.TOOL_STEP, MsgType.JOINTS, MsgType.GRIPPER)
+
+
 class RobotDisconnected(RobotError):
     pass
 
@@ -183,10 +195,13 @@ class ABBRobot:
             if state is not None:
                 return self._checked(state)
         corrupt = self.parser.bad_frames - bad_before
-        raise RobotTimeout(
+        detail = (
             f"no valid reply to {type(msg).__name__} (seq {self.seq}) within {self.timeout:.2f} s, "
             f"{1 + self.retries} attempts" + (f"; {corrupt} corrupted frames were discarded" if corrupt else "")
         )
+        if msg.TYPE in MOTION_TYPES:  # silence after a command: most likely a stopped controller, not a slow line
+            raise ControllerStopped(f"{STOPPED_HINT}: {detail}")
+        raise RobotTimeout(detail)
 
     def _await_reply(self, want: int, seq: int) -> RobotState | None:
         deadline = time.monotonic() + self.timeout

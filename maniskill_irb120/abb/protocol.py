@@ -53,6 +53,7 @@ class ErrorCode(IntEnum):
     MOTORS_OFF = 8
     ESTOP = 9
     JOINT_SPEED = 10
+    OPERATING_MODE = 11
 
 
 ERROR_MEANINGS = {
@@ -68,6 +69,8 @@ ERROR_MEANINGS = {
     ErrorCode.MOTORS_OFF: "refused: motors are off (controller error)",
     ErrorCode.ESTOP: "refused: emergency stop is active",
     ErrorCode.JOINT_SPEED: "refused: a joint would move more than its per-step limit",
+    ErrorCode.OPERATING_MODE: "refused: the controller is not in manual reduced speed (set the key switch to manual, "
+    "or ALLOW_AUTO after a risk assessment)",
 }
 
 

@@ -14,7 +14,14 @@ import pytest
 
 pytest.importorskip("serial")
 
-from maniskill_irb120.abb.client import ABBRobot, ControllerRefused, RobotError, RobotTimeout, open_port  # noqa: E402
+from maniskill_irb120.abb.client import (  # noqa: E402
+    ABBRobot,
+    ControllerRefused,
+    ControllerStopped,
+    RobotError,
+    RobotTimeout,
+    open_port,
+)
 from maniskill_irb120.abb.envelope import Envelope, EnvelopeError  # noqa: E402
 from maniskill_irb120.abb.protocol import (  # noqa: E402
     ErrorCode,
@@ -127,6 +134,20 @@ def test_timeout_names_the_command_and_the_connection_stays_usable(pty_pair):
         robot.move_tool([0.1, 0, 0, 0, 1])
     assert robot.state().status == Status.IDLE  # next command, next number
     assert peer.executed == [1, 2, 3]
+    robot.port.close()
+
+
+def test_silence_after_a_motion_command_says_check_the_pendant(pty_pair):
+    """A motion command met by silence reads as a stopped controller (emergency stop, enabling device, program
+    stopped: the issue's client finding), a subclass of RobotTimeout; a silent STATE read keeps the plain timeout."""
+    start, url = pty_pair
+    start(faults={k: "drop" for k in range(2, 8)})
+    robot = ABBRobot.connect(url, timeout=0.05, retries=2)
+    with pytest.raises(ControllerStopped, match=r"check the pendant .*enabling device.*ToolStep \(seq 2\).*3 attempts"):
+        robot.move_tool([0.1, 0, 0, 0, 1])
+    with pytest.raises(RobotTimeout) as e:
+        robot.state()
+    assert not isinstance(e.value, ControllerStopped) and "pendant" not in str(e.value)
     robot.port.close()
 
 

@@ -35,6 +35,7 @@ from maniskill_irb120.abb.emulator.rapid import (
     make_value,
     parse_options,
 )
+from maniskill_irb120.abb.emulator.rapid.stdlib import OP_MODES
 from maniskill_irb120.abb.emulator.robot import EmulatedIRB120, MotionError, interpolate_pose, rel_tool
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
 from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
@@ -74,6 +75,10 @@ STOCK_MAIN_MODULE = """MODULE MainModule
     ENDPROC
 ENDMODULE
 """
+
+# The key switch: what OpMode() returns in each operating mode (ABB's OpMode: OP_AUTO, OP_MAN_PROG = manual reduced
+# speed, TCP at most 250 mm/s with the enabling device held, OP_MAN_TEST = manual full speed)
+OP_MODE_NAMES = {"manual_reduced": "OP_MAN_PROG", "auto": "OP_AUTO", "manual_full": "OP_MAN_TEST"}
 
 # What each channel's build needs at the least (docs/deploy_irc5.md): serial, nothing (a licence-free controller);
 # tcp, the socket API of 616-1 PC Interface (or 672-1 Socket Messaging).
@@ -186,7 +191,9 @@ class ControllerEmulator:
     licence-free controller; tcp: 616-1 PC Interface). The task is refused at load time (:class:`RapidLoadError`)
     if a module names anything of a missing option. ``zone``: load the world-zone system module (None: when
     608-1 World Zones is installed). ``extra_modules``: RAPID texts loaded into the same task (e.g.
-    :data:`STOCK_MAIN_MODULE`); ``entry``: the PROC the program starts at (the task's main entry)."""
+    :data:`STOCK_MAIN_MODULE`); ``entry``: the PROC the program starts at (the task's main entry). ``op_mode``:
+    the key switch (:data:`OP_MODE_NAMES`), what ``OpMode()`` returns; set :attr:`op_mode` to turn it while the
+    program runs."""
 
     def __init__(
         self,
@@ -202,6 +209,7 @@ class ControllerEmulator:
         zone: bool | None = None,
         extra_modules: tuple[str, ...] | list[str] = (),
         entry: str = ENTRY,
+        op_mode: str = "manual_reduced",
     ):
         if channel not in CHANNEL_MODULES:
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
@@ -217,6 +225,7 @@ class ControllerEmulator:
         if not (math.isfinite(speed_scale) and speed_scale > 0):
             raise ValueError(f"speed_scale={speed_scale!r}: a positive factor on the robot's speed")
         self.baud = baud
+        self.op_mode = op_mode
         self.channel_kind, self.port = channel, port
         self.zone = zone
         source = server_source(channel, rapid, zone)
@@ -233,6 +242,17 @@ class ControllerEmulator:
         self._slave: int | None = None
         self._listening = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
+
+    @property
+    def op_mode(self) -> str:
+        """The key switch: ``manual_reduced``, ``auto`` or ``manual_full``; settable while the program runs."""
+        return self._op_mode
+
+    @op_mode.setter
+    def op_mode(self, mode: str) -> None:
+        if mode not in OP_MODE_NAMES:
+            raise ValueError(f"op_mode={mode!r}: use one of {sorted(OP_MODE_NAMES)}")
+        self._op_mode = mode
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> str:
@@ -353,6 +373,7 @@ class ControllerEmulator:
         reg.add("AliasIO", lambda name, signal: setattr(signal, "value", name))
         reg.add("SetDO", lambda signal, value: sig.__setitem__(signal.value, int(value)))
         reg.add("DOutput", lambda signal: sig.get(signal.value, 0))
+        reg.add("OpMode", lambda: float(OP_MODES[OP_MODE_NAMES[self.op_mode]]))
 
         def wz_box(shape, low, high, Inside=False, Outside=False):
             shape.value = (np.array([low.x, low.y, low.z]) / 1000, np.array([high.x, high.y, high.z]) / 1000)
@@ -435,10 +456,12 @@ def main(
     latency_ms: float = 0.0,
     speed_scale: float = 1.0,
     options: str | None = None,
+    op_mode: str = "manual_reduced",
 ) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line. ``options``:
-    installed RobotWare option ids, comma-separated (``""``: none; None: :data:`CHANNEL_OPTIONS`). A module
-    the controller would refuse to load prints the load error and returns 1."""
+    installed RobotWare option ids, comma-separated (``""``: none; None: :data:`CHANNEL_OPTIONS`). ``op_mode``:
+    the key switch (:data:`OP_MODE_NAMES`). A module the controller would refuse to load prints the load error
+    and returns 1."""
     opts = None if options is None else parse_options(options)  # ValueError names an unknown id
     u = urlparse(listen)
     try:
@@ -451,6 +474,7 @@ def main(
                 latency_ms=latency_ms,
                 speed_scale=speed_scale,
                 options=opts,
+                op_mode=op_mode,
             )
         elif u.scheme == "serial":
             baud = parse_qs(u.query).get("baudrate")
@@ -462,6 +486,7 @@ def main(
                 latency_ms=latency_ms,
                 speed_scale=speed_scale,
                 options=opts,
+                op_mode=op_mode,
             )
         else:
             raise ValueError(

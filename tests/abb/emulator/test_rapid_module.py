@@ -52,9 +52,10 @@ def test_protocol_constants_match():
 
 
 def test_a_full_step_fits_one_control_period():
-    speed = const("vStep")  # v_tcp mm/s, v_ori deg/s
+    speed = const("vFull")  # v_tcp mm/s, v_ori deg/s: the speed with SPEED_PERCENT at 100
     assert const("STEP_POS_MM") / speed[0] <= CONTROL_PERIOD_S
     assert const("STEP_ROT_DEG") / speed[1] <= CONTROL_PERIOD_S
+    assert 0 < const("SPEED_PERCENT") <= 100  # first runs: a fraction of it (docs/deploy_irc5.md)
 
 
 def code(name: str) -> str:

@@ -318,9 +318,13 @@ _ZONES = {0: (0.3, 0.3, 0.3, 0.03, 0.3, 0.03), 1: (1, 1, 1, 0.1, 1, 0.1)} | {
 _ZONES.update({5: (5, 8, 8, 0.8, 8, 0.8), 15: (15, 23, 23, 2.3, 23, 2.3), 150: (150, 225, 225, 23, 225, 23)})
 
 
+# OpMode()'s symnum values (ABB, RAPID Instructions, Functions and Data types: OpMode, symnum)
+OP_MODES = {"OP_UNDEF": 0, "OP_AUTO": 1, "OP_MAN_PROG": 2, "OP_MAN_TEST": 3}
+
+
 def system_data() -> dict[str, Any]:
     """Predefined data (lower-case names): speeds v5..v7000, vmax, zones fine/z0..z200, tool0, wobj0, load0,
-    pi, the ERR_* codes and the \\IntX constants (USINT ... LINT)."""
+    pi, the ERR_* codes, the OP_* operating modes and the \\IntX constants (USINT ... LINT)."""
     data: dict[str, Any] = {f"v{v}": assign_like(default_value("speeddata"), _speed(v)) for v in _SPEEDS}
     data.update({f"v{v}": assign_like(default_value("speeddata"), _speed(v)) for v in (4000, 5000, 6000, 7000)})
     data["vmax"] = assign_like(default_value("speeddata"), _speed(7000))
@@ -332,6 +336,7 @@ def system_data() -> dict[str, Any]:
     data["wobj0"] = assign_like(default_value("wobjdata"), [False, True, "", _POSE0, _POSE0])
     data["pi"] = math.pi
     data["wait_max"] = 8388608.0  # ABB's "wait forever" \Time value
+    data.update({k.lower(): float(v) for k, v in OP_MODES.items()})
     data.update({k.lower(): float(v) for k, v in ERROR_CODES.items()})
     data.update({k.lower(): float(v) for k, v in INTX.items()})
     return data
