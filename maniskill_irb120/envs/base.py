@@ -44,6 +44,11 @@ from maniskill_irb120.robot.irb120 import IRB120Metalwork
 # whose PPO examples pass no reward_mode; TableClearing's original reward (-1000 per collision) is reward_mode="dense"
 REWARD_MODES = ["normalized_dense", "dense", "sparse", "none"]
 
+REACH_SCALE = 3.0
+"""k of the staged rewards' reach term 1 - tanh(k·d). ManiSkill uses 5; here the TCP starts 0.3-0.35 m from the
+object, where 5 is nearly flat (slope 0.6 per m at 0.35 m); 3 doubles the slope there (1.2 per m; the
+largest slope at the start is k·d ≈ 0.8) and still gives 3 per m at the object."""
+
 
 class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     """Base of the IRB 120 table tasks. Subclasses implement ManiSkill's ``_load_scene``,
@@ -293,7 +298,12 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     """The object the expert picks and auxiliary losses look at (set in ``_load_scene``)."""
 
     MAX_STAGED_REWARD = 4.0
-    """The staged dense reward's value on success: ``normalized_dense`` = staged reward / this."""
+    """The staged dense reward's value on success: ``normalized_dense`` = staged reward / this. The staged
+    rewards are banded: stage k (0 = reach) pays k + progress with progress in [0, 1), so each stage's
+    maximum is below the next stage's minimum and ``floor(dense)`` is the stage; success pays 4 (1 normalised),
+    more per step than any other state. Success ends the episode: as in ManiSkill, a learner should treat it
+    as an absorbing state of reward 1 per step (bootstrap the value at success, as ``agents/ppo.py`` does, or
+    ``ignore_terminations``); returns cut at success favour stalling in a late stage."""
 
     step_state: dict[str, torch.Tensor]
     """This step's poses, read once in ``evaluate`` (:meth:`_read_step_state`): :meth:`privileged_state`'s
@@ -379,6 +389,11 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         """ManiSkill's (which goes through ``set_state_dict`` without the controller part), plus that part."""
         super().set_state(state, env_idx)
         restore_controller_state(self, state, env_idx)
+
+
+def reach_reward(dist: torch.Tensor) -> torch.Tensor:
+    """(N,) reach term of the staged rewards, 1 - tanh(REACH_SCALE · dist), in (0, 1] (dist: (N,) metres)."""
+    return 1 - torch.tanh(REACH_SCALE * dist)
 
 
 def yaw_quat(yaw: torch.Tensor) -> torch.Tensor:

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
 
 ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
@@ -28,9 +28,18 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     (consecutive control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20),
     ``fail`` = ``collided`` (a robot link but the base pushes on the table, a tray or the floor).
 
-    **Rewards:** ``dense`` is staged in [0, 4]: reach (1 - tanh(5·TCP-object distance), 1 once grasped), +1
-    grasped, + lift fraction (height / 10 cm, capped) while grasped, + hold fraction while holding; 4 on
-    success, 0 on a collision. ``normalized_dense`` (default) = dense / 4; ``sparse`` = success.
+    **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.
+    Each stage's band lies above the last (``floor(dense)`` is the stage; envs/base.py ``MAX_STAGED_REWARD``):
+
+    =====  ===========================  =============================================  ========
+    stage  state                        dense                                          range
+    =====  ===========================  =============================================  ========
+    0      not grasped                  1 - tanh(3·TCP-object distance)                [0, 1)
+    1      grasped, below 10 cm         1 + height / 10 cm                             [1, 2)
+    2      grasped and lifted           2 + hold_steps / 20 (0 while it moves)         [2, 3)
+    4      success                      4                                              4
+    -      collision                    0                                              0
+    =====  ===========================  =============================================  ========
 
     **Episode length:** 150 steps (the scripted expert needs 60).
     """
@@ -80,10 +89,11 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        grasped = info["grasped"].float()
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(self.step_state["obj_pose"][:, :3] - self.tcp_pose[:, :3], dim=1))
+        """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
+        reach = reach_reward(torch.linalg.norm(self.step_state["obj_pose"][:, :3] - self.tcp_pose[:, :3], dim=1))
         lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
         hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
-        reward = torch.where(info["grasped"], 1.0, reach) + grasped * (1 + lift + hold)
+        reward = torch.where(info["lifted"], 2 + hold, 1 + lift)
+        reward = torch.where(info["grasped"], reward, reach.clamp(max=0.999))
         reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         return torch.where(info["fail"], 0.0, reward)

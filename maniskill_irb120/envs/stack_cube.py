@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
 from maniskill_irb120.envs.scene import TRAY_INNER
 
 ENV_ID = "StackCube-IRB120-v1"
@@ -32,9 +32,22 @@ class StackCubeIRB120Env(IRB120TableEnv):
     its top face), ``released`` (no finger touches cube_a), ``still`` (both slower than 2 cm/s),
     ``success`` = stacked & released & still, ``fail`` = ``collided``.
 
-    **Rewards:** ``dense`` in [0, 4]: reach cube_a, +1 grasped, + closeness of cube_a to its place on cube_b
-    while grasped, +1 stacked and released; 4 on success, 0 on a collision. ``normalized_dense`` (default) =
-    dense / 4; ``sparse`` = success.
+    **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.
+    Each stage's band lies above the last (``floor(dense)`` is the stage; envs/base.py ``MAX_STAGED_REWARD``):
+
+    =====  ==============================  ===========================================  ==========
+    stage  state                           dense                                        range
+    =====  ==============================  ===========================================  ==========
+    0      cube_a not grasped              1 - tanh(3·TCP-cube_a distance)              [0, 1)
+    1      grasped                         1 + 1 - tanh(3·cube_a-place distance)        [1, 2)
+    2      stacked, fingers on cube_a      2 held, 2.5 opening                          [2, 2.5]
+    3      stacked, released, not still    3                                            3
+    4      success                         4                                            4
+    -      collision                       0                                            0
+    =====  ==============================  ===========================================  ==========
+
+    Opening the gripper on cube_b pays more than holding there (ManiSkill's ungrasp term), so letting go is
+    never a step down.
 
     **Episode length:** 200 steps (the scripted expert needs about 47; placing by a learner takes longer).
     """
@@ -97,16 +110,16 @@ class StackCubeIRB120Env(IRB120TableEnv):
         )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
+        """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
         a_p = self.step_state["cube_a_pose"][:, :3]
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(a_p - self.tcp_pose[:, :3], dim=1))
-        place = 1 - torch.tanh(
-            5 * torch.linalg.norm(place_on(self.step_state["cube_b_pose"], self.object_half_size) - a_p, dim=1)
-        )
-        grasped = info["grasped"].float()
-        reward = torch.where(info["grasped"] | info["stacked"], 1.0, reach) + grasped * (1 + place)
-        reward = reward + (info["stacked"] & info["released"]).float() * 3.0  # as if reach, grasp, place held
-        top = self.MAX_STAGED_REWARD
-        reward = torch.where(info["success"], top, reward.clamp(max=top))
+        reach = reach_reward(torch.linalg.norm(a_p - self.tcp_pose[:, :3], dim=1)).clamp(max=0.999)
+        goal = place_on(self.step_state["cube_b_pose"], self.object_half_size)
+        place = reach_reward(torch.linalg.norm(goal - a_p, dim=1)).clamp(max=0.999)
+        # on cube_b: held 2, opening (touched, not squeezed) 2.5, released 3 (and still: success)
+        on_b = torch.where(info["released"], 3.0, 2 + 0.5 * (~info["grasped"]).float())
+        reward = torch.where(info["grasped"], 1 + place, reach)
+        reward = torch.where(info["stacked"], on_b, reward)
+        reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         return torch.where(info["fail"], 0.0, reward)
 
 

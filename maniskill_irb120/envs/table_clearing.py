@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
 from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -47,6 +47,20 @@ class TableClearingIRB120Env(IRB120TableEnv):
     ±1 while grasped (+1 if the TCP got closer to the destination tray centre); time -1; collision -1000;
     grasp +100 on the not-grasped → grasped edge; drop -200; delivery +200 on the not-delivered → delivered
     edge.
+
+    **Normalized dense reward** (``reward_mode="normalized_dense"``, the default): staged, (stage + progress) / 4
+    with progress in [0, 1), so each stage's band lies above the last (envs/base.py ``MAX_STAGED_REWARD``):
+
+    =====  ==========================================  ==========================================  ==========
+    stage  state                                       dense (normalised = this / 4)               range
+    =====  ==========================================  ==========================================  ==========
+    0      not held                                    1 - tanh(3·TCP-object distance)             [0, 1)
+    1      held (``held``), below 5 cm                 1 + height above the floor / 5 cm           [1, 2)
+    2      ``grasped`` (held, >= 5 cm up)              2 + 1 - tanh(3·distance to the place)       [2, 3)
+    3      over the dest tray, held or let go in it    3 + 1 - tanh(3·distance to the place)       [3, 4)
+    4      ``delivered`` (success)                     4                                           4
+    -      collision                                   0                                           0
+    =====  ==========================================  ==========================================  ==========
 
     **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 75;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without
@@ -85,9 +99,11 @@ class TableClearingIRB120Env(IRB120TableEnv):
         robot_hit, forces = contacts.robot_hit, contacts.finger_forces[0]
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
-        grasped = self._grasped(forces, state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0] & lifted
+        held = self._grasped(forces, state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
+        grasped = held & lifted
         over_dest = self._inside_dest_xy(obj_p)
-        delivered = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H) & ~self._touches(forces)
+        in_dest = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H)
+        delivered = in_dest & ~self._touches(forces)
         cur = dict(
             tcp_obj_dist=torch.linalg.norm(obj_p - tcp_p, dim=1),
             tcp_dest_dist=torch.linalg.norm(self.dest_center - tcp_p, dim=1),
@@ -114,6 +130,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
             delivered=delivered,
             object_lifted=lifted,
             object_over_dest=over_dest,
+            object_in_dest=in_dest,
+            held=held,
             r_approach=r_approach,
             r_carry=r_carry,
             r_time=ones * R_TIME,
@@ -141,16 +159,20 @@ class TableClearingIRB120Env(IRB120TableEnv):
         return sum(info[k] for k in REWARD_TERMS)
 
     def compute_normalized_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
-        """Staged reward in [0, 1] (the default mode, for ManiSkill's PPO): reach, grasp, bring over the
-        destination tray, release in it (1.0). A collision scores 0. Not the dense reward (that is the original
+        """Staged reward in [0, 1] (the default mode, for ManiSkill's PPO), stage k paying (k + progress) / 4
+        with progress in [0, 1) (the table in the class docstring). Not the dense reward (that is the original
         report's), so this one is the task's own rather than the base's dense / MAX_STAGED_REWARD."""
         obj_p = self.step_state["obj_pose"][:, :3]
-        grasped = info["grasped"].float()
-        reach = 1 - torch.tanh(5 * torch.linalg.norm(obj_p - self.tcp_pose[:, :3], dim=1))
+        reach = reach_reward(torch.linalg.norm(obj_p - self.tcp_pose[:, :3], dim=1)).clamp(max=0.999)
+        lift = ((obj_p[:, 2] - self.source_center[:, 2]) / GRASP_LIFT).clamp(0, 0.999)
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size
-        place = 1 - torch.tanh(5 * torch.linalg.norm(goal - obj_p, dim=1))
-        reward = torch.where(info["grasped"], torch.ones_like(reach), reach) + grasped + grasped * place
-        reward = torch.where(info["success"], torch.full_like(reward, self.MAX_STAGED_REWARD), reward)
-        reward = torch.where(info["fail"], torch.zeros_like(reward), reward)
+        place = reach_reward(torch.linalg.norm(goal - obj_p, dim=1)).clamp(max=0.999)
+        reward = torch.where(info["held"], 1 + lift, reach)
+        reward = torch.where(info["grasped"], 2 + place, reward)
+        # over the destination tray, held or let go inside it (opening the fingers there is no step down)
+        in_dest = info["object_over_dest"] & (info["held"] | info["object_in_dest"])
+        reward = torch.where(in_dest, 3 + place, reward)
+        reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
+        reward = torch.where(info["fail"], 0.0, reward)
         return reward / self.MAX_STAGED_REWARD

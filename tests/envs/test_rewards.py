@@ -1,0 +1,116 @@
+"""The staged rewards (``normalized_dense``, the default) lead to success: along the scripted expert's
+trajectory the stage (``floor(4 · reward)``: envs/base.py ``MAX_STAGED_REWARD``) never goes back and each stage
+enters above the last one's best, and no stall (hovering at the grasp height, holding the object, pushing it,
+colliding at once) earns more than succeeding. Success ends the episode; as in ManiSkill (and agents/ppo.py,
+which bootstraps it), it counts as absorbing: 1 per step to the time limit."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import maniskill_irb120  # noqa: F401
+from maniskill_irb120.action import action_from_world_motion, tcp_rotation
+from maniskill_irb120.experts.pick_place import CARRY, CLOSE, HOLD, RELEASE, expert_for
+
+HORIZON = {"TableClearing-IRB120-v1": 250, "GraspLift-IRB120-v1": 150, "StackCube-IRB120-v1": 200}
+HOLD_STALL = {"TableClearing-IRB120-v1": CARRY, "GraspLift-IRB120-v1": HOLD, "StackCube-IRB120-v1": RELEASE}
+SEEDS = (0, 1)
+
+
+def _world(env, disp, gripper: float) -> torch.Tensor:
+    u = env.unwrapped
+    d = torch.tensor([disp], dtype=torch.float32, device=u.device)
+    return action_from_world_motion(
+        d,
+        torch.zeros(1, device=u.device),
+        torch.tensor([gripper], device=u.device),
+        tcp_rotation(u.agent.tcp_pose.raw_pose),
+    )
+
+
+def rollout(env, seed: int, stall: str | None = None) -> tuple[list[float], dict]:
+    """Per-step rewards and the last info of the expert, or of a stall: the expert until the stall's phase,
+    then ``hover`` (still, open, at the grasp height), ``push`` (open, back and forth along x by 2.5 cm),
+    ``hold`` (closed: still over the source tray or over cube_b; GraspLift: bobbing 4 mm, never still),
+    ``collide`` (straight down from the start until a link hits the scene)."""
+    env.reset(seed=seed)
+    expert = expert_for(env)
+    expert.reset()
+    env_id = env.unwrapped.spec.id
+    rewards, latched, k, info = [], False, 0, {}
+    for _ in range(HORIZON[env_id]):
+        if stall == "collide":
+            action = _world(env, [0, 0, -0.01], 1.0)
+        else:
+            action = expert.act()
+            phase = int(expert.phase[0])
+            latched |= phase == (HOLD_STALL[env_id] if stall == "hold" else CLOSE) and stall is not None
+            if latched:
+                k += 1
+                if stall == "hover":
+                    action = _world(env, [0, 0, 0], 1.0)
+                elif stall == "push":
+                    action = _world(env, [0.005 if (k // 5) % 2 == 0 else -0.005, 0, 0], 1.0)
+                elif env_id == "GraspLift-IRB120-v1":
+                    action = _world(env, [0, 0, 0.004 if k % 2 else -0.004], -1.0)
+                else:
+                    action = _world(env, [0, 0, 0], -1.0)
+        _, r, term, trunc, info = env.step(action)
+        rewards.append(float(r[0]))
+        if bool(term[0]) or bool(trunc[0]):
+            break
+    return rewards, info
+
+
+def absorbing_return(env_id: str, rewards: list[float], info: dict) -> float:
+    """The return with success absorbing (1 per step to the time limit)."""
+    return sum(rewards) + (HORIZON[env_id] - len(rewards)) * float(info["success"][0])
+
+
+@pytest.fixture(scope="module", params=sorted(HORIZON))
+def task(request):
+    import gymnasium as gym
+
+    env = gym.make(request.param, obs_mode="state", control_mode="pd_ee_delta_tool")
+    yield request.param, env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def expert_runs(task):
+    env_id, env = task
+    return [rollout(env, s) for s in SEEDS]
+
+
+def test_rewards_stay_in_the_unit_interval_and_success_pays_one(expert_runs):
+    for rewards, info in expert_runs:
+        assert bool(info["success"][0]) and rewards[-1] == 1.0
+        assert all(0.0 <= r <= 1.0 for r in rewards)
+        assert all(r < 1.0 for r in rewards[:-1])
+
+
+def test_expert_stages_rise_and_each_enters_above_the_last(expert_runs):
+    for rewards, _ in expert_runs:
+        stages = [math.floor(4 * r) for r in rewards]
+        assert stages == sorted(stages), stages  # never back to an earlier stage
+        assert len(set(stages)) >= 3, stages  # reach, at least one middle stage, success
+        for i in range(1, len(rewards)):
+            if stages[i] > stages[i - 1]:
+                assert rewards[i] > max(rewards[:i]), (i, rewards[i - 1 : i + 1])
+
+
+@pytest.mark.parametrize("stall", ["hover", "push", "hold", "collide"])
+def test_no_stall_pays_more_than_success(task, expert_runs, stall):
+    env_id, env = task
+    for seed, (rewards, info) in zip(SEEDS, expert_runs):
+        s_rewards, s_info = rollout(env, seed, stall)
+        assert not bool(s_info["success"][0]), (stall, seed)
+        assert max(s_rewards) < 1.0  # no stalling state pays per step what the final stage does
+        assert sum(s_rewards) < absorbing_return(env_id, rewards, info), (stall, seed)
+        if stall == "collide":
+            assert bool(s_info["fail"][0]) and s_rewards[-1] == 0.0
+            hold_rewards, _ = rollout(env, seed, "hold")  # an episode that grasps beats colliding
+            assert sum(s_rewards) < sum(hold_rewards)
