@@ -357,8 +357,8 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     # ------------------------------------------------------------------ render-ahead (CPU)
     def _after_control_step(self):
         """Start this step's camera frame now, before ``evaluate``: on the CPU the rasteriser draws it in its
-        own threads while this thread evaluates the step, and ``get_obs`` then only reads it back (measured:
-        ~1 ms less per rgbd step on 2 cores). The scene does not change in between, so the images are the
+        own threads while this thread evaluates the step, and ``get_obs`` then only reads it back (the gain is in
+        benchmarks/RESULTS.md). The scene does not change in between, so the images are the
         ones ManiSkill's capture in ``get_obs`` takes (tested). GPU sim: ManiSkill's path."""
         if (
             not self.render_ahead

@@ -21,8 +21,8 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
-size would be one size for a whole training run (measured: a DAgger policy trained so delivered 88 % on its
-own draw and 10 % on the nominal cube). ``reconfiguration_freq=0`` keeps one draw per build on purpose.
+size would be one size for a whole training run, and a policy trained so fits that one draw only
+(benchmarks/RESULTS.md has the measurement). ``reconfiguration_freq=0`` keeps one draw per build on purpose.
 """
 
 from __future__ import annotations
