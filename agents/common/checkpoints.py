@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from maniskill_irb120.policies.section import read_checkpoint
+
 
 def args_json(args) -> dict:
     return json.loads(json.dumps(asdict(args), default=str))
@@ -29,13 +31,7 @@ def atomic_save(obj: Any, path: Path) -> None:
 
 def load_torch(path: Path, fmt: str, what: str) -> dict:
     """A checkpoint written by ``what`` in format ``fmt``, or an error that says why not."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ValueError(f"checkpoint {path} is not a readable torch checkpoint: {e}") from e
+    ckpt = read_checkpoint(path)
     if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
         found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt)
         raise ValueError(f"checkpoint {path} was not written by {what} (format {found})")

@@ -9,8 +9,17 @@ from maniskill_irb120.policies.section import (
     acting,
     policy_module,
     policy_section,
+    read_checkpoint,
     read_policy_section,
     section_of,
 )
 
-__all__ = ["MODULES", "acting", "policy_module", "policy_section", "read_policy_section", "section_of"]
+__all__ = [
+    "MODULES",
+    "acting",
+    "read_checkpoint",
+    "policy_module",
+    "policy_section",
+    "read_policy_section",
+    "section_of",
+]

@@ -101,17 +101,22 @@ def section_of(ckpt: Any, where: str = "checkpoint") -> dict:
     raise ValueError(f"{where}: format {fmt!r} is none of {sorted(LEGACY_FORMATS)} and it has no policy section")
 
 
+def read_checkpoint(path: Path, where: Optional[str] = None) -> Any:
+    """What torch saved at ``path`` (on the CPU), or an error that says why not (``where``: who asked for it).
+    The one reader of checkpoint files, for the trainers and for deployment alike."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{where + ': ' if where else ''}checkpoint {path} does not exist")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise ValueError(f"{where or f'checkpoint {path}'} is not a readable torch checkpoint: {e}") from e
+
+
 def read_policy_section(path: Path, where: Optional[str] = None) -> dict:
     """The policy section of the checkpoint file at ``path``, or an error that says why not."""
     where = where or str(path)
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{where}: checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ValueError(f"{where} is not a readable torch checkpoint: {e}") from e
-    return section_of(ckpt, where)
+    return section_of(read_checkpoint(path, where), where)
 
 
 def policy_module(section: dict, device="cpu") -> nn.Module:
