@@ -5,7 +5,7 @@ MODULE IRB120Serial
     ! IRB120Server.mod, never together with IRB120Socket.mod (both provide the same routines).
     !
     ! Global (called by IRB120Server.mod): IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite, IRB120ChanNewPeer,
-    ! IRB120ChanReopen. Everything else is LOCAL.
+    ! IRB120ChanReopen, IRB120ChanClose. Everything else is LOCAL.
     !
     ! The port, as named in the controller's SIO configuration (its baud rate is set there: 19200 or more)
     LOCAL CONST string SER_CHANNEL := "COM1:";
@@ -38,5 +38,10 @@ MODULE IRB120Serial
     PROC IRB120ChanReopen()
         ! start over with the peer: drop what is buffered
         ClearIOBuff serDev;
+    ENDPROC
+
+    PROC IRB120ChanClose()
+        ! the server's UNDO (PP to main): the next start opens the port again
+        Close serDev;
     ENDPROC
 ENDMODULE

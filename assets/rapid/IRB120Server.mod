@@ -8,14 +8,18 @@ MODULE IRB120Server
     ! IRB120ChanNewPeer and IRB120ChanReopen. The world zone around the workspace is the system module
     ! IRB120Zone.sys (608-1 World Zones), installed at power on. See docs/deploy_irc5.md.
     !
-    ! Everything here is LOCAL except the entry routine IRB120Server: set the task's main entry to it, or call it
-    ! from the stock MainModule's main.
+    ! Everything here is LOCAL except the entry routine IRB120Server (set the task's main entry to it, or call it
+    ! from the stock MainModule's main) and the RESTART event routine IRB120ServerRestart (Controller > Event
+    ! Routine: Restart; it tells the server the program was stopped and started again without PP to main).
     !
     ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
     ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
     ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed, the operating mode
     ! (motion only in manual reduced speed unless ALLOW_AUTO). A heartbeat
-    ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves.
+    ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves. After the
+    ! program was stopped (emergency stop, enabling device, Stop) and started again without PP to main, the robot
+    ! is held and the next motion command refused (E_RESTARTED): the PC learns that the robot stopped.
+    ! Refusals, watchdog stops, restarts and new connections are written to the event log (ErrWrite).
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
     !
@@ -50,6 +54,12 @@ MODULE IRB120Server
     LOCAL CONST num SPEED_PERCENT := 100;
     LOCAL VAR speeddata vStep;
     LOCAL CONST zonedata zStep := z1;
+    ! The reset (RESET): one joint move, validated along its whole path, at a low speed, ending at a stop point.
+    ! The PC waits for its reply as long as the move takes (maniskill_irb120/abb/protocol.py RESET_TCP_MM_S, keep
+    ! them in step).
+    LOCAL CONST speeddata vReset := [100, 45, 5000, 1000];
+    ! points checked along the reset's joint path (each TCP inside the workspace box)
+    LOCAL CONST num RESET_CHECKS := 10;
     !
     ! Motion only in manual reduced speed (OpMode() = OP_MAN_PROG: TCP at most 250 mm/s, the operator holding the
     ! enabling device): in OP_AUTO or OP_MAN_TEST (manual full speed) every motion command is refused with
@@ -65,6 +75,10 @@ MODULE IRB120Server
     LOCAL CONST num T_JOINTS := 3;
     LOCAL CONST num T_GRIPPER := 4;
     LOCAL CONST num T_STOP := 5;
+    LOCAL CONST num T_HELLO := 6;
+    LOCAL CONST num T_RESET := 7;
+    ! the protocol version a HELLO must carry (docs/protocol.md)
+    LOCAL CONST num PROTOCOL_VERSION := 1;
     ! a frame whose type has this bit set is a reply (a line echoing the controller's own frames): dropped
     LOCAL CONST num T_REPLY := 128;
     LOCAL CONST num S_IDLE := 0;
@@ -83,6 +97,35 @@ MODULE IRB120Server
     LOCAL CONST num E_ESTOP := 9;
     LOCAL CONST num E_JOINT_SPEED := 10;
     LOCAL CONST num E_OPERATING_MODE := 11;
+    LOCAL CONST num E_RESTARTED := 12;
+    LOCAL CONST num E_VERSION := 13;
+    !
+    ! CRC-16/CCITT-FALSE, table-driven (poly 0x1021): entry i is the CRC register after shifting byte i through
+    ! it, split into its high and low byte (BitXOr works on bytes). Three statements a byte instead of ~50.
+    LOCAL CONST byte CRC_HI{256} := [
+        0, 16, 32, 48, 64, 80, 96, 112, 129, 145, 161, 177, 193, 209, 225, 241, 18, 2, 50, 34, 82, 66, 114, 98,
+        147, 131, 179, 163, 211, 195, 243, 227, 36, 52, 4, 20, 100, 116, 68, 84, 165, 181, 133, 149, 229, 245, 197, 213,
+        54, 38, 22, 6, 118, 102, 86, 70, 183, 167, 151, 135, 247, 231, 215, 199, 72, 88, 104, 120, 8, 24, 40, 56,
+        201, 217, 233, 249, 137, 153, 169, 185, 90, 74, 122, 106, 26, 10, 58, 42, 219, 203, 251, 235, 155, 139, 187, 171,
+        108, 124, 76, 92, 44, 60, 12, 28, 237, 253, 205, 221, 173, 189, 141, 157, 126, 110, 94, 78, 62, 46, 30, 14,
+        255, 239, 223, 207, 191, 175, 159, 143, 145, 129, 177, 161, 209, 193, 241, 225, 16, 0, 48, 32, 80, 64, 112, 96,
+        131, 147, 163, 179, 195, 211, 227, 243, 2, 18, 34, 50, 66, 82, 98, 114, 181, 165, 149, 133, 245, 229, 213, 197,
+        52, 36, 20, 4, 116, 100, 84, 68, 167, 183, 135, 151, 231, 247, 199, 215, 38, 54, 6, 22, 102, 118, 70, 86,
+        217, 201, 249, 233, 153, 137, 185, 169, 88, 72, 120, 104, 24, 8, 56, 40, 203, 219, 235, 251, 139, 155, 171, 187,
+        74, 90, 106, 122, 10, 26, 42, 58, 253, 237, 221, 205, 189, 173, 157, 141, 124, 108, 92, 76, 60, 44, 28, 12,
+        239, 255, 207, 223, 175, 191, 143, 159, 110, 126, 78, 94, 46, 62, 14, 30];
+    LOCAL CONST byte CRC_LO{256} := [
+        0, 33, 66, 99, 132, 165, 198, 231, 8, 41, 74, 107, 140, 173, 206, 239, 49, 16, 115, 82, 181, 148, 247, 214,
+        57, 24, 123, 90, 189, 156, 255, 222, 98, 67, 32, 1, 230, 199, 164, 133, 106, 75, 40, 9, 238, 207, 172, 141,
+        83, 114, 17, 48, 215, 246, 149, 180, 91, 122, 25, 56, 223, 254, 157, 188, 196, 229, 134, 167, 64, 97, 2, 35,
+        204, 237, 142, 175, 72, 105, 10, 43, 245, 212, 183, 150, 113, 80, 51, 18, 253, 220, 191, 158, 121, 88, 59, 26,
+        166, 135, 228, 197, 34, 3, 96, 65, 174, 143, 236, 205, 42, 11, 104, 73, 151, 182, 213, 244, 19, 50, 81, 112,
+        159, 190, 221, 252, 27, 58, 89, 120, 136, 169, 202, 235, 12, 45, 78, 111, 128, 161, 194, 227, 4, 37, 70, 103,
+        185, 152, 251, 218, 61, 28, 127, 94, 177, 144, 243, 210, 53, 20, 119, 86, 234, 203, 168, 137, 110, 79, 44, 13,
+        226, 195, 160, 129, 102, 71, 36, 5, 219, 250, 153, 184, 95, 126, 29, 60, 211, 242, 145, 176, 87, 118, 21, 52,
+        76, 109, 14, 47, 200, 233, 138, 171, 68, 101, 6, 39, 192, 225, 130, 163, 125, 92, 63, 30, 249, 216, 187, 154,
+        117, 84, 55, 22, 241, 208, 179, 146, 46, 15, 108, 77, 170, 139, 232, 201, 38, 7, 100, 69, 162, 131, 224, 193,
+        31, 62, 93, 124, 155, 186, 217, 248, 23, 54, 85, 116, 147, 178, 209, 240];
     !
     ! ---------------------------------------------------------------- state
     LOCAL VAR signaldo doGripper;
@@ -100,6 +143,10 @@ MODULE IRB120Server
     LOCAL VAR num status := 0;
     LOCAL VAR bool watchdogFired := FALSE;
     LOCAL VAR num refusal := 0;
+    LOCAL VAR num lastLogged := 0;
+    ! set by the RESTART event routine: the program was stopped and started again where it stood
+    LOCAL VAR bool restarted := FALSE;
+    LOCAL VAR bool restartHeld := FALSE;
     ! time since the last valid frame (the watchdog's) and since the last byte (the silence before a new peer)
     LOCAL VAR clock clkValid;
     LOCAL VAR clock clkHeard;
@@ -114,6 +161,15 @@ MODULE IRB120Server
         WHILE TRUE DO
             ServeOneFrame;
         ENDWHILE
+    UNDO
+        ! PP to main while the server runs: the channel is closed, so the next start opens it afresh
+        IRB120ChanClose;
+    ENDPROC
+
+    PROC IRB120ServerRestart()
+        ! the task's RESTART event routine: runs when the program starts again where it was stopped (the
+        ! controller's path planner goes on with the path it had queued); the server holds the robot next
+        restarted := TRUE;
     ENDPROC
 
     LOCAL PROC InitServer()
@@ -126,6 +182,11 @@ MODULE IRB120Server
         vStep.v_tcp := vFull.v_tcp * SPEED_PERCENT / 100;
         vStep.v_ori := vFull.v_ori * SPEED_PERCENT / 100;
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
+        lastJoints := CJointT();
+        status := S_IDLE;
+        watchdogFired := FALSE;
+        restarted := FALSE;
+        restartHeld := FALSE;
         IRB120ChanOpen;
         NewSession;
     ENDPROC
@@ -148,8 +209,20 @@ MODULE IRB120Server
     LOCAL PROC Reconnect()
         ! the peer went away, or gives way to a new one: hold the robot, then serve the next peer
         HoldRobot\Quick;
+        ErrWrite\I, "IRB120Server: peer replaced", "the robot is held; serving the next peer";
         IRB120ChanReopen;
         NewSession;
+    ENDPROC
+
+    LOCAL PROC CheckRestart()
+        ! after a stop and a start without PP to main: hold the robot (the planner may be finishing the path it had
+        ! queued) and refuse the next motion command, so the PC learns the robot stopped
+        IF restarted THEN
+            restarted := FALSE;
+            HoldRobot\Quick;
+            restartHeld := TRUE;
+            ErrWrite\W, "IRB120Server: restarted", "the program was stopped and started again: robot held";
+        ENDIF
     ENDPROC
 
     LOCAL PROC HoldRobot(\switch Quick)
@@ -209,6 +282,7 @@ MODULE IRB120Server
         ! dropped. The watchdog counts from the last valid frame: noise does not keep a moving robot going.
         VAR num b;
         VAR num n;
+        CheckRestart;
         IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
         b := ReadByte(WaitTime());
         IF b = -1 THEN
@@ -247,6 +321,7 @@ MODULE IRB120Server
             ELSEIF ClkRead(clkValid) >= HEARTBEAT_S THEN
                 HoldRobot\Quick;
                 watchdogFired := TRUE;
+                ErrWrite\W, "IRB120Server: watchdog stop", "no valid frame within HEARTBEAT_S while moving: held";
             ENDIF
         ENDIF
     ENDPROC
@@ -269,6 +344,13 @@ MODULE IRB120Server
         kind := rx{2};
         seq := rx{3};
         crc := rx{rx{1} + 4} + 256 * rx{rx{1} + 5};
+        CheckRestart;
+        IF kind = T_HELLO THEN
+            ! a new session: nothing the peer sent before is answered from the cache any more
+            lastSeq := -1;
+            lastKind := -1;
+            lastCrc := -1;
+        ENDIF
         IF seq = lastSeq AND kind = lastKind AND crc = lastCrc THEN
             ! a repeated frame (same number, type and CRC): answer again from the cache, never execute again
             SendTx;
@@ -285,8 +367,17 @@ MODULE IRB120Server
                 SetGripper rx{4};
             CASE T_STOP:
                 HoldRobot;
+            CASE T_HELLO:
+                IF rx{4} <> PROTOCOL_VERSION refusal := E_VERSION;
+            CASE T_RESET:
+                ResetMove;
             ENDTEST
         ENDIF
+        IF refusal <> lastLogged AND refusal <> E_OK THEN
+            ! each new kind of refusal is logged once (a PC repeating a refused step does not flood the log)
+            ErrWrite\I, "IRB120Server: refused", "command type " + NumToStr(kind, 0) + ", error " + NumToStr(refusal, 0);
+        ENDIF
+        lastLogged := refusal;
         lastSeq := seq;
         lastKind := kind;
         lastCrc := crc;
@@ -301,9 +392,9 @@ MODULE IRB120Server
             want := 0;
         CASE T_TOOL_STEP:
             want := 9;
-        CASE T_JOINTS:
+        CASE T_JOINTS, T_RESET:
             want := 13;
-        CASE T_GRIPPER:
+        CASE T_GRIPPER, T_HELLO:
             want := 1;
         DEFAULT:
             RETURN E_UNKNOWN_TYPE;
@@ -315,7 +406,7 @@ MODULE IRB120Server
         ELSEIF status = S_FAULT THEN
             status := S_IDLE;
         ENDIF
-        IF kind = T_STATE OR kind = T_STOP RETURN E_OK;
+        IF kind = T_STATE OR kind = T_STOP OR kind = T_HELLO RETURN E_OK;
         IF DOutput(doEstop) = 1 RETURN E_ESTOP;
         IF DOutput(doMotors) = 0 RETURN E_MOTORS_OFF;
         ! read before every motion command: the key switch can turn at any time
@@ -324,6 +415,10 @@ MODULE IRB120Server
             ! the PC must learn that the robot was stopped: this command is refused, the next one runs
             watchdogFired := FALSE;
             RETURN E_WATCHDOG;
+        ENDIF
+        IF restartHeld THEN
+            restartHeld := FALSE;
+            RETURN E_RESTARTED;
         ENDIF
         RETURN E_OK;
     ENDFUNC
@@ -404,6 +499,51 @@ MODULE IRB120Server
         IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
 
+    LOCAL PROC ResetMove()
+        ! one joint move to the episode's start pose at vReset, ending at a stop point: the target inside the joint
+        ! limits and the TCP inside the workspace box at RESET_CHECKS points along the joint path. Answered once the
+        ! robot is there (the PC waits as long as the move takes).
+        VAR jointtarget jNow;
+        VAR jointtarget jTarget;
+        VAR jointtarget jMid;
+        VAR robtarget tcp;
+        VAR num now{6};
+        VAR num goal{6};
+        VAR num s;
+        jNow := CJointT();
+        jTarget := jNow;
+        goal := [Int16At(4) * 0.02, Int16At(6) * 0.02, Int16At(8) * 0.02, Int16At(10) * 0.02, Int16At(12) * 0.02,
+            Int16At(14) * 0.02];
+        now := [jNow.robax.rax_1, jNow.robax.rax_2, jNow.robax.rax_3, jNow.robax.rax_4, jNow.robax.rax_5, jNow.robax.rax_6];
+        FOR i FROM 1 TO 6 DO
+            IF goal{i} < JOINT_LOW{i} OR goal{i} > JOINT_HIGH{i} THEN
+                refusal := E_JOINT_LIMIT;
+                RETURN;
+            ENDIF
+        ENDFOR
+        jMid := jNow;
+        FOR k FROM 1 TO RESET_CHECKS DO
+            s := k / RESET_CHECKS;
+            jMid.robax.rax_1 := now{1} + s * (goal{1} - now{1});
+            jMid.robax.rax_2 := now{2} + s * (goal{2} - now{2});
+            jMid.robax.rax_3 := now{3} + s * (goal{3} - now{3});
+            jMid.robax.rax_4 := now{4} + s * (goal{4} - now{4});
+            jMid.robax.rax_5 := now{5} + s * (goal{5} - now{5});
+            jMid.robax.rax_6 := now{6} + s * (goal{6} - now{6});
+            tcp := CalcRobT(jMid, tGripper\WObj:=wobj0);
+            IF NOT InsideBox(tcp.trans) THEN
+                refusal := E_WORKSPACE;
+                RETURN;
+            ENDIF
+        ENDFOR
+        jTarget := jMid;
+        IF rx{16} <> 2 SetGripper rx{16};
+        MoveAbsJ jTarget, vReset, fine, tGripper\WObj:=wobj0;
+        lastTarget := tcp;
+        lastJoints := jTarget;
+        status := S_IDLE;
+    ENDPROC
+
     LOCAL FUNC num CheckJoints(jointtarget jNow, jointtarget jTarget)
         VAR num now{6};
         VAR num target{6};
@@ -450,7 +590,7 @@ MODULE IRB120Server
         tx{1} := SYNC;
         tx{2} := 26;
         ! 0x80 + type, a byte for every type answered (replies, 0x80 and up, are dropped before)
-        IF kind >= T_STATE AND kind <= T_STOP THEN
+        IF kind >= T_STATE AND kind <= T_RESET THEN
             tx{3} := T_REPLY + kind;
         ELSE
             tx{3} := T_REPLY + (kind MOD T_REPLY);
@@ -504,9 +644,11 @@ MODULE IRB120Server
         ! CRC-16/CCITT-FALSE of rx{1..count} (length, type, seq, payload)
         VAR byte hi := 255;
         VAR byte lo := 255;
+        VAR num t;
         FOR i FROM 1 TO count DO
-            hi := BitXOr(hi, rx{i});
-            CrcShift8 hi, lo;
+            t := BitXOr(hi, rx{i}) + 1;
+            hi := BitXOr(lo, CRC_HI{t});
+            lo := CRC_LO{t};
         ENDFOR
         RETURN 256 * hi + lo;
     ENDFUNC
@@ -515,26 +657,13 @@ MODULE IRB120Server
         ! CRC of tx{2..count + 1}, appended low byte first
         VAR byte hi := 255;
         VAR byte lo := 255;
+        VAR num t;
         FOR i FROM 2 TO count + 1 DO
-            hi := BitXOr(hi, tx{i});
-            CrcShift8 hi, lo;
+            t := BitXOr(hi, tx{i}) + 1;
+            hi := BitXOr(lo, CRC_HI{t});
+            lo := CRC_LO{t};
         ENDFOR
         tx{count + 2} := lo;
         tx{count + 3} := hi;
-    ENDPROC
-
-    LOCAL PROC CrcShift8(INOUT byte hi, INOUT byte lo)
-        ! eight steps of the CRC register (poly 0x1021) held as two bytes
-        VAR bool carry;
-        FOR k FROM 1 TO 8 DO
-            carry := hi >= 128;
-            hi := BitLSh(hi, 1);
-            IF lo >= 128 hi := BitOr(hi, 1);
-            lo := BitLSh(lo, 1);
-            IF carry THEN
-                hi := BitXOr(hi, 16);
-                lo := BitXOr(lo, 33);
-            ENDIF
-        ENDFOR
     ENDPROC
 ENDMODULE

@@ -6,7 +6,11 @@ MODULE IRB120Socket
     ! IRB120Serial.mod (both provide the same routines).
     !
     ! Global (called by IRB120Server.mod): IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite, IRB120ChanNewPeer,
-    ! IRB120ChanReopen. Everything else is LOCAL.
+    ! IRB120ChanReopen, IRB120ChanClose. Everything else is LOCAL.
+    !
+    ! Only the PC at PC_ADDRESS is served: a client from any other address is closed at once and logged (a robot
+    ! command port open to the whole cell network is what integrators are warned against). Set it to your PC's.
+    LOCAL CONST string PC_ADDRESS := "192.168.125.2";
     !
     ! The client is on one of two sockets (sockCur): a new client that connects while the current one is silent
     ! (a PC that crashed without closing: a half-open connection only times out) is accepted on the other one.
@@ -26,8 +30,32 @@ MODULE IRB120Socket
         SocketListen sockListen;
         sockCur := 1;
         sockPending := FALSE;
-        SocketAccept sockListen, sockA\Time:=WAIT_MAX;
+        AcceptPc sockA;
     ENDPROC
+
+    LOCAL PROC AcceptPc(VAR socketdev client)
+        ! wait for a connection from PC_ADDRESS; any other client is closed and logged
+        VAR string peer;
+        WHILE TRUE DO
+            SocketAccept sockListen, client\ClientAddress:=peer\Time:=WAIT_MAX;
+            IF peer = PC_ADDRESS RETURN;
+            SocketClose client;
+            ErrWrite\W, "IRB120Socket: client refused", "a connection from " + peer + " is not PC_ADDRESS " + PC_ADDRESS;
+        ENDWHILE
+    ENDPROC
+
+    LOCAL FUNC bool PollPc(VAR socketdev client)
+        ! a connection from PC_ADDRESS within SOCK_POLL_S? Any other client is closed and logged
+        VAR string peer;
+        SocketAccept sockListen, client\ClientAddress:=peer\Time:=SOCK_POLL_S;
+        IF peer = PC_ADDRESS RETURN TRUE;
+        SocketClose client;
+        ErrWrite\W, "IRB120Socket: client refused", "a connection from " + peer + " is not PC_ADDRESS " + PC_ADDRESS;
+        RETURN FALSE;
+    ERROR
+        IF ERRNO = ERR_SOCK_TIMEOUT RETURN FALSE;
+        RAISE;
+    ENDFUNC
 
     FUNC num IRB120ChanRead(num timeout)
         ! the next byte; -1 when none came within timeout seconds; -2 when the client closed the connection
@@ -61,29 +89,33 @@ MODULE IRB120Socket
         ! a new client is waiting? (accepted on the spare socket; IRB120ChanReopen serves it)
         IF NOT sockPending THEN
             IF sockCur = 1 THEN
-                SocketAccept sockListen, sockB\Time:=SOCK_POLL_S;
+                sockPending := PollPc(sockB);
             ELSE
-                SocketAccept sockListen, sockA\Time:=SOCK_POLL_S;
+                sockPending := PollPc(sockA);
             ENDIF
-            sockPending := TRUE;
         ENDIF
-        RETURN TRUE;
-    ERROR
-        IF ERRNO = ERR_SOCK_TIMEOUT RETURN FALSE;
-        RAISE;
+        RETURN sockPending;
     ENDFUNC
 
     PROC IRB120ChanReopen()
         ! drop the current client; serve the one waiting, or wait for the next
         IF sockCur = 1 THEN
             SocketClose sockA;
-            IF NOT sockPending SocketAccept sockListen, sockB\Time:=WAIT_MAX;
+            IF NOT sockPending AcceptPc sockB;
             sockCur := 2;
         ELSE
             SocketClose sockB;
-            IF NOT sockPending SocketAccept sockListen, sockA\Time:=WAIT_MAX;
+            IF NOT sockPending AcceptPc sockA;
             sockCur := 1;
         ENDIF
+        sockPending := FALSE;
+    ENDPROC
+
+    PROC IRB120ChanClose()
+        ! the server's UNDO (PP to main): every socket closed; the next start listens afresh
+        SocketClose sockA;
+        SocketClose sockB;
+        SocketClose sockListen;
         sockPending := FALSE;
     ENDPROC
 ENDMODULE

@@ -23,13 +23,17 @@ import numpy as np
 from maniskill_irb120.abb.envelope import Envelope
 from maniskill_irb120.abb.protocol import (
     ERROR_MEANINGS,
+    RESET_ORI_DEG_S,
+    RESET_TCP_MM_S,
     ErrorCode,
     FrameParser,
     GetState,
     Gripper,
+    Hello,
     Joints,
     MsgType,
     ProtocolError,
+    Reset,
     RobotState,
     Status,
     Stop,
@@ -47,6 +51,7 @@ def _target(state: RobotState) -> np.ndarray:
 
 
 LOOKAHEAD_TARGETS = 3
+RESET_CHECK_STEP = np.radians(np.full(6, 2.0))  # the reset's joint path is checked every 2 degrees
 
 
 class RobotError(RuntimeError):
@@ -66,7 +71,7 @@ STOPPED_HINT = (
     "the controller stopped answering after a command: check the pendant "
     "(emergency stop, motors off, enabling device, program stopped)"
 )
-MOTION_TYPES = (MsgType.TOOL_STEP, MsgType.JOINTS, MsgType.GRIPPER)
+MOTION_TYPES = (MsgType.TOOL_STEP, MsgType.JOINTS, MsgType.GRIPPER, MsgType.RESET)
 
 
 class RobotDisconnected(RobotError):
@@ -116,8 +121,17 @@ class ABBRobot:
     @classmethod
     def connect(cls, url: str, timeout: float = 0.25, retries: int = 2, envelope: Envelope | None = None) -> ABBRobot:
         robot = cls(open_port(url, timeout), timeout, retries, envelope)
-        robot.state()  # fail now, not at the first motion, if nothing answers
+        try:
+            robot.hello()  # fail now, not at the first motion, if nothing answers
+        except RobotError:
+            robot.port.close()
+            raise
         return robot
+
+    def hello(self) -> RobotState:
+        """Open a session: the controller forgets earlier sequence numbers (ours or another PC's), so none of
+        them is answered with an old reply. ``connect`` does this; a client that reopens its port does it again."""
+        return self._request(Hello())
 
     def __enter__(self) -> ABBRobot:
         return self
@@ -153,6 +167,18 @@ class ABBRobot:
             self.envelope.check_joints(self._joints_now(), q)
         return self._request(Joints(tuple(map(float, q)), gripper_open))
 
+    def reset(self, q, gripper_open: bool | None = None) -> RobotState:
+        """One slow joint move to ``q`` (rad; an episode's start pose): the envelope checks the whole joint path
+        here, the controller checks it again and moves at its reset speed (protocol.RESET_TCP_MM_S), ending at a
+        stop point. Waits for the reply as long as the move takes."""
+        q = np.asarray(q, dtype=np.float64)
+        q_now = self._joints_now()
+        if self.check_envelope:
+            self.envelope.plan_move(q_now, q, RESET_CHECK_STEP)
+        seconds = self.envelope.move_seconds(q_now, q, RESET_TCP_MM_S / 1000, np.radians(RESET_ORI_DEG_S))
+        self.pending.clear()
+        return self._request(Reset(tuple(map(float, q)), gripper_open), timeout=self.timeout + 1.5 * seconds + 0.5)
+
     def set_gripper(self, open_: bool) -> RobotState:
         return self._request(Gripper(bool(open_)))
 
@@ -176,7 +202,7 @@ class ABBRobot:
     def _joints_now(self) -> np.ndarray:
         return np.asarray((self.last_state or self.state()).joints)
 
-    def _request(self, msg) -> RobotState:
+    def _request(self, msg, timeout: float | None = None) -> RobotState:
         if self.port is None:
             raise RobotError("the robot connection is closed")
         self.seq = self.seq % 255 + 1  # 1..255: a fresh number for every new command
@@ -186,7 +212,7 @@ class ABBRobot:
         for _attempt in range(1 + self.retries):
             try:
                 self.port.write(raw)  # a retry is the same bytes: the controller answers it without executing it
-                state = self._await_reply(want, self.seq)
+                state = self._await_reply(want, self.seq, self.timeout if timeout is None else timeout)
             except (OSError, ValueError) as e:  # pyserial's SerialException is an OSError
                 raise RobotDisconnected(
                     f"connection to the controller lost during {type(msg).__name__} "
@@ -196,15 +222,16 @@ class ABBRobot:
                 return self._checked(state)
         corrupt = self.parser.bad_frames - bad_before
         detail = (
-            f"no valid reply to {type(msg).__name__} (seq {self.seq}) within {self.timeout:.2f} s, "
+            f"no valid reply to {type(msg).__name__} (seq {self.seq}) within "
+            f"{self.timeout if timeout is None else timeout:.2f} s, "
             f"{1 + self.retries} attempts" + (f"; {corrupt} corrupted frames were discarded" if corrupt else "")
         )
         if msg.TYPE in MOTION_TYPES:  # silence after a command: most likely a stopped controller, not a slow line
             raise ControllerStopped(f"{STOPPED_HINT}: {detail}")
         raise RobotTimeout(detail)
 
-    def _await_reply(self, want: int, seq: int) -> RobotState | None:
-        deadline = time.monotonic() + self.timeout
+    def _await_reply(self, want: int, seq: int, timeout: float) -> RobotState | None:
+        deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
             self.port.timeout = left
             data = self.port.read(max(1, self.port.in_waiting))

@@ -138,6 +138,20 @@ class Envelope:
                 ) from None
         return path
 
+    def move_seconds(self, q_now, q_goal, tcp_m_s: float, ori_rad_s: float, samples: int = 20) -> float:
+        """How long a joint move from ``q_now`` to ``q_goal`` takes at a TCP speed and a reorientation speed (and
+        ABB's axis speeds): the longest of the three, the TCP's path measured on ``samples`` points of the joint
+        line. What the client waits for a reset; acceleration is not in it (the caller adds a margin)."""
+        q_now = self._check_joint_vector(q_now, "current joints")
+        q_goal = self._check_joint_vector(q_goal, "joint target")
+        s = np.linspace(0.0, 1.0, samples + 1)[:, None]
+        poses = self._chain.forward_kinematics(torch.as_tensor(q_now + s * (q_goal - q_now))).numpy()
+        path = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+        rel = np.einsum("kji,kjl->kil", poses[:-1, :3, :3], poses[1:, :3, :3])
+        turn = float(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)).sum())
+        axes = float((np.abs(q_goal - q_now) / (self._max_joint_step / self.control_period)).max())
+        return max(path / tcp_m_s, turn / ori_rad_s, axes)
+
     def check_tcp(self, p) -> None:
         p = np.asarray(p, dtype=np.float64)
         low, high = np.asarray(self.workspace_low) + self.margin, np.asarray(self.workspace_high) - self.margin

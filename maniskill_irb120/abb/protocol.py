@@ -25,12 +25,21 @@ POS_UNIT_M = 5e-5  # TCP position in the reply: 0.05 mm (int16 covers ±1.6 m)
 QUAT_UNIT = 1 / (32767 * math.sqrt(2))  # reply quaternion: the three smallest of w, x, y, z ("smallest three")
 
 
+PROTOCOL_VERSION = 1  # what HELLO carries; the RAPID module's PROTOCOL_VERSION
+
+# The reset's speed (the RAPID module's vReset: TCP mm/s, reorientation deg/s): the PC waits as long as it takes
+RESET_TCP_MM_S = 100.0
+RESET_ORI_DEG_S = 45.0
+
+
 class MsgType(IntEnum):
     STATE = 0x01  # read the state; also the heartbeat
     TOOL_STEP = 0x02  # tool-frame step (pd_ee_delta_tool semantics) + gripper
     JOINTS = 0x03  # absolute joint target + gripper
     GRIPPER = 0x04  # gripper only
     STOP = 0x05  # stop and hold (StopMove, ClearPath)
+    HELLO = 0x06  # a new session: the controller forgets the previous peer's sequence numbers
+    RESET = 0x07  # one slow joint move to a start pose, validated along its path; answered on arrival
     REPLY = 0x80  # OR-ed with the command's type: the reply carries the state
 
 
@@ -54,6 +63,8 @@ class ErrorCode(IntEnum):
     ESTOP = 9
     JOINT_SPEED = 10
     OPERATING_MODE = 11
+    RESTARTED = 12
+    VERSION = 13
 
 
 ERROR_MEANINGS = {
@@ -71,6 +82,10 @@ ERROR_MEANINGS = {
     ErrorCode.JOINT_SPEED: "refused: a joint would move more than its per-step limit",
     ErrorCode.OPERATING_MODE: "refused: the controller is not in manual reduced speed (set the key switch to manual, "
     "or ALLOW_AUTO after a risk assessment)",
+    ErrorCode.RESTARTED: "refused: the program was stopped (emergency stop, enabling device, Stop button) and started "
+    "again; the controller holds the robot: send the command again",
+    ErrorCode.VERSION: "refused: the controller's RAPID server speaks another protocol version (load the RAPID files "
+    "of this package version)",
 }
 
 
@@ -243,7 +258,33 @@ class Stop(GetState):
         return cls()
 
 
-COMMANDS = {c.TYPE: c for c in (GetState, ToolStep, Joints, Gripper, Stop)}
+@dataclass(frozen=True)
+class Hello:
+    """Opens a session: the controller drops its duplicate cache, so a sequence number this PC used before (or
+    another PC used) is never answered with an old reply."""
+
+    version: int = PROTOCOL_VERSION
+    TYPE = MsgType.HELLO
+
+    def payload(self) -> bytes:
+        if not 0 <= self.version <= 255:
+            raise ProtocolError(f"protocol version {self.version} is not a byte")
+        return bytes([self.version])
+
+    @classmethod
+    def parse(cls, p: bytes) -> Hello:
+        (v,) = _unpack("<B", p, cls.TYPE)
+        return cls(v)
+
+
+@dataclass(frozen=True)
+class Reset(Joints):
+    """One slow joint move to ``q`` (the episode's start pose), validated by the controller along its path."""
+
+    TYPE = MsgType.RESET
+
+
+COMMANDS = {c.TYPE: c for c in (GetState, ToolStep, Joints, Gripper, Stop, Hello, Reset)}
 # head byte: status (bits 0-1) | index of the quaternion's largest component (bits 2-3) | gripper open (bit 7);
 # error; joints; target TCP position; the quaternion's other three components, with the largest made positive
 STATE_FORMAT = "<BB6h3h3h"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,6 +19,8 @@ from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 if TYPE_CHECKING:
     from maniskill_irb120.abb.emulator.controller import ControllerEmulator
 
+
+POLL_S = 0.05  # a blocking read or accept looks for a program stop this often
 
 # The key switch: what OpMode() returns in each operating mode (ABB's OpMode: OP_AUTO, OP_MAN_PROG = manual reduced
 # speed, TCP at most 250 mm/s with the enabling device held, OP_MAN_TEST = manual full speed)
@@ -128,30 +131,61 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
 
     link = self.link
 
+    def wait_byte(timeout: float | None) -> int | None:
+        """The next byte, or None after ``timeout`` s; the program can be stopped while it waits (on Start
+        the wait goes on to its deadline: a read whose \\Time passed while stopped times out at once)."""
+        self.interp.settle_time()  # the statements before the read are paid for before it starts waiting
+        deadline = time.monotonic() + (8388608.0 if timeout is None else timeout)
+        while True:
+            b = link.read_byte(min(POLL_S, max(0.0, deadline - time.monotonic())))
+            if b is not None or time.monotonic() >= deadline:
+                return b
+            self.interp.check_stop()
+
+    def write(data: bytes) -> None:
+        self.interp.settle_time()
+        link.write(data)
+
     def read_bin(dev, Time=None):
-        b = link.read_byte(8388608.0 if Time is None else Time)
+        b = wait_byte(Time)
         if b is None:
             raise RapidError("ERR_DEV_MAXTIME", "ReadBin: no byte within \\Time")
         return b
 
     reg.add("Open", lambda name, dev, Bin=False, **_: setattr(dev, "value", name))
+    reg.add("Close", lambda dev: setattr(dev, "value", None))
     reg.add("ClearIOBuff", lambda dev: link.clear())
     reg.add("ReadBin", io(read_bin))
-    reg.add("WriteBin", io(lambda dev, buffer, n: link.write(bytes(int(b) for b in buffer[: int(n)]))))
+    reg.add("WriteBin", io(lambda dev, buffer, n: write(bytes(int(b) for b in buffer[: int(n)]))))
+
+    def err_write(header, reason, RL2="", RL3="", RL4="", W=False, I=False):  # noqa: E741
+        # the program's own entries: event 80001 (error), 80002 (\W warning), 80003 (\I information)
+        text = " | ".join(s for s in (reason, RL2, RL3, RL4) if s)
+        self.interp.err_log.append(f"{header} | {text}")
+        self.log_event(80003 if I else 80002 if W else 80001, header, text)
+
+    reg.add("ErrWrite", err_write)
 
     # a socketdev's value is its connection; the link (faults, latency) follows the socketdev last used, so
     # a client can be accepted on a second socketdev while the first one's is still open
-    def accept(server, client, Time=None):
-        self._server.settimeout(None if Time is None or Time >= 8388608 else Time)
-        try:
-            conn, _ = self._server.accept()
-        except TimeoutError:
-            raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client within \\Time") from None
-        except OSError:
-            self.interp.check_stop()
-            raise
+    def accept(server, client, Time=None, ClientAddress=None):
+        deadline = time.monotonic() + (8388608.0 if Time is None else Time)
+        while True:  # in slices: the program can be stopped while it waits for a client
+            self._server.settimeout(min(POLL_S, max(0.001, deadline - time.monotonic())))
+            try:
+                conn, peer = self._server.accept()
+                break
+            except TimeoutError:
+                if time.monotonic() >= deadline:
+                    raise RapidError("ERR_SOCK_TIMEOUT", "SocketAccept: no client within \\Time") from None
+                self.interp.check_stop()
+            except OSError:
+                self.interp.check_stop()
+                raise
         self._conns.append(conn)
         client.value = conn
+        if ClientAddress is not None:
+            ClientAddress.set(peer[0])
 
     def use(sock):
         if sock.value is None:
@@ -171,7 +205,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     def receive(sock, Data=None, ReadNoOfBytes=1, Time=None):
         use(sock)
         for i in range(int(ReadNoOfBytes)):
-            b = link.read_byte(8388608.0 if Time is None else Time)
+            b = wait_byte(Time)
             if b is None:
                 raise RapidError("ERR_SOCK_TIMEOUT", "SocketReceive: no data within \\Time")
             Data.value[i] = b
@@ -179,14 +213,14 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     reg.add("SocketCreate", lambda sock: None)
     reg.add("SocketBind", lambda sock, address, port: None)  # always the emulator's loopback port
     reg.add("SocketListen", lambda sock: None)
-    reg.add("SocketAccept", accept)
+    reg.add("SocketAccept", accept, refs=["ClientAddress"])
     reg.add("SocketReceive", io(receive), refs=["Data"])
     reg.add(
         "SocketSend",
         io(
             lambda sock, Data=None, NoOfBytes=None: (
                 use(sock),
-                link.write(bytes(int(b) for b in Data[: int(NoOfBytes or len(Data))])),
+                write(bytes(int(b) for b in Data[: int(NoOfBytes or len(Data))])),
             )
         ),
     )

@@ -9,14 +9,16 @@ import select
 import socket
 import time
 from collections import deque
+from collections.abc import Callable
 
 FAULTS = ("drop", "corrupt", "dup", "delay", "disconnect", "motors_off", "estop")
 
 
 def parse_faults(spec: str | None) -> dict[int, tuple[str, float]]:
     """``"drop@2,corrupt@3,dup@4,delay@5:300,disconnect@6,motors_off@7,estop@8"``: what happens to the N-th reply
-    the controller sends (1-based). delay takes milliseconds; motors_off and estop set that signal as the reply
-    goes out, so the following commands meet it."""
+    the controller sends (1-based). delay takes milliseconds; estop (an emergency stop) and motors_off (a guard
+    stop, or the enabling device let go) happen as that reply goes out: the program halts and answers nothing
+    more until the operator restarts it."""
     faults: dict[int, tuple[str, float]] = {}
     for item in filter(None, (spec or "").split(",")):
         m = re.fullmatch(r"(\w+)@(\d+)(?::(\d+(?:\.\d+)?))?", item.strip())
@@ -33,12 +35,16 @@ class Channel:
     holds every incoming byte back that long (a slow network, a busy controller: the command latency sysid fits)."""
 
     def __init__(
-        self, faults: dict[int, tuple[str, float]], signals: dict[str, int], baud: int | None = None, latency_s=0.0
+        self,
+        faults: dict[int, tuple[str, float]],
+        on_fault: Callable[[str], None],
+        baud: int | None = None,
+        latency_s: float = 0.0,
     ):
         self.fd: int | None = None
         self.conn: socket.socket | None = None
         self.buf: deque[tuple[int, float]] = deque()  # (byte, when its stop bit has arrived)
-        self.faults, self.signals, self.replies = faults, signals, 0
+        self.faults, self.on_fault, self.replies = faults, on_fault, 0
         self.byte_s, self.latency_s = (10.0 / baud if baud else 0.0), latency_s
         self._rx_free = 0.0  # when the receive line is free for the next byte
 
@@ -74,7 +80,7 @@ class Channel:
         elif kind == "delay":
             time.sleep(arg / 1000)
         elif kind in ("motors_off", "estop"):
-            self.signals["doMotorsOn" if kind == "motors_off" else "doEmergencyStop"] = int(kind == "estop")
+            self.on_fault(kind)  # the controller halts the program: this reply still goes out, nothing after it
         elif kind == "disconnect":  # half a frame, then the line goes dead
             self._send(data[: len(data) // 2])
             if self.conn is not None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import socket
 import threading
 from importlib import resources
@@ -22,6 +23,7 @@ import numpy as np
 
 from maniskill_irb120.abb.emulator.builtins import OP_MODE_NAMES, controller_builtins
 from maniskill_irb120.abb.emulator.channel import Channel, parse_faults
+from maniskill_irb120.abb.emulator.pendant import Pendant
 from maniskill_irb120.abb.emulator.rapid import (
     Builtins,
     Interpreter,
@@ -29,6 +31,7 @@ from maniskill_irb120.abb.emulator.rapid import (
     RapidSyntaxError,
     parse_options,
 )
+from maniskill_irb120.abb.emulator.rapid.execution import PPToMain
 from maniskill_irb120.abb.emulator.robot import EmulatedIRB120
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
 
@@ -50,13 +53,21 @@ def shipped_module() -> Path:
     return rapid_file("IRB120Server.mod")
 
 
-def server_source(channel: str, rapid: str | Path | None = None, zone: bool = True) -> str:
+def server_source(
+    channel: str, rapid: str | Path | None = None, zone: bool = True, pc_address: str | None = None
+) -> str:
     """The modules a controller running the server on ``channel`` has loaded, as one source: the core (``rapid``
-    instead of the shipped one if given), the channel module and, with ``zone``, the world-zone system module."""
+    instead of the shipped one if given), the channel module and, with ``zone``, the world-zone system module.
+    ``pc_address``: the TCP build's PC_ADDRESS set to it, as the integrator edits it before loading."""
     files = [Path(rapid) if rapid else shipped_module(), rapid_file(CHANNEL_MODULES[channel])]
     if zone:
         files.append(rapid_file("IRB120Zone.sys"))
-    return "\n".join(f.read_text() for f in files)
+    text = "\n".join(f.read_text() for f in files)
+    if pc_address is not None and channel == "tcp":
+        text, n = re.subn(r'(CONST string PC_ADDRESS := )"[^"]*"', rf'\g<1>"{pc_address}"', text)
+        if n != 1:
+            raise ValueError("the socket module has no single PC_ADDRESS constant to set")
+    return text
 
 
 # The default module of a new IRC5 task (what a fresh controller holds before anything is loaded): a second global
@@ -73,7 +84,14 @@ ENDMODULE
 CHANNEL_OPTIONS: dict[str, tuple[str, ...]] = {"serial": (), "tcp": ("616-1",)}
 
 
-class ControllerEmulator:
+# The controller time one executed RAPID statement costs: an estimate (no IRC5 was measured for this project;
+# measure yours with ClkRead\\HighRes around a loop, docs/deploy_irc5.md). 0 turns the pacing off.
+STATEMENT_COST_US = 10.0
+
+RESTART_ROUTINE = "IRB120ServerRestart"  # the core module's RESTART event routine
+
+
+class ControllerEmulator(Pendant):
     """Runs the server on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1): the core module ``rapid`` (default: the
     shipped one), the shipped channel module for the channel and, with ``zone``, the world-zone system module.
 
@@ -83,7 +101,11 @@ class ControllerEmulator:
     608-1 World Zones is installed). ``extra_modules``: RAPID texts loaded into the same task (e.g.
     :data:`STOCK_MAIN_MODULE`); ``entry``: the PROC the program starts at (the task's main entry). ``op_mode``:
     the key switch (:data:`OP_MODE_NAMES`), what ``OpMode()`` returns; set :attr:`op_mode` to turn it while the
-    program runs."""
+    program runs. ``statement_cost_us``: the controller time of one RAPID statement (:data:`STATEMENT_COST_US`).
+    ``pc_address``: the PC's address the TCP build serves (its PC_ADDRESS constant, as an integrator sets it).
+
+    The operator's controls (Stop, Start, PP to main, emergency stop, the enabling device) and the event log are
+    in :class:`~.pendant.Pendant`."""
 
     def __init__(
         self,
@@ -100,14 +122,15 @@ class ControllerEmulator:
         extra_modules: tuple[str, ...] | list[str] = (),
         entry: str = ENTRY,
         op_mode: str = "manual_reduced",
+        statement_cost_us: float = STATEMENT_COST_US,
+        pc_address: str = "127.0.0.1",
     ):
         if channel not in CHANNEL_MODULES:
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
         self.options = parse_options(CHANNEL_OPTIONS[channel] if options is None else options)
         zone = "608-1" in self.options if zone is None else zone
         self.entry = entry
-        if channel not in ("serial", "tcp"):
-            raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
+        self.pc_address = pc_address
         if baud is not None and (channel != "serial" or baud <= 0):
             raise ValueError(f"baud={baud!r}: a positive line speed, for the serial channel only")
         if not (math.isfinite(latency_ms) and latency_ms >= 0):
@@ -118,15 +141,23 @@ class ControllerEmulator:
         self.op_mode = op_mode
         self.channel_kind, self.port = channel, port
         self.zone = zone
-        source = server_source(channel, rapid, zone)
+        source = server_source(channel, rapid, zone, pc_address)
         self.robot = EmulatedIRB120(q0_deg)
         self.robot.speed_scale = speed_scale
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
-        self.link = Channel(parse_faults(faults), self.signals, baud, latency_ms / 1000)
+        self._init_pendant()
+        self.link = Channel(parse_faults(faults), self._injected_fault, baud, latency_ms / 1000)
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         # syntax and load errors (missing options, ambiguous names) surface here, with their module and line
-        self.interp = Interpreter([source, *extra_modules], self._builtins(), options=self.options)
+        self.interp = Interpreter(
+            [source, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
+        )
+        self.start_routines: list[str] = []  # START event routines: run when the program starts from main
+        if self.interp.find_routine_py(RESTART_ROUTINE) is not None:
+            self.interp.restart_routines.append(RESTART_ROUTINE)
         self.error: BaseException | None = None
+        self._start_from_main = threading.Event()
+        self._shutdown = False
         self._server: socket.socket | None = None
         self._conns: list[socket.socket] = []  # every client connection accepted (closed by stop())
         self._slave: int | None = None
@@ -160,14 +191,44 @@ class ControllerEmulator:
         try:
             if self.zone:  # the controller ran the system module's POWER ON event routine long before
                 self.interp.call(ZONE_POWER_ON)
-            self.interp.run(self.entry)
-        except RapidStopped:
-            pass
-        except BaseException as e:  # a fatal program error: the robot stops, as the IRC5 stops the program
-            self.robot.stop()
+        except BaseException as e:
             self.error = e
+            return
+        while not self._shutdown:
+            try:
+                for name in self.start_routines:
+                    self.interp.call(name)
+                self.interp.run(self.entry)
+            except PPToMain:
+                self.robot.clear_path()
+            except RapidStopped:
+                return
+            except BaseException as e:  # a fatal program error: the robot stops, as the IRC5 stops the program
+                self.robot.stop(quick=True)
+                self.error = e
+                self.log_event(None, "Program stopped by an error", str(e))
+            # the program pointer stands at main (or the program has ended): the next Start runs it from the top
+            self._start_from_main.wait()
+            self._start_from_main.clear()
+
+    def _start_program(self) -> None:
+        if self.at_main:
+            self.at_main, self.error = False, None
+            self._start_from_main.set()
+        else:
+            if not self._path_was_stopped:
+                self.robot.start()  # the planner goes on with the path it had queued, as an IRC5 does
+            self.interp.resume()
+
+    def _injected_fault(self, kind: str) -> None:
+        if kind == "estop":
+            self.emergency_stop()
+        else:
+            self.motors_off_fault("fault injection")
 
     def stop(self) -> None:
+        self._shutdown = True
+        self._start_from_main.set()
         self.interp.request_stop()
         self.thread.join(2)
         self.robot.stop()

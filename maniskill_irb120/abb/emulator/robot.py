@@ -75,6 +75,7 @@ class EmulatedIRB120:
         self.zone: tuple[np.ndarray, np.ndarray] | None = None  # TCP box (m) the robot may not leave
         self.zone_tool = np.eye(4)
         self.zone_violation = False
+        self.events: list[tuple[int | None, str, str, float]] = []  # (code, title, detail, time) for the log
 
     # ------------------------------------------------------------------ kinematics (RAPID conventions)
     def tool0(self, q_deg) -> np.ndarray:
@@ -183,8 +184,8 @@ class EmulatedIRB120:
         while self.busy() and self.clock() < deadline:
             time.sleep(0.002)
 
-    def stop(self) -> None:
-        """StopMove: freeze where the robot is now."""
+    def stop(self, quick: bool = False) -> None:
+        """StopMove (``quick``: StopMove\\Quick, a program halt or an emergency stop): freeze where the robot is."""
         with self.lock:
             self._advance(self.clock())
             self.stopped = True

@@ -9,6 +9,7 @@ from lark import Tree
 
 from maniskill_irb120.abb.emulator.rapid.contract import Args, Options, Runtime
 from maniskill_irb120.abb.emulator.rapid.errors import ProgramHalt, RapidError, RapidRuntimeError, RapidStopped
+from maniskill_irb120.abb.emulator.rapid.execution import PPToMain
 from maniskill_irb120.abb.emulator.rapid.frames import Frame, Param, Propagate, Return, Routine
 from maniskill_irb120.abb.emulator.rapid.registry import Builtin
 from maniskill_irb120.abb.emulator.rapid.values import (
@@ -124,6 +125,15 @@ class CallsMixin:
                 raise self.fault(f"FUNC {routine.name} returns {routine.rtype}: {e}") from None
         except Propagate as p:
             raise p.error from None
+        except PPToMain:
+            if routine.undo is not None:  # innermost first, as the pointer leaves each routine
+                frame.in_handler = True
+                try:
+                    self.block(routine.undo, frame)
+                except (RapidError, Propagate) as e:  # an UNDO that fails does not stop the others
+                    err = e.error if isinstance(e, Propagate) else e
+                    self.err_log.append(f"UNDO of {routine.name} failed: {err}")
+            raise
         finally:
             self._stack.pop()
 
@@ -140,7 +150,7 @@ class CallsMixin:
                 kw[key] = arg.ref(f"\\{name} of {b.name}") if name.lower() in b.refs else arg.value()
         try:
             return b.fn(self, *pos, **kw) if b.with_interp else b.fn(*pos, **kw)
-        except (RapidError, RapidRuntimeError, RapidStopped, ProgramHalt, Propagate):
+        except (RapidError, RapidRuntimeError, RapidStopped, ProgramHalt, Propagate, PPToMain):
             raise
         except Exception as e:
             raise self.fault(f"{b.name} failed: {type(e).__name__}: {e}") from e

@@ -48,6 +48,7 @@ class Runtime(Protocol):
     clock: Clock
     max_retries: int  # RETRYs of one statement before its error goes to the caller
     connections: dict[int, str]  # CONNECT intno WITH trap, keyed by id(cell)
+    err_log: list[str]  # ErrWrite entries (and failed UNDO handlers)
     _stack: list[Frame]  # active routine frames (the last one locates faults)
     _errno: Cell  # the ERRNO system variable
 

@@ -33,7 +33,7 @@ class Param:
 
 @dataclass
 class Routine:
-    """A PROC, FUNC or TRAP; BACKWARD and UNDO sections are parsed but not run."""
+    """A PROC, FUNC or TRAP; its UNDO section runs when PP to main unwinds it; BACKWARD is parsed, not run."""
 
     name: str
     kind: str
@@ -44,6 +44,7 @@ class Routine:
     handler: Tree | None
     handler_filter: list[str] | None
     line: int
+    undo: Tree | None = None  # UNDO: run when the program pointer leaves the routine by PP to main
     module: str = ""  # the module that declares it (its LOCAL names are visible from here)
     local: bool = False  # declared LOCAL: visible only inside its module
 
@@ -66,7 +67,7 @@ class Routine:
         else:
             _, name, body = t.children
             rtype, params = None, None
-        decls, stmts, _backward, handler, _undo = body.children
+        decls, stmts, _backward, handler, undo = body.children
         plist: list[Param] = []
         for group, p in enumerate(params.children if params is not None else [], start=1):
             alts = p.children if p.data == "opt_param" else [p]
@@ -85,6 +86,7 @@ class Routine:
             handler=handler.children[1] if handler is not None else None,
             handler_filter=[str(n) for n in flt.children] if flt is not None else None,
             line=t.meta.line,
+            undo=undo.children[0] if undo is not None else None,
             module=module,
             local=scope is not None and scope.children[0].upper() == "LOCAL",
         )

@@ -7,7 +7,6 @@ Frames and the control-flow signals (Return, Retry, TryNext, Propagate) are in :
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -19,9 +18,9 @@ from maniskill_irb120.abb.emulator.rapid.errors import (
     RapidError,
     RapidLoadError,
     RapidRuntimeError,
-    RapidStopped,
     errno_name,
 )
+from maniskill_irb120.abb.emulator.rapid.execution import ExecutionMixin
 from maniskill_irb120.abb.emulator.rapid.expressions import ExpressionsMixin
 from maniskill_irb120.abb.emulator.rapid.frames import Frame, Propagate, Retry, Return, Routine, TryNext
 from maniskill_irb120.abb.emulator.rapid.options import declared_names, missing_options, parse_options
@@ -41,14 +40,15 @@ from maniskill_irb120.abb.emulator.rapid.values import (
 )
 
 
-class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
+class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin):
     """Executes the RAPID modules of one task. ``builtins`` adds/overrides routines (see :mod:`.registry`).
 
     ``source`` is one source text or several (each may hold several modules; line numbers count per text).
     Routine and data names are global to the task unless ``LOCAL`` (``TASK`` is treated as global). Loading
     refuses (:class:`RapidLoadError`) a global name declared twice, and, when ``options`` is given (installed
     RobotWare option ids such as ``"616-1"``; ``()``: none), any use of a name whose option is missing
-    (:mod:`.options`). ``options=None`` skips that check.
+    (:mod:`.options`). ``options=None`` skips that check. Stop/start, PP to main and ``statement_cost_s`` (the
+    controller time of one statement): :mod:`.execution`.
     """
 
     def __init__(
@@ -60,6 +60,7 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         max_retries: int = 4,
         max_statements: int | None = None,
         options: Iterable[str] | None = None,
+        statement_cost_s: float = 0.0,
     ):
         self.builtins = Builtins()
         self.builtins.update(STDLIB)
@@ -73,7 +74,7 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
         self.err_log: list[str] = []  # ErrWrite entries
         self.connections: dict[int, str] = {}  # CONNECT intno WITH trap (recorded, traps are not run)
         self.next_errno = 0  # BookErrNo offset
-        self._stop = threading.Event()
+        self._init_execution(statement_cost_s)
         self._stack: list[Frame] = []
         self._errno = Cell("ERRNO", 0.0, "CONST")
         self.system: dict[str, Ref] = {k: Ref(Cell(k, v, "CONST")) for k, v in system_data().items()}
@@ -123,20 +124,6 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
     def ref(self, name: str) -> Ref:
         """A live reference to module data (pass to :meth:`call` for INOUT/VAR parameters)."""
         return self._global_ref(name)
-
-    def request_stop(self) -> None:
-        """Thread-safe: the running program raises :class:`RapidStopped` before its next statement/wait."""
-        self._stop.set()
-
-    @property
-    def stop_event(self) -> threading.Event:
-        """Set by request_stop(); blocking builtins should wait on it (as WaitTime does)."""
-        return self._stop
-
-    def check_stop(self) -> None:
-        if self._stop.is_set():
-            self._stop.clear()
-            raise RapidStopped("stop requested")
 
     # ---- loading --------------------------------------------------------------------------------------
     def _load(self, modules: list[Tree]) -> None:
@@ -315,13 +302,6 @@ class Interpreter(StatementsMixin, CallsMixin, ExpressionsMixin):
             raise RapidRuntimeError(f"misplaced {type(e).__name__.upper()}") from None
         finally:
             self._stack = saved
-
-    def tick(self) -> None:
-        """Called before every statement: honours request_stop() and the statement budget."""
-        self.check_stop()
-        self.statements += 1
-        if self.max_statements is not None and self.statements > self.max_statements:
-            raise RapidStopped(f"statement budget of {self.max_statements} exhausted")
 
 
 def _is_local(item: Tree) -> bool:

@@ -1,0 +1,127 @@
+"""Program execution as a controller's task runs it: stopped and started from outside, the program pointer
+moved to main, and every statement costing controller time.
+
+* **Stop and start** (the pendant's Stop/Start, an emergency stop, releasing the enabling device): :meth:`halt`
+  stops the program before its next statement or inside a blocking instruction, where it waits; :meth:`resume`
+  goes on from there, inside the instruction that was running (a read resumes its wait), after the task's
+  RESTART event routines. This is why an IRC5 program that was stopped mid-read does not start over: the
+  controller resumes the program pointer where it stood (ABB Operating manual IRC5, "Starting programs";
+  REFERENCE.md "Start without PP to main resumes").
+* **PP to main**: :meth:`pp_to_main` unwinds every active routine, innermost first, running each one's ``UNDO``
+  handler (RAPID's UNDO: "executed when the program pointer is moved out of the routine", used to close what
+  the routine opened); the next start runs the entry routine from its first statement after the START event
+  routines.
+* **Statement cost**: RAPID is interpreted; each statement costs the controller time. ``statement_cost_s``
+  (an estimate, configurable; 0 disables it) paces the program so that it never runs faster than that, on top
+  of whatever time the built-ins take. The emulator's own Python is slower per statement than that on some
+  machines: then the measured time is the emulator's, and :attr:`statements` still counts what an IRC5 would
+  execute.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from maniskill_irb120.abb.emulator.rapid.errors import RapidStopped
+
+
+class PPToMain(Exception):
+    """The program pointer was moved to main: unwinds every routine (their UNDO handlers run on the way)."""
+
+
+class ExecutionMixin:
+    """Stop/start, PP to main and statement pacing for :class:`~.interpreter.Interpreter` (which calls
+    :meth:`_init_execution` and routes ``tick``/``check_stop`` here)."""
+
+    statements: int
+    max_statements: int | None
+
+    def _init_execution(self, statement_cost_s: float) -> None:
+        if not statement_cost_s >= 0:
+            raise ValueError(f"statement_cost_s={statement_cost_s!r}: a time >= 0 s per statement")
+        self.statement_cost_s = statement_cost_s
+        self._stop = threading.Event()
+        self._running = threading.Event()  # cleared by halt(): the program waits at its next check
+        self._running.set()
+        self._pp_main = False
+        self._restart_pending = False
+        self.restart_routines: list[str] = []  # RESTART event routines, run when a halted program resumes
+        self.halted = threading.Event()  # set while the program actually stands still (after halt())
+        self._owed_s = 0.0  # controller time of statements not yet paid for
+        self._cpu_mark = (threading.get_ident(), time.thread_time())  # CPU time is per thread
+
+    # ---- from outside (thread-safe) -------------------------------------------------------------------------
+    def request_stop(self) -> None:
+        """The program raises :class:`RapidStopped` before its next statement/wait (the emulator shuts down)."""
+        self._stop.set()
+        self._running.set()
+
+    @property
+    def stop_event(self) -> threading.Event:
+        """Set by request_stop(); blocking builtins should wait on it (as WaitTime does)."""
+        return self._stop
+
+    def halt(self) -> None:
+        """The program stops before its next statement, or where a blocking instruction polls."""
+        self._running.clear()
+
+    def resume(self) -> None:
+        """A halted program goes on where it stood, after the RESTART event routines."""
+        if not self._running.is_set():
+            self._restart_pending = True
+        self._running.set()
+
+    def pp_to_main(self) -> None:
+        """Move the program pointer to main: a halted program unwinds (UNDO handlers run) and ends its run()."""
+        self._pp_main = True
+        self._running.set()
+
+    @property
+    def is_halted(self) -> bool:
+        return not self._running.is_set()
+
+    # ---- from the program's thread ---------------------------------------------------------------------------
+    def check_stop(self) -> None:
+        """Where the program may be stopped: between statements and inside blocking instructions."""
+        if not self._running.is_set():
+            self.halted.set()
+            self._running.wait()
+            self.halted.clear()
+            self._pay(0.0)  # standing still is not statement time
+        if self._stop.is_set():
+            self._stop.clear()
+            raise RapidStopped("stop requested")
+        if self._pp_main:
+            self._pp_main = False
+            self._restart_pending = False
+            raise PPToMain()
+        if self._restart_pending:
+            self._restart_pending = False
+            for name in self.restart_routines:
+                self.call(name)  # type: ignore[attr-defined]
+
+    def tick(self) -> None:
+        """Before every statement: stop/start, the statement budget and the statement's controller time."""
+        self.check_stop()
+        self.statements += 1
+        if self.max_statements is not None and self.statements > self.max_statements:
+            raise RapidStopped(f"statement budget of {self.max_statements} exhausted")
+        if self.statement_cost_s:
+            self._owed_s += self.statement_cost_s
+            if self._owed_s >= 0.001:  # pay in whole milliseconds: sleep() is no finer than that
+                self._pay(self._owed_s)
+
+    def settle_time(self) -> None:
+        """A blocking instruction starts: the statements before it are paid for first (and its wait is not
+        statement time)."""
+        self._pay(self._owed_s)
+
+    def _pay(self, owed: float) -> None:
+        """Sleep what ``owed`` exceeds the CPU time this thread spent since the last payment."""
+        thread, mark = self._cpu_mark
+        now = time.thread_time()
+        if owed > 0 and thread == threading.get_ident() and owed > now - mark:
+            time.sleep(owed - (now - mark))
+            now = time.thread_time()
+        self._owed_s, self._cpu_mark = 0.0, (threading.get_ident(), now)
