@@ -4,6 +4,7 @@ envelope refuses leaves it held, says why, and the jogger stays usable."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -109,3 +110,11 @@ def test_bad_config_is_named():
         JogConfig(step_mm=15.0)
     with pytest.raises(ValueError, match="frame"):
         JogConfig(frame="base")
+
+
+def test_the_teleop_command_jogs_the_emulator(capsys):
+    from maniskill_irb120.cli import _jog
+
+    assert _jog("emulator", Scripted([UP] * 3 + [Command()]), "world", 2.0, 1.0) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["steps"] == 3 and result["robot"].startswith("tcp://127.0.0.1:")
