@@ -93,9 +93,11 @@ class Jogger:
             except (EnvelopeError, ControllerRefused) as e:
                 self.halt()
                 self.refused += 1
-                if str(e) != self.refusal:  # once per reason, not 20 times a second
+                # once per limit, not 20 times a second (the numbers in the message move as the robot settles)
+                reason = e.limit if isinstance(e, EnvelopeError) else f"controller {int(e.state.error)}"
+                if reason != self.refusal:
                     self.say(f"held: {e}")
-                    self.refusal = str(e)
+                    self.refusal = reason
                 return "refused"
             self.moving, self.refusal = True, None
             self.steps += 1
