@@ -190,7 +190,11 @@ def teleop(
     50 ms period, every step through the safety envelope. Prints one JSON line at the end."""
     from maniskill_irb120.teleop.devices import Merged, open_device
 
-    dev = open_device(device)
+    try:
+        dev = open_device(device)
+    except (ValueError, RuntimeError) as e:  # no such device, not plugged in, not a terminal
+        print(f"--device {device}: {e}", file=sys.stderr)
+        return 2
     if device != "keyboard" and sys.stdin.isatty():
         dev = Merged(dev, open_device("keyboard"))  # save / discard / quit from the terminal too
     try:

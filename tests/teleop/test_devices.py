@@ -216,3 +216,17 @@ def test_bad_commands_and_devices_are_named():
         Command(translation=(2.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="unknown device 'wiimote'"):
         open_device("wiimote")
+
+
+def test_the_teleop_command_names_a_bad_device(capsys, monkeypatch):
+    from maniskill_irb120.cli import main
+
+    assert main(["teleop", "--device", "wiimote"]) == 2
+    assert "--device wiimote: unknown device 'wiimote'" in capsys.readouterr().err
+    r, w = os.pipe()
+    monkeypatch.setattr("sys.stdin", os.fdopen(r))
+    try:
+        assert main(["teleop", "--device", "keyboard"]) == 2
+        assert "standard input is not one" in capsys.readouterr().err
+    finally:
+        os.close(w)
