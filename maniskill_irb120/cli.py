@@ -165,6 +165,86 @@ def sysid(log: str) -> int:
     return 0
 
 
+def teleop(
+    env_id: str = DEFAULT_ENV_ID,
+    device: str = "keyboard",
+    frame: str = "world",
+    control_mode: str = "pd_ee_delta_tool",
+    out_dir: str = "demos",
+    name: str = "teleop",
+    seed: int = 0,
+    speed: float = 0.5,
+    max_episode_steps: int = 1200,
+    view: str = "auto",
+    robot: str | None = None,
+    step_mm: float = 2.0,
+    step_deg: float = 1.0,
+) -> int:
+    """Drive a task by hand and record the saved episodes as ManiSkill trajectories (OUT_DIR/NAME.h5 + .json),
+    or, with ``--robot``, jog a robot. ``--device keyboard`` (this terminal; works over SSH), ``spacemouse``
+    (hidapi) or ``gamepad`` (/dev/input/js0); keys: w/s a/d r/f move along x/y/z, z/x turn, space toggles the
+    gripper, Enter saves, Backspace resets, n discards, q quits. ``--frame world|tool``: the axes x/y/z move along.
+    ``--control-mode pd_joint_pos`` records the joint targets, which ManiSkill's replay tool converts to its other
+    modes. ``--robot emulator`` (our RAPID server on the controller emulator) or ``tcp://HOST:PORT`` /
+    ``serial:///dev/ttyUSB0?baudrate=N`` (an IRC5): hold-to-run jogging at ``--step-mm`` / ``--step-deg`` per
+    50 ms period, every step through the safety envelope. Prints one JSON line at the end."""
+    from maniskill_irb120.teleop.devices import Merged, open_device
+
+    try:
+        dev = open_device(device)
+    except (ValueError, RuntimeError) as e:  # no such device, not plugged in, not a terminal
+        print(f"--device {device}: {e}", file=sys.stderr)
+        return 2
+    if device != "keyboard" and sys.stdin.isatty():
+        dev = Merged(dev, open_device("keyboard"))  # save / discard / quit from the terminal too
+    try:
+        if robot is not None:
+            return _jog(robot, dev, frame, step_mm, step_deg)
+        from maniskill_irb120.teleop.keyboard import HELP
+        from maniskill_irb120.teleop.sim import TeleopConfig
+        from maniskill_irb120.teleop.sim import teleop as run
+
+        cfg = TeleopConfig(
+            env_id=env_id,
+            frame=frame,
+            control_mode=control_mode,
+            out_dir=Path(out_dir),
+            name=name,
+            seed=seed,
+            speed=speed,
+            max_episode_steps=max_episode_steps,
+            view=view,
+        )
+        print(HELP, flush=True)
+        print(json.dumps(run(cfg, dev, say=lambda m: print(m, flush=True))))
+        return 0
+    finally:
+        dev.close()
+
+
+def _jog(robot: str, dev, frame: str, step_mm: float, step_deg: float) -> int:
+    from maniskill_irb120.abb.client import ABBRobot
+    from maniskill_irb120.teleop.jog import JogConfig, Jogger
+    from maniskill_irb120.teleop.keyboard import HELP
+
+    cfg = JogConfig(frame=frame, step_mm=step_mm, step_deg=step_deg)
+    emu = None
+    if robot == "emulator":
+        from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+
+        emu = ControllerEmulator("tcp")
+        robot = emu.start()
+    try:
+        with ABBRobot.connect(robot) as arm:
+            print(f"{HELP}\nready: jogging {robot}, {frame} frame, {step_mm} mm / {step_deg} deg a period", flush=True)
+            result = Jogger(arm, dev, cfg, say=lambda m: print(m, flush=True)).run()
+        print(json.dumps(dict(robot=robot, **result)))
+    finally:
+        if emu is not None:
+            emu.stop()
+    return 0
+
+
 COMMANDS = {
     "doctor": doctor,
     "collect-demos": collect_demos,
@@ -172,6 +252,7 @@ COMMANDS = {
     "emulator": emulator,
     "sim2real-eval": sim2real_eval,
     "sysid": sysid,
+    "teleop": teleop,
 }
 
 

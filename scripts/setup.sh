@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-shot, idempotent setup: software Vulkan driver when no usable GPU driver exists (Debian 12),
-# a virtualenv at .venv/, CPU torch when there is no NVIDIA GPU, then this package (+ extras).
+# a virtualenv at .venv/, CPU torch when there is no NVIDIA GPU, then this package (+ extras); tmux with the dev extras.
 # Usage: bash scripts/setup.sh [extras]   e.g. bash scripts/setup.sh dev,rl
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -45,6 +45,23 @@ then re-run this script."
         log "Mesa $(mesa_version) installed"
     else
         die "no usable Vulkan driver detected and this is not Debian 12. Install a Vulkan driver: the NVIDIA driver, or Mesa lavapipe >= 24.3 (package mesa-vulkan-drivers) and the Vulkan loader (libvulkan1); then re-run."
+    fi
+fi
+
+# ---------------------------------------------------------------- tmux (system, dev only)
+# the teleop tests drive `maniskill-irb120 teleop` through a real terminal with tmux send-keys
+if [[ ",$EXTRAS," == *",dev,"* ]] && ! command -v tmux >/dev/null; then
+    if command -v apt-get >/dev/null; then
+        SUDO=""
+        if [ "$(id -u)" != 0 ]; then
+            command -v sudo >/dev/null && sudo -n true 2>/dev/null && SUDO="sudo -n" \
+                || die "the dev extras' tests need tmux; as root run: apt-get install -y tmux, then re-run this script"
+        fi
+        log "installing tmux (the teleop tests' terminal)"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq tmux >/dev/null
+    else
+        log "tmux not found: the teleop terminal test will be skipped (install tmux to run it)"
     fi
 fi
 

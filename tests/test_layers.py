@@ -2,7 +2,8 @@
 
 Imports point one way: ``action`` < ``robot/`` < ``envs/`` < ``vector``/``wrappers`` < ``experts/`` <
 ``policies/`` < ``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs
-neither). Imports inside functions count as much as module-level ones: a lazy import is still a dependency.
+neither); ``teleop/`` over ``experts/`` and ``abb/`` (its devices and jogging: no ManiSkill, no SAPIEN either).
+Imports inside functions count as much as module-level ones: a lazy import is still a dependency.
 """
 
 from __future__ import annotations
@@ -87,6 +88,15 @@ RULES = {
         files("policies"),
         ("mani_skill", "sapien", "gymnasium", M + ".envs", M + ".experts", M + ".sim2real", M + ".abb", "agents"),
     ),
+    "teleop/ never imports sim2real/ or agents/": (
+        files("teleop"),
+        (M + ".sim2real", "agents"),
+    ),
+    "teleop's devices and jogging run on a robot PC: no ManiSkill, no SAPIEN, no sim layers": (
+        [p for p in files("teleop") if p.stem in ("devices", "keyboard", "spacemouse", "gamepad", "jog")],
+        ("mani_skill", "sapien", "gymnasium", M + ".envs", M + ".experts", M + ".abb.emulator")
+        + (M + ".robot.irb120", M + ".robot.controllers", M + ".vector", M + ".wrappers"),
+    ),
     "the library never imports the trainers": (sorted(PKG.rglob("*.py")), ("agents",)),
 }
 
@@ -108,7 +118,7 @@ def test_every_folder_says_what_it_may_import():
 
 def test_wire_side_runs_without_maniskill_or_sapien():
     """A robot PC's interpreter: ManiSkill and SAPIEN cannot be imported at all, and the client still connects
-    its envelope and encodes a frame."""
+    its envelope and encodes a frame (and the teleop devices and jogger import)."""
     code = textwrap.dedent(
         """
         import importlib.abc, sys
@@ -120,6 +130,7 @@ def test_wire_side_runs_without_maniskill_or_sapien():
 
         sys.meta_path.insert(0, Block())
         from maniskill_irb120.abb import client, envelope, protocol
+        from maniskill_irb120.teleop import devices, gamepad, jog, keyboard, spacemouse
         env = envelope.Envelope()
         import numpy as np
         q = env.check_tool_step(np.radians([0, 19.05, 26.51, 0, 44.44, 0]), [0.0, 0.0, 0.005], 0.0)

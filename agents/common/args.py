@@ -43,9 +43,10 @@ class RunArgs:
     progress: bool = True
     """a tqdm progress bar"""
     wandb: bool = False
-    """also log to Weights & Biases (imported only when set)"""
+    """also log to Weights & Biases (imported only when set; WANDB_MODE=offline: to RUN_DIR/wandb, no account)"""
     comet: bool = False
-    """also log to Comet, as the original report did (imported only when set)"""
+    """also log to Comet, as the original report did (imported only when set; COMET_START_ONLINE=false: an
+    archive in RUN_DIR/comet, no account)"""
     wandb_project: str = "maniskill_irb120"
     """the W&B project"""
     comet_project: str = "maniskill_irb120"

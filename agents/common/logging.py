@@ -4,6 +4,7 @@ the wall-clock budget, and the ``summary.json`` + one printed JSON line a run en
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import asdict
 from pathlib import Path
 
@@ -11,7 +12,11 @@ from agents.common.args import RunArgs
 
 
 class Logger:
-    """TensorBoard always; W&B and Comet only when asked (imported lazily)."""
+    """TensorBoard always; W&B and Comet only when asked (imported lazily). Both honour their own offline switches,
+    for machines without an account or a network: ``WANDB_MODE=offline`` (the run goes to RUN_DIR/wandb/, ``wandb
+    sync`` uploads it) and ``COMET_START_ONLINE=false`` (an archive in RUN_DIR/comet/, or COMET_OFFLINE_DIRECTORY;
+    ``comet upload`` sends it). Comet is started with ``comet_ml.start``, which reads that switch: the
+    ``comet_ml.Experiment`` used before is online only and needs an API key."""
 
     def __init__(self, run_dir: Path, args):
         from torch.utils.tensorboard import SummaryWriter
@@ -27,8 +32,14 @@ class Logger:
         if args.comet:
             import comet_ml
 
-            self.comet = comet_ml.Experiment(project_name=args.comet_project)
-            self.comet.set_name(run_dir.name)
+            offline_dir = os.environ.get("COMET_OFFLINE_DIRECTORY", str(run_dir / "comet"))
+            self.comet = comet_ml.start(
+                project_name=args.comet_project,
+                # auto_metric_logging off: Comet's hook on TensorBoard would log every scalar a second time
+                experiment_config=comet_ml.ExperimentConfig(
+                    name=run_dir.name, offline_directory=offline_dir, auto_metric_logging=False
+                ),
+            )
             self.comet.log_parameters(config)
 
     def scalars(self, values: dict[str, float], step: int) -> None:

@@ -30,20 +30,36 @@ CONTROL_MODES = ("pd_ee_delta_tool", "pd_joint_pos")
 """The modes demos are recorded in: the expert's own, or the joint targets its tool actions command."""
 
 
-class JointTargetExpert:
-    """The task's tool-frame expert acting on an env in ``pd_joint_pos``: each step it still decides a tool
-    action from the state, and returns the joint-position action that commands the same motion, i.e. what
-    ``pd_ee_delta_tool``'s controller does with that action: the arm's IK target for ``T(measured joints) · Δ``
-    (the same :class:`ArmIK`, limits and joint-speed check) or, where that is unreachable, the last joint target,
-    followed by the expert's gripper value. (N, 7) actions."""
+class JointTargets:
+    """Tool actions → the ``pd_joint_pos`` actions that command the same motion on an env in that mode, i.e. what
+    ``pd_ee_delta_tool``'s controller does with them: the arm's IK target for ``T(measured joints) · Δ`` (the same
+    :class:`ArmIK`, limits and joint-speed check) or, where that is unreachable, the last joint target, followed
+    by the action's gripper value. (N, 5) in, (N, 7) out. Whatever decides the tool actions (the scripted expert,
+    a teleoperator) records joint targets through this one path."""
 
-    def __init__(self, env: gym.Env, expert: PickPlaceExpert):
-        self.env, self.expert = env.unwrapped, expert
+    def __init__(self, env: gym.Env):
+        self.env = env.unwrapped
         cfg = self.env.agent._controller_configs["pd_ee_delta_tool"]["arm"]
         chain = SerialChain(cfg.urdf_path, cfg.ee_link, device=self.env.device)
         dls = DLSParams(cfg.ik_iterations, cfg.ik_damping, cfg.ik_pos_tol, cfg.ik_rot_tol)
         self.ik = ArmIK(chain, cfg.ik_solver, dls, max_joint_step=chain.velocity / self.env.control_freq)
         self.limits = torch.tensor([cfg.pos_limit] * 3 + [cfg.rot_limit], device=self.env.device)
+
+    def __call__(self, action: torch.Tensor) -> torch.Tensor:
+        arm = self.env.agent.arm_controller
+        tool = action[:, :4].clamp(-1.0, 1.0) * self.limits.to(action.dtype)
+        q, ok, _ = self.ik.tool_step(arm.qpos, tool)
+        target = torch.where(ok[:, None], q.to(arm._target_qpos.dtype), arm._target_qpos)
+        return torch.cat([target, action[:, 4:].to(target.dtype)], 1)
+
+
+class JointTargetExpert:
+    """The task's tool-frame expert acting on an env in ``pd_joint_pos``: each step it still decides a tool
+    action from the state, and returns the joint-position action that commands the same motion
+    (:class:`JointTargets`). (N, 7) actions."""
+
+    def __init__(self, env: gym.Env, expert: PickPlaceExpert):
+        self.expert, self.targets = expert, JointTargets(env)
 
     def reset(self) -> None:
         self.expert.reset()
@@ -53,12 +69,15 @@ class JointTargetExpert:
         return self.expert.phase
 
     def act(self) -> torch.Tensor:
-        action = self.expert.act()
-        arm = self.env.agent.arm_controller
-        tool = action[:, :4].clamp(-1.0, 1.0) * self.limits.to(action.dtype)
-        q, ok, _ = self.ik.tool_step(arm.qpos, tool)
-        target = torch.where(ok[:, None], q.to(arm._target_qpos.dtype), arm._target_qpos)
-        return torch.cat([target, action[:, 4:].to(target.dtype)], 1)
+        return self.targets(self.expert.act())
+
+
+def name_env_in_json(json_path: Path, env_id: str) -> None:
+    """Name the env ``maniskill_irb120:<env id>`` in a RecordEpisode json, so ManiSkill's replay tool imports this
+    package in a fresh interpreter (RecordEpisode writes the bare id)."""
+    meta = json.loads(Path(json_path).read_text())
+    meta["env_info"]["env_id"] = f"maniskill_irb120:{env_id}"
+    Path(json_path).write_text(json.dumps(meta, indent=2))
 
 
 def collect_demos(
@@ -119,9 +138,7 @@ def collect_demos(
     h5, js = out_dir / f"{name}.h5", out_dir / f"{name}.json"
     if kept == 0:
         raise RuntimeError(f"no successful episode among {episodes}; nothing recorded")
-    meta = json.loads(js.read_text())
-    meta["env_info"]["env_id"] = f"maniskill_irb120:{env_id}"
-    js.write_text(json.dumps(meta, indent=2))
+    name_env_in_json(js, env_id)
     return dict(
         env_id=env_id,
         control_mode=control_mode,

@@ -1,0 +1,108 @@
+"""W&B and Comet, the loggers every trainer offers (``--wandb``, ``--comet``), in their offline modes: one short
+DAgger run (the cheapest trainer run of tests/agents) logs to both, and each offline run holds the metrics the
+trainer logged to TensorBoard."""
+
+from __future__ import annotations
+
+import json
+import struct
+import zipfile
+from pathlib import Path
+
+import pytest
+
+wandb = pytest.importorskip("wandb")
+pytest.importorskip("comet_ml")
+
+from wandb.proto import wandb_internal_pb2  # noqa: E402
+
+from agents.dagger import Args, main  # noqa: E402
+
+BLOCK, HEADER = 32768, struct.Struct("<IHB")  # LevelDB's log format, which W&B's .wandb files use
+
+
+def wandb_records(path: Path) -> list:
+    """The protobuf records of an offline ``.wandb`` file (7-byte file header ``:W&B``, then 32 KiB blocks of
+    checksum / length / type-prefixed chunks; a record spans chunks FIRST, MIDDLE..., LAST)."""
+    data = path.read_bytes()
+    assert data[:4] == b":W&B", data[:8]
+    out, pos, parts = [], 7, b""
+    while pos + HEADER.size <= len(data):
+        left = BLOCK - pos % BLOCK
+        if left < HEADER.size:
+            pos += left  # block trailer: zero padding
+            continue
+        _, length, kind = HEADER.unpack_from(data, pos)
+        chunk = data[pos + HEADER.size : pos + HEADER.size + length]
+        pos += HEADER.size + length
+        if kind == 0 and length == 0:
+            break
+        parts += chunk
+        if kind in (1, 4):  # FULL or LAST
+            rec = wandb_internal_pb2.Record()
+            rec.ParseFromString(parts)
+            out.append(rec)
+            parts = b""
+    return out
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("loggers")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("WANDB_MODE", "offline")
+    mp.setenv("WANDB_SILENT", "true")
+    mp.setenv("COMET_START_ONLINE", "false")
+    mp.delenv("COMET_API_KEY", raising=False)
+    mp.delenv("COMET_OFFLINE_DIRECTORY", raising=False)
+    try:
+        res = main(
+            Args(
+                budget_min=0.05,
+                num_envs=1,
+                expert_episodes=1,
+                episodes_per_round=1,
+                updates_per_round=5,
+                batch_size=16,
+                eval_episodes=1,
+                runs_dir=tmp,
+                exp_name="t",
+                progress=False,
+                capture_video=False,
+                wandb=True,
+                comet=True,
+            )
+        )
+    finally:
+        mp.undo()
+    return Path(res["run_dir"]), res
+
+
+def test_wandb_offline_run_holds_the_logged_metrics(run):
+    run_dir, res = run
+    (run_file,) = run_dir.glob("wandb/offline-run-*/run-*.wandb")
+    records = wandb_records(run_file)
+    history = {}
+    for r in records:
+        if r.WhichOneof("record_type") == "history":
+            for item in r.history.item:
+                history.setdefault(item.key or "/".join(item.nested_key), []).append(json.loads(item.value_json))
+    run_rec = next(r.run for r in records if r.WhichOneof("record_type") == "run")
+    assert run_rec.display_name == "t" and run_rec.project == "maniskill_irb120"
+    assert history["charts/dataset"] and all(v > 0 for v in history["charts/dataset"])
+    assert history["eval/success_rate"] == [pytest.approx(res["success_rate"])]
+
+
+def test_comet_offline_archive_holds_the_logged_metrics(run):
+    run_dir, res = run
+    (archive,) = (run_dir / "comet").glob("*.zip")
+    with zipfile.ZipFile(archive) as z:
+        messages = [json.loads(line) for line in z.read("messages.json").decode().splitlines()]
+    metrics = {}
+    for m in messages:
+        if m["type"] == "metric_msg":
+            metrics.setdefault(m["payload"]["metric"]["metricName"], []).append(m["payload"]["metric"]["metricValue"])
+    assert metrics["charts/dataset"] and all(float(v) > 0 for v in metrics["charts/dataset"])
+    assert [float(v) for v in metrics["eval/success_rate"]] == [pytest.approx(res["success_rate"])]
+    params = [m for m in messages if m["type"] == "parameter_msg"]
+    assert any(m["payload"]["param"]["paramName"] == "budget_min" for m in params)
