@@ -11,9 +11,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from maniskill_irb120.abb.emulator.motion import OUTSIDE_REACH, MotionError
 from maniskill_irb120.abb.emulator.rapid import Builtins, RapidError, make_value
 from maniskill_irb120.abb.emulator.rapid.stdlib import OP_MODES
-from maniskill_irb120.abb.emulator.robot import MotionError, interpolate_pose, rel_tool
+from maniskill_irb120.abb.emulator.robot import interpolate_pose, rel_tool
 from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 
 if TYPE_CHECKING:
@@ -36,8 +37,13 @@ def _tframe(tool) -> np.ndarray:
     return pose_mm([f.trans.x, f.trans.y, f.trans.z], [f.rot.q1, f.rot.q2, f.rot.q3, f.rot.q4])
 
 
-def _robtarget(t: np.ndarray):
-    return make_value("robtarget", [list(t[:3, 3] * 1000), list(matrix_to_quat(t[:3, :3])), [0, 0, 0, 0], [9e9] * 6])
+def _robtarget(t: np.ndarray, conf=(0, 0, 0, 0)):
+    return make_value("robtarget", [list(t[:3, 3] * 1000), list(matrix_to_quat(t[:3, :3])), list(conf), [9e9] * 6])
+
+
+def _conf(rt) -> tuple[float, float, float, float]:
+    c = rt.robconf
+    return c.cf1, c.cf4, c.cf6, c.cfx
 
 
 def _joints(jt) -> np.ndarray:
@@ -59,61 +65,96 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
 
         return wrapped
 
-    def solve(rt, tool):
-        try:
-            return robot.solve(_pose_of(rt), _tframe(tool), robot.joints())
-        except MotionError as e:
-            raise RapidError("ERR_ROBLIMIT" if e.kind == "joint_limit" else "ERR_OUTSIDE_REACH", str(e)) from None
+    def refusal(e: MotionError) -> RapidError:
+        return RapidError("ERR_OUTSIDE_REACH" if e.kind == "reach" else "ERR_ROBLIMIT", str(e))
 
-    def move(q, speed, zone, tool, tcp_s=0.0, via=None, t_call=None):
+    def calc_joint_t(rt, tool):
+        """CalcJointT honours the robtarget's robconf (RobotWare's ConfL/ConfJ do not change that)."""
+        try:
+            return robot.solve_conf(_pose_of(rt), _tframe(tool), _conf(rt))
+        except MotionError as e:
+            raise refusal(e) from None
+
+    def wait_planned(zone) -> None:
+        """The program runs on once the motion is planned: with a fly-by point while the previous segment still
+        runs (one segment of look-ahead), with fine once the robot is at the point."""
+        while len(robot.queue) > (0 if zone.finep else 1):
+            self.interp.check_stop()
+            if robot.motion_error is not None:
+                raise robot.motion_error
+            robot.wait_done(0.002)
+
+    def move(q, speed, zone, tool, via=None, t_call=None, error=None):
         self.moves += 1
         robot.zone_tool = _tframe(tool)
         try:
-            robot.move(q, tool_speed_s=tcp_s, via=via, t_call=t_call)
+            robot.move(q, via, robot.zone_tool, speed.v_tcp, speed.v_ori, not zone.finep, t_call, error)
         except MotionError as e:
             raise RapidError("ERR_ROBLIMIT", str(e)) from None
-        if robot.zone_violation:  # world-zone supervision: the IRC5 stops the robot and the program
-            robot.stop()
-            raise RuntimeError("world zone violated: motion stopped at the zone's boundary")
-        while len(robot.queue) > (0 if zone.finep else 1):  # one segment of look-ahead, none with fine
-            self.interp.check_stop()
-            robot.wait_done(0.002)
+        wait_planned(zone)
 
     def move_l(to, speed, zone, tool, WObj=None):
+        """MoveL with ConfL\\Off (what the server sets): the line on the current arm branch, robconf ignored."""
         t_call = robot.clock()  # an IRC5 plans the line in its own time: the waypoint IK below is ours
-        tframe = _tframe(tool)
-        here, target = robot.tool_pose(robot.queue[-1].q1 if robot.queue else robot.joints(), tframe), _pose_of(to)
-        dist = np.linalg.norm(target[:3, 3] - here[:3, 3]) * 1000
-        cos = (np.trace(here[:3, :3].T @ target[:3, :3]) - 1) / 2
-        angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-        q1 = solve(to, tool)
-        # a straight line with the orientation turning evenly: IK every millimetre or degree along it
-        n = int(min(50, max(1, math.ceil(max(dist, angle)))))
-        via = []
-        if n > 1:
-            line = np.stack([interpolate_pose(here, target, s) for s in np.arange(1, n) / n])
+        with robot.planning(t_call):
+            tframe = _tframe(tool)
+            here, target = robot.tool_pose(robot.path_end(), tframe), _pose_of(to)
+            dist = np.linalg.norm(target[:3, 3] - here[:3, 3]) * 1000
+            cos = (np.trace(here[:3, :3].T @ target[:3, :3]) - 1) / 2
+            angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
             try:
-                via = robot.solve_line(line, tframe, q1)
+                q1 = robot.solve(target, tframe, robot.path_end())
             except MotionError as e:
-                raise RapidError("ERR_OUTSIDE_REACH", str(e)) from None
-        move(q1, speed, zone, tool, max(dist / speed.v_tcp, angle / speed.v_ori), via, t_call)
+                raise refusal(e) from None
+            # a straight line with the orientation turning evenly: IK every millimetre or degree along it
+            n = int(min(50, max(1, math.ceil(max(dist, angle)))))
+            via, error = [], None
+            if n > 1:
+                line = np.stack([interpolate_pose(here, target, s) for s in np.arange(1, n) / n])
+                via, ok = robot.solve_line(line, tframe, q1)
+                if not ok.all():  # met where the robot gets there, not now: it stops at the last point it can reach
+                    bad = int(np.flatnonzero(~ok)[0])
+                    code, title = OUTSIDE_REACH
+                    p = np.round(line[bad, :3, 3] * 1000, 1)
+                    error = MotionError("reach", f"{title}: no joint solution along the line at {p} mm", code)
+                    q1, via = (via[bad - 1], via[: bad - 1]) if bad > 0 else (robot.path_end(), [])
+            move(q1, speed, zone, tool, via, t_call, error)
+
+    def move_abs_j(jt, speed, zone, tool, WObj=None):
+        """MoveAbsJ: its speeddata holds for the TCP, the reorientation and the axes alike (ABB, MoveAbsJ)."""
+        t_call = robot.clock()
+        with robot.planning(t_call):
+            move(_joints(jt), speed, zone, tool, None, t_call)
+
+    def stop_move(Quick=False, **_):
+        """StopMove decelerates along the path; the program goes on once the robot stands still (ClearPath next
+        needs the robot stopped)."""
+        robot.stop(quick=bool(Quick))
+        while robot.busy():
+            robot.wait_done(0.002)
+
+    def crobt(Tool=None, WObj=None):
+        q = robot.joints()
+        return _robtarget(robot.tool_pose(q, np.eye(4) if Tool is None else _tframe(Tool)), robot.robconf(q))
 
     reg.add("CJointT", lambda **_: make_value("jointtarget", [list(robot.joints()), [9e9] * 6]))
+    reg.add("CRobT", crobt)
     reg.add(
-        "CRobT",
-        lambda Tool=None, WObj=None: _robtarget(
-            robot.tool_pose(robot.joints(), np.eye(4) if Tool is None else _tframe(Tool))
+        "CalcJointT", lambda rt, tool, WObj=None: make_value("jointtarget", [list(calc_joint_t(rt, tool)), [9e9] * 6])
+    )
+    reg.add(
+        "CalcRobT",
+        lambda jt, tool, WObj=None: _robtarget(robot.tool_pose(_joints(jt), _tframe(tool)), robot.robconf(_joints(jt))),
+    )
+    reg.add(  # RelTool keeps its input's robconf (ABB, RelTool)
+        "RelTool",
+        lambda rt, dx, dy, dz, Rx=0.0, Ry=0.0, Rz=0.0: _robtarget(
+            rel_tool(_pose_of(rt), dx, dy, dz, Rx, Ry, Rz), _conf(rt)
         ),
     )
-    reg.add("CalcJointT", lambda rt, tool, WObj=None: make_value("jointtarget", [list(solve(rt, tool)), [9e9] * 6]))
-    reg.add("CalcRobT", lambda jt, tool, WObj=None: _robtarget(robot.tool_pose(_joints(jt), _tframe(tool))))
-    reg.add(
-        "RelTool",
-        lambda rt, dx, dy, dz, Rx=0.0, Ry=0.0, Rz=0.0: _robtarget(rel_tool(_pose_of(rt), dx, dy, dz, Rx, Ry, Rz)),
-    )
     reg.add("MoveL", move_l)
-    reg.add("MoveAbsJ", lambda jt, speed, zone, tool, WObj=None: move(_joints(jt), speed, zone, tool))
-    reg.add("StopMove", lambda Quick=False, **_: robot.stop())  # \Quick: the same stop here
+    reg.add("MoveAbsJ", move_abs_j)
+    reg.add("StopMove", stop_move)
     reg.add("ClearPath", lambda: robot.clear_path())
     reg.add("StartMove", lambda **_: robot.start())
     reg.add("ConfL", lambda **_: None)

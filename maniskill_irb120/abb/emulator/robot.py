@@ -1,14 +1,18 @@
 """The IRB 120 behind the controller emulator: what RAPID's motion and kinematics built-ins act on.
 
-Joint state that moves over wall-clock time at ABB's axis speeds, in RAPID's units (mm, degrees, wxyz
+Joint state that moves over wall-clock time (``clock`` is injectable), in RAPID's units (mm, degrees, wxyz
 quaternions) and conventions: ``tool0`` is the flange with its z axis out of the flange (at the zero pose it
 points along base +x), a tool's ``tframe`` is given in ``tool0``. Kinematics are the simulator's own
 (``maniskill_irb120.robot.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
 
+Every move runs at the speed its speeddata, ABB's axis speeds and the operating mode allow, with acceleration
+limits, fly-by corners decided by the look-ahead rule, StopMove decelerating on the path, and errors found where
+the robot meets them (``motion.py``). Configuration data (``robconf``) is ABB's ``confdata``.
+
 Simplifications, said plainly: a MoveL runs through IK waypoints every millimetre / degree of its straight line
-and is joint-interpolated between them; after StopMove + StartMove the rest of a segment is joint-interpolated;
-configuration data (``robconf``) is ignored and IK keeps the current arm branch; acceleration is not modelled
-(each segment runs at constant joint speed); the world zone is checked on ten points between waypoints.
+and is joint-interpolated between them, the TCP and every axis following one velocity profile along the path; a
+fly-by corner is passed at the segments' speeds (the 1 mm corner arc itself is not drawn); the world zone is
+checked on ten points between waypoints; acceleration figures are estimates (``motion.py``).
 """
 
 from __future__ import annotations
@@ -16,47 +20,47 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
 
+from maniskill_irb120.abb.emulator.confdata import robconf, solve_conf
+from maniskill_irb120.abb.emulator.motion import (
+    AXIS_ACCEL_TIME_S,
+    CORNER_PATH_FAILURE,
+    MANUAL_REDUCED_TCP_MM_S,
+    NEAR_SINGULARITY,
+    QUICK_STOP_DECEL_RATIO,
+    STOP_DECEL_RATIO,
+    TCP_ACCEL_MM_S2,
+    WORLD_ZONE,
+    MotionError,
+    Phase,
+    Segment,
+)
 from maniskill_irb120.robot.description import urdf_path
 from maniskill_irb120.robot.kinematics import SerialChain, SphericalWristIK, matrix_to_quat, quat_to_matrix
 
+__all__ = ["EmulatedIRB120", "MotionError", "interpolate_pose", "rel_tool"]
+
 # tool0 = flange · R_y(+90°): tool0 z = our flange x (approach), tool0 x = -our flange z
 _R_FLANGE_TOOL0 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-
-
-class MotionError(RuntimeError):
-    """A kinematic failure the RAPID layer turns into its error number (``kind``: reach or joint_limit)."""
-
-    def __init__(self, kind: str, detail: str):
-        super().__init__(detail)
-        self.kind = kind
-
-
-@dataclass
-class Segment:
-    q0: np.ndarray
-    q1: np.ndarray
-    t0: float
-    duration: float
-    via: np.ndarray | None = None  # (k, 6) waypoints at equal spacing between q0 and q1 (a MoveL's line)
-
-    def points(self) -> np.ndarray:
-        return np.vstack([self.q0, *([] if self.via is None else self.via), self.q1])
-
-    def at(self, t: float) -> np.ndarray:
-        s = 1.0 if self.duration <= 0 else min(1.0, max(0.0, (t - self.t0) / self.duration))
-        pts = self.points()
-        x = s * (len(pts) - 1)
-        i = min(int(x), len(pts) - 2)
-        return pts[i] + (x - i) * (pts[i + 1] - pts[i])
+# A MoveL's waypoints are 1 mm / 1 deg apart: an axis turning this much between two of them means the line passes
+# (within a hair of) a singularity, where an IRC5 stops with 50026. The threshold is an ESTIMATE.
+SINGULAR_JUMP_DEG = 20.0
+_SAMPLES = 10  # world-zone and TCP-length samples per waypoint interval
 
 
 class EmulatedIRB120:
-    """Joint angles in degrees; poses as 4x4 in metres internally, mm + quaternions at the RAPID boundary."""
+    """Joint angles in degrees; poses as 4x4 in metres internally, mm + quaternions at the RAPID boundary.
+
+    ``max_tcp_speed_mm_s``: the TCP speed cap the operating mode imposes (250 in manual reduced speed, the
+    default; None in auto), set by the controller. ``events``: (code, title, detail, time) of motion events
+    logged (50024). ``motion_error``: the error the robot stopped at while moving, for the controller to stop
+    the program with. ``quadrant_tolerance_deg``: None, CalcJointT takes the turn of axes 1, 4, 6 nearest the
+    robtarget's quadrant; a number, it refuses a solution further than that outside the quadrant."""
 
     def __init__(self, q0_deg, clock=time.monotonic):
         self.chain = SerialChain(urdf_path(), "link6", dtype=torch.float64)
@@ -65,10 +69,13 @@ class EmulatedIRB120:
         wide.lower, wide.upper = wide.lower - 100.0, wide.upper + 100.0
         self.ik_unlimited = SphericalWristIK(wide)  # tells "out of reach" from "breaks a joint limit"
         self.max_speed = np.degrees(self.chain.velocity.numpy())  # ABB's axis speeds, deg/s
+        self.max_accel = self.max_speed / AXIS_ACCEL_TIME_S  # deg/s², an estimate (motion.py)
         self.speed_scale = 1.0  # every motion takes 1/speed_scale times its nominal time (a slower robot)
+        self.max_tcp_speed_mm_s: float | None = MANUAL_REDUCED_TCP_MM_S
+        self.quadrant_tolerance_deg: float | None = None
         self.low, self.high = np.degrees(self.chain.lower.numpy()), np.degrees(self.chain.upper.numpy())
         self.clock = clock
-        self.lock = threading.Lock()
+        self.lock = threading.RLock()
         self._q = np.asarray(q0_deg, dtype=np.float64).copy()
         self.queue: list[Segment] = []
         self.stopped = False  # StopMove until StartMove
@@ -76,6 +83,11 @@ class EmulatedIRB120:
         self.zone_tool = np.eye(4)
         self.zone_violation = False
         self.events: list[tuple[int | None, str, str, float]] = []  # (code, title, detail, time) for the log
+        self.motion_error: MotionError | None = None
+        self._t_free = -math.inf  # when the path last came to its end
+        self._carry = 0.0  # the fraction of cruise speed the finished segment carries into the next one
+        self._stop_ratio = STOP_DECEL_RATIO
+        self._planning_since: float | None = None
 
     # ------------------------------------------------------------------ kinematics (RAPID conventions)
     def tool0(self, q_deg) -> np.ndarray:
@@ -86,33 +98,40 @@ class EmulatedIRB120:
     def tool_pose(self, q_deg, tframe: np.ndarray) -> np.ndarray:
         return self.tool0(q_deg) @ tframe
 
+    def _flange(self, tool_target: np.ndarray, tframe: np.ndarray) -> np.ndarray:
+        flange = tool_target @ np.linalg.inv(tframe)
+        flange[..., :3, :3] = flange[..., :3, :3] @ _R_FLANGE_TOOL0.T
+        return flange
+
     def solve(self, tool_target: np.ndarray, tframe: np.ndarray, q_ref_deg) -> np.ndarray:
         """Joint angles (deg) putting the tool at ``tool_target`` on ``q_ref``'s branch, or MotionError."""
-        flange = tool_target @ np.linalg.inv(tframe)
-        flange[:3, :3] = flange[:3, :3] @ _R_FLANGE_TOOL0.T
-        q, ok = self.ik.solve(torch.as_tensor(flange[None]), torch.as_tensor(np.radians(q_ref_deg))[None])
+        flange = torch.as_tensor(self._flange(tool_target, tframe)[None])
+        ref = torch.as_tensor(np.radians(np.asarray(q_ref_deg, dtype=np.float64)))[None]
+        q, ok = self.ik.solve(flange, ref)
         if bool(ok[0]):
             return np.degrees(q[0].numpy())
-        q, ok = self.ik_unlimited.solve(torch.as_tensor(flange[None]), torch.as_tensor(np.radians(q_ref_deg))[None])
+        q, ok = self.ik_unlimited.solve(flange, ref)
         if bool(ok[0]):
             raise MotionError(
                 "joint_limit", f"the solution {np.round(np.degrees(q[0].numpy()), 2)} deg breaks a joint limit"
             )
         raise MotionError("reach", f"tool position {np.round(tool_target[:3, 3] * 1000, 1)} mm is out of reach")
 
-    def solve_line(self, tool_poses: np.ndarray, tframe: np.ndarray, q_ref_deg) -> np.ndarray:
+    def solve_line(self, tool_poses: np.ndarray, tframe: np.ndarray, q_ref_deg) -> tuple[np.ndarray, np.ndarray]:
         """(k, 6) joint angles (deg) for k tool poses along a line, one batched IK call on ``q_ref``'s branch (a
-        controller plans a MoveL in well under a millisecond; k single solves took this emulator ~40 ms)."""
-        flange = tool_poses @ np.linalg.inv(tframe)
-        flange[:, :3, :3] = flange[:, :3, :3] @ _R_FLANGE_TOOL0.T
-        seed = torch.as_tensor(np.radians(np.asarray(q_ref_deg, dtype=np.float64))).expand(len(flange), 6)
-        q, ok = self.ik.solve(torch.as_tensor(flange), seed)
-        if not bool(ok.all()):
-            bad = int(np.flatnonzero(~ok.numpy())[0])
-            raise MotionError(
-                "reach", f"no joint solution along the line at {np.round(tool_poses[bad, :3, 3] * 1000, 1)} mm"
-            )
-        return np.degrees(q.numpy())
+        controller plans a MoveL in well under a millisecond; k single solves took this emulator ~40 ms), and (k,)
+        whether each has a solution within the joint limits."""
+        seed = torch.as_tensor(np.radians(np.asarray(q_ref_deg, dtype=np.float64))).expand(len(tool_poses), 6)
+        q, ok = self.ik.solve(torch.as_tensor(self._flange(tool_poses, tframe)), seed)
+        return np.degrees(q.numpy()), ok.numpy()
+
+    def robconf(self, q_deg) -> tuple[int, int, int, int]:
+        """ABB's confdata of joint angles (``confdata.robconf``)."""
+        return robconf(self.ik, q_deg)
+
+    def solve_conf(self, tool_target: np.ndarray, tframe: np.ndarray, conf) -> np.ndarray:
+        """CalcJointT: the joint angles in the robtarget's configuration (``confdata.solve_conf``)."""
+        return solve_conf(self, tool_target, tframe, conf)
 
     # ------------------------------------------------------------------ motion over wall-clock time
     def joints(self) -> np.ndarray:
@@ -120,64 +139,181 @@ class EmulatedIRB120:
         with self.lock:
             return self._advance(self.clock()).copy()
 
-    def _advance(self, now: float) -> np.ndarray:
-        while self.queue and not self.stopped:
-            seg = self.queue[0]
-            self._q = seg.at(now)
-            if now < seg.t0 + seg.duration:
-                break
-            self.queue.pop(0)
+    def path_end(self) -> np.ndarray:
+        """Where the queued path ends (deg): where the next move instruction starts from."""
+        with self.lock:
             if self.queue:
-                self.queue[0].t0 = seg.t0 + seg.duration
-        return self._q
+                return self.queue[-1].point(self.queue[-1].end_u)
+            return self._advance(self.clock()).copy()
+
+    @contextmanager
+    def planning(self, t_call: float) -> Iterator[None]:
+        """A move instruction reached at ``t_call`` is being planned: the look-ahead counts it as reached then,
+        not when the emulator's own IK for it is done (a controller plans a line in well under a millisecond)."""
+        self._planning_since = t_call
+        try:
+            yield
+        finally:
+            self._planning_since = None
 
     def busy(self) -> bool:
+        """Moving, or with path left to run (not held by StopMove)."""
         with self.lock:
-            self._advance(self.clock())
-            return bool(self.queue) and not self.stopped
+            now = self.clock()
+            self._advance(now)
+            if not self.queue:
+                return False
+            head = self.queue[0]
+            return not (self.stopped and (not head.phases or now >= head.t_end))
 
-    def move(self, q_target_deg, speed_fraction: float = 1.0, tool_speed_s: float = 0.0, via=None, t_call=None) -> None:
-        """Queue a segment to ``q_target`` (through ``via`` joint waypoints, e.g. IK along a MoveL's line): as
-        fast as the slowest axis allows at ``speed_fraction`` of ABB's speeds, no faster than ``tool_speed_s``.
-        ``t_call``: when the instruction was issued (the emulator's own waypoint IK is not controller time)."""
+    def move(
+        self,
+        q_target_deg,
+        via=None,
+        tframe: np.ndarray | None = None,
+        v_tcp: float | None = None,
+        v_ori: float | None = None,
+        flyby: bool = False,
+        t_call: float | None = None,
+        error: MotionError | None = None,
+    ) -> None:
+        """Queue a segment to ``q_target`` (through ``via`` joint waypoints, e.g. IK along a MoveL's line) at the
+        speed the slowest axis, the TCP speed ``v_tcp`` (mm/s, capped by the operating mode) and the reorientation
+        speed ``v_ori`` (deg/s) allow; ``flyby``: a zone point, else ``fine``. ``t_call``: when the instruction
+        was reached. ``error``: the path ends at ``q_target`` because of it (found by the caller's planning),
+        raised when the robot gets there. A target beyond the joint limits is refused now (ERR_ROBLIMIT)."""
         q1 = np.asarray(q_target_deg, dtype=np.float64)
         via = None if via is None or len(via) == 0 else np.asarray(via, dtype=np.float64)
         for q in [q1, *([] if via is None else via)]:
             if np.any(q < self.low - 1e-9) or np.any(q > self.high + 1e-9):
                 raise MotionError("joint_limit", f"joint target {np.round(q, 2)} deg breaks a joint limit")
+        tframe = self.zone_tool if tframe is None else tframe
         with self.lock:
             now = self.clock() if t_call is None else min(t_call, self.clock())
-            q0 = self.queue[-1].q1 if self.queue else self._advance(now).copy()
-            seg = Segment(q0, q1, 0.0, 0.0, via)
-            pts = seg.points()
-            duration = (
-                max(
-                    float(np.max(np.abs(np.diff(pts, axis=0)).sum(0) / (self.max_speed * speed_fraction))), tool_speed_s
-                )
-                / self.speed_scale
+            q0 = self.path_end()
+            pts = np.vstack([q0, *([] if via is None else via), q1])
+            frac = np.arange(_SAMPLES) / _SAMPLES
+            samples = np.vstack(
+                [(pts[:-1, None] + frac[None, :, None] * np.diff(pts, axis=0)[:, None]).reshape(-1, 6), q1]
             )
-            seg = self._clip_to_zone(seg)
-            seg.t0 = max(now, self.queue[-1].t0 + self.queue[-1].duration) if self.queue else now
-            seg.duration = duration
+            f = self.chain.forward_kinematics(torch.as_tensor(np.radians(samples))).numpy()  # one batched FK
+            rot = f[:, :3, :3] @ _R_FLANGE_TOOL0 @ tframe[:3, :3]
+            tcp = f[:, :3, :3] @ (_R_FLANGE_TOOL0 @ tframe[:3, 3]) + f[:, :3, 3]  # metres
+            seg = self._segment(pts, tcp, rot, v_tcp, v_ori, flyby, now)
+            seg.error = error
+            if via is not None:
+                self._check_singularity(seg)
+            self._check_zone(seg, tcp)
             self.queue.append(seg)
 
-    def _clip_to_zone(self, seg: Segment) -> Segment:
-        """World-zone supervision: the segment ends at its last point inside the box (flagging a violation)."""
+    def _segment(self, pts, tcp, rot, v_tcp, v_ori, flyby, now) -> Segment:
+        tcp_mm = float(np.linalg.norm(np.diff(tcp, axis=0), axis=1).sum() * 1000)
+        cos = (np.einsum("kij,kij->k", rot[:-1], rot[1:]) - 1) / 2
+        ori_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).sum())
+        lq = np.abs(np.diff(pts, axis=0)).sum(0)
+        caps = [c for c in (v_tcp, self.max_tcp_speed_mm_s) if c is not None]
+        t_nom = max(
+            float(np.max(lq / self.max_speed)),
+            tcp_mm / min(caps) if caps else 0.0,
+            ori_deg / v_ori if v_ori else 0.0,
+        )
+        s = self.speed_scale
+        v = min(s / t_nom, 1e6) if t_nom > 0 else 1e6
+        limits = [TCP_ACCEL_MM_S2 / tcp_mm] if tcp_mm > 1e-9 else []
+        limits += [float(x) for x in self.max_accel[lq > 1e-9] / lq[lq > 1e-9]]
+        a = min(min(limits, default=1e12) * s * s, 1e12)
+        return Segment(pts, v, a, flyby, now)
+
+    def _check_singularity(self, seg: Segment) -> None:
+        jump = np.abs(np.diff(seg.pts, axis=0)).max(1)
+        bad = np.flatnonzero(jump > SINGULAR_JUMP_DEG)
+        if bad.size:
+            u = bad[0] / (len(seg.pts) - 1)
+            if u < seg.end_u:
+                seg.end_u = u
+                code, title = NEAR_SINGULARITY
+                seg.error = MotionError("singularity", f"{title}: the line passes a singularity", code)
+
+    def _check_zone(self, seg: Segment, tcp: np.ndarray) -> None:
+        """World-zone supervision: the robot stops at the path's last sample inside the box, when it gets there."""
         if self.zone is None:
-            return seg
+            return
         low, high = self.zone
-        pts = seg.points()
-        frac = np.linspace(0.1, 1.0, 10)
-        samples = (pts[:-1, None] + frac[None, :, None] * (pts[1:] - pts[:-1])[:, None]).reshape(-1, 6)
-        flange = self.chain.forward_kinematics(torch.as_tensor(np.radians(samples)))  # one batched FK
-        f = flange.numpy()
-        p = f[:, :3, :3] @ (_R_FLANGE_TOOL0 @ self.zone_tool[:3, 3]) + f[:, :3, 3]  # the tool's TCP, in metres
-        out = np.flatnonzero(np.any((p < low) | (p > high), axis=1))
+        out = np.flatnonzero(np.any((tcp < low) | (tcp > high), axis=1))
         if out.size == 0:
-            return seg
-        self.zone_violation = True
-        kept = [pts[0], *samples[: out[0]]]
-        return Segment(kept[0], kept[-1], 0.0, 0.0, np.asarray(kept[1:-1]) if len(kept) > 2 else None)
+            return
+        u = max(0.0, (out[0] - 1) / (len(tcp) - 1))
+        if u < seg.end_u:
+            seg.end_u = u
+            code, title = WORLD_ZONE
+            p = np.round(tcp[out[0]] * 1000, 1)
+            seg.error = MotionError("world_zone", f"{title}: the TCP would leave the box at {p} mm", code)
+
+    # the motion queue: each segment starts where the last ended, fly-by or from rest
+    def _advance(self, now: float) -> np.ndarray:
+        while self.queue:
+            seg = self.queue[0]
+            if not seg.phases:
+                if self._carry == 0 and self.stopped:
+                    break
+                t0 = self._t_free if self._carry > 0 else max(seg.queued, self._t_free)
+                if t0 > now:
+                    break
+                if self.stopped:  # entered while stopping: it goes on decelerating
+                    self._decelerate(seg, t0, 0.0, self._carry * seg.v, has_next=len(self.queue) > 1)
+                else:
+                    seg.plan(t0, 0.0, self._carry * seg.v, 0.0)
+            if not seg.decided:
+                self._decide(seg, now)
+            if now < seg.t_end:
+                self._q = seg.point(seg.u(now))
+                break
+            u = seg.phases[-1].u(seg.t_end)
+            self._q = seg.point(u)
+            if u < seg.end_u - 1e-9:  # held on the path by StopMove
+                break
+            self.queue.pop(0)
+            self._t_free, self._carry = seg.t_end, seg.carry
+            if seg.error is not None:  # found where the robot got to it: it stops there, the program with it
+                self.motion_error = seg.error
+                self.zone_violation = self.zone_violation or seg.error.kind == "world_zone"
+                self.queue.clear()
+                self._carry = 0.0
+        return self._q
+
+    def _decide(self, seg: Segment, now: float) -> None:
+        """The look-ahead rule: a fly-by point is flown by if the next move instruction was reached before the
+        robot had to begin decelerating to the point; otherwise it becomes a stop point (50024)."""
+        nxt = self.queue[1] if len(self.queue) > 1 else None
+        deadline = seg.decel_at
+        if seg.flyby and seg.error is None and nxt is not None and nxt.queued <= deadline:
+            first = seg.phases[0]
+            seg.plan(first.t0, first.u0, first.w0, nxt.max_entry_fraction())
+            seg.carry = seg.phases[-1].w(seg.t_end) / seg.v
+            seg.decided = True
+            return
+        pending = self._planning_since is not None and self._planning_since <= deadline
+        if nxt is None and (now < deadline or pending):
+            return  # the next instruction may still come in time
+        seg.decided, seg.carry = True, 0.0
+        if seg.flyby and seg.error is None:
+            code, title = CORNER_PATH_FAILURE
+            why = "no next move instruction" if nxt is None else f"the next one {1000 * (nxt.queued - deadline):.1f} ms"
+            self.events.append((code, title, f"fly-by point run as a stop point: {why} in time", deadline))
+
+    def _decelerate(self, seg: Segment, t: float, u: float, w: float, has_next: bool) -> None:
+        """Stop on the path from (t, u, w): within this segment, or on into the next if it is flown into."""
+        a = seg.a * self._stop_ratio
+        rest = seg.end_u - u
+        if w * w / (2 * a) <= rest:
+            seg.phases, seg.carry = [Phase(t, u, w, -a, t + w / a)], 0.0
+        elif has_next and seg.carry > 0:
+            w_end = math.sqrt(w * w - 2 * a * rest)
+            seg.phases, seg.carry = [Phase(t, u, w, -a, t + (w - w_end) / a)], w_end / seg.v
+        elif seg.carry > 0:  # nothing to run on into: the path's end is the stop
+            seg.plan(t, u, w, 0.0)
+            seg.carry = 0.0
+        seg.decided = True
 
     def wait_done(self, timeout: float = 10.0) -> None:
         deadline = self.clock() + timeout
@@ -185,20 +321,38 @@ class EmulatedIRB120:
             time.sleep(0.002)
 
     def stop(self, quick: bool = False) -> None:
-        """StopMove (``quick``: StopMove\\Quick, a program halt or an emergency stop): freeze where the robot is."""
+        """StopMove: decelerate along the path to a stop (faster with \\Quick: StopMove\\Quick, a program halt
+        or an emergency stop); StartMove resumes."""
         with self.lock:
-            self._advance(self.clock())
+            now = self.clock()
+            self._advance(now)
+            self._stop_ratio = QUICK_STOP_DECEL_RATIO if quick else STOP_DECEL_RATIO
             self.stopped = True
+            if self.queue and self.queue[0].phases and now < self.queue[0].t_end:
+                seg = self.queue[0]
+                self._decelerate(seg, now, seg.u(now), seg.w(now), has_next=len(self.queue) > 1)
 
     def clear_path(self) -> None:
+        """ClearPath: the path not yet run is dropped; the robot stays where it is."""
         with self.lock:
+            now = self.clock()
+            self._advance(now)
             self.queue.clear()
+            self._carry, self._t_free = 0.0, now
 
     def start(self) -> None:
+        """StartMove: the rest of the path, from where the robot was held."""
         with self.lock:
-            if self.stopped and self.queue:
-                self.queue[0] = Segment(self._q.copy(), self.queue[0].q1, self.clock(), self.queue[0].duration)
+            now = self.clock()
+            self._advance(now)
+            if not self.stopped:
+                return
             self.stopped = False
+            self._t_free = max(self._t_free, now)
+            if self.queue and self.queue[0].phases:
+                seg = self.queue[0]
+                seg.decided, seg.carry = False, 0.0
+                seg.plan(now, seg.u(now), seg.w(now) if now < seg.t_end else 0.0, 0.0)
 
 
 def rel_tool(

@@ -1,6 +1,7 @@
 """The emulated IRB 120 the controller emulator's RAPID built-ins act on: RAPID's tool conventions give our
-TCP, RelTool is pd_ee_delta_tool's step, IK inverts FK, motion takes ABB's axis-speed time, StopMove
-freezes, world zones stop, and kinematic failures say which."""
+TCP, RelTool is pd_ee_delta_tool's step, IK inverts FK, motion takes ABB's axis-speed time plus its ramps,
+StopMove holds on the path, world zones stop, and kinematic failures say which. The motion model's own
+behaviour (speeddata, look-ahead, robconf) is in test_motion_model.py."""
 
 from __future__ import annotations
 
@@ -68,33 +69,49 @@ def test_solve_inverts_the_tool_pose_and_names_failures(robot):
     assert e.value.kind == "joint_limit"
 
 
-def test_motion_takes_axis_speed_time_and_stop_freezes():
+def test_motion_takes_axis_speed_time_plus_its_ramps_and_stop_holds_on_the_path():
+    """Changed with the motion model: a segment now accelerates and decelerates (it took exactly its axis-speed
+    time before), and StopMove decelerates along the path instead of freezing."""
     clock = FakeClock()
     robot = EmulatedIRB120(REST, clock=clock)
-    robot.move(REST + [10.0, 0, 0, 0, 0, 0])  # axis 1 at 250 deg/s: 40 ms
-    clock.t = 0.02
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 5.0, atol=1e-9)
+    robot.max_tcp_speed_mm_s = None  # auto: axis 1 alone limits
+    robot.move(REST + [10.0, 0, 0, 0, 0, 0])  # axis 1 at 250 deg/s: 40 ms at speed, longer with its ramps
+    seg = robot.queue[0]
+    robot.joints()
+    duration = seg.t_end
+    assert duration == pytest.approx(1 / seg.v + seg.v / seg.a if seg.v**2 <= seg.a else 2 / math.sqrt(seg.a))
+    assert 0.04 < duration < 0.2
+    clock.t = duration / 2
+    np.testing.assert_allclose(robot.joints()[0], REST[0] + 5.0, atol=1e-9)  # a symmetric profile
+    clock.t = duration / 4
+    at_call = robot.joints()[0]
     assert robot.busy()
     robot.stop()
-    clock.t = 0.1
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 5.0, atol=1e-9)  # held
+    clock.t += 0.2
+    stopped_at = robot.joints()[0]
+    assert at_call < stopped_at < REST[0] + 10.0 and not robot.busy()  # on the path, some way after the call
+    clock.t += 0.5
+    assert robot.joints()[0] == stopped_at  # held
     robot.start()
-    clock.t = 0.12
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 7.5, atol=1e-9)
-    clock.t = 1.0
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 10.0, atol=1e-9)
+    clock.t += 1.0
+    np.testing.assert_allclose(robot.joints()[0], REST[0] + 10.0, atol=1e-9)  # the rest of the path
     assert not robot.busy()
-    robot.move(REST, tool_speed_s=0.5)  # slower speeddata wins
-    clock.t = 1.25
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 5.0, atol=1e-9)
+    robot.move(REST, v_tcp=10.0)  # a slow speeddata wins over the axis speed
+    clock.t += 0.5
+    moving = robot.joints()[0]
+    assert REST[0] < moving < REST[0] + 10.0
     robot.stop()
+    clock.t += 0.5
     robot.clear_path()
     robot.start()
-    clock.t = 3.0
-    np.testing.assert_allclose(robot.joints()[0], REST[0] + 5.0, atol=1e-9)  # the cleared path never runs
+    here = robot.joints()[0]
+    clock.t += 5.0
+    np.testing.assert_allclose(robot.joints()[0], here, atol=1e-12)  # the cleared path never runs
 
 
-def test_world_zone_stops_the_robot_inside():
+def test_world_zone_stops_the_robot_inside_when_it_gets_there():
+    """Changed with the motion model: the violation is found when the robot reaches the boundary, not when the
+    move is planned; the robot stops there and ``motion_error`` says why."""
     clock = FakeClock()
     robot = EmulatedIRB120(REST, clock=clock)
     p = robot.tool_pose(REST, T_GRIPPER)[:3, 3]
@@ -102,7 +119,10 @@ def test_world_zone_stops_the_robot_inside():
     robot.zone_tool = T_GRIPPER
     down = robot.solve(rel_tool(robot.tool_pose(REST, T_GRIPPER), 100.0, 0, 0), T_GRIPPER, REST)  # 10 cm down
     robot.move(down)
+    assert robot.motion_error is None and not robot.zone_violation  # planned without complaint
     clock.t = 10.0
     end = robot.tool_pose(robot.joints(), T_GRIPPER)[:3, 3]
-    assert robot.zone_violation and np.all(end >= p - 0.05) and np.all(end <= p + 0.05)
+    assert robot.zone_violation and robot.motion_error.kind == "world_zone"
+    assert np.all(end >= p - 0.05) and np.all(end <= p + 0.05)
     assert end[2] < p[2] - 0.03  # it did move, up to the boundary
+    assert not robot.busy() and not robot.queue
