@@ -18,7 +18,7 @@ MODULE IRB120Server
     ! (motion only in manual reduced speed unless ALLOW_AUTO). A heartbeat
     ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves. After the
     ! program was stopped (emergency stop, enabling device, Stop) and started again without PP to main, the robot
-    ! is held and the next motion command refused (E_RESTARTED): the PC learns that the robot stopped.
+    ! is held and every motion command refused (E_RESTARTED) until the PC opens a new session (HELLO).
     ! Refusals, watchdog stops, restarts and new connections are written to the event log (ErrWrite).
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
@@ -216,7 +216,7 @@ MODULE IRB120Server
 
     LOCAL PROC CheckRestart()
         ! after a stop and a start without PP to main: hold the robot (the planner may be finishing the path it had
-        ! queued) and refuse the next motion command, so the PC learns the robot stopped
+        ! queued) and refuse motion until the PC opens a new session, so commands it sent before the stop never run
         IF restarted THEN
             restarted := FALSE;
             HoldRobot\Quick;
@@ -346,7 +346,9 @@ MODULE IRB120Server
         crc := rx{rx{1} + 4} + 256 * rx{rx{1} + 5};
         CheckRestart;
         IF kind = T_HELLO THEN
-            ! a new session: nothing the peer sent before is answered from the cache any more
+            ! a new session: nothing the peer sent before is answered from the cache any more, and a PC that opens
+            ! one after a restart has learned that the robot stopped
+            restartHeld := FALSE;
             lastSeq := -1;
             lastKind := -1;
             lastCrc := -1;
@@ -416,10 +418,9 @@ MODULE IRB120Server
             watchdogFired := FALSE;
             RETURN E_WATCHDOG;
         ENDIF
-        IF restartHeld THEN
-            restartHeld := FALSE;
-            RETURN E_RESTARTED;
-        ENDIF
+        ! after a restart, motion waits for a new session: frames the PC sent before the stop (still buffered) and
+        ! a PC that did not notice the stop are refused until it sends HELLO
+        IF restartHeld RETURN E_RESTARTED;
         RETURN E_OK;
     ENDFUNC
 

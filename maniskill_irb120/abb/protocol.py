@@ -83,7 +83,7 @@ ERROR_MEANINGS = {
     ErrorCode.OPERATING_MODE: "refused: the controller is not in manual reduced speed (set the key switch to manual, "
     "or ALLOW_AUTO after a risk assessment)",
     ErrorCode.RESTARTED: "refused: the program was stopped (emergency stop, enabling device, Stop button) and started "
-    "again; the controller holds the robot: send the command again",
+    "again; the controller holds the robot and refuses motion until a new session: call ABBRobot.hello()",
     ErrorCode.VERSION: "refused: the controller's RAPID server speaks another protocol version (load the RAPID files "
     "of this package version)",
 }

@@ -32,7 +32,6 @@ from maniskill_irb120.robot.irb120 import FINGER_STROKE
 CommandMode = Literal["tool_delta", "joint_target"]
 COMMAND_MODES = ("tool_delta", "joint_target")
 FINGER_CLOSED_HALF_GAP = geometry()["finger_closed_half_gap"]
-RESET_STEP_FRACTION = 0.5  # a reset moves each axis at most this share of its per-period envelope limit
 
 
 class IRB120RealAgent(BaseRealAgent):
@@ -104,23 +103,14 @@ class IRB120RealAgent(BaseRealAgent):
         raise NotImplementedError("the RAPID server takes position targets only; use a pd_*_pos control mode")
 
     def reset(self, qpos) -> None:
-        """Move to ``qpos`` slowly: waypoints on the straight joint line at most half the envelope's per-period
-        joint motion apart, one per control period, all checked against the envelope before the robot moves
-        (``Envelope.plan_move``); then open or close the gripper as the fingers in ``qpos`` say."""
+        """Move to ``qpos`` with the controller's reset: one slow joint move, its whole path checked by the
+        envelope here and by the RAPID server again, answered once the robot is there; the gripper opens or
+        closes as the fingers in ``qpos`` say."""
         q = np.asarray(torch.as_tensor(qpos).detach().cpu(), dtype=np.float64).reshape(-1)
         if q.shape != (8,):
             raise ValueError(f"a reset pose is 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
-        env = self.abb.envelope
-        path = env.plan_move(np.asarray(self.refresh().joints), q[:6], env._max_joint_step * RESET_STEP_FRACTION)
-        for step in path:
-            self.abb.move_joints(step)
-            time.sleep(env.control_period)
-        deadline = time.monotonic() + 5.0
-        while self.abb.state().status == Status.MOVING:
-            if time.monotonic() > deadline:
-                raise RuntimeError("reset: the robot did not come to rest within 5 s of its last command")
-            time.sleep(0.01)
-        self.abb.set_gripper(bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
+        self.refresh()
+        self.abb.reset(q[:6], gripper_open=bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
         self._prev = None
         self.refresh()
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from maniskill_irb120.abb.emulator.builtins import OP_MODE_NAMES, controller_builtins
 from maniskill_irb120.abb.emulator.channel import Channel, parse_faults
+from maniskill_irb120.abb.emulator.motion import MANUAL_REDUCED_TCP_MM_S
 from maniskill_irb120.abb.emulator.pendant import Pendant
 from maniskill_irb120.abb.emulator.rapid import (
     Builtins,
@@ -91,6 +92,10 @@ STATEMENT_COST_US = 10.0
 RESTART_ROUTINE = "IRB120ServerRestart"  # the core module's RESTART event routine
 
 
+class MotionSupervisionError(RuntimeError):
+    """The robot met an error while moving: the controller stops the program (fatal, no ERROR handler)."""
+
+
 class ControllerEmulator(Pendant):
     """Runs the server on channel ``serial`` (a pty) or ``tcp`` (127.0.0.1): the core module ``rapid`` (default: the
     shipped one), the shipped channel module for the channel and, with ``zone``, the world-zone system module.
@@ -144,6 +149,7 @@ class ControllerEmulator(Pendant):
         source = server_source(channel, rapid, zone, pc_address)
         self.robot = EmulatedIRB120(q0_deg)
         self.robot.speed_scale = speed_scale
+        self.op_mode = op_mode  # again, now that the robot exists: its TCP speed cap follows the key switch
         self.signals = {"doGripperOpen": 1, "doMotorsOn": 1, "doEmergencyStop": 0}
         self._init_pendant()
         self.link = Channel(parse_faults(faults), self._injected_fault, baud, latency_ms / 1000)
@@ -152,10 +158,12 @@ class ControllerEmulator(Pendant):
         self.interp = Interpreter(
             [source, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
         )
+        self.interp.supervision = self._motion_supervision
         self.start_routines: list[str] = []  # START event routines: run when the program starts from main
         if self.interp.find_routine_py(RESTART_ROUTINE) is not None:
             self.interp.restart_routines.append(RESTART_ROUTINE)
         self.error: BaseException | None = None
+        self.ended = False  # the program returned or stopped with an error (PP to main, then Start)
         self._start_from_main = threading.Event()
         self._shutdown = False
         self._server: socket.socket | None = None
@@ -174,6 +182,8 @@ class ControllerEmulator(Pendant):
         if mode not in OP_MODE_NAMES:
             raise ValueError(f"op_mode={mode!r}: use one of {sorted(OP_MODE_NAMES)}")
         self._op_mode = mode
+        if hasattr(self, "robot"):  # manual reduced speed: the controller caps the TCP at 250 mm/s
+            self.robot.max_tcp_speed_mm_s = MANUAL_REDUCED_TCP_MM_S if mode == "manual_reduced" else None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> str:
@@ -199,13 +209,15 @@ class ControllerEmulator(Pendant):
                 for name in self.start_routines:
                     self.interp.call(name)
                 self.interp.run(self.entry)
+                self.ended = True  # the entry routine returned: the program has ended
             except PPToMain:
                 self.robot.clear_path()
+                self.robot.motion_error = None
             except RapidStopped:
                 return
             except BaseException as e:  # a fatal program error: the robot stops, as the IRC5 stops the program
                 self.robot.stop(quick=True)
-                self.error = e
+                self.error, self.ended = e, True
                 self.log_event(None, "Program stopped by an error", str(e))
             # the program pointer stands at main (or the program has ended): the next Start runs it from the top
             self._start_from_main.wait()
@@ -213,12 +225,21 @@ class ControllerEmulator(Pendant):
 
     def _start_program(self) -> None:
         if self.at_main:
-            self.at_main, self.error = False, None
+            self.at_main, self.error, self.ended = False, None, False
             self._start_from_main.set()
         else:
             if not self._path_was_stopped:
                 self.robot.start()  # the planner goes on with the path it had queued, as an IRC5 does
             self.interp.resume()
+
+    def _motion_supervision(self) -> None:
+        """An error the robot met while moving (outside reach, a world zone) stops the program wherever it is:
+        it never reaches a RAPID ERROR handler (REFERENCE.md, "path errors during execution")."""
+        err = self.robot.motion_error
+        if err is not None:
+            self.robot.motion_error = None
+            self.log_event(getattr(err, "code", None), "Motion error", str(err))
+            raise MotionSupervisionError(f"motion stopped: {err}")
 
     def _injected_fault(self, kind: str) -> None:
         if kind == "estop":
@@ -300,7 +321,8 @@ def main(
         return 1
     print(emu.start(), flush=True)
     try:
-        emu.thread.join()
+        while emu.thread.is_alive() and not emu.ended:  # a stopped program waits for the operator (Ctrl-C ends it)
+            emu.thread.join(0.1)
     except KeyboardInterrupt:
         pass
     finally:

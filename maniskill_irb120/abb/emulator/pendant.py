@@ -48,6 +48,7 @@ class Pendant:
     signals: dict[str, int]
     op_mode: str
     error: BaseException | None
+    ended: bool
 
     def _init_pendant(self) -> None:
         self.event_log: list[Event] = []
@@ -69,7 +70,7 @@ class Pendant:
     def program_state(self) -> str:
         """``running``; ``stopped`` (Start goes on, or PP to main first); ``ended`` (a fatal error or the
         program returned: PP to main, then Start)."""
-        if self.error is not None or not self.thread.is_alive():  # type: ignore[attr-defined]
+        if self.ended or not self.thread.is_alive():  # type: ignore[attr-defined]
             return "ended"
         return "stopped" if self.interp.is_halted or self.at_main else "running"
 

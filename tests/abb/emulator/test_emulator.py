@@ -12,7 +12,13 @@ import pytest
 pytest.importorskip("serial")
 pytest.importorskip("lark")
 
-from maniskill_irb120.abb.client import ABBRobot, ControllerRefused, RobotDisconnected, RobotError, RobotTimeout  # noqa: E402
+from maniskill_irb120.abb.client import (  # noqa: E402
+    ABBRobot,
+    ControllerRefused,
+    ControllerStopped,
+    RobotDisconnected,
+    RobotTimeout,
+)
 from maniskill_irb120.abb.emulator.controller import ControllerEmulator, shipped_module  # noqa: E402
 from maniskill_irb120.abb.emulator.rapid import RapidSyntaxError  # noqa: E402
 from maniskill_irb120.abb.envelope import WORKSPACE_HIGH, WORKSPACE_LOW, Envelope, EnvelopeError  # noqa: E402
@@ -244,20 +250,26 @@ def test_disconnect_mid_frame_holds_the_robot_and_a_new_client_gets_in():
     assert emu.error is None
 
 
-@pytest.mark.parametrize("fault, code", [("motors_off@2", ErrorCode.MOTORS_OFF), ("estop@2", ErrorCode.ESTOP)])
-def test_controller_faults_refuse_motion(fault, code):
+@pytest.mark.parametrize("fault", ["motors_off@2", "estop@2"])
+def test_injected_controller_faults_halt_the_program(fault):
+    """``--fault estop@N`` / ``motors_off@N``: as reply N goes out, the program halts as an IRC5's does (an
+    emergency stop; the enabling device let go in manual mode): the next command gets no reply, and the client
+    says to check the pendant. After the operator's reset and Start, motion waits for a new session."""
     emu = ControllerEmulator("tcp", faults=fault)
-    robot = ABBRobot.connect(emu.start(), timeout=1.0)
-    robot.state()  # reply 2 sets the fault
-    with pytest.raises(ControllerRefused) as e:
+    robot = ABBRobot.connect(emu.start(), timeout=0.3, retries=1)
+    robot.state()  # reply 2 halts the program
+    with pytest.raises(ControllerStopped, match="check the pendant"):
         robot.move_tool([0.5, 0, 0, 0, 1])
-    assert e.value.state.error == code and e.value.state.status == Status.FAULT and emu.moves == 0
-    with pytest.raises(RobotError, match="fault"):
-        robot.state()
-    emu.signals.update(doMotorsOn=1, doEmergencyStop=0)  # the operator clears it
-    assert robot.state().status != Status.FAULT
+    assert emu.moves == 0 and emu.program_state == "stopped" and not emu.motors_on
+    if fault.startswith("estop"):
+        emu.reset_emergency_stop()
+    emu.enabling_device(True)
+    emu.press_start()
+    robot.hello()
+    assert robot.move_tool([0.5, 0, 0, 0, 1]).error == ErrorCode.OK and emu.moves == 1
     robot.close()
     emu.stop()
+    assert emu.error is None
 
 
 def test_bad_fault_spec_is_named():

@@ -84,7 +84,14 @@ def test_each_file_names_only_its_options(name, socket_api, world_zones):
     assert bool(re.search(WORLD_ZONES, text, re.IGNORECASE)) == world_zones
 
 
-HOOKS = {"irb120chanopen", "irb120chanread", "irb120chanwrite", "irb120channewpeer", "irb120chanreopen"}
+HOOKS = {
+    "irb120chanopen",
+    "irb120chanread",
+    "irb120chanwrite",
+    "irb120channewpeer",
+    "irb120chanreopen",
+    "irb120chanclose",
+}
 
 
 def global_names(name: str) -> set[str]:
@@ -97,8 +104,8 @@ def global_names(name: str) -> set[str]:
 
 def test_only_the_entry_and_the_hooks_are_global():
     """Names are global to a task unless LOCAL: beside the stock MainModule (its main) and other modules, ours add
-    one entry routine, the channel hooks and the zone's event routine, nothing else."""
-    assert global_names("IRB120Server.mod") == {"irb120server"}
+    one entry routine, its RESTART event routine, the channel hooks and the zone's event routine, nothing else."""
+    assert global_names("IRB120Server.mod") == {"irb120server", "irb120serverrestart"}
     assert global_names("IRB120Serial.mod") == HOOKS
     assert global_names("IRB120Socket.mod") == HOOKS
     assert global_names("IRB120Zone.sys") == {"irb120zonepoweron"}

@@ -87,9 +87,9 @@ def test_a_reply_frame_is_dropped_and_the_server_keeps_serving(emu):
     assert wire.reply(0.3) is None
     frame = wire.ask(GetState(), 9)
     assert frame.type == MsgType.REPLY | MsgType.STATE and frame.seq == 9
-    wire.send(Frame(0x06, 10).encode())
+    wire.send(Frame(0x7F, 10).encode())
     frame = wire.reply()
-    assert frame.type == 0x86 and RobotState.parse(frame.payload).error == ErrorCode.UNKNOWN_TYPE
+    assert frame.type == 0xFF and RobotState.parse(frame.payload).error == ErrorCode.UNKNOWN_TYPE
     wire.close()
     again = Wire(emu.url)  # the program still runs: a new client is served
     assert again.ask(GetState(), 1).type == MsgType.REPLY | MsgType.STATE

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 from maniskill_irb120.abb.emulator.rapid.errors import RapidStopped
 
@@ -48,6 +49,9 @@ class ExecutionMixin:
         self._restart_pending = False
         self.restart_routines: list[str] = []  # RESTART event routines, run when a halted program resumes
         self.halted = threading.Event()  # set while the program actually stands still (after halt())
+        # called wherever the program may be stopped: raises what stops the program from outside it (the
+        # controller's motion supervision: an error the robot met while moving stops the program at once)
+        self.supervision: Callable[[], None] | None = None
         self._owed_s = 0.0  # controller time of statements not yet paid for
         self._cpu_mark = (threading.get_ident(), time.thread_time())  # CPU time is per thread
 
@@ -96,6 +100,8 @@ class ExecutionMixin:
             self._pp_main = False
             self._restart_pending = False
             raise PPToMain()
+        if self.supervision is not None:
+            self.supervision()
         if self._restart_pending:
             self._restart_pending = False
             for name in self.restart_routines:
