@@ -83,7 +83,9 @@ class Jogger:
         if cmd.quit:
             self.halt()
             return "quit"
-        if cmd.gripper_toggle:
+        if cmd.gripper_toggle and not cmd.deadman:  # the gripper moves too: it needs the dead-man like the arm
+            self.say("gripper not toggled: hold the dead-man")
+        elif cmd.gripper_toggle:
             self.gripper_open = not self.gripper_open
             self.robot.set_gripper(self.gripper_open)
             self.say(f"gripper {'open' if self.gripper_open else 'closed'}")

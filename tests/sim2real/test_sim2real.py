@@ -247,7 +247,10 @@ def test_sim2real_eval_on_the_emulator_twin(tmp_path):
     assert report["episodes"] == 2 and not report["interrupted"] and report["error"] is None
     assert report["sim"]["success"] == report["real"]["success"] == 1.0  # the expert, no shift
     assert report["command_latency_ms"]["p50"] > 0 and report["refused"]["total"] == 0
-    assert 0 < report["deviation"]["tcp_m"]["mean"] < 0.05
+    # the emulated IRC5 accelerates and, fed one step per 50 ms, stops at most fly-by points (event 50024): it trails
+    # the simulated robot, which has no acceleration limit, and the expert needs ~15-25 % more steps on it. Bounded
+    # here; the gap itself is measured in benchmarks/RESULTS.md (sim2real)
+    assert 0 < report["deviation"]["tcp_m"]["mean"] < 0.15
     assert json.loads((tmp_path / "report.json").read_text())["per_episode"][1]["seed"] == 1
     md = (tmp_path / "report.md").read_text()
     for picture in ("tcp_paths.png", "deviation.png", "hand_camera.png"):

@@ -96,10 +96,13 @@ def test_a_refused_step_holds_the_robot_says_why_and_stays_usable(emulator):
 def test_gripper_toggle_and_the_loop_stop_the_robot_on_quit(emulator):
     emu, url = emulator
     with ABBRobot.connect(url, timeout=1.0) as robot:
-        device = Scripted([Command(gripper_toggle=True), DOWN, DOWN])  # then quit
+        # a toggle without the dead-man does nothing (the gripper moves too); with it, the gripper closes
+        device = Scripted([Command(gripper_toggle=True), Command(gripper_toggle=True, deadman=True), DOWN, DOWN])
         clock = iter(np.arange(0, 10, 0.01))
-        jogger = Jogger(robot, device, JogConfig(period_s=PERIOD), say=lambda _: None)
+        said: list[str] = []
+        jogger = Jogger(robot, device, JogConfig(period_s=PERIOD), say=said.append)
         result = jogger.run(clock=lambda: float(next(clock)), sleep=time.sleep)
+        assert said[0] == "gripper not toggled: hold the dead-man" and said[1] == "gripper closed"
         assert result["steps"] == 2 and emu.signals["doGripperOpen"] == 0
         assert robot.last_state.status == Status.HELD  # the loop's exit sent STOP
         assert robot.set_gripper(True).gripper_open
