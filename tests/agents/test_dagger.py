@@ -153,25 +153,12 @@ def test_round_updates_stop_at_the_budget():
     assert {int(v["step"]) for v in opt.state.values()} == {24}
 
 
-def tiny(tmp_path: Path, **kw) -> dict:
-    base = dict(
-        budget_min=0.05,
-        num_envs=1,
-        expert_episodes=1,
-        episodes_per_round=1,
-        updates_per_round=5,
-        batch_size=16,
-        eval_episodes=1,
-        runs_dir=tmp_path,
-        exp_name="t",
-        progress=False,
-        capture_video=False,
-    )
-    base.update(kw)
-    return main(Args(**base))
+@pytest.fixture
+def tiny(tiny_dagger):
+    return tiny_dagger
 
 
-def test_state_run_resume_and_evaluate(tmp_path, capsys):
+def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     res = tiny(tmp_path)
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert {"success_rate", "env_steps", "wall_clock_s"} <= set(last) and last["env_steps"] > 0
@@ -187,7 +174,7 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert json.loads((tmp_path / "t" / "eval" / "summary.json").read_text())["episodes"] == 1
 
 
-def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path):
+def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path, tiny):
     res = tiny(tmp_path, obs_without=("agent/qvel",))
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["signature"]["state_dim"] == 37 and saved["data"]["obs"]["state"].shape[1] == 37  # 45 - 8 speeds
@@ -195,7 +182,7 @@ def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path):
     assert ev["episodes"] == 1
 
 
-def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path):
+def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path, tiny):
     res = tiny(tmp_path, obs="rgbd", updates_per_round=2, batch_size=8)
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["signature"]["image_shape"] == [84, 84, 4]
@@ -203,7 +190,7 @@ def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path):
     assert saved["signature"]["state_dim"] < 40 and set(saved["data"]["obs"]) == {"rgb", "depth", "state"}
 
 
-def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, tmp_path):
+def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, tmp_path, tiny):
     """The workers' auxiliary targets are the privileged geometry of the state just reached; a camera run with
     --aux-weight learns them alongside the actions, keeps its head across --resume, and refuses a mismatch."""
     envs = make_envs(Args(num_envs=2, aux_weight=1.0), 2)

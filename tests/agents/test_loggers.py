@@ -16,8 +16,6 @@ pytest.importorskip("comet_ml")
 
 from wandb.proto import wandb_internal_pb2  # noqa: E402
 
-from agents.dagger import Args, main  # noqa: E402
-
 BLOCK, HEADER = 32768, struct.Struct("<IHB")  # LevelDB's log format, which W&B's .wandb files use
 
 
@@ -47,7 +45,7 @@ def wandb_records(path: Path) -> list:
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
+def run(tmp_path_factory, tiny_dagger):
     tmp = tmp_path_factory.mktemp("loggers")
     mp = pytest.MonkeyPatch()
     mp.setenv("WANDB_MODE", "offline")
@@ -56,23 +54,7 @@ def run(tmp_path_factory):
     mp.delenv("COMET_API_KEY", raising=False)
     mp.delenv("COMET_OFFLINE_DIRECTORY", raising=False)
     try:
-        res = main(
-            Args(
-                budget_min=0.05,
-                num_envs=1,
-                expert_episodes=1,
-                episodes_per_round=1,
-                updates_per_round=5,
-                batch_size=16,
-                eval_episodes=1,
-                runs_dir=tmp,
-                exp_name="t",
-                progress=False,
-                capture_video=False,
-                wandb=True,
-                comet=True,
-            )
-        )
+        res = tiny_dagger(tmp, wandb=True, comet=True)
     finally:
         mp.undo()
     return Path(res["run_dir"]), res

@@ -97,7 +97,9 @@ def test_expert_delivers_on_the_emulator_twin_as_in_sim(rig):
     assert int(rig["env"].unwrapped.elapsed_steps[0]) == 0  # each episode counts its own steps
     sim = [run(rig["sim"], rig["sim"], seed) for seed in (0, 1)]
     assert [s for s, _ in real] == [s for s, _ in sim] == [True, True]
-    assert all(abs(r[1] - s[1]) <= 25 for r, s in zip(real, sim))  # a few steps of lag, not another strategy
+    # lag, not another strategy: the emulated IRC5 accelerates and stops at most fly-by points when fed one step per
+    # 50 ms (event 50024), so the expert needs ~15-25 % more steps on it than in the sim (more on a loaded machine)
+    assert all(s[1] <= r[1] <= 1.6 * s[1] for r, s in zip(real, sim)), (real, sim)
 
 
 def test_real_observations_match_the_sim_layout(rig):
