@@ -442,8 +442,13 @@ MODULE IRB120Server
             RETURN;
         ENDIF
         IF dx = 0 AND dy = 0 AND dz = 0 AND rot = 0 THEN
-            ! a zero-length step moves nothing: answered without queuing a motion (the gripper still as asked)
-            IF rx{12} <> 2 SetGripper rx{12};
+            ! a zero-length step moves nothing: answered without queuing a motion. Its gripper change waits until the
+            ! robot stands in position: SetDO fires when the program pointer passes it, which with a step still
+            ! under way would be that step early (a grasp closing before the fingers are round the object)
+            IF rx{12} <> 2 THEN
+                WaitRob\InPos;
+                SetGripper rx{12};
+            ENDIF
             RETURN;
         ENDIF
         here := CRobT(\Tool:=tGripper\WObj:=wobj0);

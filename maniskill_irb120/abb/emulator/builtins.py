@@ -155,6 +155,14 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     reg.add("MoveL", move_l)
     reg.add("MoveAbsJ", move_abs_j)
     reg.add("StopMove", stop_move)
+
+    def wait_rob(InPos=False, ZeroSpeed=False):
+        """WaitRob \\InPos | \\ZeroSpeed: the program waits until the robot stands still (in position)."""
+        while robot.busy():
+            self.interp.check_stop()
+            robot.wait_done(0.002)
+
+    reg.add("WaitRob", wait_rob)
     reg.add("ClearPath", lambda: robot.clear_path())
     reg.add("StartMove", lambda **_: robot.start())
     reg.add("ConfL", lambda **_: None)

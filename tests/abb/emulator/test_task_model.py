@@ -240,3 +240,15 @@ def test_statements_cost_controller_time():
     assert took >= 0.9 * n * 200e-6
     robot.close()
     emu.stop()
+
+
+def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu):
+    """A gripper change on a zero-length step (the expert stops, then closes) waits until the robot stands in
+    position (WaitRob \\InPos): SetDO fires when the program pointer passes it, so without the wait it fired while the
+    step before was still under way."""
+    robot = ABBRobot.connect(emu.url, timeout=0.5)
+    robot.move_tool([1.0, 0, 0, 0, 1.0])  # a full step: answered once planned, ~58 ms of motion follow
+    assert emu.robot.busy()
+    state = robot.move_tool([0.0, 0.0, 0.0, 0.0, -1.0])  # stop and close
+    assert not emu.robot.busy() and emu.signals["doGripperOpen"] == 0 and not state.gripper_open
+    robot.close()
