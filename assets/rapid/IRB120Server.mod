@@ -517,7 +517,6 @@ MODULE IRB120Server
         VAR num goal{6};
         VAR num s;
         jNow := CJointT();
-        jTarget := jNow;
         goal := [Int16At(4) * 0.02, Int16At(6) * 0.02, Int16At(8) * 0.02, Int16At(10) * 0.02, Int16At(12) * 0.02,
             Int16At(14) * 0.02];
         now := [jNow.robax.rax_1, jNow.robax.rax_2, jNow.robax.rax_3, jNow.robax.rax_4, jNow.robax.rax_5, jNow.robax.rax_6];

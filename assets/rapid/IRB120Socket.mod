@@ -33,25 +33,28 @@ MODULE IRB120Socket
         AcceptPc sockA;
     ENDPROC
 
-    LOCAL PROC AcceptPc(VAR socketdev client)
-        ! wait for a connection from PC_ADDRESS; any other client is closed and logged
-        VAR string peer;
-        WHILE TRUE DO
-            SocketAccept sockListen, client\ClientAddress:=peer\Time:=WAIT_MAX;
-            IF peer = PC_ADDRESS RETURN;
-            SocketClose client;
-            ErrWrite\W, "IRB120Socket: client refused", "a connection from " + peer + " is not PC_ADDRESS " + PC_ADDRESS;
-        ENDWHILE
-    ENDPROC
-
-    LOCAL FUNC bool PollPc(VAR socketdev client)
-        ! a connection from PC_ADDRESS within SOCK_POLL_S? Any other client is closed and logged
-        VAR string peer;
-        SocketAccept sockListen, client\ClientAddress:=peer\Time:=SOCK_POLL_S;
+    LOCAL FUNC bool FromPc(VAR socketdev client, string peer)
+        ! the client just accepted is the PC at PC_ADDRESS; any other is closed and logged
         IF peer = PC_ADDRESS RETURN TRUE;
         SocketClose client;
         ErrWrite\W, "IRB120Socket: client refused", "a connection from " + peer + " is not PC_ADDRESS " + PC_ADDRESS;
         RETURN FALSE;
+    ENDFUNC
+
+    LOCAL PROC AcceptPc(VAR socketdev client)
+        ! wait for a connection from PC_ADDRESS
+        VAR string peer;
+        WHILE TRUE DO
+            SocketAccept sockListen, client\ClientAddress:=peer\Time:=WAIT_MAX;
+            IF FromPc(client, peer) RETURN;
+        ENDWHILE
+    ENDPROC
+
+    LOCAL FUNC bool PollPc(VAR socketdev client)
+        ! a connection from PC_ADDRESS within SOCK_POLL_S?
+        VAR string peer;
+        SocketAccept sockListen, client\ClientAddress:=peer\Time:=SOCK_POLL_S;
+        RETURN FromPc(client, peer);
     ERROR
         IF ERRNO = ERR_SOCK_TIMEOUT RETURN FALSE;
         RAISE;

@@ -149,7 +149,7 @@ class Envelope:
         path = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
         rel = np.einsum("kji,kjl->kil", poses[:-1, :3, :3], poses[1:, :3, :3])
         turn = float(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)).sum())
-        axes = float((np.abs(q_goal - q_now) / (self._max_joint_step / self.control_period)).max())
+        axes = float((np.abs(q_goal - q_now) / self._chain.velocity.numpy()).max())
         return max(path / tcp_m_s, turn / ori_rad_s, axes)
 
     def check_tcp(self, p) -> None:

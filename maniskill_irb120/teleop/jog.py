@@ -23,10 +23,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+import torch
 
 from maniskill_irb120.abb.client import ABBRobot, ControllerRefused, RobotError
 from maniskill_irb120.abb.envelope import CONTROL_PERIOD_S, EnvelopeError
-from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT
+from maniskill_irb120.action import TOOL_POS_LIMIT, TOOL_ROT_LIMIT, world_to_tool
 from maniskill_irb120.teleop.devices import Command, Device
 
 FRAMES = ("tool", "world")
@@ -69,13 +70,13 @@ class Jogger:
     def action(self, cmd: Command) -> np.ndarray:
         """The normalised tool action (5,) for ``cmd`` at the configured speeds, in the configured frame."""
         t = np.asarray(cmd.translation, dtype=np.float64) * (self.cfg.step_mm / 1000.0 / TOOL_POS_LIMIT)
+        yaw = cmd.yaw * math.radians(self.cfg.step_deg) / TOOL_ROT_LIMIT
+        a = np.r_[t, yaw, 1.0 if self.gripper_open else -1.0]
         if self.cfg.frame == "world":
             joints = (self.robot.last_state or self.robot.state()).joints
-            rot = self.robot.envelope.tcp_pose(joints)[:3, :3]
-            t = rot.T @ t
-            t = t / max(1.0, float(np.abs(t).max()))
-        yaw = cmd.yaw * math.radians(self.cfg.step_deg) / TOOL_ROT_LIMIT
-        return np.r_[t, yaw, 1.0 if self.gripper_open else -1.0]
+            rot = torch.as_tensor(self.robot.envelope.tcp_pose(joints)[:3, :3])
+            a = world_to_tool(torch.as_tensor(a)[None], rot[None])[0].numpy()
+        return a
 
     def step(self) -> str:
         """Poll the device once and act: returns what happened (moved, refused, stopped, idle, quit)."""

@@ -135,7 +135,6 @@ class ControllerEmulator(Pendant):
         self.options = parse_options(CHANNEL_OPTIONS[channel] if options is None else options)
         zone = "608-1" in self.options if zone is None else zone
         self.entry = entry
-        self.pc_address = pc_address
         if baud is not None and (channel != "serial" or baud <= 0):
             raise ValueError(f"baud={baud!r}: a positive line speed, for the serial channel only")
         if not (math.isfinite(latency_ms) and latency_ms >= 0):
@@ -169,7 +168,6 @@ class ControllerEmulator(Pendant):
         self._server: socket.socket | None = None
         self._conns: list[socket.socket] = []  # every client connection accepted (closed by stop())
         self._slave: int | None = None
-        self._listening = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
 
     @property

@@ -52,7 +52,6 @@ class Pendant:
 
     def _init_pendant(self) -> None:
         self.event_log: list[Event] = []
-        self.enabling_held = True  # manual mode: the operator holds the enabling device (a running start)
         self.at_main = False  # PP was moved to main: Start runs the entry routine from the top
         self._path_was_stopped = False
 
@@ -113,7 +112,6 @@ class Pendant:
         the program (it does not go on by itself when the device is held again: press Start)."""
         if self.op_mode == "auto":
             raise ControllerStateError("the enabling device works in the manual modes only (the key is at auto)")
-        self.enabling_held = held
         if held:
             self._motors(True, "enabling device held")
         else:
