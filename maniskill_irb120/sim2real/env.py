@@ -5,7 +5,13 @@ What it changes in ManiSkill's class, and why:
 - ``tool_delta`` (default): ``_step_action`` sends the env's action itself (the controller's ``RelTool`` does
   the rest), instead of the sim controller's IK joint targets; ``joint_target`` keeps ManiSkill's path.
 - Timing: the command goes out at the start of a control period and the robot is read at its end, so the
-  observation a step returns shows that step's motion (ManiSkill's class sleeps before sending).
+  observation a step returns shows that step's motion (ManiSkill's class sleeps before sending). With
+  ``step_end="arrived"`` (default) the step ends only once the controller reports the robot standing at the step's
+  target: the sim's drives have settled by the end of every period (joint speeds ~1e-3 rad/s), while the IRC5 with
+  its acceleration ramps needs ~58 ms for a full 10 mm step. Read at 50 ms, the robot is still moving (joint speeds
+  up to 2 rad/s where the sim shows none), and the next step, taken relative to where the robot is, loses the rest
+  of the one before: open loop, the TCP fell 45 mm behind the sim's within 25 steps. ``"period"`` keeps the fixed
+  clock (the robot's own timing, for studying that gap).
 - ``get_info``: Sim2RealEnv reports only ``elapsed_steps``. Ours adds what the tasks' observations need
   (``grasped``, the TCP pose) and, with a digital ``world`` (the emulator's twin), the twin's evaluation:
   success, grasp, drop, collisions. A real robot's success comes from the operator (``sim2real.eval``).
@@ -33,9 +39,12 @@ from mani_skill.envs.sim2real_env import Sim2RealEnv
 
 from maniskill_irb120.abb.client import ControllerRefused
 from maniskill_irb120.abb.envelope import EnvelopeError
+from maniskill_irb120.abb.protocol import Status
 from maniskill_irb120.envs.contract import EnvContractMixin
 from maniskill_irb120.sim2real.agent import IRB120RealAgent
 
+STEP_REFUSAL = ("raise", "hold")
+STEP_ENDS = ("arrived", "period")
 # ManiSkill's own private state that its BaseEnv methods (run with this env as ``self``) read from the sim
 _SIM_PRIVATE = frozenset({"_sensors", "_sensor_configs", "_hidden_objects", "_human_render_cameras"})
 
@@ -51,21 +60,39 @@ class _Unperceived(dict):
 
 
 class IRB120Sim2RealEnv(Sim2RealEnv):
-    def __init__(self, sim_env, agent: IRB120RealAgent, world=None, on_refusal: str = "raise", **kwargs):
+    def __init__(
+        self,
+        sim_env,
+        agent: IRB120RealAgent,
+        world=None,
+        on_refusal: str = "raise",
+        step_end: str = "arrived",
+        arrive_timeout_s: float = 0.5,
+        **kwargs,
+    ):
         """``sim_env``: the task on ``physx_cpu`` in ``pd_ee_delta_tool`` (tool_delta) or any pd_*_pos mode
         (joint_target). ``world``: a ``DigitalTwin`` on the emulator, or None on a real robot. ``on_refusal``:
         a command the envelope or the controller refuses raises (``"raise"``), or the robot holds for that
-        period and the refusal is recorded in ``refusals`` and ``info["refused"]`` (``"hold"``, for evaluation)."""
-        if on_refusal not in ("raise", "hold"):
-            raise ValueError(f"on_refusal={on_refusal!r}: use 'raise' or 'hold'")
+        period and the refusal is recorded in ``refusals`` and ``info["refused"]`` (``"hold"``, for evaluation).
+        ``step_end``: ``"arrived"`` (a step ends when the robot stands at its target, at the earliest after one
+        control period, at the latest ``arrive_timeout_s`` after the command: a later step is counted in
+        ``late_steps`` and ``info["late"]``) or ``"period"`` (every step one control period)."""
+        if on_refusal not in STEP_REFUSAL:
+            raise ValueError(f"on_refusal={on_refusal!r}: use one of {STEP_REFUSAL}")
+        if step_end not in STEP_ENDS:
+            raise ValueError(f"step_end={step_end!r}: use one of {STEP_ENDS}")
+        if not arrive_timeout_s > 0:
+            raise ValueError(f"arrive_timeout_s={arrive_timeout_s}: must be > 0 seconds")
         mode = sim_env.unwrapped.control_mode
         if agent.command_mode == "tool_delta" and mode != "pd_ee_delta_tool":
             raise ValueError(f"command_mode='tool_delta' sends pd_ee_delta_tool actions; the sim env uses {mode!r}")
         if agent.abb is None:
             agent.start()  # connect (and start the camera) before ManiSkill's first reset needs the robot
         self.world, self.on_refusal = world, on_refusal
+        self.step_end, self.arrive_timeout_s = step_end, arrive_timeout_s
         self.refusals: list[str] = []
-        self._refused = False
+        self.late_steps = 0
+        self._refused = self._late = False
         self._world_info: dict = {}
         self.step_state: dict[str, torch.Tensor] = {}
         kwargs.setdefault("real_reset_function", _reset_both_sides)
@@ -100,11 +127,20 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
             self.refusals.append(e.limit if isinstance(e, EnvelopeError) else e.state.error.name)
             self._refused = True
         # the rest of the period: the robot moves; then read it (and the world follows it)
-        left = self.control_dt - (time.perf_counter() - self.last_control_time)
+        sent = self.last_control_time
+        left = self.control_dt - (time.perf_counter() - sent)
         if left > 0:
             time.sleep(left)
+        state = self.agent.refresh()
+        self._late = False
+        if self.step_end == "arrived":
+            while state.status == Status.MOVING:
+                if time.perf_counter() - sent > self.arrive_timeout_s:
+                    self._late = True
+                    self.late_steps += 1
+                    break
+                state = self.agent.refresh()
         self.last_control_time = time.perf_counter()
-        self.agent.refresh()
         if self.world is not None:
             self._world_info = self.world.follow()
         return action
@@ -124,7 +160,9 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
             self.step_state = {**self.world.privileged_state(), "tcp_pose": tcp}
         else:
             self.step_state = _Unperceived(tcp_pose=tcp)
-        info = dict(elapsed_steps=self._elapsed_steps, refused=torch.tensor([self._refused]))
+        info = dict(
+            elapsed_steps=self._elapsed_steps, refused=torch.tensor([self._refused]), late=torch.tensor([self._late])
+        )
         if self.world is not None:
             info.update({k: v for k, v in self._world_info.items() if k != "elapsed_steps"})
         else:

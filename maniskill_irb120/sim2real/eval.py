@@ -53,6 +53,9 @@ class EvalConfig:
     """twin (the twin's render; emulator only), realsense, or none (state-free policies that need no image)"""
     command_mode: str = "tool_delta"
     """tool_delta (the action goes over the wire, RelTool on the controller) or joint_target (sim IK, MoveAbsJ)"""
+    step_end: str = "arrived"
+    """arrived (a real step ends when the robot stands at its target, as the sim's drives have settled by the end
+    of each period) or period (every real step one control period: the robot's own timing, still moving when read)"""
     out: Path = Path("runs/sim2real")
     operator_timeout_s: float = 60.0
     """real robot: seconds to answer 'delivered? [y/n]' after each episode (no answer: scored unknown)"""
@@ -154,7 +157,7 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
     agent = IRB120RealAgent(
         url, camera=camera, command_mode=cfg.command_mode, finger_qpos=twin.finger_qpos if twin else None
     )
-    env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold")
+    env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold", step_end=cfg.step_end)
     return env, agent, twin, emulator
 
 
@@ -180,13 +183,14 @@ def evaluate(cfg: EvalConfig) -> dict:
             seed = cfg.seed + k
             sim = _episode(sim_env, make_policy(sim_env), seed, False, limit)
             agent.log.clear()
-            n_refused = len(real_env.refusals)
+            n_refused, n_late = len(real_env.refusals), real_env.late_steps
             real = _episode(real_env, make_policy(twin.env if twin else real_env), seed, True, limit)
             if twin is None:
                 real["success"] = _ask_operator(seed, cfg.operator_timeout_s)
             np.savez(cfg.out / "logs" / f"real_{seed}.npz", **log_arrays(agent.log, real_env.control_dt))
             latencies += [e[2] - e[1] for e in agent.log if e[0] != "state"]
-            rows.append(dict(seed=seed, sim=sim, real=real, refused=real_env.refusals[n_refused:]))
+            refused, late = real_env.refusals[n_refused:], real_env.late_steps - n_late
+            rows.append(dict(seed=seed, sim=sim, real=real, refused=refused, late=late))
             rows[-1]["deviation"] = _deviation(sim, real)
             bar.set_postfix(
                 sim=sum(r["sim"]["success"] for r in rows), real=sum(bool(r["real"]["success"]) for r in rows)
@@ -238,6 +242,7 @@ def _summarise(cfg: EvalConfig, shift: dict, rows: list, latencies: list, interr
         deviation=dict(tcp_m=_stats(cat["tcp_m"]), joint_rad=_stats(cat["joint_rad"]), action=_stats(cat["action"])),
         command_latency_ms=_stats(np.array(latency)),
         refused=dict(total=len(refused), by_limit={x: refused.count(x) for x in sorted(set(refused))}),
+        late_steps=sum(r["late"] for r in rows),
         per_episode=[
             dict(
                 seed=r["seed"],

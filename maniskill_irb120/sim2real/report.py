@@ -51,6 +51,7 @@ def _markdown(r: dict, pictures: list[str]) -> str:
         "Command round trip (ms): " + ", ".join(f"{k} {_fmt(v)}" for k, v in lat.items()),
         "",
         f"Refused commands: {r['refused']['total']} {r['refused']['by_limit'] or ''}",
+        f"Steps the robot had not finished within the arrival bound: {r['late_steps']}",
         "",
     ]
     lines += [f"![{Path(p).stem}]({p})" for p in pictures]
