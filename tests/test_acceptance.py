@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -15,6 +17,7 @@ import tyro
 
 from maniskill_irb120 import acceptance as A
 from maniskill_irb120 import acceptance_runs as R
+from maniskill_irb120.doctor import format_gpu_report, gpu_report
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = "physx_cpu"
@@ -169,8 +172,50 @@ def test_benchmark_command_parses_with_the_benchmarks_args(tmp_path):
     assert R.source_checkout() == REPO
 
 
+# --------------------------------------------------------------------------- the doctor's report
+def test_report_on_cpu_lists_each_check_and_the_steps():
+    r = gpu_report(
+        CPU,
+        num_envs=1,
+        trainer_envs=1,
+        checks=("controller targets", "sim_speed.py --gpu-only"),
+        throughput_envs=(1,),
+        throughput_steps=3,
+        isolate=False,
+    )
+    text = format_gpu_report(r)
+    assert r["ok"] and json.loads(json.dumps(r)) == r
+    assert "  PASS  controller targets " in text and "  SKIP  sim_speed.py --gpu-only  the GPU sweep needs" in text
+    assert "num_envs=1" in text and "env steps/s" in text
+    for field in ("device ", "driver ", "CUDA (torch build)", "torch ", "sapien ", "mani-skill ", "commit "):
+        assert f"  {field}" in text, field
+    assert text.splitlines()[-1] == "VERDICT: PASS - every check passed on physx_cpu"
+    r["checks"][0].update(ok=False, status="FAIL", reason="targets of envs not reset were reset too: [1]")
+    r["throughput"][0] = dict(num_envs=4096, error="RuntimeError: out of memory")
+    r["ok"] = False
+    text = format_gpu_report(r)
+    assert "  FAIL  controller targets       targets of envs not reset were reset too: [1]" in text
+    assert "num_envs=4096   FAIL RuntimeError: out of memory" in text
+    assert text.splitlines()[-1] == "VERDICT: FAIL - controller targets, steps/s at 4096"
+    with pytest.raises(ValueError, match="unknown checks \\['speed'\\]"):
+        gpu_report(CPU, checks=("speed",))
+
+
 def test_isolated_reports_a_crash_and_an_exception():
     with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
         R.isolated("os", "_exit", status=3)
     with pytest.raises(RuntimeError, match="ValueError: unknown check 'nope'"):
         R.isolated("maniskill_irb120.acceptance_runs", "run_named_check", name="nope", sim_backend=CPU, num_envs=1)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_doctor_gpu_without_cuda_says_so_without_a_traceback():
+    out = subprocess.run(
+        [sys.executable, "-m", "maniskill_irb120.cli", "doctor", "--gpu"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert out.returncode == 2
+    assert "doctor --gpu: no CUDA device" in out.stderr and "Traceback" not in out.stdout + out.stderr
