@@ -219,10 +219,12 @@ def gpu_report(
     throughput_envs: tuple[int, ...] = THROUGHPUT_ENVS,
     throughput_steps: int = 50,
     isolate: bool = True,
+    say=None,
 ) -> dict:
     """Run the acceptance suite (``maniskill_irb120.acceptance``) and time state-obs steps/s per batch size.
     ``isolate``: each check and timing in a fresh process, so a GPU crash is one FAIL, not the end of the report.
-    The tests run it on ``physx_cpu`` with one env and ``isolate=False``."""
+    The tests run it on ``physx_cpu`` with one env and ``isolate=False``. ``say``: called with a line as each
+    check ends (the whole run takes minutes)."""
     from maniskill_irb120.acceptance_runs import CHECK_NAMES, isolated, measure_batched, run_named_check
     from maniskill_irb120.envs.table_clearing import ENV_ID
 
@@ -243,10 +245,13 @@ def gpu_report(
     for name in names:
         kw = dict(name=name, sim_backend=sim_backend, num_envs=num_envs, trainer_envs=trainer_envs)
         try:
-            result = isolated(mod, "run_named_check", **kw) if isolate else run_named_check(**kw)
+            # 1200 s: the obs-mode sweep builds 24 GPU scenes of num_envs each
+            result = isolated(mod, "run_named_check", timeout_s=1200, **kw) if isolate else run_named_check(**kw)
         except RuntimeError as e:
             result = dict(name=name, ok=False, status="FAIL", reason=str(e).splitlines()[0], seconds=0.0)
         report["checks"].append(result)
+        if say is not None:
+            say(f"[doctor --gpu] {name}: {result['status']} ({result['seconds']:.0f} s)")
     backend = "gpu" if "cuda" in sim_backend else "inprocess"
     for n in throughput_envs:
         kw = dict(env_id=ENV_ID, num_envs=n, steps=throughput_steps, seed=0, backend=backend, obs_mode="state")
@@ -255,6 +260,8 @@ def gpu_report(
         except Exception as e:  # noqa: BLE001 - the row says what failed
             row = dict(num_envs=n, error=f"{type(e).__name__}: {str(e).strip().splitlines()[0][:200]}")
         report["throughput"].append(row)
+        if say is not None:
+            say(f"[doctor --gpu] steps/s at {n} envs: {row.get('env_steps_per_s', row.get('error'))}")
     report["ok"] = all(c["ok"] is not False for c in report["checks"]) and not any(
         "error" in r for r in report["throughput"]
     )
@@ -304,7 +311,7 @@ def gpu_main(json_output: bool = False, json_path: str | None = None) -> int:
     if not torch.cuda.is_available():
         print(NO_CUDA, file=sys.stderr)
         return 2
-    r = gpu_report()
+    r = gpu_report(say=lambda line: print(line, file=sys.stderr, flush=True))
     print(json.dumps(r, indent=2) if json_output else format_gpu_report(r))
     if json_path:
         _write_json(json_path, r)
