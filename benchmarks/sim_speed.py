@@ -167,41 +167,11 @@ def measure_parallel_ceiling(n: int = 5_000_000) -> dict:
 def measure_batched(
     env_id: str, num_envs: int, steps: int, seed: int, backend: str = "gpu", obs_mode: str = "rgbd"
 ) -> dict:
-    """Batched env steps/s as training sees them: ``make_vec_env`` (ManiSkillVectorEnv, auto-reset of
-    finished envs), a fresh seeded uniform action every step. The GPU sweep; ``backend="inprocess"``
-    runs the same loop on one CPU env (how the tests check it)."""
-    import torch
+    """The GPU sweep's measurement, shared with ``maniskill-irb120 doctor --gpu`` (imported here, not at the top:
+    the PyBullet and CPU configurations' processes must not load ManiSkill)."""
+    from maniskill_irb120.acceptance_runs import measure_batched as measure
 
-    from maniskill_irb120 import make_vec_env
-
-    envs = make_vec_env(env_id, num_envs, backend=backend, obs_mode=obs_mode, record_metrics=True)
-    dev = envs.device
-    gen = torch.Generator(device=dev).manual_seed(seed)
-    shape = (num_envs, *envs.single_action_space.shape)
-    action = lambda: torch.rand(shape, generator=gen, device=dev) * 2 - 1  # noqa: E731
-    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    envs.reset(seed=seed)
-    free0, total = torch.cuda.mem_get_info() if dev.type == "cuda" else (0, 0)
-    for _ in range(5):
-        envs.step(action())
-    sync()
-    episodes = 0
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        _, _, term, trunc, _ = envs.step(action())
-        episodes += int((term | trunc).sum())
-    sync()
-    dt = time.perf_counter() - t0
-    free1 = torch.cuda.mem_get_info()[0] if dev.type == "cuda" else 0
-    envs.close()
-    return dict(
-        num_envs=num_envs,
-        backend=backend,
-        obs_mode=obs_mode,
-        env_steps_per_s=steps * num_envs / dt,
-        episodes_finished=episodes,
-        gpu_mem_used_gb=(total - min(free0, free1)) / 2**30,
-    )
+    return measure(env_id, num_envs, steps, seed, backend=backend, obs_mode=obs_mode)
 
 
 def measure_pybullet(mode: str, steps: int, seed: int) -> dict:

@@ -133,10 +133,194 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def main(json_output: bool = False) -> int:
+def main(json_output: bool = False, json_path: str | None = None) -> int:
     """Diagnose rendering and simulation support; exit code 0 when rendering works."""
     import json
 
     r = diagnose()
     print(json.dumps(r, indent=2) if json_output else format_report(r))
+    if json_path:
+        _write_json(json_path, r)
     return 0 if r["render_ok"] else 1
+
+
+# ------------------------------------------------------------------ doctor --gpu: the acceptance suite's report
+NO_CUDA = (
+    "doctor --gpu: no CUDA device: torch.cuda.is_available() is False here, so the GPU path (physx_cuda, batched "
+    "rendering, --backend gpu trainers) cannot run. On a machine with an NVIDIA GPU install its driver and a CUDA "
+    "build of torch (scripts/setup.sh picks one when nvidia-smi works), then run this again."
+)
+THROUGHPUT_ENVS = (512, 1024, 4096)
+
+
+def _driver_version() -> str | None:
+    """The NVIDIA driver (torch reports the CUDA runtime it was built with, not the driver)."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
+        if out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip().splitlines()[0]
+    except (OSError, subprocess.SubprocessError):
+        pass
+    try:
+        m = re.search(r"Kernel Module\s+([\d.]+)", open("/proc/driver/nvidia/version").read())
+        return m.group(1) if m else None
+    except OSError:
+        return None
+
+
+def _git_commit() -> str | None:
+    import subprocess
+
+    from maniskill_irb120.acceptance_runs import source_checkout
+
+    root = source_checkout()
+    if root is None:
+        return None
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        )
+        return (out.stdout.strip() or None) if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def gpu_environment() -> dict:
+    """What a GPU report must name so that a failure can be reproduced: the device, driver and versions."""
+    import torch
+
+    env: dict = dict(python=platform.python_version(), platform=platform.platform(), commit=_git_commit())
+    for pkg in ("maniskill-irb120", "mani-skill", "sapien", "torch"):
+        try:
+            env[f"version_{pkg}"] = md.version(pkg)
+        except md.PackageNotFoundError:
+            env[f"version_{pkg}"] = None
+    env["cuda_runtime"] = torch.version.cuda
+    if torch.cuda.is_available():
+        props = torch.cuda.get_device_properties(0)
+        env.update(device=props.name, device_memory_gib=round(props.total_memory / 2**30, 1), driver=_driver_version())
+    else:
+        env.update(device=None, device_memory_gib=None, driver=_driver_version())
+    return env
+
+
+def gpu_report(
+    sim_backend: str = "physx_cuda",
+    num_envs: int = 512,
+    trainer_envs: int = 64,
+    checks: tuple[str, ...] | None = None,
+    throughput_envs: tuple[int, ...] = THROUGHPUT_ENVS,
+    throughput_steps: int = 50,
+    isolate: bool = True,
+    say=None,
+) -> dict:
+    """Run the acceptance suite (``maniskill_irb120.acceptance``) and time state-obs steps/s per batch size.
+    ``isolate``: each check and timing in a fresh process, so a GPU crash is one FAIL, not the end of the report.
+    The tests run it on ``physx_cpu`` with one env and ``isolate=False``. ``say``: called with a line as each
+    check ends (the whole run takes minutes)."""
+    from maniskill_irb120.acceptance_runs import CHECK_NAMES, isolated, measure_batched, run_named_check
+    from maniskill_irb120.envs.table_clearing import ENV_ID
+
+    names = CHECK_NAMES if checks is None else checks
+    unknown = [c for c in names if c not in CHECK_NAMES]
+    if unknown:
+        raise ValueError(f"unknown checks {unknown}; expected some of {list(CHECK_NAMES)}")
+    report: dict = dict(
+        date=time.strftime("%Y-%m-%d %H:%M:%S"),
+        sim_backend=sim_backend,
+        num_envs=num_envs,
+        trainer_envs=trainer_envs,
+        environment=gpu_environment(),
+        checks=[],
+        throughput=[],
+    )
+    mod = "maniskill_irb120.acceptance_runs"
+    for name in names:
+        kw = dict(name=name, sim_backend=sim_backend, num_envs=num_envs, trainer_envs=trainer_envs)
+        try:
+            # 1200 s: the obs-mode sweep builds 24 GPU scenes of num_envs each
+            result = isolated(mod, "run_named_check", timeout_s=1200, **kw) if isolate else run_named_check(**kw)
+        except RuntimeError as e:
+            result = dict(name=name, ok=False, status="FAIL", reason=str(e).splitlines()[0], seconds=0.0)
+        report["checks"].append(result)
+        if say is not None:
+            say(f"[doctor --gpu] {name}: {result['status']} ({result['seconds']:.0f} s)")
+    backend = "gpu" if "cuda" in sim_backend else "inprocess"
+    for n in throughput_envs:
+        kw = dict(env_id=ENV_ID, num_envs=n, steps=throughput_steps, seed=0, backend=backend, obs_mode="state")
+        try:
+            row = isolated(mod, "measure_batched", **kw) if isolate else measure_batched(**kw)
+        except Exception as e:  # noqa: BLE001 - the row says what failed
+            row = dict(num_envs=n, error=f"{type(e).__name__}: {str(e).strip().splitlines()[0][:200]}")
+        report["throughput"].append(row)
+        if say is not None:
+            say(f"[doctor --gpu] steps/s at {n} envs: {row.get('env_steps_per_s', row.get('error'))}")
+    report["ok"] = all(c["ok"] is not False for c in report["checks"]) and not any(
+        "error" in r for r in report["throughput"]
+    )
+    return report
+
+
+def format_gpu_report(r: dict) -> str:
+    """The report as plain text, one line per fact, short enough to paste into an issue."""
+    env = r["environment"]
+    mem = f" ({env['device_memory_gib']} GiB)" if env.get("device_memory_gib") else ""
+    lines = [
+        f"maniskill-irb120 doctor --gpu, {r['date']}",
+        f"  device             {env.get('device') or 'none'}{mem}",
+        f"  driver             {env.get('driver') or 'unknown'}",
+        f"  CUDA (torch build) {env.get('cuda_runtime') or 'none'}",
+    ]
+    for k, v in env.items():
+        if k.startswith("version_"):
+            lines.append(f"  {k[8:]:<18} {v or 'NOT INSTALLED'}")
+    lines.append(f"  commit             {env.get('commit') or 'unknown'}")
+    lines.append(f"  python             {env['python']} on {env['platform']}")
+    lines.append(f"checks ({r['sim_backend']}, num_envs={r['num_envs']}; trainers num_envs={r['trainer_envs']}):")
+    for c in r["checks"]:
+        lines.append(f"  {c['status']:<4}  {c['name']:<24} {c['reason']} [{c['seconds']:.0f} s]")
+    if r["throughput"]:
+        lines.append("steps/s (TableClearing-IRB120-v1, state obs, random actions, auto-reset):")
+        for t in r["throughput"]:
+            if "error" in t:
+                lines.append(f"  num_envs={t['num_envs']:<6} FAIL {t['error']}")
+            else:
+                mem = f", GPU memory {t['gpu_mem_used_gb']:.1f} GB" if t.get("gpu_mem_used_gb") else ""
+                lines.append(f"  num_envs={t['num_envs']:<6} {t['env_steps_per_s']:.0f} env steps/s{mem}")
+    failed = [c["name"] for c in r["checks"] if c["ok"] is False]
+    failed += [f"steps/s at {t['num_envs']}" for t in r["throughput"] if "error" in t]
+    passed = f"PASS - every check passed on {r['sim_backend']}"
+    lines.append("VERDICT: " + (passed if r["ok"] else f"FAIL - {', '.join(failed)}"))
+    return "\n".join(lines)
+
+
+def gpu_main(json_output: bool = False, json_path: str | None = None) -> int:
+    """``doctor --gpu``: 0 when every check passes, 1 when one fails, 2 without a CUDA device."""
+    import json
+    import sys
+
+    import torch
+
+    if not torch.cuda.is_available():
+        print(NO_CUDA, file=sys.stderr)
+        return 2
+    r = gpu_report(say=lambda line: print(line, file=sys.stderr, flush=True))
+    print(json.dumps(r, indent=2) if json_output else format_gpu_report(r))
+    if json_path:
+        _write_json(json_path, r)
+    return 0 if r["ok"] else 1
+
+
+def _write_json(path: str, report: dict) -> None:
+    import json
+    from pathlib import Path
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(report, indent=2))

@@ -1,0 +1,72 @@
+"""The GPU acceptance suite (``pytest -m gpu`` on a machine with CUDA; skipped, and counted, without one).
+
+The GPU path has not run before its first GPU: these tests make that first run a verdict. Each calls the check
+that ``maniskill-irb120 doctor --gpu`` reports (``maniskill_irb120/acceptance*.py``) on ``physx_cuda`` with
+512 envs; ``tests/test_acceptance.py`` runs the same functions on the CPU, so a failure here is the GPU path's.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from maniskill_irb120 import acceptance as A
+from maniskill_irb120 import acceptance_runs as R
+
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.skipif(
+        not torch.cuda.is_available(), reason="GPU acceptance suite: needs CUDA (on a GPU machine: pytest -m gpu)"
+    ),
+]
+
+GPU = "physx_cuda"
+NUM_ENVS = 512
+TRAINER_ENVS = 64
+
+
+@pytest.mark.parametrize("obs_mode", A.OBS_MODES)
+@pytest.mark.parametrize("env_id", A.ENV_IDS)
+def test_every_task_and_obs_mode_resets_and_steps_batched(env_id, obs_mode):
+    ok, why = A.check_obs_modes(GPU, NUM_ENVS, env_ids=[env_id], obs_modes=[obs_mode])
+    assert ok, why
+
+
+def test_partial_resets_give_fresh_per_env_starts():
+    ok, why = A.check_partial_resets(GPU, NUM_ENVS)
+    assert ok, why
+
+
+def test_controller_targets_reset_per_env():
+    ok, why = A.check_controller_reset(GPU, NUM_ENVS)
+    assert ok, why
+
+
+def test_batched_contact_query_agrees_with_the_cpu_scan():
+    ok, why = A.check_contacts(GPU, NUM_ENVS)
+    assert ok, why
+
+
+def test_batched_rgbd_frames_have_the_policy_shape_and_differ_per_env():
+    ok, why = A.check_rgbd_frames(GPU, NUM_ENVS)
+    assert ok, why
+
+
+@pytest.mark.parametrize("trainer", R.TRAINERS)
+def test_trainer_runs_its_tiny_loop_on_the_gpu(trainer):
+    ok, why = R.check_trainer(trainer, GPU, TRAINER_ENVS)
+    assert ok, why
+
+
+def test_sim_speed_gpu_only_smoke():
+    ok, why = R.check_benchmark()
+    assert ok, why
+
+
+def test_doctor_gpu_report_runs_its_checks_in_fresh_processes():
+    from maniskill_irb120.doctor import format_gpu_report, gpu_report
+
+    r = gpu_report(checks=("rgbd frames",), throughput_envs=(NUM_ENVS,), throughput_steps=10)
+    text = format_gpu_report(r)
+    assert r["ok"], text
+    assert r["environment"]["device"] and "PASS  rgbd frames" in text

@@ -1,0 +1,221 @@
+"""The GPU acceptance suite's own code, on the CPU: the checks ``tests/gpu/`` and ``doctor --gpu`` run on
+physx_cuda pass here on physx_cpu (one env, ManiSkill's CPU limit), and each verdict catches the bug it exists
+for on hand-made batches (several envs, which the CPU cannot simulate in one process)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import tyro
+
+from maniskill_irb120 import acceptance as A
+from maniskill_irb120 import acceptance_runs as R
+from maniskill_irb120.doctor import format_gpu_report, gpu_report
+
+REPO = Path(__file__).resolve().parents[1]
+CPU = "physx_cpu"
+
+
+# --------------------------------------------------------------------------- the checks pass on the CPU
+def test_obs_modes_check_passes_on_cpu():
+    ok, why = A.check_obs_modes(CPU, 1, env_ids=A.ENV_IDS[:1])  # every mode on one task
+    assert ok, why
+    ok, why = A.check_obs_modes(CPU, 1, env_ids=A.ENV_IDS[1:], obs_modes=("state", "rgbd"))
+    assert ok, why
+
+
+@pytest.mark.parametrize("name", ["partial resets", "controller targets", "contacts", "rgbd frames"])
+def test_env_check_passes_on_cpu(name):
+    result = A.timed_check(name, A.ENV_CHECKS[name], sim_backend=CPU, num_envs=1)
+    assert result.status == "PASS", result.reason
+
+
+def test_ppo_check_runs_the_trainer_on_cpu():
+    ok, why = R.check_trainer("ppo", CPU, 1, obs="state")
+    assert ok, why
+    assert why.startswith("iterations=2")
+
+
+# --------------------------------------------------------------------------- the verdicts catch their bugs
+def test_obs_problems_name_shape_device_and_nan():
+    import gymnasium as gym
+
+    space = gym.spaces.Dict(a=gym.spaces.Box(-1, 1, (3,)), b=gym.spaces.Dict(c=gym.spaces.Box(0, 1, (2, 2))))
+    good = dict(a=torch.zeros(4, 3), b=dict(c=torch.zeros(4, 2, 2)))
+    assert A.obs_problems(good, space, 4, "cpu") == []
+    bad = dict(a=torch.full((4, 3), float("nan")), b=dict(c=torch.zeros(1, 2, 2)))
+    found = A.obs_problems(bad, space, 4, "cpu")
+    assert any("obs/a: 12 values not finite" in p for p in found) and any(
+        "obs/b/c: shape (1, 2, 2)" in p for p in found
+    )
+    assert A.obs_problems(good, space, 4, "cuda")[0] == "obs/a: on cpu, expected cuda"
+    assert A.obs_problems(dict(b=good["b"]), space, 4, "cpu") == ["obs: missing ['a']"]
+
+
+def _reset_batches(n: int = 4):
+    idx = torch.tensor([0, 2])
+    start = dict(state=torch.zeros(n, 5), obj=torch.zeros(n, 7), qpos=torch.zeros(n, 3))
+    before = dict(state=torch.rand(n, 5), obj=torch.rand(n, 7), qpos=torch.rand(n, 3))
+    after = {k: v.clone() for k, v in before.items()}
+    after["obj"][idx, :2] = torch.tensor([[0.1, 0.2], [0.3, 0.4]])
+    after["qpos"][idx] = 0.0
+    return idx, start, before, after
+
+
+def test_partial_reset_verdict():
+    idx, start, before, after = _reset_batches()
+    rest = torch.zeros(3)
+    assert A.partial_reset_verdict(idx, start, before, after, rest) == (
+        True,
+        "2 of 4 envs reset to fresh, distinct starts; the other 2 unchanged",
+    )
+    touched = {k: v.clone() for k, v in after.items()}
+    touched["state"][1] += 1
+    assert "envs not reset changed state: [1]" in A.partial_reset_verdict(idx, start, before, touched, rest)[1]
+    shared = {k: v.clone() for k, v in after.items()}
+    shared["obj"][2, :2] = shared["obj"][0, :2]
+    assert "same object start" in A.partial_reset_verdict(idx, start, before, shared, rest)[1]
+    again = {k: v.clone() for k, v in after.items()}
+    again["obj"][2] = start["obj"][2]
+    assert "got their first start again" in A.partial_reset_verdict(idx, start, before, again, rest)[1]
+    assert "rest pose" in A.partial_reset_verdict(idx, start, before, after, torch.ones(3))[1]
+
+
+def test_controller_reset_verdict():
+    idx = torch.tensor([0, 2])
+    measured = dict(q=torch.zeros(4, 6))
+    before = dict(q=torch.ones(4, 6))  # every target a step ahead of the robot
+    after = dict(q=before["q"].clone())
+    after["q"][idx] = 0.0
+    assert A.controller_reset_verdict(idx, before, after, measured)[0]
+    everyone = dict(q=torch.zeros(4, 6))  # ManiSkill 3.0.1's own controllers: every env's targets reset
+    assert (
+        "targets of envs not reset were reset too: [1, 3]"
+        in A.controller_reset_verdict(idx, before, everyone, measured)[1]
+    )
+    stale = dict(q=before["q"].clone())
+    assert "from their new start" in A.controller_reset_verdict(idx, before, stale, measured)[1]
+    idle = dict(q=torch.zeros(4, 6))
+    assert "not ahead" in A.controller_reset_verdict(idx, idle, idle, measured)[1]
+
+
+def test_contact_verdict():
+    ref = {0: 24, 6: 30}
+    assert A.contact_verdict(ref, (0, 6), [24, 30, 25, 29])[0]
+    assert "2 envs never collided" in A.contact_verdict(ref, (0, 6), [24, -1, 24, -1])[1]
+    assert "env 1 at step 33, CPU at 30" in A.contact_verdict(ref, (0, 6), [24, 33, 24, 30])[1]
+    assert "CPU reference never collided" in A.contact_verdict({0: -1}, (0,), [3])[1]
+
+
+def test_frames_verdict():
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.randint(1, 255, (3, 84, 84, 3), generator=g, dtype=torch.uint8)
+    depth = torch.randint(1, 500, (3, 84, 84, 1), generator=g, dtype=torch.int16)
+    assert A.frames_verdict(rgb, depth, 3)[0]
+    shared = rgb.clone()
+    shared[2] = shared[0]
+    assert "only 2 distinct rgb frames among 3" in A.frames_verdict(shared, depth, 3)[1]
+    assert "expected (3, 84, 84, 3/1)" in A.frames_verdict(rgb[:, :64], depth, 3)[1]
+    blank = depth.clone()
+    blank[1] = 0
+    assert "e.g. env 1" in A.frames_verdict(rgb, blank, 3)[1]
+    assert "dtype torch.float32" in A.frames_verdict(rgb.float(), depth, 3)[1]
+
+
+def test_program_verdicts():
+    assert R.trainer_verdict("ppo", 0, dict(iterations=2, env_steps=32, wall_clock_s=1.0), "")[0]
+    assert R.trainer_verdict("ppo", 0, dict(iterations=1), "") == (False, "iterations=1, expected >= 2")
+    assert R.trainer_verdict("dagger", 1, None, "x\nRuntimeError: boom\n") == (
+        False,
+        "exit status 1: RuntimeError: boom",
+    )
+    assert "no result JSON" in R.trainer_verdict("sac", 0, None, "tqdm line")[1]
+    rows = [dict(num_envs=n, env_steps_per_s=100.0) for n in R.BENCH_ENVS]
+    assert R.benchmark_verdict(0, dict(gpu_scaling=rows), "")[0]
+    assert "expected (16, 64)" in R.benchmark_verdict(0, dict(gpu_scaling=rows[:1]), "")[1]
+    assert R.benchmark_verdict(1, None, "SystemExit: --gpu-only needs CUDA")[1].endswith("needs CUDA")
+
+
+# --------------------------------------------------------------------------- the programs' command lines
+@pytest.mark.parametrize("trainer", R.TRAINERS)
+def test_trainer_commands_parse_with_the_trainers_own_args(trainer, tmp_path):
+    cmd = R.trainer_command(trainer, "physx_cuda", 64, tmp_path, obs="state")
+    assert cmd[:3] == [sys.executable, "-m", f"agents.{trainer}"]
+    module = importlib.import_module(f"agents.{trainer}")
+    args = tyro.cli(module.Args, args=cmd[3:])
+    assert (args.backend, args.num_envs, args.runs_dir, args.progress) == ("gpu", 64, tmp_path, False)
+    if trainer == "ppo":
+        assert args.total_timesteps // args.batch_size == 2
+    with pytest.raises(ValueError, match="unknown trainer 'td3'"):
+        R.trainer_command("td3", "physx_cuda", 1, tmp_path)
+
+
+def test_benchmark_command_parses_with_the_benchmarks_args(tmp_path):
+    cmd = R.benchmark_command(tmp_path / "g.json")
+    spec = importlib.util.spec_from_file_location("sim_speed_cmd", REPO / cmd[1])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up while the file executes
+    sys.path.insert(0, str(REPO / "benchmarks"))  # sim_speed imports its sibling pybullet_original
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    args = tyro.cli(mod.Args, args=cmd[2:])
+    assert args.gpu_only and args.gpu_num_envs == R.BENCH_ENVS and args.json == tmp_path / "g.json"
+    assert R.source_checkout() == REPO
+
+
+# --------------------------------------------------------------------------- the doctor's report
+def test_report_on_cpu_lists_each_check_and_the_steps():
+    r = gpu_report(
+        CPU,
+        num_envs=1,
+        trainer_envs=1,
+        checks=("controller targets", "sim_speed.py --gpu-only"),
+        throughput_envs=(1,),
+        throughput_steps=3,
+        isolate=False,
+    )
+    text = format_gpu_report(r)
+    assert r["ok"] and json.loads(json.dumps(r)) == r
+    assert "  PASS  controller targets " in text and "  SKIP  sim_speed.py --gpu-only  the GPU sweep needs" in text
+    assert "num_envs=1" in text and "env steps/s" in text
+    for field in ("device ", "driver ", "CUDA (torch build)", "torch ", "sapien ", "mani-skill ", "commit "):
+        assert f"  {field}" in text, field
+    assert text.splitlines()[-1] == "VERDICT: PASS - every check passed on physx_cpu"
+    r["checks"][0].update(ok=False, status="FAIL", reason="targets of envs not reset were reset too: [1]")
+    r["throughput"][0] = dict(num_envs=4096, error="RuntimeError: out of memory")
+    r["ok"] = False
+    text = format_gpu_report(r)
+    assert "  FAIL  controller targets       targets of envs not reset were reset too: [1]" in text
+    assert "num_envs=4096   FAIL RuntimeError: out of memory" in text
+    assert text.splitlines()[-1] == "VERDICT: FAIL - controller targets, steps/s at 4096"
+    with pytest.raises(ValueError, match="unknown checks \\['speed'\\]"):
+        gpu_report(CPU, checks=("speed",))
+
+
+def test_isolated_reports_a_crash_and_an_exception():
+    with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
+        R.isolated("os", "_exit", status=3)
+    with pytest.raises(RuntimeError, match="ValueError: unknown check 'nope'"):
+        R.isolated("maniskill_irb120.acceptance_runs", "run_named_check", name="nope", sim_backend=CPU, num_envs=1)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
+def test_doctor_gpu_without_cuda_says_so_without_a_traceback():
+    out = subprocess.run(
+        [sys.executable, "-m", "maniskill_irb120.cli", "doctor", "--gpu"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert out.returncode == 2
+    assert "doctor --gpu: no CUDA device" in out.stderr and "Traceback" not in out.stdout + out.stderr
