@@ -160,6 +160,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
             self.object_mass,
             self.object_friction,
             color,
+            own_materials=self.own_materials,
         )
         self._randomize_bodies(obj, self.object_mass, self.object_friction)
         return obj
@@ -168,7 +169,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         """First in draw order: the two trays (then the task's objects, :meth:`build_background` and
         :meth:`watch_contacts`). Draws the scene-build randomisation of the object size, so build the objects
         after this."""
-        self.table_scene = TableScene(self.scene)
+        self.table_scene = TableScene(self.scene, self.own_materials)
         self.table_scene.build_trays()
         self.source_tray, self.dest_tray = self.table_scene.source_tray, self.table_scene.dest_tray
         self.object_half_size = self._randomized_build(self._nominal_half_size)

@@ -11,13 +11,20 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``camera_rot`` | deg, per axis (x, y, z of the camera frame) | each episode | per env |
 | ``camera_fov`` | deg (absolute; off: the agent's 90°) | each episode | per env |
 | ``light`` | scale of every light's intensity | each episode | per env on the CPU; GPU: env 0's (shared lights) |
-| ``color`` | max RGB jitter of the objects and trays | each episode | first env reset's draw (shared materials) |
+| ``color`` | max RGB jitter of the objects, trays, table and floor | each episode | per env (see below) |
+| ``texture`` | probability a surface wears a procedural texture (``appearance.py``) | each episode | env, surface |
+| ``roughness`` | GGX roughness, 0..1 (off: each material's own) | each episode | env, surface |
+| ``specular`` | specular strength, 0..1 (off: each material's own) | each episode | env, surface |
 | ``depth_noise`` | std of Gaussian depth noise, mm | each step | per pixel |
 | ``depth_dropout`` | probability a depth pixel reads 0 | each step | per pixel |
 | ``object_size`` | scale of ``object_half_size`` | scene build | one draw for all envs |
 | ``object_mass`` | scale of ``object_mass`` | scene build | per env |
 | ``object_friction`` | scale of ``object_friction`` | scene build | per env |
 | ``latency`` | s: how far into a control period new targets reach the drives | each episode | per env, 10 ms steps |
+
+The appearance fields (``color``, ``texture``, ``roughness``, ``specular``) change materials. On the CPU an env
+owns its materials; a GPU-batched scene shares one material per builder between its envs, so with an appearance
+field active the scene builds each env's table, trays, floor and objects with materials of their own.
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
@@ -34,12 +41,18 @@ import numpy as np
 import sapien
 import torch
 
+from maniskill_irb120.envs import appearance
+
 Value = float | tuple[float, ...] | None
 VECTOR_FIELDS = ("camera_pos", "camera_rot")
 OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
+OFF.update(texture=0.0, roughness=None, specular=None)
 OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0)
 SCALES = ("light", "object_size", "object_mass", "object_friction")
 BUILD_FIELDS = ("object_size", "object_mass", "object_friction")  # drawn when the scene is built
+APPEARANCE_FIELDS = ("color", "texture", "roughness", "specular")
+UNIT_FIELDS = ("depth_dropout", "texture", "roughness", "specular")  # probabilities and 0..1 material terms
+NONE_FIELDS = ("camera_fov", "roughness", "specular")  # None: off (the nominal camera's, each material's own)
 
 
 @dataclass(frozen=True)
@@ -51,6 +64,9 @@ class Randomization:
     color: Value = 0.0
     depth_noise: Value = 0.0
     depth_dropout: Value = 0.0
+    texture: Value = 0.0
+    roughness: Value = None
+    specular: Value = None
     object_size: Value = 1.0
     object_mass: Value = 1.0
     object_friction: Value = 1.0
@@ -60,8 +76,8 @@ class Randomization:
         for f in fields(self):
             v = getattr(self, f.name)
             if v is None:
-                if f.name != "camera_fov":
-                    raise ValueError(f"{f.name}: None is only 'off' for camera_fov")
+                if f.name not in NONE_FIELDS:
+                    raise ValueError(f"{f.name}: None is 'off' only for {', '.join(NONE_FIELDS)}")
                 continue
             vals = (float(v),) if np.isscalar(v) else tuple(float(x) for x in v)
             if not all(math.isfinite(x) for x in vals):
@@ -77,8 +93,8 @@ class Randomization:
                 raise ValueError(f"{f.name}={v!r}: a scale must be > 0")
             if f.name in ("color", "depth_noise", "latency") and min(vals) < 0:
                 raise ValueError(f"{f.name}={v!r}: must be >= 0")
-            if f.name == "depth_dropout" and not 0 <= min(vals) <= max(vals) <= 1:
-                raise ValueError(f"{f.name}={v!r}: a probability in [0, 1]")
+            if f.name in UNIT_FIELDS and not 0 <= min(vals) <= max(vals) <= 1:
+                raise ValueError(f"{f.name}={v!r}: must lie in [0, 1] (a probability, or a material term)")
             if f.name == "camera_fov" and not 1 <= min(vals) <= max(vals) < 180:
                 raise ValueError(f"{f.name}={v!r}: degrees in [1, 180)")
             object.__setattr__(self, f.name, vals[0] if len(vals) == 1 else vals)
@@ -177,10 +193,18 @@ class RandomizationMixin:
         # nominal light colours per env and material colours per (actor, env, shape), read on first use
         self._dr_light_base: dict = {}
         self._dr_color_base: dict = {}
+        self._dr_shapes: list[dict[int, list]] = []  # per surface: env -> render shapes
 
     # ------------------------------------------------------------------ scene build
+    @property
+    def own_materials(self) -> bool:
+        """Build each env's surfaces with materials of their own: an appearance field is active."""
+        return bool(set(APPEARANCE_FIELDS) & set(self.randomization.active()))
+
     def _randomized_build(self, nominal_half_size: float) -> float:
-        """The object half size for this build (shared by the envs); checks latency against the period."""
+        """The object half size for this build (shared by the envs); checks latency against the period. A new
+        scene has new materials: the appearance caches start over."""
+        self._dr_shapes, self._dr_color_base = [], {}
         r = self.randomization
         period = 1.0 / self.control_freq
         lat = r.latency if np.isscalar(r.latency) else max(r.latency)
@@ -235,8 +259,8 @@ class RandomizationMixin:
             cam._cached_local_pose = None
         if "light" in active:
             self._scale_lights({int(i): r.draw("light", rngs[i])[0] for i in idx})
-        if "color" in active:
-            self._jitter_colors(rngs[int(idx[0])])
+        if set(APPEARANCE_FIELDS) & set(active):
+            self._randomize_appearance(idx, rngs)
         if "latency" in active:
             if self._dr_delay is None:
                 self._dr_delay = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
@@ -273,17 +297,29 @@ class RandomizationMixin:
             s.render_system.ambient_light = list(base[1] * scale)
             self._record_draw("light", i, scale)
 
-    def _jitter_colors(self, rng: np.random.Generator) -> None:
-        for actor in [*self._dr_objects, self.source_tray, self.dest_tray]:
-            for k, obj in enumerate(actor._objs):
-                body = obj.find_component_by_type(sapien.render.RenderBodyComponent)
-                for j, shape in enumerate(body.render_shapes if body is not None else []):
-                    base = self._dr_color_base.setdefault((actor.name, k, j), np.array(shape.material.base_color))
-                    jitter = rng.uniform(-1, 1, 3) * self.randomization.draw("color", rng)[0]
-                    shape.material.base_color = [*np.clip(base[:3] + jitter, 0, 1), base[3]]
-                    self.randomization_draws.setdefault(
-                        "color_" + actor.name, torch.as_tensor(jitter, dtype=torch.float32)
-                    )
+    def _randomize_appearance(self, idx: np.ndarray, rngs: dict) -> None:
+        """Colour jitter, procedural textures and surface materials of each reset env's own materials."""
+        r = self.randomization
+        surfaces = [*self._dr_objects, *self.scene_actors]
+        if not self._dr_shapes:
+            self._dr_shapes = [appearance.render_shapes_per_env(a) for a in surfaces]
+        for i in (int(i) for i in idx):
+            rng = rngs[i]
+            for actor, shapes in zip(surfaces, self._dr_shapes):
+                jitter = rng.uniform(-1, 1, 3) * r.draw("color", rng)[0]
+                textured = bool(rng.random() < r.draw("texture", rng)[0])
+                for j, shape in enumerate(shapes.get(i, [])):
+                    mat = shape.material
+                    base = self._dr_color_base.setdefault((actor.name, i, j), np.array(mat.base_color))
+                    rgb = np.clip(base[:3] + jitter, 0, 1)
+                    mat.base_color = [*rgb, base[3]]
+                    if r.texture != 0.0:
+                        appearance.set_texture(mat, appearance.procedural_texture(rng, rgb) if textured else None)
+                    for key in ("roughness", "specular"):
+                        if getattr(r, key) is not None:
+                            setattr(mat, key, float(r.draw(key, rng)[0]))
+                self._record_draw("color_" + actor.name, i, jitter)
+                self._record_draw("texture_" + actor.name, i, float(textured))
 
     # ------------------------------------------------------------------ each step
     def _randomize_sensor_data(self, data: dict) -> dict:

@@ -55,17 +55,38 @@ def check_object_params(shape: str, half_size: float, mass: float, friction: flo
         raise ValueError(f"object_mass={mass} must be > 0 and object_friction={friction} >= 0")
 
 
-def build_box_actor(scene: ManiSkillScene, name: str, boxes: list[tuple[tuple, tuple]], color, xy=(0.0, 0.0)) -> Actor:
+def _build(scene: ManiSkillScene, make, name: str, static: bool, own_materials: bool) -> Actor:
+    """``make(env)`` returns a fresh builder. Built once for all envs, the envs share the builder's render
+    materials; with ``own_materials``, once per env (ManiSkill's per-env build, ``set_scene_idxs``) and merged,
+    so appearance randomisation can give each env its own colours and textures."""
+    if not own_materials:
+        builder = make(0)
+        return builder.build_static(name=name) if static else builder.build(name=name)
+    parts = []
+    for i in range(scene.num_envs):
+        builder = make(i)
+        builder.set_scene_idxs([i])
+        parts.append(builder.build_static(name=f"{name}_{i}") if static else builder.build(name=f"{name}_{i}"))
+    return Actor.merge(parts, name=name)
+
+
+def build_box_actor(
+    scene: ManiSkillScene, name: str, boxes: list[tuple[tuple, tuple]], color, xy=(0.0, 0.0), own_materials=False
+) -> Actor:
     """A static actor of (half_size, centre) boxes: box collisions, one merged visual mesh."""
-    builder = scene.create_actor_builder()
-    for half, centre in boxes:
-        builder.add_box_collision(pose=sapien.Pose(p=list(centre)), half_size=list(half))
-    builder.add_visual_from_file(merged_box_mesh(boxes), material=sapien.render.RenderMaterial(base_color=color))
-    builder.initial_pose = sapien.Pose(p=[xy[0], xy[1], 0.0])
-    return builder.build_static(name=name)
+
+    def make(_env: int):
+        builder = scene.create_actor_builder()
+        for half, centre in boxes:
+            builder.add_box_collision(pose=sapien.Pose(p=list(centre)), half_size=list(half))
+        builder.add_visual_from_file(merged_box_mesh(boxes), material=sapien.render.RenderMaterial(base_color=color))
+        builder.initial_pose = sapien.Pose(p=[xy[0], xy[1], 0.0])
+        return builder
+
+    return _build(scene, make, name, True, own_materials)
 
 
-def build_tray(scene: ManiSkillScene, name: str, xy, color) -> Actor:
+def build_tray(scene: ManiSkillScene, name: str, xy, color, own_materials: bool = False) -> Actor:
     """Open box: floor + 4 walls resting on the table, inner size TRAY_INNER²."""
     t, h, a = TRAY_WALL_T, TRAY_WALL_H, TRAY_INNER / 2
     wall_z, outer = t + h / 2, a + t
@@ -76,34 +97,45 @@ def build_tray(scene: ManiSkillScene, name: str, xy, color) -> Actor:
         ((a, t / 2, h / 2), (0.0, a + t / 2, wall_z)),  # +y wall
         ((a, t / 2, h / 2), (0.0, -a - t / 2, wall_z)),  # -y wall
     ]
-    return build_box_actor(scene, name, boxes, color, xy)
+    return build_box_actor(scene, name, boxes, color, xy, own_materials)
 
 
-def build_floor(scene: ManiSkillScene, altitude: float, half_width: float = 4.0) -> Actor:
+def build_floor(scene: ManiSkillScene, altitude: float, half_width: float = 4.0, own_materials=False) -> Actor:
     """A collision plane with one flat-coloured quad: ManiSkill's ``build_ground`` draws a textured grid
     that costs ~0.7 ms per 84x84 frame on the CPU rasteriser, a third of the render."""
-    builder = scene.create_actor_builder()
-    builder.add_plane_collision(sapien.Pose(p=[0, 0, altitude], q=[0.7071068, 0, -0.7071068, 0]))
-    builder.add_box_visual(
-        pose=sapien.Pose(p=[0, 0, altitude - 0.005]),
-        half_size=[half_width, half_width, 0.005],
-        material=sapien.render.RenderMaterial(base_color=[0.45, 0.47, 0.5, 1.0]),
-    )
-    builder.initial_pose = sapien.Pose()
-    return builder.build_static(name="ground")
+
+    def make(_env: int):
+        builder = scene.create_actor_builder()
+        builder.add_plane_collision(sapien.Pose(p=[0, 0, altitude], q=[0.7071068, 0, -0.7071068, 0]))
+        builder.add_box_visual(
+            pose=sapien.Pose(p=[0, 0, altitude - 0.005]),
+            half_size=[half_width, half_width, 0.005],
+            material=sapien.render.RenderMaterial(base_color=[0.45, 0.47, 0.5, 1.0]),
+        )
+        builder.initial_pose = sapien.Pose()
+        return builder
+
+    return _build(scene, make, "ground", True, own_materials)
 
 
 def build_object(
-    scene: ManiSkillScene, name: str, shapes: list[str], half_size: float, mass: float, friction: float, color
+    scene: ManiSkillScene,
+    name: str,
+    shapes: list[str],
+    half_size: float,
+    mass: float,
+    friction: float,
+    color,
+    own_materials: bool = False,
 ) -> Actor:
     """A graspable rigid body per env: ``shapes[i]`` ("cube" or "cylinder") in env i, merged into one
     batched actor. Cubes of side 2·``half_size``; cylinders of radius and half height ``half_size``,
     standing. Either has mass ``mass`` and ``friction`` on its surface."""
     mat = sapien.pysapien.physx.PhysxMaterial(static_friction=friction, dynamic_friction=friction, restitution=0.0)
-    render_mat = sapien.render.RenderMaterial(base_color=color)
     h = half_size
-    parts = []
-    for shape in sorted(set(shapes)):
+
+    def make(shape: str):
+        render_mat = sapien.render.RenderMaterial(base_color=color)
         builder = scene.create_actor_builder()
         if shape == "cube":
             builder.add_box_collision(half_size=[h] * 3, material=mat, density=mass / (2 * h) ** 3)
@@ -114,8 +146,15 @@ def build_object(
             )
             builder.add_cylinder_visual(pose=UPRIGHT, radius=h, half_length=h, material=render_mat)
         builder.initial_pose = sapien.Pose(p=[*SOURCE_TRAY_XY, TRAY_FLOOR_TOP + h])
-        if len(set(shapes)) == 1:
-            return builder.build(name=name)
+        return builder
+
+    if own_materials:
+        return _build(scene, lambda i: make(shapes[i]), name, False, True)
+    if len(set(shapes)) == 1:
+        return make(shapes[0]).build(name=name)
+    parts = []
+    for shape in sorted(set(shapes)):
+        builder = make(shape)
         builder.set_scene_idxs([i for i, s in enumerate(shapes) if s == shape])
         parts.append(builder.build(name=f"{name}_{shape}"))
     return Actor.merge(parts, name=name)
@@ -124,12 +163,14 @@ def build_object(
 class TableScene:
     """Builds the shared scene (trays first, table and floor last: see the module docstring)."""
 
-    def __init__(self, scene: ManiSkillScene):
-        self.scene = scene
+    def __init__(self, scene: ManiSkillScene, own_materials: bool = False):
+        """``own_materials``: each env's surfaces get materials of their own (appearance randomisation)."""
+        self.scene, self.own_materials = scene, own_materials
 
     def build_trays(self) -> None:
-        self.source_tray = build_tray(self.scene, "source_tray", SOURCE_TRAY_XY, SOURCE_COLOR)
-        self.dest_tray = build_tray(self.scene, "dest_tray", DEST_TRAY_XY, DEST_COLOR)
+        own = self.own_materials
+        self.source_tray = build_tray(self.scene, "source_tray", SOURCE_TRAY_XY, SOURCE_COLOR, own)
+        self.dest_tray = build_tray(self.scene, "dest_tray", DEST_TRAY_XY, DEST_COLOR, own)
 
     def build_background(self) -> None:
         sx, sy, sz = TABLE_SIZE
@@ -138,8 +179,9 @@ class TableScene:
             "table",
             [((sx / 2, sy / 2, sz / 2), (TABLE_CENTER_XY[0], TABLE_CENTER_XY[1], -sz / 2))],
             [0.55, 0.42, 0.3, 1.0],
+            own_materials=self.own_materials,
         )
-        self.ground = build_floor(self.scene, altitude=-sz)
+        self.ground = build_floor(self.scene, altitude=-sz, own_materials=self.own_materials)
 
     @property
     def actors(self) -> list[Actor]:

@@ -215,6 +215,9 @@ def cache_root() -> Path:
     return Path(base) / "maniskill_irb120"
 
 
+TEXTURE_TILE_M = 0.1  # one repeat of a surface texture (envs/appearance.py) per 10 cm
+
+
 def merged_box_mesh(boxes: list[tuple[tuple, tuple]]) -> str:
     """OBJ file (cached, content-addressed) of several (half_size, centre) boxes as one flat-shaded mesh.
 
@@ -237,9 +240,12 @@ def merged_box_mesh(boxes: list[tuple[tuple, tuple]]) -> str:
                     p[axis], p[u], p[v] = side, du, dv * side
                     corners.append(c + p * h)
                 lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in corners]
+                # planar texture coordinates: the face's two in-plane axes in tiles of TEXTURE_TILE_M
+                lines += [f"vt {q[u] / TEXTURE_TILE_M:.6f} {q[v] / TEXTURE_TILE_M:.6f}" for q in corners]
                 vn = 2 * axis + (side > 0) + 1
                 a = n_v + 1
-                lines += [f"f {a}//{vn} {a + 1}//{vn} {a + 2}//{vn}", f"f {a}//{vn} {a + 2}//{vn} {a + 3}//{vn}"]
+                lines += [f"f {a}/{a}/{vn} {a + 1}/{a + 1}/{vn} {a + 2}/{a + 2}/{vn}"]
+                lines += [f"f {a}/{a}/{vn} {a + 2}/{a + 2}/{vn} {a + 3}/{a + 3}/{vn}"]
                 n_v += 4
     text = "\n".join(lines) + "\n"
     path = cache_root() / "scene_meshes" / f"boxes-{hashlib.sha256(text.encode()).hexdigest()[:16]}.obj"

@@ -75,6 +75,53 @@ def test_light_and_colour_change_the_image(pair):
     assert float(draws["light"][0]) == 0.5 and "color_source_tray" in draws
 
 
+def _table_rows(rgb: torch.Tensor) -> np.ndarray:
+    """The top rows of the hand camera's frame at the start pose: the table beyond the trays."""
+    return rgb[0, :10].float().numpy()
+
+
+def test_textures_colours_and_materials_per_surface_follow_the_seed():
+    """A procedural texture on the table shows as a pattern where the nominal table is one flat colour; the same
+    seed draws the same surfaces, another seed others; the material terms are the drawn ones."""
+    nominal, textured = make(None), make("texture=1,color=0.2,roughness=0.2:0.8,specular=0.3")
+    flat = _table_rows(nominal.reset(seed=0)[0]["sensor_data"]["hand_camera"]["rgb"])
+    frames = [textured.reset(seed=s)[0]["sensor_data"]["hand_camera"]["rgb"] for s in (0, 1, 0)]
+    u = textured.unwrapped
+    assert flat.std(axis=(0, 1)).max() < 2.0  # a flat colour, lit evenly
+    assert _table_rows(frames[0]).std(axis=(0, 1)).max() > 4.0  # a pattern
+    assert torch.equal(frames[0], frames[2]) and not torch.equal(frames[0], frames[1])
+    assert float(u.randomization_draws["texture_table"][0]) == 1.0
+    body = u.table_scene.table._objs[0].find_component_by_type(sapien.render.RenderBodyComponent)
+    mat = body.render_shapes[0].material
+    assert mat.base_color_texture is not None and 0.2 <= mat.roughness <= 0.8
+    assert mat.specular == pytest.approx(0.3)
+    # each env's surfaces are built with materials of their own (a GPU-batched scene shares a builder's otherwise)
+    assert u.own_materials and not nominal.unwrapped.own_materials
+    assert len(u.table_scene.table._objs) == u.num_envs
+    nominal.close()
+    textured.close()
+
+
+def test_texture_probability_zero_keeps_the_plain_surfaces():
+    env = make("texture=0.0,color=0.1")
+    env.reset(seed=3)
+    u = env.unwrapped
+    for actor in u.scene_actors:
+        body = actor._objs[0].find_component_by_type(sapien.render.RenderBodyComponent)
+        assert all(shape.material.base_color_texture is None for shape in body.render_shapes)
+    assert float(u.randomization_draws["texture_table"][0]) == 0.0
+    env.close()
+
+
+def test_scene_meshes_carry_planar_texture_coordinates():
+    from maniskill_irb120.robot.description import TEXTURE_TILE_M, merged_box_mesh
+
+    text = open(merged_box_mesh([((0.2, 0.1, 0.05), (0.0, 0.0, 0.0))])).read().splitlines()
+    uv = np.array([[float(x) for x in line.split()[1:]] for line in text if line.startswith("vt ")])
+    assert len(uv) == 24 and sum(line.startswith("f ") for line in text) == 12
+    assert np.abs(uv).max() == pytest.approx(0.2 / TEXTURE_TILE_M)  # metres in tiles
+
+
 def test_object_size_mass_and_friction(pair):
     nominal, shifted = pair
     u, n = shifted.unwrapped, nominal.unwrapped
@@ -136,6 +183,8 @@ def test_ranges_follow_the_episode_seed():
         ("light=0", "scale must be > 0"),
         ("depth_noise=-1", ">= 0"),
         ("depth_dropout=1.5", "probability"),
+        ("texture=2", r"\[0, 1\]"),
+        ("roughness=-0.1:0.5", r"\[0, 1\]"),
         ("object_mass=2:1", "low > high"),
         ("light=nan", "not finite"),
         ("camera_fov=abc", "not a number"),
