@@ -25,7 +25,7 @@ SHIFTS = {
     "camera mount": "camera_pos=0.01;-0.01;0.005,camera_rot=3;-3;5",
     "field of view": "camera_fov=75",
     "lighting": "light=0.5",
-    "colours": "color=0.25",
+    "colours/textures": "color=0.25,texture=1,roughness=0.3,specular=0.8",
     "depth noise + dropout": "depth_noise=4,depth_dropout=0.05",
     "object size/mass/friction": "object_size=1.2,object_mass=2,object_friction=0.5",
     "command latency 30 ms": "latency=0.03",
