@@ -30,6 +30,8 @@ MODULE IRB120Server
     LOCAL CONST num HEARTBEAT_S := 0.5;
     ! a client silent this long (s) gives way to a new client waiting on the channel (TCP: a PC that crashed)
     LOCAL CONST num SILENCE_S := 1;
+    ! the time each byte of a frame may take once its sync has come (a slow or bursty line; 9600 baud needs 1 ms)
+    LOCAL CONST num BYTE_S := 0.05;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
     LOCAL CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
@@ -147,7 +149,7 @@ MODULE IRB120Server
     ! set by the RESTART event routine: the program was stopped and started again where it stood
     LOCAL VAR bool restarted := FALSE;
     LOCAL VAR bool restartHeld := FALSE;
-    ! time since the last valid frame (the watchdog's) and since the last byte (the silence before a new peer)
+    ! time since the last valid frame (the watchdog's) and since the last read (the silence before a new peer)
     LOCAL VAR clock clkValid;
     LOCAL VAR clock clkHeard;
     ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
@@ -238,18 +240,17 @@ MODULE IRB120Server
     ENDPROC
 
     ! ---------------------------------------------------------------- receiving
-    LOCAL FUNC num ReadByte(num timeout)
-        ! the next byte; -1 when none came within timeout seconds; -2 when the peer went away (the robot is held
-        ! and the next peer is being served: the frame under way is lost)
-        VAR num b;
-        b := IRB120ChanRead(timeout);
-        IF b >= 0 THEN
+    LOCAL FUNC num ReadRx(num first, num count, num timeout)
+        ! count bytes into rx{first..}, in one channel call: count; -1 when they did not all come within timeout
+        ! seconds; -2 when the peer went away (the robot is held and the next peer is being served)
+        VAR num got;
+        got := IRB120ChanRead(rx, first, count, timeout);
+        IF got > 0 THEN
             RestartClock clkHeard;
-        ELSEIF b < -1 THEN
+        ELSEIF got < -1 THEN
             Reconnect;
-            RETURN -2;
         ENDIF
-        RETURN b;
+        RETURN got;
     ENDFUNC
 
     LOCAL FUNC num WaitTime()
@@ -263,29 +264,19 @@ MODULE IRB120Server
         RETURN t;
     ENDFUNC
 
-    LOCAL FUNC num FrameByte()
-        ! the next byte of a frame under way, or -1 when none came within HEARTBEAT_S of the previous one (the
-        ! frame is dropped) or the peer went away
-        VAR num b;
-        WHILE TRUE DO
-            b := ReadByte(WaitTime());
-            IF b >= 0 RETURN b;
-            IF b < -1 RETURN -1;
-            Watchdog;
-            IF ClkRead(clkHeard) >= HEARTBEAT_S RETURN -1;
-        ENDWHILE
-        RETURN -1;
-    ENDFUNC
-
     LOCAL PROC ServeOneFrame()
-        ! reads one frame (sync, length, type, seq, payload, crc); a frame whose bytes stop for HEARTBEAT_S is
-        ! dropped. The watchdog counts from the last valid frame: noise does not keep a moving robot going.
-        VAR num b;
+        ! reads one frame in three channel calls: its sync byte, the rest of its header (length, type, seq), then
+        ! its payload and CRC. Only the sync is read alone: it is the read that routinely times out, and bytes that
+        ! came before a timeout are not relied on, so a frame that begins late in a wait is never cut in two. Any
+        ! byte but the sync is skipped (scanning resynchronises after noise); a length over MAX_PAYLOAD or a bad CRC
+        ! drops what was read and scanning starts again. The rest of a frame must come within FrameTime of its
+        ! sync (a slow or bursty line). The watchdog counts from the last valid frame: noise does not keep a
+        ! moving robot going.
         VAR num n;
         CheckRestart;
         IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
-        b := ReadByte(WaitTime());
-        IF b = -1 THEN
+        n := ReadRx(1, 1, WaitTime());
+        IF n = -1 THEN
             Watchdog;
             IF ClkRead(clkHeard) >= SILENCE_S THEN
                 ! a silent peer (a PC that crashed without closing) gives way to a new one waiting
@@ -293,15 +284,11 @@ MODULE IRB120Server
             ENDIF
             RETURN;
         ENDIF
-        IF b <> SYNC RETURN;
-        n := FrameByte();
-        IF n < 0 OR n > MAX_PAYLOAD RETURN;
-        rx{1} := n;
-        FOR i FROM 2 TO n + 5 DO
-            b := FrameByte();
-            IF b < 0 RETURN;
-            rx{i} := b;
-        ENDFOR
+        IF n < 0 OR rx{1} <> SYNC RETURN;
+        IF ReadRx(1, 3, FrameTime(3)) < 0 RETURN;
+        n := rx{1};
+        IF n > MAX_PAYLOAD RETURN;
+        IF ReadRx(4, n + 2, FrameTime(n + 2)) < 0 RETURN;
         rxLen := n + 5;
         ! rx: 1 length, 2 type, 3 seq, 4.. payload, then the CRC (low byte first)
         IF Crc16Rx(n + 3) <> rx{n + 4} + 256 * rx{n + 5} RETURN;
@@ -310,6 +297,12 @@ MODULE IRB120Server
         RestartClock clkValid;
         HandleFrame;
     ENDPROC
+
+    LOCAL FUNC num FrameTime(num count)
+        ! how long the next count bytes of a frame under way may take: HEARTBEAT_S, and BYTE_S for each. While a
+        ! frame is being read the watchdog waits: it runs again, late by at most this, once the read is over
+        RETURN HEARTBEAT_S + count * BYTE_S;
+    ENDFUNC
 
     LOCAL PROC Watchdog()
         ! while the robot is commanded to move, the PC must send a valid frame (a STATE request will do) at least
