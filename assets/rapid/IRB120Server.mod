@@ -143,6 +143,8 @@ MODULE IRB120Server
     LOCAL VAR num lastKind := -1;
     LOCAL VAR num lastCrc := -1;
     LOCAL VAR num status := 0;
+    ! the gripper output the commands so far ask for: DOutput, or what a MoveLDO queued will set it to
+    LOCAL VAR num gripCmd := 1;
     LOCAL VAR bool watchdogFired := FALSE;
     LOCAL VAR num refusal := 0;
     LOCAL VAR num lastLogged := 0;
@@ -178,6 +180,7 @@ MODULE IRB120Server
         AliasIO GRIPPER_SIGNAL, doGripper;
         AliasIO MOTORS_ON_SIGNAL, doMotors;
         AliasIO ESTOP_SIGNAL, doEstop;
+        gripCmd := DOutput(doGripper);
         ConfL\Off;
         SingArea\Wrist;
         vStep := vFull;
@@ -235,6 +238,8 @@ MODULE IRB120Server
         ENDIF
         ClearPath;
         StartMove;
+        ! a gripper change tied to the path just dropped never happens
+        gripCmd := DOutput(doGripper);
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
         IF status <> S_FAULT status := S_HELD;
     ENDPROC
@@ -359,7 +364,7 @@ MODULE IRB120Server
             CASE T_JOINTS:
                 JointMove;
             CASE T_GRIPPER:
-                SetGripper rx{4};
+                SetGripper GripperValue(rx{4});
             CASE T_STOP:
                 HoldRobot;
             CASE T_HELLO:
@@ -426,6 +431,7 @@ MODULE IRB120Server
         VAR robtarget target;
         VAR jointtarget jNow;
         VAR jointtarget jTarget;
+        VAR num grip;
         dx := Int16At(4) / 100;
         dy := Int16At(6) / 100;
         dz := Int16At(8) / 100;
@@ -434,13 +440,14 @@ MODULE IRB120Server
             refusal := E_STEP_LIMIT;
             RETURN;
         ENDIF
+        grip := GripperChange(rx{12});
         IF dx = 0 AND dy = 0 AND dz = 0 AND rot = 0 THEN
             ! a zero-length step moves nothing: answered without queuing a motion. Its gripper change waits until the
             ! robot stands in position: SetDO fires when the program pointer passes it, which with a step still
             ! under way would be that step early (a grasp closing before the fingers are round the object)
-            IF rx{12} <> 2 THEN
+            IF grip >= 0 THEN
                 WaitRob\InPos;
-                SetGripper rx{12};
+                SetGripper grip;
             ENDIF
             RETURN;
         ENDIF
@@ -456,11 +463,18 @@ MODULE IRB120Server
         IF refusal <> E_OK RETURN;
         refusal := CheckJoints(jNow, jTarget);
         IF refusal <> E_OK RETURN;
-        MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        IF grip < 0 THEN
+            MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        ELSE
+            ! the gripper changes where the robot reaches the target (the middle of its corner path; at a stop point,
+            ! there), tied to the path: SetDO after the MoveL would fire when the program pointer passes it, a step
+            ! early while the step before is still under way
+            MoveLDO target, vStep, zStep, tGripper\WObj:=wobj0, doGripper, grip;
+            gripCmd := grip;
+        ENDIF
         lastTarget := target;
         lastJoints := jTarget;
         status := S_MOVING;
-        IF rx{12} <> 2 SetGripper rx{12};
     ERROR
         IF ERRNO = ERR_ROBLIMIT THEN
             refusal := E_JOINT_LIMIT;
@@ -476,6 +490,7 @@ MODULE IRB120Server
         VAR jointtarget jNow;
         VAR jointtarget jTarget;
         VAR robtarget tcp;
+        VAR num grip;
         jNow := CJointT();
         jTarget := jNow;
         jTarget.robax.rax_1 := Int16At(4) * 0.02;
@@ -491,11 +506,18 @@ MODULE IRB120Server
             refusal := E_WORKSPACE;
             RETURN;
         ENDIF
-        MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        grip := GripperChange(rx{16});
+        IF grip < 0 THEN
+            MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        ELSE
+            ! MoveAbsJ has no DO form (MoveLDO, MoveJDO take a robtarget): a step that changes the gripper ends at a
+            ! stop point, and the output is set once the robot is there
+            MoveAbsJ jTarget, vStep, fine, tGripper\WObj:=wobj0;
+            SetGripper grip;
+        ENDIF
         lastTarget := tcp;
         lastJoints := jTarget;
         status := S_MOVING;
-        IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
 
     LOCAL PROC ResetMove()
@@ -535,7 +557,7 @@ MODULE IRB120Server
             ENDIF
         ENDFOR
         jTarget := jMid;
-        IF rx{16} <> 2 SetGripper rx{16};
+        IF rx{16} <> 2 SetGripper GripperValue(rx{16});
         MoveAbsJ jTarget, vReset, fine, tGripper\WObj:=wobj0;
         lastTarget := tcp;
         lastJoints := jTarget;
@@ -560,13 +582,25 @@ MODULE IRB120Server
             AND p.z >= WORKSPACE_LOW.z AND p.z <= WORKSPACE_HIGH.z;
     ENDFUNC
 
-    LOCAL PROC SetGripper(num open)
-        IF open = 1 THEN
-            SetDO doGripper, 1;
-        ELSE
-            SetDO doGripper, 0;
-        ENDIF
+    LOCAL PROC SetGripper(num value)
+        ! the gripper output now (value 1 open, 0 closed), when the program pointer passes
+        SetDO doGripper, value;
+        gripCmd := value;
     ENDPROC
+
+    LOCAL FUNC num GripperValue(num wanted)
+        ! a command's gripper byte as the output's value: 1 opens, any other closes
+        IF wanted = 1 RETURN 1;
+        RETURN 0;
+    ENDFUNC
+
+    LOCAL FUNC num GripperChange(num wanted)
+        ! the output value a command's gripper byte changes to, or -1 when it changes nothing (2, or the value the
+        ! output already has or is set to along the queued path)
+        IF wanted = 2 RETURN -1;
+        IF GripperValue(wanted) = gripCmd RETURN -1;
+        RETURN GripperValue(wanted);
+    ENDFUNC
 
     ! ---------------------------------------------------------------- replying
     LOCAL PROC BuildReply(num kind, num seq)

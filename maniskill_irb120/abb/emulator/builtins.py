@@ -94,17 +94,20 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
                 raise robot.motion_error
             robot.wait_done(0.002)
 
-    def move(q, speed, zone, tool, via=None, t_call=None, error=None):
+    def move(q, speed, zone, tool, via=None, t_call=None, error=None, at_end=None):
         self.moves += 1
         robot.zone_tool = _tframe(tool)
         try:
-            robot.move(q, via, robot.zone_tool, speed.v_tcp, speed.v_ori, not zone.finep, t_call, error)
+            robot.move(q, via, robot.zone_tool, speed.v_tcp, speed.v_ori, not zone.finep, t_call, error, at_end)
         except MotionError as e:
             raise RapidError("ERR_ROBLIMIT", str(e)) from None
         wait_planned(zone)
 
     def move_l(to, speed, zone, tool, WObj=None):
         """MoveL with ConfL\\Off (what the server sets): the line on the current arm branch, robconf ignored."""
+        linear(to, speed, zone, tool)
+
+    def linear(to, speed, zone, tool, at_end=None):
         t_call = robot.clock()  # an IRC5 plans the line in its own time: the waypoint IK below is ours
         with robot.planning(t_call):
             tframe = _tframe(tool)
@@ -128,7 +131,17 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
                     p = np.round(line[bad, :3, 3] * 1000, 1)
                     error = MotionError("reach", f"{title}: no joint solution along the line at {p} mm", code)
                     q1, via = (via[bad - 1], via[: bad - 1]) if bad > 0 else (robot.path_end(), [])
-            move(q1, speed, zone, tool, via, t_call, error)
+            move(q1, speed, zone, tool, via, t_call, error, at_end)
+
+    def move_l_do(to, speed, zone, tool, signal, value, WObj=None):
+        """MoveLDO: MoveL that sets a digital output in the middle of the corner path of its fly-by point, or at
+        its stop point with fine (ABB, MoveLDO; base RAPID, no option), i.e. where the robot reaches the target,
+        not when the program pointer passes the instruction as SetDO does (REFERENCE.md, look-ahead). A path
+        cleared (ClearPath) or stopped at a motion error before the point never sets it (verify)."""
+        if value not in (0.0, 1.0):
+            raise RapidError("ERR_ARGVALERR", f"MoveLDO: a digital output takes 0 or 1, not {value}")
+        v = int(value)
+        linear(to, speed, zone, tool, at_end=lambda: sig.__setitem__(signal.value, v))
 
     def move_abs_j(jt, speed, zone, tool, WObj=None):
         """MoveAbsJ: its speeddata holds for the TCP, the reorientation and the axes alike (ABB, MoveAbsJ)."""
@@ -163,6 +176,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
         ),
     )
     reg.add("MoveL", move_l)
+    reg.add("MoveLDO", move_l_do)
     reg.add("MoveAbsJ", move_abs_j)
     reg.add("StopMove", stop_move)
 
@@ -179,7 +193,12 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     reg.add("SingArea", lambda **_: None)
     reg.add("AliasIO", lambda name, signal: setattr(signal, "value", name))
     reg.add("SetDO", lambda signal, value: sig.__setitem__(signal.value, int(value)))
-    reg.add("DOutput", lambda signal: sig.get(signal.value, 0))
+
+    def d_output(signal):
+        robot.joints()  # the path up to now has run: an output set along it (MoveLDO) is set
+        return sig.get(signal.value, 0)
+
+    reg.add("DOutput", d_output)
     reg.add("OpMode", lambda: float(OP_MODES[OP_MODE_NAMES[self.op_mode]]))
 
     def wz_box(shape, low, high, Inside=False, Outside=False):
