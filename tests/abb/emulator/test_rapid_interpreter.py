@@ -643,7 +643,9 @@ def test_waituntil_polls_with_the_clock_and_times_out():
         builtins={"Ready": ready},
         clock=clock,
     )
-    assert clock.sleeps[:4] == [0.1] * 4 and interp.get("late") is True and interp.get("s") == "timed out"
+    assert (
+        clock.sleeps[:4] == pytest.approx([0.1] * 4) and interp.get("late") is True and interp.get("s") == "timed out"
+    )
 
 
 SERVER = r"""
@@ -743,9 +745,11 @@ def test_num_is_a_32_bit_float():
     VAR num c := 8388607;
     VAR dnum d := 0;
     VAR bool same := FALSE;
+    VAR bool literal := FALSE;
     PROC main()
         a := 16777216 + 1;
         b := 0.1;
+        literal := b = 0.1;
         c := c + 1;
         d := 16777217;
         same := 16777216 + 1 = 16777216;
@@ -759,6 +763,7 @@ ENDMODULE
     interp.run("main")
     assert interp.get("a") == 16777216.0 and interp.get("same") is True
     assert interp.get("b") == struct.unpack("<f", struct.pack("<f", 0.1))[0] != 0.1
+    assert interp.get("literal") is True  # a literal is a num too
     assert interp.get("c") == 8388608.0  # 2^23: still exact
     assert interp.get("d") == 16777217.0
     with pytest.raises(RapidRuntimeError, match="outside the range of a num"):

@@ -18,6 +18,7 @@ from maniskill_irb120.abb.emulator.rapid.values import (
     assign_like,
     copy_value,
     is_num32,
+    is_num32_range,
     num32,
     type_of,
 )
@@ -48,7 +49,9 @@ class ExpressionsMixin:
             return self.resolve(t, frame).get()
         if kind == "number":
             text = t.children[0]
-            return float(int(text, 16)) if text[:2] in ("0x", "0X") else float(text)
+            v = float(int(text, 16)) if text[:2] in ("0x", "0X") else float(text)
+            # a literal is a num; an integer a float32 cannot hold exactly is a dnum's and stays (verify)
+            return v if not is_num32_range(v) or (v.is_integer() and not is_num32(v)) else num32(v)
         if kind == "string":
             return decode_string(t.children[0])
         if kind == "true" or kind == "false":

@@ -57,6 +57,11 @@ def num32(v: float) -> float:
         raise TypeError(f"{v} is outside the range of a num (a 32-bit float, about 3.4E38)") from None
 
 
+def is_num32_range(v: float) -> bool:
+    """Whether ``v`` is within float32's range (a ``num`` can hold it, rounded)."""
+    return abs(v) <= 3.4028234663852886e38
+
+
 def is_num32(v: float) -> bool:
     """Whether ``v`` is exactly a float32 (a ``num`` can hold it)."""
     try:
