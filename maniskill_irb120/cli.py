@@ -3,7 +3,9 @@ tyro). ``python -m maniskill_irb120`` forwards here."""
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -95,6 +97,8 @@ def emulator(
     speed_scale: float = 1.0,
     options: str | None = None,
     op_mode: str = "manual_reduced",
+    statement_cost_us: float = 10.0,
+    pc_address: str | None = None,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -105,7 +109,10 @@ def emulator(
     616-1,608-1``: the RobotWare options the emulated controller has (``""``: none); a module that names anything
     of a missing option is refused as the IRC5 refuses it: the load error is printed and the exit status is 1.
     ``--op-mode auto``: the key switch (``manual_reduced``, the default; ``auto``; ``manual_full``), what the
-    program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO."""
+    program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO.
+    ``--statement-cost-us``: the controller time one RAPID statement costs (an estimate; 0: no pacing).
+    ``--pc-address``: the TCP build's PC_ADDRESS, the one client address it serves (default 127.0.0.1, where a
+    local client connects from; any other address makes the server refuse local clients, as a cell would)."""
     from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
@@ -119,7 +126,19 @@ def emulator(
     if op_mode not in OP_MODE_NAMES:
         print(f"--op-mode {op_mode!r}: use one of {sorted(OP_MODE_NAMES)}", file=sys.stderr)
         return 2
-    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode)
+    if not (math.isfinite(statement_cost_us) and statement_cost_us >= 0):
+        print(f"--statement-cost-us {statement_cost_us!r}: a time >= 0 us per statement (0: off)", file=sys.stderr)
+        return 2
+    if pc_address is not None:
+        if not listen.startswith("tcp:"):
+            print("--pc-address: only the TCP build serves a PC address (--listen tcp://...)", file=sys.stderr)
+            return 2
+        try:
+            ipaddress.IPv4Address(pc_address)
+        except ValueError:
+            print(f"--pc-address {pc_address!r}: an IPv4 address, e.g. 192.168.125.2", file=sys.stderr)
+            return 2
+    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address)
 
 
 def sim2real_eval(

@@ -1,7 +1,7 @@
 MODULE IRB120Serial
     !
-    ! The serial channel of the maniskill_irb120 RAPID server (IRB120Server.mod): Open, ReadBin, WriteBin,
-    ! ClearIOBuff on one of the controller's serial ports. Needs no RobotWare option. Load it beside
+    ! The serial channel of the maniskill_irb120 RAPID server (IRB120Server.mod): Open, ReadRawBytes,
+    ! UnpackRawBytes, WriteBin, ClearIOBuff on one of the controller's serial ports. Needs no RobotWare option. Load it beside
     ! IRB120Server.mod, never together with IRB120Socket.mod (both provide the same routines).
     !
     ! Global (called by IRB120Server.mod): IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite, IRB120ChanNewPeer,
@@ -10,15 +10,22 @@ MODULE IRB120Serial
     ! The port, as named in the controller's SIO configuration (its baud rate is set there: 19200 or more)
     LOCAL CONST string SER_CHANNEL := "COM1:";
     LOCAL VAR iodev serDev;
+    LOCAL VAR rawbytes serRaw;
 
     PROC IRB120ChanOpen()
         Open SER_CHANNEL, serDev\Bin;
         ClearIOBuff serDev;
     ENDPROC
 
-    FUNC num IRB120ChanRead(num timeout)
-        ! the next byte, or -1 when none came within timeout seconds (a serial line never closes: never -2)
-        RETURN ReadBin(serDev\Time:=timeout);
+    FUNC num IRB120ChanRead(VAR byte data{*}, num first, num count, num timeout)
+        ! count bytes into data{first} .. data{first + count - 1}, read in one call: count when all came within
+        ! timeout seconds, else -1 (what did come is not relied on: the server scans for the next sync). A serial
+        ! line never closes: never -2
+        ReadRawBytes serDev, serRaw\NoOfBytes:=count\Time:=timeout;
+        FOR i FROM 1 TO count DO
+            UnpackRawBytes serRaw, i, data{first + i - 1}\Hex1;
+        ENDFOR
+        RETURN count;
     ERROR
         IF ERRNO = ERR_DEV_MAXTIME RETURN -1;
         RAISE;

@@ -30,6 +30,8 @@ MODULE IRB120Server
     LOCAL CONST num HEARTBEAT_S := 0.5;
     ! a client silent this long (s) gives way to a new client waiting on the channel (TCP: a PC that crashed)
     LOCAL CONST num SILENCE_S := 1;
+    ! the time each byte of a frame may take once its sync has come (a slow or bursty line; 9600 baud needs 1 ms)
+    LOCAL CONST num BYTE_S := 0.05;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
     LOCAL CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
@@ -141,13 +143,15 @@ MODULE IRB120Server
     LOCAL VAR num lastKind := -1;
     LOCAL VAR num lastCrc := -1;
     LOCAL VAR num status := 0;
+    ! the gripper output the commands so far ask for: DOutput, or what a MoveLDO queued will set it to
+    LOCAL VAR num gripCmd := 1;
     LOCAL VAR bool watchdogFired := FALSE;
     LOCAL VAR num refusal := 0;
     LOCAL VAR num lastLogged := 0;
     ! set by the RESTART event routine: the program was stopped and started again where it stood
     LOCAL VAR bool restarted := FALSE;
     LOCAL VAR bool restartHeld := FALSE;
-    ! time since the last valid frame (the watchdog's) and since the last byte (the silence before a new peer)
+    ! time since the last valid frame (the watchdog's) and since the last read (the silence before a new peer)
     LOCAL VAR clock clkValid;
     LOCAL VAR clock clkHeard;
     ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
@@ -176,6 +180,7 @@ MODULE IRB120Server
         AliasIO GRIPPER_SIGNAL, doGripper;
         AliasIO MOTORS_ON_SIGNAL, doMotors;
         AliasIO ESTOP_SIGNAL, doEstop;
+        gripCmd := DOutput(doGripper);
         ConfL\Off;
         SingArea\Wrist;
         vStep := vFull;
@@ -233,23 +238,24 @@ MODULE IRB120Server
         ENDIF
         ClearPath;
         StartMove;
+        ! a gripper change tied to the path just dropped never happens
+        gripCmd := DOutput(doGripper);
         lastTarget := CRobT(\Tool:=tGripper\WObj:=wobj0);
         IF status <> S_FAULT status := S_HELD;
     ENDPROC
 
     ! ---------------------------------------------------------------- receiving
-    LOCAL FUNC num ReadByte(num timeout)
-        ! the next byte; -1 when none came within timeout seconds; -2 when the peer went away (the robot is held
-        ! and the next peer is being served: the frame under way is lost)
-        VAR num b;
-        b := IRB120ChanRead(timeout);
-        IF b >= 0 THEN
+    LOCAL FUNC num ReadRx(num first, num count, num timeout)
+        ! count bytes into rx{first..}, in one channel call: count; -1 when they did not all come within timeout
+        ! seconds; -2 when the peer went away (the robot is held and the next peer is being served)
+        VAR num got;
+        got := IRB120ChanRead(rx, first, count, timeout);
+        IF got > 0 THEN
             RestartClock clkHeard;
-        ELSEIF b < -1 THEN
+        ELSEIF got < -1 THEN
             Reconnect;
-            RETURN -2;
         ENDIF
-        RETURN b;
+        RETURN got;
     ENDFUNC
 
     LOCAL FUNC num WaitTime()
@@ -263,29 +269,19 @@ MODULE IRB120Server
         RETURN t;
     ENDFUNC
 
-    LOCAL FUNC num FrameByte()
-        ! the next byte of a frame under way, or -1 when none came within HEARTBEAT_S of the previous one (the
-        ! frame is dropped) or the peer went away
-        VAR num b;
-        WHILE TRUE DO
-            b := ReadByte(WaitTime());
-            IF b >= 0 RETURN b;
-            IF b < -1 RETURN -1;
-            Watchdog;
-            IF ClkRead(clkHeard) >= HEARTBEAT_S RETURN -1;
-        ENDWHILE
-        RETURN -1;
-    ENDFUNC
-
     LOCAL PROC ServeOneFrame()
-        ! reads one frame (sync, length, type, seq, payload, crc); a frame whose bytes stop for HEARTBEAT_S is
-        ! dropped. The watchdog counts from the last valid frame: noise does not keep a moving robot going.
-        VAR num b;
+        ! reads one frame in three channel calls: its sync byte, the rest of its header (length, type, seq), then
+        ! its payload and CRC. Only the sync is read alone: it is the read that routinely times out, and bytes that
+        ! came before a timeout are not relied on, so a frame that begins late in a wait is never cut in two. Any
+        ! byte but the sync is skipped (scanning resynchronises after noise); a length over MAX_PAYLOAD or a bad CRC
+        ! drops what was read and scanning starts again. The rest of a frame must come within FrameTime of its
+        ! sync (a slow or bursty line). The watchdog counts from the last valid frame: noise does not keep a
+        ! moving robot going.
         VAR num n;
         CheckRestart;
         IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
-        b := ReadByte(WaitTime());
-        IF b = -1 THEN
+        n := ReadRx(1, 1, WaitTime());
+        IF n = -1 THEN
             Watchdog;
             IF ClkRead(clkHeard) >= SILENCE_S THEN
                 ! a silent peer (a PC that crashed without closing) gives way to a new one waiting
@@ -293,15 +289,11 @@ MODULE IRB120Server
             ENDIF
             RETURN;
         ENDIF
-        IF b <> SYNC RETURN;
-        n := FrameByte();
-        IF n < 0 OR n > MAX_PAYLOAD RETURN;
-        rx{1} := n;
-        FOR i FROM 2 TO n + 5 DO
-            b := FrameByte();
-            IF b < 0 RETURN;
-            rx{i} := b;
-        ENDFOR
+        IF n < 0 OR rx{1} <> SYNC RETURN;
+        IF ReadRx(1, 3, FrameTime(3)) < 0 RETURN;
+        n := rx{1};
+        IF n > MAX_PAYLOAD RETURN;
+        IF ReadRx(4, n + 2, FrameTime(n + 2)) < 0 RETURN;
         rxLen := n + 5;
         ! rx: 1 length, 2 type, 3 seq, 4.. payload, then the CRC (low byte first)
         IF Crc16Rx(n + 3) <> rx{n + 4} + 256 * rx{n + 5} RETURN;
@@ -310,6 +302,12 @@ MODULE IRB120Server
         RestartClock clkValid;
         HandleFrame;
     ENDPROC
+
+    LOCAL FUNC num FrameTime(num count)
+        ! how long the next count bytes of a frame under way may take: HEARTBEAT_S, and BYTE_S for each. While a
+        ! frame is being read the watchdog waits: it runs again, late by at most this, once the read is over
+        RETURN HEARTBEAT_S + count * BYTE_S;
+    ENDFUNC
 
     LOCAL PROC Watchdog()
         ! while the robot is commanded to move, the PC must send a valid frame (a STATE request will do) at least
@@ -366,7 +364,7 @@ MODULE IRB120Server
             CASE T_JOINTS:
                 JointMove;
             CASE T_GRIPPER:
-                SetGripper rx{4};
+                SetGripper GripperValue(rx{4});
             CASE T_STOP:
                 HoldRobot;
             CASE T_HELLO:
@@ -433,6 +431,7 @@ MODULE IRB120Server
         VAR robtarget target;
         VAR jointtarget jNow;
         VAR jointtarget jTarget;
+        VAR num grip;
         dx := Int16At(4) / 100;
         dy := Int16At(6) / 100;
         dz := Int16At(8) / 100;
@@ -441,13 +440,14 @@ MODULE IRB120Server
             refusal := E_STEP_LIMIT;
             RETURN;
         ENDIF
+        grip := GripperChange(rx{12});
         IF dx = 0 AND dy = 0 AND dz = 0 AND rot = 0 THEN
             ! a zero-length step moves nothing: answered without queuing a motion. Its gripper change waits until the
             ! robot stands in position: SetDO fires when the program pointer passes it, which with a step still
             ! under way would be that step early (a grasp closing before the fingers are round the object)
-            IF rx{12} <> 2 THEN
+            IF grip >= 0 THEN
                 WaitRob\InPos;
-                SetGripper rx{12};
+                SetGripper grip;
             ENDIF
             RETURN;
         ENDIF
@@ -463,11 +463,18 @@ MODULE IRB120Server
         IF refusal <> E_OK RETURN;
         refusal := CheckJoints(jNow, jTarget);
         IF refusal <> E_OK RETURN;
-        MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        IF grip < 0 THEN
+            MoveL target, vStep, zStep, tGripper\WObj:=wobj0;
+        ELSE
+            ! the gripper changes where the robot reaches the target (the middle of its corner path; at a stop point,
+            ! there), tied to the path: SetDO after the MoveL would fire when the program pointer passes it, a step
+            ! early while the step before is still under way
+            MoveLDO target, vStep, zStep, tGripper\WObj:=wobj0, doGripper, grip;
+            gripCmd := grip;
+        ENDIF
         lastTarget := target;
         lastJoints := jTarget;
         status := S_MOVING;
-        IF rx{12} <> 2 SetGripper rx{12};
     ERROR
         IF ERRNO = ERR_ROBLIMIT THEN
             refusal := E_JOINT_LIMIT;
@@ -483,6 +490,7 @@ MODULE IRB120Server
         VAR jointtarget jNow;
         VAR jointtarget jTarget;
         VAR robtarget tcp;
+        VAR num grip;
         jNow := CJointT();
         jTarget := jNow;
         jTarget.robax.rax_1 := Int16At(4) * 0.02;
@@ -498,11 +506,18 @@ MODULE IRB120Server
             refusal := E_WORKSPACE;
             RETURN;
         ENDIF
-        MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        grip := GripperChange(rx{16});
+        IF grip < 0 THEN
+            MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
+        ELSE
+            ! MoveAbsJ has no DO form (MoveLDO, MoveJDO take a robtarget): a step that changes the gripper ends at a
+            ! stop point, and the output is set once the robot is there
+            MoveAbsJ jTarget, vStep, fine, tGripper\WObj:=wobj0;
+            SetGripper grip;
+        ENDIF
         lastTarget := tcp;
         lastJoints := jTarget;
         status := S_MOVING;
-        IF rx{16} <> 2 SetGripper rx{16};
     ENDPROC
 
     LOCAL PROC ResetMove()
@@ -542,7 +557,7 @@ MODULE IRB120Server
             ENDIF
         ENDFOR
         jTarget := jMid;
-        IF rx{16} <> 2 SetGripper rx{16};
+        IF rx{16} <> 2 SetGripper GripperValue(rx{16});
         MoveAbsJ jTarget, vReset, fine, tGripper\WObj:=wobj0;
         lastTarget := tcp;
         lastJoints := jTarget;
@@ -567,13 +582,25 @@ MODULE IRB120Server
             AND p.z >= WORKSPACE_LOW.z AND p.z <= WORKSPACE_HIGH.z;
     ENDFUNC
 
-    LOCAL PROC SetGripper(num open)
-        IF open = 1 THEN
-            SetDO doGripper, 1;
-        ELSE
-            SetDO doGripper, 0;
-        ENDIF
+    LOCAL PROC SetGripper(num value)
+        ! the gripper output now (value 1 open, 0 closed), when the program pointer passes
+        SetDO doGripper, value;
+        gripCmd := value;
     ENDPROC
+
+    LOCAL FUNC num GripperValue(num wanted)
+        ! a command's gripper byte as the output's value: 1 opens, any other closes
+        IF wanted = 1 RETURN 1;
+        RETURN 0;
+    ENDFUNC
+
+    LOCAL FUNC num GripperChange(num wanted)
+        ! the output value a command's gripper byte changes to, or -1 when it changes nothing (2, or the value the
+        ! output already has or is set to along the queued path)
+        IF wanted = 2 RETURN -1;
+        IF GripperValue(wanted) = gripCmd RETURN -1;
+        RETURN GripperValue(wanted);
+    ENDFUNC
 
     ! ---------------------------------------------------------------- replying
     LOCAL PROC BuildReply(num kind, num seq)

@@ -21,6 +21,7 @@ MODULE IRB120Socket
     LOCAL VAR socketdev sockListen;
     LOCAL VAR socketdev sockA;
     LOCAL VAR socketdev sockB;
+    LOCAL VAR rawbytes sockRaw;
     LOCAL VAR num sockCur := 1;
     LOCAL VAR bool sockPending := FALSE;
 
@@ -60,15 +61,19 @@ MODULE IRB120Socket
         RAISE;
     ENDFUNC
 
-    FUNC num IRB120ChanRead(num timeout)
-        ! the next byte; -1 when none came within timeout seconds; -2 when the client closed the connection
-        VAR byte one{1};
+    FUNC num IRB120ChanRead(VAR byte data{*}, num first, num count, num timeout)
+        ! count bytes into data{first} .. data{first + count - 1}, received in one call: count when all came within
+        ! timeout seconds; -1 when they did not (what did come is not relied on: the server scans for the next
+        ! sync); -2 when the client closed the connection
         IF sockCur = 1 THEN
-            SocketReceive sockA\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
+            SocketReceive sockA\RawData:=sockRaw\ReadNoOfBytes:=count\Time:=timeout;
         ELSE
-            SocketReceive sockB\Data:=one\ReadNoOfBytes:=1\Time:=timeout;
+            SocketReceive sockB\RawData:=sockRaw\ReadNoOfBytes:=count\Time:=timeout;
         ENDIF
-        RETURN one{1};
+        FOR i FROM 1 TO count DO
+            UnpackRawBytes sockRaw, i, data{first + i - 1}\Hex1;
+        ENDFOR
+        RETURN count;
     ERROR
         IF ERRNO = ERR_SOCK_TIMEOUT RETURN -1;
         IF ERRNO = ERR_SOCK_CLOSED RETURN -2;

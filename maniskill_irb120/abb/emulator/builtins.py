@@ -14,6 +14,7 @@ import numpy as np
 from maniskill_irb120.abb.emulator.motion import OUTSIDE_REACH, MotionError
 from maniskill_irb120.abb.emulator.rapid import Builtins, RapidError, make_value
 from maniskill_irb120.abb.emulator.rapid.stdlib import OP_MODES
+from maniskill_irb120.abb.emulator.rapid.values import RawBytes
 from maniskill_irb120.abb.emulator.robot import interpolate_pose, rel_tool
 from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
 
@@ -22,6 +23,15 @@ if TYPE_CHECKING:
 
 
 POLL_S = 0.05  # a blocking read or accept looks for a program stop this often
+WAIT_MAX_S = 8388608.0  # RAPID's WAIT_MAX: wait for ever
+DEFAULT_READ_S = 60.0  # a Read* or SocketReceive without \\Time gives up after this (verify)
+
+
+def _count(n: float, what: str) -> int:
+    if not float(n).is_integer() or n < 1:
+        raise RapidError("ERR_ARGVALERR", f"{what}:={n}: a whole number of bytes, at least 1")
+    return int(n)
+
 
 # The key switch: what OpMode() returns in each operating mode (ABB's OpMode: OP_AUTO, OP_MAN_PROG = manual reduced
 # speed, TCP at most 250 mm/s with the enabling device held, OP_MAN_TEST = manual full speed)
@@ -84,17 +94,20 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
                 raise robot.motion_error
             robot.wait_done(0.002)
 
-    def move(q, speed, zone, tool, via=None, t_call=None, error=None):
+    def move(q, speed, zone, tool, via=None, t_call=None, error=None, at_end=None):
         self.moves += 1
         robot.zone_tool = _tframe(tool)
         try:
-            robot.move(q, via, robot.zone_tool, speed.v_tcp, speed.v_ori, not zone.finep, t_call, error)
+            robot.move(q, via, robot.zone_tool, speed.v_tcp, speed.v_ori, not zone.finep, t_call, error, at_end)
         except MotionError as e:
             raise RapidError("ERR_ROBLIMIT", str(e)) from None
         wait_planned(zone)
 
     def move_l(to, speed, zone, tool, WObj=None):
         """MoveL with ConfL\\Off (what the server sets): the line on the current arm branch, robconf ignored."""
+        linear(to, speed, zone, tool)
+
+    def linear(to, speed, zone, tool, at_end=None):
         t_call = robot.clock()  # an IRC5 plans the line in its own time: the waypoint IK below is ours
         with robot.planning(t_call):
             tframe = _tframe(tool)
@@ -118,7 +131,17 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
                     p = np.round(line[bad, :3, 3] * 1000, 1)
                     error = MotionError("reach", f"{title}: no joint solution along the line at {p} mm", code)
                     q1, via = (via[bad - 1], via[: bad - 1]) if bad > 0 else (robot.path_end(), [])
-            move(q1, speed, zone, tool, via, t_call, error)
+            move(q1, speed, zone, tool, via, t_call, error, at_end)
+
+    def move_l_do(to, speed, zone, tool, signal, value, WObj=None):
+        """MoveLDO: MoveL that sets a digital output in the middle of the corner path of its fly-by point, or at
+        its stop point with fine (ABB, MoveLDO; base RAPID, no option), i.e. where the robot reaches the target,
+        not when the program pointer passes the instruction as SetDO does (REFERENCE.md, look-ahead). A path
+        cleared (ClearPath) or stopped at a motion error before the point never sets it (verify)."""
+        if value not in (0.0, 1.0):
+            raise RapidError("ERR_ARGVALERR", f"MoveLDO: a digital output takes 0 or 1, not {value}")
+        v = int(value)
+        linear(to, speed, zone, tool, at_end=lambda: sig.__setitem__(signal.value, v))
 
     def move_abs_j(jt, speed, zone, tool, WObj=None):
         """MoveAbsJ: its speeddata holds for the TCP, the reorientation and the axes alike (ABB, MoveAbsJ)."""
@@ -153,6 +176,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
         ),
     )
     reg.add("MoveL", move_l)
+    reg.add("MoveLDO", move_l_do)
     reg.add("MoveAbsJ", move_abs_j)
     reg.add("StopMove", stop_move)
 
@@ -169,7 +193,12 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     reg.add("SingArea", lambda **_: None)
     reg.add("AliasIO", lambda name, signal: setattr(signal, "value", name))
     reg.add("SetDO", lambda signal, value: sig.__setitem__(signal.value, int(value)))
-    reg.add("DOutput", lambda signal: sig.get(signal.value, 0))
+
+    def d_output(signal):
+        robot.joints()  # the path up to now has run: an output set along it (MoveLDO) is set
+        return sig.get(signal.value, 0)
+
+    reg.add("DOutput", d_output)
     reg.add("OpMode", lambda: float(OP_MODES[OP_MODE_NAMES[self.op_mode]]))
 
     def wz_box(shape, low, high, Inside=False, Outside=False):
@@ -180,31 +209,70 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
 
     link = self.link
 
-    def wait_byte(timeout: float | None) -> int | None:
-        """The next byte, or None after ``timeout`` s; the program can be stopped while it waits (on Start
-        the wait goes on to its deadline: a read whose \\Time passed while stopped times out at once)."""
+    def wait_bytes(count: int | None, timeout: float, what: str) -> bytes | None:
+        """``count`` bytes, or with ``count`` None the first byte and whatever else has already arrived (up to
+        RawBytes.MAX); None when they did not all come within ``timeout`` s. The bytes that did come are then
+        consumed and lost: what an IRC5 does with a partial read on timeout is not documented where we could read
+        it (verify), so the emulator takes the case a server must survive. The program can be stopped while it
+        waits (on Start the wait goes on to its deadline: a read whose \\Time passed while stopped times out)."""
+        if count is not None and not 1 <= count <= RawBytes.MAX:
+            raise RapidError("ERR_ARGVALERR", f"{what}: {count} bytes asked, 1..{RawBytes.MAX} can be read at once")
         self.interp.settle_time()  # the statements before the read are paid for before it starts waiting
-        deadline = time.monotonic() + (8388608.0 if timeout is None else timeout)
-        while True:
+        deadline = time.monotonic() + timeout
+        got = bytearray()
+        while count is None or len(got) < count:
+            if count is None and got:
+                more = link.read_ready(RawBytes.MAX - len(got))
+                return bytes(got + more)
             b = link.read_byte(min(POLL_S, max(0.0, deadline - time.monotonic())))
-            if b is not None or time.monotonic() >= deadline:
-                return b
-            self.interp.check_stop()
+            if b is not None:
+                got.append(b)
+            elif time.monotonic() >= deadline:
+                return None
+            else:
+                self.interp.check_stop()
+        return bytes(got)
+
+    def opened(dev, what: str) -> None:
+        if dev.value is None:
+            raise RapidError("ERR_FILEACC", f"{what}: the device is not open (Open ...\\Bin first)")
 
     def write(data: bytes) -> None:
         self.interp.settle_time()
         link.write(data)
 
     def read_bin(dev, Time=None):
-        b = wait_byte(Time)
-        if b is None:
+        """ReadBin: one byte (without \\Time the emulator waits for ever; the shipped modules always give it)."""
+        got = wait_bytes(1, WAIT_MAX_S if Time is None else Time, "ReadBin")
+        if got is None:
             raise RapidError("ERR_DEV_MAXTIME", "ReadBin: no byte within \\Time")
-        return b
+        return got[0]
+
+    def read_raw_bytes(dev, RawData: RawBytes, NoOfBytes=None, Time=None):
+        """ReadRawBytes IODevice, RawData [\\NoOfBytes] [\\Time] on an ``Open ...\\Bin`` device (base RAPID, no
+        option): RawData holds what was read from index 1, its valid length the number read. With \\NoOfBytes
+        (1..1024, rawbytes' size) it waits for that many, else for the first and takes what has arrived.
+        \\Time (s) expiring raises ERR_DEV_MAXTIME; absent, 60 s (ABB's default for the Read* instructions as
+        integrators quote it: verify)."""
+        opened(dev, "ReadRawBytes")
+        n = None if NoOfBytes is None else _count(NoOfBytes, "ReadRawBytes \\NoOfBytes")
+        got = wait_bytes(n, DEFAULT_READ_S if Time is None else Time, "ReadRawBytes")
+        if got is None:
+            raise RapidError("ERR_DEV_MAXTIME", "ReadRawBytes: not all bytes came within \\Time")
+        RawData.clear()
+        RawData.write(1, got)
+
+    def write_raw_bytes(dev, RawData: RawBytes, NoOfBytes=None):
+        opened(dev, "WriteRawBytes")
+        n = len(RawData) if NoOfBytes is None else _count(NoOfBytes, "WriteRawBytes \\NoOfBytes")
+        write(RawData.read(1, n))
 
     reg.add("Open", lambda name, dev, Bin=False, **_: setattr(dev, "value", name))
     reg.add("Close", lambda dev: setattr(dev, "value", None))
     reg.add("ClearIOBuff", lambda dev: link.clear())
     reg.add("ReadBin", io(read_bin))
+    reg.add("ReadRawBytes", io(read_raw_bytes))
+    reg.add("WriteRawBytes", io(write_raw_bytes))
     reg.add("WriteBin", io(lambda dev, buffer, n: write(bytes(int(b) for b in buffer[: int(n)]))))
 
     def err_write(header, reason, RL2="", RL3="", RL4="", W=False, I=False):  # noqa: E741
@@ -218,7 +286,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     # a socketdev's value is its connection; the link (faults, latency) follows the socketdev last used, so
     # a client can be accepted on a second socketdev while the first one's is still open
     def accept(server, client, Time=None, ClientAddress=None):
-        deadline = time.monotonic() + (8388608.0 if Time is None else Time)
+        deadline = time.monotonic() + (WAIT_MAX_S if Time is None else Time)
         while True:  # in slices: the program can be stopped while it waits for a client
             self._server.settimeout(min(POLL_S, max(0.001, deadline - time.monotonic())))
             try:
@@ -251,19 +319,40 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
                 link.clear()
             sock.value = None
 
-    def receive(sock, Data=None, ReadNoOfBytes=1, Time=None):
+    def receive(sock, Str=None, RawData=None, Data=None, ReadNoOfBytes=None, NoRecBytes=None, Time=None):
+        """SocketReceive Socket [\\Str] | [\\RawData] | [\\Data] [\\ReadNoOfBytes] [\\NoRecBytes] [\\Time]: exactly
+        \\ReadNoOfBytes bytes, else what has arrived (at least one byte; at most 80 characters, 1024 raw bytes or
+        the array's size). \\Time (s) expiring raises ERR_SOCK_TIMEOUT; absent, 60 s (verify); a peer that
+        closed, ERR_SOCK_CLOSED. The names as open_abb's SERVER.mod and abb_driver's ROS_socket.sys use them."""
+        given = [x for x in (Str, RawData, Data) if x is not None]
+        if len(given) != 1:
+            raise RapidError("ERR_ARGVALERR", "SocketReceive takes one of \\Str, \\RawData or \\Data")
+        room = 80 if Str is not None else RawBytes.MAX if RawData is not None else len(Data.value)
+        n = None if ReadNoOfBytes is None else _count(ReadNoOfBytes, "SocketReceive \\ReadNoOfBytes")
+        if n is not None and n > room:
+            raise RapidError("ERR_ARGVALERR", f"SocketReceive \\ReadNoOfBytes:={n}: the receiving data holds {room}")
         use(sock)
-        for i in range(int(ReadNoOfBytes)):
-            b = wait_byte(Time)
-            if b is None:
-                raise RapidError("ERR_SOCK_TIMEOUT", "SocketReceive: no data within \\Time")
-            Data.value[i] = b
+        got = wait_bytes(n, DEFAULT_READ_S if Time is None else Time, "SocketReceive")
+        if got is None:
+            raise RapidError("ERR_SOCK_TIMEOUT", "SocketReceive: not all data came within \\Time")
+        got = got[:room]
+        if Str is not None:
+            Str.value = got.decode("latin-1")
+        elif RawData is not None:
+            RawData.clear()
+            RawData.write(1, got)
+        else:
+            array = Data.value
+            array[: len(got)] = [float(b) for b in got]
+            Data.value = array
+        if NoRecBytes is not None:
+            NoRecBytes.value = float(len(got))
 
     reg.add("SocketCreate", lambda sock: None)
     reg.add("SocketBind", lambda sock, address, port: None)  # always the emulator's loopback port
     reg.add("SocketListen", lambda sock: None)
     reg.add("SocketAccept", accept, refs=["ClientAddress"])
-    reg.add("SocketReceive", io(receive), refs=["Data"])
+    reg.add("SocketReceive", io(receive), refs=["Str", "Data", "NoRecBytes"])
     reg.add(
         "SocketSend",
         io(

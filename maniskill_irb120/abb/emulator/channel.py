@@ -65,6 +65,20 @@ class Channel:
             time.sleep(wait)
         return b
 
+    def read_ready(self, limit: int) -> bytes:
+        """Up to ``limit`` bytes that have already arrived, without waiting (a read that takes what is there)."""
+        out = bytearray()
+        while len(out) < limit:
+            if not self.buf or self.buf[0][1] > time.monotonic():
+                src = self.fd if self.conn is None else self.conn
+                if self.buf or src is None or not select.select([src], [], [], 0)[0]:
+                    break
+            b = self.read_byte(0.0)
+            if b is None:
+                break
+            out.append(b)
+        return bytes(out)
+
     def clear(self) -> None:
         self.buf.clear()
 

@@ -279,11 +279,14 @@ def main(
     speed_scale: float = 1.0,
     options: str | None = None,
     op_mode: str = "manual_reduced",
+    statement_cost_us: float = STATEMENT_COST_US,
+    pc_address: str | None = None,
 ) -> int:
     """Run the emulator until interrupted; prints the URL to connect to as its first line. ``options``:
     installed RobotWare option ids, comma-separated (``""``: none; None: :data:`CHANNEL_OPTIONS`). ``op_mode``:
-    the key switch (:data:`OP_MODE_NAMES`). A module the controller would refuse to load prints the load error
-    and returns 1."""
+    the key switch (:data:`OP_MODE_NAMES`). ``statement_cost_us``: :data:`STATEMENT_COST_US`. ``pc_address``: the
+    TCP build's PC_ADDRESS (None: 127.0.0.1, the local client's). A module the controller would refuse to load
+    prints the load error and returns 1."""
     opts = None if options is None else parse_options(options)  # ValueError names an unknown id
     u = urlparse(listen)
     try:
@@ -297,8 +300,12 @@ def main(
                 speed_scale=speed_scale,
                 options=opts,
                 op_mode=op_mode,
+                statement_cost_us=statement_cost_us,
+                pc_address=pc_address or "127.0.0.1",
             )
         elif u.scheme == "serial":
+            if pc_address is not None:
+                raise ValueError("pc_address: only the TCP build serves a PC address")
             baud = parse_qs(u.query).get("baudrate")
             emu = ControllerEmulator(
                 "serial",
@@ -309,6 +316,7 @@ def main(
                 speed_scale=speed_scale,
                 options=opts,
                 op_mode=op_mode,
+                statement_cost_us=statement_cost_us,
             )
         else:
             raise ValueError(

@@ -16,6 +16,7 @@ Figures that ABB does not publish are estimates, said so where they are defined.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,6 +102,7 @@ class Segment:
     phases: list[Phase] = field(default_factory=list)  # empty until the segment starts
     decided: bool = False  # whether its end is known to be a stop or a fly-by
     carry: float = 0.0  # the fraction of cruise speed carried into the next segment (0: a stop point)
+    at_end: Callable[[], None] | None = None  # what happens where the robot reaches the end (MoveLDO's output)
 
     def point(self, u: float) -> np.ndarray:
         x = min(max(u, 0.0), 1.0) * (len(self.pts) - 1)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import numpy as np
@@ -176,12 +176,15 @@ class EmulatedIRB120:
         flyby: bool = False,
         t_call: float | None = None,
         error: MotionError | None = None,
+        at_end: Callable[[], None] | None = None,
     ) -> None:
         """Queue a segment to ``q_target`` (through ``via`` joint waypoints, e.g. IK along a MoveL's line) at the
         speed the slowest axis, the TCP speed ``v_tcp`` (mm/s, capped by the operating mode) and the reorientation
         speed ``v_ori`` (deg/s) allow; ``flyby``: a zone point, else ``fine``. ``t_call``: when the instruction
         was reached. ``error``: the path ends at ``q_target`` because of it (found by the caller's planning),
-        raised when the robot gets there. A target beyond the joint limits is refused now (ERR_ROBLIMIT)."""
+        raised when the robot gets there. ``at_end``: called when the robot reaches the segment's end (a fly-by
+        point's corner, a stop point), never if the path is cleared or stops at an error before it (MoveLDO's output).
+        A target beyond the joint limits is refused now (ERR_ROBLIMIT)."""
         q1 = np.asarray(q_target_deg, dtype=np.float64)
         via = None if via is None or len(via) == 0 else np.asarray(via, dtype=np.float64)
         for q in [q1, *([] if via is None else via)]:
@@ -200,7 +203,7 @@ class EmulatedIRB120:
             rot = f[:, :3, :3] @ _R_FLANGE_TOOL0 @ tframe[:3, :3]
             tcp = f[:, :3, :3] @ (_R_FLANGE_TOOL0 @ tframe[:3, 3]) + f[:, :3, 3]  # metres
             seg = self._segment(pts, tcp, rot, v_tcp, v_ori, flyby, now)
-            seg.error = error
+            seg.error, seg.at_end = error, at_end
             if via is not None:
                 self._check_singularity(seg)
             self._check_zone(seg, tcp)
@@ -274,6 +277,8 @@ class EmulatedIRB120:
                 break
             self.queue.pop(0)
             self._t_free, self._carry = seg.t_end, seg.carry
+            if seg.error is None and seg.at_end is not None:
+                seg.at_end()
             if seg.error is not None:  # found where the robot got to it: it stops there, the program with it
                 self.motion_error = seg.error
                 self.zone_violation = self.zone_violation or seg.error.kind == "world_zone"

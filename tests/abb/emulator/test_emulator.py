@@ -331,3 +331,32 @@ def test_cli_listen_url_sets_the_line_speed(capsys, monkeypatch):
     assert module.main("serial://pty?baudrate=9600", latency_ms=20) == 0
     assert seen == dict(baud=9600, latency=0.02)
     assert capsys.readouterr().out.splitlines()[0].endswith("?baudrate=9600")
+
+
+def test_cli_statement_cost_and_pc_address(capsys, monkeypatch):
+    """``maniskill-irb120 emulator --statement-cost-us 25 --pc-address 10.0.0.7``: the controller's per-statement
+    time and the TCP build's PC_ADDRESS; values that cannot be right are refused by name with exit status 2."""
+    from maniskill_irb120.abb.emulator import controller as module
+    from maniskill_irb120.cli import main
+
+    seen = {}
+
+    class Probe(ControllerEmulator):
+        def start(self):
+            seen.update(cost=self.interp.statement_cost_s, pc=self.interp.get("IRB120Socket:PC_ADDRESS"))
+            url = super().start()
+            self.interp.request_stop()
+            return url
+
+    monkeypatch.setattr(module, "ControllerEmulator", Probe)
+    assert main(["emulator", "--statement-cost-us", "25", "--pc-address", "10.0.0.7"]) == 0
+    assert seen == dict(cost=pytest.approx(25e-6), pc="10.0.0.7")
+    assert main(["emulator"]) == 0  # the defaults: the estimate, and the local client's address
+    assert seen == dict(cost=pytest.approx(module.STATEMENT_COST_US * 1e-6), pc="127.0.0.1")
+    capsys.readouterr()
+    assert main(["emulator", "--statement-cost-us", "-1"]) == 2
+    assert "--statement-cost-us -1.0: a time >= 0 us per statement" in capsys.readouterr().err
+    assert main(["emulator", "--pc-address", "robot-pc"]) == 2
+    assert "--pc-address 'robot-pc': an IPv4 address" in capsys.readouterr().err
+    assert main(["emulator", "--listen", "serial://pty", "--pc-address", "10.0.0.7"]) == 2
+    assert "only the TCP build serves a PC address" in capsys.readouterr().err

@@ -112,7 +112,8 @@ def test_records_aggregates_fields_and_value_copies():
     )
     p1, p2 = interp.get("p1"), interp.get("p2")
     assert isinstance(p1, Record) and p1.type == "robtarget"
-    assert p1.trans.x == 100 and p1["trans"]["y"] == 200 and p1.robconf.cf4 == -1 and p1.extax.eax_a == 9e9
+    assert p1.trans.x == 100 and p1["trans"]["y"] == 200 and p1.robconf.cf4 == -1
+    assert p1.extax.eax_a == pytest.approx(9e9, rel=1e-7)  # a num: float32(9E9)
     assert p2.trans.x == 5 and p2.rot.to_list() == [1, 0, 0, 0]  # the copy changed, the original did not
     assert p1.rot.to_list() == [0, 0, 1, 0]
     assert interp.get("x") == 305 and interp.get("same") is True
@@ -166,7 +167,8 @@ def test_standard_data():
         interp.set(name, interp.get(value))
     assert interp.get("s").to_list() == [100, 500, 5000, 1000]
     assert interp.get("fine").finep is True and interp.get("z").pzone_tcp == 10 and interp.get("z").zone_ori == 1.5
-    assert interp.get("t").tload.mass == 0.001 and interp.get("wobj0").ufprog is True
+    assert interp.get("t").tload.mass == pytest.approx(0.001, rel=1e-7)  # a num: float32(0.001)
+    assert interp.get("wobj0").ufprog is True
 
 
 def test_get_set_and_const():
@@ -641,7 +643,9 @@ def test_waituntil_polls_with_the_clock_and_times_out():
         builtins={"Ready": ready},
         clock=clock,
     )
-    assert clock.sleeps[:4] == [0.1] * 4 and interp.get("late") is True and interp.get("s") == "timed out"
+    assert (
+        clock.sleeps[:4] == pytest.approx([0.1] * 4) and interp.get("late") is True and interp.get("s") == "timed out"
+    )
 
 
 SERVER = r"""
@@ -730,3 +734,37 @@ def test_interpreter_implements_the_runtime_contract_its_parts_are_typed_against
     parts = Path(__file__).resolve().parents[3] / "maniskill_irb120/abb/emulator/rapid"
     for part in ("statements.py", "calls.py", "expressions.py", "frames.py", "contract.py"):
         assert "rapid.interpreter import" not in (parts / part).read_text(), part
+
+
+def test_num_is_a_32_bit_float():
+    """REFERENCE.md: a num is a 32-bit float, exact integers up to 2^23 and then in steps: 16777216 + 1 is 16777216,
+    0.1 is stored as float32(0.1); a dnum keeps the double; a value beyond float32's range stops the program."""
+    src = """MODULE M
+    VAR num a := 0;
+    VAR num b := 0;
+    VAR num c := 8388607;
+    VAR dnum d := 0;
+    VAR bool same := FALSE;
+    VAR bool literal := FALSE;
+    PROC main()
+        a := 16777216 + 1;
+        b := 0.1;
+        literal := b = 0.1;
+        c := c + 1;
+        d := 16777217;
+        same := 16777216 + 1 = 16777216;
+    ENDPROC
+    PROC huge()
+        a := 1E38 * 10;
+    ENDPROC
+ENDMODULE
+"""
+    interp = Interpreter(src)
+    interp.run("main")
+    assert interp.get("a") == 16777216.0 and interp.get("same") is True
+    assert interp.get("b") == struct.unpack("<f", struct.pack("<f", 0.1))[0] != 0.1
+    assert interp.get("literal") is True  # a literal is a num too
+    assert interp.get("c") == 8388608.0  # 2^23: still exact
+    assert interp.get("d") == 16777217.0
+    with pytest.raises(RapidRuntimeError, match="outside the range of a num"):
+        interp.call("huge")

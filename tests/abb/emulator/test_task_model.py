@@ -112,6 +112,9 @@ def test_start_without_pp_to_main_finishes_the_queued_path_and_pp_to_main_clears
     url = emu.start()
     robot = ABBRobot.connect(url, timeout=0.3, retries=1)
     target = robot.move_tool([1.0, 0, 0, 0, 1]).target_pos  # a full 10 mm step, ~58 ms
+    # stopped where it waits for the next frame: stopped before it got there (just after sending the reply), the
+    # server's RESTART check runs at once on Start and holds the robot, as it is meant to
+    assert wait_for(lambda: any(f.name == "IRB120ChanRead" for f in emu.interp._stack), 0.5)
     emu.press_stop()
     assert wait_for(lambda: not emu.robot.busy())
     stopped_at = emu.robot.tool_pose(emu.robot.joints(), np.eye(4))[:3, 3]
@@ -251,4 +254,28 @@ def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu):
     assert emu.robot.busy()
     state = robot.move_tool([0.0, 0.0, 0.0, 0.0, -1.0])  # stop and close
     assert not emu.robot.busy() and emu.signals["doGripperOpen"] == 0 and not state.gripper_open
+    robot.close()
+
+
+def test_a_gripper_change_on_a_moving_step_happens_where_the_robot_reaches_the_target(emu):
+    """SetDO fires when the program pointer passes it: after a fly-by MoveL, while the robot is still a step away.
+    The server ties the change to the path (MoveLDO): the output holds until the TCP reaches the target, within the
+    z1 zone, and changes there; a step that keeps the gripper as it is sets nothing."""
+    robot = ABBRobot.connect(emu.url, timeout=0.5)
+    robot.move_tool([0.0, 0.0, 0.0, 0.0, 1.0])  # settle a session, the gripper open
+    state = robot.move_tool([1.0, 0.0, 0.0, 0.0, -1.0])  # a full 10 mm step that closes the gripper
+    target = np.asarray(state.target_pos) * 1000
+    samples = []  # (gripper output, TCP's distance to the target in mm), the output read first
+    while True:
+        busy = emu.robot.busy()
+        gripper = emu.signals["doGripperOpen"]
+        tcp = emu.robot.tool_pose(emu.robot.joints(), emu.robot.zone_tool)[:3, 3] * 1000
+        samples.append((gripper, float(np.linalg.norm(tcp - target))))
+        if not busy:
+            break
+        time.sleep(0.002)
+    assert state.gripper_open  # the reply went out while the robot was under way, the gripper still open
+    assert any(g == 1 and d > 5.0 for g, d in samples)  # seen open half a step away
+    assert all(d <= 1.0 for g, d in samples if g == 0)  # closed only once within the z1 zone of the target
+    assert samples[-1][0] == 0 and not robot.state().gripper_open
     robot.close()

@@ -120,7 +120,9 @@ class CallsMixin:
             if r.value is None:
                 raise self.fault(f"RETURN without a value in FUNC {routine.name}") from None
             try:
-                return r.value if isinstance(r.value, list) else assign_like(default_value(routine.rtype), r.value)
+                if isinstance(r.value, list):
+                    return r.value
+                return assign_like(default_value(routine.rtype), r.value, routine.rtype == "dnum")
             except TypeError as e:
                 raise self.fault(f"FUNC {routine.name} returns {routine.rtype}: {e}") from None
         except Propagate as p:
@@ -224,7 +226,7 @@ def _bind_one(rt: Runtime, routine: Routine, p: Param, arg: Any) -> Ref:
             if not isinstance(current, list):
                 raise TypeError(f"expected an array, got {current!r}")
         else:
-            value = assign_like(default_value(p.type), current)
+            value = assign_like(default_value(p.type), current, p.type == "dnum")
     except TypeError as e:
         raise rt.fault(f"{what}: {e}") from None
     if p.mode != "IN":

@@ -12,7 +12,16 @@ from lark import Tree
 from maniskill_irb120.abb.emulator.rapid.contract import Runtime
 from maniskill_irb120.abb.emulator.rapid.errors import RapidError
 from maniskill_irb120.abb.emulator.rapid.frames import Frame
-from maniskill_irb120.abb.emulator.rapid.values import Record, Ref, assign_like, copy_value, type_of
+from maniskill_irb120.abb.emulator.rapid.values import (
+    Record,
+    Ref,
+    assign_like,
+    copy_value,
+    is_num32,
+    is_num32_range,
+    num32,
+    type_of,
+)
 
 _ESCAPE = re.compile(r'""|\\\\|\\([0-9a-fA-F]{2})')
 
@@ -40,7 +49,9 @@ class ExpressionsMixin:
             return self.resolve(t, frame).get()
         if kind == "number":
             text = t.children[0]
-            return float(int(text, 16)) if text[:2] in ("0x", "0X") else float(text)
+            v = float(int(text, 16)) if text[:2] in ("0x", "0X") else float(text)
+            # a literal is a num; an integer a float32 cannot hold exactly is a dnum's and stays (verify)
+            return v if not is_num32_range(v) or (v.is_integer() and not is_num32(v)) else num32(v)
         if kind == "string":
             return decode_string(t.children[0])
         if kind == "true" or kind == "false":
@@ -127,6 +138,14 @@ def compare(rt: Runtime, a: Any, op: str, b: Any) -> bool:
 
 
 def _arith(rt: Runtime, kind: str, a: Any, b: Any) -> Any:
+    nums = isinstance(a, float) and isinstance(b, float)
+    r = _arith_double(rt, kind, a, b)
+    # num arithmetic is float32 on the IRC5 (REFERENCE.md): the result rounded, unless an operand is not a float32
+    # (a dnum's, a clock reading, a literal like 0.1) and the result is kept for a dnum or rounded when stored
+    return num32(r) if nums and is_num32(a) and is_num32(b) else r
+
+
+def _arith_double(rt: Runtime, kind: str, a: Any, b: Any) -> Any:
     nums = isinstance(a, float) and isinstance(b, float)
     if kind == "add":
         if nums or (isinstance(a, str) and isinstance(b, str)):

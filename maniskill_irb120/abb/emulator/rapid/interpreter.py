@@ -216,7 +216,7 @@ class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin)
         value = default_value(type_name, shape)
         if init is not None:
             try:
-                value = assign_like(value, self.eval(init, frame))
+                value = assign_like(value, self.eval(init, frame), type_name.lower() == "dnum")
                 check_range(type_name.lower(), value, str(name))
             except ByteRangeError as e:
                 raise self.fault(str(e)) from None

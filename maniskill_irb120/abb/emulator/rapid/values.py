@@ -1,6 +1,8 @@
 """RAPID data in Python: how each data type is represented, its default value, and assignment rules.
 
-* ``num``/``dnum``/``byte``/``errnum``/``intnum`` -> ``float``; ``bool`` -> ``bool``; ``string`` -> ``str``.
+* ``num``/``dnum``/``byte``/``errnum``/``intnum`` -> ``float``; ``bool`` -> ``bool``; ``string`` -> ``str``. A ``num``
+  is a 32-bit float on the IRC5 (exact integers up to 2^23; REFERENCE.md): every stored value is rounded to the
+  nearest float32 (:func:`num32`), a ``dnum`` (a variable declared so) keeps the double.
 * Record types (``pos``, ``robtarget``, ``tooldata``, user ``RECORD``\\ s ...) -> :class:`Record`, ordered named fields.
 * Arrays -> Python lists (nested for 2-D/3-D); RAPID's 1-based indices are translated by the interpreter.
 * Non-value types (``rawbytes``, ``clock``, ``iodev``, ``socketdev``, signals, world zones and every unknown type)
@@ -13,6 +15,7 @@ Value types have value semantics: :func:`assign_like` copies into the shape of t
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 from maniskill_irb120.abb.emulator.rapid.errors import RapidError
@@ -42,6 +45,29 @@ RECORD_TYPES: dict[str, list[tuple[str, str, Any]]] = {
 
 
 _PREDEFINED = frozenset(RECORD_TYPES)
+_F32 = struct.Struct("<f")
+
+
+def num32(v: float) -> float:
+    """``v`` as the IRC5 holds a ``num``: the nearest 32-bit float (16777216 + 1 is 16777216; 0.1 is
+    0.100000001490116). Beyond float32's range (about 3.4E38) a TypeError: a value error that stops the program."""
+    try:
+        return _F32.unpack(_F32.pack(v))[0]
+    except OverflowError:
+        raise TypeError(f"{v} is outside the range of a num (a 32-bit float, about 3.4E38)") from None
+
+
+def is_num32_range(v: float) -> bool:
+    """Whether ``v`` is within float32's range (a ``num`` can hold it, rounded)."""
+    return abs(v) <= 3.4028234663852886e38
+
+
+def is_num32(v: float) -> bool:
+    """Whether ``v`` is exactly a float32 (a ``num`` can hold it)."""
+    try:
+        return _F32.unpack(_F32.pack(v))[0] == v
+    except OverflowError:
+        return False
 
 
 def define_record(name: str, fields: list[tuple[str, str]]) -> None:
@@ -230,15 +256,16 @@ def type_of(v: Any) -> str:
     return type(v).__name__.lower()
 
 
-def assign_like(old: Any, new: Any) -> Any:
-    """``new`` converted to the type and shape of ``old`` (a copy for value types); TypeError if incompatible."""
+def assign_like(old: Any, new: Any, dnum: bool = False) -> Any:
+    """``new`` converted to the type and shape of ``old`` (a copy for value types), numbers rounded to a ``num``'s
+    float32 unless ``dnum``; TypeError if incompatible."""
     new = from_python(new)
     if isinstance(old, bool):
         if isinstance(new, bool):
             return new
     elif isinstance(old, float):
         if isinstance(new, float):
-            return new
+            return new if dnum else num32(new)
     elif isinstance(old, str):
         if isinstance(new, str):
             return new
@@ -351,7 +378,7 @@ class Ref:
         if self.cell.kind in ("CONST", "FOR"):
             raise TypeError(f"{self.cell.name} is {'a CONST' if self.cell.kind == 'CONST' else 'a loop variable'}")
         if not self.path:
-            value = assign_like(self.cell.value, new)
+            value = assign_like(self.cell.value, new, self.cell.type == "dnum")
             check_range(self.cell.type, value, self.cell.name)
             self.cell.value = value
             return
