@@ -27,6 +27,7 @@ SHIFTS = {
     "lighting": "light=0.5",
     "colours/textures": "color=0.25,texture=1,roughness=0.3,specular=0.8",
     "depth noise + dropout": "depth_noise=4,depth_dropout=0.05",
+    "depth model D435": "depth_model=d435",
     "object size/mass/friction": "object_size=1.2,object_mass=2,object_friction=0.5",
     "command latency 30 ms": "latency=0.03",
 }

@@ -65,6 +65,24 @@ if [[ ",$EXTRAS," == *",dev,"* ]] && ! command -v tmux >/dev/null; then
     fi
 fi
 
+# ---------------------------------------------------------------- libusb (system, real and dev)
+# pyrealsense2's wheel links libusb-1.0 without shipping it; the librealsense tests (dev) import it too
+if [[ ",$EXTRAS," == *",dev,"* || ",$EXTRAS," == *",real,"* ]] && command -v ldconfig >/dev/null \
+    && ! ldconfig -p | grep -q "libusb-1.0.so.0"; then
+    if command -v apt-get >/dev/null; then
+        SUDO=""
+        if [ "$(id -u)" != 0 ]; then
+            command -v sudo >/dev/null && sudo -n true 2>/dev/null && SUDO="sudo -n" \
+                || die "pyrealsense2 needs libusb-1.0; as root run: apt-get install -y libusb-1.0-0, then re-run this script"
+        fi
+        log "installing libusb-1.0 (pyrealsense2 loads it)"
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+    else
+        log "libusb-1.0 not found: pyrealsense2 will not import (install libusb-1.0 to use a RealSense)"
+    fi
+fi
+
 # ---------------------------------------------------------------- Python environment
 [ -x .venv/bin/python ] || { log "creating .venv"; "$PY" -m venv .venv; }
 VPY=.venv/bin/python

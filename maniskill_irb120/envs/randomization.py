@@ -17,6 +17,7 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``specular`` | specular strength, 0..1 (off: each material's own) | each episode | env, surface |
 | ``depth_noise`` | std of Gaussian depth noise, mm | each step | per pixel |
 | ``depth_dropout`` | probability a depth pixel reads 0 | each step | per pixel |
+| ``depth_model`` | a RealSense preset, ``d435`` or ``d405`` (envs/depth_model.py) | each step | per pixel |
 | ``object_size`` | scale of ``object_half_size`` | scene build | one draw for all envs |
 | ``object_mass`` | scale of ``object_mass`` | scene build | per env |
 | ``object_friction`` | scale of ``object_friction`` | scene build | per env |
@@ -25,6 +26,10 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 The appearance fields (``color``, ``texture``, ``roughness``, ``specular``) change materials. On the CPU an env
 owns its materials; a GPU-batched scene shares one material per builder between its envs, so with an appearance
 field active the scene builds each env's table, trays, floor and objects with materials of their own.
+
+``depth_model`` stands before ``depth_noise``/``depth_dropout`` (which then add to it): range limits, disparity
+noise and quantisation, edges, occlusion shadow and dark/specular dropout as a RealSense D435 or D405 measures
+them, with the figures and their sources in envs/depth_model.py.
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
@@ -42,11 +47,12 @@ import sapien
 import torch
 
 from maniskill_irb120.envs import appearance
+from maniskill_irb120.envs.depth_model import DepthModel, preset
 
 Value = float | tuple[float, ...] | None
 VECTOR_FIELDS = ("camera_pos", "camera_rot")
 OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
-OFF.update(texture=0.0, roughness=None, specular=None)
+OFF.update(texture=0.0, roughness=None, specular=None, depth_model=None)
 OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0)
 SCALES = ("light", "object_size", "object_mass", "object_friction")
 BUILD_FIELDS = ("object_size", "object_mass", "object_friction")  # drawn when the scene is built
@@ -67,6 +73,7 @@ class Randomization:
     texture: Value = 0.0
     roughness: Value = None
     specular: Value = None
+    depth_model: str | None = None  # a preset name (envs/depth_model.py PRESETS)
     object_size: Value = 1.0
     object_mass: Value = 1.0
     object_friction: Value = 1.0
@@ -75,6 +82,13 @@ class Randomization:
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.name == "depth_model":
+                if isinstance(v, str) and v.strip().lower() in ("off", "none", ""):
+                    v = None
+                if v is not None and not isinstance(v, str):
+                    raise ValueError(f"depth_model={v!r}: a preset name, e.g. 'd435'")
+                object.__setattr__(self, f.name, None if v is None else preset(v).name)
+                continue
             if v is None:
                 if f.name not in NONE_FIELDS:
                     raise ValueError(f"{f.name}: None is 'off' only for {', '.join(NONE_FIELDS)}")
@@ -109,6 +123,9 @@ class Randomization:
             name, eq, text = item.partition("=")
             if not eq or name.strip() not in names:
                 raise ValueError(f"randomisation {item!r}: use NAME=VALUE with NAME one of {sorted(names)}")
+            if name.strip() == "depth_model":
+                kw["depth_model"] = text.strip()
+                continue
             try:
                 parts = [float(x) for x in text.replace(":", ";").split(";")]
             except ValueError:
@@ -187,6 +204,9 @@ class RandomizationMixin:
         self.randomization = Randomization.from_any(spec)
         self.randomization_draws = {}
         self._dr_generator: torch.Generator | None = None
+        self._dr_noise = False  # depth_noise or depth_dropout on
+        self._dr_depth_model: DepthModel | None = None
+        self._dr_focal: np.ndarray | None = None  # the sim camera's focal length per env, px
         self._dr_delay: torch.Tensor | None = None
         self._dr_max_delay = 0  # sim steps: the most any env holds its old targets (a Python int, no sync)
         self._dr_substep = 0
@@ -268,7 +288,7 @@ class RandomizationMixin:
             self._dr_delay[env_idx] = torch.as_tensor(steps, dtype=torch.long, device=self.device)
             self.randomization_draws["latency"] = self._dr_delay.float() / self.sim_freq
             self._dr_max_delay = max(self._dr_max_delay, max(steps))
-        if {"depth_noise", "depth_dropout"} & set(active):
+        if {"depth_noise", "depth_dropout", "depth_model"} & set(active):
             if self._dr_generator is None:
                 self._dr_depth = torch.zeros(self.num_envs, 2, device=self.device)  # (std mm, dropout p) per env
                 self._dr_generator = torch.Generator(device=self.device)
@@ -276,8 +296,25 @@ class RandomizationMixin:
                 self._dr_depth[i, 0] = float(r.draw("depth_noise", rngs[i])[0])
                 self._dr_depth[i, 1] = float(r.draw("depth_dropout", rngs[i])[0])
             self._dr_generator.manual_seed(int(rngs[int(idx[0])].integers(2**62)))
-            self.randomization_draws["depth_noise"] = self._dr_depth[:, 0].clone()
-            self.randomization_draws["depth_dropout"] = self._dr_depth[:, 1].clone()
+            if {"depth_noise", "depth_dropout"} & set(active):
+                self._dr_noise = True
+                self.randomization_draws["depth_noise"] = self._dr_depth[:, 0].clone()
+                self.randomization_draws["depth_dropout"] = self._dr_depth[:, 1].clone()
+            if "depth_model" in active:
+                self._set_depth_model(idx)
+
+    def _set_depth_model(self, idx: np.ndarray) -> None:
+        """The model and the sim camera's focal length per env (the shadow's width in sim pixels depends on
+        it, and ``camera_fov`` may have changed it)."""
+        base = self.agent.hand_camera_cfg
+        if self._dr_focal is None:
+            self._dr_focal = np.full(self.num_envs, base["width"] / 2 / math.tan(base["fov"] / 2))
+        fovs = self.randomization_draws.get("camera_fov")
+        for i in idx:
+            fov = math.radians(float(fovs[i])) if fovs is not None else base["fov"]
+            self._dr_focal[i] = base["width"] / 2 / math.tan(fov / 2)
+        self._dr_depth_model = preset(self.randomization.depth_model)
+        self._dr_focal_t = torch.as_tensor(self._dr_focal, dtype=torch.float32, device=self.device)
 
     def _record_draw(self, key: str, i: int, value) -> None:
         v = torch.as_tensor(np.asarray(value, dtype=np.float32))
@@ -323,16 +360,22 @@ class RandomizationMixin:
 
     # ------------------------------------------------------------------ each step
     def _randomize_sensor_data(self, data: dict) -> dict:
-        """Depth noise and dropout, per pixel, from a generator seeded at reset (deterministic per seed; one
-        stream for the batch). No host sync: the per-env std and p live on the device."""
+        """The depth model, then depth noise and dropout, per pixel, from a generator seeded at reset
+        (deterministic per seed; one stream for the batch). No host sync: the per-env figures live on the
+        device."""
         if self._dr_generator is None or "hand_camera" not in data or "depth" not in data["hand_camera"]:
             return data
-        depth = data["hand_camera"]["depth"]
-        g, std, p = self._dr_generator, self._dr_depth[:, 0, None, None, None], self._dr_depth[:, 1, None, None, None]
-        noisy = depth.float() + torch.randn(depth.shape, generator=g, device=depth.device) * std
-        noisy = torch.where(torch.rand(depth.shape, generator=g, device=depth.device) < p, 0.0, noisy)
-        keep = depth > 0  # "no reading" stays no reading
-        data["hand_camera"]["depth"] = torch.where(keep, noisy.round().clamp(0, 32767), 0).to(depth.dtype)
+        cam = data["hand_camera"]
+        depth, g = cam["depth"], self._dr_generator
+        if self._dr_depth_model is not None:
+            depth = self._dr_depth_model.apply(depth, cam.get("rgb"), self._dr_focal_t, g, float(self._dr_focal.max()))
+        if self._dr_noise:
+            std, p = self._dr_depth[:, 0, None, None, None], self._dr_depth[:, 1, None, None, None]
+            noisy = depth.float() + torch.randn(depth.shape, generator=g, device=depth.device) * std
+            noisy = torch.where(torch.rand(depth.shape, generator=g, device=depth.device) < p, 0.0, noisy)
+            keep = depth > 0  # "no reading" stays no reading
+            depth = torch.where(keep, noisy.round().clamp(0, 32767), 0).to(depth.dtype)
+        cam["depth"] = depth
         return data
 
     def _step_action(self, action):

@@ -61,25 +61,52 @@ def to_sim_frame(
 
 
 class RealSenseCamera:
-    """An Intel RealSense (D400 series) on the wrist: colour and depth at ``width``x``height``, depth aligned to
-    colour, intrinsics from the device, converted by :func:`to_sim_frame` on every read."""
+    """An Intel RealSense (D400 series) on the wrist: colour and depth at ``width``x``height`` through librealsense's
+    pipeline, depth aligned to colour, the depth scale and the colour intrinsics read from the device, converted
+    by :func:`to_sim_frame` on every read. ``playback``: a recording (``.db3`` from librealsense 2.59, ``.bag``
+    from older releases) played through the same pipeline instead of a live camera, as fast as it is read; the
+    tests feed it frames recorded from a ``software_device`` (tests/sim2real/test_realsense.py)."""
 
-    def __init__(self, width: int = 640, height: int = 480, fps: int = 30, fov_deg: float = SIM_FOV_DEG, serial=None):
+    def __init__(
+        self,
+        width: int = 640,
+        height: int = 480,
+        fps: int = 30,
+        fov_deg: float = SIM_FOV_DEG,
+        serial=None,
+        playback: str | None = None,
+        timeout_ms: int = 1000,
+    ):
         self.width, self.height, self.fps, self.fov_deg, self.serial = width, height, fps, fov_deg, serial
+        self.playback, self.timeout_ms = playback, timeout_ms
         self.pipeline = None
 
     def start(self) -> None:
         try:
             import pyrealsense2 as rs
         except ImportError:
-            raise ImportError("RealSenseCamera needs pyrealsense2: pip install pyrealsense2") from None
+            raise ImportError("RealSenseCamera needs pyrealsense2: pip install -e '.[real]'") from None
         cfg = rs.config()
-        if self.serial:
+        if self.playback:
+            cfg.enable_device_from_file(str(self.playback), repeat_playback=False)
+        elif self.serial:
             cfg.enable_device(str(self.serial))
         cfg.enable_stream(rs.stream.color, self.width, self.height, rs.format.rgb8, self.fps)
         cfg.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
-        self.pipeline = rs.pipeline()
-        profile = self.pipeline.start(cfg)
+        pipeline = rs.pipeline()
+        source = f"the recording {self.playback}" if self.playback else f"RealSense {self.serial or '(any)'}"
+        if not cfg.can_resolve(rs.pipeline_wrapper(pipeline)):
+            raise RuntimeError(
+                f"{source}: no {self.width}x{self.height} rgb8 colour and z16 depth at {self.fps} fps "
+                "(no camera connected, or it offers other streams)"
+            )
+        try:
+            profile = pipeline.start(cfg)
+        except RuntimeError as e:
+            raise RuntimeError(f"{source}: librealsense could not start it: {e}") from None
+        if self.playback:
+            profile.get_device().as_playback().set_real_time(False)  # every recorded frame, in order
+        self.pipeline = pipeline
         self.depth_to_mm = profile.get_device().first_depth_sensor().get_depth_scale() * 1000.0
         intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
         self.intrinsics = (intr.fx, intr.fy, intr.ppx, intr.ppy)
@@ -88,9 +115,16 @@ class RealSenseCamera:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         if self.pipeline is None:
             raise RuntimeError("RealSenseCamera.read() before start()")
-        frames = self.align.process(self.pipeline.wait_for_frames())
-        rgb = np.asanyarray(frames.get_color_frame().get_data())
-        depth = np.asanyarray(frames.get_depth_frame().get_data()).astype(np.float64) * self.depth_to_mm
+        ok, frames = self.pipeline.try_wait_for_frames(self.timeout_ms)
+        if not ok:
+            raise RuntimeError(f"RealSenseCamera: no frames within {self.timeout_ms} ms (camera unplugged or stalled)")
+        frames = self.align.process(frames)
+        colour, depth_frame = frames.get_color_frame(), frames.get_depth_frame()
+        if not colour or not depth_frame:
+            missing = "colour" if not colour else "depth"
+            raise RuntimeError(f"RealSenseCamera: the frameset has no {missing} frame (a dropped frame)")
+        rgb = np.asanyarray(colour.get_data())
+        depth = np.asanyarray(depth_frame.get_data()).astype(np.float64) * self.depth_to_mm
         return to_sim_frame(rgb, np.rint(depth), *self.intrinsics, fov_deg=self.fov_deg)
 
     def stop(self) -> None:
