@@ -231,6 +231,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         if self.robot_init_qpos_noise > 0:
             qpos[:, :6] += (u * 2 - 1) * self.robot_init_qpos_noise
         self.agent.reset(qpos)
+        self.agent.mark_at_rest(env_idx, qpos)
         self.agent.robot.set_pose(sapien.Pose())
         self.agent.invalid_action[env_idx] = False
         self._fresh[env_idx] = True

@@ -24,7 +24,7 @@ import torch
 from mani_skill.agents.base_real_agent import BaseRealAgent
 
 from maniskill_irb120.abb.client import ABBRobot
-from maniskill_irb120.abb.protocol import RobotState, Status
+from maniskill_irb120.abb.protocol import RobotState
 from maniskill_irb120.action import gripper_opens
 from maniskill_irb120.robot.description import geometry
 from maniskill_irb120.robot.irb120 import FINGER_STROKE
@@ -56,8 +56,7 @@ class IRB120RealAgent(BaseRealAgent):
         self.camera, self.camera_name, self.command_mode = camera, camera_name, command_mode
         self.finger_qpos = finger_qpos
         self.state: RobotState | None = None
-        self._prev: tuple[float, np.ndarray] | None = None  # (time, joints) of the read before, for qvel
-        self._now: tuple[float, np.ndarray] | None = None
+        self._step_start: np.ndarray | None = None  # qpos (8,) when the last motion command went out, for qvel
         self._frame: tuple[np.ndarray, np.ndarray] | None = None
         # every exchange with the controller: (kind, t_sent, t_replied, command, joints in the reply, the reply's
         # motion target as position + wxyz), times from time.perf_counter(); what sim2real-eval logs, sysid fits
@@ -80,13 +79,14 @@ class IRB120RealAgent(BaseRealAgent):
 
     # ------------------------------------------------------------------ commands
     def refresh(self) -> RobotState:
-        """Read the controller's state now (joints for ``qpos``, ``qvel`` by finite difference)."""
+        """Read the controller's state now (the joints for ``qpos`` and ``qvel``)."""
         t0 = time.perf_counter()
         return self._record(self.abb.state(), "state", t0, np.zeros(0))
 
     def send_tool_action(self, action) -> RobotState:
         """The env's normalised 5-vector, checked by the client's envelope, executed by the controller."""
         a = np.asarray(action, dtype=np.float64).reshape(-1)
+        self._step_start = self.get_qpos()[0].numpy()
         t0 = time.perf_counter()
         return self._record(self.abb.move_tool(a), "tool", t0, a)
 
@@ -95,6 +95,7 @@ class IRB120RealAgent(BaseRealAgent):
         q = np.asarray(torch.as_tensor(qpos).detach().cpu(), dtype=np.float64).reshape(-1)
         if q.shape != (8,):
             raise ValueError(f"joint targets are 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
+        self._step_start = self.get_qpos()[0].numpy()
         t0 = time.perf_counter()
         state = self.abb.move_joints(q[:6], gripper_open=bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
         self._record(state, "joints", t0, q)
@@ -111,7 +112,7 @@ class IRB120RealAgent(BaseRealAgent):
             raise ValueError(f"a reset pose is 8 numbers (6 arm joints, 2 fingers), got shape {q.shape}")
         self.refresh()
         self.abb.reset(q[:6], gripper_open=bool(gripper_opens(q[6:].mean() - FINGER_STROKE / 2)))
-        self._prev = None
+        self._step_start = None  # at rest: qvel zero, as the sim's after its reset
         self.refresh()
 
     # ------------------------------------------------------------------ readings
@@ -119,7 +120,6 @@ class IRB120RealAgent(BaseRealAgent):
         target = np.r_[state.target_pos, state.target_quat]
         self.log.append((kind, t0, time.perf_counter(), command, np.asarray(state.joints), target))
         self.state = state
-        self._prev, self._now = self._now, (time.perf_counter(), np.asarray(state.joints))
         return state
 
     def get_qpos(self) -> torch.Tensor:
@@ -129,15 +129,15 @@ class IRB120RealAgent(BaseRealAgent):
         return torch.as_tensor(np.r_[self.state.joints, fingers], dtype=torch.float32)[None]
 
     def get_qvel(self) -> torch.Tensor:
-        """Joint velocity (the protocol carries none; fingers 0): zero when the controller says the robot stands
-        still, as the sim's drives have settled by the end of a control period (the difference of the period's
-        two readings is the period's mean speed, metres from anything a sim-trained policy has seen); while it
-        still moves, the difference of the last two readings."""
-        v = np.zeros(8)
-        moving = self.state is not None and self.state.status == Status.MOVING
-        if moving and self._prev is not None and self._now[0] > self._prev[0]:
-            v[:6] = (self._now[1] - self._prev[1]) / (self._now[0] - self._prev[0])
-        return torch.as_tensor(v, dtype=torch.float32)[None]
+        """The sim agent's ``qvel`` (``IRB120Metalwork.step_qvel``): the joints' mean velocity over the last step,
+        (qpos now - qpos when the step's command went out) x the control frequency; zero after a reset. The
+        protocol carries no speeds, and none are needed: with the step ending where the sim's does (the robot at
+        its target), the two sides' displacements agree. The fingers' part is the twin's, or on a real robot the
+        jump between the open and the closed stroke (the pneumatic gripper has no position feedback)."""
+        if self._step_start is None or self.state is None:
+            return torch.zeros(1, 8)
+        freq = float(getattr(getattr(self, "_sim_agent", None), "_control_freq", None) or 20)
+        return ((self.get_qpos()[0] - torch.as_tensor(self._step_start, dtype=torch.float32)) * freq)[None]
 
     def get_proprioception(self) -> dict:
         """ManiSkill's (qpos, qvel, controller state) plus the sim agent's ``gripper_opening``, from the fingers."""

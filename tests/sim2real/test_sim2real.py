@@ -131,7 +131,7 @@ def test_real_observations_mean_what_the_sim_s_mean_term_by_term(rig):
     sim_state = {k: v.clone() for k, v in sim.unwrapped.privileged_state().items()}  # before env.reset resets sim
     real_obs = [flat_obs(env.reset(seed=seed)[0])] + [flat_obs(env.step(a)[0]) for a in actions]
     assert env.late_steps == 0 and not env.refusals
-    tol = {"agent/qpos": 3e-3, "agent/qvel": 0.02, "agent/gripper_opening": 5e-4, "extra/tcp_pose": 1e-3}
+    tol = {"agent/qpos": 3e-3, "agent/qvel": 0.06, "agent/gripper_opening": 5e-4, "extra/tcp_pose": 1e-3}
     tol["extra/is_grasped"] = 0.0
     for step, (s, r) in enumerate(zip(sim_obs, real_obs)):
         for key, atol in tol.items():
@@ -192,18 +192,23 @@ def test_tool_step_moves_the_real_tcp_like_the_sim(rig):
     assert set(kinds[last_tool + 1 :]) == {"state"}  # the command, then reads until the robot stands (and ours)
 
 
-def test_qvel_of_a_robot_at_rest_is_zero_as_in_sim(rig):
-    """A 2 mm step ends inside the period; the sim's drives have settled by then too. The difference of the
-    period's two readings (its mean speed) would show joint speeds a sim-trained policy never saw."""
+def test_qvel_is_the_step_s_displacement_over_the_period_on_both_sides(rig):
+    """Both sides report a step's mean joint velocity (displacement / control period); zero after a reset. The
+    sim's instantaneous joint speed at the end of a period is a drive transient (~1e-3 rad/s) that an IRC5
+    standing at its target cannot report, and a policy that read it lost successes on the twin."""
     env, sim = rig["env"], rig["sim"]
-    small = torch.tensor([0.2, 0.0, 0.0, 0.0, 1.0])
-    for e in (env, sim):
-        e.reset(seed=4)
-    real_obs = env.step(small)[0]
-    sim_obs = sim.step(small)[0]
-    assert rig["agent"].state.status == Status.IDLE
-    assert torch.count_nonzero(real_obs["agent"]["qvel"]) == 0
-    assert sim_obs["agent"]["qvel"].abs().max() < 0.05
+    step = torch.tensor([0.6, 0.3, 0.0, 0.5, 1.0])
+    real_obs = [env.reset(seed=4)[0]]
+    sim_obs = [sim.reset(seed=4)[0]]
+    for _ in range(3):
+        real_obs.append(env.step(step)[0])
+        sim_obs.append(sim.step(step)[0])
+    for r, s in zip(real_obs, sim_obs):
+        np.testing.assert_allclose(r["agent"]["qvel"][0, :6], s["agent"]["qvel"][0, :6], atol=0.06)
+    assert torch.count_nonzero(real_obs[0]["agent"]["qvel"]) == torch.count_nonzero(sim_obs[0]["agent"]["qvel"]) == 0
+    moved = real_obs[2]["agent"]["qpos"][0, :6] - real_obs[1]["agent"]["qpos"][0, :6]
+    np.testing.assert_allclose(real_obs[2]["agent"]["qvel"][0, :6], moved * 20, atol=1e-4)
+    assert sim_obs[2]["agent"]["qvel"][0, :6].abs().max() > 0.05  # a real motion, not a drive transient
 
 
 def test_refused_command_raises_or_holds(rig):
