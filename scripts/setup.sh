@@ -48,39 +48,32 @@ then re-run this script."
     fi
 fi
 
-# ---------------------------------------------------------------- tmux (system, dev only)
-# the teleop tests drive `maniskill-irb120 teleop` through a real terminal with tmux send-keys
-if [[ ",$EXTRAS," == *",dev,"* ]] && ! command -v tmux >/dev/null; then
+# ---------------------------------------------------------------- system packages the extras' tests need
+# apt_install PACKAGE WHY: installs a Debian package as root (or with password-less sudo); without apt, says
+# what will not work
+apt_install() {
     if command -v apt-get >/dev/null; then
         SUDO=""
         if [ "$(id -u)" != 0 ]; then
             command -v sudo >/dev/null && sudo -n true 2>/dev/null && SUDO="sudo -n" \
-                || die "the dev extras' tests need tmux; as root run: apt-get install -y tmux, then re-run this script"
+                || die "$2 needs $1; as root run: apt-get install -y $1, then re-run this script"
         fi
-        log "installing tmux (the teleop tests' terminal)"
+        log "installing $1 ($2)"
         $SUDO apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq tmux >/dev/null
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "$1" >/dev/null
     else
-        log "tmux not found: the teleop terminal test will be skipped (install tmux to run it)"
+        log "$1 not found and no apt-get: $2 will not work (install $1)"
     fi
-fi
+}
 
-# ---------------------------------------------------------------- libusb (system, real and dev)
+# the teleop tests drive `maniskill-irb120 teleop` through a real terminal with tmux send-keys
+if [[ ",$EXTRAS," == *",dev,"* ]] && ! command -v tmux >/dev/null; then
+    apt_install tmux "the teleop terminal test"
+fi
 # pyrealsense2's wheel links libusb-1.0 without shipping it; the librealsense tests (dev) import it too
 if [[ ",$EXTRAS," == *",dev,"* || ",$EXTRAS," == *",real,"* ]] && command -v ldconfig >/dev/null \
     && ! ldconfig -p | grep -q "libusb-1.0.so.0"; then
-    if command -v apt-get >/dev/null; then
-        SUDO=""
-        if [ "$(id -u)" != 0 ]; then
-            command -v sudo >/dev/null && sudo -n true 2>/dev/null && SUDO="sudo -n" \
-                || die "pyrealsense2 needs libusb-1.0; as root run: apt-get install -y libusb-1.0-0, then re-run this script"
-        fi
-        log "installing libusb-1.0 (pyrealsense2 loads it)"
-        $SUDO apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
-    else
-        log "libusb-1.0 not found: pyrealsense2 will not import (install libusb-1.0 to use a RealSense)"
-    fi
+    apt_install libusb-1.0-0 "pyrealsense2 (the RealSense camera)"
 fi
 
 # ---------------------------------------------------------------- Python environment
