@@ -41,6 +41,8 @@ def test_sim_speed_quick_writes_json(tmp_path):
         assert set(r["ours"][mode]) >= {"mean", "std", "min", "p25", "p50", "p75", "max", "split_s", "peak_rss_mb"}
     assert r["reference_steps_per_s"]["pickcube_rgbd_84"] > 0
     assert r["ratios"]["two_workers_vs_one"] > 0 and len(r["cpu_workers"]) == 4
+    assert r["floor"]["steps_per_s"] > 0 and 0 < r["ratios"]["rgbd_fraction_of_floor"] < 1.5
+    assert r["ratios"]["two_workers_vs_one_state"] > 0
     assert "## Action time" in run.stdout and (tmp_path / "p.png").stat().st_size > 1000
 
 
@@ -198,7 +200,7 @@ def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
     assert "| dagger-state | state | 2 | 0.94 |" in text
 
 
-def test_batched_benchmark_loop_runs_with_auto_reset():
+def _sim_speed_module():
     import importlib.util
 
     bench = REPO / "benchmarks"
@@ -210,6 +212,17 @@ def test_batched_benchmark_loop_runs_with_auto_reset():
         spec.loader.exec_module(mod)
     finally:
         sys.path.remove(str(bench))
+    return mod
+
+
+def test_floor_times_physics_substeps_and_one_rgbd_frame():
+    r = _sim_speed_module().measure_floor("TableClearing-IRB120-v1", steps=5, seed=0, warmup=2)
+    assert len(r["times"]) == 5 and min(r["times"]) > 0
+    assert r["substeps"] == 5 and r["pictures"] == ["Color", "PositionSegmentation"]
+
+
+def test_batched_benchmark_loop_runs_with_auto_reset():
+    mod = _sim_speed_module()
     r = mod.measure_batched("TableClearing-IRB120-v1", 1, steps=260, seed=0, backend="inprocess", obs_mode="state")
     assert r["env_steps_per_s"] > 0
     assert r["episodes_finished"] >= 1  # random actions collide or time out at 250 steps: auto-reset ran
