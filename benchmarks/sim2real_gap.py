@@ -1,9 +1,11 @@
-"""The sim-vs-real table on the emulator's digital twin: ``sim2real-eval`` for one policy with no shift, each
-shift alone, and all of them together. Prints a markdown table, writes JSON (and each run's report under
-``--out``).
+"""The sim-vs-real table on the emulator's digital twin: ``sim2real-eval`` for one or more policies with no shift,
+each shift alone, and all of them together. Prints a markdown table and, over all (policy, shift) cells, the
+agreement of sim and twin success (MMRV and Pearson r, as SimplerEnv reports them); writes JSON (and each run's
+report under ``--out``).
 
     .venv/bin/python benchmarks/sim2real_gap.py --episodes 10 --json benchmarks/results/sim2real_gap.json
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera none --shifts none "all together"
+    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT_A CKPT_B --camera twin --episodes 30
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Optional
 import tyro
 
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
+from maniskill_irb120.sim2real.report import agreement
 
 SHIFTS = {
     "none": None,
@@ -36,8 +39,9 @@ SHIFTS["all together"] = ",".join(v for v in SHIFTS.values() if v)
 
 @dataclass
 class Args:
-    policy: str = "expert"
-    """'expert' or a checkpoint of agents.ppo, agents.dagger or agents.sac"""
+    policy: tuple[str, ...] = ("expert",)
+    """'expert' or checkpoints of agents.ppo, agents.dagger or agents.sac; with several, every one runs every
+    row and the sim/twin agreement (MMRV, Pearson r) is over all (policy, shift) cells"""
     camera: str = "twin"
     """twin (the twin's render) or none (a state policy: no frames rendered for it)"""
     shifts: tuple[str, ...] = ()
@@ -53,60 +57,78 @@ def main(args: Args) -> dict:
     if unknown:
         raise ValueError(f"--shifts {unknown}: the rows are {list(SHIFTS)}")
     rows = []
-    for name, shift in SHIFTS.items():
-        if args.shifts and name not in args.shifts:
-            continue
-        t0 = time.time()
-        r = evaluate(
-            EvalConfig(
-                policy=args.policy,
-                camera=args.camera,
-                episodes=args.episodes,
-                seed=args.seed,
-                shift=shift,
-                out=args.out / name.replace(" ", "_").replace("/", "_"),
+    for policy in args.policy:
+        for name, shift in SHIFTS.items():
+            if args.shifts and name not in args.shifts:
+                continue
+            t0 = time.time()
+            sub = name.replace(" ", "_").replace("/", "_")
+            r = evaluate(
+                EvalConfig(
+                    policy=policy,
+                    camera=args.camera,
+                    episodes=args.episodes,
+                    seed=args.seed,
+                    shift=shift,
+                    out=args.out / (sub if len(args.policy) == 1 else f"{Path(policy).parent.parent.name}_{sub}"),
+                )
             )
-        )
-        rows.append(
-            dict(
-                shift=name,
-                spec=shift,
-                sim_success=r["sim"]["success"],
-                real_success=r["real"]["success"],
-                real_grasp=r["real"]["grasped"],
-                real_drop=r["real"]["dropped"],
-                real_collision=r["real"]["collided"],
-                tcp_dev_mean_mm=1000 * r["deviation"]["tcp_m"].get("mean", float("nan")),
-                latency_p50_ms=r["command_latency_ms"].get("p50"),
-                refused=r["refused"]["total"],
-                wall_s=time.time() - t0,
+            rows.append(
+                dict(
+                    policy=policy,
+                    shift=name,
+                    spec=shift,
+                    sim_success=r["sim"]["success"],
+                    real_success=r["real"]["success"],
+                    real_grasp=r["real"]["grasped"],
+                    real_drop=r["real"]["dropped"],
+                    real_collision=r["real"]["collided"],
+                    tcp_dev_mean_mm=1000 * r["deviation"]["tcp_m"].get("mean", float("nan")),
+                    latency_p50_ms=r["command_latency_ms"].get("p50"),
+                    refused=r["refused"]["total"],
+                    late_steps=r["late_steps"],
+                    wall_s=time.time() - t0,
+                )
             )
-        )
+    scored = [r for r in rows if r["real_success"] is not None]
+    pairs = [r["sim_success"] for r in scored], [r["real_success"] for r in scored]
+    agree = agreement(*pairs) if len(scored) > 1 else None
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
         command=" ".join(sys.argv),
         machine=platform.platform(),
-        policy=args.policy,
+        policy=list(args.policy),
         episodes=args.episodes,
         seed=args.seed,
         rows=rows,
+        agreement=agree,
     )
-    print(f"policy {args.policy} (camera {args.camera}), {args.episodes} episodes from seed {args.seed}, emulator twin")
+    print(f"policies {', '.join(args.policy)} (camera {args.camera}), {args.episodes} episodes from seed {args.seed}")
     print(
-        "| shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
+        "| policy | shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
         "| round trip p50 (ms) | refused |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['shift']} | {100 * r['sim_success']:.0f} % | {100 * r['real_success']:.0f} % | "
+            f"| {_short(r['policy'])} | {r['shift']} | {100 * r['sim_success']:.0f} % | "
+            f"{100 * r['real_success']:.0f} % | "
             f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
             f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} |"
         )
+    if agree is not None:
+        pearson = "undefined (one side constant)" if agree["pearson"] is None else f"{agree['pearson']:.2f}"
+        print(f"sim/twin agreement over {agree['pairs']} cells: MMRV {agree['mmrv']:.3f}, Pearson r {pearson}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=2))
     return out
+
+
+def _short(policy: str) -> str:
+    """A checkpoint's run name (runs/NAME/checkpoints/latest.pt), or 'expert'."""
+    path = Path(policy)
+    return path.parent.parent.name if path.suffix == ".pt" else policy
 
 
 if __name__ == "__main__":

@@ -105,3 +105,20 @@ def _plots(out: Path, rows: list) -> list[str]:
         plt.close(fig)
         names.append("hand_camera.png")
     return names
+
+
+def agreement(sim: list[float], real: list[float]) -> dict:
+    """How well the sim's success rates predict the real side's over paired evaluations (checkpoints x shifts), as
+    SimplerEnv reports it. MMRV (mean maximum rank violation, 0 = the sim orders every pair as the real side does):
+    for each evaluation i, the largest real-success gap |R_i - R_j| among the evaluations j the sim orders the
+    other way round, averaged over i. Pearson r of the two success vectors: None when either side is constant
+    (a single checkpoint against nominal sim seeds has one sim rate for every shift)."""
+    s, r = np.asarray(sim, dtype=np.float64), np.asarray(real, dtype=np.float64)
+    if s.shape != r.shape or s.ndim != 1 or len(s) < 2:
+        raise ValueError(f"agreement needs two equal-length lists of >= 2 success rates, got {s.shape} and {r.shape}")
+    if not (np.isfinite(s).all() and np.isfinite(r).all()):
+        raise ValueError("agreement: success rates must be finite (an unscored real episode has no rate)")
+    violated = (s[:, None] < s[None, :]) != (r[:, None] < r[None, :])
+    mmrv = float((np.abs(r[:, None] - r[None, :]) * violated).max(axis=1).mean())
+    pearson = None if np.ptp(s) == 0 or np.ptp(r) == 0 else float(np.corrcoef(s, r)[0, 1])
+    return dict(mmrv=mmrv, pearson=pearson, pairs=len(s))

@@ -108,7 +108,7 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
     assert [row["shift"] for row in r["rows"]] == ["none"] and r["rows"][0]["real_success"] in (0.0, 1.0)
-    assert "| none |" in run.stdout
+    assert "| expert | none |" in run.stdout and r["rows"][0]["late_steps"] == 0
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
 

@@ -393,3 +393,19 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     log = np.load(tmp_path / "s2r" / "logs" / "real_3.npz")
     first = log["command"][list(log["kind"]).index("tool"), :5]
     np.testing.assert_allclose(first, sent, atol=2e-3)
+
+
+# --------------------------------------------------------------------------- sim vs real agreement (SimplerEnv's metrics)
+def test_agreement_metrics_rank_violations_and_correlation():
+    from maniskill_irb120.sim2real.report import agreement
+
+    same_order = agreement([0.9, 0.5, 0.2], [0.8, 0.6, 0.1])
+    assert same_order["mmrv"] == 0.0 and same_order["pearson"] == pytest.approx(0.948, abs=1e-3)
+    # the sim ranks checkpoint 1 above 2, the real side the other way round, by a real gap of 0.3
+    swapped = agreement([0.9, 0.6, 0.5], [0.9, 0.2, 0.5])
+    assert swapped["mmrv"] == pytest.approx((0 + 0.3 + 0.3) / 3)
+    assert agreement([0.8, 0.8, 0.8], [0.7, 0.9, 0.5])["pearson"] is None  # one sim rate: no correlation
+    with pytest.raises(ValueError, match="equal-length"):
+        agreement([0.5], [0.5])
+    with pytest.raises(ValueError, match="finite"):
+        agreement([0.5, float("nan")], [0.5, 0.4])
