@@ -365,11 +365,42 @@ def check_rgbd_frames(sim_backend: str, num_envs: int, env_id: str = TABLE_CLEAR
         env.close()
 
 
+# --------------------------------------------------------------------------- appearance randomisation per env
+def appearance_verdict(colors: torch.Tensor, textured: torch.Tensor, num_envs: int) -> tuple[bool, str]:
+    """(N, 3) the table's colour in each env's own material, (N,) whether each env's table wears a texture: every
+    env its own draw (a GPU scene built from one material per builder would show one colour everywhere)."""
+    if tuple(colors.shape) != (num_envs, 3) or tuple(textured.shape) != (num_envs,):
+        return False, f"table colours {tuple(colors.shape)}, textures {tuple(textured.shape)}; expected {num_envs} envs"
+    if not bool(textured.all()):
+        return False, f"{int((~textured).sum())} envs' tables have no texture with texture=1"
+    distinct = len(torch.unique(colors, dim=0))
+    if distinct != num_envs:
+        return False, f"only {distinct} distinct table colours among {num_envs} envs (materials shared across envs)"
+    return True, f"{num_envs} envs, each table its own colour and texture"
+
+
+def check_appearance(sim_backend: str, num_envs: int, env_id: str = TABLE_CLEARING) -> tuple[bool, str]:
+    """``randomization="texture=1,color=0.3"``: each env's table has its own material, colour and texture."""
+    from maniskill_irb120.envs.appearance import render_shapes_per_env
+
+    env = make(env_id, num_envs, sim_backend, "rgbd", randomization="texture=1,color=0.3")
+    try:
+        env.reset(seed=0)
+        shapes = render_shapes_per_env(env.unwrapped.table_scene.table)
+        mats = [shapes[i][0].material for i in range(num_envs)]
+        colors = torch.tensor([list(m.base_color)[:3] for m in mats])
+        textured = torch.tensor([m.base_color_texture is not None for m in mats])
+        return appearance_verdict(colors, textured, num_envs)
+    finally:
+        env.close()
+
+
 ENV_CHECKS: dict[str, Callable[..., tuple[bool | None, str]]] = {
     "obs modes": check_obs_modes,
     "partial resets": check_partial_resets,
     "controller targets": check_controller_reset,
     "contacts": check_contacts,
     "rgbd frames": check_rgbd_frames,
+    "appearance per env": check_appearance,
 }
 """the checks that drive the envs, in report order; each takes (sim_backend, num_envs)"""

@@ -220,6 +220,7 @@ CHECK_NAMES = (
     "controller targets",
     "contacts",
     "rgbd frames",
+    "appearance per env",
     "agents.ppo",
     "agents.sac",
     "agents.dagger",

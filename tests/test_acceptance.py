@@ -31,7 +31,9 @@ def test_obs_modes_check_passes_on_cpu():
     assert ok, why
 
 
-@pytest.mark.parametrize("name", ["partial resets", "controller targets", "contacts", "rgbd frames"])
+@pytest.mark.parametrize(
+    "name", ["partial resets", "controller targets", "contacts", "rgbd frames", "appearance per env"]
+)
 def test_env_check_passes_on_cpu(name):
     result = A.timed_check(name, A.ENV_CHECKS[name], sim_backend=CPU, num_envs=1)
     assert result.status == "PASS", result.reason
@@ -219,3 +221,12 @@ def test_doctor_gpu_without_cuda_says_so_without_a_traceback():
     )
     assert out.returncode == 2
     assert "doctor --gpu: no CUDA device" in out.stderr and "Traceback" not in out.stdout + out.stderr
+
+
+def test_appearance_verdict_catches_a_material_shared_across_envs():
+    shared = torch.tensor([[0.5, 0.4, 0.3]] * 3)
+    ok, why = A.appearance_verdict(shared, torch.ones(3, dtype=torch.bool), 3)
+    assert not ok and "shared" in why
+    own = torch.tensor([[0.5, 0.4, 0.3], [0.6, 0.4, 0.3], [0.5, 0.2, 0.3]])
+    assert not A.appearance_verdict(own, torch.tensor([True, False, True]), 3)[0]
+    assert A.appearance_verdict(own, torch.ones(3, dtype=torch.bool), 3)[0]

@@ -52,6 +52,11 @@ def test_batched_rgbd_frames_have_the_policy_shape_and_differ_per_env():
     assert ok, why
 
 
+def test_appearance_randomisation_gives_each_env_its_own_materials():
+    ok, why = A.check_appearance(GPU, NUM_ENVS)
+    assert ok, why
+
+
 @pytest.mark.parametrize("trainer", R.TRAINERS)
 def test_trainer_runs_its_tiny_loop_on_the_gpu(trainer):
     ok, why = R.check_trainer(trainer, GPU, TRAINER_ENVS)
