@@ -395,7 +395,7 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     np.testing.assert_allclose(first, sent, atol=2e-3)
 
 
-# --------------------------------------------------------------------------- sim vs real agreement (SimplerEnv's metrics)
+# ----------------------------------------------------------------- sim vs real agreement (SimplerEnv's metrics)
 def test_agreement_metrics_rank_violations_and_correlation():
     from maniskill_irb120.sim2real.report import agreement
 
