@@ -148,7 +148,13 @@ class IRB120RealAgent(BaseRealAgent):
     def capture_sensor_data(self, sensor_names=None) -> None:
         if self.camera is None:
             raise RuntimeError("this real agent has no camera: use a state obs mode or pass camera=...")
-        self._frame = self.camera.read()
+        try:
+            self._frame = self.camera.read()
+        except Exception as e:
+            # a policy blind for this step must not act on the last frame: the robot stops first
+            if self.abb is not None:
+                self.abb.stop()
+            raise RuntimeError(f"camera failed ({e}); the robot was stopped") from e
 
     def get_sensor_params(self, sensor_names=None) -> dict:
         """The camera's own (the twin renders with known parameters), else the sim camera's at the synced joints:

@@ -211,6 +211,39 @@ def test_qvel_is_the_step_s_displacement_over_the_period_on_both_sides(rig):
     assert sim_obs[2]["agent"]["qvel"][0, :6].abs().max() > 0.05  # a real motion, not a drive transient
 
 
+def test_a_camera_failure_stops_the_robot_and_says_so():
+    class DroppingCamera:
+        """Delivers one frame, then fails as a camera that lost its stream does."""
+
+        def __init__(self):
+            self.frames = 0
+
+        def start(self):
+            pass
+
+        def stop(self):
+            pass
+
+        def read(self):
+            self.frames += 1
+            if self.frames > 1:
+                raise RuntimeError("no frame within 1000 ms")
+            return np.zeros((84, 84, 3), np.uint8), np.zeros((84, 84, 1), np.int16)
+
+    emu = ControllerEmulator("tcp")
+    agent = IRB120RealAgent(emu.start(), camera=DroppingCamera())
+    try:
+        agent.start()
+        agent.capture_sensor_data()
+        agent.send_tool_action(np.array([1.0, 0.0, 0.0, 0.0, 1.0]))  # a step under way
+        with pytest.raises(RuntimeError, match="camera failed .*no frame within 1000 ms.*robot was stopped"):
+            agent.capture_sensor_data()
+        assert agent.refresh().status == Status.HELD
+    finally:
+        agent.stop()
+        emu.stop()
+
+
 def test_refused_command_raises_or_holds(rig):
     env, agent = rig["env"], rig["agent"]
     env.reset(seed=5)
