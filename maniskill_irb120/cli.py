@@ -181,6 +181,20 @@ def sim2real_eval(
     return eval_main(cfg)
 
 
+def export_policy(checkpoint: str, out: str, command: str) -> int:
+    """Write a trainer checkpoint's policy section alone (no optimiser or replay state: small enough to commit)
+    to OUT, with the COMMAND that trained it; ``sim2real-eval --policy OUT`` and the benchmarks read it as they
+    read the checkpoint. Prints one JSON line (its size, kind, task)."""
+    from maniskill_irb120.policies.section import export_policy as export
+
+    try:
+        print(json.dumps(export(Path(checkpoint), Path(out), command)))
+    except (FileNotFoundError, ValueError) as e:
+        print(f"export-policy: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def sysid(log: str) -> int:
     """Fit the robot's command latency and speed scaling to a sim2real-eval run's logs (LOG/logs/real_*.npz):
     prints one JSON line (latency_s, speed_scale, RMS joint error of the fit and of the nominal robot) and
@@ -273,6 +287,7 @@ def _jog(robot: str, dev, frame: str, step_mm: float, step_deg: float) -> int:
 
 COMMANDS = {
     "doctor": doctor,
+    "export-policy": export_policy,
     "collect-demos": collect_demos,
     "expert": expert,
     "emulator": emulator,

@@ -140,3 +140,20 @@ def acting(section: dict, sampled: bool = False, device="cpu") -> Callable[[dict
     if section["kind"] == "sac":
         return lambda obs: module.act(obs, deterministic=not sampled, noise=section["init_std"])
     return module
+
+
+def export_policy(src: Path, dst: Path, command: str) -> dict:
+    """Write ``src``'s policy section alone to ``dst``: what ``sim2real-eval --policy`` and the benchmarks read,
+    without the trainer's optimiser and replay state (a committable file), with the ``command`` that trained it.
+    Returns what was written, less the weights."""
+    section = read_policy_section(src)
+    if not command.strip():
+        raise ValueError(
+            "export-policy: --command must say how the checkpoint was trained (a committed policy is "
+            "reproducible only with it)"
+        )
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    meta = dict(command=command, source=str(src), kind=section["kind"], env_id=section["env_id"], obs=section["obs"])
+    torch.save(dict(policy=section, **meta), dst)
+    return dict(meta, bytes=dst.stat().st_size, path=str(dst))

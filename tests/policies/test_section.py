@@ -56,3 +56,24 @@ def test_misuse_is_named(tmp_path):
         section_of(dict(format="someone-else/1"))
     with pytest.raises(FileNotFoundError):
         read_policy_section(tmp_path / "missing.pt")
+
+
+def test_export_keeps_the_policy_alone_and_it_acts_the_same(tmp_path):
+    from maniskill_irb120.cli import main as cli
+    from maniskill_irb120.policies.section import export_policy
+
+    dagger, config, fmt = modules()["dagger"]
+    dagger.eval()
+    section = policy_section("dagger", dagger, config, env_id=ENV, obs="state", action_frame="world")
+    src, dst = tmp_path / "latest.pt", tmp_path / "out" / "policy.pt"
+    optimiser_state = {"exp_avg": torch.randn(1_000_000)}  # what a trainer's checkpoint also carries
+    torch.save(dict(format=fmt, policy=section, optimizer=optimiser_state), src)
+    meta = export_policy(src, dst, "python -m agents.dagger --obs state --seed 7")
+    assert meta["bytes"] < src.stat().st_size / 2 and meta["kind"] == "dagger"
+    saved = torch.load(dst, weights_only=False)
+    assert saved["command"] == "python -m agents.dagger --obs state --seed 7" and "optimizer" not in saved
+    with torch.no_grad():
+        assert torch.equal(acting(read_policy_section(dst))(OBS), acting(section)(OBS))
+    with pytest.raises(ValueError, match="--command"):
+        export_policy(src, dst, " ")
+    assert cli(["export-policy", "--checkpoint", str(tmp_path / "no.pt"), "--out", str(dst), "--command", "x"]) == 2
