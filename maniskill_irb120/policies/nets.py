@@ -4,6 +4,7 @@ proprioception encoder, so a checkpoint's encoder means the same thing everywher
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import numpy as np
@@ -122,9 +123,19 @@ def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.
     return dict(obs, rgb=out[..., :3].to(rgb.dtype), depth=out[..., 3:].to(depth.dtype))
 
 
+CONSTANT_STD = 1e-3
+"""a state dimension whose spread in the fitting data is below this (SI units: m, rad, rad/s) carried no
+information there: StateNorm zeroes it instead of scaling it up"""
+
+
 class StateNorm(nn.Module):
     """Fixed per-dimension standardisation of the ``state`` vector, fitted once on the first data
-    (joint velocities and positions differ by orders of magnitude; an MLP learns faster on unit scales)."""
+    (joint velocities and positions differ by orders of magnitude; an MLP learns faster on unit scales).
+
+    A dimension that did not vary in that data (the IRB 120's axis 4, which the tool-frame IK keeps at zero; the
+    trays' fixed positions) is zeroed (std +inf): a policy cannot have learned anything from it, and scaled up by
+    the old 1e-3 floor, a real robot's 0.02° on axis 4 (float32 RAPID, the protocol's resolution) read as a
+    7-sigma joint speed and turned a state DAgger policy's grasp around on the digital twin."""
 
     def __init__(self, dim: int):
         super().__init__()
@@ -132,8 +143,9 @@ class StateNorm(nn.Module):
         self.register_buffer("std", torch.ones(dim))
 
     def fit(self, x: torch.Tensor) -> None:
+        std = x.float().std(0)
         self.mean.copy_(x.float().mean(0))
-        self.std.copy_(x.float().std(0).clamp(min=1e-3))
+        self.std.copy_(torch.where(std < CONSTANT_STD, torch.full_like(std, math.inf), std))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return dict(obs, state=(obs["state"].float() - self.mean) / self.std)

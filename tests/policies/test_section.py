@@ -77,3 +77,19 @@ def test_export_keeps_the_policy_alone_and_it_acts_the_same(tmp_path):
     with pytest.raises(ValueError, match="--command"):
         export_policy(src, dst, " ")
     assert cli(["export-policy", "--checkpoint", str(tmp_path / "no.pt"), "--out", str(dst), "--command", "x"]) == 2
+
+
+def test_state_norm_zeroes_what_never_varied_and_scales_the_rest():
+    """A dimension constant in the fitting data (axis 4 in the sim) must not amplify a real robot's 0.02° on it."""
+    from maniskill_irb120.policies.nets import StateNorm
+
+    torch.manual_seed(0)
+    data = torch.randn(500, 3) * torch.tensor([0.5, 1e-5, 0.02])  # a joint, a constant axis, a gripper opening
+    norm = StateNorm(3)
+    norm.fit(data)
+    real = torch.tensor([[0.5, 3.5e-4, 0.02]])  # the constant axis off by 0.02 degrees
+    out = norm({"state": real})["state"][0]
+    assert out[1] == 0.0 and torch.isfinite(out).all()
+    expected = (real[0] - data.mean(0)) / data.std(0)
+    torch.testing.assert_close(out[[0, 2]], expected[[0, 2]], rtol=1e-4, atol=1e-6)
+    assert norm.std[1] == float("inf")
