@@ -70,7 +70,7 @@ def main(args: Args) -> dict:
                     episodes=args.episodes,
                     seed=args.seed,
                     shift=shift,
-                    out=args.out / (sub if len(args.policy) == 1 else f"{Path(policy).parent.parent.name}_{sub}"),
+                    out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
                 )
             )
             rows.append(
@@ -126,9 +126,11 @@ def main(args: Args) -> dict:
 
 
 def _short(policy: str) -> str:
-    """A checkpoint's run name (runs/NAME/checkpoints/latest.pt), or 'expert'."""
+    """A checkpoint's run name (runs/NAME/checkpoints/latest.pt), an exported policy's file name, or 'expert'."""
     path = Path(policy)
-    return path.parent.parent.name if path.suffix == ".pt" else policy
+    if path.suffix != ".pt":
+        return policy
+    return path.parent.parent.name if path.parent.name == "checkpoints" else path.stem
 
 
 if __name__ == "__main__":
