@@ -4,7 +4,6 @@ proprioception encoder, so a checkpoint's encoder means the same thing everywher
 
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np
@@ -145,7 +144,7 @@ class StateNorm(nn.Module):
     def fit(self, x: torch.Tensor) -> None:
         std = x.float().std(0)
         self.mean.copy_(x.float().mean(0))
-        self.std.copy_(torch.where(std < CONSTANT_STD, torch.full_like(std, math.inf), std))
+        self.std.copy_(torch.where(std < CONSTANT_STD, torch.full_like(std, float("inf")), std))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return dict(obs, state=(obs["state"].float() - self.mean) / self.std)
