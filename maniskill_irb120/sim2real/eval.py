@@ -154,10 +154,17 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
             from maniskill_irb120.sim2real.cameras import RealSenseCamera
 
             camera = RealSenseCamera()
-    agent = IRB120RealAgent(
-        url, camera=camera, command_mode=cfg.command_mode, finger_qpos=twin.finger_qpos if twin else None
-    )
-    env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold", step_end=cfg.step_end)
+    try:
+        agent = IRB120RealAgent(
+            url, camera=camera, command_mode=cfg.command_mode, finger_qpos=twin.finger_qpos if twin else None
+        )
+        env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold", step_end=cfg.step_end)
+    except BaseException:  # a refused setting (e.g. --step-end) must not leave the emulator serving
+        if emulator is not None:
+            emulator.stop()
+        if twin is not None:
+            twin.close()
+        raise
     return env, agent, twin, emulator
 
 

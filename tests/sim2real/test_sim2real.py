@@ -392,6 +392,17 @@ def test_sim2real_eval_names_bad_setups(tmp_path):
         evaluate(EvalConfig(policy=str(bogus), out=tmp_path))
 
 
+def test_a_refused_step_end_is_named_and_the_emulator_stopped(tmp_path, monkeypatch):
+    from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
+
+    stopped = []
+    stop = ControllerEmulator.stop
+    monkeypatch.setattr(ControllerEmulator, "stop", lambda self: (stopped.append(self), stop(self))[1])
+    with pytest.raises(ValueError, match="step_end='soon'"):
+        evaluate(EvalConfig(episodes=1, step_end="soon", out=tmp_path))
+    assert len(stopped) == 1 and stopped[0].error is None
+
+
 def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     """A learned world-frame policy that sees no joint speeds, through the adapter: what goes over the wire is its
     action rotated into the tool frame by the TCP at that state, the same on both sides."""
