@@ -136,10 +136,9 @@ class IRB120RealAgent(BaseRealAgent):
         jump between the open and the closed stroke (the pneumatic gripper has no position feedback)."""
         if self._step_start is None or self.state is None:
             return torch.zeros(1, 8)
-        sim_agent = self.__dict__.get("_sim_agent")
-        if sim_agent is None:
+        if self._sim_agent is None:
             raise RuntimeError("qvel is per control period: the sim agent's frequency is needed (Sim2RealEnv sets it)")
-        freq = float(sim_agent._control_freq)
+        freq = float(self._sim_agent._control_freq)
         return ((self.get_qpos()[0] - torch.as_tensor(self._step_start, dtype=torch.float32)) * freq)[None]
 
     def get_proprioception(self) -> dict:

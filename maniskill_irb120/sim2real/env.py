@@ -43,7 +43,7 @@ from maniskill_irb120.abb.protocol import Status
 from maniskill_irb120.envs.contract import EnvContractMixin
 from maniskill_irb120.sim2real.agent import IRB120RealAgent
 
-STEP_REFUSAL = ("raise", "hold")
+ON_REFUSAL = ("raise", "hold")
 STEP_ENDS = ("arrived", "period")
 # ManiSkill's own private state that its BaseEnv methods (run with this env as ``self``) read from the sim
 _SIM_PRIVATE = frozenset({"_sensors", "_sensor_configs", "_hidden_objects", "_human_render_cameras"})
@@ -77,8 +77,8 @@ class IRB120Sim2RealEnv(Sim2RealEnv):
         ``step_end``: ``"arrived"`` (a step ends when the robot stands at its target, at the earliest after one
         control period, at the latest ``arrive_timeout_s`` after the command: a later step is counted in
         ``late_steps`` and ``info["late"]``) or ``"period"`` (every step one control period)."""
-        if on_refusal not in STEP_REFUSAL:
-            raise ValueError(f"on_refusal={on_refusal!r}: use one of {STEP_REFUSAL}")
+        if on_refusal not in ON_REFUSAL:
+            raise ValueError(f"on_refusal={on_refusal!r}: use one of {ON_REFUSAL}")
         if step_end not in STEP_ENDS:
             raise ValueError(f"step_end={step_end!r}: use one of {STEP_ENDS}")
         if not arrive_timeout_s > 0:
