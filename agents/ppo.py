@@ -79,6 +79,11 @@ class Args(RunArgs):
     """weight of KL(policy || N(base action, exp(init_logstd))) in the loss; needs --base-checkpoint"""
     init_logstd: float = -0.5
     """initial log std of the Gaussian policy (a fine-tuned policy wants little noise, e.g. -2)"""
+    state_net: Literal["shared", "mlp"] = "shared"
+    """shared: the camera encoder's state MLP under both heads; mlp: ManiSkill's state PPO network (separate
+    3x256 tanh actor and critic), for --obs state"""
+    obs_norm: bool = False
+    """standardise the state vector by running statistics kept in the policy (updated between updates)"""
     num_envs: int = 2
     """training envs: CPU worker processes, or the size of one GPU-batched env"""
     num_eval_envs: int = 1
@@ -209,14 +214,23 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
     checked against the envs' observation and action frame."""
     image_shape, state_dim = shapes_of(envs.single_observation_space)
     residual = residual or args.base_checkpoint is not None
-    agent = Agent(image_shape, state_dim, int(np.prod(envs.single_action_space.shape)), residual, args.init_logstd)
+    agent = Agent(
+        image_shape,
+        state_dim,
+        int(np.prod(envs.single_action_space.shape)),
+        residual,
+        args.init_logstd,
+        state_net=args.state_net,
+        obs_norm=args.obs_norm,
+    )
     if args.base_checkpoint is not None:
         where = f"--base-checkpoint {args.base_checkpoint}"
         section = read_policy_section(args.base_checkpoint, where)
         if section["kind"] != "dagger":
             raise ValueError(f"{where}: a {section['kind']} policy; the base is a deterministic (dagger) policy")
         base = policy_module(section, "cpu")
-        if base.signature() != {k: v for k, v in agent.signature().items() if k != "residual"}:
+        own = ("residual", "state_net", "obs_norm")  # the PPO agent's own; the base has its image and state
+        if base.signature() != {k: v for k, v in agent.signature().items() if k not in own}:
             raise ValueError(
                 f"--base-checkpoint {args.base_checkpoint}: its policy takes {base.signature()}, these envs give "
                 f"{agent.signature()} (obs={args.obs}; a base trained with --obs-without does not fit)"
@@ -268,7 +282,7 @@ def ppo_update(
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
             ent = entropy.mean()
             if critic_only:
-                value = agent.critic(agent.encoder(obs).detach()).view(-1)
+                value = agent.critic(agent.features(obs).detach()).view(-1)
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
                 loss = args.vf_coef * v_loss
             else:
@@ -363,7 +377,8 @@ def read_checkpoint(path: Path, args: Args) -> dict:
     frame = ckpt.get("args", {}).get("action_frame", "tool")
     if frame != args.action_frame:
         raise ValueError(f"checkpoint {path} acts in the {frame!r} frame; pass --action-frame {frame}")
-    ckpt["signature"] = dict(dict(residual=False), **ckpt["signature"])  # written before residual policies
+    # written before residual policies, or before the state MLP and the running normaliser
+    ckpt["signature"] = dict(dict(residual=False, state_net="shared", obs_norm=False), **ckpt["signature"])
     return ckpt
 
 
@@ -533,6 +548,8 @@ def train(args: Args) -> dict:
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
+        if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
+            agent.norm.update(batch["obs"]["state"])
         update_time = time.perf_counter() - tu
         counters["iteration"] = it
         dt = time.perf_counter() - t0
@@ -615,6 +632,11 @@ def final_evaluation(agent: Agent, args: Args, device) -> dict:
 
 
 def main(args: Args) -> dict:
+    if not args.evaluate and args.norm_adv and args.minibatch_size < 2:
+        raise ValueError(
+            f"--num-envs {args.num_envs} x --num-steps {args.num_steps} / --num-minibatches {args.num_minibatches} "
+            "gives minibatches of fewer than 2 rows: their advantages cannot be normalised (std of one value is NaN)"
+        )
     if args.kl_coef < 0:
         raise ValueError(f"--kl-coef must be >= 0, got {args.kl_coef}")
     if args.kl_coef > 0 and args.base_checkpoint is None and args.resume is None and args.checkpoint is None:

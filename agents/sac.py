@@ -455,6 +455,12 @@ def train(args: Args) -> dict:
             counters["episodes"] += int(done.sum())
             for k, v in tracker.update(info.get("final_info", info), done).items():
                 recent.setdefault(k, []).extend(v)
+            if not demos.size and not counters.get("norm_fitted") and online.size >= args.learning_starts:
+                # without demos the state normaliser is fitted on the random-action steps before learning
+                # starts: identity scales would hide the grasp's millimetres next to the joints' radians
+                model.critic.norm.fit(online.obs["state"][: online.size])
+                model.target.norm.load_state_dict(model.critic.norm.state_dict())
+                counters["norm_fitted"] = True
             if online.size >= args.learning_starts or demos.size:
                 owed += args.updates_per_step * envs.num_envs
                 while owed >= 1:

@@ -34,6 +34,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -47,9 +48,9 @@ from results_md import replace_section  # noqa: E402
 
 from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 
-# recipe -> (module, fixed flags, observation, budget: "short" = --budget-min, "long" = --long-budget-min, as the
-# issue's targets: imitation from state in 60 min; from the camera, and RL with demos, in 120 min); the budget,
-# seed and evaluation flags are added per run
+# recipe -> (module, fixed flags, observation, budget: "short" = --budget-min, "long" = --long-budget-min, "rl" =
+# --rl-budget-min, as the issues' targets: imitation from state in 60 min; from the camera, and RL with demos, in
+# 120 min; RL from the reward alone in RL_BUDGET_MIN[task]); the budget, seed and evaluation flags are added per run
 RECIPES: dict[str, tuple[str, list[str], str, str]] = {
     "dagger-state": ("agents.dagger", ["--obs", "state"], "state", "short"),
     # from the camera one 64-row update takes ~0.09 s on 2 cores, so small batches and 500 updates a round buy
@@ -64,11 +65,25 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
     ),
     # evaluated as it acts in training (see agents.sac --eval-deterministic: the mean action stalls)
     "sac-state": ("agents.sac", ["--obs", "state", "--no-eval-deterministic"], "state", "long"),
+    # PPO from the reward alone: ManiSkill's state baseline (separate 3x256 tanh actor and critic, gamma 0.8,
+    # lambda 0.9, target KL 0.1, logstd -0.5, bootstrapped truncations, partial resets) on CPU workers: 4 envs x
+    # 128 steps a rollout (ManiSkill: 512 x 50 on a GPU), so 8 epochs of 64-row minibatches, and a running
+    # observation normaliser, without which the millimetres of tcp_to_obj_pos are invisible next to metres
     "ppo-state": (
         "agents.ppo",
-        ["--obs", "state", "--num-envs", "2", "--total-timesteps", "100000000"],
+        "--obs state --state-net mlp --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
+        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --eval-freq 0 --total-timesteps 100000000".split(),
         "state",
-        "short",
+        "rl",
+    ),
+    # SAC from the reward alone: the RLPD setup (LayerNorm critics, UTD 0.5 on 2 cores) with no demo buffer, no
+    # cloning and no reference policy
+    "sac-scratch-state": (
+        "agents.sac",
+        "--obs state --demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0 --no-reference "
+        "--actor-delay 0 --no-eval-deterministic".split(),
+        "state",
+        "rl",
     ),
     # PPO fine-tuning of a DAgger policy (the base below), within the same budget: a frozen base plus a residual
     # held near it by the KL term, little exploration noise and a critic warm-up (README, "without the wash-out")
@@ -80,6 +95,9 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "short",
     ),
 }
+RL_BUDGET_MIN = {"GraspLift-IRB120-v1": 90.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
+"""RL from the reward alone, minutes per run (issue targets: GraspLift in 90, TableClearing in 150)"""
+DEFAULT_ENV = "TableClearing-IRB120-v1"
 # recipe -> (recipe that trains its --base-checkpoint, that run's share of the budget); the row's env steps
 # and wall clock are both stages', its curve the two joined, and the base's own held-out success is kept
 BASES: dict[str, tuple[str, float]] = {"ppo-finetune-state": ("dagger-state", 0.5)}
@@ -98,16 +116,28 @@ QUICK_FLAGS = {
         "--batch-size",
         "16",
     ],  # fmt: skip
-    "agents.ppo": ["--num-envs", "1", "--num-steps", "8", "--total-timesteps", "16", "--eval-freq", "0"],
+    "agents.ppo": [
+        "--num-envs",
+        "1",
+        "--num-steps",
+        "8",
+        "--num-minibatches",
+        "2",
+        "--total-timesteps",
+        "16",
+        "--eval-freq",
+        "0",
+    ],
+    "agents.sac": ["--num-envs", "1", "--learning-starts", "8", "--batch-size", "8"],
 }
-QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state")
+QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch-state")
 
 
 @dataclass
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
-    """which of dagger-state, dagger-rgbd, sac-state, ppo-state, ppo-finetune-state to train (random and the
-    expert always run)"""
+    """which of dagger-state, dagger-rgbd, sac-state, ppo-state, sac-scratch-state, ppo-finetune-state to train
+    (random and the expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
     budget_min: float = 60.0
     """wall-clock minutes per run of dagger-state, ppo-state and ppo-finetune-state (its base and fine-tuning
@@ -116,8 +146,12 @@ class Args:
     """wall-clock minutes per run of dagger-rgbd and sac-state"""
     eval_episodes: int = 100
     """held-out episodes per run and per reference (seeds agents.common.EVAL_SEED onwards)"""
-    env_id: str = "TableClearing-IRB120-v1"
-    out_dir: Path = Path("benchmarks/results/learning")
+    rl_budget_min: Optional[float] = None
+    """wall-clock minutes per run of ppo-state and sac-scratch-state (default: RL_BUDGET_MIN of the task)"""
+    env_id: str = DEFAULT_ENV
+    """the task; each has its own report (--out-dir) and its own Learning section in RESULTS.md"""
+    out_dir: Optional[Path] = None
+    """default benchmarks/results/learning, and a subfolder named after the task for the others"""
     merge: bool = False
     """keep the rows of recipes this run does not train from the existing learning.json, and a retrained recipe's
     runs of seeds this run does not train (each with the command and date it came from): a 2-core machine runs
@@ -218,7 +252,7 @@ def make_room(run_dir: Path) -> Path:
 
 def train_run(recipe: str, seed: int, args: Args) -> dict:
     module, flags, obs, kind = RECIPES[recipe]
-    budget = args.long_budget_min if kind == "long" else args.budget_min
+    budget = dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
     if recipe not in BASES:
         return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
     base_recipe, share = BASES[recipe]
@@ -354,9 +388,27 @@ def earlier_runs(path: Path, recipe: str, seeds: list[int]) -> list[dict]:
     return []
 
 
+def section_head(env_id: str) -> str:
+    """The RESULTS.md heading of a task's Learning section (TableClearing's predates the others)."""
+    if env_id == DEFAULT_ENV:
+        return "## Learning — `benchmarks/learning.py`"
+    return f"## Learning on {env_id} — `benchmarks/learning.py --env-id {env_id}`"
+
+
+def default_out_dir(env_id: str) -> Path:
+    base = Path("benchmarks/results/learning")
+    return base if env_id == DEFAULT_ENV else base / env_id
+
+
 def update_results(report: dict, table: str, results: Path) -> None:
-    """Replace the ``## Learning`` section of RESULTS.md (up to the next ``## ``) with this run's."""
-    head = "## Learning — `benchmarks/learning.py`"
+    """Replace the task's ``## Learning`` section of RESULTS.md (up to the next ``## ``) with this run's."""
+    head = section_head(report.get("env_id", DEFAULT_ENV))
+    raw = Path(report.get("out_dir", "benchmarks/results/learning"))
+    raw = (raw if raw.is_absolute() else ROOT / raw).resolve()
+    try:
+        raw = raw.relative_to((ROOT / "benchmarks").resolve())
+    except ValueError:  # a report written outside the repository links to where it lies
+        pass
     earlier = "".join(
         f"{r['recipe']}: `{r['command']}` ({r['date']}); "
         for r in report["rows"]
@@ -374,8 +426,8 @@ def update_results(report: dict, table: str, results: Path) -> None:
         f"{head}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}, "
         f"{report['wall_min']:.0f} min).{earlier} Held-out seeds {EVAL_SEED}.. "
         f"({report['eval_episodes']} episodes per run); "
-        f"raw data: [`results/learning/learning.json`](results/learning/learning.json).\n\n{table}\n\n"
-        "![learning curves](results/learning/learning.png)\n\n"
+        f"raw data: [`{raw}/learning.json`]({raw}/learning.json).\n\n{table}\n\n"
+        f"![learning curves]({raw}/learning.png)\n\n"
     )
     replace_section(results, head, section)
 
@@ -387,6 +439,11 @@ def main(args: Args) -> dict:
     if args.quick:
         args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
         args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
+        args.rl_budget_min = 0.05
+    if args.env_id not in RL_BUDGET_MIN:
+        raise ValueError(f"unknown --env-id {args.env_id!r}; choose from {sorted(RL_BUDGET_MIN)}")
+    args.out_dir = args.out_dir or default_out_dir(args.env_id)
+    args.rl_budget_min = args.rl_budget_min or RL_BUDGET_MIN[args.env_id]
     args.out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)
     t0 = time.time()
@@ -407,8 +464,11 @@ def main(args: Args) -> dict:
         machine=f"{platform.node()} {platform.machine()}, {torch.get_num_threads()} torch threads",
         wall_min=(time.time() - t0) / 60,
         eval_episodes=args.eval_episodes,
+        env_id=args.env_id,
+        out_dir=str(args.out_dir),
         budget_min=args.budget_min,
         long_budget_min=args.long_budget_min,
+        rl_budget_min=args.rl_budget_min,
         rows=rows,
     )
     (args.out_dir / "learning.json").write_text(json.dumps(report, indent=1))

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error
 
 ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
@@ -34,7 +34,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     =====  ===========================  =============================================  ========
     stage  state                        dense                                          range
     =====  ===========================  =============================================  ========
-    0      not grasped                  1 - tanh(3·TCP-object distance)                [0, 1)
+    0      not grasped                  grasp approach (envs/base.py)                  [0, 1)
     1      grasped, below 10 cm         1 + height / 10 cm                             [1, 2)
     2      grasped and lifted           2 + hold_steps / 20 (0 while it moves)         [2, 3)
     4      success                      4                                              4
@@ -90,10 +90,10 @@ class GraspLiftIRB120Env(IRB120TableEnv):
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
-        reach = reach_reward(torch.linalg.norm(self.step_state["obj_pose"][:, :3] - self.tcp_pose[:, :3], dim=1))
+        reach = grasp_approach_reward(self.step_state["obj_pose"], self.tcp_pose)
         lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
         hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
         reward = torch.where(info["lifted"], 2 + hold, 1 + lift)
-        reward = torch.where(info["grasped"], reward, reach.clamp(max=0.999))
+        reward = torch.where(info["grasped"], reward, reach)
         reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         return torch.where(info["fail"], 0.0, reward)

@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error, reach_reward
 from maniskill_irb120.envs.scene import TRAY_INNER
 
 ENV_ID = "StackCube-IRB120-v1"
@@ -38,7 +38,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
     =====  ==============================  ===========================================  ==========
     stage  state                           dense                                        range
     =====  ==============================  ===========================================  ==========
-    0      cube_a not grasped              1 - tanh(3·TCP-cube_a distance)              [0, 1)
+    0      cube_a not grasped              grasp approach to cube_a (envs/base.py)      [0, 1)
     1      grasped                         1 + 1 - tanh(3·cube_a-place distance)        [1, 2)
     2      stacked, fingers on cube_a      2 held, 2.5 opening                          [2, 2.5]
     3      stacked, released, not still    3                                            3
@@ -112,7 +112,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
         a_p = self.step_state["cube_a_pose"][:, :3]
-        reach = reach_reward(torch.linalg.norm(a_p - self.tcp_pose[:, :3], dim=1)).clamp(max=0.999)
+        reach = grasp_approach_reward(self.step_state["cube_a_pose"], self.tcp_pose)
         goal = place_on(self.step_state["cube_b_pose"], self.object_half_size)
         place = reach_reward(torch.linalg.norm(goal - a_p, dim=1)).clamp(max=0.999)
         # on cube_b: held 2, opening (touched, not squeezed) 2.5, released 3 (and still: success)

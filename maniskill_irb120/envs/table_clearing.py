@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_yaw_error, reach_reward
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error, reach_reward
 from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -54,7 +54,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
     =====  ==========================================  ==========================================  ==========
     stage  state                                       dense (normalised = this / 4)               range
     =====  ==========================================  ==========================================  ==========
-    0      not held                                    1 - tanh(3·TCP-object distance)             [0, 1)
+    0      not held                                    grasp approach (envs/base.py)              [0, 1)
     1      held (``held``), below 5 cm                 1 + height above the floor / 5 cm           [1, 2)
     2      ``grasped`` (held, >= 5 cm up)              2 + 1 - tanh(3·distance to the place)       [2, 3)
     3      over the dest tray, held or let go in it    3 + 1 - tanh(3·distance to the place)       [3, 4)
@@ -163,7 +163,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
         with progress in [0, 1) (the table in the class docstring). Not the dense reward (that is the original
         report's), so this one is the task's own rather than the base's dense / MAX_STAGED_REWARD."""
         obj_p = self.step_state["obj_pose"][:, :3]
-        reach = reach_reward(torch.linalg.norm(obj_p - self.tcp_pose[:, :3], dim=1)).clamp(max=0.999)
+        reach = grasp_approach_reward(self.step_state["obj_pose"], self.tcp_pose)
         lift = ((obj_p[:, 2] - self.source_center[:, 2]) / GRASP_LIFT).clamp(0, 0.999)
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size

@@ -150,6 +150,42 @@ class StateNorm(nn.Module):
         return dict(obs, state=(obs["state"].float() - self.mean) / self.std)
 
 
+class RunningNorm(nn.Module):
+    """Standardisation of the ``state`` vector by running statistics (gym's ``NormalizeObservation``, kept in the
+    policy so a checkpoint acts as it trained), clipped to ±``clip``.
+
+    For learners from scratch, whose data changes as they learn: the state mixes metres of position with the
+    millimetres a grasp needs (``tcp_to_obj_pos``), and only unit scales let an MLP resolve both. The trainer
+    calls :meth:`update` between updates, never inside one (the log-probabilities of a rollout stay valid);
+    a dimension that has not varied is zeroed, as in :class:`StateNorm`."""
+
+    def __init__(self, dim: int, clip: float = 10.0):
+        super().__init__()
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("var", torch.ones(dim))
+        self.register_buffer("count", torch.zeros(()))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge a batch's (B, dim) moments into the running ones (Chan et al.'s parallel algorithm)."""
+        x = x.float().reshape(-1, self.mean.numel())
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, var = x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_((self.var * self.count + var * n + delta**2 * self.count * n / total) / total)
+        self.mean.add_(delta * n / total)
+        self.count.copy_(total)
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        std = self.var.sqrt()
+        std = torch.where(std < CONSTANT_STD, torch.full_like(std, float("inf")), std)
+        return dict(obs, state=((obs["state"].float() - self.mean) / std).clamp(-self.clip, self.clip))
+
+
 class DeterministicActor(nn.Module):
     """Observation -> action in [-1, 1]: the shared encoder, then a 2-layer MLP and tanh (BC, DAgger)."""
 

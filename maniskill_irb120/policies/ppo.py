@@ -1,5 +1,7 @@
 """The PPO actor-critic (``agents.ppo`` trains it): a shared encoder, a Gaussian policy head with a
-state-independent log-std, a value head; optionally a frozen deterministic base policy under a residual."""
+state-independent log-std, a value head; optionally a frozen deterministic base policy under a residual.
+From state it can instead be ManiSkill's state PPO network (separate 3x256 tanh actor and critic) behind a
+running observation normaliser, the pair RL from the reward alone uses."""
 
 from __future__ import annotations
 
@@ -8,28 +10,61 @@ import torch
 import torch.nn as nn
 from torch.distributions.normal import Normal
 
-from maniskill_irb120.policies.nets import DeterministicActor, NatureCNN, layer_init
+from maniskill_irb120.policies.nets import DeterministicActor, NatureCNN, RunningNorm, layer_init
+
+STATE_NETS = ("shared", "mlp")
 
 
 class Agent(nn.Module):
     """Shared encoder, separate policy and value heads, state-independent log-std; with ``residual`` the mean is a
     frozen base policy's action plus the actor head's output (a zero-initialised residual)."""
 
-    def __init__(self, image_shape, state_dim: int, action_dim: int, residual: bool = False, init_logstd: float = -0.5):
+    def __init__(
+        self,
+        image_shape,
+        state_dim: int,
+        action_dim: int,
+        residual: bool = False,
+        init_logstd: float = -0.5,
+        state_net: str = "shared",
+        obs_norm: bool = False,
+    ):
         super().__init__()
+        if state_net not in STATE_NETS:
+            raise ValueError(f"unknown state_net {state_net!r}; expected one of {STATE_NETS}")
+        if state_net == "mlp" and (image_shape is not None or residual):
+            raise ValueError("state_net='mlp' is ManiSkill's state PPO network: no camera, no residual base")
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
-        self.init_logstd = init_logstd
+        self.init_logstd, self.state_net = init_logstd, state_net
+        self.norm = RunningNorm(state_dim) if obs_norm else None
         self.base = DeterministicActor(image_shape, state_dim, action_dim).requires_grad_(False) if residual else None
-        self.encoder = NatureCNN(image_shape, state_dim)
-        d = self.encoder.out_dim
-        self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
-        self.actor_mean = nn.Sequential(
-            layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2))
-        )
+        if state_net == "mlp":  # ManiSkill's examples/baselines/ppo/ppo.py Agent, sizes and initialisation
+            self.encoder = nn.Identity()
+            self.critic = nn.Sequential(
+                *(m for i in range(3) for m in (layer_init(nn.Linear(state_dim if i == 0 else 256, 256)), nn.Tanh())),
+                layer_init(nn.Linear(256, 1)),
+            )
+            self.actor_mean = nn.Sequential(
+                *(m for i in range(3) for m in (layer_init(nn.Linear(state_dim if i == 0 else 256, 256)), nn.Tanh())),
+                layer_init(nn.Linear(256, action_dim), std=0.01 * np.sqrt(2)),
+            )
+        else:
+            self.encoder = NatureCNN(image_shape, state_dim)
+            d = self.encoder.out_dim
+            self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
+            self.actor_mean = nn.Sequential(
+                layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2))
+            )
         if residual:
             nn.init.zeros_(self.actor_mean[-1].weight)
             nn.init.zeros_(self.actor_mean[-1].bias)
         self.actor_logstd = nn.Parameter(torch.full((1, action_dim), float(init_logstd)))
+
+    def features(self, obs) -> torch.Tensor:
+        """What the heads read: the encoder's features, or (``state_net='mlp'``) the normalised state."""
+        if self.norm is not None:
+            obs = self.norm(obs)
+        return self.encoder(obs["state"].float()) if self.state_net == "mlp" else self.encoder(obs)
 
     def signature(self) -> dict:
         return dict(
@@ -37,6 +72,8 @@ class Agent(nn.Module):
             state_dim=self.state_dim,
             action_dim=self.action_dim,
             residual=self.base is not None,
+            state_net=self.state_net,
+            obs_norm=self.norm is not None,
         )
 
     def mean(self, obs, x: torch.Tensor) -> torch.Tensor:
@@ -56,16 +93,16 @@ class Agent(nn.Module):
         return kl.sum(1)
 
     def get_value(self, obs) -> torch.Tensor:
-        return self.critic(self.encoder(obs))
+        return self.critic(self.features(obs))
 
     def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
-        mean = self.mean(obs, self.encoder(obs))
+        mean = self.mean(obs, self.features(obs))
         if deterministic:
             return mean
         return Normal(mean, self.actor_logstd.expand_as(mean).exp()).sample()
 
     def get_action_and_value(self, obs, action=None, with_mean: bool = False):
-        x = self.encoder(obs)
+        x = self.features(obs)
         mean = self.mean(obs, x)
         dist = Normal(mean, self.actor_logstd.expand_as(mean).exp())
         if action is None:

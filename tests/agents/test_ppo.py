@@ -195,3 +195,44 @@ def test_fine_tuning_a_dagger_policy_with_kl_resume_and_evaluate(tmp_path):
         run(tmp_path, obs="state", base_checkpoint=Path(base["checkpoint"]))
     with pytest.raises(ValueError, match="give --base-checkpoint"):
         run(tmp_path, obs="state", kl_coef=1.0)
+
+
+def test_running_norm_merges_batches_like_one_and_zeroes_constant_dims():
+    from maniskill_irb120.policies.nets import RunningNorm
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(300, 3, generator=g) * torch.tensor([2.0, 0.005, 0.0]) + torch.tensor([1.0, 0.5, 7.0])
+    norm = RunningNorm(3)
+    for part in x.split([10, 90, 200]):
+        norm.update(part)
+    assert torch.allclose(norm.mean, x.mean(0), atol=1e-5)
+    assert torch.allclose(norm.var, x.var(0, unbiased=False), rtol=1e-4, atol=1e-9)
+    out = norm(dict(state=x))["state"]
+    assert abs(float(out[:, 0].std()) - 1.0) < 0.01  # metres to unit scale
+    assert abs(float(out[:, 1].std()) - 1.0) < 0.01  # millimetres to unit scale (a grasp's precision)
+    assert float(out[:, 2].abs().max()) == 0.0  # never varied: zeroed, not amplified
+    assert float(norm(dict(state=torch.full((1, 3), 1e6)))["state"].max()) == 10.0  # clipped
+
+
+def test_state_mlp_with_obs_norm_trains_saves_and_acts_the_same_after_loading(tmp_path):
+    """The from-scratch recipe's network: its normaliser learns from the rollouts and travels with the policy."""
+    from maniskill_irb120.policies import policy_module, read_policy_section
+
+    res = run(tmp_path, obs="state", state_net="mlp", obs_norm=True, env_id="GraspLift-IRB120-v1")
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["signature"]["state_net"] == "mlp" and saved["signature"]["obs_norm"]
+    assert float(saved["model"]["norm.count"]) == 16  # two iterations of 8 steps (the first acted unnormalised)
+    module = policy_module(read_policy_section(Path(res["checkpoint"])))
+    agent = Agent(None, module.state_dim, module.action_dim, state_net="mlp", obs_norm=True)
+    agent.load_state_dict(saved["model"])
+    obs = dict(state=torch.randn(4, module.state_dim))
+    assert torch.equal(module.get_action(obs, deterministic=True), agent.get_action(obs, deterministic=True))
+    with pytest.raises(ValueError, match="no camera"):
+        Agent((84, 84, 4), 20, 5, state_net="mlp")
+    with pytest.raises(ValueError, match="unknown state_net"):
+        Agent(None, 20, 5, state_net="wide")
+
+
+def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
+    with pytest.raises(ValueError, match="fewer than 2 rows"):
+        run(tmp_path, obs="state", num_envs=1, num_steps=4, num_minibatches=4)

@@ -237,3 +237,16 @@ def test_replay_sizes_fit_the_observation():
     assert online_rows(Args(obs="state")) == 300_000 and online_rows(Args(obs="rgbd")) == 50_000  # ~3.5 GB
     assert online_rows(Args(obs="rgbd", buffer_size=100_000)) == 100_000
     assert demo_rows(Args(demo_episodes=30, num_envs=2)) == 32 * 250 and demo_rows(Args(demo_episodes=0)) >= 1
+
+
+def test_without_demos_the_normaliser_is_fitted_on_the_steps_before_learning(tmp_path):
+    """SAC from the reward alone (the sac-scratch-state recipe): no demos to fit StateNorm on, so the random
+    steps before ``learning_starts`` are; target and online critics share it."""
+    res = tiny(
+        tmp_path, demo_episodes=0, bc_pretrain_updates=0, critic_warmup_updates=0, reference=False, actor_delay=0
+    )
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["counters"]["norm_fitted"] and res["updates"] > 0
+    std, mean = saved["model"]["critic.norm.std"], saved["model"]["critic.norm.mean"]
+    assert torch.isfinite(std).sum() > 10 and not torch.all(mean == 0)  # fitted, not the identity
+    assert torch.equal(saved["model"]["target.norm.std"], std)

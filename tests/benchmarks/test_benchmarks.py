@@ -227,3 +227,24 @@ def test_batched_benchmark_loop_runs_with_auto_reset():
     assert r["env_steps_per_s"] > 0
     assert r["episodes_finished"] >= 1  # random actions collide or time out at 250 steps: auto-reset ran
     assert not math.isnan(r["env_steps_per_s"]) and np.isfinite(r["gpu_mem_used_gb"])
+
+
+def test_learning_keeps_one_section_per_task(tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+
+    results = tmp_path / "RESULTS.md"
+    results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\ntable clearing\n\n## Next\n")
+    row = dict(recipe="ppo-state", obs="state", seeds=[1], success_mean=0.5, success_ci95=[0.4, 0.6], success_iqm=0.5)
+    row.update(per_seed=[0.5], env_steps_mean=10, wall_clock_min_mean=1.0, runs=[])
+    report = dict(command="python benchmarks/learning.py --env-id GraspLift-IRB120-v1", date="d", machine="m")
+    report.update(wall_min=1, eval_episodes=100, rows=[row], env_id="GraspLift-IRB120-v1")
+    report["out_dir"] = str(learning.default_out_dir("GraspLift-IRB120-v1"))
+    learning.update_results(report, learning.markdown(report["rows"]), results)
+    text = results.read_text()
+    assert "table clearing" in text and "## Next" in text  # TableClearing's section is left alone
+    head = "## Learning on GraspLift-IRB120-v1 — `benchmarks/learning.py --env-id GraspLift-IRB120-v1`"
+    assert head in text and "(results/learning/GraspLift-IRB120-v1/learning.json)" in text
+    assert "| ppo-state | state | 1 | 0.50 |" in text
+    with pytest.raises(ValueError, match="unknown --env-id"):
+        learning.main(learning.Args(env_id="PickCube-v1"))
