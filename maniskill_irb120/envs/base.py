@@ -15,7 +15,6 @@ from gymnasium.utils import seeding as gym_seeding
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.sensors.camera import CameraConfig
 from mani_skill.utils import sapien_utils
-from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.pose import Pose
 
@@ -430,18 +429,52 @@ def yaw_quat(yaw: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.cos(yaw / 2), 0 * yaw, 0 * yaw, torch.sin(yaw / 2)], 1)
 
 
+def _quadratic_map(entries: dict[tuple[int, int], dict[str, float]]) -> torch.Tensor:
+    """(16, K) map from a quaternion's outer product (w, x, y, z; flattened) to K rotation-matrix entries, each
+    given as ``{(row, col): {"wx": coefficient, ...}}``: unnormalised (the entries of R times |q|²)."""
+    index = {c: i for i, c in enumerate("wxyz")}
+    m = torch.zeros(16, len(entries))
+    for k, terms in enumerate(entries.values()):
+        for pair, coef in terms.items():
+            i, j = index[pair[0]], index[pair[1]]
+            m[4 * i + j, k] += coef / 2 if i != j else coef
+            if i != j:
+                m[4 * j + i, k] += coef / 2
+    return m
+
+
+# R in terms of q = (w, x, y, z), times |q|²: diagonal w² ± ..., off-diagonal 2(ab ± cd)
+_R = {
+    (0, 0): dict(ww=1, xx=1, yy=-1, zz=-1), (1, 0): dict(xy=2, wz=2), (2, 0): dict(xz=2, wy=-2),
+    (0, 1): dict(xy=2, wz=-2), (1, 1): dict(ww=1, xx=-1, yy=1, zz=-1), (2, 1): dict(yz=2, wx=2),
+    (0, 2): dict(xz=2, wy=2), (1, 2): dict(yz=2, wx=-2), (2, 2): dict(ww=1, xx=-1, yy=-1, zz=1),
+}  # fmt: skip
+# the object: its third row (which axis is most horizontal), then each column's x and y; the TCP: column 1's x, y
+_OBJ_MAP = _quadratic_map({k: _R[k] for k in [(2, 0), (2, 1), (2, 2), (0, 0), (1, 0), (0, 1), (1, 1), (0, 2), (1, 2)]})
+_TCP_MAP = _quadratic_map({k: _R[k] for k in [(0, 1), (1, 1)]})
+_MAPS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+
 def grasp_yaw_error(obj_pose: torch.Tensor, tcp_pose: torch.Tensor) -> torch.Tensor:
     """(N,) rotation about world z (radians, in [-π/4, π/4)) that turns the finger axis onto the nearest side
     face normal of a cube-like object (its 90° symmetry) — the smallest turn before a side grasp.
 
     A state observation: from two raw quaternions this angle is a function of four times the object's yaw
     (period 90°), which an MLP policy barely learns; given directly, the grasp alignment is one input.
-    ``obj_pose``/``tcp_pose``: (N, 7) raw poses (position, wxyz quaternion)."""
-    obj_rot = quaternion_to_matrix(obj_pose[:, 3:])
-    tcp_rot = quaternion_to_matrix(tcp_pose[:, 3:])
+    ``obj_pose``/``tcp_pose``: (N, 7) raw poses (position, wxyz quaternion).
+
+    It runs two or three times a step (observation, reward, expert), so it reads the eleven matrix entries it
+    needs as one product of each quaternion's outer product with a constant map instead of building two full
+    rotation matrices; the |q|² they all carry cancels in the argmin and the atan2s."""
+    key = (obj_pose.device, obj_pose.dtype)
+    if key not in _MAPS:
+        _MAPS[key] = (_OBJ_MAP.to(obj_pose), _TCP_MAP.to(obj_pose))
+    obj_map, tcp_map = _MAPS[key]
+    q, t = obj_pose[:, 3:], tcp_pose[:, 3:]
+    obj = (q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ obj_map  # (N, 9)
+    fingers = (t[:, :, None] * t[:, None, :]).reshape(-1, 16) @ tcp_map  # (N, 2): the finger axis' x, y
     # the object's most horizontal axis is a side-face normal (any resting pose of a cube)
-    axis_idx = obj_rot[:, 2, :].abs().argmin(dim=1)
-    normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
-    fingers = tcp_rot[:, :, 1]
+    axis_idx = obj[:, :3].abs().argmin(dim=1)
+    normal = torch.gather(obj[:, 3:].reshape(-1, 3, 2), 1, axis_idx.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
     delta = torch.atan2(normal[:, 1], normal[:, 0]) - torch.atan2(fingers[:, 1], fingers[:, 0])
     return torch.remainder(delta + math.pi / 4, math.pi / 2) - math.pi / 4

@@ -153,3 +153,27 @@ def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         ],
         1,
     )
+
+
+def test_grasp_yaw_error_is_the_rotation_matrices_angle():
+    """The fused form (eleven matrix entries from the quaternions' outer products) against the full rotation
+    matrices it replaced, on arbitrary orientations, tilted objects and unnormalised quaternions."""
+    from mani_skill.utils.geometry.rotation_conversions import quaternion_to_matrix
+
+    from maniskill_irb120.envs.base import grasp_yaw_error
+
+    def reference(obj_pose, tcp_pose):
+        obj_rot, tcp_rot = quaternion_to_matrix(obj_pose[:, 3:]), quaternion_to_matrix(tcp_pose[:, 3:])
+        axis_idx = obj_rot[:, 2, :].abs().argmin(dim=1)
+        normal = torch.gather(obj_rot, 2, axis_idx.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(2)
+        fingers = tcp_rot[:, :, 1]
+        delta = torch.atan2(normal[:, 1], normal[:, 0]) - torch.atan2(fingers[:, 1], fingers[:, 0])
+        return torch.remainder(delta + math.pi / 4, math.pi / 2) - math.pi / 4
+
+    g = torch.Generator().manual_seed(0)
+    obj, tcp = torch.randn(2000, 7, generator=g), torch.randn(2000, 7, generator=g)  # |q| != 1 on purpose
+    tcp[:1000, 3:] = torch.tensor([0.0, 1.0, 0.0, 0.0]) + 0.05 * tcp[:1000, 3:]  # near the grasp's pointing down
+    got, want = grasp_yaw_error(obj, tcp), reference(obj, tcp)
+    wrap = torch.remainder(got - want + math.pi / 4, math.pi / 2) - math.pi / 4  # ±π/4 are the same turn
+    assert float(wrap.abs().max()) < 1e-4
+    assert float(got.min()) >= -math.pi / 4 and float(got.max()) < math.pi / 4
