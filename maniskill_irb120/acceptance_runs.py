@@ -47,6 +47,8 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         steps = 8
         args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
         args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
+        if obs == "state":  # the RL-from-the-reward network (README): its running normaliser on the GPU's tensors
+            args += ["--state-net", "mlp", "--obs-norm"]
     elif name == "sac":
         args = ["--budget-min", "0.05", "--demo-episodes", "1", "--bc-pretrain-updates", "5"]
         args += ["--critic-warmup-updates", "5", "--batch-size", "16", "--log-freq", "20", "--save-freq", "40"]
