@@ -127,6 +127,12 @@ CONSTANT_STD = 1e-3
 information there: StateNorm zeroes it instead of scaling it up"""
 
 
+def usable_std(std: torch.Tensor) -> torch.Tensor:
+    """``std`` with the dimensions below ``CONSTANT_STD`` set to +inf: a dimension that did not vary is read as
+    zero, never amplified (both state normalisers' rule; StateNorm says why)."""
+    return torch.where(std < CONSTANT_STD, torch.full_like(std, float("inf")), std)
+
+
 class StateNorm(nn.Module):
     """Fixed per-dimension standardisation of the ``state`` vector, fitted once on the first data
     (joint velocities and positions differ by orders of magnitude; an MLP learns faster on unit scales).
@@ -144,7 +150,7 @@ class StateNorm(nn.Module):
     def fit(self, x: torch.Tensor) -> None:
         std = x.float().std(0)
         self.mean.copy_(x.float().mean(0))
-        self.std.copy_(torch.where(std < CONSTANT_STD, torch.full_like(std, float("inf")), std))
+        self.std.copy_(usable_std(std))
 
     def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return dict(obs, state=(obs["state"].float() - self.mean) / self.std)
@@ -181,8 +187,7 @@ class RunningNorm(nn.Module):
         self.count.copy_(total)
 
     def forward(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        std = self.var.sqrt()
-        std = torch.where(std < CONSTANT_STD, torch.full_like(std, float("inf")), std)
+        std = usable_std(self.var.sqrt())
         return dict(obs, state=((obs["state"].float() - self.mean) / std).clamp(-self.clip, self.clip))
 
 

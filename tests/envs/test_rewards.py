@@ -120,6 +120,8 @@ def test_the_approach_term_resolves_millimetres_and_degrees_near_the_grasp():
     """The reach stage must tell a grasp pose from one the open fingers cannot close on (3 mm of clearance
     per side for a 20 mm cube): with a plain ``1 - tanh(3·d)`` being 3 mm off cost 0.002 of the normalised
     reward, which is why PPO from scratch approached and never grasped."""
+    from mani_skill.utils.geometry.rotation_conversions import quaternion_multiply
+
     from maniskill_irb120.envs.base import GRASP_POINT_OFFSET, grasp_approach_reward, yaw_quat
 
     obj = torch.tensor([[0.35, 0.13, 0.015, 1.0, 0.0, 0.0, 0.0]]).repeat(6, 1)
@@ -128,7 +130,7 @@ def test_the_approach_term_resolves_millimetres_and_degrees_near_the_grasp():
     tcp[:, :3] = obj[:, :3] + torch.tensor([0, 0, GRASP_POINT_OFFSET])
     tcp[:, 3:] = down
     tcp[1, 0] += 0.003  # 3 mm beside the grasp point
-    tcp[2, 3:] = quat_mul(yaw_quat(torch.tensor([math.radians(15)])), down[None])[0]  # fingers turned 15°
+    tcp[2, 3:] = quaternion_multiply(yaw_quat(torch.tensor([math.radians(15)])), down[None])[0]  # fingers turned 15°
     tcp[3, 2] += 0.06  # hovering 6 cm above, aligned
     tcp[4, :2] += 0.03  # 3 cm beside, at the grasp height
     tcp[5, :3] = torch.tensor([0.35, 0.0, 0.25])  # the rest pose
@@ -138,21 +140,6 @@ def test_the_approach_term_resolves_millimetres_and_degrees_near_the_grasp():
     assert at_grasp - beside > 0.015 and at_grasp - turned > 0.03  # 7x and 15x the plain distance's 0.002
     assert at_grasp > hover > far_side > rest > 0.0  # rises along the expert's approach
     assert hover - far_side > 0.04  # aligning above it pays before descending does
-
-
-def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(N, 4) wxyz Hamilton product."""
-    aw, ax, ay, az = a.unbind(1)
-    bw, bx, by, bz = b.unbind(1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        1,
-    )
 
 
 def test_grasp_yaw_error_is_the_rotation_matrices_angle():
