@@ -1,7 +1,8 @@
 """What every trainer in ``agents/`` shares besides the policy networks (those live in the library,
 ``maniskill_irb120.policies``): the common flags (``args``), the envs and observation layout (``envs``), the
 replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
-evaluation every recipe is scored on (``evaluation``) and the loggers (``logging``). It may import the library
+evaluation every recipe is scored on (``evaluation``), the loggers (``logging``) and mixed precision
+(``precision``). It may import the library
 ``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
 ``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
 
@@ -29,11 +30,13 @@ from agents.common.evaluation import (
     train_seed,
 )
 from agents.common.logging import Logger, budget_bar, finish
+from agents.common.precision import PRECISIONS, autocast, resolve_precision
 
 __all__ = [
     "AUX_DIM",
     "EVAL_SEED",
     "EVENT_KEYS",
+    "PRECISIONS",
     "REWARD_TERM_PREFIX",
     "Dataset",
     "EpisodeTracker",
@@ -43,6 +46,7 @@ __all__ = [
     "action_wrappers",
     "args_json",
     "atomic_save",
+    "autocast",
     "budget_bar",
     "evaluate_checkpoint",
     "evaluate_on_seeds",
@@ -53,6 +57,7 @@ __all__ = [
     "obs_to",
     "privileged_aux",
     "resolve_device",
+    "resolve_precision",
     "rng_state",
     "set_rng_state",
     "shapes_of",

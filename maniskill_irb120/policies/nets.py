@@ -9,7 +9,6 @@ from typing import Optional
 import numpy as np
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 
 def layer_init(layer: nn.Module, std: float = np.sqrt(2), bias: float = 0.0) -> nn.Module:
@@ -70,8 +69,11 @@ class SpatialSoftmax(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, c, h, w = x.shape
-        attn = torch.softmax(x.reshape(n * c, h * w) / self.log_temperature.exp(), dim=1)
-        return (attn @ self.grid).reshape(n, 2 * c)
+        # float32 even under a learner's bf16 autocast: bf16's 8-bit mantissa would round the coordinates to
+        # ~0.1 pixel, the precision the keypoints are for
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            attn = torch.softmax(x.float().reshape(n * c, h * w) / self.log_temperature.exp(), dim=1)
+            return (attn @ self.grid).reshape(n, 2 * c)
 
 
 class KeypointCNN(nn.Module):
@@ -107,19 +109,26 @@ ENCODERS = ("nature", "keypoints")
 
 def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.Tensor]:
     """DrQ's augmentation: replicate-pad each image by ``pad`` pixels and crop it back at a random offset
-    (one offset per sample, shared by RGB and depth so they stay registered)."""
+    (one offset per sample, shared by RGB and depth so they stay registered).
+
+    Replicate padding then cropping at offset d is reading the image at ``clamp(i + d - pad, 0, size - 1)``:
+    one ``index_select`` of whole pixels per image in its own dtype (uint8, int16), where padding needs floats.
+    It runs on every camera minibatch; the float round trip through a padded copy took about a tenth of a
+    DAgger update."""
     rgb, depth = obs["rgb"], obs["depth"]
     n, h, w, _ = rgb.shape
-    img = torch.cat([rgb.float(), depth.float()], dim=-1).permute(0, 3, 1, 2)
-    img = F.pad(img, (pad, pad, pad, pad), mode="replicate")
-    dx = torch.randint(0, 2 * pad + 1, (n,), device=img.device)
-    dy = torch.randint(0, 2 * pad + 1, (n,), device=img.device)
-    rows = (dy[:, None] + torch.arange(h, device=img.device)[None]).view(n, 1, h, 1)
-    cols = (dx[:, None] + torch.arange(w, device=img.device)[None]).view(n, 1, 1, w)
-    c = img.shape[1]
-    out = img.gather(2, rows.expand(n, c, h, img.shape[3])).gather(3, cols.expand(n, c, h, w))
-    out = out.permute(0, 2, 3, 1)
-    return dict(obs, rgb=out[..., :3].to(rgb.dtype), depth=out[..., 3:].to(depth.dtype))
+    dev = rgb.device
+    dx = torch.randint(0, 2 * pad + 1, (n,), device=dev)
+    dy = torch.randint(0, 2 * pad + 1, (n,), device=dev)
+    rows = (dy[:, None] - pad + torch.arange(h, device=dev)).clamp(0, h - 1)  # (n, h)
+    cols = (dx[:, None] - pad + torch.arange(w, device=dev)).clamp(0, w - 1)  # (n, w)
+    pixel = (torch.arange(n, device=dev)[:, None, None] * h + rows[:, :, None]) * w + cols[:, None, :]
+    pixel = pixel.reshape(-1)  # (n·h·w,) flat pixel index of each output pixel
+
+    def crop(img: torch.Tensor) -> torch.Tensor:
+        return img.reshape(n * h * w, -1).index_select(0, pixel).view(img.shape)
+
+    return dict(obs, rgb=crop(rgb), depth=crop(depth))
 
 
 CONSTANT_STD = 1e-3

@@ -9,6 +9,7 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 import torch
+import torch.nn.functional as F
 
 import maniskill_irb120  # noqa: F401
 from agents.common import Dataset, ExpertLabels
@@ -137,6 +138,22 @@ def test_random_shift_moves_rgb_and_depth_together():
         ys, xs = torch.nonzero(out["rgb"][i, :, :, 0] == 255, as_tuple=True)
         assert len(ys) == 1 and abs(int(ys[0]) - 40) <= 4 and abs(int(xs[0]) - 40) <= 4
         assert out["depth"][i, ys[0], xs[0], 0] == 500  # the same pixel in both
+
+
+def test_random_shift_is_drqs_replicate_pad_and_crop():
+    """The clamped-index gather gives exactly DrQ's pad-then-crop, in the images' own dtypes."""
+    g = torch.Generator().manual_seed(3)
+    rgb = torch.randint(0, 256, (5, 84, 84, 3), dtype=torch.uint8, generator=g)
+    depth = torch.randint(0, 3000, (5, 84, 84, 1), dtype=torch.int16, generator=g)
+    torch.manual_seed(7)
+    out = random_shift({"rgb": rgb, "depth": depth}, pad=4)
+    torch.manual_seed(7)
+    dx, dy = torch.randint(0, 9, (5,)), torch.randint(0, 9, (5,))
+    for name, img in (("rgb", rgb), ("depth", depth)):
+        padded = F.pad(img.double().permute(0, 3, 1, 2), (4, 4, 4, 4), mode="replicate").permute(0, 2, 3, 1)
+        ref = torch.stack([padded[i, dy[i] : dy[i] + 84, dx[i] : dx[i] + 84] for i in range(5)])
+        assert out[name].dtype == img.dtype and torch.equal(out[name].double(), ref)
+    assert (dx != 4).any() and (dy != 4).any()  # not all unshifted
 
 
 def test_round_updates_stop_at_the_budget():
