@@ -402,7 +402,9 @@ def reach_reward(dist: torch.Tensor) -> torch.Tensor:
     return 1 - torch.tanh(REACH_SCALE * dist)
 
 
-def grasp_approach_reward(obj_pose: torch.Tensor, tcp_pose: torch.Tensor) -> torch.Tensor:
+def grasp_approach_reward(
+    obj_pose: torch.Tensor, tcp_pose: torch.Tensor, yaw_error: torch.Tensor | None = None
+) -> torch.Tensor:
     """(N,) the staged rewards' reach stage for a side grasp, in [0, 1): what ManiSkill's ``1 - tanh(5·d)``
     is for the Panda, at the precision our gripper needs.
 
@@ -413,15 +415,29 @@ def grasp_approach_reward(obj_pose: torch.Tensor, tcp_pose: torch.Tensor) -> tor
     twice the coarse reach ``1 - tanh(3·d)`` to the grasp point (``GRASP_POINT_OFFSET`` above the centre);
     the alignment ``(1 - tanh(40·horizontal distance)) · (1 - |yaw error| / 45°)``, which resolves
     millimetres and degrees; and the alignment times ``1 - tanh(40·|height error|)``, so descending pays only
-    once aligned (descending beside the object hits it or the tray). ``obj_pose``/``tcp_pose``: (N, 7) raw."""
+    once aligned (descending beside the object hits it or the tray). ``obj_pose``/``tcp_pose``: (N, 7) raw;
+    ``yaw_error``: their :func:`grasp_yaw_error` when the caller has it (:func:`step_grasp_yaw_error`)."""
     grasp_point = obj_pose[:, :3].clone()
     grasp_point[:, 2] += GRASP_POINT_OFFSET
     offset = grasp_point - tcp_pose[:, :3]
     coarse = reach_reward(torch.linalg.norm(offset, dim=1))
-    yaw = 1 - grasp_yaw_error(obj_pose, tcp_pose).abs() / (math.pi / 4)
+    if yaw_error is None:
+        yaw_error = grasp_yaw_error(obj_pose, tcp_pose)
+    yaw = 1 - yaw_error.abs() / (math.pi / 4)
     align = (1 - torch.tanh(ALIGN_SCALE * torch.linalg.norm(offset[:, :2], dim=1))) * yaw
     down = 1 - torch.tanh(ALIGN_SCALE * offset[:, 2].abs())
     return ((2 * coarse + align + align * down) / 4).clamp(max=0.999)
+
+
+def step_grasp_yaw_error(state: dict[str, torch.Tensor], key: str) -> torch.Tensor:
+    """(N,) :func:`grasp_yaw_error` of ``state[key]`` and ``state["tcp_pose"]`` for a step state
+    (``IRB120TableEnv.step_state``), computed once per step state: a state observation and the reach reward both
+    read it, on the sim and on the real side (each builds a new step state every step). Kept in ``state`` under
+    ``("grasp_yaw_error", key)``; a copy is returned, so writing into an observation cannot move the reward."""
+    cached = ("grasp_yaw_error", key)
+    if cached not in state:
+        state[cached] = grasp_yaw_error(state[key], state["tcp_pose"])
+    return state[cached].clone()
 
 
 def yaw_quat(yaw: torch.Tensor) -> torch.Tensor:

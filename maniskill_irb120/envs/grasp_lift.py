@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, step_grasp_yaw_error
 
 ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
@@ -84,13 +84,15 @@ class GraspLiftIRB120Env(IRB120TableEnv):
             obj_pose=obj.clone(),
             source_tray_pos=self.source_center.clone(),
             tcp_to_obj_pos=obj[:, :3] - tcp[:, :3],
-            tcp_to_obj_yaw=grasp_yaw_error(obj, tcp)[:, None],
+            tcp_to_obj_yaw=step_grasp_yaw_error(state, "obj_pose")[:, None],
             hold_fraction=(info["hold_steps"].float() / HOLD_STEPS)[:, None],
         )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
-        reach = grasp_approach_reward(self.step_state["obj_pose"], self.tcp_pose)
+        reach = grasp_approach_reward(
+            self.step_state["obj_pose"], self.tcp_pose, step_grasp_yaw_error(self.step_state, "obj_pose")
+        )
         lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
         hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
         reward = torch.where(info["lifted"], 2 + hold, 1 + lift)

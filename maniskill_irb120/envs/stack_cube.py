@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error, reach_reward
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error
 from maniskill_irb120.envs.scene import TRAY_INNER
 
 ENV_ID = "StackCube-IRB120-v1"
@@ -105,14 +105,16 @@ class StackCubeIRB120Env(IRB120TableEnv):
             cube_a_pose=a.clone(),
             cube_b_pose=b.clone(),
             tcp_to_a_pos=a[:, :3] - tcp[:, :3],
-            tcp_to_a_yaw=grasp_yaw_error(a, tcp)[:, None],
+            tcp_to_a_yaw=step_grasp_yaw_error(state, "cube_a_pose")[:, None],
             a_to_goal_pos=place_on(b, self.object_half_size) - a[:, :3],
         )
 
     def compute_dense_reward(self, obs: Any, action: torch.Tensor, info: dict):
         """Staged, stage k paying k + progress in [0, 1) (the table in the class docstring)."""
         a_p = self.step_state["cube_a_pose"][:, :3]
-        reach = grasp_approach_reward(self.step_state["cube_a_pose"], self.tcp_pose)
+        reach = grasp_approach_reward(
+            self.step_state["cube_a_pose"], self.tcp_pose, step_grasp_yaw_error(self.step_state, "cube_a_pose")
+        )
         goal = place_on(self.step_state["cube_b_pose"], self.object_half_size)
         place = reach_reward(torch.linalg.norm(goal - a_p, dim=1)).clamp(max=0.999)
         # on cube_b: held 2, opening (touched, not squeezed) 2.5, released 3 (and still: success)

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, grasp_yaw_error, reach_reward
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error
 from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -149,7 +149,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
             source_tray_pos=self.source_center.clone(),
             dest_tray_pos=self.dest_center.clone(),
             tcp_to_obj_pos=obj[:, :3] - tcp[:, :3],
-            tcp_to_obj_yaw=grasp_yaw_error(obj, tcp)[:, None],
+            tcp_to_obj_yaw=step_grasp_yaw_error(state, "obj_pose")[:, None],
             obj_to_dest_pos=self.dest_center - obj[:, :3],
         )
 
@@ -163,7 +163,9 @@ class TableClearingIRB120Env(IRB120TableEnv):
         with progress in [0, 1) (the table in the class docstring). Not the dense reward (that is the original
         report's), so this one is the task's own rather than the base's dense / MAX_STAGED_REWARD."""
         obj_p = self.step_state["obj_pose"][:, :3]
-        reach = grasp_approach_reward(self.step_state["obj_pose"], self.tcp_pose)
+        reach = grasp_approach_reward(
+            self.step_state["obj_pose"], self.tcp_pose, step_grasp_yaw_error(self.step_state, "obj_pose")
+        )
         lift = ((obj_p[:, 2] - self.source_center[:, 2]) / GRASP_LIFT).clamp(0, 0.999)
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size

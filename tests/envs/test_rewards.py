@@ -164,3 +164,32 @@ def test_grasp_yaw_error_is_the_rotation_matrices_angle():
     wrap = torch.remainder(got - want + math.pi / 4, math.pi / 2) - math.pi / 4  # ±π/4 are the same turn
     assert float(wrap.abs().max()) < 1e-4
     assert float(got.min()) >= -math.pi / 4 and float(got.max()) < math.pi / 4
+
+
+@pytest.mark.parametrize(
+    "env_id, key", [("TableClearing-IRB120-v1", "obj_pose"), ("StackCube-IRB120-v1", "cube_a_pose")]
+)
+def test_the_grasp_yaw_error_is_computed_once_a_step_and_observed_as_a_copy(monkeypatch, env_id, key):
+    """The state observation and the reach reward read one computation per step state; writing into the
+    observation does not move what the reward read."""
+    import gymnasium as gym
+
+    from maniskill_irb120.envs import base
+
+    env = gym.make(env_id, obs_mode="state_dict", render_backend="none")
+    calls = []
+    real = base.grasp_yaw_error
+    monkeypatch.setattr(base, "grasp_yaw_error", lambda o, t: calls.append(1) or real(o, t))
+    try:
+        env.reset(seed=0)
+        for step in range(3):
+            calls.clear()
+            obs, *_ = env.step(env.action_space.sample() * 0.3)
+            state = env.unwrapped.step_state
+            assert len(calls) == 1, f"step {step}: computed {len(calls)} times"
+            observed = next(v for k, v in obs["extra"].items() if k.endswith("_yaw"))[:, 0]
+            assert torch.equal(observed, real(state[key], state["tcp_pose"]))
+            observed += 1.0
+            assert torch.equal(state[("grasp_yaw_error", key)], real(state[key], state["tcp_pose"]))
+    finally:
+        env.close()
