@@ -121,8 +121,9 @@ class Args(RunArgs):
     save_freq: int = 10
     """checkpoint (with the dataset) every N rounds, and always at the end"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
-    """the updates' forward/backward: bf16 autocast (about twice as fast on a CPU with native bf16; weights and
-    checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 where native)"""
+    """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
+    weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 where
+    native)"""
 
 
 def make_envs(args: Args, num_envs: int):
@@ -191,7 +192,7 @@ def train_round(
     """``updates`` (default ``updates_per_round``) minibatch steps of behaviour cloning (MSE to the expert's
     actions), plus ``aux_weight`` x the auxiliary head's MSE when there is one; fewer when ``out_of_time()``
     (the wall-clock budget: from the camera, 1000 updates take minutes on 2 cores). ``precision``: a resolved
-    ``--precision`` (fp32 or bf16) for the forward pass; the losses are float32. Mean losses."""
+    ``--precision`` (fp32 or bf16) for the encoder; the heads and the losses are float32. Mean losses."""
     policy.train()
     sums, done = defaultdict(float), 0
     for _ in range(updates or args.updates_per_round):
@@ -200,13 +201,12 @@ def train_round(
         obs, act, aux = data.sample_with_aux(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
-        with autocast(precision, device):
+        with autocast(precision, device):  # the encoder only: the convolutions are the cost
             feats = policy.features(obs)
-            pred = torch.tanh(policy.head(feats))
-            aux_pred = aux_head(feats) if aux_head is not None else None
-        loss = bc = F.mse_loss(pred.float(), act)
-        if aux_pred is not None:
-            aux_loss = F.mse_loss(aux_pred.float(), aux)
+        feats = feats.float()
+        loss = bc = F.mse_loss(torch.tanh(policy.head(feats)), act)
+        if aux_head is not None:
+            aux_loss = F.mse_loss(aux_head(feats), aux)
             loss = loss + args.aux_weight * aux_loss
             sums["aux"] += aux_loss.item()
         optimizer.zero_grad()

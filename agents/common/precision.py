@@ -2,7 +2,8 @@
 
 On a CPU with native bfloat16 (AVX512-BF16 or AMX; most server CPUs since 2020), oneDNN runs the camera
 encoder's convolutions about twice as fast under bf16 autocast as in float32, and those convolutions are most
-of a camera update. Weights, optimiser state, losses and the keypoints' spatial softmax stay float32
+of a camera update; trainers run only the encoder under it. Weights, optimiser state, the heads, the losses and
+the keypoints' spatial softmax stay float32
 (``maniskill_irb120.policies.nets.SpatialSoftmax`` opts out of autocast), so a checkpoint is the same float32
 policy either way and evaluation, export and the real robot never run in bf16. Without native support bf16 is
 emulated and slower than float32: ``bf16`` is then refused and ``auto`` means float32.
@@ -44,7 +45,7 @@ def resolve_precision(name: str, device: torch.device) -> str:
 
 
 def autocast(precision: str, device: torch.device) -> contextlib.AbstractContextManager:
-    """The context the learner's forward pass runs in: bf16 autocast, or nothing for fp32."""
+    """The context the learner's encoder runs in: bf16 autocast, or nothing for fp32."""
     if precision == "fp32":
         return contextlib.nullcontext()
     if precision != "bf16":

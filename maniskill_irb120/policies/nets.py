@@ -101,7 +101,10 @@ class KeypointCNN(nn.Module):
         self.out_dim = 2 * keypoints + 256
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([self.keypoints(self.cnn(image_tensor(obs))), self.mlp(obs["state"].float())], dim=1)
+        keypoints = self.keypoints(self.cnn(image_tensor(obs)))
+        # the proprioception float32 even under a learner's bf16 autocast (for the convolutions' sake)
+        with torch.autocast(device_type=keypoints.device.type, enabled=False):
+            return torch.cat([keypoints, self.mlp(obs["state"].float())], dim=1)
 
 
 ENCODERS = ("nature", "keypoints")

@@ -28,7 +28,7 @@ def test_unknown_and_emulated_precisions_are_refused(monkeypatch):
 
 
 @needs_bf16
-def test_keypoints_stay_float32_under_autocast():
+def test_keypoints_and_proprioception_stay_float32_under_autocast():
     torch.manual_seed(0)
     ss = SpatialSoftmax(21, 21)
     x = torch.randn(3, 8, 21, 21)
@@ -38,6 +38,17 @@ def test_keypoints_stay_float32_under_autocast():
     assert conv.dtype == torch.bfloat16  # autocast is on ...
     assert inside.dtype == torch.float32  # ... and the coordinates opt out of it
     assert torch.allclose(inside, ss(x.bfloat16().float()), atol=1e-6)
+    policy = DeterministicActor((42, 42, 4), 6, 5, encoder="keypoints")
+    obs = dict(
+        rgb=torch.randint(0, 256, (2, 42, 42, 3), dtype=torch.uint8),
+        depth=torch.randint(200, 900, (2, 42, 42, 1), dtype=torch.int16),
+        state=torch.randn(2, 6),
+    )
+    with autocast("bf16", CPU):
+        feats = policy.features(obs)
+    assert feats.dtype == torch.float32
+    n = policy.encoder.out_dim - 256  # the keypoints, then the proprioception's 256 features: those exact
+    assert torch.equal(feats[:, n:], policy.features(obs)[:, n:])
 
 
 @needs_bf16
