@@ -75,6 +75,26 @@ def test_learning_quick_writes_json(tmp_path):
     assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
 
 
+def test_learner_speed_quick_times_every_configuration(tmp_path):
+    """The camera update benchmark at toy sizes: the reference shift, fp32 and (where native) bf16 all timed on
+    recorded expert frames."""
+    from agents.common.precision import native_bf16
+
+    out = tmp_path / "l.json"
+    run = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "learner_speed.py"), "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(out.read_text())
+    want = {"fp32, pad+crop shift", "fp32"} | ({"bf16 encoder"} if native_bf16(torch.device("cpu")) else set())
+    assert {row["config"] for row in r["rows"]} == want
+    assert all(row["ms"] > 0 and len(row["rounds_ms"]) == 1 for row in r["rows"]) and r["dataset"] > 20
+    assert "| fp32 |" in run.stdout
+
+
 def test_rllib_speed_quick_writes_json(tmp_path):
     """RLlib against agents.ppo at toy sizes: both trainers measured, per-step timers and RSS read back."""
     pytest.importorskip("ray", reason="needs the ray extra")
