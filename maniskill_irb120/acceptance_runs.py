@@ -56,6 +56,8 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
     elif name == "dagger":
         args = ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
+        if obs == "rgbd":  # the camera recipe (README), its encoder under bf16 where the device has it
+            args += ["--action-frame", "tool", "--encoder", "keypoints", "--aux-weight", "1", "--precision", "auto"]
     else:
         raise ValueError(f"unknown trainer {name!r}; expected one of {TRAINERS}")
     return [sys.executable, "-m", f"agents.{name}", *common, *args]

@@ -47,6 +47,12 @@ def test_trainer_runs_its_tiny_loop_on_the_gpu(trainer):
     assert ok, why
 
 
+def test_the_camera_dagger_recipe_runs_a_round_on_the_gpu():
+    """rgbd, the keypoint encoder, the auxiliary head and --precision auto (bf16 autocast on a bf16 GPU)"""
+    ok, why = R.check_trainer("dagger", GPU, 8, obs="rgbd")
+    assert ok, why
+
+
 def test_sim_speed_gpu_only_smoke():
     ok, why = R.check_benchmark()
     assert ok, why
