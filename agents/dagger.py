@@ -21,6 +21,7 @@ policy never sees it); from the camera it makes the encoder find the cube.
     python -m agents.dagger --obs state --budget-min 60                 # the state recipe
     python -m agents.dagger --obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 \\
         --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
+    python -m agents.dagger ... (the camera flags) --precision auto --budget-min 60  # bf16 encoder: within the hour
     python -m agents.dagger --obs rgbd --backend gpu --num-envs 32 --device cuda ...    # GPU-batched envs
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt

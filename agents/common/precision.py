@@ -1,13 +1,12 @@
-"""Mixed precision for the learner's forward and backward passes (``--precision``).
+"""Mixed precision for the learner's camera encoder (``--precision``).
 
-On a CPU with native bfloat16 (AVX512-BF16 or AMX; most server CPUs since 2020), oneDNN runs the camera
-encoder's convolutions about twice as fast under bf16 autocast as in float32, and those convolutions are most
-of a camera update; trainers run only the encoder under it. Weights, optimiser state, the heads, the losses and
-the keypoints' spatial softmax stay float32
-(``maniskill_irb120.policies.nets.SpatialSoftmax`` opts out of autocast), so a checkpoint is the same float32
-policy either way and evaluation, export and the real robot never run in bf16. Without native support bf16 is
-emulated and slower than float32: ``bf16`` is then refused and ``auto`` means float32.
-"""
+On a CPU with native bfloat16 (AVX512-BF16 or AMX: AMD Zen 4, Intel Cooper Lake and Sapphire Rapids on),
+oneDNN runs the camera encoder's convolutions about twice as fast under bf16 autocast as in float32, and those
+convolutions are most of a camera update; trainers run only the encoder under it. Weights, optimiser state, the
+heads, the losses, the keypoints' spatial softmax and the proprioception MLP stay float32 (the last two opt out
+of autocast in ``maniskill_irb120.policies.nets``), so a checkpoint is the same float32 policy either way and
+evaluation, export and the real robot never run in bf16. Without native support bf16 is emulated and slower
+than float32: ``bf16`` is then refused and ``auto`` means float32."""
 
 from __future__ import annotations
 

@@ -313,7 +313,8 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
 
     step_state: dict[str, torch.Tensor]
     """This step's poses, read once in ``evaluate`` (:meth:`_read_step_state`): :meth:`privileged_state`'s
-    entries plus ``"tcp_pose"``. Observations and rewards read poses only from here; on the real side
+    entries plus ``"tcp_pose"`` (and, under tuple keys, values derived from them once a step, such as
+    :func:`step_grasp_yaw_error`'s). Observations and rewards read poses only from here; on the real side
     ``IRB120Sim2RealEnv`` fills it from the robot's FK and the digital twin's :meth:`privileged_state`."""
 
     def privileged_state(self) -> dict[str, torch.Tensor]:
