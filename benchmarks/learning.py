@@ -18,6 +18,8 @@ mean of the seeds' success rates
     python benchmarks/learning.py                                  # every recipe x 3 seeds (hours: see below)
     python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
     python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
+    python benchmarks/learning.py --recipes dagger-rgbd-bf16 --seeds --adopt runs/s1 runs/s2 --merge
+                                 # runs trained by the trainer's own command join the row, once checked
 
 Budgets (the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-state ``--budget-min`` (60; the
 last trains its DAgger base for half of it, then fine-tunes with PPO for the rest), ppo-state and
@@ -33,7 +35,7 @@ import platform
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -166,6 +168,10 @@ class Args:
     """keep the rows of recipes this run does not train from the existing learning.json, and a retrained recipe's
     runs of seeds this run does not train (each with the command and date it came from): a 2-core machine runs
     the recipes and seeds one session at a time"""
+    adopt: list[Path] = field(default_factory=list)
+    """run folders of the one recipe in --recipes trained outside this script, by the trainer's own command
+    (e.g. in an earlier session): each joins the row if its logged arguments are the recipe's, for this task, budget
+    and --eval-episodes (only where and how it logged may differ); its seed may not be in --seeds"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
@@ -315,6 +321,63 @@ def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: flo
     return out
 
 
+# where and how a run logged, not what it learned: the only arguments an adopted run may differ in
+ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video")
+
+
+def logged_args(events: Path) -> tuple[dict, float]:
+    """The arguments a trainer logged (agents.common.logging.Logger) and when its log was opened."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(events), size_guidance={"tensors": 0, "scalars": 1})
+    acc.Reload()
+    if "args/text_summary" not in acc.Tags()["tensors"]:
+        raise ValueError(f"--adopt: {events} has no logged arguments")
+    (text,) = acc.Tensors("args/text_summary")
+    return json.loads(text.tensor_proto.string_val[0].decode()), text.wall_time
+
+
+def adopted_run(recipe: str, run_dir: Path, args: Args) -> dict:
+    """A finished run of ``recipe`` trained outside this script, checked against the recipe and read as
+    ``run_trainer`` reads its own (its summary.json is the result line; its curve's clock starts when its log was
+    opened, seconds after the process)."""
+    import importlib
+
+    module, flags, _, kind = RECIPES[recipe]
+    if recipe in BASES:
+        raise ValueError(f"--adopt: {recipe} trains in two stages; only one-stage recipes can be adopted")
+    summary, events = run_dir / "summary.json", sorted(run_dir.glob("events.out.tfevents.*"))
+    if not summary.is_file():
+        raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
+    if len(events) != 1:
+        raise ValueError(f"--adopt: {run_dir} has {len(events)} TensorBoard logs (a resumed or foreign run?), not 1")
+    logged, opened = logged_args(events[0])
+    budget = dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
+    argv = [*flags, "--env-id", args.env_id, "--seed", str(logged.get("seed")), "--budget-min", f"{budget:.4g}"]
+    argv += ["--eval-episodes", str(args.eval_episodes)]
+    trainer_args = tyro.cli(importlib.import_module(module).Args, args=argv)
+    expected = json.loads(json.dumps(asdict(trainer_args), default=str))
+    differ = {k: (logged.get(k), v) for k, v in expected.items() if k not in ADOPT_FREE and logged.get(k) != v}
+    if differ:
+        shown = ", ".join(f"{k}={a!r} (the recipe's: {b!r})" for k, (a, b) in sorted(differ.items()))
+        raise ValueError(f"--adopt: {run_dir} was not trained by the {recipe} recipe: {shown}")
+    result = json.loads(summary.read_text())
+    missing = {"success_rate", "successes", "env_steps", "wall_clock_s"} - set(result)
+    if missing:
+        raise ValueError(f"--adopt: {summary} lacks {sorted(missing)}")
+    keep = ("success_rate", "successes", "env_steps", "wall_clock_s", "grasped_rate", "collided_rate", "checkpoint")
+    out = {k: result[k] for k in keep if k in result}
+    out.update(
+        seed=logged["seed"],
+        command=" ".join(["-m", module, *argv]),
+        adopted_from=str(run_dir),
+        benchmark_command=f"python -m {module} {' '.join(argv)}",
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(opened)),
+        curve=curve(run_dir, opened),
+    )
+    return out
+
+
 # ----------------------------------------------------------------------------- report
 def smoothed(values: list[float], points: int = 60) -> np.ndarray:
     """A trailing mean over ~1/``points`` of the curve: PPO logs a point per handful of episodes (each 0 or 1),
@@ -431,7 +494,11 @@ def update_results(report: dict, table: str, results: Path) -> None:
         for run in r.get("runs", [])
         if run.get("date") not in (None, report["date"])
     )
-    earlier = f" Rows carried over (`--merge`) from earlier runs: {earlier.rstrip('; ')}." if earlier else ""
+    earlier = (
+        f" Rows and runs carried over from earlier runs (`--merge`, `--adopt`): {earlier.rstrip('; ')}."
+        if earlier
+        else ""
+    )
     section = (
         f"{head}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}, "
         f"{report['wall_min']:.0f} min).{earlier} Held-out seeds {EVAL_SEED}.. "
@@ -455,6 +522,15 @@ def main(args: Args) -> dict:
     args.out_dir = args.out_dir or default_out_dir(args.env_id)
     args.rl_budget_min = args.rl_budget_min or RL_BUDGET_MIN[args.env_id]
     args.out_dir.mkdir(parents=True, exist_ok=True)
+    if args.adopt and len(args.recipes) != 1:
+        raise ValueError(f"--adopt: name the one recipe the adopted runs belong to in --recipes, not {args.recipes}")
+    adopted = [adopted_run(args.recipes[0], run_dir, args) for run_dir in args.adopt]  # refused before any run
+    seeds = [r["seed"] for r in adopted] + list(args.seeds)
+    if len(set(seeds)) < len(seeds):
+        raise ValueError(
+            f"--adopt: a seed is adopted twice or also in --seeds: adopted {seeds[: len(adopted)]}, "
+            f"--seeds {args.seeds}"
+        )
     rng = np.random.default_rng(0)
     t0 = time.time()
     rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
@@ -462,10 +538,12 @@ def main(args: Args) -> dict:
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     kept = carried_rows(args.out_dir / "learning.json", args.recipes) if args.merge else []
     for recipe in args.recipes:
-        runs = [dict(train_run(recipe, seed, args), benchmark_command=command, date=date) for seed in args.seeds]
+        runs = adopted + [
+            dict(train_run(recipe, seed, args), benchmark_command=command, date=date) for seed in args.seeds
+        ]
         if args.merge:
-            runs = earlier_runs(args.out_dir / "learning.json", recipe, args.seeds) + runs
-            runs.sort(key=lambda r: r["seed"])
+            runs += earlier_runs(args.out_dir / "learning.json", recipe, seeds)
+        runs.sort(key=lambda r: r["seed"])
         rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
     rows += kept
     report = dict(

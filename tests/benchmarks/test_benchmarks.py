@@ -183,7 +183,7 @@ def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
     results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\nold\n\n## Next\n")
     learning.update_results(report, learning.markdown(report["rows"]), results)
     text = results.read_text()
-    assert "Rows carried over (`--merge`) from earlier runs: dagger-state: `python benchmarks/learning.py" in text
+    assert "carried over from earlier runs (`--merge`, `--adopt`): dagger-state: `python benchmarks/learning.py" in text
     assert "| sac-state | state |" in text and "| dagger-state | state |" in text and "## Next" in text
     assert "old" not in text.split("## Next")[0] and "expert: `" not in text
 
@@ -216,7 +216,7 @@ def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
     results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\nold\n")
     learning.update_results(report, learning.markdown(report["rows"]), results)
     text = results.read_text()
-    assert f"from earlier runs: dagger-state seed 2: `{first}` (2026-11-23 09:06 UTC)." in text
+    assert f"(`--merge`, `--adopt`): dagger-state seed 2: `{first}` (2026-11-23 09:06 UTC)." in text
     assert "| dagger-state | state | 2 | 0.94 |" in text
 
 
@@ -268,3 +268,37 @@ def test_learning_keeps_one_section_per_task(tmp_path):
     assert "| ppo-state | state | 1 | 0.50 |" in text
     with pytest.raises(ValueError, match="unknown --env-id"):
         learning.main(learning.Args(env_id="PickCube-v1"))
+
+
+def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
+    """A run trained by the trainer's own command in an earlier session joins the row; one with any other learning
+    argument (here the batch size) is refused by name, as is a run that never finished."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import tyro
+
+    from agents import dagger
+    from agents.common.logging import Logger, finish
+
+    def trained(name: str, extra: list[str], seed: int) -> Path:
+        flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", str(seed), *extra]
+        args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", name, "--no-progress"])
+        run_dir = tmp_path / name
+        log = Logger(run_dir, args)
+        log.scalars({"train/success_rate": 0.5}, 1000)
+        log.close()
+        finish(dict(success_rate=0.9, successes=[1] * 9 + [0], env_steps=1000, wall_clock_s=3600.0), run_dir)
+        return run_dir
+
+    args = learning.Args(recipes=["dagger-rgbd-bf16"], seeds=[], out_dir=tmp_path)
+    run = learning.adopted_run("dagger-rgbd-bf16", trained("ok", [], seed=2), args)
+    assert run["seed"] == 2 and run["success_rate"] == 0.9 and run["adopted_from"].endswith("ok")
+    assert run["curve"]["success"] == [0.5] and run["curve"]["env_steps"] == [1000]
+    assert "--precision auto" in run["benchmark_command"] and "--seed 2" in run["benchmark_command"]
+    with pytest.raises(ValueError, match=r"not trained by the dagger-rgbd-bf16 recipe: batch_size=32"):
+        learning.adopted_run("dagger-rgbd-bf16", trained("other", ["--batch-size", "32"], seed=3), args)
+    with pytest.raises(ValueError, match="budget_min=60.0 \\(the recipe's: 30.0\\)"):
+        learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", learning.Args(budget_min=30))
+    (tmp_path / "ok" / "summary.json").unlink()
+    with pytest.raises(FileNotFoundError, match="no summary.json"):
+        learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", args)
