@@ -123,12 +123,18 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     out = tmp_path / "gap.json"
     cmd = [sys.executable, str(REPO / "benchmarks" / "sim2real_gap.py"), "--episodes", "1", "--out", str(tmp_path)]
     run = subprocess.run(
-        [*cmd, "--shifts", "none", "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=REPO
+        [*cmd, "--shifts", "lighting", "none", "--workers", "2", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=REPO,
     )
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
-    assert [row["shift"] for row in r["rows"]] == ["none"] and r["rows"][0]["real_success"] in (0.0, 1.0)
-    assert "| expert | none |" in run.stdout and r["rows"][0]["late_steps"] == 0
+    # two cells, each in its own process with its own emulator, reported in the table's order
+    assert [row["shift"] for row in r["rows"]] == ["none", "lighting"] and r["workers"] == 2
+    assert all(row["real_success"] in (0.0, 1.0) and row["late_steps"] == 0 for row in r["rows"])
+    assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
 
