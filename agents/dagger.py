@@ -68,6 +68,7 @@ from agents.common import (
     rng_state,
     set_rng_state,
     shapes_of,
+    torch_threads,
     train_seed,
 )
 from maniskill_irb120.policies import policy_module, policy_section, section_of
@@ -312,6 +313,7 @@ def train(args: Args) -> dict:
     torch.manual_seed(args.seed)
     device = resolve_device(args.device)
     precision = resolve_precision(args.precision, device)
+    learner_threads = torch.get_num_threads()  # before CPU workers claim the cores (make_envs: one thread)
     envs = make_envs(args, args.num_envs)
     action_dim = int(np.prod(envs.single_action_space.shape))
     policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
@@ -356,7 +358,8 @@ def train(args: Args) -> dict:
                 stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
             updates = (args.initial_updates or None) if r == 0 else None
             out_of_time = lambda: elapsed() > budget_s  # noqa: E731
-            losses = train_round(policy, optimizer, data, args, device, out_of_time, aux_head, updates, precision)
+            with torch_threads(learner_threads):  # the workers wait through the updates: every core for them
+                losses = train_round(policy, optimizer, data, args, device, out_of_time, aux_head, updates, precision)
             counters["round"] = r + 1
             counters["env_steps"] += stats.pop("steps")
             counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round

@@ -60,7 +60,7 @@ from agents.common import (
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
-from maniskill_irb120.vector import make_vec_env
+from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
 
 @dataclass
@@ -198,7 +198,7 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
         )
     if not args.partial_reset:
         raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
-    return make_vec_env(
+    envs = make_vec_env(
         args.env_id,
         num_envs,
         backend=args.backend,
@@ -207,6 +207,9 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
         record_metrics=True,
         **kwargs,
     )
+    if isinstance(envs, CPUVectorEnv):
+        torch.set_num_threads(1)  # the rollout's per-step torch ops beside the stepping workers (agents.common.envs)
+    return envs
 
 
 def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:

@@ -139,9 +139,22 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         fn = functools.partial(
             _make_worker_env, env_id, env_kwargs, tuple(wrappers), ignore_terminations, lp_num_threads
         )
-        self._venv = gym.vector.AsyncVectorEnv(
-            [fn] * num_envs, context=context, shared_memory=True, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP
-        )
+        # gymnasium builds one env in this process to read the spaces (AsyncVectorEnv's dummy env), i.e. runs the
+        # worker's setup here too: without the restore, every trainer's learner was left on one torch thread
+        threads, lp = torch.get_num_threads(), os.environ.get("LP_NUM_THREADS")
+        try:
+            self._venv = gym.vector.AsyncVectorEnv(
+                [fn] * num_envs,
+                context=context,
+                shared_memory=True,
+                autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+            )
+        finally:
+            torch.set_num_threads(threads)
+            if lp is None:
+                os.environ.pop("LP_NUM_THREADS", None)
+            else:
+                os.environ["LP_NUM_THREADS"] = lp
         self.num_envs = num_envs
         self.ignore_terminations = ignore_terminations
         self.record_metrics = record_metrics

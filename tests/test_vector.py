@@ -224,3 +224,17 @@ def test_readme_vec_env_snippet_runs_as_a_script(tmp_path, readme_snippet):
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "(2, 84, 84, 3) (2,)" in out.stdout, out.stdout
+
+
+def test_building_the_workers_leaves_this_process_threads_alone(monkeypatch):
+    """Gymnasium builds one env in the calling process to read the spaces, which ran the workers' one-thread setup
+    here too: the learner beside the workers then trained on one torch thread."""
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        env = make_vec_env(ENV, 1, backend="cpu", obs_mode="state", max_episode_steps=4)
+        env.close()
+        assert torch.get_num_threads() == 2 and "LP_NUM_THREADS" not in os.environ
+    finally:
+        torch.set_num_threads(before)

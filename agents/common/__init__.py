@@ -19,6 +19,7 @@ from agents.common.envs import (
     privileged_aux,
     resolve_device,
     shapes_of,
+    torch_threads,
 )
 from agents.common.evaluation import (
     EVAL_SEED,
@@ -54,6 +55,7 @@ __all__ = [
     "flatten_obs",
     "load_torch",
     "make_envs",
+    "torch_threads",
     "obs_to",
     "privileged_aux",
     "resolve_device",

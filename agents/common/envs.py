@@ -3,6 +3,8 @@ policy's action-frame wrappers, and the labelled vector envs of the imitation an
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import partial
 from typing import Optional
 
@@ -117,8 +119,24 @@ def make_envs(
         wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
     backend = "inprocess" if backend == "cpu" and num_envs == 1 else backend  # auto: make_vec_env's
     envs = make_vec_env(env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+    if isinstance(envs, CPUVectorEnv):
+        # the learner's small per-step torch ops beside the stepping workers: more threads only spin against them
+        # (agents.dagger raises it for its updates, which run while the workers wait: torch_threads)
+        torch.set_num_threads(1)
+        return envs
     # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
-    return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
+    return OnHost(envs)
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op threads set to ``n`` for a phase the env workers sit out (e.g. a round of updates)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def shapes_of(space) -> tuple[Optional[tuple[int, int, int]], int]:

@@ -287,3 +287,32 @@ def test_bad_checkpoints_are_named(tmp_path):
         main(Args(evaluate=True, checkpoint=wrong))
     with pytest.raises(FileNotFoundError):
         main(Args(resume=tmp_path / "missing.pt"))
+
+
+def test_updates_take_every_core_and_collection_one_thread_beside_the_workers(tmp_path, monkeypatch):
+    """With CPU workers the learner's per-step ops run on one thread (more only spin against the workers) and a
+    round of updates, which the workers sit out, on the process's own threads (before: one, hidden, for both)."""
+    from agents import dagger
+    from tests.agents.conftest import TINY_DAGGER
+
+    seen: dict[str, list[int]] = {"collect": [], "update": []}
+    collect, train_round = dagger.collect, dagger.train_round
+
+    def counting_collect(*a, **k):
+        seen["collect"].append(torch.get_num_threads())
+        return collect(*a, **k)
+
+    def counting_round(*a, **k):
+        seen["update"].append(torch.get_num_threads())
+        return train_round(*a, **k)
+
+    monkeypatch.setattr(dagger, "collect", counting_collect)
+    monkeypatch.setattr(dagger, "train_round", counting_round)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        dagger.main(dagger.Args(**{**TINY_DAGGER, "num_envs": 2, "backend": "cpu", "runs_dir": tmp_path}))
+    finally:
+        torch.set_num_threads(before)
+    assert seen["collect"] and set(seen["collect"]) == {1}
+    assert seen["update"] and set(seen["update"]) == {2}
