@@ -93,7 +93,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
     )
 
 
-def _one_thread_each(threads: int) -> None:
+def _set_torch_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
@@ -112,7 +112,7 @@ def main(args: Args) -> dict:
         threads = max(1, (os.cpu_count() or 1) // args.workers)
         # spawn: SAPIEN and torch are not fork-safe once the parent has imported them
         with ProcessPoolExecutor(
-            args.workers, multiprocessing.get_context("spawn"), _one_thread_each, (threads,)
+            args.workers, multiprocessing.get_context("spawn"), _set_torch_threads, (threads,)
         ) as pool:
             rows = list(pool.map(cell, *zip(*cells), [args] * len(cells)))
     scored = [r for r in rows if r["real_success"] is not None]
