@@ -53,6 +53,7 @@ from agents.common import (
     flatten_obs,
     load_torch,
     obs_to,
+    one_thread_beside_workers,
     resolve_device,
     rng_state,
     set_rng_state,
@@ -60,7 +61,7 @@ from agents.common import (
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
-from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
+from maniskill_irb120.vector import make_vec_env
 
 
 @dataclass
@@ -198,18 +199,17 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
         )
     if not args.partial_reset:
         raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
-    envs = make_vec_env(
-        args.env_id,
-        num_envs,
-        backend=args.backend,
-        wrappers=wrappers,
-        ignore_terminations=False,
-        record_metrics=True,
-        **kwargs,
+    return one_thread_beside_workers(
+        make_vec_env(
+            args.env_id,
+            num_envs,
+            backend=args.backend,
+            wrappers=wrappers,
+            ignore_terminations=False,
+            record_metrics=True,
+            **kwargs,
+        )
     )
-    if isinstance(envs, CPUVectorEnv):
-        torch.set_num_threads(1)  # the rollout's per-step torch ops beside the stepping workers (agents.common.envs)
-    return envs
 
 
 def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:

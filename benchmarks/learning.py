@@ -114,6 +114,9 @@ DEFAULT_ENV = "TableClearing-IRB120-v1"
 # and wall clock are both stages', its curve the two joined, and the base's own held-out success is kept
 BASES: dict[str, tuple[str, float]] = {"ppo-finetune-state": ("dagger-state", 0.5)}
 REFERENCES = ("random", "expert")
+# what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
+RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
+RESULT_KEPT = (*sorted(RESULT_NEEDS), "grasped_rate", "collided_rate", "checkpoint")
 # --quick: the same code paths at toy sizes
 QUICK_FLAGS = {
     "agents.dagger": [
@@ -266,9 +269,14 @@ def make_room(run_dir: Path) -> Path:
     return run_dir
 
 
+def budget_for(kind: str, args: Args) -> float:
+    """Minutes per run of a recipe whose budget is ``kind`` (RECIPES: "short", "long" or "rl")."""
+    return dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
+
+
 def train_run(recipe: str, seed: int, args: Args) -> dict:
     module, flags, obs, kind = RECIPES[recipe]
-    budget = dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
+    budget = budget_for(kind, args)
     if recipe not in BASES:
         return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
     base_recipe, share = BASES[recipe]
@@ -312,11 +320,10 @@ def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: flo
     if proc.returncode != 0:
         raise RuntimeError(f"{name} exited with {proc.returncode}; its output is in {log}")
     result = json.loads(proc.stdout.strip().splitlines()[-1])
-    missing = {"success_rate", "successes", "env_steps", "wall_clock_s"} - set(result)
+    missing = RESULT_NEEDS - set(result)
     if missing:
         raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
-    keep = ("success_rate", "successes", "env_steps", "wall_clock_s", "grasped_rate", "collided_rate", "checkpoint")
-    out = {k: result[k] for k in keep if k in result}
+    out = {k: result[k] for k in RESULT_KEPT if k in result}
     out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(run_dir, t0))
     return out
 
@@ -352,7 +359,7 @@ def adopted_run(recipe: str, run_dir: Path, args: Args) -> dict:
     if len(events) != 1:
         raise ValueError(f"--adopt: {run_dir} has {len(events)} TensorBoard logs (a resumed or foreign run?), not 1")
     logged, opened = logged_args(events[0])
-    budget = dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
+    budget = budget_for(kind, args)
     argv = [*flags, "--env-id", args.env_id, "--seed", str(logged.get("seed")), "--budget-min", f"{budget:.4g}"]
     argv += ["--eval-episodes", str(args.eval_episodes)]
     trainer_args = tyro.cli(importlib.import_module(module).Args, args=argv)
@@ -362,11 +369,10 @@ def adopted_run(recipe: str, run_dir: Path, args: Args) -> dict:
         shown = ", ".join(f"{k}={a!r} (the recipe's: {b!r})" for k, (a, b) in sorted(differ.items()))
         raise ValueError(f"--adopt: {run_dir} was not trained by the {recipe} recipe: {shown}")
     result = json.loads(summary.read_text())
-    missing = {"success_rate", "successes", "env_steps", "wall_clock_s"} - set(result)
+    missing = RESULT_NEEDS - set(result)
     if missing:
         raise ValueError(f"--adopt: {summary} lacks {sorted(missing)}")
-    keep = ("success_rate", "successes", "env_steps", "wall_clock_s", "grasped_rate", "collided_rate", "checkpoint")
-    out = {k: result[k] for k in keep if k in result}
+    out = {k: result[k] for k in RESULT_KEPT if k in result}
     out.update(
         seed=logged["seed"],
         command=" ".join(["-m", module, *argv]),

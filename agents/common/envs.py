@@ -118,14 +118,20 @@ def make_envs(
 
         wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
     backend = "inprocess" if backend == "cpu" and num_envs == 1 else backend  # auto: make_vec_env's
-    envs = make_vec_env(env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
-    if isinstance(envs, CPUVectorEnv):
-        # the learner's small per-step torch ops beside the stepping workers: more threads only spin against them
-        # (agents.dagger raises it for its updates, which run while the workers wait: torch_threads)
-        torch.set_num_threads(1)
-        return envs
+    envs = one_thread_beside_workers(
+        make_vec_env(env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+    )
     # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
-    return OnHost(envs)
+    return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
+
+
+def one_thread_beside_workers(envs):
+    """``envs``, with this process on one torch thread when they are CPU workers: the learner's small per-step
+    ops run beside the stepping workers, and more threads only spin against them (a phase the workers sit out,
+    such as a round of updates, can take the cores back with :func:`torch_threads`)."""
+    if isinstance(envs, CPUVectorEnv):
+        torch.set_num_threads(1)
+    return envs
 
 
 @contextmanager

@@ -289,11 +289,10 @@ def test_bad_checkpoints_are_named(tmp_path):
         main(Args(resume=tmp_path / "missing.pt"))
 
 
-def test_updates_take_every_core_and_collection_one_thread_beside_the_workers(tmp_path, monkeypatch):
+def test_updates_take_every_core_and_collection_one_thread_beside_the_workers(tmp_path, monkeypatch, tiny):
     """With CPU workers the learner's per-step ops run on one thread (more only spin against the workers) and a
     round of updates, which the workers sit out, on the process's own threads (before: one, hidden, for both)."""
     from agents import dagger
-    from tests.agents.conftest import TINY_DAGGER
 
     seen: dict[str, list[int]] = {"collect": [], "update": []}
     collect, train_round = dagger.collect, dagger.train_round
@@ -311,7 +310,7 @@ def test_updates_take_every_core_and_collection_one_thread_beside_the_workers(tm
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        dagger.main(dagger.Args(**{**TINY_DAGGER, "num_envs": 2, "backend": "cpu", "runs_dir": tmp_path}))
+        tiny(tmp_path, num_envs=2, backend="cpu")
     finally:
         torch.set_num_threads(before)
     assert seen["collect"] and set(seen["collect"]) == {1}
