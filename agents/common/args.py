@@ -9,6 +9,7 @@ another one."""
 
 from __future__ import annotations
 
+import ast
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -52,4 +53,18 @@ class RunArgs:
     comet_project: str = "maniskill_irb120"
     """the Comet project"""
     env_kwargs: dict = field(default_factory=dict)
-    """extra gym.make keyword arguments, e.g. domain randomisation ranges"""
+    """extra gym.make keyword arguments, e.g. domain randomisation ranges; a value that reads as a Python
+    literal is one (``reconfiguration_freq 5`` an int), any other stays a string"""
+
+    def __post_init__(self) -> None:
+        # the command line hands every value over as a string; ManiSkill's counters need numbers
+        self.env_kwargs = {k: _literal(v) for k, v in self.env_kwargs.items()}
+
+
+def _literal(value):
+    if not isinstance(value, str):
+        return value
+    try:
+        return ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return value

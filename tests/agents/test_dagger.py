@@ -315,3 +315,21 @@ def test_updates_take_every_core_and_collection_one_thread_beside_the_workers(tm
         torch.set_num_threads(before)
     assert seen["collect"] and set(seen["collect"]) == {1}
     assert seen["update"] and set(seen["update"]) == {2}
+
+
+def test_env_kwargs_from_the_command_line_reach_the_env_as_numbers_where_they_are_numbers():
+    import tyro
+
+    args = tyro.cli(
+        Args,
+        args=["--env-kwargs", "reconfiguration_freq", "2", "randomization", "object_mass=0.5:2,light=0.5"],
+    )
+    assert args.env_kwargs == {"reconfiguration_freq": 2, "randomization": "object_mass=0.5:2,light=0.5"}
+    env = gym.make("GraspLift-IRB120-v1", obs_mode="state", **args.env_kwargs)
+    masses = []
+    for seed in range(6):  # ManiSkill counts resets modulo reconfiguration_freq: a string "2" raised here
+        env.reset(seed=seed)
+        masses.append(float(env.unwrapped.randomization_draws["object_mass"][0]))
+    env.close()
+    # a new draw per scene build, i.e. every second episode (not every one, not never)
+    assert len(set(masses)) in (3, 4) and sum(a == b for a, b in zip(masses, masses[1:])) >= 2, masses
