@@ -148,6 +148,7 @@ def sim2real_eval(
     episodes: int = 10,
     seed: int = 1000,
     shift: str | None = None,
+    sim_shift: bool = False,
     env_id: str = DEFAULT_ENV_ID,
     camera: str = "twin",
     command_mode: str = "tool_delta",
@@ -157,7 +158,8 @@ def sim2real_eval(
     """Run a policy on the same seeds in simulation and through the ABB adapter and measure the gap: writes
     OUT/report.json, OUT/report.md (+ pictures) and OUT/logs/ (what ``sysid`` fits). ``--robot emulator``: our
     RAPID module on the emulator with a digital twin as the world (``--shift "camera_fov=80,latency=0.02"``
-    makes it differ from the sim); ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
+    makes it differ from the sim; ``--sim-shift`` puts the sim in the same condition, its own prediction of it);
+    ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
     IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo,
     agents.dagger or agents.sac checkpoint. ``--actions``: a checkpoint's action as its trainer evaluated it
     (as-trained), its mean, or a sample (agents.sac/agents.ppo; seeded by the episode seed on both sides).
@@ -172,6 +174,7 @@ def sim2real_eval(
         episodes=episodes,
         seed=seed,
         shift=shift,
+        sim_shift=sim_shift,
         env_id=env_id,
         camera=camera,
         command_mode=command_mode,

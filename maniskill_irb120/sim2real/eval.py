@@ -48,6 +48,9 @@ class EvalConfig:
     shift: str | None = None
     """how the twin's world differs from the sim (Randomization.parse syntax, e.g. 'camera_fov=80,light=0.6');
     'latency' goes to the emulator as command latency"""
+    sim_shift: bool = False
+    """also put the sim side in the --shift's condition (its latency as the drives' delay): the sim's own
+    prediction of it, which sim-vs-real agreement (MMRV, Pearson r) compares with the real side's"""
     env_id: str = "TableClearing-IRB120-v1"
     camera: str = "twin"
     """twin (the twin's render; emulator only), realsense, or none (state-free policies that need no image)"""
@@ -173,10 +176,13 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     from maniskill_irb120.sim2real.report import write_report
 
+    if cfg.sim_shift and not cfg.shift:
+        raise ValueError("--sim-shift puts the sim side in the --shift's condition: give a --shift")
     shift, latency = _parse_shift(cfg.shift)
     cfg.out.mkdir(parents=True, exist_ok=True)
     (cfg.out / "logs").mkdir(exist_ok=True)
-    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions)
+    sim_shift = cfg.shift if cfg.sim_shift else None
+    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions, sim_shift)
     try:
         real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)
     except BaseException:

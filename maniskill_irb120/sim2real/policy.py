@@ -74,16 +74,18 @@ def _tcp_rot(env) -> torch.Tensor:
 
 
 def load_policy(
-    policy: str, env_id: str, command_mode: str, actions: str = "as-trained"
+    policy: str, env_id: str, command_mode: str, actions: str = "as-trained", sim_shift: str | None = None
 ) -> tuple[gym.Env, Callable[[gym.Env], object]]:
     """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path;
-    ``actions``: one of :data:`ACTIONS`."""
+    ``actions``: one of :data:`ACTIONS`; ``sim_shift``: the sim side's own randomisation (the sim's model of a
+    condition the real side is in), else the nominal task."""
     if actions not in ACTIONS:
         raise ValueError(f"--actions {actions!r}: use one of {', '.join(ACTIONS)}")
     if policy == "expert":
         if actions == "sample":
             raise ValueError("--actions sample: the scripted expert has no distribution to sample; use as-trained")
-        sim_env = gym.make(env_id, obs_mode="rgbd", control_mode="pd_ee_delta_tool", sim_backend="physx_cpu")
+        shifted = {"randomization": sim_shift} if sim_shift else {}
+        sim_env = gym.make(env_id, obs_mode="rgbd", control_mode="pd_ee_delta_tool", sim_backend="physx_cpu", **shifted)
         return sim_env, ExpertPolicy
     path = Path(policy)
     if not path.is_file():
@@ -97,9 +99,12 @@ def load_policy(
     if command_mode == "tool_delta" and control_mode != "pd_ee_delta_tool":
         raise ValueError(f"{path} acts in {control_mode}; tool_delta sends pd_ee_delta_tool actions")
     env_kwargs = dict(section["env_kwargs"])
-    # the sim side is the nominal task: a policy trained with domain randomisation is compared with the sim
-    # it was meant for, and the world's differences are the --shift's
-    env_kwargs.pop("randomization", None)
+    # the sim side is the nominal task (or the condition sim_shift models), not the training distribution: a
+    # policy trained with domain randomisation is compared with the sim it was meant for
+    if env_kwargs.pop("randomization", None) is not None:
+        env_kwargs.pop("reconfiguration_freq", None)  # it only served the randomisation's scene draws
+    if sim_shift:
+        env_kwargs["randomization"] = sim_shift
     if section["reward_mode"] is not None:
         env_kwargs.setdefault("reward_mode", section["reward_mode"])
     obs = "rgbd" if section["obs"] == "rgbd" else "state"

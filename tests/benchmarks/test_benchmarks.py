@@ -132,7 +132,8 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
     # two cells, each in its own process with its own emulator, reported in the table's order
-    assert [row["shift"] for row in r["rows"]] == ["none", "lighting"] and r["workers"] == 2
+    assert [row["shift"] for row in r["rows"]] == ["none", "lighting"] and r["workers"] == 2 and r["sim_shift"]
+    assert "the sim side: in each row's condition" in run.stdout
     assert all(row["real_success"] in (0.0, 1.0) and row["late_steps"] == 0 for row in r["rows"])
     assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)

@@ -26,6 +26,7 @@ from maniskill_irb120.sim2real.env import IRB120Sim2RealEnv  # noqa: E402
 from maniskill_irb120.sim2real.twin import DigitalTwin  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
+REPO = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- camera conversion (synthetic frames)
@@ -390,6 +391,31 @@ def test_sim2real_eval_names_bad_setups(tmp_path):
     torch.save(dict(format="someone-else/1"), bogus)
     with pytest.raises(ValueError, match="none of"):
         evaluate(EvalConfig(policy=str(bogus), out=tmp_path))
+
+
+def test_the_sim_side_is_the_nominal_task_or_the_condition_it_is_asked_to_model(tmp_path):
+    """A policy trained under randomisation is compared with the nominal sim, not its training distribution;
+    with sim_shift the sim renders the shifted condition itself (SimplerEnv-style agreement needs both sides in it)."""
+    from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
+    from maniskill_irb120.sim2real.policy import load_policy
+
+    ckpt = torch.load(REPO / "benchmarks/results/policies/dagger-rgbd-bf16-s1-60min.pt", weights_only=False)
+    ckpt["policy"]["env_kwargs"] = dict(randomization="light=0.4:1.6,object_mass=0.5:2", reconfiguration_freq=5)
+    torch.save(ckpt, tmp_path / "dr.pt")
+    frames = {}
+    for shift in (None, "camera_fov=60,light=0.5"):
+        sim_env, make_policy = load_policy(str(tmp_path / "dr.pt"), ENV_ID, "tool_delta", sim_shift=shift)
+        u = sim_env.unwrapped
+        assert u.randomization.active() == ([] if shift is None else ["camera_fov", "light"])
+        assert u.reconfiguration_freq == 0  # the training draws' rebuilds are gone with them
+        obs, _ = sim_env.reset(seed=5)
+        frames[shift] = obs["rgb"].float()
+        make_policy(sim_env).act(obs)
+        sim_env.close()
+    assert (frames[None] - frames["camera_fov=60,light=0.5"]).abs().mean() > 5  # a narrower, darker view
+    with pytest.raises(ValueError, match="give a --shift"):
+        evaluate(EvalConfig(sim_shift=True, out=tmp_path / "none"))
+    assert not (tmp_path / "none").exists()
 
 
 def test_a_refused_step_end_is_named_and_the_emulator_stopped(tmp_path, monkeypatch):
