@@ -63,6 +63,7 @@ from agents.common import (
     flatten_obs,
     load_torch,
     obs_to,
+    prune_row_files,
     resolve_device,
     resolve_precision,
     rng_state,
@@ -71,7 +72,7 @@ from agents.common import (
     torch_threads,
     train_seed,
 )
-from maniskill_irb120.policies import policy_module, policy_section, section_of
+from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
 from maniskill_irb120.policies.nets import DeterministicActor, random_shift
 from maniskill_irb120.wrappers import observation_setup
 
@@ -120,8 +121,13 @@ class Args(RunArgs):
     """weight of the auxiliary loss on privileged targets (0: off)"""
     capacity: int = 300_000
     """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
+    init_policy: Optional[Path] = None
+    """start the policy from this agents.dagger checkpoint's or exported policy's weights (same task, observation,
+    encoder and action frame); optimiser, dataset and counters start fresh, e.g. to train a nominal policy on
+    under --env-kwargs randomization"""
     save_freq: int = 10
-    """checkpoint (with the dataset) every N rounds, and always at the end"""
+    """checkpoint every N rounds, and always at the end; the dataset goes beside it, each save writing only
+    the rows new since the last (checkpoints/data/)"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
     weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 where
@@ -231,14 +237,17 @@ def aux_head_for(policy: DeterministicActor, device) -> torch.nn.Module:
     return torch.nn.Sequential(torch.nn.Linear(n, 256), torch.nn.ReLU(), torch.nn.Linear(256, AUX_DIM)).to(device)
 
 
-def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args, aux_head=None) -> None:
+def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args, aux_head=None, rows=None) -> dict:
+    """The checkpoint, with the dataset as files of the rows new since the last save beside it in ``data/``
+    (``rows``: the last save's manifest): returns the new manifest."""
+    rows = data.save_new_rows(path.parent / "data", rows)
     atomic_save(
         dict(
             format=FORMAT,
             model=policy.state_dict(),
             aux_head=aux_head.state_dict() if aux_head is not None else None,
             optimizer=optimizer.state_dict(),
-            data=data.state_dict(),
+            data_rows=rows,
             counters=counters,
             rng=rng_state(),
             args=args_json(args),
@@ -256,6 +265,8 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
         ),
         path,
     )
+    prune_row_files(path.parent / "data", rows)
+    return rows
 
 
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
@@ -288,12 +299,34 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
+def initial_weights(args: Args, policy: DeterministicActor) -> dict:
+    """``--init-policy``'s weights, once its section says it reads and acts as this run's policy does."""
+    where = f"--init-policy {args.init_policy}"
+    section = read_policy_section(args.init_policy, where)
+    theirs = dict(
+        kind=section["kind"],
+        env_id=section["env_id"],
+        obs=section["obs"],
+        action_frame=section["action_frame"],
+        obs_without=tuple(section["obs_without"]),
+        signature=section["config"],
+    )
+    ours = dict(kind="dagger", env_id=args.env_id, obs=args.obs, action_frame=args.action_frame)
+    ours.update(obs_without=tuple(args.obs_without), signature=policy.signature())
+    differ = [f"{k}={theirs[k]!r} (this run: {ours[k]!r})" for k in ours if theirs[k] != ours[k]]
+    if differ:
+        raise ValueError(f"{where} is not this run's policy: " + ", ".join(differ))
+    return section["state_dict"]
+
+
 def check_args(args: Args) -> None:
     """Flags that would otherwise be ignored or break a long run late are refused up front, by name."""
     if args.encoder != "nature" and args.obs != "rgbd":
         raise ValueError(f"--encoder {args.encoder} reads the camera; --obs {args.obs} has no image")
     if not (args.aux_weight >= 0 and np.isfinite(args.aux_weight)):
         raise ValueError(f"--aux-weight must be a finite number >= 0, got {args.aux_weight}")
+    if args.init_policy is not None and args.resume is not None:
+        raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
 
@@ -317,10 +350,17 @@ def train(args: Args) -> dict:
     envs = make_envs(args, args.num_envs)
     action_dim = int(np.prod(envs.single_action_space.shape))
     policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
+    if args.init_policy is not None:
+        try:
+            policy.load_state_dict(initial_weights(args, policy))
+        except BaseException:
+            envs.close()
+            raise
     aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
     params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
     optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
     data = Dataset(args.capacity)
+    rows = None  # the manifest of the dataset's row files on disk
     counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
     if saved is not None:
         if saved["signature"] != policy.signature():
@@ -333,7 +373,11 @@ def train(args: Args) -> dict:
         if aux_head is not None:
             aux_head.load_state_dict(saved["aux_head"])
         optimizer.load_state_dict(saved["optimizer"])
-        data.load_state_dict(saved["data"])
+        if "data_rows" in saved:
+            rows = saved["data_rows"]
+            data.load_rows(Path(args.resume).parent / "data", rows)
+        else:  # a checkpoint from before the row files: the dataset inside it
+            data.load_state_dict(saved["data"])
         counters = dict(saved["counters"])
         set_rng_state(saved["rng"])
     logger = Logger(run_dir, args)
@@ -377,13 +421,14 @@ def train(args: Args) -> dict:
                     success=f"{stats.get('success_rate', 0):.2f}",
                 )
             if counters["round"] % args.save_freq == 0:
-                save(ckpt_dir / "latest.pt", policy, optimizer, data, dict(counters, wall_s=elapsed()), args, aux_head)
+                counted = dict(counters, wall_s=elapsed())
+                rows = save(ckpt_dir / "latest.pt", policy, optimizer, data, counted, args, aux_head, rows)
     finally:
         if bar is not None:
             bar.close()
         envs.close()
         counters["wall_s"] = elapsed()
-        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args, aux_head)
+        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args, aux_head, rows)
     t_eval = time.perf_counter()
     result = final_evaluation(policy, args, device, None)
     logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])

@@ -3,9 +3,12 @@ dataset and SAC's demo and online replay."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Optional
 
 import torch
+
+from agents.common.checkpoints import atomic_save
 
 
 class Dataset:
@@ -14,11 +17,19 @@ class Dataset:
 
     def __init__(self, capacity: int):
         self.capacity, self.size, self.pos = capacity, 0, 0
+        self.added = 0  # rows ever added: row g lives in slot g % capacity until overwritten
         self.obs: dict[str, torch.Tensor] = {}
         self.act: Optional[torch.Tensor] = None
         self.aux: Optional[torch.Tensor] = None
 
     def add(self, obs: dict[str, torch.Tensor], act: torch.Tensor, aux: Optional[torch.Tensor] = None) -> None:
+        idx = (self.pos + torch.arange(act.shape[0])) % self.capacity
+        self._put(idx, obs, act, aux)
+        self.pos = int(idx[-1] + 1) % self.capacity
+        self.size = min(self.size + act.shape[0], self.capacity)
+        self.added += act.shape[0]
+
+    def _put(self, idx: torch.Tensor, obs: dict[str, torch.Tensor], act: torch.Tensor, aux: Optional[torch.Tensor]):
         if self.act is None:
             self.obs = {k: torch.empty((self.capacity,) + v.shape[1:], dtype=v.dtype) for k, v in obs.items()}
             self.act = torch.empty((self.capacity,) + act.shape[1:], dtype=torch.float32)
@@ -26,14 +37,11 @@ class Dataset:
                 self.aux = torch.empty((self.capacity,) + aux.shape[1:], dtype=torch.float32)
         if (aux is None) != (self.aux is None):
             raise ValueError("a dataset's rows either all carry auxiliary targets or none does")
-        idx = (self.pos + torch.arange(act.shape[0])) % self.capacity
         for k, v in obs.items():
             self.obs[k][idx] = v.cpu()
         self.act[idx] = act.float().cpu()
         if aux is not None:
             self.aux[idx] = aux.float().cpu()
-        self.pos = int(idx[-1] + 1) % self.capacity
-        self.size = min(self.size + act.shape[0], self.capacity)
 
     def sample(self, n: int, device) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """(observations, actions) of ``n`` random rows (a replay's minibatch)."""
@@ -62,3 +70,50 @@ class Dataset:
         if d["size"]:
             self.add(d["obs"], d["act"], d.get("aux"))
             self.pos = d["pos"]
+            # a full ring's oldest row is at pos: count the rows so that added % capacity == pos
+            self.added = d["size"] if d["size"] < d["capacity"] else d["capacity"] + d["pos"]
+
+    def save_new_rows(self, folder: Path, manifest: Optional[dict]) -> dict:
+        """Write the rows added since ``manifest`` (what the last call returned; None: nothing written yet) to a
+        file of their own in ``folder`` and return the new manifest, which a checkpoint keeps instead of the rows.
+
+        A save then costs the new rows, not the whole dataset: a camera run's dataset grows to gigabytes, and
+        writing it whole every few rounds spent the training budget on disk writes. Files whose rows the ring has
+        since overwritten leave the manifest (:func:`prune_row_files` deletes them once the checkpoint is written).
+        """
+        folder = Path(folder)
+        files = [f for f in (manifest or {}).get("files", []) if f["end"] > self.added - self.size]
+        start = max((manifest or {}).get("added", 0), self.added - self.size)
+        if self.added > start:
+            slots = torch.arange(start, self.added) % self.capacity
+            name = f"rows_{start:010d}_{self.added:010d}.pt"
+            rows = dict(
+                obs={k: v[slots].clone() for k, v in self.obs.items()},
+                act=self.act[slots].clone(),
+                aux=self.aux[slots].clone() if self.aux is not None else None,
+            )
+            atomic_save(rows, folder / name)
+            files.append(dict(name=name, start=start, end=self.added))
+        return dict(capacity=self.capacity, added=self.added, files=files)
+
+    def load_rows(self, folder: Path, manifest: dict) -> None:
+        """The dataset :meth:`save_new_rows` wrote, each row back in its slot (so sampling continues as it would
+        have)."""
+        self.__init__(manifest["capacity"])
+        for f in manifest["files"]:
+            path = Path(folder) / f["name"]
+            if not path.is_file():
+                raise FileNotFoundError(f"the checkpoint's dataset rows {path} are missing (copy {folder} with it)")
+            rows = torch.load(path, weights_only=True)
+            self._put(torch.arange(f["start"], f["end"]) % self.capacity, rows["obs"], rows["act"], rows["aux"])
+        self.added = manifest["added"]
+        self.size, self.pos = min(self.added, self.capacity), self.added % self.capacity
+
+
+def prune_row_files(folder: Path, manifest: dict) -> None:
+    """Delete the row files a written checkpoint's manifest no longer lists (overwritten by the ring, or left by
+    a save that never finished)."""
+    keep = {f["name"] for f in manifest["files"]}
+    for path in Path(folder).glob("rows_*.pt"):
+        if path.name not in keep:
+            path.unlink()

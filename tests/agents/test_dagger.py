@@ -109,6 +109,38 @@ def test_one_batched_env_labels_the_state_an_auto_reset_starts_from():
         envs.close()
 
 
+def test_dataset_saves_only_new_rows_and_loads_back_into_the_same_slots(tmp_path):
+    """Each save writes the rows added since the last one; a file the ring has overwritten is dropped; loading
+    the files puts every row back in its slot, so sampling after a resume draws what it would have."""
+    from agents.common import prune_row_files
+
+    d, manifest, written = Dataset(10), None, []
+    for start, n in ((0, 4), (4, 3), (7, 6), (13, 5)):  # 18 rows through a ring of 10
+        d.add({"state": torch.arange(start, start + n).float().view(n, 1)}, torch.full((n, 5), float(start)))
+        manifest = d.save_new_rows(tmp_path, manifest)
+        prune_row_files(tmp_path, manifest)
+        written.append([(f["start"], f["end"]) for f in manifest["files"]])
+    assert written[:2] == [[(0, 4)], [(0, 4), (4, 7)]]
+    assert written[-1] == [(7, 13), (13, 18)]  # rows 0..7 are overwritten: their files are gone from disk too
+    assert sorted(p.name for p in tmp_path.glob("rows_*.pt")) == ["rows_0000000007_0000000013.pt",
+                                                                   "rows_0000000013_0000000018.pt"]  # fmt: skip
+    for f in manifest["files"]:  # each file holds its own rows only, never the ring's capacity
+        assert torch.load(tmp_path / f["name"])["act"].shape == (f["end"] - f["start"], 5)
+    e = Dataset(1)
+    e.load_rows(tmp_path, manifest)
+    assert (e.size, e.pos, e.added) == (d.size, d.pos, d.added) == (10, 8, 18)
+    assert torch.equal(e.obs["state"], d.obs["state"]) and torch.equal(e.act, d.act)
+    torch.manual_seed(0)
+    a = d.sample(6, "cpu")
+    torch.manual_seed(0)
+    b = e.sample(6, "cpu")
+    assert torch.equal(a[0]["state"], b[0]["state"]) and torch.equal(a[1], b[1])
+    assert d.save_new_rows(tmp_path, manifest)["files"] == manifest["files"]  # nothing new: nothing written
+    (tmp_path / manifest["files"][0]["name"]).unlink()
+    with pytest.raises(FileNotFoundError, match="dataset rows .* are missing"):
+        Dataset(1).load_rows(tmp_path, manifest)
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_gpu_backend_without_cuda_is_refused_by_name():
     with pytest.raises(ValueError, match="needs CUDA"):
@@ -170,6 +202,13 @@ def test_round_updates_stop_at_the_budget():
     assert {int(v["step"]) for v in opt.state.values()} == {24}
 
 
+def saved_dataset(checkpoint) -> Dataset:
+    checkpoint = Path(checkpoint)
+    data = Dataset(1)
+    data.load_rows(checkpoint.parent / "data", torch.load(checkpoint, weights_only=False)["data_rows"])
+    return data
+
+
 @pytest.fixture
 def tiny(tiny_dagger):
     return tiny_dagger
@@ -181,7 +220,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     assert {"success_rate", "env_steps", "wall_clock_s"} <= set(last) and last["env_steps"] > 0
     ckpt = Path(res["checkpoint"])
     saved = torch.load(ckpt, weights_only=False)
-    assert saved["data"]["size"] == res["dataset"] > 0 and (Path(res["run_dir"]) / "summary.json").is_file()
+    assert "data" not in saved and saved_dataset(ckpt).size == res["dataset"] > 0
+    assert (Path(res["run_dir"]) / "summary.json").is_file()
     assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
     again = tiny(tmp_path, resume=ckpt, budget_min=1.0, expert_episodes=1)
     assert again["rounds"] > res["rounds"] and again["dataset"] > res["dataset"]
@@ -194,7 +234,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
 def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path, tiny):
     res = tiny(tmp_path, obs_without=("agent/qvel",))
     saved = torch.load(res["checkpoint"], weights_only=False)
-    assert saved["signature"]["state_dim"] == 37 and saved["data"]["obs"]["state"].shape[1] == 37  # 45 - 8 speeds
+    data = saved_dataset(res["checkpoint"])
+    assert saved["signature"]["state_dim"] == 37 and data.obs["state"].shape[1] == 37  # 45 - 8 speeds
     ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]))  # the checkpoint says what it sees
     assert ev["episodes"] == 1
 
@@ -204,7 +245,8 @@ def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path, tiny):
     saved = torch.load(res["checkpoint"], weights_only=False)
     assert saved["signature"]["image_shape"] == [84, 84, 4]
     # no privileged state: the camera policy's state vector is proprioception + TCP pose + grasp flag only
-    assert saved["signature"]["state_dim"] < 40 and set(saved["data"]["obs"]) == {"rgb", "depth", "state"}
+    assert saved["signature"]["state_dim"] < 40
+    assert set(saved_dataset(res["checkpoint"]).obs) == {"rgb", "depth", "state"}
 
 
 def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, tmp_path, tiny):
@@ -231,7 +273,8 @@ def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(en
     kw = dict(obs="rgbd", encoder="keypoints", updates_per_round=2, batch_size=8)
     res = tiny(tmp_path, aux_weight=1.0, initial_updates=3, **kw)
     saved = torch.load(res["checkpoint"], weights_only=False)
-    assert saved["aux_head"] is not None and saved["data"]["aux"].shape == (res["dataset"], 5)
+    data = saved_dataset(res["checkpoint"])
+    assert saved["aux_head"] is not None and data.size == res["dataset"] and data.aux.shape[1:] == (5,)
     assert saved["signature"]["encoder"] == "keypoints"
     with pytest.raises(ValueError, match="aux-weight"):
         tiny(tmp_path, resume=Path(res["checkpoint"]), **kw)
@@ -333,3 +376,18 @@ def test_env_kwargs_from_the_command_line_reach_the_env_as_numbers_where_they_ar
     env.close()
     # a new draw per scene build, i.e. every second episode (not every one, not never)
     assert len(set(masses)) in (3, 4) and sum(a == b for a, b in zip(masses, masses[1:])) >= 2, masses
+
+
+def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_policy(tmp_path, tiny):
+    a = tiny(tmp_path, exp_name="a")
+    frozen = dict(learning_rate=0.0, weight_decay=0.0)  # the updates leave the weights where they started
+    b = tiny(tmp_path, exp_name="b", init_policy=Path(a["checkpoint"]), **frozen)
+    c = tiny(tmp_path, exp_name="c", **frozen)
+    wa, wb, wc = (torch.load(r["checkpoint"], weights_only=False)["model"] for r in (a, b, c))
+    params = [k for k, v in wa.items() if v.is_floating_point()]
+    assert all(torch.equal(wa[k], wb[k]) for k in params)
+    assert not all(torch.equal(wa[k], wc[k]) for k in params)  # without it: a fresh policy
+    with pytest.raises(ValueError, match=r"action_frame='world' \(this run: 'tool'\)"):
+        tiny(tmp_path, exp_name="d", init_policy=Path(a["checkpoint"]), action_frame="tool")
+    with pytest.raises(ValueError, match="pick one"):
+        tiny(tmp_path, exp_name="e", init_policy=Path(a["checkpoint"]), resume=Path(a["checkpoint"]))
