@@ -87,10 +87,10 @@ class Dataset:
         if self.added > start:
             slots = torch.arange(start, self.added) % self.capacity
             name = f"rows_{start:010d}_{self.added:010d}.pt"
-            rows = dict(
-                obs={k: v[slots].clone() for k, v in self.obs.items()},
-                act=self.act[slots].clone(),
-                aux=self.aux[slots].clone() if self.aux is not None else None,
+            rows = dict(  # indexing by a tensor copies: only the new rows go to torch.save
+                obs={k: v[slots] for k, v in self.obs.items()},
+                act=self.act[slots],
+                aux=self.aux[slots] if self.aux is not None else None,
             )
             atomic_save(rows, folder / name)
             files.append(dict(name=name, start=start, end=self.added))

@@ -164,6 +164,15 @@ def test_latency_holds_the_previous_targets_into_the_period():
     assert late[4] > 1e-4
 
 
+def test_a_mount_range_per_axis_draws_each_axis_in_its_own_range():
+    r = Randomization.parse("camera_pos=-0.015:0.015;-0.01:0.01;-0.004:0.015,camera_rot=-6:6")
+    assert r.camera_pos == (-0.015, 0.015, -0.01, 0.01, -0.004, 0.015) and r.camera_rot == (-6.0, 6.0)
+    pos = r.draw("camera_pos", np.random.default_rng(0), 2000)
+    assert pos.shape == (2000, 3)
+    np.testing.assert_allclose(pos.min(0), [-0.015, -0.01, -0.004], atol=1e-4)
+    np.testing.assert_allclose(pos.max(0), [0.015, 0.01, 0.015], atol=1e-4)
+
+
 def test_ranges_follow_the_episode_seed():
     env = make("camera_fov=60:80,light=0.5:1.5", "rgbd")
     draws = []
@@ -189,6 +198,10 @@ def test_ranges_follow_the_episode_seed():
         ("light=nan", "not finite"),
         ("camera_fov=abc", "not a number"),
         ("light=1;2;3", "a value or a"),
+        ("light=1:2;0:1;0:1", "a value or a"),
+        ("camera_pos=0:1;0;0", "per axis"),
+        ("camera_pos=0:1:2", "a range is LOW:HIGH"),
+        ("camera_rot=0:1;2:1;0:1", "low > high"),
     ],
 )
 def test_bad_specs_are_named(spec, message):
