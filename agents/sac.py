@@ -64,6 +64,7 @@ from agents.common import (
     flatten_obs,
     load_torch,
     obs_to,
+    prune_row_files,
     resolve_device,
     rng_state,
     set_rng_state,
@@ -137,7 +138,8 @@ class Args(RunArgs):
     log_freq: int = 1000
     """env steps between TensorBoard points"""
     save_freq: int = 20_000
-    """env steps between checkpoints (with both buffers); always at the end"""
+    """env steps between checkpoints; always at the end (both buffers beside it, each save writing only the
+    rows new since the last)"""
 
 
 ROW_FIELDS = ("rew", "term", "succ", "label")
@@ -286,14 +288,17 @@ def pretrain(model: SAC, opts: dict, online: Dataset, demos: Dataset, args: Args
     return loss
 
 
-def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, counters: dict, args: Args) -> None:
+def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, counters: dict, args: Args, rows=None):
+    """The checkpoint, with the replay and the demos beside it in ``data/online`` and ``data/demos``, each save
+    writing only the rows new since the last (``rows``: the last save's manifests): returns the new manifests."""
+    data = dict(online=online, demos=demos)
+    rows = {k: d.save_new_rows(path.parent / "data" / k, (rows or {}).get(k)) for k, d in data.items()}
     atomic_save(
         dict(
             format=FORMAT,
             model=model.state_dict(),
             opts={k: o.state_dict() for k, o in opts.items()},
-            online=online.state_dict(),
-            demos=demos.state_dict(),
+            data_rows=rows,
             counters=counters,
             rng=rng_state(),
             args=args_json(args),
@@ -314,6 +319,9 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
         ),
         path,
     )
+    for k, manifest in rows.items():
+        prune_row_files(path.parent / "data" / k, manifest)
+    return rows
 
 
 def load_model(path: Path, device) -> tuple[SAC, dict]:
@@ -407,6 +415,7 @@ def train(args: Args) -> dict:
         alpha=torch.optim.Adam([model.log_alpha], lr=args.q_lr),
     )
     online, demos = Dataset(args.buffer_size), Dataset(demo_rows(args))
+    rows = None  # the manifests of the datasets' row files on disk
     counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
     if saved is not None:
         if saved["signature"] != model.signature():
@@ -414,8 +423,13 @@ def train(args: Args) -> dict:
         model.load_state_dict(saved["model"])
         for k, o in opts.items():
             o.load_state_dict(saved["opts"][k])
-        online.load_state_dict(saved["online"])
-        demos.load_state_dict(saved["demos"])
+        if "data_rows" in saved:
+            rows = saved["data_rows"]
+            online.load_rows(Path(args.resume).parent / "data" / "online", rows["online"])
+            demos.load_rows(Path(args.resume).parent / "data" / "demos", rows["demos"])
+        else:  # a checkpoint from before the row files: the data inside it
+            online.load_state_dict(saved["online"])
+            demos.load_state_dict(saved["demos"])
         counters = dict(saved["counters"])
         set_rng_state(saved["rng"])
     logger = Logger(run_dir, args)
@@ -482,13 +496,13 @@ def train(args: Args) -> dict:
                 recent = {}
             if counters["env_steps"] >= next_save:
                 next_save += args.save_freq
-                save(ckpt_path, model, opts, online, demos, dict(counters, wall_s=elapsed()), args)
+                rows = save(ckpt_path, model, opts, online, demos, dict(counters, wall_s=elapsed()), args, rows)
     finally:
         if bar is not None:
             bar.close()
         envs.close()
         counters["wall_s"] = elapsed()
-        save(ckpt_path, model, opts, online, demos, counters, args)
+        save(ckpt_path, model, opts, online, demos, counters, args, rows)
     t_eval = time.perf_counter()
     model.eval()
     result = final_evaluation(model, args, device, None)

@@ -154,10 +154,11 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert res["updates"] > 0 and (Path(res["run_dir"]) / "summary.json").is_file()
     assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
     saved = torch.load(res["checkpoint"], weights_only=False)
-    assert saved["demos"]["size"] > 0 and saved["online"]["size"] > 0
+    rows = saved["data_rows"]  # the data beside the checkpoint, in data/online and data/demos
+    assert rows["demos"]["added"] > 0 and rows["online"]["added"] > 0 and "online" not in saved
     assert saved["signature"]["reference"] and any(k.startswith("reference.") for k in saved["model"])
     # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, 250 steps each)
-    assert saved["online"]["capacity"] == 300_000 and saved["demos"]["capacity"] == 500
+    assert rows["online"]["capacity"] == 300_000 and rows["demos"]["capacity"] == 500
     assert saved["args"]["buffer_size"] == 300_000
     again = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.3)
     assert again["env_steps"] > res["env_steps"] and again["updates"] > res["updates"]
