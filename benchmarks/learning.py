@@ -51,13 +51,14 @@ from results_md import replace_section  # noqa: E402
 
 from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 
-# the camera's mount (m, deg), field of view, lights, surfaces, depth, the object and command latency: each range
-# covers its shift in benchmarks/sim2real_gap.py (mount 1 cm / 5 deg, 75 deg, light x0.5, colour 0.25 and every
-# surface textured, 4 mm noise + 5 % dropout, object x1.2 / x2 / x0.5, 30 ms)
+# the field of view, lights, surfaces, depth, the object and command latency: each range covers its shift in
+# benchmarks/sim2real_gap.py (75 deg, light x0.5, colour 0.25 and every surface textured, 4 mm noise + 5 % dropout,
+# object x1.2 / x2 / x0.5, 30 ms). Not the camera's mount: with camera_pos -0.015:0.015 and camera_rot -6:6 as well,
+# training collapsed to 0-10 % from scratch and from the 95 % policy alike (benchmarks/RESULTS.md)
 CAMERA_RANDOMIZATION = (
-    "camera_pos=-0.015:0.015,camera_rot=-6:6,camera_fov=70:95,light=0.4:1.6,color=0.3,texture=0.7,"
-    "roughness=0.1:0.9,specular=0.1:0.9,depth_noise=0:5,depth_dropout=0:0.06,"
-    "object_size=0.8:1.25,object_mass=0.5:2,object_friction=0.5:1.5,latency=0:0.035"
+    "camera_fov=70:95,light=0.4:1.6,color=0.3,texture=0.7,roughness=0.1:0.9,specular=0.1:0.9,"
+    "depth_noise=0:5,depth_dropout=0:0.06,object_size=0.8:1.25,object_mass=0.5:2,object_friction=0.5:1.5,"
+    "latency=0:0.035"
 )
 # recipe -> (module, fixed flags ("{seed}" in one: the run's seed), observation, budget: "short" = --budget-min,
 # "long" = --long-budget-min, "rl" = --rl-budget-min, as the issues' targets: imitation from state in 60 min; from
@@ -85,9 +86,7 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "short",
     ),
     # the same camera recipe trained on under vision and object randomisation (issue 30), from the committed
-    # dagger-rgbd-bf16 policy of the same seed (from scratch, 25 min under these ranges delivered nothing:
-    # benchmarks/RESULTS.md): ranges that cover every shift of benchmarks/sim2real_gap.py; the object draws
-    # rebuild the scene, every 5th episode per env
+    # dagger-rgbd-bf16 policy of the same seed; the object draws rebuild the scene, every 5th episode per env
     "dagger-rgbd-bf16-dr": (
         "agents.dagger",
         "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
