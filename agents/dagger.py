@@ -66,6 +66,7 @@ from agents.common import (
     prune_row_files,
     resolve_device,
     resolve_precision,
+    restore_dataset,
     rng_state,
     set_rng_state,
     shapes_of,
@@ -373,11 +374,8 @@ def train(args: Args) -> dict:
         if aux_head is not None:
             aux_head.load_state_dict(saved["aux_head"])
         optimizer.load_state_dict(saved["optimizer"])
-        if "data_rows" in saved:
-            rows = saved["data_rows"]
-            data.load_rows(Path(args.resume).parent / "data", rows)
-        else:  # a checkpoint from before the row files: the dataset inside it
-            data.load_state_dict(saved["data"])
+        rows = saved.get("data_rows")
+        restore_dataset(data, saved, Path(args.resume).parent / "data")
         counters = dict(saved["counters"])
         set_rng_state(saved["rng"])
     logger = Logger(run_dir, args)

@@ -66,6 +66,7 @@ from agents.common import (
     obs_to,
     prune_row_files,
     resolve_device,
+    restore_dataset,
     rng_state,
     set_rng_state,
     shapes_of,
@@ -423,13 +424,9 @@ def train(args: Args) -> dict:
         model.load_state_dict(saved["model"])
         for k, o in opts.items():
             o.load_state_dict(saved["opts"][k])
-        if "data_rows" in saved:
-            rows = saved["data_rows"]
-            online.load_rows(Path(args.resume).parent / "data" / "online", rows["online"])
-            demos.load_rows(Path(args.resume).parent / "data" / "demos", rows["demos"])
-        else:  # a checkpoint from before the row files: the data inside it
-            online.load_state_dict(saved["online"])
-            demos.load_state_dict(saved["demos"])
+        rows = saved.get("data_rows")
+        restore_dataset(online, saved, Path(args.resume).parent / "data", "online")
+        restore_dataset(demos, saved, Path(args.resume).parent / "data", "demos")
         counters = dict(saved["counters"])
         set_rng_state(saved["rng"])
     logger = Logger(run_dir, args)

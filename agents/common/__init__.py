@@ -7,7 +7,7 @@ evaluation every recipe is scored on (``evaluation``), the loggers (``logging``)
 ``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
 
 from agents.common.args import RunArgs
-from agents.common.buffers import Dataset, prune_row_files
+from agents.common.buffers import Dataset, prune_row_files, restore_dataset
 from agents.common.checkpoints import args_json, atomic_save, load_torch, rng_state, set_rng_state
 from agents.common.envs import (
     AUX_DIM,
@@ -62,6 +62,7 @@ __all__ = [
     "prune_row_files",
     "resolve_device",
     "resolve_precision",
+    "restore_dataset",
     "rng_state",
     "set_rng_state",
     "shapes_of",

@@ -110,6 +110,19 @@ class Dataset:
         self.size, self.pos = min(self.added, self.capacity), self.added % self.capacity
 
 
+def restore_dataset(data: Dataset, saved: dict, data_dir: Path, part: Optional[str] = None) -> None:
+    """Refill ``data`` for a resumed run: from the row files in ``data_dir`` (``/ part``) that the checkpoint
+    ``saved`` lists, or, for a checkpoint written before the row files, from the rows inside it (under ``part``,
+    or ``"data"``). ``part`` names one of several datasets a trainer keeps (SAC's ``online`` and ``demos``)."""
+    manifest = saved.get("data_rows")
+    if manifest is None:
+        data.load_state_dict(saved[part or "data"])
+    elif part is None:
+        data.load_rows(data_dir, manifest)
+    else:
+        data.load_rows(Path(data_dir) / part, manifest[part])
+
+
 def prune_row_files(folder: Path, manifest: dict) -> None:
     """Delete the row files a written checkpoint's manifest no longer lists (overwritten by the ring, or left by
     a save that never finished)."""

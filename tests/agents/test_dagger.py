@@ -141,6 +141,24 @@ def test_dataset_saves_only_new_rows_and_loads_back_into_the_same_slots(tmp_path
         Dataset(1).load_rows(tmp_path, manifest)
 
 
+def test_a_resume_restores_each_dataset_from_its_row_files_or_from_an_older_checkpoint(tmp_path):
+    """DAgger keeps one dataset, SAC two (``online``, ``demos``): each comes back from the row files its
+    checkpoint lists, and a checkpoint written before the row files still resumes from the rows inside it."""
+    from agents.common import restore_dataset
+
+    d = Dataset(8)
+    d.add({"state": torch.arange(5).float().view(5, 1)}, torch.ones(5, 5))
+    single = dict(data_rows=d.save_new_rows(tmp_path / "data", None))
+    parts = dict(data_rows={"online": d.save_new_rows(tmp_path / "data" / "online", None)})
+    legacy = dict(data=d.state_dict(), online=d.state_dict())
+    for saved, part in ((single, None), (parts, "online"), (legacy, None), (legacy, "online")):
+        e = Dataset(1)
+        restore_dataset(e, saved, tmp_path / "data", part)
+        assert (e.size, e.pos) == (5, 5) and torch.equal(e.obs["state"][:5], d.obs["state"][:5])
+    with pytest.raises(KeyError):  # a part the checkpoint does not have is not silently an empty dataset
+        restore_dataset(Dataset(1), parts, tmp_path / "data", "demos")
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_gpu_backend_without_cuda_is_refused_by_name():
     with pytest.raises(ValueError, match="needs CUDA"):
