@@ -151,6 +151,7 @@ def sim2real_eval(
     sim_shift: bool = False,
     env_id: str = DEFAULT_ENV_ID,
     camera: str = "twin",
+    camera_mount: str | None = None,
     command_mode: str = "tool_delta",
     out: str = "runs/sim2real",
     operator_timeout_s: float = 60.0,
@@ -161,8 +162,10 @@ def sim2real_eval(
     makes it differ from the sim; ``--sim-shift`` puts the sim in the same condition, its own prediction of it);
     ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
     IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo,
-    agents.dagger or agents.sac checkpoint. ``--actions``: a checkpoint's action as its trainer evaluated it
-    (as-trained), its mean, or a sample (agents.sac/agents.ppo; seeded by the episode seed on both sides).
+    agents.dagger or agents.sac checkpoint. ``--camera-mount "camera_pos=X;Y;Z,camera_rot=A;B;C"``: the camera's
+    mount as hand-eye calibration measured it; frames are reprojected to the trained mount. ``--actions``: a
+    checkpoint's action as its trainer evaluated it (as-trained), its mean, or a sample (agents.sac/agents.ppo;
+    seeded by the episode seed on both sides).
     Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
     from maniskill_irb120.sim2real.eval import EvalConfig
     from maniskill_irb120.sim2real.eval import main as eval_main
@@ -177,6 +180,7 @@ def sim2real_eval(
         sim_shift=sim_shift,
         env_id=env_id,
         camera=camera,
+        camera_mount=camera_mount,
         command_mode=command_mode,
         out=Path(out),
         operator_timeout_s=operator_timeout_s,

@@ -201,6 +201,14 @@ def _euler_quat(deg: np.ndarray) -> list[float]:
     return list(q.q)
 
 
+def camera_mount_offset(pos, rot_deg) -> sapien.Pose:
+    """The hand camera's pose in the frame of its nominal mount after a ``camera_pos``/``camera_rot`` value: the
+    translation (m, in the mount's axes, which are the nominal camera's: x along the view, y left, z up), then
+    rotations about the camera's x, y and z axes (deg), in that order. The sim moves its camera by it; sim2real's
+    mount correction (``sim2real/cameras.py``) undoes a measured one, so both read the same convention here."""
+    return sapien.Pose(p=[float(x) for x in np.asarray(pos, dtype=np.float64)], q=_euler_quat(np.asarray(rot_deg)))
+
+
 class RandomizationMixin:
     """The hooks ``IRB120TableEnv`` calls: at scene build, at episode reset, on sensor data, around the sim
     steps of a control period. All of them do nothing while ``randomization`` is off."""
@@ -276,9 +284,8 @@ class RandomizationMixin:
             for i in idx:
                 pos = r.draw("camera_pos", rngs[i])[0]
                 rot = r.draw("camera_rot", rngs[i])[0]
-                cam._render_cameras[i].set_local_pose(
-                    sapien.Pose(p=list(np.asarray(base["offset"]) + pos), q=_euler_quat(rot))
-                )
+                nominal = sapien.Pose(p=[float(x) for x in base["offset"]])  # the mount's own axes: no rotation
+                cam._render_cameras[i].set_local_pose(nominal * camera_mount_offset(pos, rot))
                 fov = base["fov"] if r.camera_fov is None else math.radians(r.draw("camera_fov", rngs[i])[0])
                 cam._render_cameras[i].set_fovy(fov, compute_x=True)
                 self._record_draw("camera_pos", i, pos)

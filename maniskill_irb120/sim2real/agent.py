@@ -158,6 +158,19 @@ class IRB120RealAgent(BaseRealAgent):
                 self.abb.stop()
             raise RuntimeError(f"camera failed ({e}); the robot was stopped") from e
 
+    def own_view(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The hand camera's view of the robot itself from the trained mount: (rgb uint8 (H, W, 3), depth int16 mm
+        (H, W, 1), mask (H, W) of the robot's pixels), rendered in the sim at the joints (fingers included) the
+        robot last reported, which ``get_info`` synced. What ``MountCorrectedCamera`` draws in."""
+        scene = self._sim_agent.scene
+        scene.update_render(update_sensors=True, update_human_render_cameras=False)
+        cam = scene.sensors[self.camera_name]
+        cam.capture()
+        obs = cam.get_obs(rgb=True, depth=True, segmentation=True, position=False)
+        ids = torch.cat([link.per_scene_id for link in self._sim_agent.robot.get_links()]).cpu()
+        mask = torch.isin(obs["segmentation"][0, ..., 0].cpu().long(), ids.long())
+        return obs["rgb"][0].cpu().numpy(), obs["depth"][0].cpu().numpy(), mask.numpy()
+
     def get_sensor_params(self, sensor_names=None) -> dict:
         """The camera's own (the twin renders with known parameters), else the sim camera's at the synced joints:
         the nominal mount and the intrinsics ``to_sim_frame`` produces."""

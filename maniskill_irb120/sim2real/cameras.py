@@ -3,7 +3,9 @@ int16 millimetres (H, W, 1), 84x84 with the sim camera's field of view.
 
 ``RealSenseCamera`` (``pyrealsense2``, optional): depth aligned to colour, then :func:`to_sim_frame` crops the
 sim camera's field of view out of the real one around the principal point and resizes it. ``TwinCamera``: the
-hand camera rendered in the digital twin behind the controller emulator.
+hand camera rendered in the digital twin behind the controller emulator. ``MountCorrectedCamera``: either of
+them on a mount that differs from the trained one by a measured offset (hand-eye calibration), its frames
+reprojected to the trained mount (:func:`reproject_to_mount`).
 """
 
 from __future__ import annotations
@@ -12,9 +14,12 @@ import math
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 SIM_SIZE = 84
 SIM_FOV_DEG = 90.0  # the hand camera's (agents/irb120.py HAND_CAMERA), square image: same both ways
+# OpenCV's camera axes (x right, y down, z along the view) from SAPIEN's (x along the view, y left, z up)
+CV_FROM_SAPIEN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
 
 def to_sim_frame(
@@ -151,3 +156,127 @@ class TwinCamera:
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         cam = self.twin.obs["sensor_data"][self.name]
         return cam["rgb"][0].cpu().numpy(), cam["depth"][0].cpu().numpy()
+
+
+def sim_intrinsics(size: int = SIM_SIZE, fov_deg: float = SIM_FOV_DEG) -> np.ndarray:
+    """(3, 3) OpenCV intrinsics of the sim camera's square image (what ManiSkill reports as ``intrinsic_cv``:
+    the principal point at the image centre, pixel i spanning [i, i + 1))."""
+    f = size / 2 / math.tan(math.radians(fov_deg) / 2)
+    return np.array([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
+
+
+def parse_mount(spec: str) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,) m, rotation (3,) deg) of a measured camera mount, written as the randomisation writes one
+    (``camera_pos=0.01;-0.01;0.005,camera_rot=3;-3;5``: the same names, axes and order), fixed values only."""
+    from maniskill_irb120.envs.randomization import Randomization
+
+    r = Randomization.parse(spec)
+    other = [k for k in r.active() if k not in ("camera_pos", "camera_rot")]
+    if other:
+        raise ValueError(f"a camera mount is camera_pos and camera_rot only, got {other} in {spec!r}")
+    for name in ("camera_pos", "camera_rot"):
+        v = getattr(r, name)
+        if not np.isscalar(v) and len(v) != 3:
+            raise ValueError(f"{name}={v!r}: a measured mount is one value per axis (x;y;z), not a range")
+    draw = np.random.default_rng(0)  # fixed values: the generator is not used
+    return r.draw("camera_pos", draw)[0], r.draw("camera_rot", draw)[0]
+
+
+def reproject_to_mount(
+    rgb: np.ndarray, depth_mm: np.ndarray, pos: np.ndarray, rot_deg: np.ndarray, intrinsics: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame a camera on the trained mount would have seen, from one taken on a mount offset by ``pos`` (m)
+    and ``rot_deg`` (the randomisation's ``camera_pos``/``camera_rot``, ``camera_mount_offset``).
+
+    A policy trained on one mount loses its grasp when the camera sits a centimetre or a few degrees off
+    (benchmarks/RESULTS.md, the twin's camera-mount row); a depth camera lets the frame be moved back instead:
+    every valid depth pixel is lifted to 3-D, moved into the trained camera's frame and projected again, the
+    nearest point winning where several land on one pixel. Pixels nothing lands on (the strip the offset camera
+    did not see, surfaces it saw edge-on, its own invalid readings) take the nearest reprojected pixel's colour
+    and depth, so the image has no holes a policy never saw in training. Same size and intrinsics in and out:
+    ``rgb`` uint8 (H, W, 3), ``depth_mm`` int16/uint16 mm (H, W, 1), 0 = no reading."""
+    rgb, depth_mm = np.asarray(rgb), np.asarray(depth_mm)
+    depth2 = depth_mm[..., 0] if depth_mm.ndim == 3 else depth_mm
+    if rgb.ndim != 3 or rgb.shape[:2] != depth2.shape:
+        raise ValueError(f"rgb {rgb.shape} and depth {depth_mm.shape} are not one aligned frame")
+    from maniskill_irb120.envs.randomization import camera_mount_offset
+
+    pose = camera_mount_offset(pos, rot_deg)  # the offset camera in the trained camera's frame (SAPIEN axes)
+    rot = CV_FROM_SAPIEN @ pose.to_transformation_matrix()[:3, :3] @ CV_FROM_SAPIEN.T
+    shift = CV_FROM_SAPIEN @ np.asarray(pose.p, dtype=np.float64)
+    h, w = depth2.shape
+    (fx, _, cx), (_, fy, cy) = intrinsics[0], intrinsics[1]
+    v, u = np.nonzero(depth2 > 0)
+    z = depth2[v, u].astype(np.float64)
+    points = np.stack([(u + 0.5 - cx) / fx * z, (v + 0.5 - cy) / fy * z, z], 1) @ rot.T + 1000.0 * shift
+    front = points[:, 2] > 1.0
+    un = np.floor(fx * points[front, 0] / points[front, 2] + cx).astype(np.int64)
+    vn = np.floor(fy * points[front, 1] / points[front, 2] + cy).astype(np.int64)
+    inside = (un >= 0) & (un < w) & (vn >= 0) & (vn < h)
+    src = np.flatnonzero(front)[inside]
+    if src.size == 0:
+        raise ValueError("no valid depth lands in the trained camera's view: is the mount offset right?")
+    target = vn[inside] * w + un[inside]
+    order = np.lexsort((points[src, 2], target))  # by pixel, nearest first
+    first = np.r_[True, target[order][1:] != target[order][:-1]]
+    win = order[first]
+    out_depth = np.zeros(h * w, dtype=np.float64)
+    out_rgb = np.zeros((h * w, 3), dtype=np.uint8)
+    out_depth[target[win]] = points[src[win], 2]
+    out_rgb[target[win]] = rgb[v[src[win]], u[src[win]]]
+    hole = np.ones(h * w, dtype=bool)
+    hole[target[win]] = False
+    nearest = ndimage.distance_transform_edt(hole.reshape(h, w), return_distances=False, return_indices=True)
+    flat = (nearest[0] * w + nearest[1]).ravel()
+    out_depth, out_rgb = out_depth[flat], out_rgb[flat]
+    depth_out = np.clip(np.rint(out_depth), 0, np.iinfo(np.int16).max).astype(depth_mm.dtype)
+    return out_rgb.reshape(h, w, 3), depth_out.reshape(depth_mm.shape)
+
+
+def overlay_own_view(
+    rgb: np.ndarray, depth_mm: np.ndarray, own: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """``rgb``/``depth_mm`` with the robot's own links drawn in where they are nearer than what the frame shows.
+
+    ``own``: (rgb, depth mm, mask) of the trained mount's view of the robot alone, as its model renders it at
+    the joints the robot reports. The fingers sit 1-3 cm from the lens: a centimetre of mount offset moves them
+    half the image, so what the offset camera saw of them cannot be reprojected into where the trained
+    camera sees them (the far scene can); the robot's own geometry is known, so it is drawn instead."""
+    own_rgb, own_depth, mask = own
+    own_d = own_depth[..., 0] if own_depth.ndim == 3 else own_depth
+    d = depth_mm[..., 0] if depth_mm.ndim == 3 else depth_mm
+    take = mask & (own_d > 0) & ((own_d <= d) | (d == 0))
+    rgb, depth_mm = rgb.copy(), depth_mm.copy()
+    rgb[take] = own_rgb[take]
+    (depth_mm[..., 0] if depth_mm.ndim == 3 else depth_mm)[take] = own_d[take]
+    return rgb, depth_mm
+
+
+class MountCorrectedCamera:
+    """``camera`` (``RealSenseCamera``, ``TwinCamera``, anything with ``start``/``stop``/``read``) on a mount
+    ``mount`` off the trained one (``camera_pos=x;y;z,camera_rot=a;b;c``, as hand-eye calibration measured it):
+    every frame :func:`reproject_to_mount`-ed to the trained mount, then the robot's own links drawn in
+    (:func:`overlay_own_view`) from ``robot_view`` (``IRB120RealAgent.own_view``; None: not drawn). The residual
+    is the calibration's error."""
+
+    def __init__(self, camera, mount: str, fov_deg: float = SIM_FOV_DEG, robot_view=None):
+        self.camera, self.mount = camera, mount
+        self.pos, self.rot_deg = parse_mount(mount)
+        self.fov_deg = fov_deg
+        self.robot_view = robot_view
+
+    def start(self) -> None:
+        self.camera.start()
+
+    def stop(self) -> None:
+        self.camera.stop()
+
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        rgb, depth = self.camera.read()
+        if depth.shape[0] != depth.shape[1]:
+            raise ValueError(f"mount correction expects the sim camera's square frame, got {depth.shape}")
+        # the twin knows its camera's intrinsics; a real camera's frame has the sim's (to_sim_frame's crop)
+        params = self.camera.params() if hasattr(self.camera, "params") else None
+        k = params["intrinsic_cv"][0].cpu().numpy() if params else sim_intrinsics(depth.shape[1], self.fov_deg)
+        rgb, depth = reproject_to_mount(rgb, depth, self.pos, self.rot_deg, k)
+        return overlay_own_view(rgb, depth, self.robot_view()) if self.robot_view is not None else (rgb, depth)

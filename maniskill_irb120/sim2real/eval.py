@@ -51,6 +51,10 @@ class EvalConfig:
     sim_shift: bool = False
     """also put the sim side in the --shift's condition (its latency as the drives' delay): the sim's own
     prediction of it, which sim-vs-real agreement (MMRV, Pearson r) compares with the real side's"""
+    camera_mount: str | None = None
+    """the camera's mount as hand-eye calibration measured it, in the randomisation's words
+    ('camera_pos=0.01;-0.01;0.005,camera_rot=3;-3;5'): every frame is reprojected to the mount the policy was
+    trained on (MountCorrectedCamera). With --sim-shift the sim side then leaves the mount out of the --shift"""
     env_id: str = "TableClearing-IRB120-v1"
     camera: str = "twin"
     """twin (the twin's render; emulator only), realsense, or none (state-free policies that need no image)"""
@@ -129,6 +133,13 @@ def _parse_shift(spec: str | None):
     return replace(shift, latency=0.0), latency
 
 
+def without_mount(spec: str) -> str | None:
+    """``spec`` (Randomization.parse syntax) without its camera_pos and camera_rot; None when nothing is left."""
+    items = [i.strip() for i in spec.split(",") if i.strip()]
+    kept = [i for i in items if i.partition("=")[0].strip() not in ("camera_pos", "camera_rot")]
+    return ",".join(kept) or None
+
+
 def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
     """(Sim2RealEnv, agent, twin or None, emulator or None)."""
     from maniskill_irb120.sim2real.agent import IRB120RealAgent
@@ -157,11 +168,17 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
             from maniskill_irb120.sim2real.cameras import RealSenseCamera
 
             camera = RealSenseCamera()
+    if cfg.camera_mount:
+        from maniskill_irb120.sim2real.cameras import MountCorrectedCamera
+
+        camera = MountCorrectedCamera(camera, cfg.camera_mount)
     try:
         agent = IRB120RealAgent(
             url, camera=camera, command_mode=cfg.command_mode, finger_qpos=twin.finger_qpos if twin else None
         )
         env = IRB120Sim2RealEnv(sim_env, agent, world=twin, on_refusal="hold", step_end=cfg.step_end)
+        if cfg.camera_mount:
+            camera.robot_view = agent.own_view
     except BaseException:  # a refused setting (e.g. --step-end) must not leave the emulator serving
         if emulator is not None:
             emulator.stop()
@@ -178,10 +195,18 @@ def evaluate(cfg: EvalConfig) -> dict:
 
     if cfg.sim_shift and not cfg.shift:
         raise ValueError("--sim-shift puts the sim side in the --shift's condition: give a --shift")
+    if cfg.camera_mount:  # refused before anything starts
+        from maniskill_irb120.sim2real.cameras import parse_mount
+
+        parse_mount(cfg.camera_mount)
+        if cfg.camera == "none":
+            raise ValueError("--camera-mount corrects a camera's frames: give --camera twin or realsense")
     shift, latency = _parse_shift(cfg.shift)
     cfg.out.mkdir(parents=True, exist_ok=True)
     (cfg.out / "logs").mkdir(exist_ok=True)
     sim_shift = cfg.shift if cfg.sim_shift else None
+    if sim_shift and cfg.camera_mount:  # the corrected frames come from the trained mount: the sim keeps it
+        sim_shift = without_mount(sim_shift)
     sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions, sim_shift)
     try:
         real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)

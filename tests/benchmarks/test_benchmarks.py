@@ -138,6 +138,9 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
     bad = subprocess.run([*cmd, "--shifts", "gravity"], capture_output=True, text=True, timeout=600, cwd=REPO)
     assert bad.returncode != 0 and "--shifts ['gravity']: the rows are" in bad.stderr
+    blind = [*cmd, "--camera", "none", "--shifts", "camera mount, corrected"]
+    bad = subprocess.run(blind, capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert bad.returncode != 0 and "correct camera frames: --camera twin" in bad.stderr
 
 
 def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
