@@ -35,6 +35,7 @@ def rollout(env, seed: int, stall: str | None = None) -> tuple[list[float], dict
     """Per-step rewards and the last info of the expert, or of a stall: the expert until the stall's phase,
     then ``hover`` (still, open, at the grasp height), ``push`` (open, back and forth along x by 2.5 cm),
     ``hold`` (closed: still over the source tray or over cube_b; GraspLift: bobbing 4 mm, never still),
+    ``hold at place`` (TableClearing: closed and still where the expert would open the fingers),
     ``collide`` (straight down from the start until a link hits the scene)."""
     env.reset(seed=seed)
     expert = expert_for(env)
@@ -47,7 +48,8 @@ def rollout(env, seed: int, stall: str | None = None) -> tuple[list[float], dict
         else:
             action = expert.act()
             phase = int(expert.phase[0])
-            latched |= phase == (HOLD_STALL[env_id] if stall == "hold" else CLOSE) and stall is not None
+            stall_phase = {"hold": HOLD_STALL[env_id], "hold at place": RELEASE}.get(stall, CLOSE)
+            latched |= phase == stall_phase and stall is not None
             if latched:
                 k += 1
                 if stall == "hover":
@@ -191,5 +193,22 @@ def test_the_grasp_yaw_error_is_computed_once_a_step_and_observed_as_a_copy(monk
             assert torch.equal(observed, real(state[key], state["tcp_pose"]))
             observed += 1.0
             assert torch.equal(state[("grasp_yaw_error", key)], real(state[key], state["tcp_pose"]))
+    finally:
+        env.close()
+
+
+def test_holding_the_object_at_its_place_pays_clearly_less_than_letting_go():
+    """TableClearing's last stage: the expert carried the object into the destination tray and lowered it; held
+    there, closed and still, each step pays at most 3.5 of 4 (normalised 0.875), so the one action left,
+    opening the fingers, gains >= 0.1 a step. With the full band holding paid 0.99 and PPO held on for good."""
+    import gymnasium as gym
+
+    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
+    try:
+        for seed in SEEDS:
+            rewards, info = rollout(env, seed, "hold at place")
+            assert not bool(info["success"][0]) and bool(info["object_over_dest"][0]) and bool(info["held"][0])
+            assert math.floor(4 * rewards[-1]) == 3  # the last stage before success, reached
+            assert max(rewards) <= 0.875 and 1.0 - rewards[-1] >= 0.1, rewards[-5:]
     finally:
         env.close()
