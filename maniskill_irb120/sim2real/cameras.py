@@ -18,6 +18,8 @@ from scipy import ndimage
 
 SIM_SIZE = 84
 SIM_FOV_DEG = 90.0  # the hand camera's (agents/irb120.py HAND_CAMERA), square image: same both ways
+# a measured mount farther off than this is refused: a units slip (mm for m), or a camera to re-mount
+MAX_MOUNT_OFFSET_M, MAX_MOUNT_TILT_DEG = 0.05, 20.0
 # OpenCV's camera axes (x right, y down, z along the view) from SAPIEN's (x along the view, y left, z up)
 CV_FROM_SAPIEN = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 
@@ -179,7 +181,14 @@ def parse_mount(spec: str) -> tuple[np.ndarray, np.ndarray]:
         if not np.isscalar(v) and len(v) != 3:
             raise ValueError(f"{name}={v!r}: a measured mount is one value per axis (x;y;z), not a range")
     draw = np.random.default_rng(0)  # fixed values: the generator is not used
-    return r.draw("camera_pos", draw)[0], r.draw("camera_rot", draw)[0]
+    pos, rot = r.draw("camera_pos", draw)[0], r.draw("camera_rot", draw)[0]
+    if np.abs(pos).max() > MAX_MOUNT_OFFSET_M or np.abs(rot).max() > MAX_MOUNT_TILT_DEG:
+        raise ValueError(
+            f"camera mount {spec!r}: more than {100 * MAX_MOUNT_OFFSET_M:.0f} cm or {MAX_MOUNT_TILT_DEG:.0f} deg off "
+            "the trained mount (metres and degrees expected); so far off, the frame would be mostly unseen: "
+            "re-mount the camera instead"
+        )
+    return pos, rot
 
 
 def reproject_to_mount(

@@ -83,6 +83,8 @@ def test_a_malformed_mount_is_named_before_anything_starts(tmp_path):
     assert np.allclose(parse_mount(MOUNT)[0], [0.01, -0.01, 0.005]) and np.allclose(parse_mount(MOUNT)[1], [3, -3, 5])
     with pytest.raises(ValueError, match="not a range"):
         parse_mount("camera_pos=0:0.01")
+    with pytest.raises(ValueError, match="metres and degrees expected"):
+        parse_mount("camera_pos=10;0;0")  # millimetres
     with pytest.raises(ValueError, match="camera_pos and camera_rot only"):
         parse_mount("camera_pos=0.01;0;0,light=0.5")
     with pytest.raises(ValueError, match="give --camera twin or realsense"):
