@@ -202,7 +202,8 @@ def reproject_to_mount(
     every valid depth pixel is lifted to 3-D, moved into the trained camera's frame and projected again, the
     nearest point winning where several land on one pixel. Pixels nothing lands on (the strip the offset camera
     did not see, surfaces it saw edge-on, its own invalid readings) take the nearest reprojected pixel's colour
-    and depth, so the image has no holes a policy never saw in training. Same size and intrinsics in and out:
+    and depth, so the image has no holes a policy never saw in training; a frame with no valid depth in view
+    comes back as it was. Same size and intrinsics in and out:
     ``rgb`` uint8 (H, W, 3), ``depth_mm`` int16/uint16 mm (H, W, 1), 0 = no reading."""
     rgb, depth_mm = np.asarray(rgb), np.asarray(depth_mm)
     depth2 = depth_mm[..., 0] if depth_mm.ndim == 3 else depth_mm
@@ -223,8 +224,8 @@ def reproject_to_mount(
     vn = np.floor(fy * points[front, 1] / points[front, 2] + cy).astype(np.int64)
     inside = (un >= 0) & (un < w) & (vn >= 0) & (vn < h)
     src = np.flatnonzero(front)[inside]
-    if src.size == 0:
-        raise ValueError("no valid depth lands in the trained camera's view: is the mount offset right?")
+    if src.size == 0:  # no depth to move it by (a D435 reads 0 closer than its minimum range): as it came
+        return rgb.copy(), depth_mm.copy()
     target = vn[inside] * w + un[inside]
     order = np.lexsort((points[src, 2], target))  # by pixel, nearest first
     first = np.r_[True, target[order][1:] != target[order][:-1]]

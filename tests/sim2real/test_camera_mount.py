@@ -75,6 +75,9 @@ def test_no_offset_is_the_identity_and_holes_are_filled():
     valid = depth[..., 0] > 0
     assert np.array_equal(out_d[valid], depth[valid]) and np.array_equal(out_rgb[valid], rgb[valid])
     assert (out_d > 0).all()  # the holes took their nearest pixel's reading
+    blind = np.zeros_like(depth)  # everything nearer than the sensor's minimum range: nothing to move
+    out_rgb, out_d = reproject_to_mount(rgb, blind, np.array([0.01, 0, 0]), np.zeros(3), sim_intrinsics())
+    assert np.array_equal(out_rgb, rgb) and not out_d.any()
 
 
 def test_a_malformed_mount_is_named_before_anything_starts(tmp_path):
