@@ -24,6 +24,7 @@ import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the tasks)
+from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.sim2real.policy import load_policy
 from maniskill_irb120.sim2real.sysid import log_arrays
 
@@ -126,18 +127,15 @@ def _parse_shift(spec: str | None):
     """(the twin's randomisation or None, command latency in s for the emulator)."""
     if not spec:
         return None, 0.0
-    from maniskill_irb120.envs.randomization import Randomization
-
     shift = Randomization.parse(spec)
     latency = float(np.mean(shift.latency)) if shift.latency else 0.0
     return replace(shift, latency=0.0), latency
 
 
-def without_mount(spec: str) -> str | None:
-    """``spec`` (Randomization.parse syntax) without its camera_pos and camera_rot; None when nothing is left."""
-    items = [i.strip() for i in spec.split(",") if i.strip()]
-    kept = [i for i in items if i.partition("=")[0].strip() not in ("camera_pos", "camera_rot")]
-    return ",".join(kept) or None
+def without_mount(spec: str) -> Randomization | None:
+    """``spec`` with the camera on its trained mount (camera_pos and camera_rot off); None when nothing is left."""
+    kept = replace(Randomization.parse(spec), camera_pos=0.0, camera_rot=0.0)
+    return kept if kept.active() else None
 
 
 def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):

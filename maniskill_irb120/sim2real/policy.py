@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from maniskill_irb120.action import tcp_rotation, world_to_tool
+from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.policies import acting, read_policy_section
 from maniskill_irb120.wrappers import observation_setup
@@ -74,7 +75,11 @@ def _tcp_rot(env) -> torch.Tensor:
 
 
 def load_policy(
-    policy: str, env_id: str, command_mode: str, actions: str = "as-trained", sim_shift: str | None = None
+    policy: str,
+    env_id: str,
+    command_mode: str,
+    actions: str = "as-trained",
+    sim_shift: str | Randomization | None = None,
 ) -> tuple[gym.Env, Callable[[gym.Env], object]]:
     """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path;
     ``actions``: one of :data:`ACTIONS`; ``sim_shift``: the sim side's own randomisation (the sim's model of a

@@ -97,6 +97,19 @@ def test_a_malformed_mount_is_named_before_anything_starts(tmp_path):
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
+def test_the_sim_side_keeps_the_trained_mount_and_the_rest_of_the_shift():
+    """With --sim-shift and --camera-mount the corrected frames come from the trained mount, so the sim drops the
+    mount from the shift and keeps every other field (ranges too), parsed by the randomisation's own parser."""
+    from maniskill_irb120.sim2real.eval import without_mount
+
+    kept = without_mount(MOUNT + ",depth_noise=2,object_mass=0.5:2,camera_fov=70")
+    assert kept.camera_pos == 0.0 and kept.camera_rot == 0.0
+    assert kept.depth_noise == 2.0 and kept.object_mass == (0.5, 2.0) and kept.camera_fov == 70.0
+    assert without_mount(MOUNT) is None
+    with pytest.raises(ValueError, match="use NAME=VALUE"):
+        without_mount(MOUNT + ",fov=70")
+
+
 def test_the_real_side_sees_the_trained_mount_through_a_corrected_twin_camera(tmp_path):
     """Wired as sim2real-eval wires it: the twin's camera on the offset mount, the correction, and the robot's own
     view rendered by the real agent's sim at the joints the emulated controller reports."""
