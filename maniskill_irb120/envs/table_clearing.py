@@ -18,6 +18,7 @@ ENV_ID = "TableClearing-IRB120-v1"
 GRASP_LIFT = 0.05  # "grasped" needs the object centre >= 5 cm above the source tray floor
 APPROACH_MOVE_LIMIT = 0.05  # the approach term is active only until the object moved this far
 HELD_PLACE_SHARE = 0.5  # normalized_dense: the share of stage 3's band the place term pays while still held
+RELEASE_SHARE = 0.25  # normalized_dense: the further share a held object's gripper command earns as it nears "open"
 R_APPROACH, R_CARRY, R_TIME = 1.0, 1.0, -1.0
 R_COLLISION, R_GRASP, R_DROP, R_DELIVERY = -1000.0, 100.0, -200.0, 200.0
 REWARD_TERMS = ("r_approach", "r_carry", "r_time", "r_collision", "r_grasp", "r_drop", "r_delivery")
@@ -58,7 +59,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
     0      not held                                    grasp approach (envs/base.py)              [0, 1)
     1      held (``held``), below 5 cm                 1 + height above the floor / 5 cm           [1, 2)
     2      ``grasped`` (held, >= 5 cm up)              2 + 1 - tanh(3·distance to the place)       [2, 3)
-    3      over the dest tray, held                    3 + ½ (1 - tanh(3·distance to the place))   [3, 3.5)
+    3      over the dest tray, held                    3 + (½ + ¼ release) (1 - tanh(3·distance    [3, 3.75)
+                                                       to the place)
     3      over the dest tray, let go in it            3 + 1 - tanh(3·distance to the place)       [3, 4)
     4      ``delivered`` (success)                     4                                           4
     -      collision                                   0                                           0
@@ -66,7 +68,12 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     Holding the object at its place pays at most 3.5 of 4: with the full band it paid 3.97, within 1 % of
     delivering, and PPO learned to carry the object into the tray and hold it there to the time limit without
-    ever opening the fingers (benchmarks/RESULTS.md, "RL from the reward alone").
+    ever opening the fingers (benchmarks/RESULTS.md, "RL from the reward alone"). ``release`` is the gripper
+    command mapped from [-1, 1] to [0, 1] (it opens above ½): the gripper is one thresholded action, so the fingers
+    (the object blocks them) say nothing until the command crosses the threshold, and a policy that learned to keep
+    it shut for the whole carry samples "open" at the place too rarely to find the last stage; paying for the
+    command's approach to "open" there, and only there, is ManiSkill's StackCube "ungrasp" term for a binary
+    gripper. A held object earns at most 3.75, below letting it go (3 + place, then 4).
 
     **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 75;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without
@@ -181,7 +188,9 @@ class TableClearingIRB120Env(IRB120TableEnv):
         # over the destination tray, held or let go inside it (opening the fingers there is no step down, and
         # holding on is worth at most half the band: letting go is the step to success)
         in_dest = info["object_over_dest"] & (info["held"] | info["object_in_dest"])
-        reward = torch.where(in_dest, 3 + torch.where(info["held"], HELD_PLACE_SHARE * place, place), reward)
+        release = (torch.as_tensor(action, device=place.device)[:, -1].clamp(-1, 1) + 1) / 2
+        held_place = (HELD_PLACE_SHARE + RELEASE_SHARE * release) * place
+        reward = torch.where(in_dest, 3 + torch.where(info["held"], held_place, place), reward)
         reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         reward = torch.where(info["fail"], 0.0, reward)
         return reward / self.MAX_STAGED_REWARD

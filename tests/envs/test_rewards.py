@@ -31,11 +31,12 @@ def _world(env, disp, gripper: float) -> torch.Tensor:
     )
 
 
-def rollout(env, seed: int, stall: str | None = None) -> tuple[list[float], dict]:
+def rollout(env, seed: int, stall: str | None = None, grip: float = -1.0) -> tuple[list[float], dict]:
     """Per-step rewards and the last info of the expert, or of a stall: the expert until the stall's phase,
     then ``hover`` (still, open, at the grasp height), ``push`` (open, back and forth along x by 2.5 cm),
     ``hold`` (closed: still over the source tray or over cube_b; GraspLift: bobbing 4 mm, never still),
-    ``hold at place`` (TableClearing: closed and still where the expert would open the fingers),
+    ``hold at place`` (TableClearing: closed and still where the expert would open the fingers; ``grip``: the
+    gripper command it holds with, <= 0 keeps the fingers shut),
     ``collide`` (straight down from the start until a link hits the scene)."""
     env.reset(seed=seed)
     expert = expert_for(env)
@@ -59,7 +60,7 @@ def rollout(env, seed: int, stall: str | None = None) -> tuple[list[float], dict
                 elif env_id == "GraspLift-IRB120-v1":
                     action = _world(env, [0, 0, 0.004 if k % 2 else -0.004], -1.0)
                 else:
-                    action = _world(env, [0, 0, 0], -1.0)
+                    action = _world(env, [0, 0, 0], grip)
         _, r, term, trunc, info = env.step(action)
         rewards.append(float(r[0]))
         if bool(term[0]) or bool(trunc[0]):
@@ -210,5 +211,25 @@ def test_holding_the_object_at_its_place_pays_clearly_less_than_letting_go():
             assert not bool(info["success"][0]) and bool(info["object_over_dest"][0]) and bool(info["held"][0])
             assert math.floor(4 * rewards[-1]) == 3  # the last stage before success, reached
             assert max(rewards) <= 0.875 and 1.0 - rewards[-1] >= 0.1, rewards[-5:]
+    finally:
+        env.close()
+
+
+def test_at_its_place_a_gripper_command_nearer_open_pays_more_while_the_fingers_stay_shut():
+    """The release term: the gripper is one thresholded action, so a policy that keeps it shut for the whole carry
+    gets no signal from the fingers at the place until it happens to sample "open"; the command's own approach to
+    the threshold pays there (ManiSkill's StackCube "ungrasp", for a binary gripper), below letting go."""
+    import gymnasium as gym
+
+    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
+    try:
+        for seed in SEEDS:
+            shut, _ = rollout(env, seed, "hold at place", grip=-1.0)
+            nearly, info = rollout(env, seed, "hold at place", grip=-0.05)
+            assert bool(info["held"][0]) and not bool(info["success"][0])  # -0.05 is still "close"
+            assert nearly[-1] >= shut[-1] + 0.02, (shut[-1], nearly[-1])  # (1/4 · 0.475 · place) / 4
+            assert max(nearly) <= 0.9375 and 1.0 - nearly[-1] >= 0.05
+            expert, info = rollout(env, seed)  # letting go still pays more than either
+            assert bool(info["success"][0]) and expert[-1] == 1.0
     finally:
         env.close()
