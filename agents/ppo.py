@@ -123,6 +123,9 @@ class Args(RunArgs):
     """rewards are multiplied by this"""
     reward_mode: str = "normalized_dense"
     """the task reward PPO maximises"""
+    absorbing_success: bool = False
+    """bootstrap a delivered episode's end with the absorbing value reward_scale / (1 - gamma) (normalized_dense pays
+    1 a step at success) instead of the critic's estimate of a state it never trains on; normalized_dense only"""
     partial_reset: bool = True
     """auto-reset finished envs (training needs it)"""
     eval_freq: int = 25
@@ -324,6 +327,17 @@ def bootstrap_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
     fail = info["final_info"].get("fail")
     failed = (fail.bool() if fail is not None else torch.zeros_like(done)) & term.to(done.device).bool()
     return done & ~failed
+
+
+def succeeded_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
+    """Envs whose episode just ended in success: with ``--absorbing-success`` their final observation is worth
+    the absorbing state's ``reward_scale / (1 - gamma)``. Nothing follows a success in training, so the critic's
+    estimate there is a guess; on TableClearing it valued the delivered state below holding the object at its
+    place, and letting go looked worse than holding on (benchmarks/RESULTS.md, "RL from the reward alone")."""
+    done = info["_final_info"].bool()
+    success = info["final_info"].get("success")
+    won = success.bool() if success is not None else torch.zeros_like(done)
+    return done & won & term.to(done.device).bool()
 
 
 def compute_gae(rewards, values, dones, next_value, next_done, final_values, args: Args):
@@ -535,6 +549,8 @@ def train(args: Args) -> dict:
                     fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
                     with torch.no_grad():
                         final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
+                if args.absorbing_success:
+                    final_values[step, succeeded_mask(info, term).to(device)] = args.reward_scale / (1 - args.gamma)
             for k, v in tracker.update(info.get("final_info", info), done).items():
                 recent[k] += v
         with torch.no_grad():
@@ -642,6 +658,11 @@ def main(args: Args) -> dict:
         )
     if args.kl_coef < 0:
         raise ValueError(f"--kl-coef must be >= 0, got {args.kl_coef}")
+    if args.absorbing_success and args.reward_mode != "normalized_dense":
+        raise ValueError(
+            f"--absorbing-success values success at 1 a step, the normalized_dense reward's; --reward-mode is "
+            f"{args.reward_mode!r}"
+        )
     if args.kl_coef > 0 and args.base_checkpoint is None and args.resume is None and args.checkpoint is None:
         raise ValueError("--kl-coef keeps the policy near a base policy: give --base-checkpoint DAGGER.pt")
     return run_evaluation_only(args) if args.evaluate else train(args)

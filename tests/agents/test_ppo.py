@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.optim as optim
 
-from agents.ppo import Agent, Args, bootstrap_mask, main, ppo_update
+from agents.ppo import Agent, Args, bootstrap_mask, main, ppo_update, succeeded_mask
 
 
 def run(tmp_path: Path, **kw):
@@ -111,6 +111,12 @@ def test_bootstrap_truncations_and_successes_not_failures():
     }
     term = torch.tensor([t, t, f, f])  # collision, delivery, time limit, still running
     assert bootstrap_mask(info, term).tolist() == [f, t, t, f]
+    assert succeeded_mask(info, term).tolist() == [f, t, f, f]  # --absorbing-success: only the delivery
+
+
+def test_absorbing_success_is_refused_for_a_reward_that_does_not_pay_one_a_step():
+    with pytest.raises(ValueError, match="--absorbing-success values success at 1 a step.*'dense'"):
+        main(Args(absorbing_success=True, reward_mode="dense"))
 
 
 def test_critic_warmup_leaves_policy_untouched():
