@@ -186,7 +186,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
         reward = torch.where(info["held"], 1 + lift, reach)
         reward = torch.where(info["grasped"], 2 + place, reward)
         # over the destination tray, held or let go inside it (opening the fingers there is no step down, and
-        # holding on is worth at most half the band: letting go is the step to success)
+        # holding on is worth at most three quarters of the band, a quarter of it for commanding "open")
         in_dest = info["object_over_dest"] & (info["held"] | info["object_in_dest"])
         release = (torch.as_tensor(action, device=place.device)[:, -1].clamp(-1, 1) + 1) / 2
         held_place = (HELD_PLACE_SHARE + RELEASE_SHARE * release) * place
