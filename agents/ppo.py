@@ -323,10 +323,7 @@ def bootstrap_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
     state; without it a staged reward pays more for holding the object than for delivering it); failed
     ones are not: a collision has no future. ManiSkill's ppo.py bootstraps failures too.
     """
-    done = info["_final_info"].bool()
-    fail = info["final_info"].get("fail")
-    failed = (fail.bool() if fail is not None else torch.zeros_like(done)) & term.to(done.device).bool()
-    return done & ~failed
+    return info["_final_info"].bool() & ~terminated_with(info, term, "fail")
 
 
 def succeeded_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
@@ -334,10 +331,15 @@ def succeeded_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
     the absorbing state's ``reward_scale / (1 - gamma)``. Nothing follows a success in training, so the critic's
     estimate there is a guess; on TableClearing it valued the delivered state below holding the object at its
     place, and letting go looked worse than holding on (benchmarks/RESULTS.md, "RL from the reward alone")."""
+    return terminated_with(info, term, "success")
+
+
+def terminated_with(info: dict, term: torch.Tensor, event: str) -> torch.Tensor:
+    """Envs whose episode just ended by termination with ``final_info[event]`` set (none if the task has no such
+    event)."""
     done = info["_final_info"].bool()
-    success = info["final_info"].get("success")
-    won = success.bool() if success is not None else torch.zeros_like(done)
-    return done & won & term.to(done.device).bool()
+    flag = info["final_info"].get(event)
+    return done & term.to(done.device).bool() & (flag.bool() if flag is not None else torch.zeros_like(done))
 
 
 def compute_gae(rewards, values, dones, next_value, next_done, final_values, args: Args):
