@@ -106,12 +106,12 @@ def test_loss_decreases_on_fixed_batch():
 def test_bootstrap_truncations_and_successes_not_failures():
     t, f = True, False
     info = {
-        "_final_info": torch.tensor([t, t, t, f]),
-        "final_info": {"fail": torch.tensor([t, f, f, f]), "success": torch.tensor([f, t, f, f])},
+        "_final_info": torch.tensor([t, t, t, f, t]),
+        "final_info": {"fail": torch.tensor([t, f, f, f, t]), "success": torch.tensor([f, t, f, f, t])},
     }
-    term = torch.tensor([t, t, f, f])  # collision, delivery, time limit, still running
-    assert bootstrap_mask(info, term).tolist() == [f, t, t, f]
-    assert succeeded_mask(info, term).tolist() == [f, t, f, f]  # --absorbing-success: only the delivery
+    term = torch.tensor([t, t, f, f, t])  # collision, delivery, time limit, still running, delivered colliding
+    assert bootstrap_mask(info, term).tolist() == [f, t, t, f, f]
+    assert succeeded_mask(info, term).tolist() == [f, t, f, f, f]  # --absorbing-success: only the clean delivery
 
 
 def test_absorbing_success_is_refused_for_a_reward_that_does_not_pay_one_a_step():
