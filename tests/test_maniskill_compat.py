@@ -90,6 +90,21 @@ def test_direct_drive_targets_equal_maniskills_path():
     env.close()
 
 
+def test_direct_pose_reads_equal_maniskills_path():
+    """``raw_pose`` of an actor and of a link (the TCP) is bit for bit ``.pose.raw_pose``, after a step that moved
+    both, for every task's objects."""
+    for env_id in ("TableClearing-IRB120-v1", "StackCube-IRB120-v1"):
+        env = gym.make(env_id, obs_mode="state", render_backend="none")
+        env.reset(seed=3)
+        env.step(torch.tensor([[0.5, -0.3, -0.8, 0.4, 1.0]]))
+        u = env.unwrapped
+        for obj in (u.target_object, u.agent.tcp, *u.contacts.objects):
+            ours, theirs = compat.raw_pose(obj), obj.pose.raw_pose
+            assert ours.dtype == theirs.dtype == torch.float32 and ours.shape == theirs.shape == (1, 7)
+            assert torch.equal(ours, theirs), obj.name
+        env.close()
+
+
 def test_sensor_read_back_equals_maniskills_capture():
     """``read_sensor_obs`` after a started capture gives what BaseEnv._get_obs_sensor_data gives."""
     from mani_skill.envs.sapien_env import BaseEnv

@@ -33,6 +33,7 @@ from maniskill_irb120.envs.scene import (
 )
 from maniskill_irb120.maniskill_compat import (
     episode_reset,
+    raw_pose,
     read_sensor_obs,
     reset_mask_from_options,
     restore_controller_state,
@@ -334,7 +335,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         state = self.privileged_state()
         if "tcp_pose" in state:
             raise ValueError(f"{type(self).__name__}.privileged_state() must not use the name 'tcp_pose'")
-        self.step_state = {**state, "tcp_pose": self.agent.tcp_pose.raw_pose}
+        self.step_state = {**state, "tcp_pose": raw_pose(self.agent.tcp)}
         return self.step_state
 
     def _get_obs_extra(self, info: dict) -> dict[str, torch.Tensor]:

@@ -9,6 +9,7 @@ import torch
 from mani_skill.utils.registration import register_env
 
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, step_grasp_yaw_error
+from maniskill_irb120.maniskill_compat import raw_pose
 
 ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
@@ -56,7 +57,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         self.obj.set_pose(self._spawn_in_source_tray(u["obj_xy"], u["obj_yaw"]))
 
     def privileged_state(self) -> dict[str, torch.Tensor]:
-        return dict(obj_pose=self.obj.pose.raw_pose)
+        return dict(obj_pose=raw_pose(self.obj))
 
     def evaluate(self) -> dict:
         state = self._read_step_state()

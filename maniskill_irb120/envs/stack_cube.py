@@ -11,6 +11,7 @@ from mani_skill.utils.registration import register_env
 
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error
 from maniskill_irb120.envs.scene import TRAY_INNER
+from maniskill_irb120.maniskill_compat import raw_pose
 
 ENV_ID = "StackCube-IRB120-v1"
 MIN_GAP = 0.045  # m between the centres at the start: the open fingers (±18 mm) clear the other object
@@ -78,7 +79,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
         self.cube_b.set_pose(self._spawn_in_source_tray((b_rel / span + 1) / 2, cand[rows, pick, 2:]))
 
     def privileged_state(self) -> dict[str, torch.Tensor]:
-        return dict(cube_a_pose=self.cube_a.pose.raw_pose, cube_b_pose=self.cube_b.pose.raw_pose)
+        return dict(cube_a_pose=raw_pose(self.cube_a), cube_b_pose=raw_pose(self.cube_b))
 
     def evaluate(self) -> dict:
         state = self._read_step_state()

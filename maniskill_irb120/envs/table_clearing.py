@@ -13,6 +13,7 @@ from mani_skill.utils.registration import register_env
 
 from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error
 from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
+from maniskill_irb120.maniskill_compat import raw_pose
 
 ENV_ID = "TableClearing-IRB120-v1"
 GRASP_LIFT = 0.05  # "grasped" needs the object centre >= 5 cm above the source tray floor
@@ -99,7 +100,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     # ------------------------------------------------------------------ evaluation
     def privileged_state(self) -> dict[str, torch.Tensor]:
-        return dict(obj_pose=self.obj.pose.raw_pose)
+        return dict(obj_pose=raw_pose(self.obj))
 
     def _inside_dest_xy(self, p: torch.Tensor) -> torch.Tensor:
         return ((p[:, :2] - self.dest_center[:, :2]).abs() < TRAY_INNER / 2).all(dim=1)
