@@ -1,10 +1,15 @@
 """One vector-env interface for GPU-batched and CPU process-parallel simulation.
 
 ManiSkill batches envs inside one process only on ``physx_cuda``. On a CPU-only machine the same
-training code gets N worker processes (gymnasium ``AsyncVectorEnv`` of ``CPUGymWrapper`` envs, shared
-memory, same-step autoreset) behind the exact interface of ``ManiSkillVectorEnv``: batched torch obs
-dicts, torch rewards/terminations, auto-reset with ``final_observation`` / ``final_info`` /
-``_final_info``, partial resets via ``options={"env_idx": ...}`` and optional ``episode`` metrics.
+training code gets N ``CPUGymWrapper`` envs, env 0 in this process and the others in worker processes
+(gymnasium ``AsyncVectorEnv``, shared memory, same-step autoreset), behind the exact interface of
+``ManiSkillVectorEnv``: batched torch obs dicts, torch rewards/terminations, auto-reset with
+``final_observation`` / ``final_info`` / ``_final_info``, partial resets via ``options={"env_idx": ...}`` and
+optional ``episode`` metrics.
+
+Why env 0 runs here: a step is synchronous, so while the workers step this process only waits, and while it
+gathers their results they wait. Stepping env 0 in that wait fills it, and that env pays no pipe, pickling or
+wake-up (benchmarks/RESULTS.md has the measurement).
 """
 
 from __future__ import annotations
@@ -71,6 +76,20 @@ def _select(where: torch.Tensor, new: Any, old: Any) -> Any:
     return new
 
 
+def _make_single_env(env_id: str, env_kwargs: dict, wrappers: Sequence[Callable], ignore_terminations: bool) -> gym.Env:
+    """One CPU env as a plain numpy gymnasium env (ManiSkill's ``CPUGymWrapper``): what each worker steps, and
+    env 0 in the calling process."""
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+
+    import maniskill_irb120  # noqa: F401  (registers our envs in the worker)
+
+    env = gym.make(env_id, num_envs=1, **env_kwargs)
+    for w in wrappers:
+        env = w(env)
+    return CPUGymWrapper(env, ignore_terminations=ignore_terminations)
+
+
 def _make_worker_env(
     env_id: str,
     env_kwargs: dict,
@@ -83,15 +102,45 @@ def _make_worker_env(
         os.environ.setdefault("LP_NUM_THREADS", str(lp_num_threads))
     # one worker per core: torch's intra-op threads would only spin against the other workers
     torch.set_num_threads(1)
-    import mani_skill.envs  # noqa: F401
-    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+    return _make_single_env(env_id, env_kwargs, wrappers, ignore_terminations)
 
-    import maniskill_irb120  # noqa: F401  (registers our envs in the worker)
 
-    env = gym.make(env_id, num_envs=1, **env_kwargs)
-    for w in wrappers:
-        env = w(env)
-    return CPUGymWrapper(env, ignore_terminations=ignore_terminations)
+def _same_step_autoreset(env: gym.Env, action: np.ndarray) -> tuple:
+    """One step of a single env with gymnasium's same-step autoreset, exactly as its ``AsyncVectorEnv`` worker does
+    it: an episode that ends is reset at once, and the info carries ``final_info`` and ``final_obs``."""
+    obs, rew, term, trunc, info = env.step(action)
+    if term or trunc:
+        reset_obs, reset_info = env.reset()
+        info = {"final_info": info, "final_obs": obs, **reset_info}
+        obs = reset_obs
+    return obs, rew, term, trunc, info
+
+
+def _join_obs(first: Any, rest: Any = None) -> Any:
+    """Env 0's unbatched observation in front of the workers' batch (``None``: no workers), as a new array: nothing
+    aliases shared memory or the env's own buffers."""
+    if isinstance(first, dict):
+        return {k: _join_obs(first[k], None if rest is None else rest[k]) for k in first}
+    first = np.asarray(first)[None]
+    return first.copy() if rest is None else np.concatenate([first, rest])
+
+
+def _join_infos(infos: dict, rest: dict, n: int) -> dict:
+    """The workers' batched infos (envs 1..n-1, with gymnasium's ``_key`` masks) placed into ``infos`` (n envs,
+    env 0's already added by ``VectorEnv._add_info``): the layout gymnasium would have built for all n."""
+    for key, value in rest.items():
+        if isinstance(value, dict):
+            infos[key] = _join_infos(infos.get(key, {}), value, n)
+            continue
+        value = np.asarray(value)
+        if key not in infos:
+            infos[key] = (
+                np.full(n, None, dtype=object)
+                if value.dtype == object
+                else np.zeros((n, *value.shape[1:]), dtype=value.dtype)
+            )
+        infos[key][1:] = value
+    return infos
 
 
 def _stack_final_obs(final_obs: np.ndarray, like: Any, done: np.ndarray) -> Any:
@@ -117,7 +166,12 @@ def _strip_masks(info: dict) -> dict:
 
 
 class CPUVectorEnv(gym.vector.VectorEnv):
-    """N single-env ManiSkill workers in processes, with ManiSkillVectorEnv's batched torch interface."""
+    """N single-env ManiSkill envs, env 0 in this process (``local_first``) and the others in worker processes, with
+    ManiSkillVectorEnv's batched torch interface.
+
+    ``local_first`` (default: with two envs or more) steps env 0 here while the workers step theirs; a single env
+    stays in a worker unless asked, since ``backend="cpu"`` with one env is a request for a separate process (and
+    make_vec_env's ``"inprocess"`` backend is the one-env-here case)."""
 
     def __init__(
         self,
@@ -129,6 +183,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         record_metrics: bool = False,
         context: str = "forkserver",
         lp_num_threads: Optional[int] = 1,
+        local_first: Optional[bool] = None,
         **env_kwargs,
     ):
         if num_envs < 1:
@@ -136,39 +191,59 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         if env_kwargs.get("sim_backend", "physx_cpu") not in ("physx_cpu", "cpu", "auto"):
             raise ValueError(f"CPUVectorEnv workers run physx_cpu, got sim_backend={env_kwargs['sim_backend']!r}")
         env_kwargs.pop("sim_backend", None)
-        fn = functools.partial(
-            _make_worker_env, env_id, env_kwargs, tuple(wrappers), ignore_terminations, lp_num_threads
-        )
-        # gymnasium builds one env in this process to read the spaces (AsyncVectorEnv's dummy env), i.e. runs the
-        # worker's setup here too: without the restore, every trainer's learner was left on one torch thread
-        threads, lp = torch.get_num_threads(), os.environ.get("LP_NUM_THREADS")
-        try:
-            self._venv = gym.vector.AsyncVectorEnv(
-                [fn] * num_envs,
-                context=context,
-                shared_memory=True,
-                autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+        self.local_first = num_envs > 1 if local_first is None else bool(local_first)
+        self._local: Optional[gym.Env] = None
+        self._venv: Optional[gym.vector.AsyncVectorEnv] = None
+        workers = num_envs - int(self.local_first)
+        if workers:
+            fn = functools.partial(
+                _make_worker_env, env_id, env_kwargs, tuple(wrappers), ignore_terminations, lp_num_threads
             )
-        finally:
-            torch.set_num_threads(threads)
-            if lp is None:
-                os.environ.pop("LP_NUM_THREADS", None)
-            else:
-                os.environ["LP_NUM_THREADS"] = lp
+            # gymnasium builds one env in this process to read the spaces (AsyncVectorEnv's dummy env), i.e. runs
+            # the worker's setup here too: without the restore, every trainer's learner was left on one torch thread
+            threads, lp = torch.get_num_threads(), os.environ.get("LP_NUM_THREADS")
+            try:
+                self._venv = gym.vector.AsyncVectorEnv(
+                    [fn] * workers,
+                    context=context,
+                    shared_memory=True,
+                    # joined with env 0's observation into a new array each step: no copy of shared memory needed
+                    copy=not self.local_first,
+                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
+                )
+            finally:
+                torch.set_num_threads(threads)
+                if lp is None:
+                    os.environ.pop("LP_NUM_THREADS", None)
+                else:
+                    os.environ["LP_NUM_THREADS"] = lp
+        if self.local_first:
+            try:
+                self._local = _make_single_env(env_id, env_kwargs, tuple(wrappers), ignore_terminations)
+            except BaseException:
+                if self._venv is not None:
+                    self._venv.close()
+                raise
+            single_obs, single_act = self._local.observation_space, self._local.action_space
+            metadata, self.render_mode = self._local.metadata, self._local.render_mode
+        else:
+            single_obs, single_act = self._venv.single_observation_space, self._venv.single_action_space
+            metadata, self.render_mode = self._venv.metadata, self._venv.render_mode
         self.num_envs = num_envs
         self.ignore_terminations = ignore_terminations
         self.record_metrics = record_metrics
-        self.single_observation_space = self._venv.single_observation_space
-        self.single_action_space = self._venv.single_action_space
-        self.observation_space = self._venv.observation_space
-        self.action_space = self._venv.action_space
-        self.metadata = dict(self._venv.metadata, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+        self.single_observation_space = single_obs
+        self.single_action_space = single_act
+        self.observation_space = gym.vector.utils.batch_space(single_obs, num_envs)
+        self.action_space = gym.vector.utils.batch_space(single_act, num_envs)
+        self.metadata = dict(metadata, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
         self.spec = None
         self.device = torch.device("cpu")
         self.success_once = torch.zeros(num_envs, dtype=torch.bool)
         self.fail_once = torch.zeros(num_envs, dtype=torch.bool)
         self.returns = torch.zeros(num_envs, dtype=torch.float32)
         self.elapsed_steps = torch.zeros(num_envs, dtype=torch.int32)
+        self._last_obs: Any = None  # the numpy batch last returned: what a partial reset leaves in place
 
     # ------------------------------------------------------------------ API
     def reset(self, *, seed: Optional[int | list[int]] = None, options: Optional[dict] = None):
@@ -179,8 +254,14 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             idx = check_env_idx(options.pop("env_idx"), self.num_envs)
             mask[:] = False
             mask[idx] = True
-            options["reset_mask"] = mask
-        obs, info = self._venv.reset(seed=seed, options=options or None)
+        seeds = self._seeds(seed)
+        if self._local is None:
+            if not mask.all():
+                options["reset_mask"] = mask
+            obs, info = self._venv.reset(seed=seed, options=options or None)
+        else:
+            obs, info = self._reset_joined(seeds, mask, options)
+        self._last_obs = obs
         m = torch.from_numpy(mask)
         self.success_once[m] = False
         self.fail_once[m] = False
@@ -188,9 +269,69 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         self.elapsed_steps[m] = 0
         return _to_torch(obs), _to_torch(_strip_masks(info))
 
+    def _seeds(self, seed: Optional[int | list[int]]) -> list[Optional[int]]:
+        """One seed per env, as gymnasium's vector envs spread them: ``s + i`` for env i."""
+        if seed is None:
+            return [None] * self.num_envs
+        if isinstance(seed, (int, np.integer)):
+            return [int(seed) + i for i in range(self.num_envs)]
+        seeds = list(seed)
+        if len(seeds) != self.num_envs:
+            raise ValueError(f"reset got {len(seeds)} seeds for {self.num_envs} envs")
+        return seeds
+
+    def _reset_joined(self, seeds: list, mask: np.ndarray, options: dict) -> tuple[Any, dict]:
+        """reset() with env 0 here: each side resets what ``mask`` selects and keeps the rest's last observation."""
+        info: dict = {}
+        rest_obs, rest_info, rest_mask = None, {}, mask[1:]
+        if self._venv is not None and rest_mask.any():
+            rest_options = dict(options, reset_mask=rest_mask) if not rest_mask.all() else options
+            rest_obs, rest_info = self._venv.reset(seed=seeds[1:], options=rest_options or None)
+        elif self._venv is not None:
+            rest_obs = self._rest_of(self._last_obs)
+        if mask[0]:
+            local_obs, local_info = self._local.reset(seed=seeds[0], options=options or None)
+            info = self._add_info(info, local_info, 0)
+        else:
+            local_obs = self._first_of(self._last_obs)
+        return _join_obs(local_obs, rest_obs), _join_infos(info, rest_info, self.num_envs)
+
+    @staticmethod
+    def _first_of(batch: Any) -> Any:
+        return {k: CPUVectorEnv._first_of(v) for k, v in batch.items()} if isinstance(batch, dict) else batch[0]
+
+    @staticmethod
+    def _rest_of(batch: Any) -> Any:
+        return {k: CPUVectorEnv._rest_of(v) for k, v in batch.items()} if isinstance(batch, dict) else batch[1:]
+
+    def _step_all(self, actions: np.ndarray) -> tuple:
+        """The numpy step of every env: the workers' launched first, env 0's stepped here while they run."""
+        if self._local is None:
+            return self._venv.step(actions)
+        if self._venv is not None:
+            self._venv.step_async(actions[1:])
+        try:
+            obs, rew, term, trunc, info = _same_step_autoreset(self._local, actions[0])
+        except BaseException:
+            if self._venv is not None:  # collect the workers' step, so the next call finds them idle
+                self._venv.step_wait()
+            raise
+        infos = self._add_info({}, info, 0)
+        if self._venv is None:
+            return _join_obs(obs), np.array([rew]), np.array([term]), np.array([trunc]), infos
+        rest_obs, rest_rew, rest_term, rest_trunc, rest_info = self._venv.step_wait()
+        return (
+            _join_obs(obs, rest_obs),
+            np.concatenate([[rew], rest_rew]),
+            np.concatenate([[term], rest_term]),
+            np.concatenate([[trunc], rest_trunc]),
+            _join_infos(infos, rest_info, self.num_envs),
+        )
+
     def step(self, actions):
         actions = self._checked_actions(actions)
-        obs_np, rew, term, trunc, info_np = self._venv.step(actions)
+        obs_np, rew, term, trunc, info_np = self._step_all(actions)
+        self._last_obs = obs_np
         obs = _to_torch(obs_np)
         rew = torch.from_numpy(np.asarray(rew, dtype=np.float32))
         term = torch.from_numpy(np.asarray(term, dtype=bool))
@@ -234,18 +375,27 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             self.elapsed_steps[dones] = 0
         return obs, rew, term, trunc, infos
 
-    def call(self, name: str, *args, **kwargs):
+    def call(self, name: str, *args, **kwargs) -> tuple:
+        """Each env's attribute ``name`` (called with the arguments if it is a method), in env order."""
         self._check_usable()
-        return self._venv.call(name, *args, **kwargs)
+        out = []
+        if self._local is not None:
+            if name in ("reset", "step", "close"):  # as gymnasium's workers refuse them
+                raise ValueError(f"Trying to call function `{name}` with `call`, use `{name}` directly instead.")
+            attr = self._local.get_wrapper_attr(name)
+            out.append(attr(*args, **kwargs) if callable(attr) else attr)
+        if self._venv is not None:
+            out.extend(self._venv.call(name, *args, **kwargs))
+        return tuple(out)
 
     def render(self):
-        """Each worker's ``render()``; checked here first, since a worker that raises is lost for good."""
+        """Each env's ``render()``; checked here first, since a worker that raises is lost for good."""
         self._check_usable()
-        if self._venv.render_mode is None:
+        if self.render_mode is None:
             raise RuntimeError(
                 "render_mode is not set: pass render_mode='rgb_array' (or 'sensors', 'all') to make_vec_env"
             )
-        return self._venv.call("render")
+        return self.call("render")
 
     # ------------------------------------------------------------------ input checks
     def _checked_actions(self, actions: Any) -> np.ndarray:
@@ -265,7 +415,9 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         """RuntimeError after ``close()`` or once a worker died, instead of gymnasium's pipe errors."""
         if self.closed:
             raise RuntimeError("the vector env is closed; make a new one with make_vec_env(...)")
-        dead = [i for i, pipe in enumerate(self._venv.parent_pipes) if pipe is None]
+        first = int(self.local_first)
+        pipes = self._venv.parent_pipes if self._venv is not None else []
+        dead = [i + first for i, pipe in enumerate(pipes) if pipe is None]
         if dead:
             raise RuntimeError(
                 f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
@@ -273,8 +425,11 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             )
 
     def close_extras(self, **kwargs):
-        if hasattr(self, "_venv"):  # not when __init__ failed before the workers existed
+        # getattr: not set when __init__ failed before the envs existed
+        if getattr(self, "_venv", None) is not None:
             self._venv.close(**kwargs)
+        if getattr(self, "_local", None) is not None:
+            self._local.close()
 
 
 def make_vec_env(

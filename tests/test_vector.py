@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from maniskill_irb120.vector import make_vec_env
+from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
 ENV = "TableClearing-IRB120-v1"
 
@@ -80,6 +80,53 @@ def test_same_seed_same_initial_state(venv):
     b, _ = venv.reset(seed=11)
     torch.testing.assert_close(a, b)
     assert not torch.allclose(a[0], a[1])  # workers get different seeds (seed + i)
+
+
+def _assert_same(a, b, where="") -> None:
+    """Nested tuples and dicts of tensors/arrays equal, key for key (NaN equal to NaN)."""
+    if isinstance(a, tuple):
+        assert isinstance(b, tuple) and len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}[{i}]")
+    elif isinstance(a, dict):
+        assert set(a) == set(b), f"{where}: keys {sorted(set(a) ^ set(b))} differ"
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, torch.Tensor):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=lambda m: f"{where}: {m}")
+    else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
+
+
+def test_env_zero_in_this_process_steps_exactly_as_a_worker():
+    """With two envs or more, env 0 runs in the calling process (vector.py says why); everything a step or a reset
+    returns -- observations, rewards, flags, infos with their final_info and final_observation at an episode's end,
+    partial resets of either side -- is what the same envs return from worker processes."""
+    local = make_vec_env(ENV, 2, backend="cpu", obs_mode="state", max_episode_steps=3)
+    workers = CPUVectorEnv(ENV, 2, obs_mode="state", max_episode_steps=3, record_metrics=True, local_first=False)
+    try:
+        assert local.local_first and not workers.local_first
+        assert local.observation_space == workers.observation_space
+        assert local.action_space == workers.action_space
+        _assert_same(local.reset(seed=21), workers.reset(seed=21), "reset")
+        gen = torch.Generator().manual_seed(0)
+        ends = set()  # which envs ended together: both, env 0 alone, env 1 alone
+        for t in range(9):
+            action = torch.rand(2, 5, generator=gen) * 2 - 1
+            a, b = local.step(action), workers.step(action)
+            _assert_same(a, b, f"step {t}")
+            if "final_info" in a[4]:
+                ends.add(tuple(a[4]["_final_info"].tolist()))
+            if t in (3, 5):  # partial resets of env 0 (this process), then of env 1 (the worker), out of step
+                idx = [0] if t == 3 else [1]
+                _assert_same(local.reset(options=dict(env_idx=idx)), workers.reset(options=dict(env_idx=idx)), f"r{t}")
+        assert ends == {(True, True), (False, True), (True, False)}  # every autoreset path ran
+        assert local.call("elapsed_steps") == workers.call("elapsed_steps")
+        with pytest.raises(ValueError, match="use `step` directly"):
+            local.call("step", None)
+    finally:
+        local.close()
+        workers.close()
 
 
 def test_bad_inputs(venv):
