@@ -254,6 +254,10 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             idx = check_env_idx(options.pop("env_idx"), self.num_envs)
             mask[:] = False
             mask[idx] = True
+        if self._last_obs is None and not mask.all():
+            raise RuntimeError(
+                "reset(options={'env_idx': ...}) before a first full reset(): the other envs have no observation yet"
+            )
         seeds = self._seeds(seed)
         if self._local is None:
             if not mask.all():
@@ -445,9 +449,10 @@ def make_vec_env(
     """The front door for batched training code; it need not care which backend it got.
 
     ``backend``: ``"auto"`` (GPU-batched ``physx_cuda`` when CUDA is available, else CPU processes),
-    ``"gpu"``, ``"cpu"`` (worker processes) or ``"inprocess"`` (one CPU env, num_envs must be 1).
+    ``"gpu"``, ``"cpu"`` (:class:`CPUVectorEnv`: env 0 in this process, the others in worker processes) or
+    ``"inprocess"`` (one CPU env, num_envs must be 1).
     ``wrappers`` are applied to each ManiSkill env before batching (e.g. FlattenRGBDObservationWrapper).
-    Seeding: ``reset(seed=s)`` seeds worker i with ``s + i`` on CPU; the GPU env derives its own per-env
+    Seeding: ``reset(seed=s)`` seeds env i with ``s + i`` on CPU; the GPU env derives its own per-env
     seeds from ``s``, so the two backends draw different (equally distributed) initial states.
     """
     from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv

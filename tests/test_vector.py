@@ -106,6 +106,9 @@ def test_env_zero_in_this_process_steps_exactly_as_a_worker():
     workers = CPUVectorEnv(ENV, 2, obs_mode="state", max_episode_steps=3, record_metrics=True, local_first=False)
     try:
         assert local.local_first and not workers.local_first
+        for env in (local, workers):  # the envs not being reset would have no observation to return
+            with pytest.raises(RuntimeError, match="before a first full reset"):
+                env.reset(options=dict(env_idx=[1]))
         assert local.observation_space == workers.observation_space
         assert local.action_space == workers.action_space
         _assert_same(local.reset(seed=21), workers.reset(seed=21), "reset")
