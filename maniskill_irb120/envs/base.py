@@ -421,12 +421,21 @@ def grasp_approach_reward(
     ``yaw_error``: their :func:`grasp_yaw_error` when the caller has it (:func:`step_grasp_yaw_error`)."""
     grasp_point = obj_pose[:, :3].clone()
     grasp_point[:, 2] += GRASP_POINT_OFFSET
-    offset = grasp_point - tcp_pose[:, :3]
-    coarse = reach_reward(torch.linalg.norm(offset, dim=1))
     if yaw_error is None:
         yaw_error = grasp_yaw_error(obj_pose, tcp_pose)
-    yaw = 1 - yaw_error.abs() / (math.pi / 4)
-    align = (1 - torch.tanh(ALIGN_SCALE * torch.linalg.norm(offset[:, :2], dim=1))) * yaw
+    return aligned_reach_reward(grasp_point - tcp_pose[:, :3], 1 - yaw_error.abs() / (math.pi / 4))
+
+
+def aligned_reach_reward(offset: torch.Tensor, align_factor: torch.Tensor | None = None) -> torch.Tensor:
+    """(N,) in [0, 1): getting to a point that needs millimetres (``offset``: (N, 3) from here to it), as the mean
+    of twice the coarse reach ``1 - tanh(3·d)``, the horizontal alignment ``1 - tanh(40·horizontal distance)``
+    (times ``align_factor``, e.g. the grasp's yaw term), and the alignment times ``1 - tanh(40·|height error|)``:
+    descending pays only once aligned above the point. :func:`grasp_approach_reward` reaches the grasp with it,
+    StackCube's place stage the top of the other cube; a plain ``1 - tanh(3·d)`` is flat there (3 mm: 0.002)."""
+    coarse = reach_reward(torch.linalg.norm(offset, dim=1))
+    align = 1 - torch.tanh(ALIGN_SCALE * torch.linalg.norm(offset[:, :2], dim=1))
+    if align_factor is not None:
+        align = align * align_factor
     down = 1 - torch.tanh(ALIGN_SCALE * offset[:, 2].abs())
     return ((2 * coarse + align + align * down) / 4).clamp(max=0.999)
 

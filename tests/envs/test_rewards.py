@@ -233,3 +233,60 @@ def test_at_its_place_a_gripper_command_nearer_open_pays_more_while_the_fingers_
             assert bool(info["success"][0]) and expert[-1] == 1.0
     finally:
         env.close()
+
+
+def test_the_place_term_resolves_millimetres_over_cube_b():
+    """StackCube's stage 1 (cube_a grasped) pays the aligned reach of cube_b's top: the stack test needs cube_a
+    within 8 mm across and 4 mm in height, where the first version's ``1 - tanh(3·d)`` was flat (5 mm off cost
+    0.0035 of the normalised reward) and PPO from scratch grasped in half its episodes and never stacked."""
+    from maniskill_irb120.envs.base import aligned_reach_reward, reach_reward
+
+    goal = torch.tensor([[0.35, 0.13, 0.05]])
+    here = goal.repeat(6, 1)
+    here[1, 0] += 0.005  # 5 mm beside the place
+    here[2, 2] += 0.004  # 4 mm above it: still stacks
+    here[3, 2] += 0.03  # 3 cm above, aligned: where the expert lowers from
+    here[4, :2] += 0.03  # 3 cm beside, at the place's height (lowered beside cube_b: knocks it)
+    here[5] += torch.tensor([-0.05, 0.1, 0.1])  # just lifted from the grasp
+    r = aligned_reach_reward(goal - here) / 4  # as normalized_dense pays it (stage 1 adds 1/4 to it)
+    at, beside, above_4mm, above, far_side, lifted = r.tolist()
+    assert 0.249 < at < 0.25
+    plain = reach_reward(torch.tensor([0.0, 0.005])).clamp(max=0.999) / 4
+    assert float(plain[0] - plain[1]) < 0.004 and at - beside > 0.02  # > 5x the plain term's difference
+    assert at > above_4mm > above > far_side > lifted > 0.0  # rises along the expert's carry and lowering
+    assert above - far_side > 0.04  # aligning over cube_b pays before lowering does
+
+
+def test_stacked_and_held_a_gripper_command_nearer_open_pays_more():
+    """StackCube's stage 2: with cube_a held on cube_b the one action left is opening the fingers; the gripper
+    command's approach to the threshold pays there (a quarter of a band), still below opening (2.5 of 4). The
+    expert lets go 3-5 mm above the stack's height; here it goes on holding, lowered onto cube_b."""
+    import gymnasium as gym
+
+    def hold_on_b(env, seed: int, grip: float) -> tuple[list[float], dict]:
+        env.reset(seed=seed)
+        expert = expert_for(env)
+        expert.reset()
+        rewards, lowered = [], 0
+        for _ in range(60):
+            action = expert.act()
+            if int(expert.phase[0]) == RELEASE or lowered:
+                lowered += 1
+                action = _world(env, [0, 0, -0.002 if lowered <= 4 else 0.0], grip)
+            _, r, term, trunc, info = env.step(action)
+            rewards.append(float(r[0]))
+            assert not bool(term[0] or trunc[0])
+        return rewards, info
+
+    env = gym.make("StackCube-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
+    try:
+        for seed in SEEDS:
+            shut, _ = hold_on_b(env, seed, grip=-1.0)
+            nearly, info = hold_on_b(env, seed, grip=-0.05)
+            assert bool(info["stacked"][0]) and bool(info["grasped"][0]) and not bool(info["success"][0])
+            assert shut[-1] == 0.5  # stage 2, commanding "close": 2 of 4
+            assert nearly[-1] >= shut[-1] + 0.02 and max(nearly) < 2.5 / 4, (shut[-1], nearly[-1])
+            expert, info = rollout(env, seed)  # letting go still pays more than either
+            assert bool(info["success"][0]) and expert[-1] == 1.0
+    finally:
+        env.close()
