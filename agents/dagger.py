@@ -91,7 +91,7 @@ class Args(RunArgs):
     obs_without: tuple[str, ...] = ()
     """observation keys the policy does not see, e.g. agent/qvel (DropObservationKeys)"""
     num_envs: int = 2
-    """envs that collect episodes: CPU worker processes, or the size of one GPU-batched env (--backend gpu)"""
+    """episode collectors: CPU envs (env 0 here, the others in worker processes), or one GPU-batched env's size"""
     expert_episodes: int = 50
     """round 0: noisy expert episodes"""
     dart_noise: float = 0.2

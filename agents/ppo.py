@@ -86,7 +86,7 @@ class Args(RunArgs):
     obs_norm: bool = False
     """standardise the state vector by running statistics kept in the policy (updated between updates)"""
     num_envs: int = 2
-    """training envs: CPU worker processes, or the size of one GPU-batched env"""
+    """training envs: CPU envs (env 0 here, the others in worker processes), or one GPU-batched env's size"""
     num_eval_envs: int = 1
     """envs of the periodic evaluation"""
     num_steps: int = 50

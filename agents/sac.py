@@ -91,7 +91,7 @@ class Args(RunArgs):
     obs_without: tuple[str, ...] = ()
     """observation keys the policy does not see, e.g. agent/qvel (DropObservationKeys)"""
     num_envs: int = 2
-    """CPU worker processes (1: one env in this process), or the size of one GPU-batched env (--backend gpu)"""
+    """CPU envs (env 0 here, the others in worker processes), or the size of one GPU-batched env (--backend gpu)"""
     demo_episodes: int = 50
     """reactive-expert episodes in the demo buffer (0: plain SAC)"""
     dart_noise: float = 0.2

@@ -157,24 +157,63 @@ def measure_floor(env_id: str, steps: int, seed: int, warmup: int = 10) -> dict:
     return dict(times=times, substeps=substeps, pictures=pictures)
 
 
-def measure_vector(env_id: str, workers: int, steps: int, seed: int, obs_mode: str = "rgbd") -> dict:
-    """Aggregate env steps/s of the CPU process-vector env (random actions)."""
+# the CPU vector-env configurations measured side by side: (name, envs, vector env); "one" and "two" are what
+# make_vec_env gives a trainer (one env: in this process; two: env 0 here, env 1 in a worker), the others the
+# all-in-workers layout (CPUVectorEnv local_first=False) that two envs had before
+SCALING = (("one", 1, "inprocess"), ("one_worker", 1, "workers"), ("two", 2, "cpu"), ("two_workers", 2, "workers"))
+
+
+def measure_scaling(env_id: str, steps: int, seed: int, obs_mode: str = "rgbd", blocks: int = 4) -> dict:
+    """Aggregate env steps/s of the CPU vector-env configurations (``SCALING``), all built in this process and
+    stepped in turns, ``blocks`` blocks of ``steps // blocks`` batched steps each: the machine's drift, which moves
+    whole minutes (see RESULTS.md), then lands on every configuration alike instead of on whichever ran later.
+    Idle workers sleep on their pipes. Per configuration also this process's CPU time per batched step (what the
+    workers wait for while it gathers their results)."""
     import torch
 
-    from maniskill_irb120.vector import make_vec_env
+    from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
+    torch.set_num_threads(1)  # as the trainers run beside CPU workers (agents.common.one_thread_beside_workers)
     extra = dict(render_backend="none") if obs_mode == "state" else {}
-    venv = make_vec_env(env_id, workers, backend="cpu", obs_mode=obs_mode, record_metrics=False, **extra)
-    venv.reset(seed=seed)
-    acts = torch.from_numpy(random_actions(steps + 5, seed, 5 * workers).astype(np.float32).reshape(-1, workers, 5))
-    for a in acts[:5]:
-        venv.step(a)
-    t0 = time.perf_counter()
-    for a in acts[5:]:
-        venv.step(a)
-    dt = time.perf_counter() - t0
-    venv.close()
-    return dict(workers=workers, obs_mode=obs_mode, env_steps_per_s=steps * workers / dt, peak_rss_mb=peak_rss_mb())
+    envs = {}
+    for name, n, kind in SCALING:
+        if kind == "workers":
+            envs[name] = CPUVectorEnv(env_id, n, obs_mode=obs_mode, local_first=False, **extra)
+        else:
+            envs[name] = make_vec_env(env_id, n, backend=kind, obs_mode=obs_mode, record_metrics=False, **extra)
+    acts = torch.from_numpy(random_actions(steps + 5, seed, 10).astype(np.float32).reshape(-1, 2, 5))
+    per = max(1, steps // blocks)
+    wall = {k: 0.0 for k in envs}
+    cpu = {k: 0.0 for k in envs}
+    for env in envs.values():
+        env.reset(seed=seed)
+        for a in acts[:5]:
+            env.step(a[: env.num_envs])
+    for b in range(blocks):
+        for name, env in envs.items():
+            chunk = acts[5 + b * per : 5 + (b + 1) * per]
+            t0, c0 = time.perf_counter(), time.process_time()
+            for a in chunk:
+                env.step(a[: env.num_envs])
+            wall[name] += time.perf_counter() - t0
+            cpu[name] += time.process_time() - c0
+    for env in envs.values():
+        env.close()
+    n_steps = per * blocks
+    return dict(
+        obs_mode=obs_mode,
+        steps=n_steps,
+        configs={
+            name: dict(
+                envs=n,
+                layout=kind,
+                env_steps_per_s=n_steps * n / wall[name],
+                main_cpu_ms_per_step=1e3 * cpu[name] / n_steps,
+            )
+            for name, n, kind in SCALING
+        },
+        peak_rss_mb=peak_rss_mb(),
+    )
 
 
 def _burn(n: int) -> float:
@@ -289,25 +328,37 @@ def one_round(args: Args, steps: int) -> dict:
         seed=args.seed,
         sensor_configs=dict(width=84, height=84),
     )
-    r["workers"] = [
-        isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps // 2), seed=args.seed) for w in (1, 2)
-    ]
-    r["workers_state"] = [
-        isolated("measure_vector", env_id=ENV_ID, workers=w, steps=max(20, steps), seed=args.seed, obs_mode="state")
-        for w in (1, 2)
-    ]
+    r["scaling"] = {
+        mode: isolated("measure_scaling", env_id=ENV_ID, steps=max(8, steps), seed=args.seed, obs_mode=mode)
+        for mode in ("rgbd", "state")
+    }
     r["floor"] = isolated("measure_floor", env_id=ENV_ID, steps=steps, seed=args.seed)
     r["ceiling"] = measure_parallel_ceiling(1_000_000 if args.quick else 5_000_000)
     rate = lambda x: len(x["times"]) / sum(x["times"])  # noqa: E731
     r["ratios"] = dict(
         vs_pickcube_rgbd=rate(r["ours"]["render"]) / rate(r["pick"]),
         vs_pybullet_original={m: rate(r["ours"][m]) / rate(r["pyb"][m]) for m in MODES},
-        two_workers_vs_one=r["workers"][1]["env_steps_per_s"] / r["workers"][0]["env_steps_per_s"],
-        two_workers_vs_one_state=r["workers_state"][1]["env_steps_per_s"] / r["workers_state"][0]["env_steps_per_s"],
+        **{
+            f"{key}{suffix}": scaling_ratio(r["scaling"][mode]["configs"], a, b)
+            for mode, suffix in (("rgbd", ""), ("state", "_state"))
+            for key, (a, b) in SCALING_RATIOS.items()
+        },
         rgbd_fraction_of_floor=rate(r["ours"]["render"]) / rate(r["floor"]),
         machine_two_process_ceiling=r["ceiling"]["speedup"],
     )
     return r
+
+
+# ratio name -> (configuration, reference configuration) of SCALING
+SCALING_RATIOS = {
+    "two_envs_vs_one": ("two", "one"),
+    "two_workers_vs_one": ("two_workers", "one_worker"),
+    "env_zero_here_vs_all_in_workers": ("two", "two_workers"),
+}
+
+
+def scaling_ratio(configs: dict, a: str, b: str) -> float:
+    return configs[a]["env_steps_per_s"] / configs[b]["env_steps_per_s"]
 
 
 def gpu_sweep(args: Args) -> list[dict]:
@@ -368,19 +419,29 @@ def main(args: Args) -> dict:
             mean_substeps=float(np.mean([r["pyb"][mode]["mean_substeps"] for r in runs])),
         )
     pick = dict(summarize(pooled(lambda r: r["pick"])), peak_rss_mb=max(r["pick"]["peak_rss_mb"] for r in runs))
-    workers = [
-        dict(
-            workers=w + 1, obs_mode=mode, env_steps_per_s=float(np.median([r[key][w]["env_steps_per_s"] for r in runs]))
-        )
-        for key, mode in (("workers", "rgbd"), ("workers_state", "state"))
-        for w in range(2)
-    ]
+    scaling = {
+        mode: {
+            name: dict(
+                envs=runs[0]["scaling"][mode]["configs"][name]["envs"],
+                layout=runs[0]["scaling"][mode]["configs"][name]["layout"],
+                **{
+                    k: float(np.median([r["scaling"][mode]["configs"][name][k] for r in runs]))
+                    for k in ("env_steps_per_s", "main_cpu_ms_per_step")
+                },
+            )
+            for name, *_ in SCALING
+        }
+        for mode in ("rgbd", "state")
+    }
     med = lambda f: float(np.median([f(r["ratios"]) for r in runs]))  # noqa: E731
     ratios = dict(
         vs_pickcube_rgbd=med(lambda x: x["vs_pickcube_rgbd"]),
         vs_pybullet_original={m: med(lambda x, m=m: x["vs_pybullet_original"][m]) for m in MODES},
-        two_workers_vs_one=med(lambda x: x["two_workers_vs_one"]),
-        two_workers_vs_one_state=med(lambda x: x["two_workers_vs_one_state"]),
+        **{
+            f"{key}{suffix}": med(lambda x, k=f"{key}{suffix}": x[k])
+            for key in SCALING_RATIOS
+            for suffix in ("", "_state")
+        },
         rgbd_fraction_of_floor=med(lambda x: x["rgbd_fraction_of_floor"]),
         machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]),
     )
@@ -399,7 +460,7 @@ def main(args: Args) -> dict:
         pybullet_original=pyb,
         pickcube_rgbd_84=pick,
         floor=floor,
-        cpu_workers=workers,
+        cpu_scaling=scaling,
         gpu_scaling=gpu,
     )
     print(markdown(out))
@@ -438,12 +499,18 @@ def markdown(r: dict) -> str:
         f"- TableClearing rgbd at {100 * r['ratios']['rgbd_fraction_of_floor']:.0f} % of the physics + frame floor's "
         "speed (floor time / step time)"
     )
+    for mode, suffix in (("rgbd", ""), ("state", "_state")):
+        c = r["cpu_scaling"][mode]
+        lines.append(
+            f"- {mode}: 2 envs (env 0 here, env 1 in a worker) vs 1 env here: "
+            f"{r['ratios']['two_envs_vs_one' + suffix]:.2f}x ({c['one']['env_steps_per_s']:.1f} -> "
+            f"{c['two']['env_steps_per_s']:.1f} env steps/s); 2 worker processes vs 1: "
+            f"{r['ratios']['two_workers_vs_one' + suffix]:.2f}x ({c['one_worker']['env_steps_per_s']:.1f} -> "
+            f"{c['two_workers']['env_steps_per_s']:.1f}); env 0 here vs all in workers: "
+            f"{r['ratios']['env_zero_here_vs_all_in_workers' + suffix]:.2f}x"
+        )
     lines.append(
-        f"- 2 CPU workers vs 1 (rgbd): {r['ratios']['two_workers_vs_one']:.2f}x, "
-        f"(state): {r['ratios']['two_workers_vs_one_state']:.2f}x "
-        f"({r['cpu_workers'][0]['env_steps_per_s']:.1f} -> {r['cpu_workers'][1]['env_steps_per_s']:.1f} steps/s; "
-        f"state: {r['cpu_workers'][2]['env_steps_per_s']:.1f} -> {r['cpu_workers'][3]['env_steps_per_s']:.1f}); "
-        f"this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x"
+        f"- this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x"
     )
     per_round = ", ".join(f"{x['vs_pickcube_rgbd']:.2f}" for x in r["ratios_per_round"])
     lines.append(
@@ -500,9 +567,13 @@ def plot(r: dict, path: Path) -> None:
     ax[0].set_ylabel("actions / s (one process)")
     ax[0].set_yscale("log")
     ax[0].legend(fontsize=7)
-    w = r["cpu_workers"]
-    ax[1].bar([f"{v['workers']} ({v['obs_mode']})" for v in w], [v["env_steps_per_s"] for v in w])
-    ax[1].set_xlabel("CPU worker processes")
+    names = [name for name, *_ in SCALING]
+    for i, mode in enumerate(("rgbd", "state")):
+        c = r["cpu_scaling"][mode]
+        ax[1].bar(np.arange(len(names)) + 0.4 * i - 0.2, [c[n]["env_steps_per_s"] for n in names], 0.4, label=mode)
+    ax[1].set_xticks(np.arange(len(names)), names, fontsize=8)
+    ax[1].legend(fontsize=7)
+    ax[1].set_xlabel("CPU vector env (SCALING in sim_speed.py)")
     ax[1].set_ylabel("env steps / s")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
