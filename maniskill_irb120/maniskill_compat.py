@@ -151,9 +151,10 @@ def set_drive_targets(ctrl, targets: torch.Tensor) -> None:
 
 def raw_pose(obj) -> torch.Tensor:
     """(N, 7) raw pose (position, wxyz quaternion) of a ManiSkill ``Actor`` or ``Link``: ``obj.pose.raw_pose``. On
-    the CPU ManiSkill builds it through ``Pose.create`` and ``to_tensor`` from a list of SAPIEN poses (~35-50 us a
-    read, two reads a step); this reads the same float32 numbers straight from SAPIEN (~6 us): entity poses, and a
-    link's ``entity_pose``, as ManiSkill's CPU branch does. GPU: ManiSkill's batched buffers."""
+    the CPU ManiSkill builds it through ``Pose.create`` and ``to_tensor`` from a list of SAPIEN poses, several times
+    slower than reading the same float32 numbers straight from SAPIEN, as this does (entity poses, and a link's
+    ``entity_pose``, as ManiSkill's CPU branch reads them; the tasks read two a step; benchmarks/RESULTS.md).
+    GPU: ManiSkill's batched buffers."""
     if obj.scene.gpu_sim_enabled:
         return obj.pose.raw_pose
     from sapien.physx import PhysxArticulationLinkComponent
