@@ -8,6 +8,7 @@ the event log."""
 from __future__ import annotations
 
 import socket
+import threading
 import time
 
 import numpy as np
@@ -261,21 +262,36 @@ def test_a_gripper_change_on_a_moving_step_happens_where_the_robot_reaches_the_t
     """SetDO fires when the program pointer passes it: after a fly-by MoveL, while the robot is still a step away.
     The server ties the change to the path (MoveLDO): the output holds until the TCP reaches the target, within the
     z1 zone, and changes there; a step that keeps the gripper as it is sets nothing."""
+    # the robot model's clock (injectable) at a third of wall-clock speed, still well inside the server's heartbeat:
+    # at full speed the first half of the step (~30 ms) could pass unseen by the sampler on a slow, noisy machine
+    t0 = time.monotonic()
+    emu.robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
     robot = ABBRobot.connect(emu.url, timeout=0.5)
     robot.move_tool([0.0, 0.0, 0.0, 0.0, 1.0])  # settle a session, the gripper open
+    # sampled from before the command on, in a thread: by the time the client has the reply, part of the step is over
+    samples = []  # (moving, gripper output, TCP position in mm), the output read first
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            busy = emu.robot.busy()
+            gripper = emu.signals["doGripperOpen"]
+            samples.append((busy, gripper, emu.robot.tool_pose(emu.robot.joints(), emu.robot.zone_tool)[:3, 3] * 1000))
+            time.sleep(0.002)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     state = robot.move_tool([1.0, 0.0, 0.0, 0.0, -1.0])  # a full 10 mm step that closes the gripper
     target = np.asarray(state.target_pos) * 1000
-    samples = []  # (gripper output, TCP's distance to the target in mm), the output read first
-    while True:
-        busy = emu.robot.busy()
-        gripper = emu.signals["doGripperOpen"]
-        tcp = emu.robot.tool_pose(emu.robot.joints(), emu.robot.zone_tool)[:3, 3] * 1000
-        samples.append((gripper, float(np.linalg.norm(tcp - target))))
-        if not busy:
-            break
-        time.sleep(0.002)
+    deadline = time.monotonic() + 5.0
+    while emu.robot.busy() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    time.sleep(0.02)  # a last sample or two at rest
+    done.set()
+    sampler.join()
+    dist = [(busy, g, float(np.linalg.norm(p - target))) for busy, g, p in samples]
     assert state.gripper_open  # the reply went out while the robot was under way, the gripper still open
-    assert any(g == 1 and d > 5.0 for g, d in samples)  # seen open half a step away
-    assert all(d <= 1.0 for g, d in samples if g == 0)  # closed only once within the z1 zone of the target
-    assert samples[-1][0] == 0 and not robot.state().gripper_open
+    assert any(busy and g == 1 and d > 5.0 for busy, g, d in dist)  # seen open, moving, half a step away
+    assert all(d <= 1.0 for _, g, d in dist if g == 0)  # closed only once within the z1 zone of the target
+    assert dist[-1][1] == 0 and not robot.state().gripper_open
     robot.close()
