@@ -80,9 +80,21 @@ def test_rgbd_module_runs_our_encoder_on_a_random_batch(algo):
         assert q.shape == (3,)
 
 
+# APPO and SAC from the camera are the slowest (~45-55 s each on CI's machine) and add the least: PPO covers the
+# camera module, APPO and SAC run from state by default; `-m slow` runs them
+SLOW = pytest.mark.slow
+
+
 @pytest.mark.parametrize(
     "algo,obs",
-    [("PPO", "state"), ("PPO", "rgbd"), ("APPO", "state"), ("APPO", "rgbd"), ("SAC", "state"), ("SAC", "rgbd")],
+    [
+        ("PPO", "state"),
+        ("PPO", "rgbd"),
+        ("APPO", "state"),
+        pytest.param("APPO", "rgbd", marks=SLOW),
+        ("SAC", "state"),
+        pytest.param("SAC", "rgbd", marks=SLOW),
+    ],
 )
 def test_one_training_iteration(ray_local, tmp_path, algo, obs):
     runners = 1 if algo == "APPO" or obs == "rgbd" else 0
