@@ -125,6 +125,11 @@ def _join_obs(first: Any, rest: Any = None) -> Any:
     return first.copy() if rest is None else np.concatenate([first, rest])
 
 
+def _rows(batch: Any, idx: int | slice) -> Any:
+    """Rows ``idx`` of a (possibly nested) numpy batch: env 0's observation, or the workers'."""
+    return {k: _rows(v, idx) for k, v in batch.items()} if isinstance(batch, dict) else batch[idx]
+
+
 def _join_infos(infos: dict, rest: dict, n: int) -> dict:
     """The workers' batched infos (envs 1..n-1, with gymnasium's ``_key`` masks) placed into ``infos`` (n envs,
     env 0's already added by ``VectorEnv._add_info``): the layout gymnasium would have built for all n."""
@@ -292,21 +297,13 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             rest_options = dict(options, reset_mask=rest_mask) if not rest_mask.all() else options
             rest_obs, rest_info = self._venv.reset(seed=seeds[1:], options=rest_options or None)
         elif self._venv is not None:
-            rest_obs = self._rest_of(self._last_obs)
+            rest_obs = _rows(self._last_obs, slice(1, None))
         if mask[0]:
             local_obs, local_info = self._local.reset(seed=seeds[0], options=options or None)
             info = self._add_info(info, local_info, 0)
         else:
-            local_obs = self._first_of(self._last_obs)
+            local_obs = _rows(self._last_obs, 0)
         return _join_obs(local_obs, rest_obs), _join_infos(info, rest_info, self.num_envs)
-
-    @staticmethod
-    def _first_of(batch: Any) -> Any:
-        return {k: CPUVectorEnv._first_of(v) for k, v in batch.items()} if isinstance(batch, dict) else batch[0]
-
-    @staticmethod
-    def _rest_of(batch: Any) -> Any:
-        return {k: CPUVectorEnv._rest_of(v) for k, v in batch.items()} if isinstance(batch, dict) else batch[1:]
 
     def _step_all(self, actions: np.ndarray) -> tuple:
         """The numpy step of every env: the workers' launched first, env 0's stepped here while they run."""
