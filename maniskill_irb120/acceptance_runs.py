@@ -218,6 +218,10 @@ def isolated(module: str, fn: str, /, timeout_s: float = 600, **kwargs) -> Any:
 
 
 # --------------------------------------------------------------------------- the report's checks
+CAMERA_DAGGER = "agents.dagger --obs rgbd"
+CAMERA_DAGGER_ENVS = 8
+"""the camera recipe's round (keypoint encoder, auxiliary head, bf16 where the device has it) at 8 envs: 84x84
+frames of many more envs would time the renderer, not check the recipe"""
 CHECK_NAMES = (
     "obs modes",
     "partial resets",
@@ -228,6 +232,7 @@ CHECK_NAMES = (
     "agents.ppo",
     "agents.sac",
     "agents.dagger",
+    CAMERA_DAGGER,
     "sim_speed.py --gpu-only",
 )
 """the acceptance suite in report order: the env checks (acceptance.ENV_CHECKS), the trainers, the benchmark"""
@@ -239,6 +244,11 @@ def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: in
 
     if name in ENV_CHECKS:
         return timed_check(name, ENV_CHECKS[name], sim_backend=sim_backend, num_envs=num_envs).to_dict()
+    if name == CAMERA_DAGGER:
+        n = min(trainer_envs, CAMERA_DAGGER_ENVS)
+        return timed_check(
+            name, check_trainer, trainer="dagger", sim_backend=sim_backend, num_envs=n, obs="rgbd"
+        ).to_dict()
     if name.startswith("agents."):
         trainer = name.split(".", 1)[1]
         return timed_check(
@@ -249,3 +259,35 @@ def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: in
             return CheckResult(name, None, "the GPU sweep needs physx_cuda").to_dict()
         return timed_check(name, check_benchmark).to_dict()
     raise ValueError(f"unknown check {name!r}; expected one of {CHECK_NAMES}")
+
+
+def run_obs_mode_check(env_id: str, obs_mode: str, sim_backend: str, num_envs: int) -> dict:
+    """One task in one obs mode: a part of the ``obs modes`` check that :func:`doctor.gpu_report` runs in its own
+    process when it runs checks side by side (the whole sweep, 24 scenes one after another, is its longest)."""
+    from maniskill_irb120.acceptance import check_obs_modes, timed_check
+
+    name = f"obs modes [{env_id} {obs_mode}]"
+    kw = dict(sim_backend=sim_backend, num_envs=num_envs, env_ids=[env_id], obs_modes=[obs_mode])
+    return timed_check(name, check_obs_modes, **kw).to_dict()
+
+
+def merge_parts(name: str, parts: list[dict], seconds: float) -> dict:
+    """One check's result from its parts: FAIL if a part failed (naming each), SKIP only if every part skipped;
+    ``seconds`` is the wall-clock time from the first part's start to the last part's end."""
+    failed = [p for p in parts if p["ok"] is False]
+    if failed:
+        ok, reason = (
+            False,
+            f"{len(failed)} of {len(parts)} parts failed: " + "; ".join(f"{p['name']}: {p['reason']}" for p in failed),
+        )
+    elif all(p["ok"] is None for p in parts):
+        ok, reason = None, parts[0]["reason"] if parts else "no parts"
+    else:
+        ok, reason = True, f"all {len(parts)} parts passed, each in its own process; the first: {parts[0]['reason']}"
+    return dict(
+        name=name,
+        ok=ok,
+        status="SKIP" if ok is None else ("PASS" if ok else "FAIL"),
+        reason=reason,
+        seconds=round(seconds, 2),
+    )

@@ -220,38 +220,80 @@ def gpu_report(
     throughput_steps: int = 50,
     isolate: bool = True,
     say=None,
+    jobs: int = 1,
+    env_ids: tuple[str, ...] | None = None,
+    obs_modes: tuple[str, ...] | None = None,
 ) -> dict:
     """Run the acceptance suite (``maniskill_irb120.acceptance``) and time state-obs steps/s per batch size.
     ``isolate``: each check and timing in a fresh process, so a GPU crash is one FAIL, not the end of the report.
     The tests run it on ``physx_cpu`` with one env and ``isolate=False``. ``say``: called with a line as each
-    check ends (the whole run takes minutes)."""
-    from maniskill_irb120.acceptance_runs import CHECK_NAMES, isolated, measure_batched, run_named_check
+    check ends (the whole run takes minutes). ``jobs`` > 1 (needs ``isolate``): that many checks side by side,
+    the obs-mode sweep split into one process per task and mode (a GPU machine's cores and memory take them;
+    one after another the sweep alone builds 24 scenes of ``num_envs``); the steps/s are timed afterwards, alone.
+    ``env_ids`` / ``obs_modes``: narrow the obs-mode sweep (default: every task, every mode)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from maniskill_irb120 import acceptance_runs as runs
+    from maniskill_irb120.acceptance import ENV_IDS, OBS_MODES
+    from maniskill_irb120.acceptance_runs import CHECK_NAMES, isolated, measure_batched, merge_parts
     from maniskill_irb120.envs.table_clearing import ENV_ID
 
     names = CHECK_NAMES if checks is None else checks
     unknown = [c for c in names if c not in CHECK_NAMES]
     if unknown:
         raise ValueError(f"unknown checks {unknown}; expected some of {list(CHECK_NAMES)}")
+    if jobs < 1 or (jobs > 1 and not isolate):
+        raise ValueError(f"jobs={jobs}: expected 1, or more with isolate=True (checks side by side in processes)")
+    env_ids = ENV_IDS if env_ids is None else tuple(env_ids)
+    obs_modes = OBS_MODES if obs_modes is None else tuple(obs_modes)
+    for given, known, what in ((env_ids, ENV_IDS, "env_ids"), (obs_modes, OBS_MODES, "obs_modes")):
+        if not given or [x for x in given if x not in known]:
+            raise ValueError(f"{what}={list(given)}: expected some of {list(known)}")
     report: dict = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
         sim_backend=sim_backend,
         num_envs=num_envs,
         trainer_envs=trainer_envs,
+        jobs=jobs,
         environment=gpu_environment(),
         checks=[],
         throughput=[],
     )
     mod = "maniskill_irb120.acceptance_runs"
-    for name in names:
-        kw = dict(name=name, sim_backend=sim_backend, num_envs=num_envs, trainer_envs=trainer_envs)
+    base = dict(sim_backend=sim_backend, num_envs=num_envs)
+
+    def one(fn: str, kw: dict, name: str) -> tuple[dict, float, float]:
+        t0 = time.perf_counter()
         try:
-            # 1200 s: the obs-mode sweep builds 24 GPU scenes of num_envs each
-            result = isolated(mod, "run_named_check", timeout_s=1200, **kw) if isolate else run_named_check(**kw)
+            # 1200 s: the obs-mode sweep in one process builds 24 GPU scenes of num_envs each
+            result = isolated(mod, fn, timeout_s=1200, **kw) if isolate else getattr(runs, fn)(**kw)
         except RuntimeError as e:
             result = dict(name=name, ok=False, status="FAIL", reason=str(e).splitlines()[0], seconds=0.0)
-        report["checks"].append(result)
         if say is not None:
-            say(f"[doctor --gpu] {name}: {result['status']} ({result['seconds']:.0f} s)")
+            took = f"({result['seconds']:.0f} s)"
+            say(f"[doctor --gpu] {result['name']}: {result['status']} {took} {result['reason'][:300]}")
+        return result, t0, time.perf_counter()
+
+    split = "obs modes" in names and (jobs > 1 or (env_ids, obs_modes) != (ENV_IDS, OBS_MODES))
+    units: list[tuple[str, str, dict]] = []  # (the check it belongs to, function, its arguments)
+    for name in names:
+        if name == "obs modes" and split:
+            parts = [dict(base, env_id=e, obs_mode=m) for e in env_ids for m in obs_modes]
+            units += [(name, "run_obs_mode_check", kw) for kw in parts]
+        else:
+            units.append((name, "run_named_check", dict(base, name=name, trainer_envs=trainer_envs)))
+    if jobs == 1:  # in this thread: the in-process path (isolate=False) builds its envs here
+        done = [one(fn, kw, name) for name, fn, kw in units]
+    else:
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            done = list(pool.map(lambda u: one(u[1], u[2], u[0]), units))
+    for name in names:
+        mine = [d for u, d in zip(units, done) if u[0] == name]
+        if name == "obs modes" and split:
+            wall = max(end for _, _, end in mine) - min(start for _, start, _ in mine)
+            report["checks"].append(merge_parts(name, [r for r, _, _ in mine], wall))
+        else:
+            report["checks"].append(mine[0][0])
     backend = "gpu" if "cuda" in sim_backend else "inprocess"
     for n in throughput_envs:
         kw = dict(env_id=ENV_ID, num_envs=n, steps=throughput_steps, seed=0, backend=backend, obs_mode="state")
@@ -301,7 +343,7 @@ def format_gpu_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def gpu_main(json_output: bool = False, json_path: str | None = None) -> int:
+def gpu_main(json_output: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
     """``doctor --gpu``: 0 when every check passes, 1 when one fails, 2 without a CUDA device."""
     import json
     import sys
@@ -311,7 +353,7 @@ def gpu_main(json_output: bool = False, json_path: str | None = None) -> int:
     if not torch.cuda.is_available():
         print(NO_CUDA, file=sys.stderr)
         return 2
-    r = gpu_report(say=lambda line: print(line, file=sys.stderr, flush=True))
+    r = gpu_report(say=lambda line: print(line, file=sys.stderr, flush=True), jobs=jobs)
     print(json.dumps(r, indent=2) if json_output else format_gpu_report(r))
     if json_path:
         _write_json(json_path, r)

@@ -204,6 +204,47 @@ def test_report_on_cpu_lists_each_check_and_the_steps():
         gpu_report(CPU, checks=("speed",))
 
 
+def test_report_side_by_side_splits_the_obs_sweep_into_processes_and_merges_it():
+    """--jobs: the sweep's parts run in their own processes beside the other checks and come back as one row"""
+    lines: list[str] = []
+    r = gpu_report(
+        CPU,
+        num_envs=1,
+        checks=("obs modes", "controller targets"),
+        throughput_envs=(),
+        jobs=3,
+        env_ids=(A.ENV_IDS[1],),
+        obs_modes=("state", "none"),
+        say=lines.append,
+    )
+    assert r["ok"] and r["jobs"] == 3 and [c["name"] for c in r["checks"]] == ["obs modes", "controller targets"]
+    assert r["checks"][0]["reason"].startswith("all 2 parts passed, each in its own process")
+    parts = [f"[doctor --gpu] obs modes [{A.ENV_IDS[1]} {m}]" for m in ("state", "none")]
+    assert sorted(ln.split(":")[0] for ln in lines) == sorted([*parts, "[doctor --gpu] controller targets"])
+    with pytest.raises(ValueError, match="jobs=2: expected 1, or more with isolate=True"):
+        gpu_report(CPU, jobs=2, isolate=False)
+    with pytest.raises(ValueError, match=r"obs_modes=\['rgbd', 'thermal'\]"):
+        gpu_report(CPU, obs_modes=("rgbd", "thermal"))
+
+
+def test_merged_parts_fail_naming_each_failed_part():
+    ok = dict(name="a", ok=True, status="PASS", reason="fine", seconds=1.0)
+    bad = dict(name="obs modes [X rgb]", ok=False, status="FAIL", reason="obs: 3 values not finite", seconds=2.0)
+    skip = dict(name="b", ok=None, status="SKIP", reason="needs CUDA", seconds=0.0)
+    m = R.merge_parts("obs modes", [ok, bad, ok], 4.0)
+    assert (m["ok"], m["status"], m["seconds"]) == (False, "FAIL", 4.0)
+    assert m["reason"] == "1 of 3 parts failed: obs modes [X rgb]: obs: 3 values not finite"
+    assert R.merge_parts("x", [skip, skip], 0.0)["status"] == "SKIP"
+    assert R.merge_parts("x", [skip, ok], 1.0)["status"] == "PASS"
+
+
+def test_the_camera_recipe_is_a_check_of_its_own(tmp_path):
+    assert R.CAMERA_DAGGER in R.CHECK_NAMES
+    cmd = R.trainer_command("dagger", "physx_cuda", R.CAMERA_DAGGER_ENVS, tmp_path, obs="rgbd")
+    args = tyro.cli(importlib.import_module("agents.dagger").Args, args=cmd[3:])
+    assert (args.obs, args.encoder, args.precision, args.num_envs) == ("rgbd", "keypoints", "auto", 8)
+
+
 def test_isolated_reports_a_crash_and_an_exception():
     with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
         R.isolated("os", "_exit", status=3)
