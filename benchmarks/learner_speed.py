@@ -54,7 +54,10 @@ class Args:
     """tiny sizes: checks the script runs and writes well-formed JSON"""
     json: Path = ROOT / "benchmarks" / "results" / "learner_speed.json"
     update_results: bool = False
-    """rewrite this benchmark's section of benchmarks/RESULTS.md"""
+    """rewrite this benchmark's section of benchmarks/RESULTS.md (CPU figures only)"""
+    device: str = "cpu"
+    """where the updates run (``cuda``: the frames are recorded on the CPU envs as always, then the network,
+    its optimiser and each minibatch live on the GPU)"""
 
 
 def pad_crop_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.Tensor]:
@@ -63,10 +66,10 @@ def pad_crop_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torc
     n, h, w, _ = rgb.shape
     img = torch.cat([rgb.float(), depth.float()], dim=-1).permute(0, 3, 1, 2)
     img = F.pad(img, (pad, pad, pad, pad), mode="replicate")
-    dx = torch.randint(0, 2 * pad + 1, (n,))
-    dy = torch.randint(0, 2 * pad + 1, (n,))
-    rows = (dy[:, None] + torch.arange(h)[None]).view(n, 1, h, 1)
-    cols = (dx[:, None] + torch.arange(w)[None]).view(n, 1, 1, w)
+    dx = torch.randint(0, 2 * pad + 1, (n,), device=rgb.device)
+    dy = torch.randint(0, 2 * pad + 1, (n,), device=rgb.device)
+    rows = (dy[:, None] + torch.arange(h, device=rgb.device)[None]).view(n, 1, h, 1)
+    cols = (dx[:, None] + torch.arange(w, device=rgb.device)[None]).view(n, 1, 1, w)
     c = img.shape[1]
     out = img.gather(2, rows.expand(n, c, h, img.shape[3])).gather(3, cols.expand(n, c, h, w)).permute(0, 2, 3, 1)
     return dict(obs, rgb=out[..., :3].to(rgb.dtype), depth=out[..., 3:].to(depth.dtype))
@@ -93,23 +96,31 @@ def main(args: Args) -> dict:
     import agents.dagger as dagger
     from agents.common.precision import native_bf16
 
+    dev = torch.device(args.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {args.device}: torch.cuda.is_available() is False here")
+    if dev.type != "cpu" and args.update_results:
+        raise SystemExit("--update-results writes the CPU section of RESULTS.md; record GPU figures in its GPU section")
     if args.quick:
         args.updates, args.rounds, args.episodes = 3, 1, 1
     t0 = time.time()
     cli, policy, data = record(args)
-    cpu = torch.device("cpu")
-    aux_head = dagger.aux_head_for(policy, cpu)
+    policy.to(dev)
+    aux_head = dagger.aux_head_for(policy, dev)
     opt = torch.optim.AdamW(list(policy.parameters()) + list(aux_head.parameters()), lr=cli.learning_rate)
     configs = {"fp32, pad+crop shift": ("fp32", pad_crop_shift), "fp32": ("fp32", None)}
-    if native_bf16(cpu):
+    if native_bf16(dev):
         configs["bf16 encoder"] = ("bf16", None)
     shift = dagger.random_shift
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
 
     def timed(precision: str, ref_shift, n: int) -> float:
         dagger.random_shift = ref_shift or shift
         try:
+            sync()
             t = time.perf_counter()
-            dagger.train_round(policy, opt, data, cli, cpu, aux_head=aux_head, updates=n, precision=precision)
+            dagger.train_round(policy, opt, data, cli, dev, aux_head=aux_head, updates=n, precision=precision)
+            sync()
             return (time.perf_counter() - t) / n
         finally:
             dagger.random_shift = shift
@@ -128,6 +139,7 @@ def main(args: Args) -> dict:
         command="python benchmarks/learner_speed.py " + " ".join(sys.argv[1:]),
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         machine=f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} threads",
+        device=torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
         versions={"torch": torch.__version__},
         recipe=RECIPE,
         dataset=data.size,

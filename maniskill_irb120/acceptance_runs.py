@@ -217,12 +217,35 @@ def isolated(module: str, fn: str, /, timeout_s: float = 600, **kwargs) -> Any:
     return value
 
 
+# --------------------------------------------------------------------------- PhysX's GPU library
+def check_physx_gpu(sim_backend: str) -> tuple[bool | None, str]:
+    """SAPIEN turns PhysX's GPU backend on: every ``physx_cuda`` check needs it, and SAPIEN fetches its library
+    from GitHub on first use, which an offline GPU machine cannot (each check would then fail alike)."""
+    if "cuda" not in sim_backend:
+        return None, f"{sim_backend} needs no GPU library"
+    import sapien
+
+    from maniskill_irb120.maniskill_compat import physx_gpu_library
+
+    path, url = physx_gpu_library()
+    had = path.is_file()
+    try:
+        sapien.physx.enable_gpu()
+    except Exception as e:  # noqa: BLE001 - the reason is the verdict
+        why = f"{type(e).__name__}: {str(e).strip().splitlines()[0][:160] if str(e).strip() else ''}"
+        where = "is there but did not load" if had else "is missing and fetching it failed"
+        return False, f"{path} {where} ({why}); without internet access unzip {url} into {path.parent}"
+    return True, f"PhysX {sapien.physx.version()} GPU library loaded ({path}{'' if had else ', fetched now'})"
+
+
 # --------------------------------------------------------------------------- the report's checks
 CAMERA_DAGGER = "agents.dagger --obs rgbd"
 CAMERA_DAGGER_ENVS = 8
 """the camera recipe's round (keypoint encoder, auxiliary head, bf16 where the device has it) at 8 envs: 84x84
 frames of many more envs would time the renderer, not check the recipe"""
+PHYSX_GPU = "physx gpu library"
 CHECK_NAMES = (
+    PHYSX_GPU,
     "obs modes",
     "partial resets",
     "controller targets",
@@ -235,13 +258,16 @@ CHECK_NAMES = (
     CAMERA_DAGGER,
     "sim_speed.py --gpu-only",
 )
-"""the acceptance suite in report order: the env checks (acceptance.ENV_CHECKS), the trainers, the benchmark"""
+"""the acceptance suite in report order: PhysX's GPU library (the others need it), the env checks
+(acceptance.ENV_CHECKS), the trainers, the benchmark"""
 
 
 def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: int = 64) -> dict:
     """One check of :data:`CHECK_NAMES` as a :class:`CheckResult` dict (what :func:`isolated` can hand back)."""
     from maniskill_irb120.acceptance import ENV_CHECKS, CheckResult, timed_check
 
+    if name == PHYSX_GPU:
+        return timed_check(name, check_physx_gpu, sim_backend=sim_backend).to_dict()
     if name in ENV_CHECKS:
         return timed_check(name, ENV_CHECKS[name], sim_backend=sim_backend, num_envs=num_envs).to_dict()
     if name == CAMERA_DAGGER:

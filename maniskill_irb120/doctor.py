@@ -121,6 +121,12 @@ def format_report(r: dict) -> str:
         lines.append(f"  render probe       {r['render_probe']}")
     lines.append(f"  torch CUDA         {r['torch_cuda']}")
     lines.append(f"  CUDA sim (physx)   {r['cuda_sim_available']}")
+    if r.get("cuda_sim_error"):
+        from maniskill_irb120.maniskill_compat import physx_gpu_library
+
+        path, url = physx_gpu_library()
+        lines.append(f"  CUDA sim error     {r['cuda_sim_error'][:200]}")
+        lines.append(f"  CUDA sim needs     {path} (without internet access: unzip {url} into {path.parent})")
     if r["render_ok"]:
         dev = r["render_device"]
         where = "CPU (lavapipe/llvmpipe: fine for num_envs=1 and process-parallel envs)" if dev["cpu"] else "GPU"
@@ -235,7 +241,7 @@ def gpu_report(
 
     from maniskill_irb120 import acceptance_runs as runs
     from maniskill_irb120.acceptance import ENV_IDS, OBS_MODES
-    from maniskill_irb120.acceptance_runs import CHECK_NAMES, isolated, measure_batched, merge_parts
+    from maniskill_irb120.acceptance_runs import CHECK_NAMES, PHYSX_GPU, isolated, measure_batched, merge_parts
     from maniskill_irb120.envs.table_clearing import ENV_ID
 
     names = CHECK_NAMES if checks is None else checks
@@ -274,6 +280,16 @@ def gpu_report(
             say(f"[doctor --gpu] {result['name']}: {result['status']} {took} {result['reason'][:300]}")
         return result, t0, time.perf_counter()
 
+    if PHYSX_GPU in names:  # first and alone: without it every physx_cuda check would fail the same way
+        first, _, _ = one("run_named_check", dict(base, name=PHYSX_GPU, trainer_envs=trainer_envs), PHYSX_GPU)
+        report["checks"].append(first)
+        names = tuple(n for n in names if n != PHYSX_GPU)
+        if first["ok"] is False:
+            why = f"not run: PhysX's GPU library is not available ({PHYSX_GPU}, above)"
+            report["checks"] += [dict(name=n, ok=None, status="SKIP", reason=why, seconds=0.0) for n in names]
+            report["throughput"] = [dict(num_envs=n, error=f"not run ({PHYSX_GPU})") for n in throughput_envs]
+            report["ok"] = False
+            return report
     split = "obs modes" in names and (jobs > 1 or (env_ids, obs_modes) != (ENV_IDS, OBS_MODES))
     units: list[tuple[str, str, dict]] = []  # (the check it belongs to, function, its arguments)
     for name in names:

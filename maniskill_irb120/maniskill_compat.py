@@ -5,7 +5,8 @@ Everything here was read against ``mani_skill`` 3.0.1 (``envs/sapien_env.py``, `
 changes one fails there first, not somewhere downstream in training.
 
 What is here: partial-reset masks for controllers and controller-state restore (below), direct PhysX
-drive-target writes and pose reads on the CPU (:func:`set_drive_targets`, :func:`raw_pose`), and the
+drive-target writes and pose reads on the CPU (:func:`set_drive_targets`, :func:`raw_pose`), where SAPIEN keeps
+PhysX's GPU library (:func:`physx_gpu_library`), and the
 render-ahead read-back of a camera frame whose capture the task already started (:func:`read_sensor_obs`).
 
 Partial resets: ``BaseEnv.reset`` sets ``scene._reset_mask`` to the envs being reset while it runs
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -183,3 +185,15 @@ def read_sensor_obs(env, apply_texture_transforms: bool = True) -> dict:
         else sensor.get_obs()
         for name, sensor in env.scene.sensors.items()
     }
+
+
+def physx_gpu_library() -> tuple[Path, str]:
+    """(where SAPIEN looks for PhysX's GPU library, the archive it fetches there on first GPU use), as
+    ``sapien.physx.enable_gpu`` builds them (Linux x86-64). ``physx_cuda`` cannot start without that file,
+    and a machine that cannot reach GitHub never gets it: the GPU acceptance suite names both, so the fix
+    (unzip the archive at the path's folder) is one step."""
+    import sapien
+
+    version = sapien.physx.version()
+    url = f"https://github.com/sapien-sim/physx-precompiled/releases/download/{version}/linux-so.zip"
+    return Path.home() / ".sapien" / "physx" / version / "libPhysXGpu_64.so", url

@@ -245,6 +245,34 @@ def test_the_camera_recipe_is_a_check_of_its_own(tmp_path):
     assert (args.obs, args.encoder, args.precision, args.num_envs) == ("rgbd", "keypoints", "auto", 8)
 
 
+def test_without_physx_gpu_library_the_check_names_the_file_and_the_fix(monkeypatch):
+    import sapien
+
+    from maniskill_irb120.maniskill_compat import physx_gpu_library
+
+    assert R.check_physx_gpu(CPU) == (None, "physx_cpu needs no GPU library")
+
+    def offline():
+        raise ConnectionError("Failed to resolve 'github.com'")
+
+    monkeypatch.setattr(sapien.physx, "enable_gpu", offline)
+    ok, why = R.check_physx_gpu("physx_cuda")
+    path, url = physx_gpu_library()
+    assert ok is False and str(path) in why and "ConnectionError: Failed to resolve 'github.com'" in why
+    assert why.endswith(f"without internet access unzip {url} into {path.parent}")
+
+
+def test_report_stops_at_a_missing_physx_gpu_library(monkeypatch):
+    """one FAIL that says why and the rest SKIP, in seconds, instead of every check failing alike"""
+    monkeypatch.setattr(R, "check_physx_gpu", lambda sim_backend: (False, "libPhysXGpu_64.so is missing"))
+    r = gpu_report(CPU, num_envs=1, throughput_envs=(512,), isolate=False)
+    assert not r["ok"] and [c["name"] for c in r["checks"]] == list(R.CHECK_NAMES)
+    assert r["checks"][0]["status"] == "FAIL" and {c["status"] for c in r["checks"][1:]} == {"SKIP"}
+    text = format_gpu_report(r)
+    assert "FAIL  physx gpu library" in text and "libPhysXGpu_64.so is missing" in text
+    assert text.splitlines()[-1] == "VERDICT: FAIL - physx gpu library, steps/s at 512"
+
+
 def test_isolated_reports_a_crash_and_an_exception():
     with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
         R.isolated("os", "_exit", status=3)

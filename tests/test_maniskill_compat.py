@@ -3,6 +3,8 @@ ManiSkill upgrade that changes one fails here first (the module mirrors ManiSkil
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import mani_skill
 import numpy as np
@@ -143,3 +145,22 @@ def test_record_episode_info_on_video_writes_a_video(tmp_path):
     e.close()
     videos = list(tmp_path.glob("*.mp4"))
     assert videos and videos[0].stat().st_size > 0
+
+
+def test_the_physx_gpu_library_is_where_sapien_looks_and_fetches_it():
+    """``sapien.physx.enable_gpu`` builds the same folder and archive name (read from its source: calling it
+    would fetch ~100 MB on a machine with internet access)."""
+    import inspect
+
+    import sapien
+
+    from maniskill_irb120.maniskill_compat import physx_gpu_library
+
+    path, url = physx_gpu_library()
+    version = sapien.physx.version()
+    assert path.parent == Path.home() / ".sapien" / "physx" / version and path.name == "libPhysXGpu_64.so"
+    assert url.endswith(f"/releases/download/{version}/linux-so.zip")
+    src = inspect.getsource(sapien.physx.enable_gpu)
+    for piece in ('Path.home() / ".sapien" / "physx" / physx_version', '"libPhysXGpu_64.so"', "physx-precompiled"):
+        assert piece in src, piece
+    assert "/releases/download/{physx_version}/linux-so.zip" in src
