@@ -131,8 +131,8 @@ class Args(RunArgs):
     the rows new since the last (checkpoints/data/)"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
-    weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 where
-    native)"""
+    weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 on a
+    CPU with native bf16, else fp32)"""
 
 
 def make_envs(args: Args, num_envs: int):

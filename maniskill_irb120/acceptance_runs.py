@@ -56,7 +56,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
     elif name == "dagger":
         args = ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
-        if obs == "rgbd":  # the camera recipe (README), its encoder under bf16 where the device has it
+        if obs == "rgbd":  # the camera recipe (README), --precision auto: bf16 on a CPU that has it
             args += ["--action-frame", "tool", "--encoder", "keypoints", "--aux-weight", "1", "--precision", "auto"]
     else:
         raise ValueError(f"unknown trainer {name!r}; expected one of {TRAINERS}")
@@ -241,7 +241,7 @@ def check_physx_gpu(sim_backend: str) -> tuple[bool | None, str]:
 # --------------------------------------------------------------------------- the report's checks
 CAMERA_DAGGER = "agents.dagger --obs rgbd"
 CAMERA_DAGGER_ENVS = 8
-"""the camera recipe's round (keypoint encoder, auxiliary head, bf16 where the device has it) at 8 envs: 84x84
+"""the camera recipe's round (keypoint encoder, auxiliary head, --precision auto) at 8 envs: 84x84
 frames of many more envs would time the renderer, not check the recipe"""
 PHYSX_GPU = "physx gpu library"
 CHECK_NAMES = (

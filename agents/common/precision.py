@@ -6,7 +6,10 @@ convolutions are most of a camera update; trainers run only the encoder under it
 heads, the losses, the keypoints' spatial softmax and the proprioception MLP stay float32 (the last two opt out
 of autocast in ``maniskill_irb120.policies.nets``), so a checkpoint is the same float32 policy either way and
 evaluation, export and the real robot never run in bf16. Without native support bf16 is emulated and slower
-than float32: ``bf16`` is then refused and ``auto`` means float32."""
+than float32: ``bf16`` is then refused and ``auto`` means float32. On a GPU ``auto`` means float32 too: this
+small encoder at the recipe's batch of 64 is bound by kernel launches there, not arithmetic, and bf16 autocast
+only adds casts (``benchmarks/learner_speed.py --device cuda``, RESULTS.md's GPU section); ``bf16`` stays
+available to try on bigger batches."""
 
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ def resolve_precision(name: str, device: torch.device) -> str:
     if name not in PRECISIONS:
         raise ValueError(f"--precision {name!r} is not one of {PRECISIONS}")
     if name == "auto":
-        return "bf16" if native_bf16(device) else "fp32"
+        return "bf16" if device.type == "cpu" and native_bf16(device) else "fp32"
     if name == "bf16" and not native_bf16(device):
         raise ValueError(
             f"--precision bf16: {device} has no native bfloat16 (it would be emulated, slower than fp32); "

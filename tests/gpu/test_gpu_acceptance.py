@@ -48,7 +48,7 @@ def test_trainer_runs_its_tiny_loop_on_the_gpu(trainer):
 
 
 def test_the_camera_dagger_recipe_runs_a_round_on_the_gpu():
-    """rgbd, the keypoint encoder, the auxiliary head and --precision auto (bf16 autocast on a bf16 GPU)"""
+    """rgbd, the keypoint encoder, the auxiliary head and --precision auto (fp32 on a GPU)"""
     ok, why = R.check_trainer("dagger", GPU, 8, obs="rgbd")
     assert ok, why
 
