@@ -241,7 +241,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     assert "data" not in saved and saved_dataset(ckpt).size == res["dataset"] > 0
     assert (Path(res["run_dir"]) / "summary.json").is_file()
     assert list(Path(res["run_dir"]).glob("events.out.tfevents*"))
-    again = tiny(tmp_path, resume=ckpt, budget_min=1.0, expert_episodes=1)
+    # the budget counts the first run's wall clock too: 3 s more than it used buys one more round
+    again = tiny(tmp_path, resume=ckpt, budget_min=res["wall_clock_s"] / 60 + 0.05, expert_episodes=1)
     assert again["rounds"] > res["rounds"] and again["dataset"] > res["dataset"]
     assert again["wall_clock_s"] > res["wall_clock_s"]
     ev = tiny(tmp_path, evaluate=True, checkpoint=ckpt, capture_video=True)
