@@ -11,6 +11,7 @@ keeps the trained mount.
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera none --shifts none "all together"
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT_A CKPT_B --camera twin --episodes 30
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera twin --episodes 30 --workers 2
+    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --shifts "lighting & colours/textures"   # combined
 
 ``--workers N`` runs N cells at once, each in its own process with its own emulator (one torch thread each on a
 2-core machine). A real step ends when the robot stands at its target, so a busy machine makes the cells
@@ -57,6 +58,23 @@ MOUNTS = {
 SHIFTS["camera mount, corrected"] = SHIFTS["camera mount"]
 SHIFTS["camera mount, corrected with 2 mm / 1 deg error"] = SHIFTS["camera mount"]
 SHIFTS["all together, mount corrected"] = SHIFTS["all together"]
+JOIN = "&"
+"""--shifts "lighting & colours/textures": a row of several shifts at once (any of the plain rows above)"""
+
+
+def spec_of(name: str) -> str | None:
+    """The randomisation string of a row: one of SHIFTS, or plain rows joined by JOIN (which sinks a policy when
+    "all together" does is a question of combinations)."""
+    if name in SHIFTS:
+        return SHIFTS[name]
+    parts = [p.strip() for p in name.split(JOIN)]
+    bad = [p for p in parts if p not in SHIFTS or p in MOUNTS or SHIFTS[p] is None]
+    if JOIN not in name or bad:
+        plain = [n for n in SHIFTS if n not in MOUNTS and SHIFTS[n] is not None]
+        raise ValueError(
+            f"--shifts {name!r}: the rows are {list(SHIFTS)}, or plain ones joined by '{JOIN}' (of {plain})"
+        )
+    return ",".join(SHIFTS[p] for p in parts)
 
 
 @dataclass
@@ -89,8 +107,8 @@ def cell(policy: str, name: str, args: Args) -> dict:
             camera=args.camera,
             episodes=args.episodes,
             seed=args.seed,
-            shift=SHIFTS[name],
-            sim_shift=args.sim_shift and SHIFTS[name] is not None,
+            shift=spec_of(name),
+            sim_shift=args.sim_shift and spec_of(name) is not None,
             camera_mount=MOUNTS.get(name),
             out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
         )
@@ -98,7 +116,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
     return dict(
         policy=policy,
         shift=name,
-        spec=SHIFTS[name],
+        spec=spec_of(name),
         camera_mount=MOUNTS.get(name),
         sim_success=r["sim"]["success"],
         real_success=r["real"]["success"],
@@ -120,14 +138,18 @@ def _set_torch_threads(threads: int) -> None:
 
 
 def main(args: Args) -> dict:
-    unknown = sorted(set(args.shifts) - set(SHIFTS))
+    unknown = sorted(n for n in set(args.shifts) - set(SHIFTS) if JOIN not in n)
     if unknown:
         raise ValueError(f"--shifts {unknown}: the rows are {list(SHIFTS)}")
+    combined = [n for n in args.shifts if n not in SHIFTS]
+    for name in combined:
+        spec_of(name)  # refused here, before any cell runs
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: run at least one cell at a time")
     if args.camera == "none" and set(args.shifts) & set(MOUNTS):
         raise ValueError(f"--shifts {sorted(set(args.shifts) & set(MOUNTS))} correct camera frames: --camera twin")
     names = [n for n in SHIFTS if (n in args.shifts if args.shifts else args.camera != "none" or n not in MOUNTS)]
+    names += combined
     cells = [(p, name) for p in args.policy for name in names]
     if args.workers == 1:
         rows = [cell(p, name, args) for p, name in cells]

@@ -145,6 +145,11 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
         gap.main(gap.Args(shifts=["gravity"], out=tmp_path))
     with pytest.raises(ValueError, match="correct camera frames: --camera twin"):
         gap.main(gap.Args(camera="none", shifts=["camera mount, corrected"], out=tmp_path))
+    both = gap.spec_of("lighting & colours/textures")
+    assert both == gap.SHIFTS["lighting"] + "," + gap.SHIFTS["colours/textures"]
+    for bad in ("lighting & gravity", "lighting & camera mount, corrected", "none & lighting"):
+        with pytest.raises(ValueError, match="or plain ones joined by '&'"):
+            gap.main(gap.Args(shifts=["none", bad], out=tmp_path))
 
 
 def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
