@@ -187,6 +187,9 @@ def measure_batched(
 
 # --------------------------------------------------------------------------- isolation
 def _child(conn, module: str, fn: str, kwargs: dict) -> None:
+    # what a check prints (SAPIEN's download notice, warnings) goes to stderr: stdout is the report's
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
     try:
         conn.send(("ok", getattr(importlib.import_module(module), fn)(**kwargs)))
     except BaseException as e:  # noqa: BLE001 - reported to the parent

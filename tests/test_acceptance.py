@@ -274,6 +274,13 @@ def test_report_stops_at_a_missing_physx_gpu_library(monkeypatch):
     assert text.splitlines()[-1] == "VERDICT: FAIL - physx gpu library, steps/s at 512"
 
 
+def test_what_an_isolated_check_prints_goes_to_stderr(capfd):
+    """the doctor's stdout is its report: a child's prints (SAPIEN's download notice) must not land in it"""
+    R.isolated("builtins", "print", end="from the child")  # print() with no items writes just its end
+    out, err = capfd.readouterr()
+    assert "from the child" in err and "from the child" not in out
+
+
 def test_isolated_reports_a_crash_and_an_exception():
     with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
         R.isolated("os", "_exit", status=3)
