@@ -205,7 +205,8 @@ def evaluate(cfg: EvalConfig) -> dict:
     sim_shift = cfg.shift if cfg.sim_shift else None
     if sim_shift and cfg.camera_mount:  # the corrected frames come from the trained mount: the sim keeps it
         sim_shift = without_mount(sim_shift)
-    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions, sim_shift)
+    expert_obs = "state" if cfg.camera == "none" else "rgbd"  # no camera on the real side: none in the sim either
+    sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions, sim_shift, expert_obs)
     try:
         real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)
     except BaseException:

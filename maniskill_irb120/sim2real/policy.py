@@ -80,17 +80,21 @@ def load_policy(
     command_mode: str,
     actions: str = "as-trained",
     sim_shift: str | Randomization | None = None,
+    expert_obs_mode: str = "rgbd",
 ) -> tuple[gym.Env, Callable[[gym.Env], object]]:
     """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path;
     ``actions``: one of :data:`ACTIONS`; ``sim_shift``: the sim side's own randomisation (the sim's model of a
-    condition the real side is in), else the nominal task."""
+    condition the real side is in), else the nominal task. ``expert_obs_mode``: the scripted expert reads the
+    simulator, not its observation; ``state`` runs it without a camera on either side."""
     if actions not in ACTIONS:
         raise ValueError(f"--actions {actions!r}: use one of {', '.join(ACTIONS)}")
     if policy == "expert":
         if actions == "sample":
             raise ValueError("--actions sample: the scripted expert has no distribution to sample; use as-trained")
         shifted = {"randomization": sim_shift} if sim_shift else {}
-        sim_env = gym.make(env_id, obs_mode="rgbd", control_mode="pd_ee_delta_tool", sim_backend="physx_cpu", **shifted)
+        sim_env = gym.make(
+            env_id, obs_mode=expert_obs_mode, control_mode="pd_ee_delta_tool", sim_backend="physx_cpu", **shifted
+        )
         return sim_env, ExpertPolicy
     path = Path(policy)
     if not path.is_file():

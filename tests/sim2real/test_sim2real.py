@@ -393,6 +393,19 @@ def test_sim2real_eval_names_bad_setups(tmp_path):
         evaluate(EvalConfig(policy=str(bogus), out=tmp_path))
 
 
+def test_the_expert_without_a_camera_runs_its_sim_side_without_one():
+    """--camera none with the scripted expert: the expert reads the simulator, so its sim side renders nothing and
+    asks the real side for no frames (before, the RGB-D sim side failed the first reset: no camera there)."""
+    from maniskill_irb120.sim2real.policy import load_policy
+
+    sim_env, _ = load_policy("expert", ENV_ID, "tool_delta", expert_obs_mode="state")
+    try:
+        obs, _ = sim_env.reset(seed=0)
+        assert sim_env.unwrapped.obs_mode == "state" and isinstance(obs, torch.Tensor)  # no frames in it
+    finally:
+        sim_env.close()
+
+
 def test_the_sim_side_is_the_nominal_task_or_the_condition_it_is_asked_to_model(tmp_path):
     """A policy trained under randomisation is compared with the nominal sim, not its training distribution;
     with sim_shift the sim renders the shifted condition itself (SimplerEnv-style agreement needs both sides in it)."""
