@@ -12,6 +12,7 @@ recorded, in three configurations run in interleaved rounds so the ratios come f
     python benchmarks/learner_speed.py                     # ~2 min on 2 cores
     python benchmarks/learner_speed.py --quick --json /tmp/l.json
     python benchmarks/learner_speed.py --update-results    # also rewrites its section of RESULTS.md
+    python benchmarks/learner_speed.py --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md, "GPU")
 """
 
 from __future__ import annotations
