@@ -101,14 +101,15 @@ def cell(policy: str, name: str, args: Args) -> dict:
     """One (policy, shift) cell: ``sim2real-eval`` on the same seeds in the sim and on the shifted twin."""
     t0 = time.time()
     sub = name.replace(" ", "_").replace("/", "_")
+    spec = spec_of(name)
     r = evaluate(
         EvalConfig(
             policy=policy,
             camera=args.camera,
             episodes=args.episodes,
             seed=args.seed,
-            shift=spec_of(name),
-            sim_shift=args.sim_shift and spec_of(name) is not None,
+            shift=spec,
+            sim_shift=args.sim_shift and spec is not None,
             camera_mount=MOUNTS.get(name),
             out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
         )
@@ -116,7 +117,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
     return dict(
         policy=policy,
         shift=name,
-        spec=spec_of(name),
+        spec=spec,
         camera_mount=MOUNTS.get(name),
         sim_success=r["sim"]["success"],
         real_success=r["real"]["success"],
