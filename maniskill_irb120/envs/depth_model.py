@@ -104,12 +104,14 @@ class DepthModel:
 
         fb = self.focal_px * self.baseline_m
         disparity = fb / z.clamp_min(1e-6)
-        noise = torch.randn(z.shape, generator=generator, device=dev)
+        # a generator draws on its own device, which can differ from the frame's (CPU sim, CUDA render)
+        gdev = dev if generator is None else generator.device
+        noise = torch.randn(z.shape, generator=generator, device=gdev).to(dev)
         measured = torch.round((disparity + noise * self.subpixel) / self.subpixel_step) * self.subpixel_step
         z_out = fb / measured.clamp_min(self.subpixel_step)
         invalid |= (measured < self.subpixel_step) | (z_out < self.min_m) | (z_out > self.max_m)
 
-        u = torch.rand(z.shape, generator=generator, device=dev)
+        u = torch.rand(z.shape, generator=generator, device=gdev).to(dev)
         if rgb is not None:
             b = rgb.float().mean(-1) / 255.0
             p = self.dark_dropout * ((self.dark_level - b) / self.dark_level).clamp(0, 1)

@@ -385,9 +385,11 @@ class RandomizationMixin:
         if self._dr_depth_model is not None:
             depth = self._dr_depth_model.apply(depth, cam.get("rgb"), self._dr_focal_t, g, float(self._dr_focal.max()))
         if self._dr_noise:
-            std, p = self._dr_depth[:, 0, None, None, None], self._dr_depth[:, 1, None, None, None]
-            noisy = depth.float() + torch.randn(depth.shape, generator=g, device=depth.device) * std
-            noisy = torch.where(torch.rand(depth.shape, generator=g, device=depth.device) < p, 0.0, noisy)
+            # the frame can live on the render device (CUDA) while the sim and the generator are on the CPU
+            dev = depth.device
+            std, p = (self._dr_depth[:, i, None, None, None].to(dev) for i in (0, 1))
+            noisy = depth.float() + torch.randn(depth.shape, generator=g, device=g.device).to(dev) * std
+            noisy = torch.where(torch.rand(depth.shape, generator=g, device=g.device).to(dev) < p, 0.0, noisy)
             keep = depth > 0  # "no reading" stays no reading
             depth = torch.where(keep, noisy.round().clamp(0, 32767), 0).to(depth.dtype)
         cam["depth"] = depth

@@ -133,3 +133,25 @@ def test_through_an_env_the_depth_reads_zero_where_the_model_says():
     read = seen[rest] > 0
     assert read.float().mean() > 0.8  # the table mostly reads, within the model's millimetres
     assert (seen[rest][read].float() - truth["depth"][0, ..., 0][rest][read].float()).abs().max() <= 5
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (on a GPU machine: pytest -m gpu)")
+def test_cpu_physics_with_cuda_rendering_takes_the_depth_randomisation():
+    """On a GPU machine the CPU sim renders on CUDA, so the frame is a CUDA tensor while the randomisation's
+    generator lives on the sim's CPU; the H200's first randomised camera run failed here ("Expected a 'cuda'
+    device type for generator")."""
+    on_cuda = D435.apply(flat(800).cuda(), None, F_SIM, gen(7))
+    same = on_cuda.cpu() == D435.apply(flat(800), None, F_SIM, gen(7))  # the same draws (rounding may differ)
+    assert on_cuda.device.type == "cuda" and same.float().mean() > 0.99
+    env = gym.make(
+        "TableClearing-IRB120-v1",
+        obs_mode="rgbd",
+        sim_backend="cpu",
+        render_backend="gpu",
+        randomization="depth_model=d435,depth_noise=0:5,depth_dropout=0:0.06",
+    )
+    env.reset(seed=5)
+    depth = env.step(torch.tensor([0.2, 0.0, -0.3, 0.0, 1.0]))[0]["sensor_data"]["hand_camera"]["depth"]
+    env.close()
+    assert depth.shape == (1, 84, 84, 1) and (depth > 0).any()
