@@ -12,6 +12,7 @@ keeps the trained mount.
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT_A CKPT_B --camera twin --episodes 30
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera twin --episodes 30 --workers 2
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --shifts "lighting & colours/textures"   # combined
+    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera twin --episodes 30 --reuse   # goes on
 
 ``--workers N`` runs N cells at once, each in its own process with its own emulator (one torch thread each on a
 2-core machine). A real step ends when the robot stands at its target, so a busy machine makes the cells
@@ -27,7 +28,7 @@ import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -95,6 +96,9 @@ class Args:
     sim_shift: bool = True
     """put the sim side in each row's condition too (its own prediction, which the agreement compares with the
     twin's); --no-sim-shift: the nominal sim in every row"""
+    reuse: bool = False
+    """a cell whose folder under --out already holds a finished report of the same configuration (policy,
+    episodes, seed, shift, camera) is read, not run again: a table that was stopped goes on where it stood"""
 
 
 def cell(policy: str, name: str, args: Args) -> dict:
@@ -102,18 +106,22 @@ def cell(policy: str, name: str, args: Args) -> dict:
     t0 = time.time()
     sub = name.replace(" ", "_").replace("/", "_")
     spec = spec_of(name)
-    r = evaluate(
-        EvalConfig(
-            policy=policy,
-            camera=args.camera,
-            episodes=args.episodes,
-            seed=args.seed,
-            shift=spec,
-            sim_shift=args.sim_shift and spec is not None,
-            camera_mount=MOUNTS.get(name),
-            out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
-        )
+    cfg = EvalConfig(
+        policy=policy,
+        camera=args.camera,
+        episodes=args.episodes,
+        seed=args.seed,
+        shift=spec,
+        sim_shift=args.sim_shift and spec is not None,
+        camera_mount=MOUNTS.get(name),
+        out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
     )
+    r = _finished_report(cfg) if args.reuse else None
+    if r is None:
+        r = evaluate(cfg)
+    else:
+        print(f"{name!r} of {_short(policy)}: read from {cfg.out / 'report.json'} (--reuse)", file=sys.stderr)
+        t0 -= r["wall_clock_s"]
     return dict(
         policy=policy,
         shift=name,
@@ -129,6 +137,22 @@ def cell(policy: str, name: str, args: Args) -> dict:
         refused=r["refused"]["total"],
         late_steps=r["late_steps"],
         wall_s=time.time() - t0,
+    )
+
+
+def _finished_report(cfg: EvalConfig) -> dict | None:
+    """The report a cell left in its folder, if it ran this very configuration to the end without an error
+    (the folder it was written to may have been moved since: ``out`` is not compared)."""
+    path = cfg.out / "report.json"
+    if not path.exists():
+        return None
+    r = json.loads(path.read_text())
+    ours = {k: str(v) for k, v in asdict(cfg).items() if k != "out"}
+    same = {k: v for k, v in r.get("config", {}).items() if k != "out"} == ours
+    return (
+        r
+        if same and not r.get("interrupted") and r.get("error") is None and r.get("episodes") == cfg.episodes
+        else None
     )
 
 

@@ -141,6 +141,21 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert all(row["real_success"] in (0.0, 1.0) and row["late_steps"] == 0 for row in r["rows"])
     assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
     gap = _bench_module("sim2real_gap")  # the refusals come before any work: checked in this process
+
+    class WouldRun(Exception):
+        pass
+
+    def would_run(cfg):
+        raise WouldRun(cfg.out.name)
+
+    gap.evaluate = would_run  # --reuse reads the finished cells above instead of running them again
+    again = gap.main(gap.Args(shifts=["lighting", "none"], episodes=1, out=tmp_path, reuse=True))
+    keys = ("shift", "spec", "sim_success", "real_success", "refused")
+    assert [{k: row[k] for k in keys} for row in again["rows"]] == [{k: row[k] for k in keys} for row in r["rows"]]
+    with pytest.raises(WouldRun, match="none"):  # another configuration (episodes) is run, not read
+        gap.main(gap.Args(shifts=["none"], episodes=2, out=tmp_path, reuse=True))
+    with pytest.raises(WouldRun, match="none"):  # and without --reuse nothing is read
+        gap.main(gap.Args(shifts=["none"], episodes=1, out=tmp_path))
     with pytest.raises(ValueError, match=r"--shifts \['gravity'\]: the rows are"):
         gap.main(gap.Args(shifts=["gravity"], out=tmp_path))
     with pytest.raises(ValueError, match="correct camera frames: --camera twin"):
