@@ -61,6 +61,7 @@ from agents.common import (
     evaluate_on_seeds,
     finish,
     flatten_obs,
+    load_for_evaluation,
     load_torch,
     obs_to,
     prune_row_files,
@@ -272,7 +273,7 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
 
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
     """A trained DAgger policy (eval mode) and its checkpoint dict."""
-    ckpt = load_torch(path, FORMAT, "agents.dagger")
+    ckpt = load_for_evaluation(path, FORMAT, "agents.dagger", "dagger")
     return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 

@@ -62,6 +62,7 @@ from agents.common import (
     evaluate_on_seeds,
     finish,
     flatten_obs,
+    load_for_evaluation,
     load_torch,
     obs_to,
     prune_row_files,
@@ -326,7 +327,7 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
 
 
 def load_model(path: Path, device) -> tuple[SAC, dict]:
-    ckpt = load_torch(path, FORMAT, "agents.sac")
+    ckpt = load_for_evaluation(path, FORMAT, "agents.sac", "sac")
     return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 

@@ -8,7 +8,7 @@ evaluation every recipe is scored on (``evaluation``), the loggers (``logging``)
 
 from agents.common.args import RunArgs
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset
-from agents.common.checkpoints import args_json, atomic_save, load_torch, rng_state, set_rng_state
+from agents.common.checkpoints import args_json, atomic_save, load_for_evaluation, load_torch, rng_state, set_rng_state
 from agents.common.envs import (
     AUX_DIM,
     ExpertLabels,
@@ -54,6 +54,7 @@ __all__ = [
     "evaluate_on_seeds",
     "finish",
     "flatten_obs",
+    "load_for_evaluation",
     "load_torch",
     "make_envs",
     "obs_to",

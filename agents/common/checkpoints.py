@@ -38,6 +38,21 @@ def load_torch(path: Path, fmt: str, what: str) -> dict:
     return ckpt
 
 
+def load_for_evaluation(path: Path, fmt: str, what: str, kind: str) -> dict:
+    """For ``--evaluate``: a checkpoint written by ``what``, or a policy exported from one (``maniskill-irb120
+    export-policy``: the committed ones), whose section then stands in for the arguments the evaluation checks
+    (it has no trainer state to resume from)."""
+    ckpt = read_checkpoint(path)
+    exported = isinstance(ckpt, dict) and "format" not in ckpt and "command" in ckpt
+    if not (exported and isinstance(ckpt.get("policy"), dict)):
+        return load_torch(path, fmt, what)
+    section = ckpt["policy"]
+    if section.get("kind") != kind:
+        raise ValueError(f"{path} is an exported {section.get('kind')} policy, not one {what} trains")
+    keys = ("env_id", "obs", "action_frame", "obs_without", "env_kwargs")
+    return dict(ckpt, args={k: section.get(k) for k in keys}, exported=True)
+
+
 def rng_state() -> dict:
     s = dict(python=random.getstate(), numpy=np.random.get_state(), torch=torch.get_rng_state())
     if torch.cuda.is_available():

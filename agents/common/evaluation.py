@@ -165,7 +165,11 @@ def evaluate_checkpoint(
             raise ValueError(
                 f"checkpoint {args.checkpoint} was trained with {flag} {trained}, not {getattr(args, name)}"
             )
-    out_dir = Path(args.checkpoint).resolve().parent.parent / "eval"
+    # beside the run; an exported policy has no run (it may sit in the repository): --runs-dir/--exp-name
+    run_dir = Path(args.checkpoint).resolve().parent.parent
+    if ckpt.get("exported"):
+        run_dir = Path(args.runs_dir) / (args.exp_name or Path(args.checkpoint).stem)
+    out_dir = run_dir / "eval"
     result = run(policy, out_dir / "videos" if args.capture_video else None)
     result["checkpoint"] = str(args.checkpoint)
     out_dir.mkdir(parents=True, exist_ok=True)

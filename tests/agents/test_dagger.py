@@ -257,6 +257,21 @@ def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path, tiny):
     assert saved["signature"]["state_dim"] == 37 and data.obs["state"].shape[1] == 37  # 45 - 8 speeds
     ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]))  # the checkpoint says what it sees
     assert ev["episodes"] == 1
+    # a policy exported for committing (no trainer state) evaluates as its checkpoint does, and resumes nothing
+    from maniskill_irb120.policies.section import export_policy
+
+    exported = tmp_path / "policies" / "lean.pt"
+    export_policy(Path(res["checkpoint"]), exported, "python -m agents.dagger --obs-without agent/qvel")
+    again = tiny(tmp_path, evaluate=True, checkpoint=exported)
+    assert {k: again[k] for k in ("episodes", "successes")} == {k: ev[k] for k in ("episodes", "successes")}
+    summary = json.loads((tmp_path / "t" / "eval" / "summary.json").read_text())  # under --runs-dir/--exp-name
+    assert summary["checkpoint"] == str(exported) and not (tmp_path / "eval").exists()  # not beside the policy
+    with pytest.raises(ValueError, match="not written by agents.dagger"):
+        tiny(tmp_path, resume=exported)
+    sac = tmp_path / "sac.pt"
+    torch.save(dict(policy=dict(kind="sac"), command="python -m agents.sac"), sac)
+    with pytest.raises(ValueError, match="an exported sac policy, not one agents.dagger trains"):
+        tiny(tmp_path, evaluate=True, checkpoint=sac)
 
 
 def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path, tiny):
