@@ -365,6 +365,29 @@ def check_rgbd_frames(sim_backend: str, num_envs: int, env_id: str = TABLE_CLEAR
         env.close()
 
 
+# --------------------------------------------------------------------------- randomised frames of the CPU sim
+RANDOMISED_FRAMES = "depth_model=d435,depth_noise=0:5,depth_dropout=0:0.06,texture=1,color=0.3,light=0.4:1.6"
+"""every per-frame randomisation (the depth model, noise and dropout) with the appearance ranges"""
+
+
+def check_randomised_frames(env_id: str = TABLE_CLEARING, steps: int = 2) -> tuple[bool, str]:
+    """The CPU sim's randomised camera frames, which on a GPU machine render on CUDA while the sim and its
+    randomisation generator stay on the CPU (the CPU-worker trainers' path there; the first randomised camera run
+    on an H200 failed at its first frame on that device mismatch). Needs no PhysX GPU library."""
+    env = make(env_id, 1, "physx_cpu", "rgbd", randomization=RANDOMISED_FRAMES)
+    try:
+        env.reset(seed=0)
+        act = random_actions(env, 2)
+        for _ in range(steps):
+            obs, *_ = env.step(act())
+        cam = obs["sensor_data"][CAMERA]
+        ok, why = frames_verdict(cam["rgb"], cam["depth"], 1)
+        where = "cuda" if env.unwrapped.backend.render_device.is_cuda() else "cpu"
+        return ok, f"{why}, CPU physics, rendered on {where}, randomization={RANDOMISED_FRAMES}"
+    finally:
+        env.close()
+
+
 # --------------------------------------------------------------------------- appearance randomisation per env
 def appearance_verdict(colors: torch.Tensor, textured: torch.Tensor, num_envs: int) -> tuple[bool, str]:
     """(N, 3) the table's colour in each env's own material, (N,) whether each env's table wears a texture: every

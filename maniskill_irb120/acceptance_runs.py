@@ -247,8 +247,12 @@ CAMERA_DAGGER_ENVS = 8
 """the camera recipe's round (keypoint encoder, auxiliary head, --precision auto) at 8 envs: 84x84
 frames of many more envs would time the renderer, not check the recipe"""
 PHYSX_GPU = "physx gpu library"
+RANDOMISED_FRAMES = "randomised frames, cpu physics"
+WITHOUT_PHYSX_GPU = (RANDOMISED_FRAMES,)
+"""the checks that still run when PhysX's GPU library is missing (they do not turn physx_cuda on)"""
 CHECK_NAMES = (
     PHYSX_GPU,
+    RANDOMISED_FRAMES,
     "obs modes",
     "partial resets",
     "controller targets",
@@ -261,8 +265,9 @@ CHECK_NAMES = (
     CAMERA_DAGGER,
     "sim_speed.py --gpu-only",
 )
-"""the acceptance suite in report order: PhysX's GPU library (the others need it), the env checks
-(acceptance.ENV_CHECKS), the trainers, the benchmark"""
+"""the acceptance suite in report order: PhysX's GPU library (the others but WITHOUT_PHYSX_GPU need it), the CPU
+sim's randomised frames (on a GPU machine rendered on CUDA), the env checks (acceptance.ENV_CHECKS), the trainers,
+the benchmark"""
 
 
 def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: int = 64) -> dict:
@@ -271,6 +276,10 @@ def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: in
 
     if name == PHYSX_GPU:
         return timed_check(name, check_physx_gpu, sim_backend=sim_backend).to_dict()
+    if name == RANDOMISED_FRAMES:
+        from maniskill_irb120.acceptance import check_randomised_frames
+
+        return timed_check(name, check_randomised_frames).to_dict()
     if name in ENV_CHECKS:
         return timed_check(name, ENV_CHECKS[name], sim_backend=sim_backend, num_envs=num_envs).to_dict()
     if name == CAMERA_DAGGER:

@@ -40,6 +40,12 @@ def test_env_check_passes_on_cpu(name):
     assert result.status == "PASS", result.reason
 
 
+def test_randomised_frames_check_renders_the_cpu_sims_randomised_frames():
+    ok, why = A.check_randomised_frames()
+    assert ok, why
+    assert "CPU physics, rendered on cpu" in why and A.RANDOMISED_FRAMES in why
+
+
 def test_ppo_check_runs_the_trainer_on_cpu():
     ok, why = R.check_trainer("ppo", CPU, 1, obs="state")
     assert ok, why
@@ -268,7 +274,9 @@ def test_report_stops_at_a_missing_physx_gpu_library(monkeypatch):
     monkeypatch.setattr(R, "check_physx_gpu", lambda sim_backend: (False, "libPhysXGpu_64.so is missing"))
     r = gpu_report(CPU, num_envs=1, throughput_envs=(512,), isolate=False)
     assert not r["ok"] and [c["name"] for c in r["checks"]] == list(R.CHECK_NAMES)
-    assert r["checks"][0]["status"] == "FAIL" and {c["status"] for c in r["checks"][1:]} == {"SKIP"}
+    status = {c["name"]: c["status"] for c in r["checks"]}
+    assert status.pop("physx gpu library") == "FAIL" and status.pop(R.RANDOMISED_FRAMES) == "PASS"  # needs no PhysX GPU
+    assert set(status.values()) == {"SKIP"}
     text = format_gpu_report(r)
     assert "FAIL  physx gpu library" in text and "libPhysXGpu_64.so is missing" in text
     assert text.splitlines()[-1] == "VERDICT: FAIL - physx gpu library, steps/s at 512"

@@ -41,6 +41,12 @@ def test_env_check_passes_batched_on_the_gpu(name):
     assert ok, why
 
 
+def test_the_cpu_sims_randomised_frames_render_on_the_gpu():
+    """CPU physics, CUDA rendering, the depth model and noise drawn on the CPU (needs no PhysX GPU library)"""
+    result = R.run_named_check(R.RANDOMISED_FRAMES, GPU, NUM_ENVS)
+    assert result["status"] == "PASS" and "rendered on cuda" in result["reason"], result["reason"]
+
+
 @pytest.mark.parametrize("trainer", R.TRAINERS)
 def test_trainer_runs_its_tiny_loop_on_the_gpu(trainer):
     ok, why = R.check_trainer(trainer, GPU, TRAINER_ENVS)
