@@ -93,3 +93,18 @@ def test_state_norm_zeroes_what_never_varied_and_scales_the_rest():
     expected = (real[0] - data.mean(0)) / data.std(0)
     torch.testing.assert_close(out[[0, 2]], expected[[0, 2]], rtol=1e-4, atol=1e-6)
     assert norm.std[1] == float("inf")
+
+
+def test_every_committed_policy_is_small_and_says_how_it_was_trained():
+    """issue 30: the table's checkpoints are committed (each <= 5 MB) with the command that trained them, and load
+    as the benchmarks load them"""
+    from pathlib import Path
+
+    committed = sorted((Path(__file__).resolve().parents[2] / "benchmarks/results/policies").glob("*.pt"))
+    assert committed
+    for path in committed:
+        assert path.stat().st_size <= 5_000_000, path.name
+        saved = torch.load(path, weights_only=False)
+        assert "agents." in saved["command"] or "benchmarks/learning.py" in saved["command"], path.name
+        module = policy_module(read_policy_section(path))
+        assert sum(p.numel() for p in module.parameters()) > 0 and not module.training, path.name
