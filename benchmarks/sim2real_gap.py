@@ -142,9 +142,12 @@ def cell(policy: str, name: str, args: Args) -> dict:
 
 def _finished_report(cfg: EvalConfig) -> dict | None:
     """The report a cell left in its folder, if it ran this very configuration to the end without an error
-    (the folder it was written to may have been moved since: ``out`` is not compared)."""
+    (the folder it was written to may have been moved since: ``out`` is not compared) and the policy file is not
+    newer than it (a checkpoint retrained at the same path is run again)."""
     path = cfg.out / "report.json"
     if not path.exists():
+        return None
+    if Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
         return None
     r = json.loads(path.read_text())
     ours = {k: str(v) for k, v in asdict(cfg).items() if k != "out"}

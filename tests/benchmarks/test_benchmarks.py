@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -156,6 +157,18 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
         gap.main(gap.Args(shifts=["none"], episodes=2, out=tmp_path, reuse=True))
     with pytest.raises(WouldRun, match="none"):  # and without --reuse nothing is read
         gap.main(gap.Args(shifts=["none"], episodes=1, out=tmp_path))
+    policy, moved = tmp_path / "policy.pt", tmp_path / "moved" / "none"  # a checkpoint's cell, its folder moved
+    policy.write_bytes(b"weights")
+    moved.mkdir(parents=True)
+    report = json.loads((tmp_path / "none" / "report.json").read_text())
+    report["config"]["policy"] = str(policy)
+    (moved / "report.json").write_text(json.dumps(report))
+    os.utime(policy, (time.time() - 60, time.time() - 60))
+    read = gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
+    assert read["rows"][0]["real_success"] == r["rows"][0]["real_success"]
+    policy.write_bytes(b"retrained")  # newer than the report: run again
+    with pytest.raises(WouldRun, match="none"):
+        gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
     with pytest.raises(ValueError, match=r"--shifts \['gravity'\]: the rows are"):
         gap.main(gap.Args(shifts=["gravity"], out=tmp_path))
     with pytest.raises(ValueError, match="correct camera frames: --camera twin"):
