@@ -351,15 +351,20 @@ def frames_verdict(rgb: torch.Tensor, depth: torch.Tensor, num_envs: int, hw: tu
     return True, f"{num_envs} distinct {hw[0]}x{hw[1]} RGB-D frames ({rgb.device})"
 
 
+def frames_after_random_steps(env: gym.Env, steps: int) -> dict:
+    """The hand camera's frames after a seeded reset and ``steps`` seeded random actions."""
+    env.reset(seed=0)
+    act = random_actions(env, 2)
+    for _ in range(steps):
+        obs, *_ = env.step(act())
+    return obs["sensor_data"][CAMERA]
+
+
 def check_rgbd_frames(sim_backend: str, num_envs: int, env_id: str = TABLE_CLEARING, steps: int = 2):
     """Batched hand-camera frames have the policy's shape and differ per env (random actions, per-env starts)."""
     env = make(env_id, num_envs, sim_backend, "rgbd")
     try:
-        env.reset(seed=0)
-        act = random_actions(env, 2)
-        for _ in range(steps):
-            obs, *_ = env.step(act())
-        cam = obs["sensor_data"][CAMERA]
+        cam = frames_after_random_steps(env, steps)
         return frames_verdict(cam["rgb"], cam["depth"], num_envs)
     finally:
         env.close()
@@ -376,11 +381,7 @@ def check_randomised_frames(env_id: str = TABLE_CLEARING, steps: int = 2) -> tup
     on an H200 failed at its first frame on that device mismatch). Needs no PhysX GPU library."""
     env = make(env_id, 1, "physx_cpu", "rgbd", randomization=RANDOMISED_FRAMES)
     try:
-        env.reset(seed=0)
-        act = random_actions(env, 2)
-        for _ in range(steps):
-            obs, *_ = env.step(act())
-        cam = obs["sensor_data"][CAMERA]
+        cam = frames_after_random_steps(env, steps)
         ok, why = frames_verdict(cam["rgb"], cam["depth"], 1)
         where = "cuda" if env.unwrapped.backend.render_device.is_cuda() else "cpu"
         return ok, f"{why}, CPU physics, rendered on {where}, randomization={RANDOMISED_FRAMES}"

@@ -45,6 +45,13 @@ from dataclasses import dataclass
 import torch
 
 
+def drawn(sample, shape, generator: torch.Generator | None, device: torch.device) -> torch.Tensor:
+    """``sample`` (torch.randn / torch.rand) of ``shape`` on ``device``, drawn on the generator's own device: on a
+    GPU machine the CPU sim's frames live on CUDA while its generator stays on the CPU."""
+    on = device if generator is None else generator.device
+    return sample(shape, generator=generator, device=on).to(device)
+
+
 @dataclass(frozen=True)
 class DepthModel:
     name: str
@@ -104,14 +111,12 @@ class DepthModel:
 
         fb = self.focal_px * self.baseline_m
         disparity = fb / z.clamp_min(1e-6)
-        # a generator draws on its own device, which can differ from the frame's (CPU sim, CUDA render)
-        gdev = dev if generator is None else generator.device
-        noise = torch.randn(z.shape, generator=generator, device=gdev).to(dev)
+        noise = drawn(torch.randn, z.shape, generator, dev)
         measured = torch.round((disparity + noise * self.subpixel) / self.subpixel_step) * self.subpixel_step
         z_out = fb / measured.clamp_min(self.subpixel_step)
         invalid |= (measured < self.subpixel_step) | (z_out < self.min_m) | (z_out > self.max_m)
 
-        u = torch.rand(z.shape, generator=generator, device=gdev).to(dev)
+        u = drawn(torch.rand, z.shape, generator, dev)
         if rgb is not None:
             b = rgb.float().mean(-1) / 255.0
             p = self.dark_dropout * ((self.dark_level - b) / self.dark_level).clamp(0, 1)

@@ -52,7 +52,7 @@ import sapien
 import torch
 
 from maniskill_irb120.envs import appearance
-from maniskill_irb120.envs.depth_model import DepthModel, preset
+from maniskill_irb120.envs.depth_model import DepthModel, drawn, preset
 
 Value = float | tuple[float, ...] | None
 VECTOR_FIELDS = ("camera_pos", "camera_rot")
@@ -388,8 +388,8 @@ class RandomizationMixin:
             # the frame can live on the render device (CUDA) while the sim and the generator are on the CPU
             dev = depth.device
             std, p = (self._dr_depth[:, i, None, None, None].to(dev) for i in (0, 1))
-            noisy = depth.float() + torch.randn(depth.shape, generator=g, device=g.device).to(dev) * std
-            noisy = torch.where(torch.rand(depth.shape, generator=g, device=g.device).to(dev) < p, 0.0, noisy)
+            noisy = depth.float() + drawn(torch.randn, depth.shape, g, dev) * std
+            noisy = torch.where(drawn(torch.rand, depth.shape, g, dev) < p, 0.0, noisy)
             keep = depth > 0  # "no reading" stays no reading
             depth = torch.where(keep, noisy.round().clamp(0, 32767), 0).to(depth.dtype)
         cam["depth"] = depth
