@@ -1,11 +1,11 @@
-"""The sim-vs-real table on the emulator's digital twin: ``sim2real-eval`` for one or more policies with no shift,
-each shift alone, and all of them together. Prints a markdown table and, over all (policy, shift) cells, the
-agreement of sim and twin success (MMRV and Pearson r, as SimplerEnv reports them); writes JSON (and each run's
-report under ``--out``). The sim side is put in each row's condition as well (``--no-sim-shift``: the nominal
-task throughout), so a row says both what the sim predicts and what the twin does; a policy's target reads
-against its own no-shift sim row. The camera-mount rows are run again with the frames corrected to the trained
-mount from the measured offset (``sim2real-eval --camera-mount``), exact and off by 2 mm / 1 deg; their sim side
-keeps the trained mount.
+"""The sim-vs-real table on the emulator's digital twin: ``sim2real-eval`` for one or more policies with no shift, each
+shift alone, and all of them together. Prints a markdown table and, over all (policy, shift) cells, the agreement of
+sim and twin success (MMRV and Pearson r, as SimplerEnv reports them) and, per cell, whether its sim/twin difference
+is more than chance (the seeds won on one side only, McNemar's exact test); writes JSON (and each run's report under
+``--out``). The sim side is put in each row's condition as well (``--no-sim-shift``: the nominal task throughout),
+so a row says both what the sim predicts and what the twin does; a policy's target reads against its own no-shift
+sim row. The camera-mount rows are run again with the frames corrected to the trained mount from the measured offset
+(``sim2real-eval --camera-mount``), exact and off by 2 mm / 1 deg; their sim side keeps the trained mount.
 
     .venv/bin/python benchmarks/sim2real_gap.py --episodes 10 --json benchmarks/results/sim2real_gap.json
     .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera none --shifts none "all together"
@@ -35,7 +35,7 @@ from typing import Optional
 import tyro
 
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
-from maniskill_irb120.sim2real.report import agreement
+from maniskill_irb120.sim2real.report import agreement, paired_gap
 
 SHIFTS = {
     "none": None,
@@ -136,6 +136,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
         latency_p50_ms=r["command_latency_ms"].get("p50"),
         refused=r["refused"]["total"],
         late_steps=r["late_steps"],
+        paired=paired_gap(r["per_episode"]),
         wall_s=time.time() - t0,
     )
 
@@ -207,15 +208,16 @@ def main(args: Args) -> dict:
     print("the sim side: " + ("in each row's condition" if args.sim_shift else "the nominal task in every row"))
     print(
         "| policy | shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
-        "| round trip p50 (ms) | refused |"
+        "| round trip p50 (ms) | refused | seeds won in sim only / on the twin only (McNemar p) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {_short(r['policy'])} | {r['shift']} | {100 * r['sim_success']:.0f} % | "
             f"{100 * r['real_success']:.0f} % | "
             f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
-            f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} |"
+            f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} | "
+            f"{r['paired']['sim_only']} / {r['paired']['real_only']} (p {r['paired']['mcnemar_p']:.2f}) |"
         )
     if agree is not None:
         pearson = "undefined (one side constant)" if agree["pearson"] is None else f"{agree['pearson']:.2f}"

@@ -140,6 +140,14 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     assert [row["shift"] for row in r["rows"]] == ["none", "lighting"] and r["workers"] == 2 and r["sim_shift"]
     assert "the sim side: in each row's condition" in run.stdout
     assert all(row["real_success"] in (0.0, 1.0) and row["late_steps"] == 0 for row in r["rows"])
+    # each cell's paired count: its one seed is discordant exactly when the two sides disagree
+    for row in r["rows"]:
+        p = row["paired"]
+        assert p["episodes"] == 1 and (p["sim_only"], p["real_only"]) == (
+            int(row["sim_success"] > row["real_success"]),
+            int(row["real_success"] > row["sim_success"]),
+        )
+    assert "McNemar p" in run.stdout
     assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
     gap = _bench_module("sim2real_gap")  # the refusals come before any work: checked in this process
 

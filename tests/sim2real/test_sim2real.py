@@ -492,3 +492,20 @@ def test_agreement_metrics_rank_violations_and_correlation():
         agreement([0.5], [0.5])
     with pytest.raises(ValueError, match="finite"):
         agreement([0.5, float("nan")], [0.5, 0.4])
+
+
+def test_paired_gap_counts_the_discordant_seeds_and_tests_them():
+    """The "all together" cell of 2026-11-27 (sim 12, twin 8 of 30): 5 seeds won only in sim, 1 only on the twin."""
+    from maniskill_irb120.sim2real.report import paired_gap
+
+    def ep(sim, real):
+        return dict(sim_success=sim, real_success=real)
+
+    cell = [ep(True, True)] * 7 + [ep(True, False)] * 5 + [ep(False, True)] + [ep(False, False)] * 17
+    gap = paired_gap(cell)
+    assert (gap["sim_only"], gap["real_only"], gap["episodes"]) == (5, 1, 30)
+    assert gap["mcnemar_p"] == pytest.approx(2 * 7 / 64)  # two-sided: P(<= 1 of 6) doubled
+    assert paired_gap([ep(True, False)] * 6)["mcnemar_p"] == pytest.approx(2 / 64)  # every discordant seed one way
+    same = paired_gap([ep(True, True), ep(False, False)])
+    assert (same["sim_only"], same["real_only"], same["mcnemar_p"]) == (0, 0, 1.0)  # nothing to tell apart
+    assert paired_gap([ep(True, None), ep(True, False)])["episodes"] == 1  # an unscored real episode is left out
