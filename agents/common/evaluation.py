@@ -15,8 +15,10 @@ import torch
 from agents.common.args import RunArgs
 from agents.common.envs import flatten_obs
 
-# events the task reports per step in info; logged as per-episode rates ("did it happen")
-EVENT_KEYS = ("success", "fail", "grasped", "dropped", "collided")
+# events the task reports per step in info; logged as per-episode rates ("did it happen"). "lifted" (GraspLift) and
+# "stacked" (StackCube) are the stage between the grasp and success, so a curve that grasps but never succeeds says
+# which stage it stalls at
+EVENT_KEYS = ("success", "fail", "grasped", "lifted", "stacked", "dropped", "collided")
 REWARD_TERM_PREFIX = "r_"
 EVAL_SEED = 10_000_000
 """first seed of the held-out evaluation episodes; training seeds stay below it (see :func:`train_seed`)"""

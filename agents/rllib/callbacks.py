@@ -1,6 +1,6 @@
 """Task metrics from RLlib's env runners under the names ``agents.ppo`` logs (``success_rate``,
-``grasped_rate``, ``dropped_rate``, ``collided_rate``, ``return_r_<term>``), so RLlib curves and ours line up
-in one TensorBoard."""
+``grasped_rate``, ``lifted_rate``, ``dropped_rate``, ``collided_rate``, ``return_r_<term>``), so RLlib curves and
+ours line up in one TensorBoard."""
 
 from __future__ import annotations
 
