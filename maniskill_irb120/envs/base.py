@@ -277,9 +277,14 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         return torch.linalg.norm(pos - self._last(key, pos), dim=1) * self.control_freq
 
     # ------------------------------------------------------------------ contacts and grasps
-    def _grasped(self, finger_forces: torch.Tensor, tcp_quat: torch.Tensor) -> torch.Tensor:
-        """(N,) both fingers squeeze the object whose (2, N, 3) finger forces these are."""
-        return self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
+    def _grasped(self, finger_forces: torch.Tensor, tcp_quat: torch.Tensor, closed: bool = True) -> torch.Tensor:
+        """(N,) both fingers squeeze the object whose (2, N, 3) finger forces these are and, with ``closed``, the
+        gripper is commanded closed. The open fingers leave 26 mm, less than a 20 mm cube's diagonal: pushed down
+        on a cube yawed 25-45 degrees off them, they wedge it and push on it along their closing direction too, and
+        SAC from the reward alone learned to collect the grasp stage's pay that way, never closing the gripper
+        (benchmarks/RESULTS.md, "RL from the reward alone")."""
+        squeeze = self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
+        return squeeze & self.agent.gripper_commanded_closed if closed else squeeze
 
     def _common_info(self, robot_hit: torch.Tensor, grasped: torch.Tensor) -> dict[str, torch.Tensor]:
         """The ``info`` entries every task reports: a collision ends the episode as a failure."""

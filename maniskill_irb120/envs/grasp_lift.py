@@ -24,10 +24,11 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     **Randomisation:** as TableClearing: object uniform in the source tray (shrunk by ``spawn_margin``),
     uniform yaw; robot at ``rest`` plus optional joint noise.
 
-    **Events** (``(N,)`` in ``info``): ``grasped`` (both fingers squeeze it and it touches nothing of the
-    scene), ``lifted`` (centre >= 10 cm above the tray floor), ``still`` (speed < 2 cm/s), ``hold_steps``
-    (consecutive control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20),
-    ``fail`` = ``collided`` (a robot link but the base pushes on the table, a tray or the floor).
+    **Events** (``(N,)`` in ``info``): ``grasped`` (the gripper commanded closed, both fingers squeeze it and it
+    touches nothing of the scene: envs/base.py ``_grasped``), ``lifted`` (centre >= 10 cm above the tray floor),
+    ``still`` (speed < 2 cm/s), ``hold_steps`` (consecutive control steps grasped, lifted and still), ``success``
+    (``hold_steps`` reached 20), ``fail`` = ``collided`` (a robot link but the base pushes on the table, a tray or
+    the floor).
 
     **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.
     Each stage's band lies above the last (``floor(dense)`` is the stage; envs/base.py ``MAX_STAGED_REWARD``):

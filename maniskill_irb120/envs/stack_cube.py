@@ -34,9 +34,9 @@ class StackCubeIRB120Env(IRB120TableEnv):
     centres 4.5 to 8.5 cm apart; robot at ``rest`` plus optional joint noise. ``object_shape`` applies to
     both objects.
 
-    **Events** (``(N,)`` in ``info``): ``grasped`` (cube_a squeezed by both fingers, touching nothing of the
-    scene), ``stacked`` (cube_a's centre within 0.8 half sizes of cube_b's axis horizontally and resting on
-    its top face), ``released`` (no finger touches cube_a), ``still`` (both slower than 2 cm/s),
+    **Events** (``(N,)`` in ``info``): ``grasped`` (cube_a squeezed by both fingers of the gripper commanded closed,
+    touching nothing of the scene), ``stacked`` (cube_a's centre within 0.8 half sizes of cube_b's axis horizontally
+    and resting on its top face), ``released`` (no finger touches cube_a), ``still`` (both slower than 2 cm/s),
     ``success`` = stacked & released & still, ``fail`` = ``collided``.
 
     **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.

@@ -113,7 +113,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
         robot_hit, forces = contacts.robot_hit, contacts.finger_forces[0]
 
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
-        held = self._grasped(forces, state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
+        # the original report's grasp (its reward terms read it): finger contacts only, whatever the command
+        held = self._grasped(forces, state["tcp_pose"][:, 3:], closed=False) & ~contacts.object_hit[0]
         grasped = held & lifted
         over_dest = self._inside_dest_xy(obj_p)
         in_dest = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H)

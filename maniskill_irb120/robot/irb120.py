@@ -238,6 +238,12 @@ class IRB120Metalwork(BaseAgent):
         q = self.robot.get_qpos()[:, -2:]
         return q.sum(dim=1) + 2 * geometry()["finger_closed_half_gap"]
 
+    @property
+    def gripper_commanded_closed(self) -> torch.Tensor:
+        """(N,) the gripper's last command was "close" (its drive target below mid-stroke): a pneumatic gripper
+        holds only when closed, and it is all the real side knows of a grasp (``sim2real/env.py``)."""
+        return (self.controller.controllers["gripper"]._target_qpos < FINGER_STROKE / 2).all(dim=1)
+
     def is_grasping(
         self,
         object: Actor,

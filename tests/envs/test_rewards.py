@@ -6,7 +6,9 @@ which bootstraps it), it counts as absorbing: 1 per step to the time limit."""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -288,5 +290,39 @@ def test_stacked_and_held_a_gripper_command_nearer_open_pays_more():
             assert nearly[-1] >= shut[-1] + 0.02 and max(nearly) < 2.5 / 4, (shut[-1], nearly[-1])
             expert, info = rollout(env, seed)  # letting go still pays more than either
             assert bool(info["success"][0]) and expert[-1] == 1.0
+    finally:
+        env.close()
+
+
+def test_a_cube_wedged_between_the_open_fingers_is_no_grasp():
+    """SAC from the reward alone learned to push the open fingers down on a cube yawed ~23 degrees off them: the
+    26 mm opening wedges the 20 mm cube (its diagonal is 28 mm), both fingers push on it along their closing
+    direction, and the contact test alone called it a grasp for 117 of the 150 steps, paying the lift stage for
+    an open gripper. Its actions, replayed open loop (tests/envs/data): the fingers still squeeze, but with the
+    gripper commanded open it is no grasp and the reward stays in the reach stage."""
+    import gymnasium as gym
+
+    from maniskill_irb120.wrappers import WorldFrameToolAction
+
+    rec = json.loads((Path(__file__).parent / "data" / "sac_wedge_grasplift.json").read_text())
+    env = WorldFrameToolAction(
+        gym.make(rec["env_id"], obs_mode="state", control_mode="pd_ee_delta_tool", render_backend="none")
+    )
+    try:
+        env.reset(seed=rec["seed"])
+        u = env.unwrapped
+        squeezed = grasped = 0
+        rewards = []
+        for a in rec["actions"]:
+            _, r, term, trunc, info = env.step(torch.tensor([a]))
+            forces = u.contacts.flags().finger_forces[0]
+            squeeze = bool(u.agent.is_grasping(None, finger_forces=(forces[0], forces[1]))[0])
+            squeezed += squeeze and float(u.agent.gripper_opening[0]) > 0.025  # pushed on, fingers wide open
+            grasped += bool(info["grasped"][0])
+            rewards.append(float(r[0]))
+            if bool(term[0]) or bool(trunc[0]):
+                break
+        assert squeezed > 50  # the wedge: the fingers open, both pushing on the cube
+        assert grasped == 0 and max(rewards) < 0.25  # never the grasp stage (normalised: stage 1 starts at 0.25)
     finally:
         env.close()
