@@ -386,6 +386,14 @@ def online_rows(args: Args) -> int:
     return args.buffer_size
 
 
+def resolved(args: Args) -> Args:
+    """The arguments as a run logs them: the defaults that depend on other flags filled in (benchmarks/learning.py
+    checks an adopted run's log against its recipe through this)."""
+    from dataclasses import replace
+
+    return replace(args, buffer_size=online_rows(args))
+
+
 def demo_rows(args: Args) -> int:
     """Every demo step: the envs still mid-episode when the last demo ends keep adding theirs."""
     return max(1, (args.demo_episodes + args.num_envs) * REGISTERED_ENVS[args.env_id].max_episode_steps)
@@ -395,7 +403,7 @@ def train(args: Args) -> dict:
     from dataclasses import replace
 
     t_start = time.perf_counter()
-    args = replace(args, buffer_size=online_rows(args))
+    args = resolved(args)
     saved = load_torch(args.resume, FORMAT, "agents.sac") if args.resume is not None else None
     run_dir = (
         Path(args.resume).resolve().parent.parent

@@ -392,7 +392,10 @@ def adopted_run(recipe: str, run_dir: Path, args: Args) -> dict:
     seed = logged.get("seed")
     argv = [*seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed), "--budget-min", f"{budget:.4g}"]
     argv += ["--eval-episodes", str(args.eval_episodes)]
-    trainer_args = tyro.cli(importlib.import_module(module).Args, args=argv)
+    trainer = importlib.import_module(module)
+    trainer_args = tyro.cli(trainer.Args, args=argv)
+    if hasattr(trainer, "resolved"):  # defaults a trainer fills in from other flags, logged filled in
+        trainer_args = trainer.resolved(trainer_args)
     expected = json.loads(json.dumps(asdict(trainer_args), default=str))
     differ = {k: (logged.get(k), v) for k, v in expected.items() if k not in ADOPT_FREE and logged.get(k) != v}
     if differ:

@@ -361,3 +361,30 @@ def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
     (tmp_path / "ok" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="no summary.json"):
         learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", args)
+
+
+def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_path):
+    """agents.sac logs --buffer-size filled in (300,000 from state), the recipe leaves it to the trainer: the
+    run is the recipe's; one that kept another buffer is not."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import tyro
+
+    from agents import sac
+    from agents.common.logging import Logger, finish
+
+    def trained(name: str, extra: list[str]) -> Path:
+        flags = [*learning.RECIPES["sac-scratch-state"][1], "--env-id", "GraspLift-IRB120-v1", "--budget-min", "90"]
+        args = tyro.cli(sac.Args, args=[*flags, *extra, "--runs-dir", str(tmp_path), "--exp-name", name])
+        run_dir = tmp_path / name
+        log = Logger(run_dir, sac.resolved(args))  # as agents.sac's train() logs it
+        log.close()
+        finish(dict(success_rate=0.0, successes=[0] * 10, env_steps=1000, wall_clock_s=5400.0), run_dir)
+        return run_dir
+
+    args = learning.Args(
+        recipes=["sac-scratch-state"], seeds=[], out_dir=tmp_path, env_id="GraspLift-IRB120-v1", rl_budget_min=90
+    )
+    assert learning.adopted_run("sac-scratch-state", trained("ok", []), args)["success_rate"] == 0.0
+    with pytest.raises(ValueError, match=r"buffer_size=1000 \(the recipe's: 300000\)"):
+        learning.adopted_run("sac-scratch-state", trained("small", ["--buffer-size", "1000"]), args)
