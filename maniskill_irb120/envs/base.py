@@ -280,7 +280,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     def _grasped(self, finger_forces: torch.Tensor, tcp_quat: torch.Tensor, closed: bool = True) -> torch.Tensor:
         """(N,) both fingers squeeze the object whose (2, N, 3) finger forces these are and, with ``closed``, the
         gripper is commanded closed. The open fingers leave 26 mm, less than a 20 mm cube's diagonal: pushed down
-        on a cube yawed 25-45 degrees off them, they wedge it and push on it along their closing direction too, and
+        on a cube yawed 23-45 degrees off them, they wedge it and push on it along their closing direction too, and
         SAC from the reward alone learned to collect the grasp stage's pay that way, never closing the gripper
         (benchmarks/RESULTS.md, "RL from the reward alone")."""
         squeeze = self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
