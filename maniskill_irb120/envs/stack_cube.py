@@ -128,8 +128,8 @@ class StackCubeIRB120Env(IRB120TableEnv):
             self.step_state["cube_a_pose"], self.tcp_pose, step_grasp_yaw_error(self.step_state, "cube_a_pose")
         )
         place = aligned_reach_reward(place_on(self.step_state["cube_b_pose"], self.object_half_size) - a_p)
-        # on cube_b: held 2 (+ up to a quarter for commanding "open"), opening (touched, not squeezed) 2.5,
-        # released 3 (and still: success)
+        # on cube_b: held 2 (+ a quarter of the command's way to "open": a held cube is a "close" command, so up to
+        # 2.125), opening (commanded open or touched, not squeezed) 2.5, released 3 (and still: success)
         release = (torch.as_tensor(action, device=a_p.device)[:, -1].clamp(-1, 1) + 1) / 2
         held = 2 + RELEASE_SHARE * release
         on_b = torch.where(info["released"], 3.0, torch.where(info["grasped"], held, 2.5))
