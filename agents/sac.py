@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import random
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -389,8 +389,6 @@ def online_rows(args: Args) -> int:
 def resolved(args: Args) -> Args:
     """The arguments as a run logs them: the defaults that depend on other flags filled in (benchmarks/learning.py
     checks an adopted run's log against its recipe through this)."""
-    from dataclasses import replace
-
     return replace(args, buffer_size=online_rows(args))
 
 
@@ -400,8 +398,6 @@ def demo_rows(args: Args) -> int:
 
 
 def train(args: Args) -> dict:
-    from dataclasses import replace
-
     t_start = time.perf_counter()
     args = resolved(args)
     saved = load_torch(args.resume, FORMAT, "agents.sac") if args.resume is not None else None

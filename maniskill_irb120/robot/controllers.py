@@ -178,6 +178,11 @@ class BinaryGripperController(PartialResetControllerMixin, PDJointPosController)
     def set_drive_targets(self, targets: torch.Tensor):
         set_drive_targets(self, targets)
 
+    @property
+    def commanded_open(self) -> torch.Tensor:
+        """(N,) the last command opened the gripper: its finger targets stand above mid-way between the levels."""
+        return self._target_qpos[:, 0] > (self.config.open_target + self.config.closed_target) / 2
+
 
 @dataclass(kw_only=True)
 class BinaryGripperControllerConfig(PDJointPosControllerConfig):

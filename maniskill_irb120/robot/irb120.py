@@ -200,7 +200,7 @@ class IRB120Metalwork(BaseAgent):
         for ctrl in self.controller.controllers.values():
             n, dim = ctrl._target_qpos.shape[0], ctrl.action_space.shape[-1]
             if isinstance(ctrl, BinaryGripperController):
-                parts.append(torch.where(ctrl._target_qpos[:, :1] > 0, 1.0, -1.0))
+                parts.append(torch.where(ctrl.commanded_open[:, None], 1.0, -1.0))
             elif (
                 isinstance(ctrl, PDJointPosController)
                 and not ctrl.config.use_delta
@@ -242,7 +242,7 @@ class IRB120Metalwork(BaseAgent):
     def gripper_commanded_closed(self) -> torch.Tensor:
         """(N,) the gripper's last command was "close" (its drive target below mid-stroke): a pneumatic gripper
         holds only when closed, and it is all the real side knows of a grasp (``sim2real/env.py``)."""
-        return (self.controller.controllers["gripper"]._target_qpos < FINGER_STROKE / 2).all(dim=1)
+        return ~self.controller.controllers["gripper"].commanded_open
 
     def is_grasping(
         self,
