@@ -37,6 +37,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     - ``grasped``: both fingers squeeze the object (``agent.is_grasping``), nothing but the robot
       touches it, and its centre is >= 5 cm above the source tray floor (the original report's definition).
+    - ``held_closed``: held (both fingers squeeze it, nothing else touches it) with the gripper commanded closed,
+      at any height: the staged reward's grasp.
     - ``collided`` (= ``fail``): a robot link other than ``base_link`` (which stands on the table)
       pushes on the table, a tray or the ground with more than 0.01 N.
     - ``dropped``: grasped at t-1, not at t, and the object's centre is not over the destination
@@ -57,9 +59,9 @@ class TableClearingIRB120Env(IRB120TableEnv):
     =====  ==========================================  ==========================================  ==========
     stage  state                                       dense (normalised = this / 4)               range
     =====  ==========================================  ==========================================  ==========
-    0      not held                                    grasp approach (envs/base.py)              [0, 1)
-    1      held (``held``), below 5 cm                 1 + height above the floor / 5 cm           [1, 2)
-    2      ``grasped`` (held, >= 5 cm up)              2 + 1 - tanh(3·distance to the place)       [2, 3)
+    0      not held closed                             grasp approach (envs/base.py)              [0, 1)
+    1      ``held_closed``, below 5 cm                 1 + height above the floor / 5 cm           [1, 2)
+    2      ``held_closed``, >= 5 cm up                 2 + 1 - tanh(3·distance to the place)       [2, 3)
     3      over the dest tray, held                    3 + (½ + ¼ release) (1 - tanh(3·distance    [3, 3.75)
                                                        to the place)
     3      over the dest tray, let go in it            3 + 1 - tanh(3·distance to the place)       [3, 4)
@@ -75,6 +77,12 @@ class TableClearingIRB120Env(IRB120TableEnv):
     it shut for the whole carry samples "open" at the place too rarely to find the last stage; paying for the
     command's approach to "open" there, and only there, is ManiSkill's StackCube "ungrasp" term for a binary
     gripper. A held object earns at most 3.75, below letting it go (3 + place, then 4).
+
+    Stages 1 and 2 need the gripper commanded closed (``held_closed``); stage 3 takes any hold, so the release
+    there never falls back a stage. The contact-only hold pays stages 1 and 2 for a wedge: pushed down on a cube
+    yawed ~25° off them, the open fingers (26 mm apart; the cube's diagonal is 28 mm) jam it, lift it and carry it,
+    with no closing ever learned (GraspLift's SAC found this; tests/envs/test_rewards.py wedges this task's cube).
+    ``grasped`` stays the original report's contact-only event, which its reward terms read.
 
     **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 75;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without
@@ -115,6 +123,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
         lifted = obj_p[:, 2] - self.source_center[:, 2] >= GRASP_LIFT
         # the original report's grasp (its reward terms read it): finger contacts only, whatever the command
         held = self._grasped(forces, state["tcp_pose"][:, 3:], closed=False) & ~contacts.object_hit[0]
+        held_closed = held & self.agent.gripper_commanded_closed  # the staged reward's grasp: no wedge
         grasped = held & lifted
         over_dest = self._inside_dest_xy(obj_p)
         in_dest = over_dest & (obj_p[:, 2] < self.dest_center[:, 2] + TRAY_WALL_H)
@@ -147,6 +156,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
             object_over_dest=over_dest,
             object_in_dest=in_dest,
             held=held,
+            held_closed=held_closed,
             r_approach=r_approach,
             r_carry=r_carry,
             r_time=ones * R_TIME,
@@ -185,8 +195,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
         goal = self.dest_center.clone()
         goal[:, 2] += self.object_half_size
         place = reach_reward(torch.linalg.norm(goal - obj_p, dim=1)).clamp(max=0.999)
-        reward = torch.where(info["held"], 1 + lift, reach)
-        reward = torch.where(info["grasped"], 2 + place, reward)
+        reward = torch.where(info["held_closed"], 1 + lift, reach)
+        reward = torch.where(info["held_closed"] & info["object_lifted"], 2 + place, reward)
         # over the destination tray, held or let go inside it (opening the fingers there is no step down, and
         # holding on is worth at most three quarters of the band, a quarter of it for commanding "open")
         in_dest = info["object_over_dest"] & (info["held"] | info["object_in_dest"])

@@ -326,3 +326,44 @@ def test_a_cube_wedged_between_the_open_fingers_is_no_grasp():
         assert grasped == 0 and max(rewards) < 0.25  # never the grasp stage (normalised: stage 1 starts at 0.25)
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
+    """The same wedge on TableClearing: the expert brings the open fingers over the object, the object is turned
+    25 degrees off them, and the fingers, still commanded open, push down on it and rise. They jam it, lift it
+    above 5 cm and carry it: the original report's contact-only grasp holds (``grasped``), but the staged reward
+    needs the gripper commanded closed for its grasp stages and stays in the reach stage."""
+    import gymnasium as gym
+    from mani_skill.utils.structs.pose import Pose
+    from transforms3d.euler import euler2quat
+    from transforms3d.quaternions import qmult
+
+    from maniskill_irb120.experts.pick_place import DESCEND
+
+    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool", render_backend="none")
+    try:
+        env.reset(seed=seed)
+        u, expert = env.unwrapped, expert_for(env)
+        expert.reset()
+        while int(expert.phase[0]) != DESCEND:  # the expert's approach: over the object, fingers open and aligned
+            action = expert.act()
+            if int(expert.phase[0]) != DESCEND:
+                env.step(action)
+        obj = u.obj.pose
+        q = qmult(euler2quat(0, 0, math.radians(25)), obj.q[0].cpu().numpy())
+        u.obj.set_pose(Pose.create_from_pq(obj.p, torch.as_tensor(q, dtype=torch.float32)[None]))
+        held = lifted_held = 0
+        rewards, pushing = [], True
+        for _ in range(100):
+            to_obj = (u.obj.pose.p[0] - u.agent.tcp_pose.p[0]).clamp(-0.004, 0.004)
+            pushing &= float(u.agent.tcp_pose.p[0, 2]) >= 0.018  # down to 3 mm above the object's centre
+            _, r, term, trunc, info = env.step(_world(env, [*to_obj[:2].tolist(), -0.004 if pushing else 0.004], 1.0))
+            held += bool(info["held"][0])
+            lifted_held += bool(info["grasped"][0])
+            rewards.append(float(r[0]))
+            assert not bool(term[0] or trunc[0])
+        assert held > 50 and lifted_held > 20  # the wedge: open fingers carry the object above 5 cm
+        assert max(rewards) < 0.25  # never a grasp stage (normalised: stage 1 starts at 0.25)
+    finally:
+        env.close()
