@@ -52,6 +52,7 @@ from agents.common import (
     evaluate_on_seeds,
     flatten_obs,
     load_torch,
+    new_eval_dir,
     obs_to,
     one_thread_beside_workers,
     resolve_device,
@@ -439,10 +440,8 @@ def run_evaluation_only(args: Args) -> dict:
     if args.checkpoint is None:
         raise ValueError("--evaluate needs --checkpoint PATH")
     device = resolve_device(args.device)
-    out_dir = (
-        Path(args.checkpoint).resolve().parent.parent / "eval"
-        if args.exp_name is None
-        else args.runs_dir / args.exp_name / "eval"
+    out_dir = new_eval_dir(
+        Path(args.checkpoint).resolve().parent.parent if args.exp_name is None else args.runs_dir / args.exp_name
     )
     envs = make_envs(
         args, args.num_eval_envs, evaluate=True, video_dir=out_dir / "videos" if args.capture_video else None
@@ -454,6 +453,7 @@ def run_evaluation_only(args: Args) -> dict:
     summary = evaluate(agent, envs, args.num_eval_episodes, device)
     envs.close()
     summary["checkpoint"] = str(args.checkpoint)
+    summary["eval_dir"] = str(out_dir)
     summary["videos"] = sorted(str(p) for p in (out_dir / "videos").glob("*.mp4")) if args.capture_video else []
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))

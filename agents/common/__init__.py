@@ -29,6 +29,7 @@ from agents.common.evaluation import (
     EpisodeTracker,
     evaluate_checkpoint,
     evaluate_on_seeds,
+    new_eval_dir,
     train_seed,
 )
 from agents.common.logging import Logger, budget_bar, finish
@@ -57,6 +58,7 @@ __all__ = [
     "load_for_evaluation",
     "load_torch",
     "make_envs",
+    "new_eval_dir",
     "obs_to",
     "one_thread_beside_workers",
     "privileged_aux",

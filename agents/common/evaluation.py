@@ -24,6 +24,16 @@ EVAL_SEED = 10_000_000
 """first seed of the held-out evaluation episodes; training seeds stay below it (see :func:`train_seed`)"""
 
 
+def new_eval_dir(run_dir: Path) -> Path:
+    """``run_dir/eval`` for a run's first ``--evaluate``, then ``eval-2``, ``eval-3``...: a second evaluation of the
+    same run (another checkpoint, more episodes) must not overwrite the first one's summary and videos."""
+    out, k = run_dir / "eval", 1
+    while out.exists():
+        k += 1
+        out = run_dir / f"eval-{k}"
+    return out
+
+
 def train_seed(seed: int, episode: int) -> int:
     """Seed of training episode ``episode`` of run ``seed``: disjoint from the evaluation seeds."""
     s = seed * 100_000 + episode
@@ -153,7 +163,8 @@ def evaluate_checkpoint(
 ) -> dict:
     """``--evaluate``: ``load(path) -> (policy, checkpoint)``, refuse a checkpoint trained with other ``must_match``
     flags, take the ``adopt`` settings from it (what the policy was trained to see, not the command line's),
-    ``run(policy, video_dir)``; writes ``eval/summary.json`` beside the run and prints it."""
+    ``run(policy, video_dir)``; writes ``eval/summary.json`` beside the run (``eval-2/``... when taken: see
+    :func:`new_eval_dir`) and prints it."""
     if args.checkpoint is None:
         raise ValueError("--evaluate needs --checkpoint PATH")
     policy, ckpt = load(args.checkpoint)
@@ -171,9 +182,10 @@ def evaluate_checkpoint(
     run_dir = Path(args.checkpoint).resolve().parent.parent
     if ckpt.get("exported"):
         run_dir = Path(args.runs_dir) / (args.exp_name or Path(args.checkpoint).stem)
-    out_dir = run_dir / "eval"
+    out_dir = new_eval_dir(run_dir)
     result = run(policy, out_dir / "videos" if args.capture_video else None)
     result["checkpoint"] = str(args.checkpoint)
+    result["eval_dir"] = str(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "summary.json").write_text(json.dumps(result, indent=2))
     print(json.dumps(result))

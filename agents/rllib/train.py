@@ -22,7 +22,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 import torch
 
-from agents.common import EVAL_SEED, Logger, evaluate_on_seeds, finish
+from agents.common import EVAL_SEED, Logger, evaluate_on_seeds, finish, new_eval_dir
 from agents.rllib.checkpoint import checkpoint_args, load_module, module_policy, save_checkpoint
 from agents.rllib.env import ENV_NAME, register
 
@@ -216,9 +216,10 @@ def held_out_eval(args: Args, path: Path, episodes: int, video_dir: Optional[Pat
 def evaluate(args: Args) -> dict:
     """``--evaluate PATH``: held-out episodes with videos; ``summary.json`` beside the run, like agents.ppo."""
     path = Path(args.evaluate)
-    out_dir = path.resolve().parent.parent / "eval"
+    out_dir = new_eval_dir(path.resolve().parent.parent)
     result = held_out_eval(args, path, args.eval_episodes or 10, out_dir / "videos" if args.capture_video else None)
     result["checkpoint"] = str(path)
+    result["eval_dir"] = str(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     return finish(result, out_dir)
 

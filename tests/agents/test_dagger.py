@@ -248,6 +248,10 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     ev = tiny(tmp_path, evaluate=True, checkpoint=ckpt, capture_video=True)
     assert ev["episodes"] == 1 and list((tmp_path / "t" / "eval" / "videos").glob("*.mp4"))
     assert json.loads((tmp_path / "t" / "eval" / "summary.json").read_text())["episodes"] == 1
+    first = (tmp_path / "t" / "eval" / "summary.json").read_text()
+    twice = tiny(tmp_path, evaluate=True, checkpoint=ckpt, capture_video=True)  # keeps the first one's files
+    assert twice["eval_dir"] == str(tmp_path / "t" / "eval-2") and list(Path(twice["eval_dir"]).glob("videos/*.mp4"))
+    assert (tmp_path / "t" / "eval" / "summary.json").read_text() == first
 
 
 def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path, tiny):
@@ -264,7 +268,8 @@ def test_obs_without_trains_and_evaluates_on_the_lean_state(tmp_path, tiny):
     export_policy(Path(res["checkpoint"]), exported, "python -m agents.dagger --obs-without agent/qvel")
     again = tiny(tmp_path, evaluate=True, checkpoint=exported)
     assert {k: again[k] for k in ("episodes", "successes")} == {k: ev[k] for k in ("episodes", "successes")}
-    summary = json.loads((tmp_path / "t" / "eval" / "summary.json").read_text())  # under --runs-dir/--exp-name
+    assert Path(again["eval_dir"]).parent == tmp_path / "t"  # under --runs-dir/--exp-name
+    summary = json.loads((Path(again["eval_dir"]) / "summary.json").read_text())
     assert summary["checkpoint"] == str(exported) and not (tmp_path / "eval").exists()  # not beside the policy
     with pytest.raises(ValueError, match="not written by agents.dagger"):
         tiny(tmp_path, resume=exported)
