@@ -59,6 +59,7 @@ from agents.common import (
     rng_state,
     set_rng_state,
     shapes_of,
+    torch_threads,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
@@ -669,7 +670,8 @@ def main(args: Args) -> dict:
         )
     if args.kl_coef > 0 and args.base_checkpoint is None and args.resume is None and args.checkpoint is None:
         raise ValueError("--kl-coef keeps the policy near a base policy: give --base-checkpoint DAGGER.pt")
-    return run_evaluation_only(args) if args.evaluate else train(args)
+    with torch_threads(torch.get_num_threads()):  # the CPU workers' one learner thread ends with the run
+        return run_evaluation_only(args) if args.evaluate else train(args)
 
 
 if __name__ == "__main__":

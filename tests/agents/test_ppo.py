@@ -53,7 +53,13 @@ def test_one_rgbd_iteration_writes_events_and_checkpoint(trained):
 
 def test_resume_continues_step_counter(trained):
     tmp, result = trained
-    again = run(tmp, obs="rgbd", total_timesteps=32, resume=Path(result["checkpoint"]))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        again = run(tmp, obs="rgbd", total_timesteps=32, resume=Path(result["checkpoint"]))
+        assert torch.get_num_threads() == 2  # the run's one learner thread beside its workers ends with it
+    finally:
+        torch.set_num_threads(threads)
     assert again["global_step"] == 32 and again["iterations"] == 2 and again["iterations_this_run"] == 1
 
 
