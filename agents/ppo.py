@@ -49,10 +49,10 @@ from agents.common import (
     action_wrappers,
     args_json,
     atomic_save,
+    evaluate_checkpoint,
     evaluate_on_seeds,
     flatten_obs,
     load_torch,
-    new_eval_dir,
     obs_to,
     one_thread_beside_workers,
     resolve_device,
@@ -69,7 +69,7 @@ from maniskill_irb120.vector import make_vec_env
 @dataclass
 class Args(RunArgs):
     eval_episodes: int = 0
-    """after training: deterministic episodes on held-out seeds, one env (0: skip)"""
+    """after training (and for --evaluate): deterministic episodes on held-out seeds, one env (0: skip)"""
     obs: Literal["rgbd", "state"] = "rgbd"
     """rgbd: 84x84 RGB-D hand camera + proprioception; state: privileged state vector"""
     control_mode: str = "pd_ee_delta_tool"
@@ -133,7 +133,7 @@ class Args(RunArgs):
     eval_freq: int = 25
     """evaluate every N iterations (0: only at the end)"""
     num_eval_episodes: int = 4
-    """episodes of each periodic evaluation (and of --evaluate)"""
+    """episodes of each periodic evaluation (and of --evaluate when --eval-episodes is 0)"""
     eval_reconfiguration_freq: Optional[int] = None
     """rebuild the eval scene every N resets (None: never; the task samples nothing at scene load)"""
     save_freq: int = 10
@@ -438,28 +438,25 @@ def evaluate(agent: Agent, envs, num_episodes: int, device) -> dict:
 
 # ----------------------------------------------------------------------------- main loop
 def run_evaluation_only(args: Args) -> dict:
-    if args.checkpoint is None:
-        raise ValueError("--evaluate needs --checkpoint PATH")
+    """``--evaluate``: the deterministic policy on the held-out seeds (``--eval-episodes``, else
+    ``--num-eval-episodes``), scored as the benchmark and the other trainers score a run (agents.common)."""
     device = resolve_device(args.device)
-    out_dir = new_eval_dir(
-        Path(args.checkpoint).resolve().parent.parent if args.exp_name is None else args.runs_dir / args.exp_name
+
+    def load(path: Path) -> tuple[Agent, dict]:
+        ckpt = read_checkpoint(path, args)
+        ckpt["args"].setdefault("action_frame", "tool")  # written before the world frame existed
+        envs = make_envs(args, 1, evaluate=True)  # its spaces size the agent
+        try:
+            agent = agent_for(envs, device, replace(args, base_checkpoint=None), residual=ckpt["signature"]["residual"])
+        finally:
+            envs.close()
+        load_checkpoint(path, agent, args, ckpt)
+        return agent, ckpt
+
+    episodes = replace(args, eval_episodes=args.eval_episodes or args.num_eval_episodes)
+    return evaluate_checkpoint(
+        args, load, lambda agent, videos: final_evaluation(agent, episodes, device, videos), adopt=()
     )
-    envs = make_envs(
-        args, args.num_eval_envs, evaluate=True, video_dir=out_dir / "videos" if args.capture_video else None
-    )
-    ckpt = read_checkpoint(args.checkpoint, args)
-    agent = agent_for(envs, device, replace(args, base_checkpoint=None), residual=ckpt["signature"]["residual"])
-    load_checkpoint(args.checkpoint, agent, args, ckpt)
-    agent.eval()
-    summary = evaluate(agent, envs, args.num_eval_episodes, device)
-    envs.close()
-    summary["checkpoint"] = str(args.checkpoint)
-    summary["eval_dir"] = str(out_dir)
-    summary["videos"] = sorted(str(p) for p in (out_dir / "videos").glob("*.mp4")) if args.capture_video else []
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary))
-    return summary
 
 
 def train(args: Args) -> dict:
@@ -641,7 +638,7 @@ def train(args: Args) -> dict:
     return result
 
 
-def final_evaluation(agent: Agent, args: Args, device) -> dict:
+def final_evaluation(agent: Agent, args: Args, device, video_dir: Optional[Path] = None) -> dict:
     """The deterministic policy on held-out seeds, scored like every other trainer (agents.common)."""
     agent.eval()
     seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
@@ -652,7 +649,9 @@ def final_evaluation(agent: Agent, args: Args, device) -> dict:
 
     kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, control_mode=args.control_mode)
     wrappers = action_wrappers(args.action_frame)
-    return evaluate_on_seeds(act, args.env_id, args.obs, seeds, progress=args.progress, wrappers=wrappers, **kwargs)
+    return evaluate_on_seeds(
+        act, args.env_id, args.obs, seeds, video_dir=video_dir, progress=args.progress, wrappers=wrappers, **kwargs
+    )
 
 
 def main(args: Args) -> dict:
