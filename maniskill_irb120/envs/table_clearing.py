@@ -80,7 +80,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
 
     Stages 1 and 2 need the gripper commanded closed (``held_closed``); stage 3 takes any hold, so the release
     there never falls back a stage. The contact-only hold pays stages 1 and 2 for a wedge: pushed down on a cube
-    yawed ~25° off them, the open fingers (26 mm apart; the cube's diagonal is 28 mm) jam it, lift it and carry it,
+    yawed ~25° off them, the open fingers (26 mm apart; the cube's diagonal is 28 mm) jam it and lift it,
     with no closing ever learned (GraspLift's SAC found this; tests/envs/test_rewards.py wedges this task's cube).
     ``grasped`` stays the original report's contact-only event, which its reward terms read.
 

@@ -331,8 +331,8 @@ def test_a_cube_wedged_between_the_open_fingers_is_no_grasp():
 @pytest.mark.parametrize("seed", SEEDS)
 def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
     """The same wedge on TableClearing: the expert brings the open fingers over the object, the object is turned
-    25 degrees off them, and the fingers, still commanded open, push down on it and rise. They jam it, lift it
-    above 5 cm and carry it: the original report's contact-only grasp holds (``grasped``), but the staged reward
+    25 degrees off them, and the fingers, still commanded open, push down on it and rise. They jam it and lift it
+    above 5 cm: the original report's contact-only grasp holds (``grasped``), but the staged reward
     needs the gripper commanded closed for its grasp stages and stays in the reach stage."""
     import gymnasium as gym
     from mani_skill.utils.structs.pose import Pose
