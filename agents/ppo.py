@@ -453,9 +453,9 @@ def run_evaluation_only(args: Args) -> dict:
         load_checkpoint(path, agent, args, ckpt)
         return agent, ckpt
 
-    episodes = replace(args, eval_episodes=args.eval_episodes or args.num_eval_episodes)
+    held_out = replace(args, eval_episodes=args.eval_episodes or args.num_eval_episodes)
     return evaluate_checkpoint(
-        args, load, lambda agent, videos: final_evaluation(agent, episodes, device, videos), adopt=()
+        args, load, lambda agent, videos: final_evaluation(agent, held_out, device, videos), adopt=()
     )
 
 

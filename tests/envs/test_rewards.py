@@ -363,7 +363,7 @@ def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
             lifted_held += bool(info["grasped"][0])
             rewards.append(float(r[0]))
             assert not bool(term[0] or trunc[0])
-        assert held > 50 and lifted_held > 20  # the wedge: open fingers carry the object above 5 cm
+        assert held > 50 and lifted_held > 20  # the wedge: open fingers hold the object above 5 cm
         assert max(rewards) < 0.25  # never a grasp stage (normalised: stage 1 starts at 0.25)
     finally:
         env.close()
