@@ -217,6 +217,42 @@ def test_holding_the_object_at_its_place_pays_clearly_less_than_letting_go():
         env.close()
 
 
+def test_letting_go_above_the_destination_tray_never_steps_down():
+    """TableClearing: the expert carries the object over the destination tray at its carry height (~11 cm above
+    the floor) and opens the fingers there instead of lowering it first. The object falls for two control steps;
+    when a falling object paid the reach stage (~0.2 against ~0.84 held), PPO (gamma 0.8) learned to hold on."""
+    import gymnasium as gym
+
+    from maniskill_irb120.experts.pick_place import LOWER
+
+    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
+    try:
+        for seed in SEEDS:
+            env.reset(seed=seed)
+            expert = expert_for(env)
+            expert.reset()
+            rewards, released, info = [], None, {}
+            for _ in range(HORIZON["TableClearing-IRB120-v1"]):
+                action = expert.act()
+                if released is not None or int(expert.phase[0]) == LOWER:
+                    released = len(rewards) if released is None else released
+                    action = _world(env, [0, 0, 0], 1.0)  # open, where the carry ended
+                _, r, term, trunc, info = env.step(action)
+                rewards.append(float(r[0]))
+                if released is not None and len(rewards) == released + 1:
+                    assert not bool(info["held"][0]) and bool(info["object_over_dest"][0])
+                    assert env.unwrapped.obj.pose.p[0, 2] > 0.08  # let go well above the walls (3 cm)
+                if bool(term[0]) or bool(trunc[0]):
+                    break
+            assert released is not None and bool(info["success"][0]) and rewards[-1] == 1.0
+            held = rewards[released - 1]
+            assert math.floor(4 * held) == 3, held  # held over the tray: the last stage before success
+            falling = rewards[released:]
+            assert len(falling) >= 2 and all(b >= a for a, b in zip([held, *falling], falling)), (held, falling)
+    finally:
+        env.close()
+
+
 def test_at_its_place_a_gripper_command_nearer_open_pays_more_while_the_fingers_stay_shut():
     """The release term: the gripper is one thresholded action, so a policy that keeps it shut for the whole carry
     gets no signal from the fingers at the place until it happens to sample "open"; the command's own approach to
