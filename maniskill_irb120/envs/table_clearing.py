@@ -206,10 +206,9 @@ class TableClearingIRB120Env(IRB120TableEnv):
         # is no step down, and holding on is worth at most three quarters of the band, a quarter of it for
         # commanding "open" (only a hold or a grasp brings the object here; an object resting on one finger above
         # the tray is not delivered, and pays no more than the place it has not reached)
-        in_dest = info["object_over_dest"]
         release = (torch.as_tensor(action, device=place.device)[:, -1].clamp(-1, 1) + 1) / 2
         held_place = (HELD_PLACE_SHARE + RELEASE_SHARE * release) * place
-        reward = torch.where(in_dest, 3 + torch.where(info["held"], held_place, place), reward)
+        reward = torch.where(info["object_over_dest"], 3 + torch.where(info["held"], held_place, place), reward)
         reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         reward = torch.where(info["fail"], 0.0, reward)
         return reward / self.MAX_STAGED_REWARD

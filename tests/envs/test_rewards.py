@@ -234,9 +234,10 @@ def test_letting_go_above_the_destination_tray_never_steps_down():
             rewards, released, info = [], None, {}
             for _ in range(HORIZON["TableClearing-IRB120-v1"]):
                 action = expert.act()
-                if released is not None or int(expert.phase[0]) == LOWER:
-                    released = len(rewards) if released is None else released
-                    action = _world(env, [0, 0, 0], 1.0)  # open, where the carry ended
+                if released is None and int(expert.phase[0]) == LOWER:
+                    released = len(rewards)  # the carry ended over the tray: open there from now on
+                if released is not None:
+                    action = _world(env, [0, 0, 0], 1.0)
                 _, r, term, trunc, info = env.step(action)
                 rewards.append(float(r[0]))
                 if released is not None and len(rewards) == released + 1:
