@@ -15,6 +15,7 @@ ENV_ID = "GraspLift-IRB120-v1"
 LIFT_HEIGHT = 0.10  # object centre above the source tray floor
 HOLD_STEPS = 20  # one second at the 20 Hz control rate
 STILL_SPEED = 0.02  # m/s: "still" means the object moves slower than this
+SETTLE_SPEED = 0.05  # m/s: the settle term 1 - tanh(speed / SETTLE_SPEED) is 0.62 at "still", ~0 at full speed
 
 
 @register_env(ENV_ID, max_episode_steps=150)
@@ -26,9 +27,9 @@ class GraspLiftIRB120Env(IRB120TableEnv):
 
     **Events** (``(N,)`` in ``info``): ``grasped`` (the gripper commanded closed, both fingers squeeze it and it
     touches nothing of the scene: envs/base.py ``_grasped``), ``lifted`` (centre >= 10 cm above the tray floor),
-    ``still`` (speed < 2 cm/s), ``hold_steps`` (consecutive control steps grasped, lifted and still), ``success``
-    (``hold_steps`` reached 20), ``fail`` = ``collided`` (a robot link but the base pushes on the table, a tray or
-    the floor).
+    ``object_speed`` (m/s over the last control step), ``still`` (speed < 2 cm/s), ``hold_steps`` (consecutive
+    control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20), ``fail`` = ``collided`` (a
+    robot link but the base pushes on the table, a tray or the floor).
 
     **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.
     Each stage's band lies above the last (``floor(dense)`` is the stage; envs/base.py ``MAX_STAGED_REWARD``):
@@ -38,10 +39,16 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     =====  ===========================  =============================================  ========
     0      not grasped                  grasp approach (envs/base.py)                  [0, 1)
     1      grasped, below 10 cm         1 + height / 10 cm                             [1, 2)
-    2      grasped and lifted           2 + hold_steps / 20 (0 while it moves)         [2, 3)
+    2      grasped and lifted           2 + (settle + hold_steps / 20) / 2             [2, 3)
     4      success                      4                                              4
     -      collision                    0                                              0
     =====  ===========================  =============================================  ========
+
+    ``settle`` = ``1 - tanh(speed / 5 cm/s)``, 0 for a step whose command the controller refused
+    (``ik_unreachable``). ``hold_steps`` alone is flat until the object is already still, so nothing taught PPO to
+    slow down: a policy that learned the task got still only by pushing the object up against the reach limit,
+    where the IK refuses every target and the arm freezes, which a robot would refuse instead (ManiSkill pays
+    ``1 - tanh(5·|qvel|)`` for the same stage; tests/envs/test_rewards.py).
 
     **Episode length:** 150 steps (the scripted expert needs 60).
     """
@@ -63,11 +70,12 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     def evaluate(self) -> dict:
         state = self._read_step_state()
         obj_p = state["obj_pose"][:, :3]
+        speed = self._speed("obj_p", obj_p)
         contacts = self.contacts.flags()
         height = obj_p[:, 2] - self.source_center[:, 2]
         grasped = self._grasped(contacts.finger_forces[0], state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
         lifted = height >= LIFT_HEIGHT
-        still = self._speed("obj_p", obj_p) < STILL_SPEED
+        still = speed < STILL_SPEED
         held_before = self._last("hold_steps", torch.zeros_like(grasped, dtype=torch.long))
         hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
         self._previous(dict(hold_steps=hold_steps, obj_p=obj_p))
@@ -78,6 +86,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
             still=still,
             hold_steps=hold_steps,
             object_height=height,
+            object_speed=speed,
         )
 
     def state_observations(self, state: dict[str, torch.Tensor], info: dict) -> dict[str, torch.Tensor]:
@@ -97,7 +106,8 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         )
         lift = (info["object_height"] / LIFT_HEIGHT).clamp(0, 1)
         hold = (info["hold_steps"].float() / HOLD_STEPS).clamp(max=1)
-        reward = torch.where(info["lifted"], 2 + hold, 1 + lift)
+        settle = torch.where(info["ik_unreachable"], 0.0, 1 - torch.tanh(info["object_speed"] / SETTLE_SPEED))
+        reward = torch.where(info["lifted"], 2 + (settle + hold) / 2, 1 + lift)
         reward = torch.where(info["grasped"], reward, reach)
         reward = torch.where(info["success"], self.MAX_STAGED_REWARD, reward)
         return torch.where(info["fail"], 0.0, reward)

@@ -404,3 +404,62 @@ def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
         assert max(rewards) < 0.25  # never a grasp stage (normalised: stage 1 starts at 0.25)
     finally:
         env.close()
+
+
+def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command():
+    """GraspLift's hold stage paid only the count of still steps, flat (2 of 4) for anything moving faster than
+    2 cm/s, so nothing taught PPO to slow down: its policies got still by pushing the held object up against the
+    reach limit, where the IK refuses every target and the arm freezes. From the expert's lifted grasp: a
+    slower bob pays more, and a still hold pays more than the same number of still steps frozen by refused
+    commands, which earn the hold count alone."""
+    import gymnasium as gym
+
+    from maniskill_irb120.envs.grasp_lift import HOLD_STEPS
+
+    env = gym.make("GraspLift-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool", render_backend="none")
+    u = env.unwrapped
+
+    def run(lifted: dict, actions: list) -> list[tuple[float, dict]]:
+        """Per-step rewards and infos of ``actions`` (tensors, or callables making them) from ``lifted``."""
+        u.set_state_dict(lifted)
+        out = []
+        for a in actions:
+            _, r, term, trunc, info = env.step(a() if callable(a) else a)
+            assert bool(info["grasped"][0] and info["lifted"][0]) and not bool(term[0] or trunc[0])
+            out.append((float(r[0]), info))
+        return out
+
+    try:
+        for seed in SEEDS:
+            env.reset(seed=seed)
+            expert = expert_for(env)
+            expert.reset()
+            while True:
+                action = expert.act()
+                if int(expert.phase[0]) == HOLD:
+                    break
+                env.step(action)
+            lifted = u.get_state_dict()
+
+            bob = {}
+            for mm in (8, 4, 2):  # up and down by mm each step: 16, 8, 4 cm/s, never "still"
+                moves = [_world(env, [0, 0, (-1) ** k * mm / 1000], -1.0) for k in range(6)]
+                steps = run(lifted, moves)
+                assert all(int(i["hold_steps"][0]) == 0 for _, i in steps)
+                bob[mm] = steps[-1][0]
+            assert bob[8] < bob[4] < bob[2] < 0.75, bob  # slower pays more, all inside the hold stage's band
+
+            still = {int(i["hold_steps"][0]): r for r, i in run(lifted, [lambda: _world(env, [0, 0, 0], -1.0)] * 10)}
+            up = torch.tensor([[-1.0, 0, 0, 0, -1.0]])  # tool -x: straight up, past the 0.58 m reach
+            frozen = {
+                int(i["hold_steps"][0]): r
+                for r, i in run(lifted, [up] * 62)
+                if bool(i["ik_unreachable"][0] and i["still"][0])
+            }
+            assert len(frozen) >= 5, "the push never froze the arm at the reach limit"
+            for h, r in frozen.items():
+                assert r == pytest.approx((2 + h / HOLD_STEPS / 2) / 4, abs=1e-6)  # the hold count alone
+                if h in still:
+                    assert r < still[h] - 0.05, (h, r, still[h])
+    finally:
+        env.close()
