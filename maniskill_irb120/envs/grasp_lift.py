@@ -46,8 +46,8 @@ class GraspLiftIRB120Env(IRB120TableEnv):
 
     ``settle`` = ``1 - tanh(speed / 5 cm/s)``, 0 for a step whose command the controller refused
     (``ik_unreachable``). ``hold_steps`` alone is flat until the object is already still, so nothing taught PPO to
-    slow down: a policy that learned the task got still only by pushing the object up against the reach limit,
-    where the IK refuses every target and the arm freezes, which a robot would refuse instead (ManiSkill pays
+    slow down: a policy that learned the task got still only by driving the held object at full speed until the
+    IK refused every further target and the arm froze, a stillness no robot offers (ManiSkill pays
     ``1 - tanh(5·|qvel|)`` for the same stage; tests/envs/test_rewards.py).
 
     **Episode length:** 150 steps (the scripted expert needs 60).

@@ -408,8 +408,9 @@ def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
 
 def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command():
     """GraspLift's hold stage paid only the count of still steps, flat (2 of 4) for anything moving faster than
-    2 cm/s, so nothing taught PPO to slow down: its policies got still by pushing the held object up against the
-    reach limit, where the IK refuses every target and the arm freezes. From the expert's lifted grasp: a
+    2 cm/s, so nothing taught PPO to slow down: a policy got still by driving the held object at full speed until
+    the IK refused every further target and the arm froze (here: straight up to the reach limit). From the
+    expert's lifted grasp: a
     slower bob pays more, and a still hold pays more than the same number of still steps frozen by refused
     commands, which earn the hold count alone."""
     import gymnasium as gym
