@@ -112,6 +112,25 @@ def test_grasp_lift_needs_one_second_of_still_holding(make_task):
     env.close()
 
 
+def test_grasp_lift_observation_does_not_count_the_still_steps(make_task):
+    """Holding still, the state observation stays put while ``hold_steps`` counts: a policy trained by RL seldom
+    saw the count above 3 (its sampled actions are rarely still for longer) and, fed it, jerked the object there
+    instead of holding on."""
+    env = make_task("GraspLift-IRB120-v1")
+    expert = expert_for(env)
+    env.reset(seed=4)
+    expert.reset()
+    seen = {}
+    for _ in range(200):
+        obs, *_, info = env.step(expert.act())
+        if int(expert.phase[0]) == HOLD and bool(info["still"][0]):
+            seen[int(info["hold_steps"][0])] = obs[0].clone()
+        if 12 in seen:
+            break
+    assert {2, 12} <= set(seen), sorted(seen)
+    assert torch.allclose(seen[2], seen[12], atol=5e-3), (seen[12] - seen[2]).abs().max()
+
+
 def test_stack_counts_only_when_released(make_task):
     env = make_task("StackCube-IRB120-v1")
     u = env.unwrapped
