@@ -410,9 +410,8 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
     """GraspLift's hold stage paid only the count of still steps, flat (2 of 4) for anything moving faster than
     2 cm/s, so nothing taught PPO to slow down: a policy got still by driving the held object at full speed until
     the IK refused every further target and the arm froze (here: straight up to the reach limit). From the
-    expert's lifted grasp: a
-    slower bob pays more, and a still hold pays more than the same number of still steps frozen by refused
-    commands, which earn the hold count alone."""
+    expert's lifted grasp: a slower bob pays more, and a still hold pays more than the same number of still steps
+    frozen by refused commands, which earn the hold count alone."""
     import gymnasium as gym
 
     from maniskill_irb120.envs.grasp_lift import HOLD_STEPS
@@ -421,7 +420,7 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
     u = env.unwrapped
 
     def run(lifted: dict, actions: list) -> list[tuple[float, dict]]:
-        """Per-step rewards and infos of ``actions`` (tensors, or callables making them) from ``lifted``."""
+        """Per-step rewards and infos of ``actions`` (tensors, or callables making one per step) from ``lifted``."""
         u.set_state_dict(lifted)
         out = []
         for a in actions:
