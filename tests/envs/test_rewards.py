@@ -33,6 +33,17 @@ def _world(env, disp, gripper: float) -> torch.Tensor:
     )
 
 
+def _expert_until(env, phase: int):
+    """The scripted expert, stepped from the current state until it would act in ``phase`` (not stepped there)."""
+    expert = expert_for(env)
+    expert.reset()
+    while True:
+        action = expert.act()
+        if int(expert.phase[0]) == phase:
+            return expert
+        env.step(action)
+
+
 def rollout(env, seed: int, stall: str | None = None, grip: float = -1.0) -> tuple[list[float], dict]:
     """Per-step rewards and the last info of the expert, or of a stall: the expert until the stall's phase,
     then ``hover`` (still, open, at the grasp height), ``push`` (open, back and forth along x by 2.5 cm),
@@ -381,12 +392,8 @@ def test_table_clearing_pays_no_grasp_stage_for_a_wedge_it_lifts(seed):
     env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool", render_backend="none")
     try:
         env.reset(seed=seed)
-        u, expert = env.unwrapped, expert_for(env)
-        expert.reset()
-        while int(expert.phase[0]) != DESCEND:  # the expert's approach: over the object, fingers open and aligned
-            action = expert.act()
-            if int(expert.phase[0]) != DESCEND:
-                env.step(action)
+        u = env.unwrapped
+        _expert_until(env, DESCEND)  # the expert's approach: over the object, fingers open and aligned
         obj = u.obj.pose
         q = qmult(euler2quat(0, 0, math.radians(25)), obj.q[0].cpu().numpy())
         u.obj.set_pose(Pose.create_from_pq(obj.p, torch.as_tensor(q, dtype=torch.float32)[None]))
@@ -420,11 +427,11 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
     u = env.unwrapped
 
     def run(lifted: dict, actions: list) -> list[tuple[float, dict]]:
-        """Per-step rewards and infos of ``actions`` (tensors, or callables making one per step) from ``lifted``."""
+        """Per-step rewards and infos of ``actions`` from ``lifted``."""
         u.set_state_dict(lifted)
         out = []
         for a in actions:
-            _, r, term, trunc, info = env.step(a() if callable(a) else a)
+            _, r, term, trunc, info = env.step(a)
             assert bool(info["grasped"][0] and info["lifted"][0]) and not bool(term[0] or trunc[0])
             out.append((float(r[0]), info))
         return out
@@ -432,13 +439,7 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
     try:
         for seed in SEEDS:
             env.reset(seed=seed)
-            expert = expert_for(env)
-            expert.reset()
-            while True:
-                action = expert.act()
-                if int(expert.phase[0]) == HOLD:
-                    break
-                env.step(action)
+            _expert_until(env, HOLD)
             lifted = u.get_state_dict()
 
             bob = {}
@@ -449,7 +450,7 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
                 bob[mm] = steps[-1][0]
             assert bob[8] < bob[4] < bob[2] < 0.75, bob  # slower pays more, all inside the hold stage's band
 
-            still = {int(i["hold_steps"][0]): r for r, i in run(lifted, [lambda: _world(env, [0, 0, 0], -1.0)] * 10)}
+            still = {int(i["hold_steps"][0]): r for r, i in run(lifted, [_world(env, [0, 0, 0], -1.0)] * 10)}
             up = torch.tensor([[-1.0, 0, 0, 0, -1.0]])  # tool -x: straight up, past the 0.58 m reach
             frozen = {
                 int(i["hold_steps"][0]): r
