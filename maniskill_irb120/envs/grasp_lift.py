@@ -27,9 +27,10 @@ class GraspLiftIRB120Env(IRB120TableEnv):
 
     **Events** (``(N,)`` in ``info``): ``grasped`` (the gripper commanded closed, both fingers squeeze it and it
     touches nothing of the scene: envs/base.py ``_grasped``), ``lifted`` (centre >= 10 cm above the tray floor),
-    ``object_speed`` (m/s over the last control step), ``still`` (speed < 2 cm/s), ``hold_steps`` (consecutive
-    control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20), ``fail`` = ``collided`` (a
-    robot link but the base pushes on the table, a tray or the floor).
+    ``object_speed`` (m/s over the last control step), ``still`` (speed < 2 cm/s on a step whose command the
+    controller applied: an arm frozen because the IK refused its target is stuck, not holding), ``hold_steps``
+    (consecutive control steps grasped, lifted and still), ``success`` (``hold_steps`` reached 20), ``fail`` =
+    ``collided`` (a robot link but the base pushes on the table, a tray or the floor).
 
     **Rewards:** ``dense`` is staged in [0, 4], ``normalized_dense`` (default) = dense / 4, ``sparse`` = success.
     Each stage's band lies above the last (``floor(dense)`` is the stage; envs/base.py ``MAX_STAGED_REWARD``):
@@ -48,7 +49,8 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     (``ik_unreachable``). ``hold_steps`` alone is flat until the object is already still, so nothing taught PPO to
     slow down: a policy that learned the task got still only by driving the held object at full speed until the
     IK refused every further target and the arm froze, a stillness no robot offers (ManiSkill pays
-    ``1 - tanh(5·|qvel|)`` for the same stage; tests/envs/test_rewards.py).
+    ``1 - tanh(5·|qvel|)`` for the same stage). With the settle term alone a frozen arm still counted as still, and
+    PPO still found the freeze, so ``still`` now excludes refused steps too (tests/envs/test_rewards.py).
 
     **Episode length:** 150 steps (the scripted expert needs 60).
     """
@@ -75,12 +77,13 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         height = obj_p[:, 2] - self.source_center[:, 2]
         grasped = self._grasped(contacts.finger_forces[0], state["tcp_pose"][:, 3:]) & ~contacts.object_hit[0]
         lifted = height >= LIFT_HEIGHT
-        still = speed < STILL_SPEED
+        common = self._common_info(contacts.robot_hit, grasped)
+        still = (speed < STILL_SPEED) & ~common["ik_unreachable"]
         held_before = self._last("hold_steps", torch.zeros_like(grasped, dtype=torch.long))
         hold_steps = torch.where(grasped & lifted & still, held_before + 1, 0)
         self._previous(dict(hold_steps=hold_steps, obj_p=obj_p))
         return dict(
-            **self._common_info(contacts.robot_hit, grasped),
+            **common,
             success=hold_steps >= HOLD_STEPS,
             lifted=lifted,
             still=still,
