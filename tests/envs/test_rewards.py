@@ -453,7 +453,7 @@ def test_grasp_lift_hold_stage_pays_for_slowing_down_not_for_a_refused_command()
             assert bob[8] < bob[4] < bob[2] < 0.75, bob  # slower pays more, all inside the hold stage's band
 
             still = run(lifted, [_world(env, [0, 0, 0], -1.0)] * 10)
-            assert [int(i["hold_steps"][0]) for _, i in still][-3:] == [8, 9, 10]  # the expert's hold counts
+            assert [int(i["hold_steps"][0]) for _, i in still][-3:] == [8, 9, 10]  # one count per still step
             assert min(r for r, _ in still[2:]) > bob[2]
 
             up = torch.tensor([[-1.0, 0, 0, 0, -1.0]])  # tool -x: straight up, past the 0.58 m reach
