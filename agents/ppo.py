@@ -43,6 +43,7 @@ import tyro
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
+    VALIDATION_SEED,
     EpisodeTracker,
     Logger,
     RunArgs,
@@ -136,6 +137,12 @@ class Args(RunArgs):
     """episodes of each periodic evaluation (and of --evaluate when --eval-episodes is 0)"""
     eval_reconfiguration_freq: Optional[int] = None
     """rebuild the eval scene every N resets (None: never; the task samples nothing at scene load)"""
+    select_episodes: int = 0
+    """checkpoint selection: every --select-freq iterations and at the end, the deterministic policy on this many
+    validation seeds (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out
+    evaluation scores it instead of the last weights (0: no selection)"""
+    select_freq: int = 25
+    """iterations between two checkpoint-selection evaluations"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
     torch_deterministic: bool = True
@@ -520,6 +527,8 @@ def train(args: Args) -> dict:
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
         if max_wall_s is not None and time.perf_counter() - t_start > max_wall_s:
+            if args.select_episodes:
+                select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
             break
         it = counters["iteration"] + 1
@@ -611,6 +620,8 @@ def train(args: Args) -> dict:
             agent.eval()
             last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
             logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
+        if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
+            select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
         if it % args.save_freq == 0 or it == num_iterations:
             save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
@@ -630,6 +641,16 @@ def train(args: Args) -> dict:
         env_steps=counters["global_step"],
         wall_clock_s=time.perf_counter() - t_start,  # training only, as the other trainers report it
     )
+    if args.select_episodes and counters.get("best") is not None:
+        selected = counters["best"]
+        load_checkpoint(ckpt_dir / "best.pt", agent, args)
+        result["selected"] = dict(
+            checkpoint=str(ckpt_dir / "best.pt"),
+            iteration=selected["iteration"],
+            global_step=selected["global_step"],
+            validation_success_rate=selected["score"][0],
+            validation_episodes=args.select_episodes,
+        )
     if args.eval_episodes > 0:
         result.update(final_evaluation(agent, args, device))
         (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
@@ -638,10 +659,13 @@ def train(args: Args) -> dict:
     return result
 
 
-def final_evaluation(agent: Agent, args: Args, device, video_dir: Optional[Path] = None) -> dict:
-    """The deterministic policy on held-out seeds, scored like every other trainer (agents.common)."""
+def final_evaluation(
+    agent: Agent, args: Args, device, video_dir: Optional[Path] = None, first_seed: int = EVAL_SEED
+) -> dict:
+    """The deterministic policy on held-out seeds (or, for checkpoint selection, on validation seeds), scored like
+    every other trainer (agents.common)."""
     agent.eval()
-    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    seeds = list(range(first_seed, first_seed + args.eval_episodes))
 
     def act(obs: dict) -> torch.Tensor:
         with torch.no_grad():
@@ -654,6 +678,21 @@ def final_evaluation(agent: Agent, args: Args, device, video_dir: Optional[Path]
     )
 
 
+def select_checkpoint(agent: Agent, optimizer, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
+    """Scores the current policy on the validation seeds and keeps it as ``best.pt`` when it beats the best so far
+    (success rate, then mean return). PPO from the reward can peak and then unlearn as its policy narrows; the
+    held-out score of the best validated weights is what a user of the run would deploy."""
+    v = final_evaluation(
+        agent, replace(args, eval_episodes=args.select_episodes, progress=False), device, first_seed=VALIDATION_SEED
+    )
+    logger.scalars({f"select/{k}": v[k] for k in ("success_rate", "return") if k in v}, counters["global_step"])
+    score = [v.get("success_rate", 0.0), v["return"]]
+    best = counters.get("best")
+    if best is None or score > best["score"]:
+        counters["best"] = dict(score=score, iteration=counters["iteration"], global_step=counters["global_step"])
+        save_checkpoint(ckpt_dir / "best.pt", agent, optimizer, counters, args)
+
+
 def main(args: Args) -> dict:
     if not args.evaluate and args.norm_adv and args.minibatch_size < 2:
         raise ValueError(
@@ -662,6 +701,10 @@ def main(args: Args) -> dict:
         )
     if args.kl_coef < 0:
         raise ValueError(f"--kl-coef must be >= 0, got {args.kl_coef}")
+    if args.select_episodes < 0 or args.select_freq < 1:
+        raise ValueError(
+            f"--select-episodes must be >= 0 and --select-freq >= 1, got {args.select_episodes} and {args.select_freq}"
+        )
     if args.absorbing_success and args.reward_mode != "normalized_dense":
         raise ValueError(
             f"--absorbing-success values success at 1 a step, the normalized_dense reward's; --reward-mode is "

@@ -22,6 +22,9 @@ EVENT_KEYS = ("success", "fail", "grasped", "lifted", "stacked", "dropped", "col
 REWARD_TERM_PREFIX = "r_"
 EVAL_SEED = 10_000_000
 """first seed of the held-out evaluation episodes; training seeds stay below it (see :func:`train_seed`)"""
+VALIDATION_SEED = 20_000_000
+"""first seed of the episodes a trainer selects its checkpoint on: apart from training (below EVAL_SEED) and from
+the held-out seeds, so the score of the selected checkpoint is not the score it was selected by"""
 
 
 def new_eval_dir(run_dir: Path) -> Path:

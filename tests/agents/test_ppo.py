@@ -231,8 +231,14 @@ def test_state_mlp_with_obs_norm_trains_saves_and_acts_the_same_after_loading(tm
     """The from-scratch recipe's network: its normaliser learns from the rollouts and travels with the policy."""
     from maniskill_irb120.policies import policy_module, read_policy_section
 
-    res = run(tmp_path, obs="state", state_net="mlp", obs_norm=True, env_id="GraspLift-IRB120-v1")
+    res = run(tmp_path, obs="state", state_net="mlp", obs_norm=True, env_id="GraspLift-IRB120-v1", select_episodes=1)
     saved = torch.load(res["checkpoint"], weights_only=False)
+    # checkpoint selection ran at the end: one validation episode, its winner is best.pt
+    assert res["selected"]["iteration"] == 1 and res["selected"]["validation_episodes"] == 1
+    assert torch.equal(
+        torch.load(res["selected"]["checkpoint"], weights_only=False)["model"]["norm.count"],
+        saved["model"]["norm.count"],
+    )
     assert saved["signature"]["state_net"] == "mlp" and saved["signature"]["obs_norm"]
     assert float(saved["model"]["norm.count"]) == 16  # two iterations of 8 steps (the first acted unnormalised)
     module = policy_module(read_policy_section(Path(res["checkpoint"])))
@@ -244,6 +250,47 @@ def test_state_mlp_with_obs_norm_trains_saves_and_acts_the_same_after_loading(tm
         Agent((84, 84, 4), 20, 5, state_net="mlp")
     with pytest.raises(ValueError, match="unknown state_net"):
         Agent(None, 20, 5, state_net="wide")
+
+
+def test_checkpoint_selection_keeps_the_best_validation_and_the_held_out_evaluation_scores_it(tmp_path, monkeypatch):
+    """A run that peaks and then unlearns keeps its peak: best.pt changes only on a better validation score (success,
+    then return), the validation seeds are not the held-out ones, and the held-out evaluation loads best.pt."""
+    import agents.ppo as ppo
+    from agents.common import EVAL_SEED, VALIDATION_SEED
+
+    scores = iter([(0.2, 5.0), (0.6, 9.0), (0.6, 8.0), (0.1, 2.0), (0.6, 8.5)])  # validations at iterations 1..5
+    validations, held_out = [], []
+
+    def scripted(agent, args, device, video_dir=None, first_seed=EVAL_SEED):
+        if first_seed == EVAL_SEED:
+            held_out.append(agent.actor_logstd.detach().clone())
+            return dict(success_rate=0.0)
+        validations.append((first_seed, args.eval_episodes))
+        s, r = next(scores)
+        return {"success_rate": s, "return": r}
+
+    monkeypatch.setattr(ppo, "final_evaluation", scripted)
+    res = run(
+        tmp_path,
+        obs="state",
+        state_net="mlp",
+        select_episodes=3,
+        select_freq=1,
+        total_timesteps=80,
+        eval_episodes=1,
+        learning_rate=0.05,
+    )
+    assert validations == [(VALIDATION_SEED, 3)] * 5
+    assert res["selected"]["iteration"] == 2 and res["selected"]["validation_success_rate"] == 0.6
+    ckpts = tmp_path / "t" / "checkpoints"
+    best = torch.load(ckpts / "best.pt", weights_only=False)
+    second = torch.load(ckpts / "ckpt_2.pt", weights_only=False)["model"]["actor_logstd"]
+    last = torch.load(ckpts / "latest.pt", weights_only=False)["model"]["actor_logstd"]
+    assert best["counters"]["best"]["iteration"] == 2 and torch.equal(best["model"]["actor_logstd"], second)
+    assert not torch.equal(second, last)  # training moved on after the peak...
+    assert len(held_out) == 1 and torch.equal(held_out[0], second)  # ...and the held-out evaluation scored the peak
+    with pytest.raises(ValueError, match="--select-freq"):
+        run(tmp_path, obs="state", select_episodes=2, select_freq=0)
 
 
 def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
