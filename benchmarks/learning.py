@@ -142,6 +142,7 @@ REFERENCES = ("random", "expert")
 # what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
 RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
 RESULT_KEPT = (*sorted(RESULT_NEEDS), "grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint")
+RESULT_KEPT += ("selected",)  # agents.ppo --select-episodes: the checkpoint the held-out episodes scored
 # --quick: the same code paths at toy sizes
 QUICK_FLAGS = {
     "agents.dagger": [
@@ -167,6 +168,8 @@ QUICK_FLAGS = {
         "16",
         "--eval-freq",
         "0",
+        "--select-episodes",
+        "1",
     ],
     "agents.sac": ["--num-envs", "1", "--learning-starts", "8", "--batch-size", "8"],
 }
