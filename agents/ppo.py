@@ -21,7 +21,9 @@ arXiv 2311.02198).
 ``--budget-min`` (the flag every trainer shares) limits training's wall clock and overrides ``--max-wall-s``;
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
-every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON.
+every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON. With
+``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the weights that did best on N validation
+seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is what ``--resume`` continues).
 """
 
 from __future__ import annotations
@@ -644,8 +646,9 @@ def train(args: Args) -> dict:
     if args.select_episodes and counters.get("best") is not None:
         selected = counters["best"]
         load_checkpoint(ckpt_dir / "best.pt", agent, args)
+        # the policy the held-out episodes score is the run's checkpoint; --resume continues from the last weights
+        result.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
         result["selected"] = dict(
-            checkpoint=str(ckpt_dir / "best.pt"),
             iteration=selected["iteration"],
             global_step=selected["global_step"],
             validation_success_rate=selected["score"][0],

@@ -235,9 +235,9 @@ def test_state_mlp_with_obs_norm_trains_saves_and_acts_the_same_after_loading(tm
     saved = torch.load(res["checkpoint"], weights_only=False)
     # checkpoint selection ran at the end: one validation episode, its winner is best.pt
     assert res["selected"]["iteration"] == 1 and res["selected"]["validation_episodes"] == 1
+    assert res["checkpoint"].endswith("best.pt") and res["last_checkpoint"].endswith("latest.pt")
     assert torch.equal(
-        torch.load(res["selected"]["checkpoint"], weights_only=False)["model"]["norm.count"],
-        saved["model"]["norm.count"],
+        torch.load(res["last_checkpoint"], weights_only=False)["model"]["norm.count"], saved["model"]["norm.count"]
     )
     assert saved["signature"]["state_net"] == "mlp" and saved["signature"]["obs_norm"]
     assert float(saved["model"]["norm.count"]) == 16  # two iterations of 8 steps (the first acted unnormalised)
