@@ -206,7 +206,8 @@ class Args:
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
-    """smoke run: dagger-state, ppo-state and ppo-finetune-state, one seed, toy sizes, 2 evaluation episodes"""
+    """smoke run: dagger-state, ppo-state, ppo-finetune-state and sac-scratch-state, one seed, toy sizes, 2 evaluation
+    episodes"""
     bootstrap: int = 10_000
     """bootstrap resamples"""
 

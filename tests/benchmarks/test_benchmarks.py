@@ -62,7 +62,7 @@ def test_learning_quick_writes_json(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads((tmp_path / "learning.json").read_text())
     rows = {row["recipe"]: row for row in r["rows"]}
-    assert set(rows) == {"random", "expert", "dagger-state", "ppo-state", "ppo-finetune-state"}
+    assert set(rows) == {"random", "expert", "dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch-state"}
     for row in rows.values():
         lo, hi = row["success_ci95"]
         assert 0.0 <= lo <= row["success_mean"] <= hi <= 1.0
@@ -71,6 +71,9 @@ def test_learning_quick_writes_json(tmp_path):
     for name in ("dagger-state", "ppo-state", "ppo-finetune-state"):
         one = rows[name]["runs"][0]
         assert one["env_steps"] > 0 and one["wall_clock_s"] > 0 and Path(one["checkpoint"]).is_file()
+    # ppo-state deploys the checkpoint it selected on validation seeds, and the row says which
+    selected = rows["ppo-state"]["runs"][0]["selected"]
+    assert selected["validation_episodes"] == 1 and rows["ppo-state"]["runs"][0]["checkpoint"].endswith("best.pt")
     # the fine-tuning starts from its own DAgger run, and the row counts both stages
     tuned, base = rows["ppo-finetune-state"]["runs"][0], rows["ppo-finetune-state"]["runs"][0]["base"]
     assert f"--base-checkpoint {base['checkpoint']}" in tuned["command"] and "__base" in base["checkpoint"]
