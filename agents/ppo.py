@@ -529,7 +529,7 @@ def train(args: Args) -> dict:
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
         if max_wall_s is not None and time.perf_counter() - t_start > max_wall_s:
-            if args.select_episodes:
+            if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
                 select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
             break

@@ -293,6 +293,29 @@ def test_checkpoint_selection_keeps_the_best_validation_and_the_held_out_evaluat
         run(tmp_path, obs="state", select_episodes=2, select_freq=0)
 
 
+def test_a_run_stopped_by_its_budget_validates_its_last_weights_once(tmp_path, monkeypatch):
+    import agents.ppo as ppo
+    from agents.common import VALIDATION_SEED
+
+    validated = []
+
+    def scripted(agent, args, device, video_dir=None, first_seed=VALIDATION_SEED):
+        validated.append(first_seed)
+        return {"success_rate": 0.0, "return": 0.0}
+
+    monkeypatch.setattr(ppo, "final_evaluation", scripted)
+    kw = dict(obs="state", state_net="mlp", select_episodes=1, total_timesteps=10**6, max_wall_s=2.0, eval_episodes=0)
+    every = run(tmp_path / "every", select_freq=1, **kw)  # each iteration validated: the stop adds none
+    assert every["iterations"] >= 1 and validated.count(VALIDATION_SEED) == every["iterations"]
+    validated.clear()
+    rare = run(tmp_path / "rare", select_freq=10**6, **kw)  # none validated in the loop: the stop validates
+    assert (
+        rare["iterations"] >= 1
+        and validated == [VALIDATION_SEED]
+        and rare["selected"]["iteration"] == rare["iterations"]
+    )
+
+
 def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
     with pytest.raises(ValueError, match="fewer than 2 rows"):
         run(tmp_path, obs="state", num_envs=1, num_steps=4, num_minibatches=4)
