@@ -141,8 +141,11 @@ BASES: dict[str, tuple[str, float]] = {"ppo-finetune-state": ("dagger-state", 0.
 REFERENCES = ("random", "expert")
 # what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
 RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
-RESULT_KEPT = (*sorted(RESULT_NEEDS), "grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint")
-RESULT_KEPT += ("selected",)  # agents.ppo --select-episodes: the checkpoint the held-out episodes scored
+# selected: agents.ppo --select-episodes' choice (the checkpoint the held-out episodes scored)
+RESULT_KEPT = (
+    *sorted(RESULT_NEEDS),
+    *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
+)
 # --quick: the same code paths at toy sizes
 QUICK_FLAGS = {
     "agents.dagger": [
