@@ -145,9 +145,6 @@ class Args(RunArgs):
     evaluation scores it instead of the last weights (0: no selection)"""
     select_freq: int = 25
     """iterations between two checkpoint-selection evaluations"""
-    select_after_success: bool = False
-    """skip a checkpoint-selection evaluation when no training episode has succeeded since the last one: before a
-    policy's first successes its validations cost training time (the budget counts them) and cannot raise best.pt"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
     torch_deterministic: bool = True
@@ -532,7 +529,7 @@ def train(args: Args) -> dict:
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
         if max_wall_s is not None and time.perf_counter() - t_start > max_wall_s:
-            if selection_due(args, counters) and counters["iteration"] % args.select_freq:  # else validated already
+            if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
                 select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
             break
@@ -569,8 +566,6 @@ def train(args: Args) -> dict:
                     final_values[step, succeeded_mask(info, term).to(device)] = args.reward_scale / (1 - args.gamma)
             for k, v in tracker.update(info.get("final_info", info), done).items():
                 recent[k] += v
-                if k == "success_rate":
-                    counters["successes_since_select"] = counters.get("successes_since_select", 0) + int(sum(v))
         with torch.no_grad():
             next_value = agent.get_value(next_obs).reshape(1, -1)[0]
             advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, final_values, args)
@@ -627,7 +622,7 @@ def train(args: Args) -> dict:
             agent.eval()
             last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
             logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
-        if (it % args.select_freq == 0 or it == num_iterations) and selection_due(args, counters):
+        if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
             select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
         if it % args.save_freq == 0 or it == num_iterations:
             save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
@@ -686,19 +681,10 @@ def final_evaluation(
     )
 
 
-def selection_due(args: Args, counters: dict) -> bool:
-    """Whether a checkpoint-selection point validates (with --select-after-success, only once a training episode
-    has succeeded since the last validation; the count lives in the counters, so --resume keeps it)."""
-    if not args.select_episodes:
-        return False
-    return not args.select_after_success or counters.get("successes_since_select", 0) > 0
-
-
 def select_checkpoint(agent: Agent, optimizer, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
     """Scores the current policy on the validation seeds and keeps it as ``best.pt`` when it beats the best so far
     (success rate, then mean return). PPO from the reward can peak and then unlearn as its policy narrows; the
     held-out score of the best validated weights is what a user of the run would deploy."""
-    counters["successes_since_select"] = 0
     v = final_evaluation(
         agent, replace(args, eval_episodes=args.select_episodes, progress=False), device, first_seed=VALIDATION_SEED
     )

@@ -316,44 +316,6 @@ def test_a_run_stopped_by_its_budget_validates_its_last_weights_once(tmp_path, m
     )
 
 
-def test_selection_after_success_validates_only_once_training_episodes_succeed(tmp_path, monkeypatch):
-    """With --select-after-success a selection point validates only if a training episode succeeded since the last
-    validation: here one succeeds during iteration 3 of 5, so iteration 3 validates and 1, 2, 4 and 5 do not."""
-    import agents.ppo as ppo
-    from agents.common import EVAL_SEED, VALIDATION_SEED
-    from agents.common.evaluation import EpisodeTracker
-
-    steps_per_iteration = 8  # run()'s num_steps
-    calls = []
-
-    class ScriptedTracker(EpisodeTracker):
-        def update(self, step_info, done):
-            out = super().update(step_info, done)
-            calls.append(None)
-            if len(calls) == 2 * steps_per_iteration + 4:  # mid-iteration 3
-                out["success_rate"] = list(out.get("success_rate", [])) + [1.0]
-            return out
-
-    validated = []
-
-    def scripted(agent, args, device, video_dir=None, first_seed=EVAL_SEED):
-        if first_seed == VALIDATION_SEED:
-            validated.append(len(calls) // steps_per_iteration)
-        return {"success_rate": 0.0, "return": 0.0}
-
-    monkeypatch.setattr(ppo, "EpisodeTracker", ScriptedTracker)
-    monkeypatch.setattr(ppo, "final_evaluation", scripted)
-    kw = dict(obs="state", state_net="mlp", select_episodes=2, select_freq=1, total_timesteps=80, eval_episodes=0)
-    res = run(tmp_path / "after", select_after_success=True, **kw)
-    assert res["iterations"] == 5 and validated == [3] and res["selected"]["iteration"] == 3
-    latest = torch.load(tmp_path / "after" / "t" / "checkpoints" / "latest.pt", weights_only=False)
-    assert latest["counters"]["successes_since_select"] == 0  # reset by the validation, kept for --resume
-    calls.clear()
-    validated.clear()
-    run(tmp_path / "always", **kw)  # without the flag every selection point validates
-    assert validated == [1, 2, 3, 4, 5]
-
-
 def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
     with pytest.raises(ValueError, match="fewer than 2 rows"):
         run(tmp_path, obs="state", num_envs=1, num_steps=4, num_minibatches=4)
