@@ -85,6 +85,9 @@ class Args(RunArgs):
     """weight of KL(policy || N(base action, exp(init_logstd))) in the loss; needs --base-checkpoint"""
     init_logstd: float = -0.5
     """initial log std of the Gaussian policy (a fine-tuned policy wants little noise, e.g. -2)"""
+    logstd: Literal["param", "state"] = "param"
+    """param: one learned log std per action dimension (CleanRL, ManiSkill); state: a small head on the actor's
+    input, so the noise can shrink where the task wants stillness (GraspLift's hold) and stay broad elsewhere"""
     state_net: Literal["shared", "mlp"] = "shared"
     """shared: the camera encoder's state MLP under both heads; mlp: ManiSkill's state PPO network (separate
     3x256 tanh actor and critic), for --obs state"""
@@ -239,6 +242,7 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
         args.init_logstd,
         state_net=args.state_net,
         obs_norm=args.obs_norm,
+        logstd=args.logstd,
     )
     if args.base_checkpoint is not None:
         where = f"--base-checkpoint {args.base_checkpoint}"
@@ -246,7 +250,7 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
         if section["kind"] != "dagger":
             raise ValueError(f"{where}: a {section['kind']} policy; the base is a deterministic (dagger) policy")
         base = policy_module(section, "cpu")
-        own = ("residual", "state_net", "obs_norm")  # the PPO agent's own; the base has its image and state
+        own = ("residual", "state_net", "obs_norm", "logstd")  # the PPO agent's own; the base has its image and state
         if base.signature() != {k: v for k, v in agent.signature().items() if k not in own}:
             raise ValueError(
                 f"--base-checkpoint {args.base_checkpoint}: its policy takes {base.signature()}, these envs give "
@@ -409,8 +413,9 @@ def read_checkpoint(path: Path, args: Args) -> dict:
     frame = ckpt.get("args", {}).get("action_frame", "tool")
     if frame != args.action_frame:
         raise ValueError(f"checkpoint {path} acts in the {frame!r} frame; pass --action-frame {frame}")
-    # written before residual policies, or before the state MLP and the running normaliser
-    ckpt["signature"] = dict(dict(residual=False, state_net="shared", obs_norm=False), **ckpt["signature"])
+    # written before residual policies, the state MLP and the running normaliser, or the state-dependent log std
+    defaults = dict(residual=False, state_net="shared", obs_norm=False, logstd="param")
+    ckpt["signature"] = dict(defaults, **ckpt["signature"])
     return ckpt
 
 

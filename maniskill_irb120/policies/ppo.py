@@ -1,7 +1,9 @@
 """The PPO actor-critic (``agents.ppo`` trains it): a shared encoder, a Gaussian policy head with a
 state-independent log-std, a value head; optionally a frozen deterministic base policy under a residual.
 From state it can instead be ManiSkill's state PPO network (separate 3x256 tanh actor and critic) behind a
-running observation normaliser, the pair RL from the reward alone uses."""
+running observation normaliser, the pair RL from the reward alone uses. ``logstd="state"`` gives the policy a
+log-std that depends on the state (a small head beside the mean): one learned log-std must be small everywhere
+for a sampled episode to hold an object still, which also ends the exploration everywhere else."""
 
 from __future__ import annotations
 
@@ -13,6 +15,9 @@ from torch.distributions.normal import Normal
 from maniskill_irb120.policies.nets import DeterministicActor, NatureCNN, RunningNorm, layer_init
 
 STATE_NETS = ("shared", "mlp")
+LOGSTDS = ("param", "state")
+LOGSTD_RANGE = (-5.0, 2.0)
+"""bounds of a state-dependent log-std (as SAC's): a head cannot shrink the noise to nothing or blow it up"""
 
 
 class Agent(nn.Module):
@@ -28,14 +33,19 @@ class Agent(nn.Module):
         init_logstd: float = -0.5,
         state_net: str = "shared",
         obs_norm: bool = False,
+        logstd: str = "param",
     ):
         super().__init__()
         if state_net not in STATE_NETS:
             raise ValueError(f"unknown state_net {state_net!r}; expected one of {STATE_NETS}")
+        if logstd not in LOGSTDS:
+            raise ValueError(f"unknown logstd {logstd!r}; expected one of {LOGSTDS}")
+        if logstd == "state" and residual:
+            raise ValueError("logstd='state' has no residual form: the KL to the base assumes one log-std per action")
         if state_net == "mlp" and (image_shape is not None or residual):
             raise ValueError("state_net='mlp' is ManiSkill's state PPO network: no camera, no residual base")
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
-        self.init_logstd, self.state_net = init_logstd, state_net
+        self.init_logstd, self.state_net, self.logstd = init_logstd, state_net, logstd
         self.norm = RunningNorm(state_dim) if obs_norm else None
         self.base = DeterministicActor(image_shape, state_dim, action_dim).requires_grad_(False) if residual else None
         if state_net == "mlp":  # ManiSkill's examples/baselines/ppo/ppo.py Agent, sizes and initialisation
@@ -58,7 +68,19 @@ class Agent(nn.Module):
         if residual:
             nn.init.zeros_(self.actor_mean[-1].weight)
             nn.init.zeros_(self.actor_mean[-1].bias)
-        self.actor_logstd = nn.Parameter(torch.full((1, action_dim), float(init_logstd)))
+        if logstd == "state":  # starts as the parameter would: every state at init_logstd
+            width = state_dim if state_net == "mlp" else self.encoder.out_dim
+            self.actor_logstd_head = nn.Sequential(
+                layer_init(nn.Linear(width, 64)),
+                nn.Tanh(),
+                layer_init(nn.Linear(64, 64)),
+                nn.Tanh(),
+                nn.Linear(64, action_dim),
+            )
+            nn.init.zeros_(self.actor_logstd_head[-1].weight)
+            nn.init.constant_(self.actor_logstd_head[-1].bias, float(init_logstd))
+        else:
+            self.actor_logstd = nn.Parameter(torch.full((1, action_dim), float(init_logstd)))
 
     def features(self, obs) -> torch.Tensor:
         """What the heads read: the encoder's features, or (``state_net='mlp'``) the normalised state."""
@@ -74,6 +96,7 @@ class Agent(nn.Module):
             residual=self.base is not None,
             state_net=self.state_net,
             obs_norm=self.norm is not None,
+            logstd=self.logstd,
         )
 
     def mean(self, obs, x: torch.Tensor) -> torch.Tensor:
@@ -92,19 +115,26 @@ class Agent(nn.Module):
         kl = ref_logstd - logstd + (var + (mean - self.base_action(obs)) ** 2) / (2 * ref_var) - 0.5
         return kl.sum(1)
 
+    def log_std(self, x: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """(N, action_dim) log-std for the features ``x`` (those the mean was computed from)."""
+        if self.logstd == "state":
+            return self.actor_logstd_head(x).clamp(*LOGSTD_RANGE)
+        return self.actor_logstd.expand_as(mean)
+
     def get_value(self, obs) -> torch.Tensor:
         return self.critic(self.features(obs))
 
     def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
-        mean = self.mean(obs, self.features(obs))
+        x = self.features(obs)
+        mean = self.mean(obs, x)
         if deterministic:
             return mean
-        return Normal(mean, self.actor_logstd.expand_as(mean).exp()).sample()
+        return Normal(mean, self.log_std(x, mean).exp()).sample()
 
     def get_action_and_value(self, obs, action=None, with_mean: bool = False):
         x = self.features(obs)
         mean = self.mean(obs, x)
-        dist = Normal(mean, self.actor_logstd.expand_as(mean).exp())
+        dist = Normal(mean, self.log_std(x, mean).exp())
         if action is None:
             action = dist.sample()
         out = (action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.critic(x))

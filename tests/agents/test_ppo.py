@@ -252,6 +252,64 @@ def test_state_mlp_with_obs_norm_trains_saves_and_acts_the_same_after_loading(tm
         Agent(None, 20, 5, state_net="wide")
 
 
+def test_a_state_dependent_log_std_starts_at_its_init_and_learns_a_different_noise_per_state():
+    """Two kinds of state: in one the rewarded action is exactly the mean (a still hold), in the other it is spread
+    around it. Maximising their log-likelihood shrinks the noise in the first and keeps it in the second; the
+    learned parameter of the default policy can only pick one noise for both."""
+    torch.manual_seed(0)
+    states = torch.randn(128, 6)
+    states[:, 0] = torch.where(torch.arange(128) < 64, 3.0, -3.0)  # the first half "holds", the second "explores"
+    hold = torch.arange(128) < 64
+    obs = {"state": states}
+
+    def fit(agent) -> tuple[float, float]:
+        opt = optim.Adam(agent.parameters(), lr=3e-3)
+        for _ in range(300):
+            x = agent.features(obs)
+            mean = agent.mean(obs, x).detach()
+            target = torch.where(hold[:, None], mean, mean + torch.randn_like(mean))
+            _, logprob, _, _ = agent.get_action_and_value(obs, target)
+            opt.zero_grad()
+            (-logprob.mean()).backward()
+            opt.step()
+        with torch.no_grad():
+            x = agent.features(obs)
+            logstd = agent.log_std(x, agent.mean(obs, x)).mean(1)
+        return logstd[hold].mean().item(), logstd[~hold].mean().item()
+
+    agent = Agent(None, 6, 5, state_net="mlp", logstd="state", init_logstd=-0.5)
+    with torch.no_grad():
+        x = agent.features(obs)
+        assert torch.allclose(agent.log_std(x, agent.mean(obs, x)), torch.full((128, 5), -0.5))
+    held, explored = fit(agent)
+    assert held < -2.0 and abs(explored) < 0.3  # still where holding, about N(0, 1)'s spread elsewhere
+    shared, shared_too = fit(Agent(None, 6, 5, state_net="mlp", init_logstd=-0.5))
+    assert shared == shared_too and shared > -1.0  # one log std for both: between the two
+    with pytest.raises(ValueError, match="no residual form"):
+        Agent(None, 6, 5, residual=True, logstd="state")
+    with pytest.raises(ValueError, match="unknown logstd"):
+        Agent(None, 6, 5, logstd="wide")
+
+
+def test_a_state_dependent_log_std_trains_saves_evaluates_and_loads_as_a_policy(tmp_path):
+    from maniskill_irb120.policies import acting, read_policy_section
+
+    kw = dict(obs="state", state_net="mlp", obs_norm=True, env_id="GraspLift-IRB120-v1")
+    res = run(tmp_path, logstd="state", **kw)
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    assert saved["signature"]["logstd"] == "state" and "actor_logstd_head.4.bias" in saved["model"]
+    section = read_policy_section(Path(res["checkpoint"]))
+    agent = Agent(**section["config"])  # the section says what to build: logstd="state" among the rest
+    agent.load_state_dict(saved["model"])
+    assert agent.logstd == "state"
+    obs = dict(state=torch.randn(4, section["config"]["state_dim"]))
+    assert torch.equal(acting(section)(obs), agent.get_action(obs, deterministic=True))
+    ev = run(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), logstd="state", capture_video=False, **kw)
+    assert ev["episodes"] == 1
+    with pytest.raises(ValueError, match="does not match"):  # evaluated as a policy with one log std
+        run(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=False, **kw)
+
+
 def test_checkpoint_selection_keeps_the_best_validation_and_the_held_out_evaluation_scores_it(tmp_path, monkeypatch):
     """A run that peaks and then unlearns keeps its peak: best.pt changes only on a better validation score (success,
     then return), the validation seeds are not the held-out ones, and the held-out evaluation loads best.pt."""
