@@ -21,8 +21,9 @@ LOGSTD_RANGE = (-5.0, 2.0)
 
 
 class Agent(nn.Module):
-    """Shared encoder, separate policy and value heads, state-independent log-std; with ``residual`` the mean is a
-    frozen base policy's action plus the actor head's output (a zero-initialised residual)."""
+    """Shared encoder, separate policy and value heads, a state-independent log-std (``logstd="state"``: a head on
+    the actor's input); with ``residual`` the mean is a frozen base policy's action plus the actor head's output (a
+    zero-initialised residual)."""
 
     def __init__(
         self,
