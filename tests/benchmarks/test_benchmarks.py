@@ -191,6 +191,42 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
             gap.main(gap.Args(shifts=["none", bad], out=tmp_path))
 
 
+def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(tmp_path):
+    from maniskill_irb120.envs.randomization import Randomization
+
+    gap = _bench_module("sim2real_gap")
+    full = Randomization.parse(gap.SHIFTS["camera mount"])
+    quarter = Randomization.parse(gap.SHIFTS["camera mount x0.25"])
+    assert quarter.camera_pos == pytest.approx([v / 4 for v in full.camera_pos])
+    assert quarter.camera_rot == pytest.approx([v / 4 for v in full.camera_rot])
+    assert gap.SHIFTS["camera mount, position only"] == gap.SHIFTS["camera mount"].split(",")[0]
+    assert gap.SHIFTS["camera mount, rotation only"] == gap.SHIFTS["camera mount"].split(",")[1]
+    ran = []
+
+    def evaluate(cfg):  # records each cell's configuration instead of rolling it out
+        ran.append((cfg.out.name, cfg.shift, cfg.camera_mount))
+        sides = dict(success=0.0, grasped=0.0, dropped=0.0, collided=0.0)
+        episode = dict(sim_success=0.0, real_success=0.0)
+        return dict(
+            sim=sides,
+            real=sides,
+            deviation=dict(tcp_m=dict(mean=0.0)),
+            command_latency_ms=dict(p50=0.0),
+            refused=dict(total=0),
+            late_steps=0,
+            per_episode=[episode],
+        )
+
+    gap.evaluate = evaluate
+    gap.main(gap.Args(camera="twin", out=tmp_path))  # the default table: no calibration-error rows
+    assert {name for name, _, _ in ran} == {n.replace(" ", "_").replace("/", "_") for n in gap.SHIFTS} - {
+        n.replace(" ", "_") for n in gap.MOUNT_ERRORS
+    }
+    ran.clear()
+    gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
+    assert ran == [("none", None, None), ("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None)]
+
+
 def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     sys.path.insert(0, str(REPO / "benchmarks"))
     import learning
