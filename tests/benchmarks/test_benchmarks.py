@@ -227,6 +227,16 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
     assert ran == [("none", None, None), ("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None)]
 
 
+def test_learning_recipe_flags_add_a_tasks_own_flags_there_only():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+
+    grasp, clear = (learning.recipe_flags("ppo-state", env) for env in ("GraspLift-IRB120-v1", learning.DEFAULT_ENV))
+    assert grasp == [*learning.RECIPES["ppo-state"][1], "--logstd", "state"]
+    assert clear == learning.RECIPES["ppo-state"][1] and "--logstd" not in clear
+    assert learning.recipe_flags("sac-scratch-state", "GraspLift-IRB120-v1") == learning.RECIPES["sac-scratch-state"][1]
+
+
 def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     sys.path.insert(0, str(REPO / "benchmarks"))
     import learning
