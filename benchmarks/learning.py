@@ -137,7 +137,7 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
 # noise from a head on the state (--logstd state), since its 20 still steps need the held object's noise small while
 # the approach still explores, which one log std per dimension cannot give (it shrank until no sampled episode could
 # succeed, and the run then collapsed); on TableClearing the same head learned no grasp in 320k env steps, where the
-# one log std grasped in 40 % of training episodes by 100k (seed 1 each; benchmarks/RESULTS.md)
+# one log std grasped in 38 % of training episodes by 100k (seed 1 each; benchmarks/RESULTS.md)
 TASK_FLAGS: dict[str, dict[str, list[str]]] = {"GraspLift-IRB120-v1": {"ppo-state": ["--logstd", "state"]}}
 RL_BUDGET_MIN = {"GraspLift-IRB120-v1": 90.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
 """RL from the reward alone, minutes per run (issue targets: GraspLift in 90, TableClearing in 150)"""
