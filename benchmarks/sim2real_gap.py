@@ -37,6 +37,7 @@ from typing import Optional
 
 import tyro
 
+from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
 from maniskill_irb120.sim2real.report import agreement, paired_gap
 
@@ -70,13 +71,11 @@ MOUNT_ERRORS = {
 
 def scaled_mount(pos_scale: float, rot_scale: float) -> str:
     """The "camera mount" row's offset with its position and its rotation scaled (a part scaled to 0 left out)."""
-    parts = (part.split("=") for part in SHIFTS["camera mount"].split(","))
-    scaled = [
-        f"{key}={';'.join(f'{scale * float(v):.6g}' for v in values.split(';'))}"
-        for (key, values), scale in zip(parts, (pos_scale, rot_scale))
-        if scale
-    ]
-    return ",".join(scaled)
+    mount = Randomization.parse(SHIFTS["camera mount"])
+    parts = dict(camera_pos=(pos_scale, mount.camera_pos), camera_rot=(rot_scale, mount.camera_rot))
+    return ",".join(
+        f"{key}={';'.join(f'{scale * v:.6g}' for v in values)}" for key, (scale, values) in parts.items() if scale
+    )
 
 
 SHIFTS.update({name: scaled_mount(*scales) for name, scales in MOUNT_ERRORS.items()})
@@ -125,10 +124,15 @@ class Args:
     episodes, seed, shift, camera) is read, not run again: a table that was stopped goes on where it stood"""
 
 
+def folder(name: str) -> str:
+    """A row's folder under --out."""
+    return name.replace(" ", "_").replace("/", "_")
+
+
 def cell(policy: str, name: str, args: Args) -> dict:
     """One (policy, shift) cell: ``sim2real-eval`` on the same seeds in the sim and on the shifted twin."""
     t0 = time.time()
-    sub = name.replace(" ", "_").replace("/", "_")
+    sub = folder(name)
     spec = spec_of(name)
     cfg = EvalConfig(
         policy=policy,
