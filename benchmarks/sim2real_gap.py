@@ -61,9 +61,10 @@ MOUNTS = {
     "all together, mount corrected": SHIFTS["camera mount"],
 }
 # the mount's offset in part: how far from the trained mount a camera may sit (a hand-eye calibration's error, once
-# training uses the measured mount) before the policy fails; run by name only, not in the default table
+# training uses the measured mount) before the policy fails; run by name only, not in the default table. For a policy
+# trained at the "camera mount" row's mount, x0.75 and x1.25 put the camera a quarter of that offset off its own
 MOUNT_ERRORS = {
-    **{f"camera mount x{k:g}": (k, k) for k in (0.1, 0.25, 0.5)},
+    **{f"camera mount x{k:g}": (k, k) for k in (0.1, 0.25, 0.5, 0.75, 1.25)},
     "camera mount, position only": (1.0, 0.0),
     "camera mount, rotation only": (0.0, 1.0),
 }

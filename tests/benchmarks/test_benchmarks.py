@@ -199,6 +199,8 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
     quarter = Randomization.parse(gap.SHIFTS["camera mount x0.25"])
     assert quarter.camera_pos == pytest.approx([v / 4 for v in full.camera_pos])
     assert quarter.camera_rot == pytest.approx([v / 4 for v in full.camera_rot])
+    beyond = Randomization.parse(gap.SHIFTS["camera mount x1.25"])  # a calibration error past a measured mount
+    assert beyond.camera_pos == pytest.approx([v * 1.25 for v in full.camera_pos])
     assert gap.SHIFTS["camera mount, position only"] == gap.SHIFTS["camera mount"].split(",")[0]
     assert gap.SHIFTS["camera mount, rotation only"] == gap.SHIFTS["camera mount"].split(",")[1]
     ran = []
