@@ -38,7 +38,7 @@ from typing import Optional
 import tyro
 
 from maniskill_irb120.envs.randomization import Randomization
-from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
+from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift
 from maniskill_irb120.sim2real.report import agreement, paired_gap
 
 SHIFTS = {
@@ -182,6 +182,8 @@ def _finished_report(cfg: EvalConfig) -> dict | None:
     r = json.loads(path.read_text())
     ours = {k: str(v) for k, v in asdict(cfg).items() if k != "out"}
     same = {k: v for k, v in r.get("config", {}).items() if k != "out"} == ours
+    sim_side = sim_side_shift(cfg)  # the same configuration with an older sim side (its latency) is run again
+    same = same and r.get("sim_side", "absent") == json.loads(json.dumps(sim_side.as_dict() if sim_side else None))
     return (
         r
         if same and not r.get("interrupted") and r.get("error") is None and r.get("episodes") == cfg.episodes

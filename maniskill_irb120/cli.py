@@ -154,6 +154,7 @@ def sim2real_eval(
     camera: str = "twin",
     camera_mount: str | None = None,
     command_mode: str = "tool_delta",
+    step_end: str = "arrived",
     out: str = "runs/sim2real",
     operator_timeout_s: float = 60.0,
 ) -> int:
@@ -166,7 +167,9 @@ def sim2real_eval(
     agents.dagger or agents.sac checkpoint. ``--camera-mount "camera_pos=X;Y;Z,camera_rot=A;B;C"``: the camera's
     mount as hand-eye calibration measured it; frames are reprojected to the trained mount. ``--actions``: a
     checkpoint's action as its trainer evaluated it (as-trained), its mean, or a sample (agents.sac/agents.ppo;
-    seeded by the episode seed on both sides).
+    seeded by the episode seed on both sides). ``--step-end``: a real step ends when the robot stands at its target
+    (arrived: what the sim's settled drives show; command latency then costs time only, and ``--sim-shift`` leaves
+    it out of the sim side) or after one fixed 50 ms period (period: the robot still moving when read).
     Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
     from maniskill_irb120.sim2real.eval import EvalConfig
     from maniskill_irb120.sim2real.eval import main as eval_main
@@ -183,6 +186,7 @@ def sim2real_eval(
         camera=camera,
         camera_mount=camera_mount,
         command_mode=command_mode,
+        step_end=step_end,
         out=Path(out),
         operator_timeout_s=operator_timeout_s,
     )

@@ -32,6 +32,9 @@ The appearance fields (``color``, ``texture``, ``roughness``, ``specular``) chan
 owns its materials; a GPU-batched scene shares one material per builder between its envs, so with an appearance
 field active the scene builds each env's table, trays, floor and objects with materials of their own.
 
+``latency`` is what a robot on a fixed clock shows (``sim2real`` with ``step_end="period"``): the arm read mid-move
+at the period's end. A deployment whose steps wait for the robot to arrive (the default) shows none of it.
+
 ``depth_model`` stands before ``depth_noise``/``depth_dropout`` (which then add to it): range limits, disparity
 noise and quantisation, edges, occlusion shadow and dark/specular dropout as a RealSense D435 or D405 measures
 them, with the figures and their sources in envs/depth_model.py.

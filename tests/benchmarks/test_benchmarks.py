@@ -177,6 +177,10 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
     os.utime(policy, (time.time() - 60, time.time() - 60))
     read = gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
     assert read["rows"][0]["real_success"] == r["rows"][0]["real_success"]
+    stale = {k: v for k, v in report.items() if k != "sim_side"}  # from before the sim side's condition was kept
+    (moved / "report.json").write_text(json.dumps(stale))
+    with pytest.raises(WouldRun, match="none"):
+        gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
     policy.write_bytes(b"retrained")  # newer than the report: run again
     with pytest.raises(WouldRun, match="none"):
         gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))

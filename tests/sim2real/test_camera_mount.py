@@ -100,14 +100,22 @@ def test_a_malformed_mount_is_named_before_anything_starts(tmp_path):
 def test_the_sim_side_keeps_the_trained_mount_and_the_rest_of_the_shift():
     """With --sim-shift and --camera-mount the corrected frames come from the trained mount, so the sim drops the
     mount from the shift and keeps every other field (ranges too), parsed by the randomisation's own parser."""
-    from maniskill_irb120.sim2real.eval import without_mount
+    from maniskill_irb120.sim2real.eval import EvalConfig, sim_side_shift
 
-    kept = without_mount(MOUNT + ",depth_noise=2,object_mass=0.5:2,camera_fov=70")
+    shift = MOUNT + ",depth_noise=2,object_mass=0.5:2,camera_fov=70"
+    kept = sim_side_shift(EvalConfig(shift=shift, sim_shift=True, camera_mount=MOUNT))
     assert kept.camera_pos == 0.0 and kept.camera_rot == 0.0
     assert kept.depth_noise == 2.0 and kept.object_mass == (0.5, 2.0) and kept.camera_fov == 70.0
-    assert without_mount(MOUNT) is None
+    assert sim_side_shift(EvalConfig(shift=shift, sim_shift=True)).camera_pos == (0.01, -0.01, 0.005)
+    assert sim_side_shift(EvalConfig(shift=MOUNT, sim_shift=True, camera_mount=MOUNT)) is None
+    assert sim_side_shift(EvalConfig(shift=shift)) is None  # without --sim-shift: the nominal sim
+    # command latency: only a fixed-clock robot's steps show it (test_command_latency_delays_the_real_step...)
+    lagged = shift + ",latency=0.03"
+    assert sim_side_shift(EvalConfig(shift=lagged, sim_shift=True)).latency == 0.0
+    assert sim_side_shift(EvalConfig(shift=lagged, sim_shift=True, step_end="period")).latency == 0.03
+    assert sim_side_shift(EvalConfig(shift="latency=0.03", sim_shift=True)) is None
     with pytest.raises(ValueError, match="use NAME=VALUE"):
-        without_mount(MOUNT + ",fov=70")
+        sim_side_shift(EvalConfig(shift=MOUNT + ",fov=70", sim_shift=True, camera_mount=MOUNT))
 
 
 def test_the_real_side_sees_the_trained_mount_through_a_corrected_twin_camera(tmp_path):

@@ -161,6 +161,57 @@ def test_a_fixed_period_step_end_reads_the_robot_moving(rig):
         env.step_end = "arrived"
 
 
+def test_command_latency_delays_the_real_step_but_not_what_the_policy_sees():
+    """Each real step waits until the robot stands at its target, so a 30 ms link (every byte held back 30 ms) leaves
+    the twin's joints and TCP where the latency-free sim's are, step by step through a grasp: latency costs time,
+    not motion. The sim's ``latency`` field (the drives get the targets 30 ms into the 50 ms period, the arm read at
+    its end) models a robot on a fixed clock, and on the same actions it does not match: why sim2real-eval's sim side
+    leaves latency out with step_end="arrived" (``sim_side_shift``)."""
+    seed = 6
+
+    def replay(env, actions, real: bool) -> np.ndarray:
+        env.reset(seed=seed)
+        u = env.unwrapped
+        tcp = [(u.tcp_pose[0, :3] if real else u.agent.tcp_pose.p[0]).cpu().numpy().copy()]
+        for a in actions:
+            env.step(a)
+            tcp.append((u.tcp_pose[0, :3] if real else u.agent.tcp_pose.p[0]).cpu().numpy().copy())
+        return np.array(tcp)
+
+    sim = gym.make(ENV_ID, obs_mode="state", control_mode="pd_ee_delta_tool")
+    sim.reset(seed=seed)
+    expert = expert_for(sim)
+    expert.reset()
+    actions = []
+    for _ in range(45):  # down to the object, the grasp, the lift
+        actions.append(expert.act()[0])
+        sim.step(actions[-1])
+    grasped = bool(sim.unwrapped.evaluate()["grasped"][0])
+    sim_tcp = replay(sim, actions, real=False)
+    fixed_clock = gym.make(ENV_ID, obs_mode="state", control_mode="pd_ee_delta_tool", randomization="latency=0.03")
+    clock_tcp = replay(fixed_clock, actions, real=False)
+    fixed_clock.close()
+    emu = ControllerEmulator("tcp", latency_ms=30)
+    url = emu.start()
+    twin = DigitalTwin(ENV_ID, emu)
+    agent = IRB120RealAgent(url, finger_qpos=twin.finger_qpos)
+    env = IRB120Sim2RealEnv(sim, agent, world=twin)
+    try:
+        t0 = time.perf_counter()
+        real_tcp = replay(env, actions, real=True)
+        wall = time.perf_counter() - t0
+        assert env.late_steps == 0 and not env.refusals
+        assert bool(twin.info["grasped"][0]) == grasped is True
+    finally:
+        env.close()
+        twin.close()
+        emu.stop()
+    assert emu.error is None, emu.error
+    assert np.linalg.norm(real_tcp - sim_tcp, axis=1).max() < 1e-3  # measured 0.24 mm
+    assert np.linalg.norm(clock_tcp - sim_tcp, axis=1).max() > 5e-3  # measured 9.3 mm
+    assert wall > 45 * (0.05 + 0.03)  # every step paid the link's delay at least once
+
+
 def test_real_observations_match_the_sim_layout(rig):
     env, sim = rig["env"], rig["sim"]
     real_obs, _ = env.reset(seed=3)
@@ -440,6 +491,11 @@ def test_a_refused_step_end_is_named_and_the_emulator_stopped(tmp_path, monkeypa
     with pytest.raises(ValueError, match="step_end='soon'"):
         evaluate(EvalConfig(episodes=1, step_end="soon", out=tmp_path))
     assert len(stopped) == 1 and stopped[0].error is None
+    from maniskill_irb120.cli import sim2real_eval
+
+    with pytest.raises(ValueError, match="step_end='soon'"):  # the command line's --step-end reaches it
+        sim2real_eval(episodes=1, step_end="soon", out=str(tmp_path / "cli"))
+    assert len(stopped) == 2
 
 
 def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
