@@ -203,7 +203,8 @@ def test_command_latency_delays_the_real_step_but_not_what_the_policy_sees():
         assert env.late_steps == 0 and not env.refusals
         assert bool(twin.info["grasped"][0]) == grasped is True
     finally:
-        env.close()
+        env.close()  # ManiSkill's Sim2RealEnv stops the agent only: the sim env is closed here
+        sim.close()
         twin.close()
         emu.stop()
     assert emu.error is None, emu.error
