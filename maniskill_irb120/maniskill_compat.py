@@ -114,28 +114,41 @@ def _merge_rows(current: dict, new: dict, env_idx) -> dict:
     return out
 
 
+def state_extras(env, state) -> dict:
+    """The parts of an env state that ManiSkill 3.0.1's ``set_state_dict`` / ``set_state`` do not restore: the
+    ``"controller"`` part ManiSkill records, and the ``"memory"`` part this project's envs add
+    (``IRB120TableEnv.get_state_dict``), each present only where ``state`` has it.
+
+    ``state``: the state dict, or the flat state vector, whose tail after the actors and articulations holds these
+    parts in ``get_state_dict`` order. A flat state of an older layout (no memory), or with no tail, gives the parts
+    it has; one whose tail fits no prefix of this env's layout (recorded in another control mode) gives none."""
+    if isinstance(state, dict):
+        return {k: state[k] for k in ("controller", "memory") if k in state}
+    flat = torch.as_tensor(state)
+    flat = flat[None] if flat.dim() == 1 else flat
+    raw = env._init_raw_state
+    base = sum(int(a.shape[-1]) for part in ("actors", "articulations") for a in raw[part].values())
+    width, layout, used = flat.shape[1] - base, {}, 0
+    for key in ("controller", "memory"):
+        if key in raw and used + _width(raw[key]) <= width:
+            layout[key] = raw[key]
+            used += _width(raw[key])
+    if used != width:
+        return {}
+    return _unflatten_like(layout, flat[:, base:])
+
+
 def restore_controller_state(env, state, env_idx=None) -> None:
     """Restore the controller state that ``env.get_state_dict()`` / ``get_state()`` record and ManiSkill
     3.0.1's ``set_state_dict`` / ``set_state`` drop (e.g. ``pd_ee_target_delta_tool``'s accumulated
     targets: without them a restored episode's next action starts from the wrong target).
 
-    ``state``: the state dict, or the flat state vector (its controller part is the tail, in
-    ``get_state_dict`` order). Rows are those of ``env_idx`` (all envs when None), as ManiSkill's."""
+    ``state``: the state dict or the flat state vector (:func:`state_extras`). Rows are those of ``env_idx`` (all
+    envs when None), as ManiSkill's."""
     current = env.agent.get_controller_state()
-    if not current:
+    ctrl = state_extras(env, state).get("controller")
+    if not current or ctrl is None:
         return
-    if isinstance(state, dict):
-        if "controller" not in state:
-            return
-        ctrl = state["controller"]
-    else:
-        flat = torch.as_tensor(state)
-        flat = flat[None] if flat.dim() == 1 else flat
-        raw = env._init_raw_state
-        base = sum(int(a.shape[-1]) for part in ("actors", "articulations") for a in raw[part].values())
-        if flat.shape[1] != base + _width(current):
-            return  # a state recorded without the controller part (e.g. in another control mode)
-        ctrl = _unflatten_like(current, flat[:, base:])
     env.agent.set_controller_state(_merge_rows(current, ctrl, env_idx))
 
 

@@ -37,6 +37,7 @@ from maniskill_irb120.maniskill_compat import (
     read_sensor_obs,
     reset_mask_from_options,
     restore_controller_state,
+    state_extras,
 )
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
 
@@ -236,7 +237,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         if self.robot_init_qpos_noise > 0:
             qpos[:, :6] += (u * 2 - 1) * self.robot_init_qpos_noise
         self.agent.reset(qpos)
-        self.agent.mark_at_rest(env_idx, qpos)
+        self.agent.set_step_start(env_idx, qpos)
         self.agent.robot.set_pose(sapien.Pose())
         self.agent.invalid_action[env_idx] = False
         self._fresh[env_idx] = True
@@ -258,6 +259,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         """The state evaluated after the last step (or reset) becomes the reference for this step."""
         self._prev = {k: v.clone() for k, v in self._cur.items()}
         self._fresh[:] = False
+        self.contacts.stepped()
 
     def _last(self, key: str, now: torch.Tensor) -> torch.Tensor:
         """The last step's value of ``key`` (``now`` itself right after a reset)."""
@@ -393,15 +395,78 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         return self._randomize_sensor_data(read_sensor_obs(self, apply_texture_transforms))
 
     # ------------------------------------------------------------------ state
+    EPISODE_STATE: tuple[str, ...] = ()
+    """Names of (N, ...) task attributes drawn or recorded per episode that ``evaluate`` reads (e.g. where the
+    object started): they travel in the env state's ``memory``."""
+
+    def get_state_dict(self) -> dict:
+        """ManiSkill's (actors, articulations, the controllers), plus ``memory``: what the next observation and
+        ``info`` depend on beyond the physics, so that ``set_state_dict`` then ``get_obs`` gives the observation
+        taken at this state. All (N, D) float32 rows: the agent's (``step_start_qpos``: the observation's ``qvel`` is
+        the step's displacement; ``gripper_target``: its last command), ``fresh`` (just reset: edge-triggered events
+        and speeds see no last step), ``contact_*`` (the contacts this state was evaluated with: a restore moves the
+        bodies, not PhysX's contact list),
+        ``prev_*`` and ``cur_*`` (the edge-triggered events' last and this step's values) and :attr:`EPISODE_STATE`."""
+        state = super().get_state_dict()
+        if not self._cur:  # evaluated at every reset and step; only a state read before any has none
+            self.evaluate()
+        n = self.num_envs
+        memory = dict(**self.agent.get_memory(), fresh=self._fresh.float()[:, None])
+        memory.update({f"contact_{k}": v for k, v in self.contacts.state().items()})
+        for k, v in self._cur.items():
+            memory[f"prev_{k}"] = self._prev.get(k, v).reshape(n, -1).float()
+            memory[f"cur_{k}"] = v.reshape(n, -1).float()
+        memory.update({k: getattr(self, k).reshape(n, -1).float() for k in self.EPISODE_STATE})
+        state["memory"] = memory
+        return state
+
     def set_state_dict(self, state: dict, env_idx: torch.Tensor | None = None):
-        """ManiSkill's, plus the controller state it records but does not restore."""
+        """ManiSkill's, plus the controller state it records but does not restore, plus :meth:`get_state_dict`'s
+        memory. A state recorded without memory (before it existed) restores as after a reset: ``qvel`` zero,
+        no last step, PhysX's contacts."""
         super().set_state_dict(state, env_idx)
         restore_controller_state(self, state, env_idx)
+        self._restore_memory(state.get("memory"), env_idx)
 
     def set_state(self, state, env_idx: torch.Tensor | None = None):
-        """ManiSkill's (which goes through ``set_state_dict`` without the controller part), plus that part."""
+        """ManiSkill's (which goes through ``set_state_dict`` without the controller and memory parts), plus
+        those parts from the flat vector's tail."""
         super().set_state(state, env_idx)
         restore_controller_state(self, state, env_idx)
+        memory = state_extras(self, state).get("memory")
+        if memory is not None:
+            self._restore_memory(memory, env_idx)
+
+    def _restore_memory(self, memory: dict | None, env_idx: torch.Tensor | None) -> None:
+        """Rows ``env_idx`` (all when None) of :meth:`get_state_dict`'s memory; None: as after a reset."""
+        self._captured_ahead = False  # a frame rendered ahead shows the state before the restore
+        n = self.num_envs
+        rows = torch.arange(n, device=self.device) if env_idx is None else torch.as_tensor(env_idx, device=self.device)
+        rows = rows.long()
+        if memory is None:
+            self.agent.set_memory(rows, None)
+            self._fresh[rows] = True
+            self.contacts.stepped()
+            return
+        # (D,) rows too: ManiSkill's CPU replay restores one env's unbatched state
+        memory = {k: torch.as_tensor(v, device=self.device).reshape(len(rows), -1) for k, v in memory.items()}
+        self.agent.set_memory(rows, memory)
+        self._fresh[rows] = memory["fresh"][:, 0] > 0.5
+        self.contacts.restore({k: memory[f"contact_{k}"] for k in ("robot_hit", "object_hit", "finger_forces")}, rows)
+        if not self._cur:
+            self.evaluate()
+        for k, cur in list(self._cur.items()):
+            self._prev[k] = _set_rows(self._prev.get(k, cur), rows, memory[f"prev_{k}"])
+            self._cur[k] = _set_rows(cur, rows, memory[f"cur_{k}"])
+        for k in self.EPISODE_STATE:
+            setattr(self, k, _set_rows(getattr(self, k), rows, memory[k]))
+
+
+def _set_rows(current: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """A copy of ``current`` with ``rows`` set from (len(rows), D) float ``values`` in its own dtype and shape."""
+    out = current.clone()
+    out[rows] = values.reshape(len(rows), *current.shape[1:]).to(current.dtype)
+    return out
 
 
 def reach_reward(dist: torch.Tensor) -> torch.Tensor:

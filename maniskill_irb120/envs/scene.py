@@ -227,6 +227,8 @@ class Contacts:
         )
         self._query = None
         self._kind = None
+        self._last: ContactFlags | None = None  # what flags() last returned
+        self._frozen = False  # a restored state's contacts stand in for PhysX's until the next physics step
 
     def impulses(self) -> torch.Tensor:
         """(P, N, 3) impulses of :attr:`pairs`: one batched query on the GPU, per-pair queries on the CPU."""
@@ -242,8 +244,40 @@ class Contacts:
         return self._query.cuda_impulses.torch().clone().view(len(self.pairs), self.scene.num_envs, 3)
 
     def flags(self) -> ContactFlags:
-        """This step's :class:`ContactFlags`."""
-        return self.pairwise() if self.scene.gpu_sim_enabled else self.scan()
+        """This step's :class:`ContactFlags`; after :meth:`restore`, the restored ones until :meth:`stepped`."""
+        if not self._frozen or self._last is None:
+            self._last = self.pairwise() if self.scene.gpu_sim_enabled else self.scan()
+        return self._last
+
+    # A state restore moves the bodies but not PhysX's contact list, which stays the last simulated step's: the
+    # contacts a restored state was evaluated with travel in the env state (IRB120TableEnv.get_state_dict).
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The contacts last returned by :meth:`flags` as ``(N, D)`` float rows (an env state's layout)."""
+        f = self._last if self._last is not None else self.flags()
+        n = f.robot_hit.shape[0]
+        return dict(
+            robot_hit=f.robot_hit.float()[:, None],
+            object_hit=f.object_hit.float().T.contiguous(),
+            finger_forces=f.finger_forces.permute(2, 0, 1, 3).reshape(n, -1).float(),
+        )
+
+    def restore(self, state: dict[str, torch.Tensor], env_idx: torch.Tensor | None = None) -> None:
+        """Serve ``state`` (:meth:`state`'s layout; rows of ``env_idx``, all envs when None) from :meth:`flags` until
+        the next physics step. The other envs keep the contacts of their last step, which a restore left alone."""
+        cur = self._last if self._last is not None else self.flags()
+        m, n = cur.object_hit.shape
+        rows = torch.arange(n, device=cur.robot_hit.device) if env_idx is None else torch.as_tensor(env_idx).long()
+        robot_hit, object_hit, forces = cur.robot_hit.clone(), cur.object_hit.clone(), cur.finger_forces.clone()
+        dev = robot_hit.device
+        robot_hit[rows] = state["robot_hit"].to(dev)[:, 0] > 0.5
+        object_hit[:, rows] = (state["object_hit"].to(dev) > 0.5).T
+        forces[:, :, rows] = state["finger_forces"].to(dev, forces.dtype).reshape(-1, m, 2, 3).permute(1, 2, 0, 3)
+        self._last, self._frozen = ContactFlags(robot_hit, object_hit, forces), True
+
+    def stepped(self) -> None:
+        """Physics is about to step: :meth:`flags` reads PhysX again."""
+        self._frozen = False
 
     def pairwise(self) -> ContactFlags:
         forces = self.impulses() / self.scene.px.timestep

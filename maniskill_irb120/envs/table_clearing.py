@@ -94,6 +94,8 @@ class TableClearingIRB120Env(IRB120TableEnv):
     letting a stuck policy waste long rollouts.
     """
 
+    EPISODE_STATE = ("obj_start_pos",)  # the approach term stops paying once the object moved from here
+
     # ------------------------------------------------------------------ scene and episodes
     def _load_scene(self, options: dict):
         self.build_trays()

@@ -277,11 +277,34 @@ class IRB120Metalwork(BaseAgent):
         qvel = self.robot.get_qvel()[..., :6]
         return torch.max(torch.abs(qvel), dim=1)[0] <= threshold
 
-    def mark_at_rest(self, env_idx: torch.Tensor, qpos: torch.Tensor) -> None:
-        """Envs ``env_idx`` were just reset to ``qpos``: their next observation's ``qvel`` is zero."""
+    def set_step_start(self, env_idx: torch.Tensor, qpos: torch.Tensor) -> None:
+        """The last step of envs ``env_idx`` started at ``qpos`` (their ``step_qvel`` measures from it): their
+        reset pose after a reset (``qvel`` zero), or the one a restored env state carries."""
         if self._step_start_qpos is None:
             self._step_start_qpos = self.robot.get_qpos().clone()
         self._step_start_qpos[env_idx] = qpos.to(self._step_start_qpos)
+
+    def get_memory(self) -> dict[str, torch.Tensor]:
+        """(N, D) rows of what the observation and ``info`` read from the agent beyond the physics, for the env
+        state: where the last step started (``qvel``) and the gripper's last command (a grasp needs it closed)."""
+        start = self._step_start_qpos if self._step_start_qpos is not None else self.robot.get_qpos()
+        gripper = self.controller.controllers["gripper"]
+        return dict(step_start_qpos=start.clone(), gripper_target=gripper._target_qpos.clone())
+
+    def set_memory(self, env_idx: torch.Tensor, memory: dict[str, torch.Tensor] | None) -> None:
+        """Rows ``env_idx`` of :meth:`get_memory`. None (a state recorded without it): at rest (``qvel`` zero, as
+        after a reset), and the gripper commanded as its fingers stand (closed below mid-stroke)."""
+        gripper = self.controller.controllers["gripper"]
+        if memory is None:
+            qpos = self.robot.get_qpos()[env_idx]
+            cfg = gripper.config
+            closed = qpos[:, -1:] < (cfg.open_target + cfg.closed_target) / 2
+            target = torch.where(closed, cfg.closed_target, cfg.open_target).expand(-1, len(gripper.joints))
+            memory = dict(step_start_qpos=qpos, gripper_target=target)
+        self.set_step_start(env_idx, memory["step_start_qpos"])
+        targets = gripper._target_qpos.clone()
+        targets[env_idx] = memory["gripper_target"].to(targets)
+        gripper._target_qpos = targets
 
     def step_qvel(self) -> torch.Tensor:
         """(N, dof) the joints' mean velocity over the last control step: (qpos now - qpos when the step's action
