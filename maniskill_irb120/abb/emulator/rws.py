@@ -393,20 +393,40 @@ class VirtualController:
             self._tmp.cleanup()
 
 
+_TOKEN = re.compile(r'\s*(?:(\[)|(\])|(,)|"([^"]*)"|(TRUE|FALSE)\b|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?))', re.I)
+
+
 def _parse_value(text: str, like):
-    """A value in RAPID's text form for data of ``like``'s type: num, bool or string (what a deployment sets)."""
-    t = text.strip()
-    if isinstance(like, bool):
-        if t.upper() not in ("TRUE", "FALSE"):
-            raise ValueError("a bool is TRUE or FALSE")
-        return t.upper() == "TRUE"
-    if isinstance(like, float):
-        return float(t)
-    if isinstance(like, str):
-        if len(t) < 2 or t[0] != '"' or t[-1] != '"':
-            raise ValueError('a string is written in double quotes, e.g. "abc"')
-        return t[1:-1]
-    raise ValueError("only num, bool and string data are set over RWS here")
+    """A value in RAPID's text form (``3``, ``TRUE``, ``"abc"``, ``[1,[2,3],FALSE]``) as the interpreter assigns
+    it (aggregates as lists); the interpreter then checks it against the data's type."""
+    pos, stack, out = 0, [[]], None
+    text = text.strip()
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        if m is None:
+            raise ValueError(f"cannot read {text[pos : pos + 20]!r}")
+        pos = m.end()
+        if m.group(1):
+            stack.append([])
+        elif m.group(2):
+            if len(stack) < 2:
+                raise ValueError("unbalanced ]")
+            done = stack.pop()
+            stack[-1].append(done)
+        elif m.group(3):
+            continue
+        elif m.group(4) is not None:
+            stack[-1].append(m.group(4))
+        elif m.group(5):
+            stack[-1].append(m.group(5).upper() == "TRUE")
+        else:
+            stack[-1].append(float(m.group(6)))
+    if len(stack) != 1 or len(stack[0]) != 1:
+        raise ValueError("one value, with balanced brackets")
+    out = stack[0][0]
+    if isinstance(like, bool) != isinstance(out, bool) or isinstance(like, str) != isinstance(out, str):
+        raise ValueError(f"a {type(like).__name__} value is expected")
+    return out
 
 
 # ====================================================================================================== HTTP
