@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import hashlib
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -250,3 +252,19 @@ def test_remote_start_needs_auto_and_the_motors_on(emulator):
     with pytest.raises(ABBException, match="motors are off"):
         r.start()
     assert r.get_execution_state().ctrlexecstate == "stopped"
+
+
+def test_the_command_line_serves_rws_on_loopback_only():
+    cmd = [sys.executable, "-m", "maniskill_irb120", "emulator"]
+    bad = subprocess.run([*cmd, "--rws", "0.0.0.0:8080"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "serves 127.0.0.1:PORT only" in bad.stderr
+    proc = subprocess.Popen([*cmd, "--rws", "127.0.0.1:0", "--options", "608-1"], stdout=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("http://127.0.0.1:")
+        r = RWS(url)
+        assert [s["option"] for s in r._do_get("rw/system")["_embedded"]["_state"][1:]] == ["608-1 World Zones"]
+        r.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
