@@ -272,7 +272,7 @@ def deploy(
         texts[f] = p.read_bytes()
         consts = constants_of(texts[f].decode("utf-8", "replace"))
         if consts:
-            say(f"  {f}: " + ", ".join(f"{k} = {v}" for k, v in consts.items()))
+            say(f"  {f} sets " + ", ".join(f"{k} = {v}" for k, v in consts.items()))
     remote = f"$HOME/{folder}"
     try:
         if folder not in c.list_files("$HOME"):
@@ -325,6 +325,16 @@ def deploy(
             c.release_mastership()
         except Exception:  # a lost connection releases it too
             pass
+    say(
+        "once per controller, on the FlexPendant (system parameters, which deploy leaves alone): "
+        f"{ENTRY}Restart as the RESTART event routine"
+        + (
+            f"; {ZONE_FILE} as an automatically loaded system module with IRB120ZonePowerOn as its POWER ON event"
+            " routine (loaded over RWS it is gone after a restart)"
+            if plan.zone
+            else ""
+        )
+    )
     if info.opmode == "AUTO":
         say("the controller is in AUTO: the server refuses motion there unless ALLOW_AUTO (deploy start checks it)")
     else:
