@@ -235,6 +235,11 @@ def _last_seq(c) -> int:
     return max((e.seqnum for e in c.read_event_log()), default=0)
 
 
+def _code(event) -> str:
+    """The event number after a space, or nothing where the controller gave none (0)."""
+    return f" {event.code}" if event.code else ""
+
+
 def _new_events(c, after: int) -> list:
     return sorted((e for e in c.read_event_log() if e.seqnum > after), key=lambda e: e.seqnum)
 
@@ -303,7 +308,7 @@ def deploy(
                 c.load_module(f"{remote}/{f}", replace=True)
             except Exception as e:
                 lines = [f"loading {remote}/{f} into {TASK} failed: {e}"]
-                lines += [f"  controller event {ev.code} {ev.title}: {ev.desc}" for ev in _new_events(c, seq)]
+                lines += [f"  controller event{_code(ev)}: {ev.title}: {ev.desc}" for ev in _new_events(c, seq)]
                 for m in reversed(loaded):
                     c.unload_module(m)
                 lines.append(
@@ -352,7 +357,7 @@ def status(c, say: Callable[[str], None], events: int = 5) -> None:
     log = sorted(c.read_event_log(), key=lambda e: e.seqnum)[-events:]
     say(f"last {len(log)} events:")
     for e in log:
-        say(f"  {e.tstamp:%H:%M:%S} {e.code} {e.title}: {e.desc}")
+        say(f"  {e.tstamp:%H:%M:%S}{_code(e)} {e.title}: {e.desc}")
 
 
 def stop(c, say: Callable[[str], None]) -> None:

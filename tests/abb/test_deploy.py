@@ -124,7 +124,7 @@ def test_a_module_that_does_not_load_shows_the_controller_s_message(emulator, ca
     rc, out, err = run(capsys, "--controller", emu.url, "--yes", "--rapid-dir", str(tmp_path))
     assert rc == 1
     assert "loading $HOME/IRB120/IRB120Serial.mod into T_ROB1 failed" in err
-    assert f"controller event 0 Syntax error: file $HOME/IRB120/IRB120Serial.mod: line {line}, column 13" in err
+    assert f"controller event: Syntax error: file $HOME/IRB120/IRB120Serial.mod: line {line}, column 13" in err
     assert "unloaded what this run loaded (IRB120Server)" in err
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule"]
     assert "program pointer" not in out
