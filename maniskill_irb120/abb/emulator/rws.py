@@ -16,7 +16,8 @@ What is served (docs/deploy_irc5.md, "What was verified on the emulator only", h
   resetpp), ``/rw/rapid/tasks`` (``T_ROB1``: loadmod / unloadmod / activate), ``/rw/rapid/tasks/T_ROB1/modules``
   and ``/rw/rapid/modules?task=T_ROB1``, ``/rw/rapid/tasks/T_ROB1/pcp`` (the program pointer; ``set-pp-routine``
   (verify)), ``/rw/rapid/symbol/data/RAPID/T_ROB1/[MODULE/]NAME`` (read; ``action=set`` for PERS and VAR),
-  ``/rw/mastership`` (``request`` / ``release``), ``/rw/elog/0`` (the emulator's events), ``/logout``.
+  ``/rw/rapid/symbols?action=search-symbols`` (the PERS data), ``/rw/mastership`` (``request`` / ``release``),
+  ``/rw/elog/0`` (the emulator's events), ``/logout``.
 * Every answer is RWS 1.0's JSON representation (``?json=1``, ``Content-Type: application/json``): an
   ``_embedded._state`` list of items with ``_type`` and ``_title``; an error is ``_embedded.status`` with
   ``code`` and ``msg`` (the shape abb-robot-client parses). The numeric error codes are the emulator's own
@@ -50,7 +51,7 @@ from urllib.parse import parse_qs, unquote, urlsplit
 
 from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, STOCK_MAIN_MODULE, ControllerEmulator
 from maniskill_irb120.abb.emulator.pendant import ControllerStateError
-from maniskill_irb120.abb.emulator.rapid import OPTIONS, RapidSyntaxError, parse, parse_options
+from maniskill_irb120.abb.emulator.rapid import OPTIONS, RapidRuntimeError, RapidSyntaxError, parse, parse_options
 from maniskill_irb120.abb.emulator.rapid.values import format_value
 
 REALM = "validusers@robapi.abb"  # RobotWare 6's digest realm (integrator knowledge, verify)
@@ -258,7 +259,7 @@ class VirtualController:
             mods[key] = LoadedModule(name, text, modulepath, path.suffix.lower() == ".sys")
             try:
                 emu = self._build(mods)
-            except RapidSyntaxError as e:  # RapidLoadError too: a missing option, an ambiguous name
+            except (RapidSyntaxError, RapidRuntimeError) as e:  # a missing option, an ambiguous name, bad data
                 self.log_event(3, "Module not loaded", f"file {modulepath}: {e}")
                 raise RWSError(400, f"loadmod: the module in {modulepath} was not loaded: see the event log") from None
             self.modules = mods
@@ -371,6 +372,21 @@ class VirtualController:
                 raise RWSError(400, f"RAPID/{'/'.join(parts)}: {e}") from None
             return format_value(value), name
 
+    def persistents(self) -> list[dict]:
+        """The task's PERS data as RWS's symbol search lists them (``symburl``, ``name``, ``dattyp``; verify)."""
+        with self.lock:
+            interp = self.program.interp
+            names = {n.lower(): n for n in interp.module_names}
+            found = [(interp._owner.get(k, ""), ref) for k, ref in interp.globals.items()]
+            found += [(mod, ref) for mod, table in interp.local_data.items() for ref in table.values()]
+            out = []
+            for mod, ref in found:
+                if ref.cell.kind == "PERS":
+                    url = f"RAPID/{TASK}/{names.get(mod, mod)}/{ref.cell.name}"
+                    item = {"_type": "rap-symproplist-search", "_title": url, "symburl": url, "name": ref.cell.name}
+                    out.append({**item, "symtyp": "per", "dattyp": ref.cell.type or ""})
+            return out
+
     def set_symbol(self, session: str | None, parts: list[str], value: str) -> None:
         with self.lock:
             if self.op_mode != "auto":
@@ -472,6 +488,8 @@ class _Handler(BaseHTTPRequestHandler):
             self.server.route(self, method, path, query, form)
         except RWSError as e:
             self._error(e.status, e.msg)
+        except Exception as e:  # a fault of the emulator: answered, and the server serves on
+            self._error(500, f"internal error: {type(e).__name__}: {e}")
 
     def _send(self, status: int, body: bytes = b"", ctype: str = "application/json") -> None:
         self.send_response(status)
@@ -744,6 +762,10 @@ class _Server(ThreadingHTTPServer):
                 return h._send(204)
         if path in ("/rw/elog/0", "/rw/elog") and method == "GET":
             return h.state(self._elog())
+        if path == "/rw/rapid/symbols" and action == "search-symbols" and method == "POST":
+            if form.get("symtyp", "per") != "per":
+                raise RWSError(400, "search-symbols: the emulator lists persistents only (symtyp=per)")
+            return h.state(vc.persistents())
         m = _SYMBOL.fullmatch(path)
         if m:
             parts = m.group(1).split("/")

@@ -80,6 +80,8 @@ def test_abb_robot_client_parses_every_answer(emulator):
     assert modules(r) == ["MainModule", "IRB120Server", "IRB120Socket", "IRB120Zone"]
     assert r.get_rapid_variable("IRB120Server/ALLOW_AUTO") == "FALSE"
     assert r.get_rapid_variable("IRB120Socket/SOCK_PORT") == "5000"
+    pers = r.get_rapid_variables()
+    assert [(p["symburl"], p["dattyp"]) for p in pers] == [("RAPID/T_ROB1/IRB120Server/tGripper", "tooldata")]
     # a PERS changes over RWS (in AUTO without mastership, as abb-robot-client's set_rapid_variable assumes); a
     # CONST does not
     r._do_post("rw/mastership?action=release")
@@ -268,3 +270,18 @@ def test_the_command_line_serves_rws_on_loopback_only():
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_on(emulator):
+    emu = emulator()
+    r = RWS(emu.url)
+    upload(r, "Bad.mod", text={"Bad.mod": "MODULE Bad\n  VAR byte b := 300;\nENDMODULE\n"})
+    r._do_post("rw/mastership?action=request")
+    with pytest.raises(ABBException, match="not loaded"):
+        load(r, "Bad.mod")
+    event = r.read_event_log()[0]
+    assert event.msgtype == 3 and "b is a byte (0..255) and cannot take 300" in event.desc and "line 2" in event.desc
+    assert modules(r) == ["MainModule"]
+    with pytest.raises(ABBException, match="lists persistents only"):
+        r._do_post("rw/rapid/symbols?action=search-symbols", {"symtyp": "var"})
+    assert r.get_rapid_variables() == []  # the stock MainModule has none
