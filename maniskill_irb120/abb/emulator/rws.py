@@ -100,6 +100,13 @@ def _msgtype(code: int | None, title: str) -> int:
     return 1
 
 
+def _entries(emu: ControllerEmulator | None) -> list[LogEntry]:
+    """A task's own events (pendant, motion, ErrWrite) as log entries; code 0 where no event number is known."""
+    if emu is None:
+        return []
+    return [LogEntry(_msgtype(e.code, e.title), e.code or 0, e.title, e.detail, e.time) for e in emu.events()]
+
+
 class VirtualController:
     """The controller behind the web services: its options, key switch, file system ($HOME in a temporary folder),
     task ``T_ROB1`` (the stock MainModule at first, program pointer at ``main``), motors, mastership and event log.
@@ -133,7 +140,6 @@ class VirtualController:
         self.motors_on = False
         self.master: str | None = None  # the session holding mastership
         self.log: list[LogEntry] = []
-        self._programs: list[ControllerEmulator] = []  # every task built, started or not (their events)
         self.program: ControllerEmulator | None = None
         self.program_url: str | None = None
         self._replace_program(self._build())
@@ -168,11 +174,13 @@ class VirtualController:
         return emu
 
     def _replace_program(self, emu: ControllerEmulator) -> None:
+        """``emu`` is the task from now on; the old one's events stay in the log."""
         old = self.program
-        if old is not None and old.thread.is_alive():
-            old.stop()
+        if old is not None:
+            if old.thread.is_alive():
+                old.stop()
+            self.log.extend(_entries(old))
         self.program, self.program_url = emu, None
-        self._programs.append(emu)
 
     @property
     def started(self) -> bool:
@@ -204,10 +212,7 @@ class VirtualController:
         """The event log, oldest first: the controller's own entries and every program's (pendant, motion,
         ErrWrite). Entries without a known event number carry code 0."""
         with self.lock:
-            merged = list(self.log)
-            for emu in self._programs:
-                for e in emu.events():
-                    merged.append(LogEntry(_msgtype(e.code, e.title), e.code or 0, e.title, e.detail, e.time))
+            merged = self.log + _entries(self.program)
         merged.sort(key=lambda e: e.time)
         return merged
 
@@ -319,18 +324,19 @@ class VirtualController:
                     f"start: the controller is in {OPMODES[self.op_mode]}; remote start needs AUTO (in the manual "
                     "modes the operator starts the program on the FlexPendant, holding the enabling device)",
                 )
-            if not remote and self.op_mode != "auto":
-                self.motors_on = True
             if self.pp is None:
                 raise RWSError(400, "start: no program pointer: resetpp or set-pp-routine first")
-            if self.ctrl_state != "motoron" and not (not remote and self.op_mode != "auto"):
+            enabling = not remote and self.op_mode != "auto"  # the operator holds the enabling device
+            if enabling:
+                self.motors_on = True
+            elif self.ctrl_state != "motoron":
                 raise RWSError(409, f"start: the motors are off ({self.ctrl_state}): turn them on first")
             if not self.started:
                 self.program.signals["doMotorsOn"] = 1
                 self.program_url = self.program.start()
                 self.log_event(1, "Program started", f"{TASK} at {self.pp}")
             else:
-                if not remote and self.op_mode != "auto":
+                if enabling:
                     self.program.enabling_device(True)
                 try:
                     self.program.press_start()
@@ -403,9 +409,8 @@ class VirtualController:
 
     def close(self) -> None:
         with self.lock:
-            for emu in self._programs:
-                if emu.thread.is_alive():
-                    emu.stop()
+            if self.program is not None and self.program.thread.is_alive():
+                self.program.stop()
             self._tmp.cleanup()
 
 

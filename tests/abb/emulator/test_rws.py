@@ -285,3 +285,30 @@ def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_o
     with pytest.raises(ABBException, match="lists persistents only"):
         r._do_post("rw/rapid/symbols?action=search-symbols", {"symtyp": "var"})
     assert r.get_rapid_variables() == []  # the stock MainModule has none
+
+
+def test_nothing_is_loaded_unloaded_or_moved_while_the_program_runs(emulator):
+    emu = emulator()
+    r = RWS(emu.url)
+    upload(r, "IRB120Server.mod", "IRB120Serial.mod")
+    r._do_post("rw/mastership?action=request")
+    load(r, "IRB120Server.mod")
+    load(r, "IRB120Serial.mod")
+    r._do_post("rw/rapid/tasks/T_ROB1/pcp?action=set-pp-routine", {"routine": "IRB120Server"})
+    emu.controller.start(remote=False)  # the operator, on the pendant
+    assert r.get_execution_state().ctrlexecstate == "running"
+    for call in (
+        lambda: load(r, "IRB120Serial.mod"),
+        lambda: r._do_post("rw/rapid/tasks/T_ROB1?action=unloadmod", {"module": "IRB120Serial"}),
+        lambda: r.resetpp(),
+    ):
+        with pytest.raises(ABBException, match="the program is running; stop it first") as e:
+            call()
+        assert e.value.code == -409
+    assert modules(r) == ["MainModule", "IRB120Server", "IRB120Serial"]
+    assert r._do_get("rw/rapid/tasks/T_ROB1/pcp")["_embedded"]["_state"][0]["routinename"] == "IRB120Server"
+    r.stop()
+    assert r.get_execution_state().ctrlexecstate == "stopped"
+    r.resetpp()  # stopped: PP to main runs the program's UNDO handlers, then stands at the main entry
+    assert r._do_get("rw/rapid/tasks/T_ROB1/pcp")["_embedded"]["_state"][0]["routinename"] == "main"
+    assert any(e.title == "PP to main" for e in r.read_event_log())
