@@ -8,6 +8,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -100,6 +101,7 @@ def emulator(
     op_mode: str = "manual_reduced",
     statement_cost_us: float = 10.0,
     pc_address: str | None = None,
+    rws: str | None = None,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -113,7 +115,10 @@ def emulator(
     program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO.
     ``--statement-cost-us``: the controller time one RAPID statement costs (an estimate; 0: no pacing).
     ``--pc-address``: the TCP build's PC_ADDRESS, the one client address it serves (default 127.0.0.1, where a
-    local client connects from; any other address makes the server refuse local clients, as a cell would)."""
+    local client connects from; any other address makes the server refuse local clients, as a cell would).
+    ``--rws 127.0.0.1:PORT``: serve Robot Web Services 1.0 instead (what ``deploy`` talks to): a controller with
+    ``--options`` and ``--op-mode`` and the stock MainModule, nothing of ours loaded; prints the RWS URL first and
+    each program URL as the program starts."""
     from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
@@ -130,6 +135,14 @@ def emulator(
     if not (math.isfinite(statement_cost_us) and statement_cost_us >= 0):
         print(f"--statement-cost-us {statement_cost_us!r}: a time >= 0 us per statement (0: off)", file=sys.stderr)
         return 2
+    if rws is not None:
+        from maniskill_irb120.abb.emulator.rws import main as rws_main
+
+        try:
+            return rws_main(rws, options, op_mode, statement_cost_us)
+        except ValueError as e:
+            print(e, file=sys.stderr)
+            return 2
     if pc_address is not None:
         if not listen.startswith("tcp:"):
             print("--pc-address: only the TCP build serves a PC address (--listen tcp://...)", file=sys.stderr)
@@ -140,6 +153,74 @@ def emulator(
             print(f"--pc-address {pc_address!r}: an IPv4 address, e.g. 192.168.125.2", file=sys.stderr)
             return 2
     return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address)
+
+
+def deploy(
+    action: tyro.conf.Positional[Literal["load", "status", "start", "stop", "unload"]] = "load",
+    controller: str | None = None,
+    user: str = "Default User",
+    password: str = "robotics",
+    yes: bool = False,
+    channel: str = "auto",
+    zone: str = "auto",
+    rapid_dir: str | None = None,
+    events: int = 5,
+) -> int:
+    """Deploy the RAPID server to an IRC5 (RobotWare 6) over Robot Web Services: ``deploy --controller
+    http://HOST`` reads the RobotWare version, the options, the operating mode and the controller state, picks the
+    files the option matrix allows (serial: no option; TCP: 616-1 or 672-1; the world zone: 608-1) and says why,
+    uploads them to $HOME/IRB120, loads them into T_ROB1 (printing the controller's own event-log messages on a load
+    error) and, after you confirm (``--yes`` for scripts), leaves the program stopped with PP at IRB120Server.
+    ``--channel serial|tcp`` and ``--zone on|off`` ask for a build (refused naming the missing option);
+    ``--rapid-dir DIR``: your edited copies of the files (SER_CHANNEL, PC_ADDRESS, ...). ``deploy status``: the
+    execution state, operating mode, controller state, speed ratio and the last ``--events`` events; ``deploy
+    start``: start remotely, in AUTO only and only if the loaded server's ALLOW_AUTO is TRUE; ``deploy stop``;
+    ``deploy unload``: our modules and files out, PP back to main. ``--user``/``--password``: RWS's defaults.
+    Needs the ``real`` extra (abb-robot-client). Exit status 1 when refused, 2 on bad flags."""
+    from maniskill_irb120.abb import deploy as dep
+
+    if controller is None:
+        print("deploy: --controller http://HOST is required (the IRC5's address)", file=sys.stderr)
+        return 2
+    if channel not in ("auto", "serial", "tcp") or zone not in ("auto", "on", "off"):
+        print("deploy: --channel auto|serial|tcp, --zone auto|on|off", file=sys.stderr)
+        return 2
+    say = lambda m: print(m, flush=True)  # noqa: E731
+
+    def confirm(question: str) -> bool:
+        if yes:
+            say(f"{question} yes (--yes)")
+            return True
+        if not sys.stdin.isatty():
+            say(f"{question} not confirmed: no terminal to answer at (pass --yes in scripts)")
+            return False
+        try:
+            return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+        except EOFError:
+            return False
+
+    try:
+        c = dep.connect(controller, user, password)
+        try:
+            if action == "load":
+                dep.deploy(c, say, confirm, channel, zone, Path(rapid_dir) if rapid_dir else None)
+            elif action == "status":
+                dep.status(c, say, events)
+            elif action == "start":
+                dep.start(c, say, confirm)
+            elif action == "stop":
+                dep.stop(c, say)
+            else:
+                dep.unload(c, say)
+        finally:
+            c.close()
+    except dep.DeployRefused as e:
+        print(f"deploy {action}: refused: {e}", file=sys.stderr)
+        return 1
+    except Exception as e:  # the controller answered with an error, or did not answer
+        print(f"deploy {action}: {dep._explain(e, 'the controller')}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def sim2real_eval(
@@ -303,6 +384,7 @@ COMMANDS = {
     "collect-demos": collect_demos,
     "expert": expert,
     "emulator": emulator,
+    "deploy": deploy,
     "sim2real-eval": sim2real_eval,
     "sysid": sysid,
     "teleop": teleop,

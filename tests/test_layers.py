@@ -129,7 +129,7 @@ def test_wire_side_runs_without_maniskill_or_sapien():
                     raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 
         sys.meta_path.insert(0, Block())
-        from maniskill_irb120.abb import client, envelope, protocol
+        from maniskill_irb120.abb import client, deploy, envelope, protocol
         from maniskill_irb120.teleop import devices, gamepad, jog, keyboard, spacemouse
         env = envelope.Envelope()
         import numpy as np

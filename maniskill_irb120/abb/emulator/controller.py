@@ -108,6 +108,8 @@ class ControllerEmulator(Pendant):
     the key switch (:data:`OP_MODE_NAMES`), what ``OpMode()`` returns; set :attr:`op_mode` to turn it while the
     program runs. ``statement_cost_us``: the controller time of one RAPID statement (:data:`STATEMENT_COST_US`).
     ``pc_address``: the PC's address the TCP build serves (its PC_ADDRESS constant, as an integrator sets it).
+    ``modules``: the task's module texts as the controller holds them (loaded over Robot Web Services,
+    ``rws.py``), instead of the shipped files: what was loaded is what runs.
 
     The operator's controls (Stop, Start, PP to main, emergency stop, the enabling device) and the event log are
     in :class:`~.pendant.Pendant`."""
@@ -129,6 +131,7 @@ class ControllerEmulator(Pendant):
         op_mode: str = "manual_reduced",
         statement_cost_us: float = STATEMENT_COST_US,
         pc_address: str = "127.0.0.1",
+        modules: tuple[str, ...] | list[str] | None = None,
     ):
         if channel not in CHANNEL_MODULES:
             raise ValueError(f"channel={channel!r}: use 'serial' or 'tcp'")
@@ -145,7 +148,7 @@ class ControllerEmulator(Pendant):
         self.op_mode = op_mode
         self.channel_kind, self.port = channel, port
         self.zone = zone
-        source = server_source(channel, rapid, zone, pc_address)
+        sources = [server_source(channel, rapid, zone, pc_address)] if modules is None else list(modules)
         self.robot = EmulatedIRB120(q0_deg)
         self.robot.speed_scale = speed_scale
         self.op_mode = op_mode  # again, now that the robot exists: its TCP speed cap follows the key switch
@@ -155,7 +158,7 @@ class ControllerEmulator(Pendant):
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         # syntax and load errors (missing options, ambiguous names) surface here, with their module and line
         self.interp = Interpreter(
-            [source, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
+            [*sources, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
         )
         self.interp.supervision = self._motion_supervision
         self.start_routines: list[str] = []  # START event routines: run when the program starts from main

@@ -1,0 +1,902 @@
+"""Robot Web Services 1.0 on the controller emulator: the subset a deployment uses, so that ``maniskill-irb120
+deploy`` (``abb-robot-client`` underneath) is tested against the same checks a RobotWare 6 IRC5 makes.
+
+    maniskill-irb120 emulator --rws 127.0.0.1:0 --options 616-1,608-1   # first line printed: the RWS URL
+
+What is served (docs/deploy_irc5.md, "What was verified on the emulator only", has the table with sources):
+
+* HTTP digest authentication (RFC 7616: MD5, ``qop=auth``), realm ``validusers@robapi.abb`` (verify), user
+  ``Default User`` / ``robotics`` (the defaults abb-robot-client and ABB's manuals name); a wrong password gets
+  401. After the first authenticated request the client gets the session cookies ``-http-session-`` and ``ABBCX``
+  (abb-robot-client's subscriptions read ``ABBCX``); mastership belongs to that session.
+* ``/fileservice/$HOME/...``: GET (a file's bytes, or a folder's listing), PUT (a file, into an existing folder),
+  DELETE (a file, or an empty folder), POST ``fs-action=create`` + ``fs-newname`` (a folder).
+* ``/rw/system`` (RobotWare version and the installed options, ``sys-system-li`` / ``sys-option-li`` as
+  abb_librws reads them), ``/rw/panel/{ctrlstate,opmode,speedratio}``, ``/rw/rapid/execution`` (start, stop,
+  resetpp), ``/rw/rapid/tasks`` (``T_ROB1``: loadmod / unloadmod / activate), ``/rw/rapid/tasks/T_ROB1/modules``
+  and ``/rw/rapid/modules?task=T_ROB1``, ``/rw/rapid/tasks/T_ROB1/pcp`` (the program pointer; ``set-pp-routine``
+  (verify)), ``/rw/rapid/symbol/data/RAPID/T_ROB1/[MODULE/]NAME`` (read; ``action=set`` for PERS and VAR),
+  ``/rw/rapid/symbols?action=search-symbols`` (the PERS data), ``/rw/mastership`` (``request`` / ``release``),
+  ``/rw/elog/0`` (the emulator's events), ``/logout``.
+* Every answer is RWS 1.0's JSON representation (``?json=1``, ``Content-Type: application/json``): an
+  ``_embedded._state`` list of items with ``_type`` and ``_title``; an error is ``_embedded.status`` with
+  ``code`` and ``msg`` (the shape abb-robot-client parses). The numeric error codes are the emulator's own
+  (``-HTTP status``, verify): a client matches on the HTTP status and the message.
+
+What the controller refuses here, as an IRC5 does (each a rule of the controller, "(verify)" where the exact
+answer is guessed): loading, unloading, moving the program pointer and setting RAPID data without mastership (403);
+loading or unloading while the program runs (409, verify); a module that does not parse or names anything of a
+missing RobotWare option (the emulator's load-time checks, ``rapid/options.py``): 400, the module is not loaded and
+the controller's own message goes to the event log; starting the program remotely in a manual mode (403: in manual
+the operator starts it on the FlexPendant, holding the enabling device; verify) or with the motors off.
+
+The task model underneath is :class:`~.controller.ControllerEmulator`: every successful load builds the task anew
+from the modules as loaded (so what runs is what was uploaded), and Start runs it from where the program pointer
+stands. Binds 127.0.0.1 only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import secrets
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path, PurePosixPath
+from urllib.parse import parse_qs, unquote, urlsplit
+
+from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, STOCK_MAIN_MODULE, ControllerEmulator
+from maniskill_irb120.abb.emulator.pendant import ControllerStateError
+from maniskill_irb120.abb.emulator.rapid import OPTIONS, RapidRuntimeError, RapidSyntaxError, parse, parse_options
+from maniskill_irb120.abb.emulator.rapid.values import format_value
+
+REALM = "validusers@robapi.abb"  # RobotWare 6's digest realm (integrator knowledge, verify)
+DEFAULT_USER = "Default User"  # ABB's default user and password, as abb-robot-client defaults to them
+DEFAULT_PASSWORD = "robotics"
+ROBOTWARE_VERSION = "6.15.04.00"  # the RobotWare 6 the emulator claims to be (any RobotWare 6 serves RWS 1.0)
+TASK = "T_ROB1"
+HOME = "$HOME"
+OPMODES = {"manual_reduced": "MANR", "manual_full": "MANF", "auto": "AUTO"}  # RWS's names (abb-robot-client)
+CHANNEL_MODULE_NAMES = {"irb120socket": "tcp", "irb120serial": "serial"}  # the loaded channel module -> the link
+ZONE_MODULE = "irb120zone"  # loaded: its POWER ON event routine runs before the program starts
+MAX_BODY = 1 << 20  # a module file is a few tens of kB; anything bigger is refused
+MAX_NONCES = 64
+
+
+class RWSError(Exception):
+    """An RWS error answer: the HTTP status and the message (the body's ``_embedded.status``)."""
+
+    def __init__(self, status: int, msg: str):
+        self.status, self.msg = status, msg
+        super().__init__(f"{status}: {msg}")
+
+
+@dataclass
+class LoadedModule:
+    name: str  # as the module declares it
+    text: str
+    path: str | None  # the file it was loaded from ($HOME/...); None for the stock MainModule
+    sysmod: bool
+
+
+@dataclass
+class LogEntry:
+    msgtype: int  # 1 information, 2 warning, 3 error (abb-robot-client's EventLogEntry)
+    code: int
+    title: str
+    desc: str
+    time: float  # time.monotonic(), as the program's own events
+
+
+def _msgtype(code: int | None, title: str) -> int:
+    if code == 80001 or "error" in title.lower() or code == 10013:
+        return 3
+    if code in (80002, 50024):
+        return 2
+    return 1
+
+
+def _entries(emu: ControllerEmulator | None) -> list[LogEntry]:
+    """A task's own events (pendant, motion, ErrWrite) as log entries; code 0 where no event number is known."""
+    if emu is None:
+        return []
+    return [LogEntry(_msgtype(e.code, e.title), e.code or 0, e.title, e.detail, e.time) for e in emu.events()]
+
+
+class VirtualController:
+    """The controller behind the web services: its options, key switch, file system ($HOME in a temporary folder),
+    task ``T_ROB1`` (the stock MainModule at first, program pointer at ``main``), motors, mastership and event log.
+    Every method takes the lock: the HTTP server serves each client on its own thread.
+
+    ``main_entry``: the task's main entry (what resetpp moves the program pointer to). ``op_mode``: the key switch
+    (``manual_reduced``, ``manual_full``, ``auto``); settable. The running program, once started, is
+    :attr:`program` (a :class:`ControllerEmulator`) and the PC connects to :attr:`program_url`."""
+
+    def __init__(
+        self,
+        options: tuple[str, ...] | str = (),
+        op_mode: str = "manual_reduced",
+        main_entry: str = "main",
+        statement_cost_us: float = STATEMENT_COST_US,
+        system_name: str = "IRB120_emulator",
+    ):
+        self.options = parse_options(options)
+        self.op_mode = op_mode
+        self.main_entry = main_entry
+        self.statement_cost_us = statement_cost_us
+        self.system_name = system_name
+        self.lock = threading.RLock()
+        self._tmp = tempfile.TemporaryDirectory(prefix="rws-home-")
+        self.home = Path(self._tmp.name)
+        self.modules: dict[str, LoadedModule] = {
+            "mainmodule": LoadedModule("MainModule", STOCK_MAIN_MODULE, None, False)
+        }
+        self.pp: str | None = main_entry  # the routine the program pointer stands at (None: no program pointer)
+        self.speed_ratio = 100
+        self.motors_on = False
+        self.master: str | None = None  # the session holding mastership
+        self.log: list[LogEntry] = []
+        self.program: ControllerEmulator | None = None
+        self.program_url: str | None = None
+        self._replace_program(self._build())
+
+    @property
+    def op_mode(self) -> str:
+        """The key switch; turning it reaches the running program (what its ``OpMode()`` reads)."""
+        return self._op_mode
+
+    @op_mode.setter
+    def op_mode(self, mode: str) -> None:
+        if mode not in OPMODES:
+            raise ValueError(f"op_mode={mode!r}: use one of {sorted(OPMODES)}")
+        self._op_mode = mode
+        if getattr(self, "program", None) is not None:
+            self.program.op_mode = mode
+
+    # ------------------------------------------------------------------ the task
+    def _build(self, modules: dict[str, LoadedModule] | None = None) -> ControllerEmulator:
+        """The task as ``modules`` make it (the emulator's load-time checks run here; raises as they do)."""
+        mods = self.modules if modules is None else modules
+        channel = next((CHANNEL_MODULE_NAMES[k] for k in mods if k in CHANNEL_MODULE_NAMES), "serial")
+        emu = ControllerEmulator(
+            channel,
+            options=self.options,
+            zone=ZONE_MODULE in mods,
+            modules=[m.text for m in mods.values()],
+            entry=self.pp or self.main_entry,
+            op_mode=self.op_mode,
+            statement_cost_us=self.statement_cost_us,
+        )
+        return emu
+
+    def _replace_program(self, emu: ControllerEmulator) -> None:
+        """``emu`` is the task from now on; the old one's events stay in the log."""
+        old = self.program
+        if old is not None:
+            if old.thread.is_alive():
+                old.stop()
+            self.log.extend(_entries(old))
+        self.program, self.program_url = emu, None
+
+    @property
+    def started(self) -> bool:
+        return self.program is not None and self.program_url is not None
+
+    @property
+    def exec_state(self) -> str:
+        """``running`` or ``stopped`` (RWS's ``ctrlexecstate``)."""
+        with self.lock:
+            if self.started and self.program.program_state == "running":
+                return "running"
+            return "stopped"
+
+    @property
+    def ctrl_state(self) -> str:
+        """RWS's ``ctrlstate``: ``motoron``, ``motoroff`` or ``emergencystop``."""
+        with self.lock:
+            if self.started:
+                if self.program.emergency_stop_active:
+                    return "emergencystop"
+                return "motoron" if self.program.motors_on else "motoroff"
+            return "motoron" if self.motors_on else "motoroff"
+
+    def log_event(self, msgtype: int, title: str, desc: str = "", code: int = 0) -> None:
+        with self.lock:
+            self.log.append(LogEntry(msgtype, code, title, desc, time.monotonic()))
+
+    def events(self) -> list[LogEntry]:
+        """The event log, oldest first: the controller's own entries and every program's (pendant, motion,
+        ErrWrite). Entries without a known event number carry code 0."""
+        with self.lock:
+            merged = self.log + _entries(self.program)
+        merged.sort(key=lambda e: e.time)
+        return merged
+
+    def _need_master(self, session: str | None, what: str) -> None:
+        if session is None or self.master != session:
+            held = "held by another client" if self.master else "not held"
+            raise RWSError(403, f"{what} needs mastership (POST /rw/mastership?action=request): mastership is {held}")
+
+    def _need_stopped(self, what: str) -> None:
+        if self.exec_state == "running":
+            raise RWSError(409, f"{what}: the program is running; stop it first (verify)")
+
+    # ------------------------------------------------------------------ files
+    def file_path(self, path: str) -> Path:
+        """A controller path (``$HOME/dir/file``, or ``HOME:/dir/file`` as RAPID writes it) on this machine;
+        anything outside $HOME, or ``..``, is refused."""
+        p = path.strip()
+        if p.upper().startswith("HOME:"):
+            p = HOME + "/" + p[5:].lstrip("/")
+        parts = PurePosixPath(p).parts
+        if not parts or parts[0].upper() != HOME:
+            raise RWSError(404, f"{path}: unknown file system location (the emulator serves {HOME} only)")
+        if any(part in ("..", ".") for part in parts[1:]):
+            raise RWSError(400, f"{path}: '..' and '.' are not allowed in a path")
+        return self.home.joinpath(*parts[1:])
+
+    # ------------------------------------------------------------------ RAPID
+    def load_module(self, session: str | None, modulepath: str, replace: bool) -> str:
+        with self.lock:
+            self._need_master(session, "loading a module")
+            self._need_stopped("loading a module")
+            path = self.file_path(modulepath)
+            if not path.is_file():
+                raise RWSError(400, f"loadmod: no file {modulepath}")
+            text = path.read_text(errors="replace")
+            try:
+                tree = parse(text)
+            except RapidSyntaxError as e:
+                self.log_event(3, "Syntax error", f"file {modulepath}: {str(e).splitlines()[0]}")
+                raise RWSError(400, f"loadmod: the module in {modulepath} was not loaded: see the event log") from None
+            if len(tree.children) != 1:
+                self.log_event(3, "Module not loaded", f"file {modulepath}: a file holds exactly one MODULE")
+                raise RWSError(400, f"loadmod: the module in {modulepath} was not loaded: see the event log")
+            name = str(tree.children[0].children[0])
+            key = name.lower()
+            if key in self.modules and not replace:
+                raise RWSError(409, f"loadmod: module {name} is already loaded in {TASK} (replace=true replaces it)")
+            mods = dict(self.modules)
+            mods[key] = LoadedModule(name, text, modulepath, path.suffix.lower() == ".sys")
+            try:
+                emu = self._build(mods)
+            except (RapidSyntaxError, RapidRuntimeError) as e:  # a missing option, an ambiguous name, bad data
+                self.log_event(3, "Module not loaded", f"file {modulepath}: {e}")
+                raise RWSError(400, f"loadmod: the module in {modulepath} was not loaded: see the event log") from None
+            self.modules = mods
+            self.pp = None  # the program pointer is lost; resetpp or set-pp-routine sets it again (verify)
+            self._replace_program(emu)
+            self.log_event(1, "Module loaded", f"module {name} from {modulepath} into {TASK}")
+            return name
+
+    def unload_module(self, session: str | None, module: str) -> None:
+        with self.lock:
+            self._need_master(session, "unloading a module")
+            self._need_stopped("unloading a module")
+            key = module.strip().lower()
+            if key not in self.modules:
+                raise RWSError(400, f"unloadmod: no module {module} in {TASK}")
+            mods = {k: v for k, v in self.modules.items() if k != key}
+            self.modules = mods
+            self.pp = None
+            self._replace_program(self._build(mods))
+            self.log_event(1, "Module unloaded", f"module {module} from {TASK}")
+
+    def set_pp(self, session: str | None, routine: str | None) -> None:
+        """PP to ``routine`` (None: to the task's main entry, resetpp)."""
+        with self.lock:
+            self._need_master(session, "moving the program pointer")
+            self._need_stopped("moving the program pointer")
+            target = routine or self.main_entry
+            found = self.program.interp.find_routine_py(target)
+            if found is None or found.kind != "PROC":
+                where = "set-pp-routine" if routine else f"resetpp (the task's main entry is {self.main_entry})"
+                raise RWSError(400, f"{where}: no PROC {target} in {TASK}")
+            if self.started:
+                try:
+                    self.program.pp_to_main()  # UNDO handlers run, the path is cleared
+                except ControllerStateError as e:
+                    raise RWSError(409, str(e)) from None
+            self.program.entry = target
+            self.pp = target
+            self.log_event(1, "Program pointer moved", f"{TASK}: PP to {target}")
+
+    def pcp(self) -> tuple[str, str] | None:
+        """(module, routine) of the program pointer, or None."""
+        with self.lock:
+            if self.pp is None:
+                return None
+            routine = self.program.interp.find_routine_py(self.pp)
+            module = next((m.name for k, m in self.modules.items() if routine and k == routine.module), "")
+            return module, self.pp
+
+    def start(self, remote: bool = True) -> None:
+        """Start the program where PP stands. ``remote``: over RWS (AUTO only); else the pendant's Start button
+        (in a manual mode: with the enabling device held, which turns the motors on)."""
+        with self.lock:
+            if remote and self.op_mode != "auto":
+                raise RWSError(
+                    403,
+                    f"start: the controller is in {OPMODES[self.op_mode]}; remote start needs AUTO (in the manual "
+                    "modes the operator starts the program on the FlexPendant, holding the enabling device)",
+                )
+            if self.pp is None:
+                raise RWSError(400, "start: no program pointer: resetpp or set-pp-routine first")
+            enabling = not remote and self.op_mode != "auto"  # the operator holds the enabling device
+            if enabling:
+                self.motors_on = True
+            elif self.ctrl_state != "motoron":
+                raise RWSError(409, f"start: the motors are off ({self.ctrl_state}): turn them on first")
+            if not self.started:
+                self.program.signals["doMotorsOn"] = 1
+                self.program_url = self.program.start()
+                self.log_event(1, "Program started", f"{TASK} at {self.pp}")
+            else:
+                if enabling:
+                    self.program.enabling_device(True)
+                try:
+                    self.program.press_start()
+                except ControllerStateError as e:
+                    raise RWSError(409, f"start: {e}") from None
+
+    def stop(self) -> None:
+        with self.lock:
+            if self.started:
+                self.program.press_stop()
+
+    def set_motors(self, state: str) -> None:
+        with self.lock:
+            if state == "motoroff":
+                self.motors_on = False
+                if self.started and self.program.motors_on:
+                    self.program.motors_off_fault("motors off over RWS")
+            elif state == "motoron":
+                if self.op_mode != "auto":
+                    raise RWSError(403, "motoron: in the manual modes the motors come on with the enabling device")
+                self.motors_on = True
+                if self.started:
+                    try:
+                        self.program.motors_on_button()
+                    except ControllerStateError as e:
+                        raise RWSError(409, str(e)) from None
+            else:
+                raise RWSError(400, f"ctrl-state={state!r}: use motoron or motoroff")
+
+    def symbol(self, parts: list[str]) -> tuple[str, str]:
+        """(value text, qualified name) of RAPID data ``[T_ROB1, MODULE?, NAME]``."""
+        with self.lock:
+            if len(parts) not in (2, 3) or parts[0].upper() != TASK:
+                raise RWSError(404, f"RAPID/{'/'.join(parts)}: name data as RAPID/{TASK}/[MODULE/]NAME")
+            name = ":".join(parts[1:])
+            try:
+                value = self.program.interp.get(name)
+            except Exception as e:  # no such data, or an ambiguous LOCAL name
+                raise RWSError(400, f"RAPID/{'/'.join(parts)}: {e}") from None
+            return format_value(value), name
+
+    def persistents(self) -> list[dict]:
+        """The task's PERS data as RWS's symbol search lists them (``symburl``, ``name``, ``dattyp``; verify)."""
+        with self.lock:
+            interp = self.program.interp
+            names = {n.lower(): n for n in interp.module_names}
+            found = [(interp._owner.get(k, ""), ref) for k, ref in interp.globals.items()]
+            found += [(mod, ref) for mod, table in interp.local_data.items() for ref in table.values()]
+            out = []
+            for mod, ref in found:
+                if ref.cell.kind == "PERS":
+                    url = f"RAPID/{TASK}/{names.get(mod, mod)}/{ref.cell.name}"
+                    item = {"_type": "rap-symproplist-search", "_title": url, "symburl": url, "name": ref.cell.name}
+                    out.append({**item, "symtyp": "per", "dattyp": ref.cell.type or ""})
+            return out
+
+    def set_symbol(self, session: str | None, parts: list[str], value: str) -> None:
+        with self.lock:
+            if self.op_mode != "auto":
+                self._need_master(session, "setting RAPID data in a manual mode")
+            _, name = self.symbol(parts)
+            ref = self.program.interp.ref(name)
+            if ref.cell.kind == "CONST":
+                raise RWSError(400, f"RAPID/{'/'.join(parts)} is a CONST: it changes only in the module's file")
+            try:
+                current = self.program.interp.get(name)
+                self.program.interp.set(name, _parse_value(value, current))
+            except Exception as e:
+                raise RWSError(400, f"RAPID/{'/'.join(parts)}: value {value!r} refused: {e}") from None
+
+    def close(self) -> None:
+        with self.lock:
+            if self.program is not None and self.program.thread.is_alive():
+                self.program.stop()
+            self._tmp.cleanup()
+
+
+_TOKEN = re.compile(r'\s*(?:(\[)|(\])|(,)|"([^"]*)"|(TRUE|FALSE)\b|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?))', re.I)
+
+
+def _parse_value(text: str, like):
+    """A value in RAPID's text form (``3``, ``TRUE``, ``"abc"``, ``[1,[2,3],FALSE]``) as the interpreter assigns
+    it (aggregates as lists); the interpreter then checks it against the data's type."""
+    pos, stack, out = 0, [[]], None
+    text = text.strip()
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        if m is None:
+            raise ValueError(f"cannot read {text[pos : pos + 20]!r}")
+        pos = m.end()
+        if m.group(1):
+            stack.append([])
+        elif m.group(2):
+            if len(stack) < 2:
+                raise ValueError("unbalanced ]")
+            done = stack.pop()
+            stack[-1].append(done)
+        elif m.group(3):
+            continue
+        elif m.group(4) is not None:
+            stack[-1].append(m.group(4))
+        elif m.group(5):
+            stack[-1].append(m.group(5).upper() == "TRUE")
+        else:
+            stack[-1].append(float(m.group(6)))
+    if len(stack) != 1 or len(stack[0]) != 1:
+        raise ValueError("one value, with balanced brackets")
+    out = stack[0][0]
+    if isinstance(like, bool) != isinstance(out, bool) or isinstance(like, str) != isinstance(out, str):
+        raise ValueError(f"a {type(like).__name__} value is expected")
+    return out
+
+
+# ====================================================================================================== HTTP
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    protocol_version = "HTTP/1.1"
+    timeout = 10  # a silent client's connection is closed after this many seconds
+
+    def log_message(self, format, *args):  # noqa: A002 - the base class's signature
+        pass
+
+    def do_GET(self):
+        self._serve("GET")
+
+    def do_POST(self):
+        self._serve("POST")
+
+    def do_PUT(self):
+        self._serve("PUT")
+
+    def do_DELETE(self):
+        self._serve("DELETE")
+
+    # ---- plumbing ---------------------------------------------------------------------------------------
+    def _serve(self, method: str) -> None:
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > MAX_BODY:
+            self.close_connection = True
+            return self._error(413, f"request body of {length} bytes: at most {MAX_BODY}")
+        body = self.rfile.read(length) if length else b""
+        session, new_cookie = self.server.authenticate(self, method)
+        if session is None:
+            return self._unauthorized()
+        self._cookie = new_cookie
+        self._session = session
+        url = urlsplit(self.path)
+        path = unquote(url.path).rstrip("/") or "/"
+        query = {k: v[-1] for k, v in parse_qs(url.query, keep_blank_values=True).items()}
+        try:
+            if path.startswith("/fileservice"):
+                return self._fileservice(method, path[len("/fileservice") :].lstrip("/"), body, query)
+            form = {k: v[-1] for k, v in parse_qs(body.decode("utf-8", "replace"), keep_blank_values=True).items()}
+            self.server.route(self, method, path, query, form)
+        except RWSError as e:
+            self._error(e.status, e.msg)
+        except Exception as e:  # a fault of the emulator: answered, and the server serves on
+            self._error(500, f"internal error: {type(e).__name__}: {e}")
+
+    def _send(self, status: int, body: bytes = b"", ctype: str = "application/json") -> None:
+        self.send_response(status)
+        if body or status != 204:
+            self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        if getattr(self, "_cookie", None):
+            for c in self._cookie:
+                self.send_header("Set-Cookie", c)
+        self.end_headers()
+        if body:
+            self.wfile.write(body)
+
+    def state(self, items: list[dict], status: int = 200) -> None:
+        base = f"http://{self.headers.get('Host', '127.0.0.1')}/"
+        doc = {"_links": {"base": {"href": base}}, "_embedded": {"_state": items}}
+        self._send(status, json.dumps(doc).encode())
+
+    def _error(self, status: int, msg: str) -> None:
+        doc = {"_links": {}, "_embedded": {"_type": "status", "status": {"code": -status, "msg": msg}}}
+        self._send(status, json.dumps(doc).encode())
+
+    def _unauthorized(self) -> None:
+        nonce = self.server.new_nonce()
+        doc = {"_links": {}, "_embedded": {"_type": "status", "status": {"code": -401, "msg": "401 Unauthorized"}}}
+        body = json.dumps(doc).encode()
+        self.send_response(401)
+        self.send_header(
+            "WWW-Authenticate",
+            f'Digest realm="{REALM}", qop="auth", nonce="{nonce}", opaque="{self.server.opaque}", algorithm=MD5',
+        )
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    # ---- the file service --------------------------------------------------------------------------------
+    def _fileservice(self, method: str, rel: str, body: bytes, query: dict) -> None:
+        vc = self.server.controller
+        with vc.lock:
+            target = vc.file_path(rel)
+            if method == "GET":
+                if target.is_dir():
+                    items = [
+                        {
+                            "_type": "fs-dir" if p.is_dir() else "fs-file",
+                            "_title": p.name,
+                            "fs-size": str(p.stat().st_size),
+                        }
+                        for p in sorted(target.iterdir())
+                    ]
+                    return self.state(items)
+                if target.is_file():
+                    return self._send(200, target.read_bytes(), "application/octet-stream")
+                raise RWSError(404, f"{rel}: no such file or folder")
+            if method == "PUT":
+                if not target.parent.is_dir():
+                    raise RWSError(404, f"{rel}: folder {target.parent.name} does not exist (create it first)")
+                if target.is_dir():
+                    raise RWSError(409, f"{rel} is a folder")
+                existed = target.exists()
+                target.write_bytes(body)
+                return self._send(200 if existed else 201)
+            if method == "DELETE":
+                if target.is_dir():
+                    if any(target.iterdir()):
+                        raise RWSError(409, f"{rel}: the folder is not empty")
+                    target.rmdir()
+                elif target.is_file():
+                    target.unlink()
+                else:
+                    raise RWSError(404, f"{rel}: no such file or folder")
+                return self._send(204)
+            if method == "POST":
+                form = {k: v[-1] for k, v in parse_qs(body.decode("utf-8", "replace")).items()}
+                if form.get("fs-action") != "create" or not form.get("fs-newname"):
+                    raise RWSError(400, "POST on the file service: fs-action=create with fs-newname=FOLDER")
+                if not target.is_dir():
+                    raise RWSError(404, f"{rel}: no such folder")
+                name = form["fs-newname"]
+                if "/" in name or name in ("..", "."):
+                    raise RWSError(400, f"fs-newname={name!r}: one folder name")
+                new = target / name
+                if new.exists():
+                    raise RWSError(409, f"{rel}/{name} exists")
+                new.mkdir()
+                return self._send(201)
+        raise RWSError(405, f"{method} is not served on the file service")
+
+
+_SYMBOL = re.compile(r"/rw/rapid/symbol/data/RAPID/(.+)")
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, port: int, controller: VirtualController, user: str, password: str):
+        super().__init__(("127.0.0.1", port), _Handler)
+        self.controller = controller
+        self.user, self.password = user, password
+        self.opaque = secrets.token_hex(8)
+        self._nonces: dict[str, int] = {}  # nonce -> the last nc seen
+        self._sessions: set[str] = set()
+        self._lock = threading.Lock()
+
+    def new_nonce(self) -> str:
+        with self._lock:
+            nonce = secrets.token_hex(16)
+            self._nonces[nonce] = 0
+            while len(self._nonces) > MAX_NONCES:
+                self._nonces.pop(next(iter(self._nonces)))
+            return nonce
+
+    def authenticate(self, h: _Handler, method: str) -> tuple[str | None, list[str]]:
+        """(session, cookies to set): a valid digest answer (RFC 7616, MD5, qop=auth) or a known session
+        cookie; (None, []) otherwise. A wrong Authorization fails even with a session cookie."""
+        cookies = dict(c.strip().split("=", 1) for c in (h.headers.get("Cookie") or "").split(";") if "=" in c.strip())
+        session = cookies.get("ABBCX")
+        auth = h.headers.get("Authorization")
+        if auth is None:
+            return (session, []) if session in self._sessions else (None, [])
+        if not self._digest_ok(auth, method, h.path):
+            return None, []
+        if session in self._sessions:
+            return session, []
+        session = secrets.token_hex(12)
+        with self._lock:
+            self._sessions.add(session)
+        return session, [f"-http-session-={session}::http-session::; path=/", f"ABBCX={session}; path=/"]
+
+    def _digest_ok(self, header: str, method: str, path: str) -> bool:
+        if not header.startswith("Digest "):
+            return False
+        f = {k: a or b for k, a, b in re.findall(r'(\w+)=(?:"([^"]*)"|([^\s,]+))', header[7:])}
+        need = ("username", "realm", "nonce", "uri", "response", "qop", "nc", "cnonce")
+        if any(k not in f for k in need) or f["qop"] != "auth" or f.get("algorithm", "MD5").upper() != "MD5":
+            return False
+        if f["username"] != self.user or f["realm"] != REALM or f["uri"] != path:
+            return False
+        try:
+            nc = int(f["nc"], 16)
+        except ValueError:
+            return False
+        with self._lock:
+            last = self._nonces.get(f["nonce"])
+            if last is None or nc <= last:  # an unknown nonce or a replayed count
+                return False
+            md5 = lambda s: hashlib.md5(s.encode()).hexdigest()  # noqa: S324 - RFC 7616's MD5 digest
+            ha1 = md5(f"{self.user}:{REALM}:{self.password}")
+            ha2 = md5(f"{method}:{f['uri']}")
+            expected = md5(f"{ha1}:{f['nonce']}:{f['nc']}:{f['cnonce']}:auth:{ha2}")
+            if not secrets.compare_digest(expected, f["response"]):
+                return False
+            self._nonces[f["nonce"]] = nc
+            return True
+
+    def logout(self, session: str) -> None:
+        with self._lock:
+            self._sessions.discard(session)
+        vc = self.controller
+        with vc.lock:
+            if vc.master == session:
+                vc.master = None
+
+    # ---- /rw, /logout ----------------------------------------------------------------------------------
+    def route(self, h: _Handler, method: str, path: str, query: dict, form: dict) -> None:
+        vc, action, session = self.controller, query.get("action"), h._session
+        if path == "/logout" and method == "GET":
+            self.logout(session)
+            return h._send(204)
+        if path == "/rw/system" and method == "GET":
+            return h.state(self._system() + self._options())
+        if path == "/rw/system/options" and method == "GET":
+            return h.state(self._options())
+        if path == "/rw/panel/ctrlstate":
+            if method == "GET":
+                return h.state([{"_type": "pnl-ctrlstate", "_title": "ctrlstate", "ctrlstate": vc.ctrl_state}])
+            if action == "setctrlstate":
+                vc.set_motors(form.get("ctrl-state", ""))
+                return h._send(204)
+        if path == "/rw/panel/opmode" and method == "GET":
+            return h.state([{"_type": "pnl-opmode", "_title": "opmode", "opmode": OPMODES[vc.op_mode]}])
+        if path == "/rw/panel/speedratio":
+            if method == "GET":
+                return h.state([{"_type": "pnl-speedratio", "_title": "speedratio", "speedratio": str(vc.speed_ratio)}])
+            if action == "setspeedratio":
+                try:
+                    ratio = int(float(form.get("speed-ratio", "")))
+                except ValueError:
+                    raise RWSError(400, "speed-ratio: a whole percentage 0..100") from None
+                if not 0 <= ratio <= 100:
+                    raise RWSError(400, f"speed-ratio={ratio}: 0..100")
+                vc.speed_ratio = ratio
+                return h._send(204)
+        if path == "/rw/mastership" and method == "POST" and action in ("request", "release"):
+            with vc.lock:
+                if action == "request":
+                    if vc.master not in (None, session):
+                        raise RWSError(409, "mastership is held by another client")
+                    vc.master = session
+                elif vc.master == session:
+                    vc.master = None
+            return h._send(204)
+        if path == "/rw/rapid/execution":
+            if method == "GET":
+                return h.state(
+                    [
+                        {
+                            "_type": "rap-execution",
+                            "_title": "execution",
+                            "ctrlexecstate": vc.exec_state,
+                            "cycle": "forever",
+                        }
+                    ]
+                )
+            if action == "start":
+                vc.start(remote=True)
+                return h._send(204)
+            if action == "stop":
+                vc.stop()
+                return h._send(204)
+            if action == "resetpp":
+                vc.set_pp(session, None)
+                return h._send(204)
+        if path == "/rw/rapid/tasks" and method == "GET":
+            return h.state([self._task()])
+        if path == f"/rw/rapid/tasks/{TASK}":
+            if method == "GET":
+                return h.state([self._task()])
+            if action == "loadmod":
+                if "modulepath" not in form:
+                    raise RWSError(400, "loadmod: modulepath=$HOME/FILE")
+                vc.load_module(session, form["modulepath"], form.get("replace", "false").lower() == "true")
+                return h._send(204)
+            if action == "unloadmod":
+                if "module" not in form:
+                    raise RWSError(400, "unloadmod: module=NAME")
+                vc.unload_module(session, form["module"])
+                return h._send(204)
+            if action in ("activate", "deactivate"):
+                if action == "deactivate":
+                    raise RWSError(400, f"{TASK} is the motion task: it stays active")
+                return h._send(204)
+        if (
+            path == f"/rw/rapid/tasks/{TASK}/modules" or (path == "/rw/rapid/modules" and query.get("task") == TASK)
+        ) and (method == "GET"):
+            with vc.lock:
+                items = [
+                    {
+                        "_type": "rap-module-info-li",
+                        "_title": m.name,
+                        "name": m.name,
+                        "type": "SysMod" if m.sysmod else "ProgMod",
+                    }
+                    for m in vc.modules.values()
+                ]
+            return h.state(items)
+        if path == f"/rw/rapid/tasks/{TASK}/pcp":
+            if method == "GET":
+                where = vc.pcp()
+                item = {"_type": "pcp-info", "_title": "progpointer", "modulename": "", "routinename": ""}
+                if where is not None:
+                    item.update(modulename=where[0], routinename=where[1])
+                return h.state([item])
+            if action == "set-pp-routine":
+                if not form.get("routine"):
+                    raise RWSError(400, "set-pp-routine: routine=NAME")
+                vc.set_pp(session, form["routine"])
+                return h._send(204)
+        if path in ("/rw/elog/0", "/rw/elog") and method == "GET":
+            return h.state(self._elog())
+        if path == "/rw/rapid/symbols" and action == "search-symbols" and method == "POST":
+            if form.get("symtyp", "per") != "per":
+                raise RWSError(400, "search-symbols: the emulator lists persistents only (symtyp=per)")
+            return h.state(vc.persistents())
+        m = _SYMBOL.fullmatch(path)
+        if m:
+            parts = m.group(1).split("/")
+            if method == "GET":
+                value, name = vc.symbol(parts)
+                return h.state([{"_type": "rap-data", "_title": f"RAPID/{'/'.join(parts)}", "value": value}])
+            if action == "set":
+                if "value" not in form:
+                    raise RWSError(400, "action=set: value=TEXT")
+                vc.set_symbol(session, parts, form["value"])
+                return h._send(204)
+        raise RWSError(404, f"{method} {path}{'?action=' + action if action else ''}: no such resource")
+
+    def _system(self) -> list[dict]:
+        vc = self.controller
+        return [
+            {
+                "_type": "sys-system-li",
+                "_title": "system",
+                "name": vc.system_name,
+                "rwversion": ROBOTWARE_VERSION,
+                "rwversionname": ROBOTWARE_VERSION,
+                "sysid": "{emulator}",
+            }
+        ]
+
+    def _options(self) -> list[dict]:
+        return [{"_type": "sys-option-li", "_title": o, "option": str(OPTIONS[o])} for o in self.controller.options]
+
+    def _task(self) -> dict:
+        vc = self.controller
+        running = vc.exec_state == "running"
+        return {
+            "_type": "rap-task-li",
+            "_title": TASK,
+            "name": TASK,
+            "type": "norm",
+            "taskstate": "started" if running else "linked",
+            "excstate": "started" if running else ("ready" if vc.pp else "uninitialized"),
+            "active": "On",
+            "motiontask": "TRUE",
+        }
+
+    def _elog(self) -> list[dict]:
+        now_wall, now_mono = time.time(), time.monotonic()
+        out = []
+        for seq, e in enumerate(self.controller.events(), start=1):
+            stamp = time.strftime("%Y-%m-%d T  %H:%M:%S", time.localtime(now_wall - (now_mono - e.time)))
+            out.append(
+                {
+                    "_type": "elog-message-li",
+                    "_title": f"/rw/elog/0/{seq}",
+                    "msgtype": str(e.msgtype),
+                    "code": str(e.code),
+                    "tstamp": stamp,
+                    "title": e.title,
+                    "desc": e.desc,
+                    "conseqs": "",
+                    "causes": "",
+                    "actions": "",
+                    "argc": "0",
+                }
+            )
+        return out[::-1]  # newest first, as the pendant lists them (verify)
+
+
+class RWSEmulator:
+    """The web services of a :class:`VirtualController` on ``http://127.0.0.1:PORT`` (0: a free port); a context
+    manager. Extra keyword arguments go to the controller."""
+
+    def __init__(self, port: int = 0, user: str = DEFAULT_USER, password: str = DEFAULT_PASSWORD, **controller):
+        self.controller = VirtualController(**controller)
+        self._server = _Server(port, self.controller, user, password)
+        self.url = f"http://127.0.0.1:{self._server.server_address[1]}"
+        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True)
+
+    def start(self) -> str:
+        self._thread.start()
+        return self.url
+
+    def stop(self) -> None:
+        if self._thread.is_alive():
+            self._server.shutdown()
+            self._thread.join(5)
+        self._server.server_close()
+        self.controller.close()
+
+    def __enter__(self) -> RWSEmulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def main(
+    rws: str,
+    options: str | None = None,
+    op_mode: str = "manual_reduced",
+    statement_cost_us: float = STATEMENT_COST_US,
+    main_entry: str = "main",
+    serve_s: float | None = None,
+) -> int:
+    """Serve RWS on ``rws`` (``127.0.0.1:PORT``; 0: a free port) until interrupted (or ``serve_s`` seconds);
+    prints the URL as its first line, then each program URL as the program starts."""
+    host, _, port = rws.rpartition(":")
+    if host not in ("127.0.0.1", "localhost") or not port.isdigit():
+        raise ValueError(f"--rws {rws!r}: the emulator serves 127.0.0.1:PORT only (0: a free port)")
+    emu = RWSEmulator(
+        int(port), options=options or (), op_mode=op_mode, statement_cost_us=statement_cost_us, main_entry=main_entry
+    )
+    print(emu.start(), flush=True)
+    deadline = None if serve_s is None else time.monotonic() + serve_s
+    shown = None
+    try:
+        while deadline is None or time.monotonic() < deadline:
+            url = emu.controller.program_url
+            if url and url != shown:
+                print(f"program started: the PC connects to {url}", flush=True)
+                shown = url
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    return 0
+
+
+__all__ = ["RWSEmulator", "RWSError", "VirtualController", "main"]
