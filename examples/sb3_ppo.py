@@ -41,15 +41,19 @@ class Args:
 
 
 def main(args: Args) -> PPO:
-    venv = make_sb3_vec_env(args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed,
-                            reward_mode=args.reward_mode)  # fmt: skip
+    venv = make_sb3_vec_env(
+        args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
+    )
     policy = "MlpPolicy" if args.obs == "state" else "MultiInputPolicy"
-    extra = {} if args.n_steps is None else {"n_steps": args.n_steps, "batch_size": min(64, args.n_steps * args.num_envs)}
+    extra = {}
+    if args.n_steps is not None:  # a rollout smaller than SB3's batch of 64 needs a smaller batch
+        extra = {"n_steps": args.n_steps, "batch_size": min(64, args.n_steps * args.num_envs)}
     model = PPO(policy, venv, seed=args.seed, tensorboard_log=str(args.out_dir), verbose=1, **extra)
     model.learn(args.total_timesteps)
     model.save(args.out_dir / "model")
     venv.close()
-    print(f"training-episode success, last {len(model.ep_success_buffer)}: {np.mean(model.ep_success_buffer or [0]):.2f}")
+    successes = list(model.ep_success_buffer)
+    print(f"training-episode success, last {len(successes)} episodes: {np.mean(successes or [0]):.2f}")
     return model
 
 

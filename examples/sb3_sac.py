@@ -42,16 +42,25 @@ class Args:
 
 
 def main(args: Args) -> SAC:
-    venv = make_sb3_vec_env(args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed,
-                            reward_mode=args.reward_mode)  # fmt: skip
+    venv = make_sb3_vec_env(
+        args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
+    )
     policy = "MlpPolicy" if args.obs == "state" else "MultiInputPolicy"
     buffer_size = args.buffer_size or (1_000_000 if args.obs == "state" else 30_000)
-    model = SAC(policy, venv, buffer_size=buffer_size, learning_starts=args.learning_starts, seed=args.seed,
-                tensorboard_log=str(args.out_dir), verbose=1)  # fmt: skip
+    model = SAC(
+        policy,
+        venv,
+        buffer_size=buffer_size,
+        learning_starts=args.learning_starts,
+        seed=args.seed,
+        tensorboard_log=str(args.out_dir),
+        verbose=1,
+    )
     model.learn(args.total_timesteps)
     model.save(args.out_dir / "model")
     venv.close()
-    print(f"training-episode success, last {len(model.ep_success_buffer)}: {np.mean(model.ep_success_buffer or [0]):.2f}")
+    successes = list(model.ep_success_buffer)
+    print(f"training-episode success, last {len(successes)} episodes: {np.mean(successes or [0]):.2f}")
     return model
 
 

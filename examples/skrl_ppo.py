@@ -43,16 +43,26 @@ class Args:
 
 def main(args: Args) -> PPO:
     set_seed(args.seed)
-    env = make_skrl_env(args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed,
-                        reward_mode=args.reward_mode)  # fmt: skip
+    env = make_skrl_env(
+        args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
+    )
     cfg = PPO_CFG(time_limit_bootstrap=True)
     cfg.experiment.directory = str(args.out_dir)
     memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
-    agent = PPO(models=policy_and_value(env), memory=memory, observation_space=env.observation_space,
-                action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
+    agent = PPO(
+        models=policy_and_value(env),
+        memory=memory,
+        observation_space=env.observation_space,
+        action_space=env.action_space,
+        device=env.device,
+        cfg=cfg,
+    )
     steps = max(1, args.total_timesteps // env.num_envs)
-    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": steps, "headless": True})
+    trainer = SequentialTrainer(
+        env=env, agents=agent, cfg={"timesteps": steps, "headless": True, "close_environment_at_exit": False}
+    )
     trainer.train()
+    env.close()
     return agent
 
 

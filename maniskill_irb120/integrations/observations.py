@@ -107,8 +107,9 @@ def make_single_env(
     """One CPU env with numpy observations, actions and scalars (ManiSkill's ``CPUGymWrapper``) giving ``obs``'s
     observation: what a library's single-env checker (SB3's ``check_env``) takes, and what a held-out evaluation
     steps. ``wrappers`` go on the ManiSkill env before the observation wrappers (e.g. an action wrapper)."""
-    import maniskill_irb120  # noqa: F401  (registers the tasks)
     from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+
+    import maniskill_irb120  # noqa: F401  (registers the tasks)
 
     env = gym.make(env_id, num_envs=1, **env_kwargs_for(obs, reward_mode, control_mode, env_kwargs))
     for w in [*wrappers, *observation_wrappers(obs)]:

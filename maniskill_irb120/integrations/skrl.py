@@ -43,7 +43,8 @@ try:
 except ModuleNotFoundError as e:  # pragma: no cover - the extra is missing
     if e.name is None or not e.name.startswith("skrl"):
         raise
-    raise ModuleNotFoundError("maniskill_irb120.integrations.skrl needs skrl: pip install -e '.[skrl]'", name=e.name) from e
+    message = "maniskill_irb120.integrations.skrl needs skrl: pip install -e '.[skrl]'"
+    raise ModuleNotFoundError(message, name=e.name) from e
 
 SUCCESS_KEY = "Episode / Success rate (mean)"
 
