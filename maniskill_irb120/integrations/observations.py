@@ -62,10 +62,17 @@ class ImageStateObservation(gym.ObservationWrapper):
         base.update_obs_space(self.observation(base._init_raw_obs))
 
     def observation(self, obs: dict) -> dict[str, torch.Tensor]:
-        depth = obs["depth"].to(torch.int32).clamp(0, 255 * DEPTH_MM_PER_LEVEL)
-        depth = torch.div(depth + DEPTH_MM_PER_LEVEL // 2, DEPTH_MM_PER_LEVEL, rounding_mode="floor").clamp(max=255)
-        image = torch.cat([obs["rgb"], depth.to(torch.uint8)], dim=-1).permute(0, 3, 1, 2).contiguous()
-        return {IMAGE_KEY: image, STATE_KEY: obs[STATE_KEY].float()}
+        return image_state(obs)
+
+
+def image_state(obs: dict) -> dict[str, torch.Tensor]:
+    """``FlattenRGBDObservationWrapper``'s batched ``rgb``/``depth``/``state`` -> ``{"image", "state"}`` (module doc):
+    what :class:`ImageStateObservation` gives, for code that reads the flattened observation itself (an evaluation
+    loop that was written for the project's own policies)."""
+    depth = obs["depth"].to(torch.int32).clamp(0, 255 * DEPTH_MM_PER_LEVEL)
+    depth = torch.div(depth + DEPTH_MM_PER_LEVEL // 2, DEPTH_MM_PER_LEVEL, rounding_mode="floor").clamp(max=255)
+    image = torch.cat([obs["rgb"], depth.to(torch.uint8)], dim=-1).permute(0, 3, 1, 2).contiguous()
+    return {IMAGE_KEY: image, STATE_KEY: obs[STATE_KEY].float()}
 
 
 def observation_wrappers(obs: str) -> list[Callable[[gym.Env], gym.Env]]:
