@@ -141,7 +141,7 @@ def make_vector_env(
 
     With CPU workers this process is set to one torch thread, as the project's own trainers are
     (``agents/common/envs.py``): the learner's small per-step ops run while the workers step, and more intra-op
-    threads only spin against them (SB3's SAC on 2 cores: 170 ms an update with 2 threads, 5 ms with 1)."""
+    threads only spin against them (SB3's SAC on 2 cores: ~170 ms a step with 2 threads, ~7 ms with 1)."""
     from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
     if backend == "inprocess":

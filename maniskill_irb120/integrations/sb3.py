@@ -23,6 +23,8 @@ on the GPU). What it does differently from ManiSkill's wrapper, and why:
   ``"TimeLimit.truncated"`` (truncated, not terminated), which SB3 uses to bootstrap a cut-off episode.
 - ``get_attr``/``env_method``: ManiSkill's forward to methods its env does not have; here they reach each CPU
   env (or the one batched GPU env).
+- its input: a vector env with ``num_envs``. ManiSkill's own example hands it ``gym.make(...)``, whose
+  ``TimeLimitWrapper`` has no ``num_envs`` (https://github.com/mani-skill/ManiSkill/issues/1404).
 """
 
 from __future__ import annotations
