@@ -118,3 +118,29 @@ def test_a_partial_reset_reaches_sb3_as_a_new_episode_with_its_final_observation
     finally:
         venv.close()
         ref.close()
+
+
+def test_the_maniskill_vector_env_path_of_the_gpu_runs_on_one_cpu_env():
+    """``backend="auto"`` with one env and no CUDA is ManiSkill's own ``ManiSkillVectorEnv`` on physx_cpu: the class
+    the GPU backend uses, so the adapter's GPU code path (its batched auto-reset, final_info, attributes) runs here."""
+    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
+
+    if torch.cuda.is_available():
+        pytest.skip("with CUDA, backend='auto' is the GPU env itself (tests/gpu/)")
+    venv = make_sb3_vec_env(ENV, 1, "rgbd", backend="auto", seed=3, env_kwargs={"max_episode_steps": 4})
+    try:
+        assert isinstance(venv.vector_env, ManiSkillVectorEnv)
+        assert venv.get_attr("control_mode") == ["pd_ee_delta_tool"]
+        obs = venv.reset()
+        assert obs["image"].shape == (1, 4, 84, 84) and obs["image"].dtype == np.uint8
+        hold = np.array([[0, 0, 0, 0, 1]], dtype=np.float32)
+        for _ in range(4):
+            obs, rew, dones, infos = venv.step(hold)
+        assert dones.tolist() == [True] and infos[0]["TimeLimit.truncated"] is True
+        assert infos[0]["episode"]["l"] == 4 and infos[0]["is_success"] is False
+        assert not np.array_equal(infos[0]["terminal_observation"]["image"], obs["image"][0])  # the reset's is new
+        model = PPO("MultiInputPolicy", venv, n_steps=16, batch_size=16, n_epochs=1, seed=0)
+        model.learn(32)
+        assert model.num_timesteps == 32 and len(model.ep_info_buffer) >= 4  # 4-step episodes, Monitor-style stats
+    finally:
+        venv.close()

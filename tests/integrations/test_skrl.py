@@ -91,3 +91,23 @@ def test_a_partial_reset_reaches_skrl_as_a_new_episode_with_its_final_observatio
     finally:
         env.close()
         ref.close()
+
+
+def test_the_maniskill_vector_env_path_of_the_gpu_runs_on_one_cpu_env():
+    """``backend="auto"`` with one env and no CUDA is ManiSkill's own ``ManiSkillVectorEnv`` (the GPU backend's
+    class) on physx_cpu: the adapter's spaces, device and auto-reset handling run on it here."""
+    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
+
+    if torch.cuda.is_available():
+        pytest.skip("with CUDA, backend='auto' is the GPU env itself (tests/gpu/)")
+    env = make_skrl_env(ENV, 1, "state", backend="auto", seed=3, env_kwargs={"max_episode_steps": 3})
+    try:
+        assert isinstance(env._env, ManiSkillVectorEnv) and env.num_envs == 1 and env.device.type == "cpu"
+        obs, _ = env.reset()
+        hold = torch.tensor([[0, 0, 0, 0, 1]], dtype=torch.float32)
+        for _ in range(3):
+            obs, rew, term, trunc, info = env.step(hold)
+        assert trunc.tolist() == [[True]] and SUCCESS_KEY in info["episode"]
+        assert info["final_observation"].shape == obs.shape and not torch.equal(info["final_observation"], obs)
+    finally:
+        env.close()
