@@ -13,7 +13,8 @@ library's documented defaults for continuous control (``ALGORITHMS`` says which,
 the project's cells run ``benchmarks/learning.py``'s recipes (``ppo-state``; ``dagger-rgbd-bf16``, which imitates
 the scripted expert: the table marks it as not from the reward).
 
-Resumable, because the table is ~9 h of CPU and a session is shorter: the JSON keeps every finished cell and a rerun
+Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of the best cells' seeds 2 and 3, plus
+1-5 min of evaluation a cell) and a session is shorter: the JSON keeps every finished cell and a rerun
 skips them; a library cell checkpoints every ``--checkpoint-min`` (SB3: the model, and for state the replay buffer;
 skrl: the agent's modules) with the wall clock it has spent, and a rerun continues it with the rest of its budget; a
 project cell continues with the trainer's own ``--resume``. ``--only`` picks cells by glob, ``--stop-after-min``
