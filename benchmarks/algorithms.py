@@ -80,16 +80,18 @@ ALGORITHMS = {
     ),
     "sb3-sac": Algorithm(
         "SAC", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
-        "SB3 defaults: 1 update/step, batch 256, lr 3e-4, γ 0.99, τ 0.005, auto entropy, 100 random steps, "
-        "2x256 ReLU; camera: replay 30 000 (1e6 images would be 57 GB), otherwise 1e6",
+        "SB3 defaults: 1 update per vector step (of --num-envs env steps), batch 256, lr 3e-4, γ 0.99, τ 0.005, "
+        "auto entropy, 100 random steps, 2x256 ReLU; camera: replay 30 000 (1e6 images would be 57 GB), otherwise 1e6",
     ),
     "sb3-td3": Algorithm(
         "TD3", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
-        f"SB3 defaults: batch 256, lr 1e-3, γ 0.99, τ 0.005, policy delay 2, 400-300 ReLU; {SB3_OFF_POLICY_NOISE}",
+        "SB3 defaults: 1 update per vector step, batch 256, lr 1e-3, γ 0.99, τ 0.005, policy delay 2, 400-300 ReLU; "
+        + SB3_OFF_POLICY_NOISE,
     ),
     "sb3-ddpg": Algorithm(
         "DDPG", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
-        f"SB3 defaults: batch 256, lr 1e-3, γ 0.99, τ 0.005, 400-300 ReLU; {SB3_OFF_POLICY_NOISE}",
+        "SB3 defaults: 1 update per vector step, batch 256, lr 1e-3, γ 0.99, τ 0.005, 400-300 ReLU; "
+        + SB3_OFF_POLICY_NOISE,
     ),
     "skrl-ppo": Algorithm(
         "PPO", f"skrl {SKRL_VERSION}", "skrl",
