@@ -3,7 +3,8 @@
 The folders are the layers, each importing only those below it (``tests/test_layers.py`` holds them to it):
 ``action.py`` (the action space: numpy/torch only) < ``robot/`` (the IRB 120 as a ManiSkill agent, its
 controllers and kinematics) < ``envs/`` (the tasks) < ``vector.py``, ``wrappers.py`` < ``experts/`` (scripted
-experts, demos) < ``sim2real/`` (ManiSkill's Sim2RealEnv on the robot, policies, evaluation, sysid); beside
+experts, demos) < ``sim2real/`` (ManiSkill's Sim2RealEnv on the robot, policies, evaluation, sysid), with
+``integrations/`` (Stable-Baselines3 and skrl over ``vector.py``) on top, imported by no other layer; beside
 them ``abb/``, the wire side a robot PC runs (protocol, client, envelope: no ManiSkill, no SAPIEN) and its
 controller emulator. Trainers live outside the package, in ``agents/``.
 """

@@ -98,6 +98,11 @@ RULES = {
         + (M + ".robot.irb120", M + ".robot.controllers", M + ".vector", M + ".wrappers"),
     ),
     "the library never imports the trainers": (sorted(PKG.rglob("*.py")), ("agents",)),
+    "no layer imports integrations/ (the adapters to other RL libraries sit on top)": (
+        [p for p in sorted(PKG.rglob("*.py")) if "integrations" not in p.parts],
+        (M + ".integrations",),
+    ),
+    "integrations/ never imports the trainers or the benchmarks": (files("integrations"), ("agents", "benchmarks")),
 }
 
 

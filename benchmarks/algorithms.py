@@ -1,0 +1,612 @@
+"""The algorithm table: other RL libraries beside this project's trainers, from the reward alone, one budget per cell.
+
+Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, skrl PPO,
+this project's PPO}, ``STATE_BUDGET_MIN`` each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this project's best
+camera recipe}, ``CAMERA_BUDGET_MIN`` each. Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
+cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run.
+
+Every cell is scored alike: 100 deterministic episodes on the held-out seeds ``agents.common.EVAL_SEED`` onwards
+(``agents.common.evaluate_on_seeds``, what every trainer here is scored on; training seeds stay below them), with a
+95 % Wilson interval for one seed and ``benchmarks/learning.py``'s two-level bootstrap over seeds and episodes for
+three. The library cells run through ``maniskill_irb120.integrations`` on ``--num-envs`` CPU worker envs with each
+library's documented defaults for continuous control (``ALGORITHMS`` says which, and where a cell deviates and why);
+the project's cells run ``benchmarks/learning.py``'s recipes (``ppo-state``; ``dagger-rgbd-bf16``, which imitates
+the scripted expert: the table marks it as not from the reward).
+
+Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of the best cells' seeds 2 and 3, plus
+1-5 min of evaluation a cell) and a session is shorter: the JSON keeps every finished cell and a rerun
+skips them; a library cell checkpoints every ``--checkpoint-min`` (SB3: the model, and for state the replay buffer;
+skrl: the agent's modules) with the wall clock it has spent, and a rerun continues it with the rest of its budget; a
+project cell continues with the trainer's own ``--resume``. ``--only`` picks cells by glob, ``--stop-after-min``
+starts no cell that would end after it.
+
+    python benchmarks/algorithms.py --update-results                          # every cell (resumes)
+    python benchmarks/algorithms.py --only 'state/GraspLift/*' --stop-after-min 170 --update-results
+    python benchmarks/algorithms.py --quick --out-dir /tmp/alg --only state/GraspLift/sb3-ppo/s1   # smoke run
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import learning  # noqa: E402
+from results_md import replace_section  # noqa: E402
+
+from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed  # noqa: E402
+
+TASKS = {"GraspLift": "GraspLift-IRB120-v1", "TableClearing": "TableClearing-IRB120-v1"}
+STATE_BUDGET_MIN = 30.0
+CAMERA_BUDGET_MIN = 60.0
+SB3_VERSION, SKRL_VERSION = "2.9.2", "2.1.1"  # pyproject.toml's sb3 and skrl extras
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    name: str
+    library: str
+    runner: str
+    """sb3, skrl, project (a benchmarks/learning.py recipe as a subprocess) or none (cannot be run)"""
+    settings: str
+    """the hyperparameters, as the table prints them"""
+    recipe: str = ""
+    """the learning.py recipe of a project cell"""
+    from_reward: bool = True
+
+
+SB3_OFF_POLICY_NOISE = "Gaussian action noise σ 0.1 (SB3's documented TD3/DDPG example; the class default has none)"
+ALGORITHMS = {
+    "sb3-ppo": Algorithm(
+        "PPO", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
+        "SB3 defaults: n_steps 2048/env, batch 64, 10 epochs, lr 3e-4, γ 0.99, λ 0.95, clip 0.2, 2x64 tanh MLP "
+        "(camera: NatureCNN + state); truncations bootstrapped (TimeLimit.truncated)",
+    ),
+    "sb3-sac": Algorithm(
+        "SAC", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
+        "SB3 defaults: 1 update per vector step (of --num-envs env steps), batch 256, lr 3e-4, γ 0.99, τ 0.005, "
+        "auto entropy, 100 random steps, 2x256 ReLU; camera: replay 30 000 (1e6 images would be 57 GB), otherwise 1e6",
+    ),
+    "sb3-td3": Algorithm(
+        "TD3", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
+        "SB3 defaults: 1 update per vector step, batch 256, lr 1e-3, γ 0.99, τ 0.005, policy delay 2, 400-300 ReLU; "
+        + SB3_OFF_POLICY_NOISE,
+    ),
+    "sb3-ddpg": Algorithm(
+        "DDPG", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
+        "SB3 defaults: 1 update per vector step, batch 256, lr 1e-3, γ 0.99, τ 0.005, 400-300 ReLU; "
+        + SB3_OFF_POLICY_NOISE,
+    ),
+    "skrl-ppo": Algorithm(
+        "PPO", f"skrl {SKRL_VERSION}", "skrl",
+        "skrl PPO_CFG defaults: 16 rollout steps/env, 8 epochs, 2 minibatches, lr 1e-3, γ 0.99, λ 0.95, "
+        "value loss 2.5; time_limit_bootstrap on (the step limit is no failure); 2x256 ELU actor and critic",
+    ),
+    "project-ppo": Algorithm(
+        "PPO", "this project (agents.ppo)", "project",
+        "learning.py's ppo-state recipe: ManiSkill's state-PPO baseline settings, γ 0.8, observation normaliser, "
+        "absorbing success, checkpoint selected on 30 validation seeds",
+        recipe="ppo-state",
+    ),
+    "project-camera": Algorithm(
+        "DAgger", "this project (agents.dagger)", "project",
+        "learning.py's dagger-rgbd-bf16 recipe: the project's best camera recipe; it imitates the scripted "
+        "expert, so it is a reference, not a reward-only cell",
+        recipe="dagger-rgbd-bf16",
+        from_reward=False,
+    ),
+}  # fmt: skip
+NOT_RUNNABLE = {
+    "RHPO": "not run: RHPO (Wulfmeier et al. 2020, the original report's future work) has no maintained "
+    "implementation that we know of (none in Stable-Baselines3, skrl, RLlib, CleanRL or Acme)",
+}
+STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "skrl-ppo", "project-ppo")
+CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera")
+SECTION_HEAD = "## RL libraries — `benchmarks/algorithms.py`"
+
+
+@dataclass
+class Args:
+    only: list[str] = field(default_factory=list)
+    """cells to run, as globs on OBS/TASK/ALGORITHM/sSEED (e.g. 'state/GraspLift/*', '*/sb3-sac/s1'); default all"""
+    out_dir: Path = Path("benchmarks/results")
+    """algorithms.json and algorithms.png go here"""
+    runs_dir: Path = Path("runs/algorithms")
+    """each cell's checkpoints, logs and (project cells) trainer runs"""
+    num_envs: int = 4
+    """CPU worker envs of the library cells (learning.py's ppo-state recipe runs 4 too)"""
+    backend: str = "cpu"
+    best_seeds: list[int] = field(default_factory=lambda: [2, 3])
+    """the seeds added to each group's best cell once its seed-1 cells are all in"""
+    eval_episodes: int = 100
+    budget_min: Optional[float] = None
+    """minutes per cell instead of STATE_BUDGET_MIN / CAMERA_BUDGET_MIN (smoke runs)"""
+    checkpoint_min: float = 10.0
+    """a library cell saves what a rerun continues from this often"""
+    stop_after_min: Optional[float] = None
+    """start no cell whose budget would end after this many minutes of this run (one session's length)"""
+    update_results: bool = False
+    """rewrite this table's section of --results-md"""
+    results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
+    quick: bool = False
+    """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples"""
+    bootstrap: int = 10_000
+
+
+# ----------------------------------------------------------------------------- cells
+def cell_id(obs: str, task: str, algo: str, seed: int) -> str:
+    return f"{obs}/{task}/{algo}/s{seed}"
+
+
+def parse_cell(cell: str) -> tuple[str, str, str, int]:
+    obs, task, algo, seed = cell.split("/")
+    return obs, task, algo, int(seed[1:])
+
+
+def grid() -> list[tuple[str, str, str]]:
+    """(obs, task, algorithm) of every cell, in the order they run."""
+    state = [("state", task, algo) for task in TASKS for algo in STATE_ALGOS]
+    return state + [("rgbd", "GraspLift", algo) for algo in CAMERA_ALGOS]
+
+
+def budget_of(obs: str, args: Args) -> float:
+    if args.budget_min is not None:
+        return args.budget_min
+    return STATE_BUDGET_MIN if obs == "state" else CAMERA_BUDGET_MIN
+
+
+def best_algo(done: dict[str, dict], obs: str, task: str) -> Optional[str]:
+    """The group's best reward-only algorithm by seed-1 success, once every seed-1 cell of the group is in."""
+    algos = [a for o, t, a in grid() if (o, t) == (obs, task)]
+    if any(cell_id(obs, task, a, 1) not in done for a in algos):
+        return None
+    scored = [(done[cell_id(obs, task, a, 1)]["success_rate"], a) for a in algos if ALGORITHMS[a].from_reward]
+    return max(scored)[1] if scored else None
+
+
+def planned(done: dict[str, dict], args: Args) -> list[str]:
+    """Every cell this run would run now: seed 1 everywhere, the best-seed cells of finished groups; not done."""
+    cells = [cell_id(o, t, a, 1) for o, t, a in grid()]
+    for obs, task in dict.fromkeys((o, t) for o, t, _ in grid()):
+        best = best_algo(done, obs, task)
+        if best is not None:
+            cells += [cell_id(obs, task, best, s) for s in args.best_seeds]
+    if args.only:
+        cells = [c for c in cells if any(fnmatch.fnmatchcase(c, pattern) for pattern in args.only)]
+    return [c for c in cells if c not in done]
+
+
+# ----------------------------------------------------------------------------- evaluation
+def held_out(act: Callable, env_id: str, obs: str, args: Args) -> dict:
+    """``act`` on ``--eval-episodes`` held-out seeds, as every trainer here is scored."""
+    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+    r = evaluate_on_seeds(act, env_id, obs, seeds)
+    return {k: r[k] for k in ("success_rate", "successes", "return", "episode_len") if k in r}
+
+
+def library_obs(obs: str, flat: dict) -> object:
+    """evaluate_on_seeds' observation (``{"state"}``, or ``rgb``/``depth``/``state``) as the adapters give it."""
+    from maniskill_irb120.integrations.observations import image_state
+
+    return flat["state"] if obs == "state" else image_state(flat)
+
+
+# ----------------------------------------------------------------------------- library cells
+class Budget:
+    """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's; checkpoints due every
+    ``every_s``."""
+
+    def __init__(self, total_s: float, spent_s: float, every_s: float):
+        self.total_s, self.before_s, self.every_s = total_s, spent_s, every_s
+        self.t0 = self.last_save = time.time()
+
+    @property
+    def spent_s(self) -> float:
+        return self.before_s + time.time() - self.t0
+
+    def over(self) -> bool:
+        return self.spent_s >= self.total_s
+
+    def point_due(self, curve: list) -> bool:
+        """A curve point every 1 % of the budget (``curve``'s rows: env steps, minutes, success)."""
+        return not curve or self.spent_s / 60 - curve[-1][1] >= self.total_s / 60 / 100
+
+    def save_due(self) -> bool:
+        if time.time() - self.last_save >= self.every_s:
+            self.last_save = time.time()
+            return True
+        return False
+
+
+def read_state(ckpt_dir: Path) -> dict:
+    path = ckpt_dir / "state.json"
+    return json.loads(path.read_text()) if path.is_file() else {"spent_s": 0.0, "env_steps": 0, "curve": []}
+
+
+def write_state(ckpt_dir: Path, state: dict) -> None:
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    tmp = ckpt_dir / "state.json.tmp"
+    tmp.write_text(json.dumps(state))
+    tmp.replace(ckpt_dir / "state.json")
+
+
+def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_dir: Path, args: Args) -> dict:
+    import stable_baselines3 as sb3
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
+
+    cls = {"sb3-ppo": sb3.PPO, "sb3-sac": sb3.SAC, "sb3-td3": sb3.TD3, "sb3-ddpg": sb3.DDPG}[algo]
+    policy = "MlpPolicy" if obs == "state" else "MultiInputPolicy"
+    kwargs: dict = {}
+    if algo in ("sb3-td3", "sb3-ddpg"):
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(5), 0.1 * np.ones(5))
+    if algo != "sb3-ppo" and obs != "state":
+        kwargs["buffer_size"] = 30_000
+    state = read_state(ckpt_dir)
+    venv = make_sb3_vec_env(env_id, args.num_envs, obs, backend=args.backend, seed=train_seed(seed, 0))
+    model_path, replay_path = ckpt_dir / "model.zip", ckpt_dir / "replay.pkl"
+    resumed = model_path.is_file()
+    if resumed:
+        model = cls.load(model_path, env=venv)  # with its action noise, optimisers and counters
+        if replay_path.is_file():
+            model.load_replay_buffer(replay_path)
+        print(f"[algorithms] continuing from {model_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
+    else:
+        model = cls(policy, venv, seed=seed, verbose=0, tensorboard_log=str(ckpt_dir / "tb"), **kwargs)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60)
+    curve = state["curve"]
+
+    def save() -> None:
+        model.save(model_path)
+        if hasattr(model, "replay_buffer") and obs == "state":  # camera buffers are GBs: a resumed cell refills
+            model.save_replay_buffer(replay_path)
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": int(model.num_timesteps), "curve": curve})
+
+    class Stop(BaseCallback):
+        def _on_step(self) -> bool:
+            buf = self.model.ep_success_buffer
+            if buf and clock.point_due(curve):
+                curve.append([int(self.num_timesteps), clock.spent_s / 60, float(np.mean(buf))])
+            if clock.save_due():
+                save()
+            return not clock.over()
+
+    try:
+        model.learn(total_timesteps=10**12, callback=Stop(), reset_num_timesteps=not resumed, tb_log_name="run")
+        save()
+    finally:
+        venv.close()
+    env_steps, spent = int(model.num_timesteps), clock.spent_s
+
+    def act(flat):
+        o = library_obs(obs, flat)
+        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
+        return torch.as_tensor(model.predict(o, deterministic=True)[0])
+
+    return dict(held_out(act, env_id, obs, args), env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve))
+
+
+def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_dir: Path, args: Args) -> dict:
+    from skrl.agents.torch.ppo import PPO, PPO_CFG
+    from skrl.memories.torch import RandomMemory
+    from skrl.trainers.torch import SequentialTrainer
+    from skrl.utils import set_seed
+    from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space
+
+    from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value
+
+    set_seed(seed)
+    state = read_state(ckpt_dir)
+    env = make_skrl_env(env_id, args.num_envs, obs, backend=args.backend, seed=train_seed(seed, 0))
+    cfg = PPO_CFG(time_limit_bootstrap=True)
+    cfg.experiment.directory, cfg.experiment.experiment_name = str(ckpt_dir), "tb"
+    cfg.experiment.write_interval, cfg.experiment.checkpoint_interval = 1000, 0
+    models = policy_and_value(env)
+    memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
+    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
+                action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
+    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": 10**10, "headless": True,
+                                                            "disable_progressbar": True,
+                                                            "close_environment_at_exit": False})  # fmt: skip
+    agent_path = ckpt_dir / "agent.pt"
+    if agent_path.is_file():
+        agent.load(str(agent_path))
+        print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60)
+    steps0, curve, recent = state["env_steps"], state["curve"], []
+    counted = {"steps": steps0}
+
+    def save() -> None:
+        agent.save(str(agent_path))
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": counted["steps"], "curve": curve})
+
+    class BudgetSpent(Exception):
+        pass
+
+    env_step, post = env.step, agent.post_interaction
+
+    def step(actions):
+        out = env_step(actions)
+        counted["steps"] += env.num_envs
+        if SUCCESS_KEY in out[4]["episode"]:
+            recent.append(float(out[4]["episode"][SUCCESS_KEY]))
+            del recent[:-25]
+        return out
+
+    def post_interaction(*, timestep: int, timesteps: int) -> None:
+        post(timestep=timestep, timesteps=timesteps)  # skrl's update, when a rollout is full
+        if recent and clock.point_due(curve):
+            curve.append([counted["steps"], clock.spent_s / 60, float(np.mean(recent))])
+        if clock.save_due():
+            save()
+        if clock.over():
+            raise BudgetSpent
+
+    env.step, agent.post_interaction = step, post_interaction
+    try:
+        trainer.train()
+    except BudgetSpent:
+        save()
+    finally:
+        env.close()
+    policy = models["policy"]
+
+    def act(flat):
+        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
+        _, out = policy.act({"observations": o.float()}, role="policy")
+        return out["mean_actions"].clamp(-1, 1)
+
+    result = held_out(act, env_id, obs, args)
+    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, curve=curve_of(curve))
+
+
+def curve_of(points: list) -> dict:
+    """Training-episode success against env steps and wall clock, as learning.py's curves."""
+    return dict(env_steps=[p[0] for p in points], wall_min=[p[1] for p in points], success=[p[2] for p in points])
+
+
+# ----------------------------------------------------------------------------- project cells
+def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name: str, args: Args) -> dict:
+    """learning.py's ``recipe`` as its trainer's subprocess, continued with the trainer's ``--resume`` when an earlier
+    session left a checkpoint and no result."""
+    module, _, _, _ = learning.RECIPES[recipe]
+    flags = learning.seeded(learning.recipe_flags(recipe, env_id), seed)
+    runs = args.runs_dir / "project"
+    cmd = [sys.executable, "-m", module, *flags, "--env-id", env_id, "--seed", str(seed)]
+    cmd += ["--budget-min", f"{budget_min:.4g}", "--eval-episodes", str(args.eval_episodes)]
+    cmd += ["--runs-dir", str(runs), "--exp-name", run_name, "--no-progress", "--no-capture-video"]
+    if args.quick:
+        cmd += learning.QUICK_FLAGS[module]
+    latest = runs / run_name / "checkpoints" / "latest.pt"
+    if latest.is_file() and not (runs / run_name / "summary.json").is_file():
+        cmd += ["--resume", str(latest)]
+    print(f"[algorithms] {' '.join(cmd[1:])}", flush=True)
+    t0 = time.time()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    log = args.runs_dir / "logs" / f"{run_name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{run_name} exited with {proc.returncode}; its output is in {log}")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    missing = learning.RESULT_NEEDS - set(result)
+    if missing:
+        raise RuntimeError(f"{run_name}: its result lacks {sorted(missing)}; output in {log}")
+    out = {k: result[k] for k in learning.RESULT_KEPT if k in result}
+    return dict(out, command=" ".join(cmd[1:]), curve=learning.curve(runs / run_name, t0))
+
+
+def run_cell(cell: str, args: Args) -> dict:
+    obs, task, algo, seed = parse_cell(cell)
+    spec, env_id = ALGORITHMS[algo], TASKS[task]
+    budget_min = budget_of(obs, args)
+    name = cell.replace("/", "__")
+    print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
+    if spec.runner == "project":
+        r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
+    else:
+        runner = run_sb3 if spec.runner == "sb3" else run_skrl
+        r = runner(algo, env_id, obs, seed, budget_min * 60, args.runs_dir / name, args)
+    r.update(cell=cell, seed=seed, budget_min=budget_min, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    return r
+
+
+# ----------------------------------------------------------------------------- statistics and report
+def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate k/n."""
+    if n == 0:
+        return float("nan"), float("nan")
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
+    """One row per (obs, task, algorithm): its seeds' mean success and interval, env steps and wall clock, or
+    ``pending`` while its seed-1 cell is not in."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for obs, task, algo in grid():
+        runs = sorted((c for c in cells.values() if parse_cell(c["cell"])[:3] == (obs, task, algo)),
+                      key=lambda c: c["seed"])  # fmt: skip
+        spec = ALGORITHMS[algo]
+        row = dict(obs=obs, task=task, algorithm=algo, name=spec.name, library=spec.library,
+                   settings=spec.settings, from_reward=spec.from_reward, budget_min=budget_of(obs, args),
+                   seeds=[r["seed"] for r in runs])  # fmt: skip
+        if runs:
+            successes = [r["successes"] for r in runs]
+            if len(runs) == 1:
+                lo, hi = wilson(int(sum(successes[0])), len(successes[0]))
+                interval = "Wilson"
+            else:
+                lo, hi = learning.bootstrap_ci(successes, args.bootstrap, rng)
+                interval = "bootstrap over seeds and episodes"
+            row.update(
+                success_mean=float(np.mean([r["success_rate"] for r in runs])),
+                success_ci95=[lo, hi],
+                interval=interval,
+                per_seed=[r["success_rate"] for r in runs],
+                env_steps_mean=float(np.mean([r["env_steps"] for r in runs])),
+                wall_clock_min_mean=float(np.mean([r["wall_clock_s"] for r in runs])) / 60,
+            )
+        rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = [
+        "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
+        "| settings |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
+        head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
+        if "success_mean" not in r:
+            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | {r['settings']} |")
+            continue
+        lo, hi = r["success_ci95"]
+        per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
+        lines.append(
+            f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
+            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {r['settings']} |"
+        )
+    for name, why in NOT_RUNNABLE.items():
+        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | {why} |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = list(dict.fromkeys((r["obs"], r["task"]) for r in rows))
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.4 * len(groups), 3.2), dpi=80, sharey=True)
+    for ax, (obs, task) in zip(np.atleast_1d(axes), groups):
+        mine = [r for r in rows if (r["obs"], r["task"]) == (obs, task)]
+        for i, r in enumerate(mine):
+            if "success_mean" not in r:
+                ax.text(i, 0.02, "pending", rotation=90, ha="center", va="bottom", fontsize=7, color="grey")
+                continue
+            lo, hi = r["success_ci95"]
+            color = "C0" if r["from_reward"] else "grey"
+            ax.bar(i, r["success_mean"], color=color, alpha=0.8)
+            ax.errorbar(i, r["success_mean"], yerr=[[r["success_mean"] - lo], [hi - r["success_mean"]]], color="k",
+                        capsize=3, lw=1)  # fmt: skip
+        ax.set_xticks(range(len(mine)), [r["algorithm"] for r in mine], rotation=45, ha="right", fontsize=7)
+        ax.set_xlim(-0.6, len(mine) - 0.4)
+        ax.set(title=f"{obs}, {task} ({mine[0]['budget_min']:g} min)", ylim=(0, 1.05))
+        ax.title.set_fontsize(8)
+    np.atleast_1d(axes)[0].set_ylabel("held-out success (95 % CI)")
+    fig.suptitle("success on the held-out seeds, one budget per cell; grey: imitates the scripted expert", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def update_results(report: dict, table: str, results: Path, json_path: Path, png_path: Path) -> None:
+    """Replace (or append) this table's section of RESULTS.md."""
+
+    def rel(p: Path) -> str:
+        try:
+            return str(p.resolve().relative_to(results.resolve().parent))
+        except ValueError:
+            return str(p.resolve())
+
+    dates = sorted({c["date"] for c in report["cells"].values()})
+    when = f"{dates[0]} to {dates[-1]}" if dates else "no cell yet"
+    section = (
+        f"{SECTION_HEAD}\n\n"
+        "Other RL libraries beside this project's trainers, from the reward alone (the task's `normalized_dense`), "
+        f"one wall-clock budget per cell ({STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the "
+        f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
+        f"each group's best; {report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
+        f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
+        f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
+    )
+    replace_section(results, SECTION_HEAD, section)
+
+
+def write_report(cells: dict[str, dict], args: Args) -> dict:
+    rows = rows_of(cells, args)
+    report = dict(
+        command="python benchmarks/algorithms.py " + " ".join(sys.argv[1:]),
+        machine=f"{platform.node()} {platform.machine()}",
+        num_envs=args.num_envs,
+        eval_episodes=args.eval_episodes,
+        state_budget_min=budget_of("state", args),
+        camera_budget_min=budget_of("rgbd", args),
+        versions=dict(stable_baselines3=SB3_VERSION, skrl=SKRL_VERSION, torch=torch.__version__),
+        not_runnable=NOT_RUNNABLE,
+        rows=rows,
+        cells=cells,
+    )
+    json_path, png_path = args.out_dir / "algorithms.json", args.out_dir / "algorithms.png"
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = json_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(json_path)
+    plot(rows, png_path)
+    table = markdown(rows)
+    if args.update_results:
+        update_results(report, table, args.results_md, json_path, png_path)
+    return report
+
+
+def main(args: Args) -> dict:
+    if args.quick:
+        args.budget_min = args.budget_min if args.budget_min is not None else 0.05
+        args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
+    if args.backend not in ("cpu", "gpu", "auto"):
+        raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
+    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
+    for pattern in args.only:
+        if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
+            raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
+                             f"{sorted(known)[0]!r}")  # fmt: skip
+    json_path = args.out_dir / "algorithms.json"
+    cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
+    t0 = time.time()
+    while True:
+        todo = planned(cells, args)
+        if not todo:
+            break
+        cell = todo[0]
+        if args.stop_after_min is not None:
+            ends = (time.time() - t0) / 60 + budget_of(parse_cell(cell)[0], args)
+            if ends > args.stop_after_min:
+                print(f"[algorithms] stopping: {cell} would end at {ends:.0f} min > --stop-after-min", flush=True)
+                break
+        cells[cell] = run_cell(cell, args)
+        print(f"[algorithms] {cell}: success {cells[cell]['success_rate']:.2f}", flush=True)
+        write_report(cells, args)  # after every cell: a session that ends keeps what it finished
+    report = write_report(cells, args)
+    print(markdown(report["rows"]))
+    left = planned(cells, args)
+    print(f"[algorithms] {len(cells)} cells in {json_path}; {len(left)} planned now still to run", flush=True)
+    return report
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

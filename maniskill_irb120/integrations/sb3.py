@@ -1,0 +1,209 @@
+"""Stable-Baselines3 on the tasks: an SB3 ``VecEnv`` on either backend, with SB3's episode statistics.
+
+    from stable_baselines3 import PPO
+    from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
+
+    venv = make_sb3_vec_env("GraspLift-IRB120-v1", num_envs=2, obs="rgbd")  # or obs="state"
+    PPO("MultiInputPolicy", venv).learn(10_000)                             # "MlpPolicy" on state
+
+:class:`IRB120SB3VecEnv` is ManiSkill's own ``ManiSkillSB3VectorEnv`` (its construction, seeding, action hand-off
+and close are used as they are) over :func:`~maniskill_irb120.integrations.observations.make_vector_env`:
+``backend="cpu"`` steps the envs in worker processes (env 0 in this process), ``backend="gpu"`` batches them on
+``physx_cuda`` (unverified here: it needs a GPU and a CUDA PhysX; the code path is the CPU one's, with the tensors
+on the GPU). What it does differently from ManiSkill's wrapper, and why:
+
+- observations: ManiSkill's calls ``obs.cpu().numpy()``, which fails on a dict; here every key converts, so the
+  camera's ``{"image", "state"}`` observation (integrations/observations.py) reaches ``MultiInputPolicy``.
+- episode statistics: ManiSkill's puts ``"episode": {"r": all envs' running returns, "l": ...}`` into every info on
+  every step, so SB3's ``ep_rew_mean`` averages arrays of unfinished episodes. Here, as SB3's ``Monitor`` does, an
+  env's info carries ``"episode": {"r", "l", "t"}`` (scalars) only on the step its episode ended, with
+  ``"is_success"`` (the task's ``success`` on that step), which SB3 logs as ``rollout/success_rate``.
+- resets: the vector env resets an ended env in the same step (a partial reset: the others run on); the info of
+  that env carries ``"terminal_observation"`` (the episode's last observation, as SB3's own VecEnvs) and
+  ``"TimeLimit.truncated"`` (truncated, not terminated), which SB3 uses to bootstrap a cut-off episode.
+- ``get_attr``/``env_method``: ManiSkill's forward to methods its env does not have; here they reach each CPU
+  env (or the one batched GPU env).
+- its input: a vector env with ``num_envs``. ManiSkill's own example hands it ``gym.make(...)``, whose
+  ``TimeLimitWrapper`` has no ``num_envs`` (https://github.com/mani-skill/ManiSkill/issues/1404).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from maniskill_irb120.integrations.observations import CONTROL_MODE, make_single_env, make_vector_env
+
+try:
+    from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
+except ModuleNotFoundError as e:  # pragma: no cover - the extra is missing
+    if e.name != "stable_baselines3":
+        raise
+    raise ModuleNotFoundError(
+        "maniskill_irb120.integrations.sb3 needs Stable-Baselines3: pip install -e '.[sb3]'", name=e.name
+    ) from e
+
+
+def _numpy(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _numpy(v) for k, v in x.items()}
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _row(x: Any, i: int) -> Any:
+    return {k: _row(v, i) for k, v in x.items()} if isinstance(x, dict) else x[i].copy()
+
+
+def _write_rows(dst: Any, src: Any, idx: np.ndarray) -> None:
+    if isinstance(dst, dict):
+        for k in dst:
+            _write_rows(dst[k], src[k], idx)
+    else:
+        dst[idx] = src[idx]
+
+
+class IRB120SB3VecEnv(ManiSkillSB3VectorEnv):
+    """An SB3 ``VecEnv`` over a batched env from ``make_vector_env`` (see the module doc)."""
+
+    def __init__(self, env: gym.vector.VectorEnv):
+        # SB3's VecEnv.__init__ reads render_mode through get_attr, i.e. through the env: set it first (ManiSkill's
+        # wrapper sets it after, and SB3 then warns that the env has no render_mode)
+        self._env = env
+        super().__init__(env)
+        self.episode_returns = self.episode_returns.cpu()
+        self.episode_lengths = self.episode_lengths.cpu().long()
+
+    @property
+    def vector_env(self) -> gym.vector.VectorEnv:
+        """The batched torch env underneath (``CPUVectorEnv`` or ManiSkill's ``ManiSkillVectorEnv``)."""
+        return self._env
+
+    def reset(self):
+        obs, _ = self._env.reset(seed=self._last_seed, options=self._options[0] or None)
+        self._last_seed = None  # a seed from seed() applies to the next reset only
+        self._reset_options()
+        self.episode_returns.zero_()
+        self.episode_lengths.zero_()
+        return _numpy(obs)
+
+    def step_wait(self):
+        obs, rew, term, trunc, infos = self._env.step(self.last_actions)
+        rew, term, trunc = rew.cpu().float(), term.cpu().bool(), trunc.cpu().bool()
+        dones = term | trunc
+        self.episode_returns += rew
+        self.episode_lengths += 1
+        obs_np = _numpy(obs)
+        new_infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        if dones.any():
+            final_obs = _numpy(infos["final_observation"])
+            final_info = infos["final_info"]
+            success = final_info.get("success")
+            success = success.cpu().bool() if isinstance(success, torch.Tensor) else None
+            t = round(time.time() - self.t_start, 6)
+            for i in torch.nonzero(dones).flatten().tolist():
+                info = new_infos[i]
+                info["terminal_observation"] = _row(final_obs, i)
+                info["TimeLimit.truncated"] = bool(trunc[i] and not term[i])
+                info["episode"] = {"r": float(self.episode_returns[i]), "l": int(self.episode_lengths[i]), "t": t}
+                if success is not None:
+                    info["is_success"] = bool(success[i])
+            self.episode_returns[dones] = 0
+            self.episode_lengths[dones] = 0
+        return obs_np, rew.numpy(), dones.numpy(), new_infos
+
+    # ------------------------------------------------------------------ attributes
+    def _each(self, indices) -> list[int]:
+        return list(self._get_indices(indices))
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        from maniskill_irb120.vector import CPUVectorEnv
+
+        idx = self._each(indices)
+        env = self.__dict__.get("_env")
+        if env is None:
+            raise AttributeError(attr_name)
+        if isinstance(env, CPUVectorEnv):
+            values = [a for a in env.call("get_wrapper_attr", attr_name)]
+            return [values[i] for i in idx]
+        # one batched env on the GPU: its attribute is every env's
+        value = getattr(env, attr_name) if hasattr(env, attr_name) else getattr(env.unwrapped, attr_name)
+        return [value for _ in idx]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        raise NotImplementedError(
+            "set_attr: the envs run in worker processes (or as one batched GPU env); pass settings to "
+            "make_sb3_vec_env(..., env_kwargs=...) instead"
+        )
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        from maniskill_irb120.vector import CPUVectorEnv
+
+        idx = self._each(indices)
+        if isinstance(self._env, CPUVectorEnv):
+            values = list(self._env.call(method_name, *method_args, **method_kwargs))
+            return [values[i] for i in idx]
+        out = getattr(self._env.unwrapped, method_name)(*method_args, **method_kwargs)
+        return [out for _ in idx]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices=None) -> list[bool]:
+        """False: no env is wrapped in SB3's ``Monitor`` (this VecEnv reports the episodes itself)."""
+        return [False for _ in self._each(indices)]
+
+
+def make_sb3_vec_env(
+    env_id: str,
+    num_envs: int = 2,
+    obs: str = "state",
+    *,
+    backend: str = "auto",
+    reward_mode: Optional[str] = None,
+    control_mode: Optional[str] = CONTROL_MODE,
+    seed: Optional[int] = None,
+    wrappers: Sequence[Callable[[gym.Env], gym.Env]] = (),
+    env_kwargs: Optional[dict] = None,
+) -> IRB120SB3VecEnv:
+    """``num_envs`` envs of ``env_id`` as an SB3 ``VecEnv`` giving ``obs`` (``"state"``: a vector for
+    ``MlpPolicy``; ``"rgbd"``: ``{"image", "state"}`` for ``MultiInputPolicy``), with ``reward_mode`` and
+    ``control_mode`` passed to the task (default: its ``normalized_dense`` reward, the tool-frame action).
+    ``seed``: the first reset's (env i gets ``seed + i`` on the CPU). ``backend``: ``"cpu"``, ``"gpu"`` or
+    ``"auto"`` (the GPU when CUDA is there)."""
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    venv = make_vector_env(
+        env_id,
+        num_envs,
+        obs,
+        backend=backend,
+        reward_mode=reward_mode,
+        control_mode=control_mode,
+        wrappers=wrappers,
+        env_kwargs=env_kwargs,
+    )
+    try:
+        out = IRB120SB3VecEnv(venv)
+    except BaseException:
+        venv.close()
+        raise
+    if seed is not None:
+        out.seed(seed)
+    return out
+
+
+def make_sb3_env(
+    env_id: str,
+    obs: str = "state",
+    *,
+    reward_mode: Optional[str] = None,
+    control_mode: Optional[str] = CONTROL_MODE,
+    env_kwargs: Optional[dict] = None,
+) -> gym.Env:
+    """One CPU env with the same observation as :func:`make_sb3_vec_env`'s: what SB3's ``check_env`` checks, and
+    what a trained model's ``predict`` is evaluated on."""
+    return make_single_env(env_id, obs, reward_mode=reward_mode, control_mode=control_mode, env_kwargs=env_kwargs)

@@ -1,0 +1,191 @@
+"""skrl on the tasks: skrl's own ManiSkill wrapper over either backend, and the models for its agents.
+
+    from maniskill_irb120.integrations.skrl import make_skrl_env, policy_and_value
+
+    env = make_skrl_env("GraspLift-IRB120-v1", num_envs=2, obs="state")  # or obs="rgbd"
+    models = policy_and_value(env)                                       # {"policy": ..., "value": ...}
+    # then skrl's PPO(models=models, memory=RandomMemory(...), ...) and SequentialTrainer, as examples/skrl_ppo.py
+
+:class:`IRB120SkrlWrapper` is skrl's ``ManiSkillWrapper`` (its spaces, seeding, ``reset``, ``render`` and
+``close`` as they are) over :func:`~maniskill_irb120.integrations.observations.make_vector_env`: ``backend="cpu"``
+(worker processes) or ``"gpu"`` (``physx_cuda``; unverified here: it needs a GPU and a CUDA PhysX). What its
+``step`` does differently, and why:
+
+- resets: skrl's wrapper resets ended envs itself after the step (a partial reset through ``env_idx``); our vector
+  env already did, in the same step, so a second reset would start yet another episode and throw the first reset's
+  away. Here the step's observation is the new episodes' first one, and the ended episodes' last observation is
+  kept in ``info["final_observation"]`` (flattened like every observation skrl sees).
+- episode statistics: skrl's trainers log the scalar entries of ``info["episode"]`` (``TrainerCfg.environment_info``)
+  each step, and its agents log ``Episode / Total timesteps`` and ``Reward / Total reward`` from the flags
+  themselves. So on a step where episodes end, ``info["episode"]`` holds ``"Episode / Success rate (mean)"`` of
+  those episodes (the task's ``success`` on their last step); otherwise it is empty (the vector env's per-env
+  metrics would be logged as numbers only with one env).
+
+skrl flattens a Dict observation into one float vector (sorted keys); :func:`policy_and_value`'s models undo it
+with skrl's ``unflatten_tensorized_space`` and read the image through a CNN.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, Optional
+
+import gymnasium as gym
+import torch
+import torch.nn as nn
+
+from maniskill_irb120.integrations.observations import CONTROL_MODE, IMAGE_KEY, STATE_KEY, make_vector_env
+
+try:
+    from skrl.envs.wrappers.torch.mani_skill_envs import ManiSkillWrapper
+    from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
+    from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space, unflatten_tensorized_space
+except ModuleNotFoundError as e:  # pragma: no cover - the extra is missing
+    if e.name is None or not e.name.startswith("skrl"):
+        raise
+    message = "maniskill_irb120.integrations.skrl needs skrl: pip install -e '.[skrl]'"
+    raise ModuleNotFoundError(message, name=e.name) from e
+
+SUCCESS_KEY = "Episode / Success rate (mean)"
+
+
+class IRB120SkrlWrapper(ManiSkillWrapper):
+    """skrl's ManiSkill wrapper over an auto-resetting batched env from ``make_vector_env`` (see the module doc).
+    ``seed``: the first reset's (env i gets ``seed + i`` on the CPU); None leaves it to skrl (``config.torch.key``)."""
+
+    def __init__(self, env: gym.vector.VectorEnv, seed: Optional[int] = None):
+        super().__init__(env)
+        if seed is not None:
+            self._seed = int(seed)
+
+    def _flat(self, obs: Any) -> torch.Tensor:
+        return flatten_tensorized_space(tensorize_space(self.observation_space, obs, device=self.device))
+
+    def step(self, actions: torch.Tensor):
+        actions = unflatten_tensorized_space(self.action_space, actions)
+        with torch.no_grad():
+            obs, reward, terminated, truncated, info = self._env.step(actions)
+        info = {k: v for k, v in info.items() if k != "episode"}
+        dones = (terminated | truncated).flatten()
+        episode: dict[str, torch.Tensor] = {}
+        if dones.any():
+            success = info["final_info"].get("success")
+            if isinstance(success, torch.Tensor):
+                episode[SUCCESS_KEY] = success[dones].float().mean()
+            info["final_observation"] = self._flat(info["final_observation"])
+        info["episode"] = episode
+        self._info = info
+        self._observations = self._flat(obs)
+        device = self.device
+        return (
+            self._observations.to(device),
+            reward.to(device).float().view(-1, 1),
+            terminated.to(device).view(-1, 1),
+            truncated.to(device).view(-1, 1),
+            info,
+        )
+
+
+def make_skrl_env(
+    env_id: str,
+    num_envs: int = 2,
+    obs: str = "state",
+    *,
+    backend: str = "auto",
+    reward_mode: Optional[str] = None,
+    control_mode: Optional[str] = CONTROL_MODE,
+    seed: Optional[int] = None,
+    wrappers: Sequence[Callable[[gym.Env], gym.Env]] = (),
+    env_kwargs: Optional[dict] = None,
+) -> IRB120SkrlWrapper:
+    """``num_envs`` envs of ``env_id`` for skrl, giving ``obs`` (``"state"`` or ``"rgbd"``: image + state, flattened
+    by skrl), with ``reward_mode`` and ``control_mode`` passed to the task (default: its ``normalized_dense`` reward,
+    the tool-frame action). ``backend``: ``"cpu"``, ``"gpu"`` or ``"auto"`` (the GPU when CUDA is there)."""
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    venv = make_vector_env(
+        env_id,
+        num_envs,
+        obs,
+        backend=backend,
+        reward_mode=reward_mode,
+        control_mode=control_mode,
+        wrappers=wrappers,
+        env_kwargs=env_kwargs,
+    )
+    try:
+        return IRB120SkrlWrapper(venv, seed=seed)
+    except BaseException:
+        venv.close()
+        raise
+
+
+# ---------------------------------------------------------------------------- models
+class Encoder(nn.Module):
+    """skrl's flat observation -> features: an MLP on the state vector; with an image, the Nature DQN CNN (SB3's
+    ``NatureCNN``: 32 8x8/4, 64 4x4/2, 64 3x3/1, then 256 units) on it, its features beside the state's."""
+
+    def __init__(self, observation_space: gym.Space, hidden: int = 256):
+        super().__init__()
+        self.space = observation_space
+        self.image = isinstance(observation_space, gym.spaces.Dict)
+        if self.image:
+            c, h, w = observation_space[IMAGE_KEY].shape
+            self.cnn = nn.Sequential(
+                nn.Conv2d(c, 32, 8, stride=4), nn.ReLU(),
+                nn.Conv2d(32, 64, 4, stride=2), nn.ReLU(),
+                nn.Conv2d(64, 64, 3, stride=1), nn.ReLU(),
+                nn.Flatten(),
+            )  # fmt: skip
+            with torch.no_grad():
+                n = self.cnn(torch.zeros(1, c, h, w)).shape[1]
+            self.cnn_head = nn.Sequential(nn.Linear(n, hidden), nn.ReLU())
+            state_dim = observation_space[STATE_KEY].shape[0]
+        else:
+            state_dim = observation_space.shape[0]
+        self.mlp = nn.Sequential(nn.Linear(state_dim, hidden), nn.ELU(), nn.Linear(hidden, hidden), nn.ELU())
+        self.out_dim = hidden * (2 if self.image else 1)
+
+    def forward(self, flat: torch.Tensor) -> torch.Tensor:
+        if not self.image:
+            return self.mlp(flat)
+        obs = unflatten_tensorized_space(self.space, flat)
+        img = self.cnn_head(self.cnn(obs[IMAGE_KEY].float() / 255.0))
+        return torch.cat([img, self.mlp(obs[STATE_KEY])], dim=1)
+
+
+class Policy(GaussianMixin, Model):
+    """A Gaussian policy: the mean from :class:`Encoder`'s features, a state-independent log std (skrl's examples'
+    layout), actions clipped to the action space."""
+
+    def __init__(self, observation_space, action_space, device, init_log_std: float = 0.0):
+        Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+        GaussianMixin.__init__(self, clip_actions=True, clip_log_std=True, min_log_std=-20, max_log_std=2)
+        self.encoder = Encoder(observation_space)
+        self.mean = nn.Linear(self.encoder.out_dim, self.num_actions)
+        self.log_std = nn.Parameter(torch.full((self.num_actions,), float(init_log_std)))
+
+    def compute(self, inputs, role=""):
+        return self.mean(self.encoder(inputs["observations"])), {"log_std": self.log_std}
+
+
+class Value(DeterministicMixin, Model):
+    """A state-value network on its own :class:`Encoder` (actor and critic share nothing, as in skrl's examples)."""
+
+    def __init__(self, observation_space, action_space, device):
+        Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+        DeterministicMixin.__init__(self, clip_actions=False)
+        self.encoder = Encoder(observation_space)
+        self.head = nn.Linear(self.encoder.out_dim, 1)
+
+    def compute(self, inputs, role=""):
+        return self.head(self.encoder(inputs["observations"])), {}
+
+
+def policy_and_value(env: IRB120SkrlWrapper, device: Optional[torch.device] = None) -> dict[str, Model]:
+    """``{"policy": Policy, "value": Value}`` for skrl's PPO (or any agent with those roles) on ``env``'s spaces."""
+    device = device or env.device
+    return {
+        "policy": Policy(env.observation_space, env.action_space, device),
+        "value": Value(env.observation_space, env.action_space, device),
+    }

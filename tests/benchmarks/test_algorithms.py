@@ -1,0 +1,106 @@
+"""benchmarks/algorithms.py: one cell at toy size end to end (JSON, PNG, RESULTS.md section), a rerun that skips
+finished cells and continues a checkpointed one with the rest of its budget, and the cell plan (the best cell's
+extra seeds, --only)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def alg():
+    spec = importlib.util.spec_from_file_location("bench_algorithms", REPO / "benchmarks" / "algorithms.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def results_md(tmp_path: Path) -> Path:
+    md = tmp_path / "RESULTS.md"
+    md.write_text("# Results\n\n## Earlier\n\nkept\n\n## Later\n\nkept too\n")
+    return md
+
+
+def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    md = results_md(tmp_path)
+    cell = "state/GraspLift/sb3-ppo/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", num_envs=2, quick=True,
+                    update_results=True, results_md=md)  # fmt: skip
+    report = alg.main(args)
+    data = json.loads((tmp_path / "algorithms.json").read_text())
+    assert list(data["cells"]) == [cell]
+    one = data["cells"][cell]
+    assert one["env_steps"] > 0 and 0 < one["wall_clock_s"] < 60 and len(one["successes"]) == 2
+    assert one["budget_min"] == 0.05 and (tmp_path / "runs" / "state__GraspLift__sb3-ppo__s1" / "model.zip").is_file()
+    row = next(r for r in data["rows"] if (r["obs"], r["task"], r["algorithm"]) == ("state", "GraspLift", "sb3-ppo"))
+    lo, hi = row["success_ci95"]
+    assert row["seeds"] == [1] and row["interval"] == "Wilson" and 0 <= lo <= row["success_mean"] <= hi <= 1
+    assert data["versions"]["stable_baselines3"] == "2.9.2" and "RHPO" in data["not_runnable"]
+    assert len(data["rows"]) == 15 and sum("success_mean" in r for r in data["rows"]) == 1  # the rest pending
+    assert (tmp_path / "algorithms.png").stat().st_size > 5000
+    text = md.read_text()
+    assert text.count(alg.SECTION_HEAD) == 1 and "## Earlier\n\nkept\n" in text and "## Later\n\nkept too" in text
+    section = text[text.index(alg.SECTION_HEAD) :]
+    assert "| state | GraspLift | PPO | Stable-Baselines3 2.9.2 | 1 |" in section and "| RHPO |" in section
+    assert "pending" in section and "](algorithms.png)" in section and report["rows"] == data["rows"]
+    # a rerun finds the cell done and runs nothing (its date stays)
+    again = alg.main(args)
+    assert again["cells"][cell]["date"] == one["date"] and md.read_text().count(alg.SECTION_HEAD) == 1
+
+
+@pytest.mark.slow  # two cells' worker start-ups and evaluations (~17 s)
+def test_a_checkpointed_cell_continues_with_the_rest_of_its_budget(alg, tmp_path, capsys):
+    """A session that ended inside a cell leaves its checkpoint and no result: the rerun loads the agent, counts on
+    from its env steps and curve, and stops when the earlier session's time plus its own reach the budget."""
+    pytest.importorskip("skrl")
+    cell, name = "state/GraspLift/skrl-ppo/s1", "state__GraspLift__skrl-ppo__s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", num_envs=2, quick=True)
+    args.quick, args.budget_min, args.eval_episodes, args.checkpoint_min, args.bootstrap = False, 0.02, 1, 1.0, 50
+    first = alg.main(args)["cells"][cell]
+    (tmp_path / "algorithms.json").unlink()  # as if the session had ended before the cell's result was written
+    args.budget_min = 0.06
+    out = alg.main(args)["cells"][cell]
+    assert f"continuing from {tmp_path / 'runs' / name / 'agent.pt'}" in capsys.readouterr().out
+    assert out["env_steps"] > first["env_steps"]
+    assert 0.06 * 60 <= out["wall_clock_s"] < 0.06 * 60 + 15
+
+
+def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
+    args = alg.Args()
+    done: dict[str, dict] = {}
+    first = alg.planned(done, args)
+    assert len(first) == 15 and all(c.endswith("/s1") for c in first)
+    group = [c for c in first if c.startswith("state/GraspLift/")]
+    for i, cell in enumerate(group):
+        done[cell] = {"success_rate": {"sb3-sac": 0.4, "project-ppo": 0.3}.get(cell.split("/")[2], 0.1 * i / 10)}
+    plan = alg.planned(done, args)
+    assert "state/GraspLift/sb3-sac/s2" in plan and "state/GraspLift/sb3-sac/s3" in plan
+    assert not any(c.startswith("state/TableClearing/") and not c.endswith("/s1") for c in plan)
+    # the camera group's best is a reward-only cell, even when the imitation reference scores higher
+    for algo, rate in (("sb3-ppo", 0.1), ("sb3-sac", 0.2), ("project-camera", 0.9)):
+        done[f"rgbd/GraspLift/{algo}/s1"] = {"success_rate": rate}
+    assert alg.best_algo(done, "rgbd", "GraspLift") == "sb3-sac"
+    args.only = ["rgbd/*"]
+    assert alg.planned(done, args) == ["rgbd/GraspLift/sb3-sac/s2", "rgbd/GraspLift/sb3-sac/s3"]
+
+
+def test_bad_cells_and_backends_are_named(alg, tmp_path):
+    with pytest.raises(ValueError, match="--only 'state/Stack/\\*' matches no cell"):
+        alg.main(alg.Args(only=["state/Stack/*"], out_dir=tmp_path))
+    with pytest.raises(ValueError, match="unknown backend 'tpu'"):
+        alg.main(alg.Args(backend="tpu", out_dir=tmp_path))
+
+
+def test_wilson_interval(alg):
+    lo, hi = alg.wilson(50, 100)
+    assert lo == pytest.approx(0.4038, abs=1e-4) and hi == pytest.approx(0.5962, abs=1e-4)
+    assert alg.wilson(0, 100)[0] == 0.0 and alg.wilson(100, 100)[1] == 1.0
