@@ -125,6 +125,25 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "state",
         "rl",
     ),
+    # the original report's experiment (benchmarks/original_experiment.py): PPO from the hand camera with the report's
+    # reward (dense: -1000 per collision; no --absorbing-success, which values success in normalized_dense's units)
+    # and with normalized_dense, the ppo-state recipe's flags otherwise
+    "ppo-rgbd-dense": (
+        "agents.ppo",
+        "--obs rgbd --reward-mode dense --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
+        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --eval-freq 0 --select-episodes 30 "
+        "--total-timesteps 100000000".split(),
+        "rgbd",
+        "vision",
+    ),
+    "ppo-rgbd": (
+        "agents.ppo",
+        "--obs rgbd --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
+        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --absorbing-success --eval-freq 0 --select-episodes 30 "
+        "--total-timesteps 100000000".split(),
+        "rgbd",
+        "vision",
+    ),
     # teacher–student from the reward alone: ppo-state trains a state teacher (BASES), then the camera recipe's student
     # imitates it by DAgger (--teacher), with no scripted expert and no demos anywhere; the budget is both stages'
     "teacher-student-rgbd": (
@@ -208,7 +227,8 @@ QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
     """which of dagger-state, dagger-rgbd, dagger-rgbd-bf16, dagger-rgbd-bf16-dr, sac-state, ppo-state,
-    sac-scratch-state, ppo-finetune-state, teacher-student-rgbd to train (random and the expert always run)"""
+    sac-scratch-state, ppo-finetune-state, teacher-student-rgbd, ppo-rgbd-dense, ppo-rgbd to train (random and the
+    expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
     budget_min: float = 60.0
     """wall-clock minutes per run of dagger-state, dagger-rgbd-bf16 and ppo-finetune-state (its base and
@@ -220,7 +240,8 @@ class Args:
     rl_budget_min: Optional[float] = None
     """wall-clock minutes per run of ppo-state and sac-scratch-state (default: RL_BUDGET_MIN of the task)"""
     vision_budget_min: Optional[float] = None
-    """wall-clock minutes per run of teacher-student-rgbd, both stages (default: VISION_BUDGET_MIN of the task)"""
+    """wall-clock minutes per run of teacher-student-rgbd (both stages), ppo-rgbd-dense and ppo-rgbd (default:
+    VISION_BUDGET_MIN of the task)"""
     env_id: str = DEFAULT_ENV
     """the task; each has its own report (--out-dir) and its own Learning section in RESULTS.md"""
     out_dir: Optional[Path] = None
