@@ -100,6 +100,7 @@ def emulator(
     op_mode: str = "manual_reduced",
     statement_cost_us: float = 10.0,
     pc_address: str | None = None,
+    pendant: str | None = None,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -113,7 +114,11 @@ def emulator(
     program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO.
     ``--statement-cost-us``: the controller time one RAPID statement costs (an estimate; 0: no pacing).
     ``--pc-address``: the TCP build's PC_ADDRESS, the one client address it serves (default 127.0.0.1, where a
-    local client connects from; any other address makes the server refuse local clients, as a cell would)."""
+    local client connects from; any other address makes the server refuse local clients, as a cell would).
+    ``--pendant -`` reads the pendant's controls from stdin (``--pendant FILE``: from a file), one or more a line
+    separated by ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state,
+    quit; each prints a ``pendant: ...`` line with the program's state after it, so a fault and the operator's
+    restart can be scripted out of process."""
     from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
@@ -139,7 +144,12 @@ def emulator(
         except ValueError:
             print(f"--pc-address {pc_address!r}: an IPv4 address, e.g. 192.168.125.2", file=sys.stderr)
             return 2
-    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address)
+    if pendant is not None and pendant != "-" and not Path(pendant).is_file():
+        print(f"--pendant {pendant!r}: '-' (stdin) or a file of pendant commands", file=sys.stderr)
+        return 2
+    return emulator_main(
+        listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address, pendant
+    )
 
 
 def sim2real_eval(
