@@ -30,10 +30,10 @@ MODULE IRB120Server
     LOCAL CONST num HEARTBEAT_S := 0.5;
     ! a client silent this long (s) gives way to a new client waiting on the channel (TCP: a PC that crashed)
     LOCAL CONST num SILENCE_S := 1;
-    ! the time each byte of a frame may take once its sync has come (a slow or bursty line; 9600 baud needs 1 ms): the
-    ! whole rest of a frame must come within HEARTBEAT_S + BYTE_S a byte of its sync (while the robot moves, also
-    ! before the watchdog is due), or its sync is dropped and the scan resumes at the byte after it
-    LOCAL CONST num BYTE_S := 0.05;
+    ! the rest of a frame must come within FRAME_S of its sync (while the robot moves, also before the watchdog is
+    ! due), or its sync is dropped and the scan resumes at the byte after it: a truncated frame, or a corrupted length
+    ! byte claiming more than came, costs at most this. The longest frame takes 40 ms at 9600 baud.
+    LOCAL CONST num FRAME_S := 0.5;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
     LOCAL CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
@@ -317,16 +317,11 @@ MODULE IRB120Server
         RETURN t;
     ENDFUNC
 
-    LOCAL FUNC num FrameLimit(num need)
-        ! the time the rest of a frame of need bytes may take from its sync
-        RETURN HEARTBEAT_S + (need - 1) * BYTE_S;
-    ENDFUNC
-
-    LOCAL FUNC num FrameWait(num need)
-        ! how long to wait for more of the frame candidate: until its FrameLimit, and while the robot moves no longer
-        ! than the watchdog allows (a frame under way never delays a watchdog stop)
+    LOCAL FUNC num FrameWait()
+        ! how long to wait for more of the frame candidate: until FRAME_S after its sync, and while the robot moves no
+        ! longer than the watchdog allows (a frame under way never delays a watchdog stop)
         VAR num t;
-        t := FrameLimit(need) - ClkRead(clkFrame);
+        t := FRAME_S - ClkRead(clkFrame);
         IF status = S_MOVING AND t > WaitTime() t := WaitTime();
         IF t < 0.01 t := 0.01;
         RETURN t;
@@ -344,7 +339,7 @@ MODULE IRB120Server
     LOCAL FUNC bool NextFrame()
         ! the next frame whose CRC checks: TRUE, it starts at rx{frm}; FALSE, nothing came within WaitTime (or the
         ! peer was replaced). A sync whose length byte is over MAX_PAYLOAD, whose CRC fails or whose rest does not
-        ! come within its FrameLimit is dropped alone: the scan resumes at the byte after it, with every byte that
+        ! come within FRAME_S is dropped alone: the scan resumes at the byte after it, with every byte that
         ! came after it kept, so a corrupted frame never swallows the valid frame behind it. The watchdog is checked
         ! at every turn: noise, or a frame under way, never keeps a moving robot going.
         VAR num need;
@@ -367,8 +362,8 @@ MODULE IRB120Server
                     ENDIF
                 ENDIF
                 IF need > 0 THEN
-                    IF ReadMore(FrameWait(need)) = -1 THEN
-                        IF ClkRead(clkFrame) >= FrameLimit(need) need := 0;
+                    IF ReadMore(FrameWait()) = -1 THEN
+                        IF ClkRead(clkFrame) >= FRAME_S need := 0;
                     ELSEIF frm = 0 THEN
                         ! the peer was replaced: rx was emptied
                         RETURN FALSE;

@@ -190,11 +190,12 @@ def test_a_noise_flood_then_a_frame_is_answered(emu):
 
 
 def test_a_frame_fed_byte_by_byte_is_answered(emu):
-    """A frame whose bytes come 50 ms apart (a slow or bursty line) is still one frame."""
+    """A frame whose bytes come 20 ms apart (a slow or bursty line: 9600 baud needs 1 ms) is still one frame: its
+    rest may take FRAME_S (0.5 s) from its sync."""
     wire = Wire(emu.url)
     for b in command_frame(ToolStep(0.005, 0.0, 0.0, 0.0), 3).encode():
         wire.send(bytes([b]))
-        time.sleep(0.05)
+        time.sleep(0.02)
     frame = wire.reply()
     assert frame.type == MsgType.REPLY | MsgType.TOOL_STEP and decode_reply(frame).error == ErrorCode.OK
     wire.close()
