@@ -344,7 +344,7 @@ def run_pendant(emu: ControllerEmulator, lines: Iterable[str], out=None, done: t
             try:
                 print(pendant_command(emu, command.strip()), file=out, flush=True)
             except ValueError as e:
-                print(f"pendant: {e}", file=out, flush=True)
+                print(f"pendant: error: {e}", file=out, flush=True)
                 continue
             if command.split()[0] == "quit":
                 if done is not None:
@@ -413,7 +413,7 @@ def main(
     print(emu.start(), flush=True)
     done = threading.Event()
     if pendant is not None:
-        source = sys.stdin if pendant == "-" else open(pendant)  # noqa: SIM115 - read by the pendant's thread
+        source = sys.stdin if pendant == "-" else Path(pendant).read_text().splitlines()
         threading.Thread(target=run_pendant, args=(emu, source, sys.stdout, done), daemon=True).start()
     try:
         # a stopped program waits for the operator (Ctrl-C ends it); an ended one too while a pendant can restart it

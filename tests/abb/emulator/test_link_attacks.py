@@ -6,7 +6,10 @@ and the robot moves again after PP to main. Each test names the finding of the o
 
 from __future__ import annotations
 
+import io
 import struct
+import subprocess
+import sys
 import threading
 import time
 
@@ -16,8 +19,14 @@ import pytest
 pytest.importorskip("serial")
 pytest.importorskip("lark")
 
-from maniskill_irb120.abb.client import CONNECT_WAIT_S, ABBRobot, RobotTimeout, open_port  # noqa: E402
-from maniskill_irb120.abb.emulator.controller import ControllerEmulator  # noqa: E402
+from maniskill_irb120.abb.client import (  # noqa: E402
+    CONNECT_WAIT_S,
+    ABBRobot,
+    ControllerStopped,
+    RobotTimeout,
+    open_port,
+)
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator, run_pendant  # noqa: E402
 from maniskill_irb120.abb.protocol import (  # noqa: E402
     JOINT_UNIT_RAD,
     ErrorCode,
@@ -449,3 +458,84 @@ def test_a_gripper_byte_the_protocol_does_not_define_is_refused_on_both_sides(ma
     assert emu.moves == 0 and emu.signals["doGripperOpen"] == 1
     assert wire.ask(GetState(), 4).gripper_open
     wire.close()
+
+
+# --------------------------------------------------------------------------- the pendant from a script
+def test_pendant_commands_say_what_the_controller_did(make):
+    """The emulator's pendant as commands (``maniskill-irb120 emulator --pendant -``): each prints the program's
+    state after it, a refusal says why, and a command that does not exist is named with the ones that do; the
+    script goes on after a bad line."""
+    emu = make("tcp")
+    out = io.StringIO()
+    run_pendant(emu, ["estop; start", "reset-estop", "motors-on; pp-to-main # the operator's restart", "start", "jump"])
+    run_pendant(emu, ["wait -1", "state", "quit", "stop"], out)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "pendant: error: pendant command 'wait -1': wait takes a time in seconds >= 0"
+    assert lines[1] == "pendant: state: program running, motors on, emergency stop off, key manual_reduced"
+    assert lines[2] == "pendant: quit" and len(lines) == 3  # nothing after quit
+    out = io.StringIO()
+    run_pendant(emu, ["estop", "start", "dance"], out)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "pendant: estop: program stopped, motors off, emergency stop active, key manual_reduced"
+    assert lines[1].startswith("pendant: start: refused: emergency stop active")
+    assert lines[2].startswith("pendant: error: pendant command 'dance': use one of stop, start, pp-to-main")
+
+
+def test_a_fault_and_restart_scripted_out_of_process(tmp_path):
+    """An integrator's harness: the emulator in its own process, its pendant on stdin. An emergency stop silences
+    the controller (the client says to check the pendant); reset, motors on, PP to main and Start, and a new client
+    is served and moves the robot."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "maniskill_irb120", "emulator", "--listen", "tcp://127.0.0.1:0", "--pendant", "-"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+    )
+
+    def pendant(command: str) -> str:
+        proc.stdin.write(command + "\n")
+        proc.stdin.flush()
+        return proc.stdout.readline().strip()
+
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("tcp://127.0.0.1:")
+        robot = ABBRobot.connect(url, timeout=0.3, retries=1)
+        robot.move_tool([0.6, 0.0, 0.0, 0.0, 1.0])
+        assert pendant("estop").startswith("pendant: estop: program stopped, motors off")
+        with pytest.raises(ControllerStopped, match="check the pendant"):
+            robot.move_tool([0.6, 0.0, 0.0, 0.0, 1.0])
+        robot.port.close()
+        for command in ("reset-estop", "motors-on", "pp-to-main"):
+            assert pendant(command).startswith(f"pendant: {command}: program stopped")
+        assert pendant("start") == "pendant: start: program running, motors on, emergency stop off, key manual_reduced"
+        again = ABBRobot.connect(url)
+        held = again.last_state  # the HELLO's reply: where the robot stands, held
+        state = again.move_tool([0.6, 0.0, 0.0, 0.0, 1.0])
+        assert state.error == ErrorCode.OK and held.status == Status.IDLE
+        moved = np.linalg.norm(np.subtract(state.target_pos, held.target_pos)) * 1000
+        assert abs(moved - STEP_MM) < 0.1
+        again.close()
+        assert pendant("quit") == "pendant: quit"
+        assert proc.wait(10) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_cli_pendant_takes_stdin_or_a_file(tmp_path, capsys):
+    from maniskill_irb120.cli import main
+
+    assert main(["emulator", "--pendant", str(tmp_path / "missing.txt")]) == 2
+    assert "--pendant" in capsys.readouterr().err
+    script = tmp_path / "restart.txt"
+    script.write_text("stop  # the Stop button\nstate; quit\n")
+    assert main(["emulator", "--pendant", str(script)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("tcp://127.0.0.1:")
+    assert out[1:] == [
+        "pendant: stop: program stopped, motors on, emergency stop off, key manual_reduced",
+        "pendant: state: program stopped, motors on, emergency stop off, key manual_reduced",
+        "pendant: quit",
+    ]
