@@ -152,7 +152,7 @@ class Pendant:
             self.interp.pp_to_main()  # the task's thread unwinds, then waits for Start
         # the path is cleared and the stop that held it (the halt's, or the program's own StopMove) is over: the
         # program started from main moves the robot again. An IRC5 starts a program from main with a fresh path
-        # and no StopMove in force (verify: ABB's StopMove/StartMove reference is not at hand).
+        # and no StopMove in force (docs/rapid_subset.md, "Controller behaviour the emulator models"; verify).
         self.robot.clear_path()
         self.robot.start()
         self._path_was_stopped = False

@@ -539,3 +539,24 @@ def test_cli_pendant_takes_stdin_or_a_file(tmp_path, capsys):
         "pendant: state: program stopped, motors on, emergency stop off, key manual_reduced",
         "pendant: quit",
     ]
+
+
+def test_a_payload_with_an_equal_crc_is_answered_from_the_cache_and_moves_nothing(make):
+    """The cache trusts the CRC-16 (docs/protocol.md): a different payload under the same number and type with an
+    equal CRC is answered from the cache, not executed. Crafted: XOR-ing the generator polynomial 0x11021 into the
+    payload leaves the CRC as it is (the CRC is linear); here dz changes by 2.56 mm and the turn by 8.464 deg."""
+    emu = make("tcp")
+    first = command_frame(STEP, 7).encode()
+    body = bytearray(first[1:-2])
+    for i, d in zip(range(8, 12), (0x01, 0x10, 0x21, 0x00)):  # dz high byte, turn low and high byte, gripper
+        body[i] ^= d
+    crafted = first[:1] + bytes(body) + first[-2:]
+    assert crafted != first and decode_command(FrameParser().feed(crafted)[0]) != STEP  # a valid, other step
+    wire = Wire(emu.url)
+    wire.send(first)
+    executed = wire.reply()
+    wire.send(crafted)
+    assert wire.reply() == executed  # the cached reply
+    time.sleep(0.1)
+    assert emu.moves == 1
+    wire.close()
