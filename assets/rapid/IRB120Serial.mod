@@ -41,6 +41,8 @@ MODULE IRB120Serial
         ENDIF
         n := serLen - serNext + 1;
         IF n > room n := room;
+        ! (FOR counts down when its end is below its start: nothing to hand over is never a loop)
+        IF n < 1 RETURN -1;
         FOR i FROM 1 TO n DO
             UnpackRawBytes serRaw, serNext + i - 1, data{first + i - 1}\Hex1;
         ENDFOR

@@ -12,13 +12,14 @@ MODULE IRB120Server
     ! from the stock MainModule's main) and the RESTART event routine IRB120ServerRestart (Controller > Event
     ! Routine: Restart; it tells the server the program was stopped and started again without PP to main).
     !
-    ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
-    ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
+    ! Every command is checked here before anything moves, whatever the PC does: frame integrity (a resynchronising
+    ! scan: a corrupted frame costs only itself), the sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
     ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed, the operating mode
     ! (motion only in manual reduced speed unless ALLOW_AUTO). A heartbeat
     ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves. After the
     ! program was stopped (emergency stop, enabling device, Stop) and started again without PP to main, the robot
-    ! is held and every motion command refused (E_RESTARTED) until the PC opens a new session (HELLO).
+    ! is held and every motion command refused (E_RESTARTED) until the PC opens a new session (a HELLO the server
+    ! accepts; a refused one changes nothing). Gripper bytes the protocol does not define are refused (E_BAD_VALUE).
     ! Refusals, watchdog stops, restarts and new connections are written to the event log (ErrWrite).
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
@@ -250,7 +251,8 @@ MODULE IRB120Server
 
     LOCAL PROC CheckRestart()
         ! after a stop and a start without PP to main: hold the robot (the planner may be finishing the path it had
-        ! queued) and refuse motion until the PC opens a new session, so commands it sent before the stop never run
+        ! queued) and refuse motion until the PC opens a new session (an accepted HELLO), so commands it sent before the
+        ! stop never run
         IF restarted THEN
             restarted := FALSE;
             HoldRobot\Quick;
@@ -378,6 +380,7 @@ MODULE IRB120Server
                 IF ReadMore(WaitTime()) < 0 RETURN FALSE;
             ENDIF
         ENDWHILE
+        RETURN FALSE;
     ENDFUNC
 
     LOCAL PROC ServeOneFrame()
@@ -521,7 +524,7 @@ MODULE IRB120Server
             RETURN E_WATCHDOG;
         ENDIF
         ! after a restart, motion waits for a new session: frames the PC sent before the stop (still buffered) and
-        ! a PC that did not notice the stop are refused until it sends HELLO
+        ! a PC that did not notice the stop are refused until it sends a HELLO the server accepts
         IF restartHeld RETURN E_RESTARTED;
         RETURN E_OK;
     ENDFUNC

@@ -86,6 +86,8 @@ MODULE IRB120Socket
         ENDIF
         n := sockLen - sockNext + 1;
         IF n > room n := room;
+        ! (FOR counts down when its end is below its start: nothing to hand over is never a loop)
+        IF n < 1 RETURN -1;
         FOR i FROM 1 TO n DO
             UnpackRawBytes sockRaw, sockNext + i - 1, data{first + i - 1}\Hex1;
         ENDFOR
