@@ -232,11 +232,16 @@ def test_a_waiting_client_is_served_once_it_sends_again(make):
 
 
 # --------------------------------------------------------------------------- 4. the watchdog and a half frame
-@pytest.mark.parametrize("tail", [b"", bytes([0xA5, 0x20, 0x01, 0x00])], ids=["silence", "half a frame"])
-def test_a_half_sent_frame_does_not_delay_the_watchdog(make, tail):
+@pytest.mark.parametrize(
+    "tail, after",
+    [(b"", 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.3)],
+    ids=["silence", "half a frame", "half a frame 0.3 s later"],
+)
+def test_a_half_sent_frame_does_not_delay_the_watchdog(make, tail, after):
     """Finding 4: a step, then the four bytes A5 20 01 00 and silence: the watchdog fired after 3.08 s instead of
-    ~0.5 s (the header and the payload were each given their own frame time) and the robot went on 4.4 mm. While
-    the robot moves, the wait for the rest of a frame ends when the watchdog is due."""
+    ~0.5 s (the header and the payload were each given their own frame time, 0.5 s + 50 ms a byte) and the robot
+    went on 4.4 mm. A frame's rest must come within FRAME_S of its sync, and while the robot moves the wait for it
+    ends when the watchdog is due, however late in the heartbeat the partial frame began."""
     emu = make("tcp", speed_scale=0.01)  # a 10 mm step takes seconds: the robot is still moving at 0.5 s
     stops = []  # when the server called StopMove
     stop_move = emu.interp.builtins.get("StopMove")
@@ -246,6 +251,7 @@ def test_a_half_sent_frame_does_not_delay_the_watchdog(make, tail):
     assert wire.ask(ToolStep(0.01, 0.0, 0.0, 0.0), 2).status == Status.MOVING
     sent = time.monotonic()
     start = tcp_mm(emu)
+    time.sleep(after)
     wire.send(tail)
     assert wait_for(lambda: watchdog_stops(emu), 4.0)
     assert stops[0] - sent < 0.5 + 0.1
