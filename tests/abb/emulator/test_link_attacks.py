@@ -254,9 +254,9 @@ def test_a_half_sent_frame_does_not_delay_the_watchdog(make, tail, after):
     time.sleep(after)
     wire.send(tail)
     assert wait_for(lambda: watchdog_stops(emu), 4.0)
-    assert stops[0] - sent < 0.5 + 0.1
+    assert stops[0] - sent < 0.5 + 0.2  # HEARTBEAT_S, and the time to read and act: the late one was 2.2-3.1 s
     assert wait_for(lambda: not emu.robot.busy())
-    assert moved_mm(emu, start) < 0.6  # plain silence: ~0.3 mm; the late watchdog let it go 4.4 mm
+    assert moved_mm(emu, start) < 1.0  # plain silence: ~0.3 mm; the late watchdog let it go 4.4-5.2 mm
     wire.close()
 
 
@@ -289,7 +289,7 @@ def test_a_corrupted_frame_does_not_swallow_the_next(make, corruption):
     assert wait_for(lambda: not emu.robot.busy())
     assert abs(moved_mm(emu, before) - STEP_MM) < 0.1
     incomplete = corruption in ("truncated frame", "length 32 header")
-    assert took < (0.5 + 0.3 if incomplete else 0.3)  # FRAME_S for a frame that never completes
+    assert took < (0.5 + 0.3 if incomplete else 0.4)  # FRAME_S only for a frame that never completes
     wire.close()
 
 
@@ -370,7 +370,7 @@ def test_connect_says_what_it_waited_for(make):
     t0 = time.monotonic()
     with pytest.raises(RobotTimeout, match="serves one client at a time"):
         ABBRobot.connect(emu.url)
-    assert CONNECT_WAIT_S - 0.1 < time.monotonic() - t0 < CONNECT_WAIT_S + 0.5
+    assert CONNECT_WAIT_S - 0.1 < time.monotonic() - t0 < CONNECT_WAIT_S + 1.0
     done.set()
     sender.join()
     busy.close()
