@@ -234,8 +234,8 @@ def test_a_waiting_client_is_served_once_it_sends_again(make):
 # --------------------------------------------------------------------------- 4. the watchdog and a half frame
 @pytest.mark.parametrize(
     "tail, after",
-    [(b"", 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.3)],
-    ids=["silence", "half a frame", "half a frame 0.3 s later"],
+    [(b"", 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.0), (bytes([0xA5, 0x20, 0x01, 0x00]), 0.4)],
+    ids=["silence", "half a frame", "half a frame 0.4 s later"],
 )
 def test_a_half_sent_frame_does_not_delay_the_watchdog(make, tail, after):
     """Finding 4: a step, then the four bytes A5 20 01 00 and silence: the watchdog fired after 3.08 s instead of
