@@ -51,7 +51,7 @@ class MsgType(IntEnum):
 class Status(IntEnum):
     IDLE = 0
     MOVING = 1
-    HELD = 2  # stopped by STOP or by the controller's watchdog; the next valid command resumes
+    HELD = 2  # stopped by STOP, the watchdog or a restart; an accepted motion command moves it again (docs/protocol.md)
     FAULT = 3  # motors off, emergency stop: nothing moves until the operator clears it
 
 
