@@ -141,7 +141,9 @@ def emulator(
         print(f"--statement-cost-us {statement_cost_us!r}: a time >= 0 us per statement (0: off)", file=sys.stderr)
         return 2
     if rws is not None and pendant is not None:
-        print("--pendant drives the program --listen serves; with --rws the program is started over RWS", file=sys.stderr)
+        print(
+            "--pendant drives the program --listen serves; with --rws the program is started over RWS", file=sys.stderr
+        )
         return 2
     if rws is not None:
         from maniskill_irb120.abb.emulator.rws import main as rws_main
