@@ -241,7 +241,7 @@ def measure_batched(
 ) -> dict:
     """The GPU sweep's measurement, shared with ``maniskill-irb120 doctor --gpu`` (imported here, not at the top:
     the PyBullet and CPU configurations' processes must not load ManiSkill)."""
-    from maniskill_irb120.acceptance_runs import measure_batched as measure
+    from maniskill_irb120.diagnostics.acceptance_runs import measure_batched as measure
 
     return measure(env_id, num_envs, steps, seed, backend=backend, obs_mode=obs_mode)
 

@@ -23,7 +23,7 @@ def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, 
     fails, 2 without CUDA; takes a few minutes). ``--jobs N``: N checks side by side, each in its own process (the
     obs-mode sweep split per task and mode); the steps/s are timed afterwards, alone. ``--json``: print the
     report as JSON; ``--json-path PATH``: also write it there."""
-    from maniskill_irb120.doctor import gpu_main, main
+    from maniskill_irb120.diagnostics.doctor import gpu_main, main
 
     if gpu:
         return gpu_main(json_output=json, json_path=json_path, jobs=jobs)
