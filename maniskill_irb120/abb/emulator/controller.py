@@ -235,7 +235,7 @@ class ControllerEmulator(Pendant):
 
     def _motion_supervision(self) -> None:
         """An error the robot met while moving (outside reach, a world zone) stops the program wherever it is:
-        it never reaches a RAPID ERROR handler (REFERENCE.md, "path errors during execution")."""
+        it never reaches a RAPID ERROR handler (docs/reference.md, "path errors during execution")."""
         err = self.robot.motion_error
         if err is not None:
             self.robot.motion_error = None
