@@ -9,7 +9,7 @@ random actions and the scripted expert.
 Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
 episodes within each (a two-level stratified bootstrap, the method of ``rliable``; written here in numpy
 because rliable 1.2 does not import beside our stack: it needs ``arch < 8``, and arch 7.2 fails at import with
-the pandas 3.1 installed here, ``TypeError: deprecate_kwarg()``, tried 2026-11-25; rliable's bootstrap also
+the pandas 3.1 installed here, ``TypeError: deprecate_kwarg()``; rliable's bootstrap also
 resamples runs only, which with 1-3 seeds ignores the 100 episodes' own sampling noise), and the interquartile
 mean of the seeds' success rates
 (rliable's aggregate over runs; over single episodes, each 0 or 1, it would only say whether success is above
