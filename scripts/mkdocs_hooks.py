@@ -69,8 +69,8 @@ def site_links(text: str, source_dir: Path, page_uri: str) -> str:
         path, _, anchor = target.partition("#")
         dest = (source_dir / path).resolve()
         if dest.is_relative_to(ROOT / "docs"):
-            return m.group(0)
-        if dest == ROOT / "benchmarks" / "RESULTS.md":
+            site = dest.relative_to(ROOT / "docs")
+        elif dest == ROOT / "benchmarks" / "RESULTS.md":
             site = Path("results.md")
         elif dest.is_relative_to(ROOT / "benchmarks" / "results"):
             site = Path("results") / dest.relative_to(ROOT / "benchmarks" / "results")
