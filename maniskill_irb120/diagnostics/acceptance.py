@@ -28,7 +28,7 @@ from maniskill_irb120.envs.table_clearing import ENV_ID as TABLE_CLEARING
 
 ENV_IDS = (TABLE_CLEARING, GRASP_LIFT, STACK_CUBE)
 OBS_MODES = ("state", "state_dict", "none", "rgbd", "rgb", "depth", "pointcloud", "sensor_data")
-"""the obs modes the README promises (every ManiSkill mode we name, plus rgbd); combinations are not swept"""
+"""the obs modes docs/tasks.md promises (every ManiSkill mode we name, plus rgbd); combinations are not swept"""
 STATE_ONLY = ("state", "state_dict", "none")
 CAMERA = "hand_camera"
 IMAGE_HW = (84, 84)

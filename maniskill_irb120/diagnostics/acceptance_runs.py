@@ -48,7 +48,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         steps = 8
         args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
         args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
-        if obs == "state":  # the RL-from-the-reward network (README): its running normaliser on the GPU's tensors
+        if obs == "state":  # the RL-from-the-reward network (docs/training.md): its normaliser on the GPU's tensors
             args += ["--state-net", "mlp", "--obs-norm"]
     elif name == "sac":
         args = ["--budget-min", "0.05", "--demo-episodes", "1", "--bc-pretrain-updates", "5"]
@@ -57,7 +57,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
     elif name == "dagger":
         args = ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
-        if obs == "rgbd":  # the camera recipe (README), --precision auto: bf16 on a CPU that has it
+        if obs == "rgbd":  # the camera recipe (docs/training.md), --precision auto: bf16 on a CPU that has it
             args += ["--action-frame", "tool", "--encoder", "keypoints", "--aux-weight", "1", "--precision", "auto"]
     else:
         raise ValueError(f"unknown trainer {name!r}; expected one of {TRAINERS}")
