@@ -18,7 +18,7 @@ from pathlib import Path
 from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parents[1]
-WIDTH = "100"
+WIDTH = "80"  # the width of the page's code column
 
 
 def _help(argv: list[str]) -> str:
@@ -35,7 +35,7 @@ def _help(argv: list[str]) -> str:
 
 def cli_page() -> str:
     """The CLI reference page, from ``--help`` (the docstrings of ``maniskill_irb120/cli.py``)."""
-    os.environ.setdefault("COLUMNS", WIDTH)
+    os.environ["COLUMNS"] = WIDTH
     os.environ["NO_COLOR"] = "1"
     from maniskill_irb120.cli import COMMANDS
 
