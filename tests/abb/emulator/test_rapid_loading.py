@@ -293,7 +293,7 @@ def test_cli_options(controller, tmp_path, capsys):
 def test_the_shipped_server_loads_beside_the_stock_main_module_with_exactly_its_options(
     controller, channel, options, loads
 ):
-    """The option matrix of the shipped files (docs/deploy_irc5.md), loaded as an integrator loads them next to a new
+    """The option matrix of the shipped files (docs/real_robot.md), loaded as an integrator loads them next to a new
     task's stock MainModule: what loads serves a STATE request; what does not names the missing option."""
     from maniskill_irb120.abb.client import ABBRobot
 
