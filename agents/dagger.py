@@ -8,6 +8,10 @@ dataset and the policy is trained further on all of it. The labels come from a w
 worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
 proprioception, no privileged state) while the expert reads the simulator.
 
+``--teacher CKPT`` puts a trained state policy in the expert's place (:class:`agents.common.envs.TeacherLabels`):
+it acts on the privileged state while the learner reads its own observation, so a camera policy can be distilled
+from a state policy that learned from the reward alone, with no scripted expert anywhere (teacher–student).
+
 The action frame: ``world`` rotates the policy's translation from world axes into the tool action
 (``maniskill_irb120.wrappers.WorldFrameToolAction``), learnable from state; ``tool`` is the raw tool-frame action,
 the hand camera's axes, where an image offset is a tool-frame offset: learnable from rgbd. ``--obs-without
@@ -23,6 +27,7 @@ policy never sees it); from the camera it makes the encoder find the cube.
         --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
     python -m agents.dagger ... (the camera flags) --precision auto --budget-min 60  # bf16 encoder: within the hour
     python -m agents.dagger --obs rgbd --backend gpu --num-envs 32 --device cuda ...    # GPU-batched envs
+    python -m agents.dagger ... (the camera flags) --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 
@@ -130,6 +135,10 @@ class Args(RunArgs):
     save_freq: int = 10
     """checkpoint every N rounds, and always at the end; the dataset goes beside it, each save writing only
     the rows new since the last (checkpoints/data/)"""
+    teacher: Optional[Path] = None
+    """a trained state policy (an agents.ppo, agents.sac or agents.dagger checkpoint, or an exported policy, of this
+    task and control mode, obs state) labels the states in place of the scripted expert: teacher–student, the camera
+    student imitating a teacher that learned from the reward alone"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
     weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 on a
@@ -147,6 +156,7 @@ def make_envs(args: Args, num_envs: int):
         obs_without=args.obs_without,
         aux=args.aux_weight > 0,
         env_kwargs=args.env_kwargs,
+        teacher=args.teacher,
     )
 
 

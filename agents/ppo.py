@@ -18,7 +18,8 @@ exploration noise and ``--critic-warmup-iters`` fits the value function before t
 them a cloned policy washes out: the first updates follow a random critic away from the demonstrations (IBRL,
 arXiv 2311.02198).
 
-``--budget-min`` (the flag every trainer shares) limits training's wall clock and overrides ``--max-wall-s``;
+``--budget-min`` (the flag every trainer shares) limits training's wall clock, counting the time of the run before a
+``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``;
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
 every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON. With
@@ -531,9 +532,13 @@ def train(args: Args) -> dict:
     history: list[dict] = []
     start_iteration = counters["iteration"]
     t_start = time.perf_counter()
+    wall_before = counters.get("wall_s", 0.0)  # trained before this --resume: the budget is the run's, as in DAgger
+
+    elapsed = lambda: wall_before + time.perf_counter() - t_start  # noqa: E731
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
-        if max_wall_s is not None and time.perf_counter() - t_start > max_wall_s:
+        counters["wall_s"] = elapsed()  # saved with every checkpoint
+        if max_wall_s is not None and counters["wall_s"] > max_wall_s:
             if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
                 select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
@@ -630,6 +635,7 @@ def train(args: Args) -> dict:
         if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
             select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
         if it % args.save_freq == 0 or it == num_iterations:
+            counters["wall_s"] = elapsed()
             save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
             save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
     if bar is not None:
@@ -646,7 +652,7 @@ def train(args: Args) -> dict:
         last_eval=last_eval,
         checkpoint=str(ckpt_dir / "latest.pt"),
         env_steps=counters["global_step"],
-        wall_clock_s=time.perf_counter() - t_start,  # training only, as the other trainers report it
+        wall_clock_s=elapsed(),  # training only (every --resume of the run together), as the other trainers report it
     )
     if args.select_episodes and counters.get("best") is not None:
         selected = counters["best"]

@@ -126,6 +126,34 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "state",
         "rl",
     ),
+    # the original report's experiment (benchmarks/original_experiment.py): PPO from the hand camera with the report's
+    # reward (dense: -1000 per collision; no --absorbing-success, which values success in normalized_dense's units)
+    # and with normalized_dense, the ppo-state recipe's flags otherwise
+    "ppo-rgbd-dense": (
+        "agents.ppo",
+        "--obs rgbd --reward-mode dense --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
+        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --eval-freq 0 --select-episodes 30 "
+        "--total-timesteps 100000000".split(),
+        "rgbd",
+        "vision",
+    ),
+    "ppo-rgbd": (
+        "agents.ppo",
+        "--obs rgbd --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
+        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --absorbing-success --eval-freq 0 --select-episodes 30 "
+        "--total-timesteps 100000000".split(),
+        "rgbd",
+        "vision",
+    ),
+    # teacher–student from the reward alone: ppo-state trains a state teacher (BASES), then the camera recipe's student
+    # imitates it by DAgger (--teacher), with no scripted expert and no demos anywhere; the budget is both stages'
+    "teacher-student-rgbd": (
+        "agents.dagger",
+        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
+        "--batch-size 64 --updates-per-round 500 --precision auto".split(),
+        "rgbd",
+        "vision",
+    ),
     # PPO fine-tuning of a DAgger policy (the base below), within the same budget: a frozen base plus a residual
     # held near it by the KL term, little exploration noise and a critic warm-up (docs/training.md, "without the
     # wash-out")
@@ -145,10 +173,17 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
 TASK_FLAGS: dict[str, dict[str, list[str]]] = {"GraspLift-IRB120-v1": {"ppo-state": ["--logstd", "state"]}}
 RL_BUDGET_MIN = {"GraspLift-IRB120-v1": 90.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
 """RL from the reward alone, minutes per run (issue targets: GraspLift in 90, TableClearing in 150)"""
+VISION_BUDGET_MIN = {"GraspLift-IRB120-v1": 120.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
+"""a camera policy from the reward alone, every stage together, minutes per run (targets: GraspLift 90 % within
+120, TableClearing 90 % within 150)"""
 DEFAULT_ENV = "TableClearing-IRB120-v1"
-# recipe -> (recipe that trains its --base-checkpoint, that run's share of the budget); the row's env steps
-# and wall clock are both stages', its curve the two joined, and the base's own held-out success is kept
-BASES: dict[str, tuple[str, float]] = {"ppo-finetune-state": ("dagger-state", 0.5)}
+# recipe -> (recipe that trains its base, that run's share of the budget, the flag that hands the base's checkpoint
+# on); the row's env steps and wall clock are both stages', its curve the two joined, and the base's own held-out
+# success is kept. The state teacher's share: 45 of GraspLift's 120 min (PPO from state peaks there in 35-45 min)
+BASES: dict[str, tuple[str, float, str]] = {
+    "ppo-finetune-state": ("dagger-state", 0.5, "--base-checkpoint"),
+    "teacher-student-rgbd": ("ppo-state", 0.375, "--teacher"),
+}
 REFERENCES = ("random", "expert")
 # what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
 RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
@@ -194,7 +229,8 @@ QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
     """which of dagger-state, dagger-rgbd, dagger-rgbd-bf16, dagger-rgbd-bf16-dr, sac-state, ppo-state,
-    sac-scratch-state, ppo-finetune-state to train (random and the expert always run)"""
+    sac-scratch-state, ppo-finetune-state, teacher-student-rgbd, ppo-rgbd-dense, ppo-rgbd to train (random and the
+    expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
     budget_min: float = 60.0
     """wall-clock minutes per run of dagger-state, dagger-rgbd-bf16 and ppo-finetune-state (its base and
@@ -205,6 +241,9 @@ class Args:
     """held-out episodes per run and per reference (seeds agents.common.EVAL_SEED onwards)"""
     rl_budget_min: Optional[float] = None
     """wall-clock minutes per run of ppo-state and sac-scratch-state (default: RL_BUDGET_MIN of the task)"""
+    vision_budget_min: Optional[float] = None
+    """wall-clock minutes per run of teacher-student-rgbd (both stages), ppo-rgbd-dense and ppo-rgbd (default:
+    VISION_BUDGET_MIN of the task)"""
     env_id: str = DEFAULT_ENV
     """the task; each has its own report (--out-dir) and its own Learning section in RESULTS.md"""
     out_dir: Optional[Path] = None
@@ -217,6 +256,9 @@ class Args:
     """run folders of the one recipe in --recipes trained outside this script, by the trainer's own command
     (e.g. in an earlier session): each joins the row if its logged arguments are the recipe's, for this task, budget
     and --eval-episodes (only where and how it logged may differ); its seed may not be in --seeds"""
+    adopt_base: list[Path] = field(default_factory=list)
+    """for a two-stage recipe (teacher-student-rgbd, ppo-finetune-state), the first stage's run folder of each --adopt
+    run, in the same order"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     quick: bool = False
@@ -314,7 +356,11 @@ def make_room(run_dir: Path) -> Path:
 
 def budget_for(kind: str, args: Args) -> float:
     """Minutes per run of a recipe whose budget is ``kind`` (RECIPES: "short", "long" or "rl")."""
-    return dict(long=args.long_budget_min, rl=args.rl_budget_min).get(kind) or args.budget_min
+    if kind == "vision":
+        return args.vision_budget_min or VISION_BUDGET_MIN[args.env_id]
+    if kind == "rl":
+        return args.rl_budget_min or RL_BUDGET_MIN[args.env_id]
+    return dict(long=args.long_budget_min).get(kind) or args.budget_min
 
 
 def train_run(recipe: str, seed: int, args: Args) -> dict:
@@ -323,10 +369,10 @@ def train_run(recipe: str, seed: int, args: Args) -> dict:
     budget = budget_for(kind, args)
     if recipe not in BASES:
         return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
-    base_recipe, share = BASES[recipe]
+    base_recipe, share, hand_on = BASES[recipe]
     base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
     base = run_trainer(f"{recipe}__s{seed}__base", base_module, base_flags, seed, share * budget, args)
-    flags = [*flags, "--base-checkpoint", base["checkpoint"]]
+    flags = [*flags, hand_on, base["checkpoint"]]
     rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)  # an overrun of the base shows in the row's time
     tuned = run_trainer(f"{recipe}__s{seed}", module, flags, seed, rest, args)
     return joined(base, tuned)
@@ -398,23 +444,38 @@ def logged_args(events: Path) -> tuple[dict, float]:
     return json.loads(text.tensor_proto.string_val[0].decode()), text.wall_time
 
 
-def adopted_run(recipe: str, run_dir: Path, args: Args) -> dict:
+def adopted_pair(recipe: str, base_dir: Path, run_dir: Path, args: Args) -> dict:
+    """A two-stage run trained outside this script: the base stage checked against the base recipe at its share of
+    the budget, the second against ``recipe`` with the rest of it and the base's checkpoint handed on, as
+    ``train_run`` would have run them."""
+    base_recipe, share, hand_on = BASES[recipe]
+    budget = budget_for(RECIPES[recipe][3], args)
+    base = adopted_run(base_recipe, base_dir, args, stage_budget=share * budget)
+    rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)
+    tuned = adopted_run(recipe, run_dir, args, stage_budget=rest, extra=[hand_on, base["checkpoint"]])
+    return dict(joined(base, tuned), adopted_from=f"{base_dir} + {run_dir}")
+
+
+def adopted_run(
+    recipe: str, run_dir: Path, args: Args, stage_budget: Optional[float] = None, extra: list[str] = ()
+) -> dict:
     """A finished run of ``recipe`` trained outside this script, checked against the recipe and read as
     ``run_trainer`` reads its own (its summary.json is the result line; its curve's clock starts when its log was
-    opened, seconds after the process)."""
+    opened, seconds after the process). ``stage_budget`` and ``extra``: one stage of a two-stage recipe
+    (:func:`adopted_pair`)."""
     import importlib
 
     module, _, _, kind = RECIPES[recipe]
-    flags = recipe_flags(recipe, args.env_id)
-    if recipe in BASES:
-        raise ValueError(f"--adopt: {recipe} trains in two stages; only one-stage recipes can be adopted")
+    flags = [*recipe_flags(recipe, args.env_id), *extra]
+    if recipe in BASES and not extra:
+        raise ValueError(f"--adopt: {recipe} trains in two stages; name each run's first stage with --adopt-base")
     summary, events = run_dir / "summary.json", sorted(run_dir.glob("events.out.tfevents.*"))
     if not summary.is_file():
         raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
     if len(events) != 1:
         raise ValueError(f"--adopt: {run_dir} has {len(events)} TensorBoard logs (a resumed or foreign run?), not 1")
     logged, opened = logged_args(events[0])
-    budget = budget_for(kind, args)
+    budget = budget_for(kind, args) if stage_budget is None else stage_budget
     seed = logged.get("seed")
     argv = [*seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed), "--budget-min", f"{budget:.4g}"]
     argv += ["--eval-episodes", str(args.eval_episodes)]
@@ -581,7 +642,7 @@ def main(args: Args) -> dict:
     if args.quick:
         args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
         args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
-        args.rl_budget_min = 0.05
+        args.rl_budget_min = args.vision_budget_min = 0.05
     if args.env_id not in RL_BUDGET_MIN:
         raise ValueError(f"unknown --env-id {args.env_id!r}; choose from {sorted(RL_BUDGET_MIN)}")
     args.out_dir = args.out_dir or default_out_dir(args.env_id)
@@ -589,7 +650,12 @@ def main(args: Args) -> dict:
     args.out_dir.mkdir(parents=True, exist_ok=True)
     if args.adopt and len(args.recipes) != 1:
         raise ValueError(f"--adopt: name the one recipe the adopted runs belong to in --recipes, not {args.recipes}")
-    adopted = [adopted_run(args.recipes[0], run_dir, args) for run_dir in args.adopt]  # refused before any run
+    if args.adopt_base and len(args.adopt_base) != len(args.adopt):
+        raise ValueError(f"--adopt-base: one first stage per adopted run: {len(args.adopt_base)} for {len(args.adopt)}")
+    if args.adopt_base:  # refused before any run
+        adopted = [adopted_pair(args.recipes[0], b, r, args) for b, r in zip(args.adopt_base, args.adopt)]
+    else:
+        adopted = [adopted_run(args.recipes[0], run_dir, args) for run_dir in args.adopt]
     seeds = [r["seed"] for r in adopted] + list(args.seeds)
     if len(set(seeds)) < len(seeds):
         raise ValueError(
@@ -622,6 +688,7 @@ def main(args: Args) -> dict:
         budget_min=args.budget_min,
         long_budget_min=args.long_budget_min,
         rl_budget_min=args.rl_budget_min,
+        vision_budget_min=budget_for("vision", args),
         rows=rows,
     )
     (args.out_dir / "learning.json").write_text(json.dumps(report, indent=1))

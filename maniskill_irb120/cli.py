@@ -102,6 +102,7 @@ def emulator(
     statement_cost_us: float = 10.0,
     pc_address: str | None = None,
     rws: str | None = None,
+    pendant: str | None = None,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -118,7 +119,11 @@ def emulator(
     local client connects from; any other address makes the server refuse local clients, as a cell would).
     ``--rws 127.0.0.1:PORT``: serve Robot Web Services 1.0 instead (what ``deploy`` talks to): a controller with
     ``--options`` and ``--op-mode`` and the stock MainModule, nothing of ours loaded; prints the RWS URL first and
-    each program URL as the program starts."""
+    each program URL as the program starts.
+    ``--pendant -`` reads the pendant's controls from stdin (``--pendant FILE``: from a file), one or more a line
+    separated by ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state,
+    quit; each prints a ``pendant: ...`` line with the program's state after it, so a fault and the operator's
+    restart can be scripted out of process (not with ``--rws``, whose program is started over RWS)."""
     from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
@@ -134,6 +139,11 @@ def emulator(
         return 2
     if not (math.isfinite(statement_cost_us) and statement_cost_us >= 0):
         print(f"--statement-cost-us {statement_cost_us!r}: a time >= 0 us per statement (0: off)", file=sys.stderr)
+        return 2
+    if rws is not None and pendant is not None:
+        print(
+            "--pendant drives the program --listen serves; with --rws the program is started over RWS", file=sys.stderr
+        )
         return 2
     if rws is not None:
         from maniskill_irb120.abb.emulator.rws import main as rws_main
@@ -152,7 +162,12 @@ def emulator(
         except ValueError:
             print(f"--pc-address {pc_address!r}: an IPv4 address, e.g. 192.168.125.2", file=sys.stderr)
             return 2
-    return emulator_main(listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address)
+    if pendant is not None and pendant != "-" and not Path(pendant).is_file():
+        print(f"--pendant {pendant!r}: '-' (stdin) or a file of pendant commands", file=sys.stderr)
+        return 2
+    return emulator_main(
+        listen, rapid, fault, latency_ms, speed_scale, options, op_mode, statement_cost_us, pc_address, pendant
+    )
 
 
 def deploy(

@@ -6,14 +6,17 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import partial
+from pathlib import Path
 from typing import Optional
 
 import gymnasium as gym
 import torch
+from mani_skill.utils import common as ms_common
 
-from maniskill_irb120.action import tcp_rotation, tool_to_world
+from maniskill_irb120.action import tcp_rotation, tool_to_world, world_to_tool
 from maniskill_irb120.envs.base import grasp_yaw_error
 from maniskill_irb120.experts import expert_for
+from maniskill_irb120.policies import acting, read_policy_section
 from maniskill_irb120.vector import CPUVectorEnv, OnHost, make_vec_env
 from maniskill_irb120.wrappers import WorldFrameToolAction, observation_setup
 
@@ -51,10 +54,21 @@ def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
     return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
 
 
-class ExpertLabels(gym.Wrapper):
-    """Puts the reactive expert's action for the state just reached into ``info["expert_action"]``, in the
-    learner's action frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the
-    auxiliary targets (:func:`privileged_aux`) into ``info["expert_aux"]``."""
+def privileged_state_obs(env: gym.Env, info: dict) -> torch.Tensor:
+    """(N, D) the observation ``obs_mode="state"`` gives at this step, whatever the env's own obs mode: the agent's
+    proprioception and the task's extras with its privileged :meth:`state_observations`, flattened in ManiSkill's
+    order. What a state teacher reads while its camera student reads the image (teacher–student)."""
+    u = env.unwrapped
+    extra = u._get_obs_extra(info)
+    if not u.obs_mode_struct.use_state:
+        extra.update(u.state_observations(u.step_state, info))
+    return ms_common.flatten_state_dict(dict(agent=u._get_obs_agent(), extra=extra), use_torch=True, device=u.device)
+
+
+class ActionLabels(gym.Wrapper):
+    """Puts a labeller's action for the state just reached into ``info["expert_action"]``, in the learner's action
+    frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the auxiliary targets
+    (:func:`privileged_aux`) into ``info["expert_aux"]``. Subclasses say where the tool-frame action comes from."""
 
     def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
         super().__init__(env)
@@ -64,11 +78,14 @@ class ExpertLabels(gym.Wrapper):
             raise ValueError(
                 f"--aux-weight needs a task that declares a target_object; {env.unwrapped.spec.id} does not"
             )
-        self.expert = expert_for(env, reactive=True)
         self.frame, self.aux = frame, aux
 
+    def tool_action(self, info: dict) -> torch.Tensor:
+        """(N, 5) the label in the tool frame, for the state just reached (``info``: its step's or reset's)."""
+        raise NotImplementedError
+
     def _label(self, info: dict) -> None:
-        a = self.expert.act()
+        a = self.tool_action(info)
         info["expert_action"] = (
             tool_to_world(a, tcp_rotation(self.env.unwrapped.agent.tcp_pose.raw_pose)) if self.frame == "world" else a
         )
@@ -77,7 +94,6 @@ class ExpertLabels(gym.Wrapper):
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
-        self.expert.reset((kwargs.get("options") or {}).get("env_idx"))  # a batched env resets ended envs only
         self._label(info)
         return obs, info
 
@@ -85,6 +101,65 @@ class ExpertLabels(gym.Wrapper):
         obs, rew, term, trunc, info = self.env.step(action)
         self._label(info)
         return obs, rew, term, trunc, info
+
+
+class ExpertLabels(ActionLabels):
+    """Labels from the task's reactive scripted expert (its phase read from the simulator)."""
+
+    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
+        super().__init__(env, frame, aux)
+        self.expert = expert_for(env, reactive=True)
+
+    def tool_action(self, info: dict) -> torch.Tensor:
+        return self.expert.act()
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.expert.reset((kwargs.get("options") or {}).get("env_idx"))  # a batched env resets ended envs only
+        self._label(info)
+        return obs, info
+
+
+class TeacherLabels(ActionLabels):
+    """Labels from a trained state policy (teacher–student): the teacher acts, deterministically, on the privileged
+    state observation (:func:`privileged_state_obs`) while the learner reads its own observation, e.g. the camera.
+    With a teacher that learned from the reward alone, nothing in the pipeline is scripted or demonstrated."""
+
+    def __init__(self, env: gym.Env, teacher: Path, frame: str = "tool", aux: bool = False):
+        super().__init__(env, frame, aux)
+        self.section = check_teacher(read_policy_section(teacher, f"--teacher {teacher}"), env, teacher)
+        self.act = acting(self.section, device=env.unwrapped.device)
+
+    def tool_action(self, info: dict) -> torch.Tensor:
+        if "grasped" not in info:  # a reset's info carries no evaluation
+            info = {**self.env.unwrapped.get_info(), **info}
+        with torch.no_grad():
+            a = self.act({"state": privileged_state_obs(self.env, info)}).clamp(-1, 1)
+        if self.section["action_frame"] == "world":
+            a = world_to_tool(a, tcp_rotation(self.env.unwrapped.agent.tcp_pose.raw_pose))
+        return a.float()
+
+
+def check_teacher(section: dict, env: gym.Env, path) -> dict:
+    """``section``, once it is a policy that can label ``env``: one trained from state on this task and control mode,
+    seeing every state key (a hidden key would need its own observation layout)."""
+    where, u = f"--teacher {path}", env.unwrapped
+    wanted = dict(obs="state", env_id=u.spec.id.split(":")[-1], control_mode=u.control_mode, obs_without=[])
+    have = dict(
+        obs=section["obs"],
+        env_id=section["env_id"].split(":")[-1],
+        control_mode=section["control_mode"],
+        obs_without=list(section["obs_without"]),
+    )
+    differ = [f"{k}={have[k]!r} (needed: {wanted[k]!r})" for k in wanted if have[k] != wanted[k]]
+    if differ:
+        raise ValueError(f"{where} cannot label this run: " + ", ".join(differ))
+    return section
+
+
+def check_teacher_file(teacher) -> None:
+    """A missing or unreadable --teacher is named here, before any worker starts (a worker's error reads worse)."""
+    read_policy_section(Path(teacher), f"--teacher {teacher}")
 
 
 def action_wrappers(frame: str) -> list:
@@ -102,16 +177,22 @@ def make_envs(
     obs_without: tuple[str, ...] = (),
     aux: bool = False,
     env_kwargs: Optional[dict] = None,
+    teacher: Optional[Path] = None,
 ):
-    """``num_envs`` envs whose info carries the reactive expert's label for every state (:class:`ExpertLabels`;
-    with ``aux`` the auxiliary targets too), in the policy's observation and action frame, as host tensors."""
+    """``num_envs`` envs whose info carries a label for every state, the reactive expert's (:class:`ExpertLabels`) or
+    with ``teacher`` a trained state policy's (:class:`TeacherLabels`), with ``aux`` the auxiliary targets too, in
+    the policy's observation and action frame, as host tensors."""
     obs_mode, obs_wrappers = observation_setup(obs, obs_without)
     kwargs = dict(obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **(env_kwargs or {}))
     if obs == "rgbd":
         kwargs["render_mode"] = "rgb_array"
     else:
         kwargs.setdefault("render_backend", "none")
-    labels = partial(ExpertLabels, frame=action_frame, aux=aux)
+    if teacher is None:
+        labels = partial(ExpertLabels, frame=action_frame, aux=aux)
+    else:
+        check_teacher_file(teacher)
+        labels = partial(TeacherLabels, teacher=Path(teacher), frame=action_frame, aux=aux)
     wrappers = [*obs_wrappers, *action_wrappers(action_frame), labels]
     if obs == "rgbd":
         from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper

@@ -12,13 +12,14 @@ MODULE IRB120Server
     ! from the stock MainModule's main) and the RESTART event routine IRB120ServerRestart (Controller > Event
     ! Routine: Restart; it tells the server the program was stopped and started again without PP to main).
     !
-    ! Every command is checked here before anything moves, whatever the PC does: frame integrity, the
-    ! sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
+    ! Every command is checked here before anything moves, whatever the PC does: frame integrity (a resynchronising
+    ! scan: a corrupted frame costs only itself), the sequence number (a repeated frame is answered again, never executed twice), per-step limits, the
     ! workspace box, reachability and joint limits (CalcJointT in an ERROR handler), joint speed, the operating mode
     ! (motion only in manual reduced speed unless ALLOW_AUTO). A heartbeat
     ! watchdog stops and holds the robot when no valid frame arrives within HEARTBEAT_S while it moves. After the
     ! program was stopped (emergency stop, enabling device, Stop) and started again without PP to main, the robot
-    ! is held and every motion command refused (E_RESTARTED) until the PC opens a new session (HELLO).
+    ! is held and every motion command refused (E_RESTARTED) until the PC opens a new session (a HELLO the server
+    ! accepts; a refused one changes nothing). Gripper bytes the protocol does not define are refused (E_BAD_VALUE).
     ! Refusals, watchdog stops, restarts and new connections are written to the event log (ErrWrite).
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
@@ -30,8 +31,10 @@ MODULE IRB120Server
     LOCAL CONST num HEARTBEAT_S := 0.5;
     ! a client silent this long (s) gives way to a new client waiting on the channel (TCP: a PC that crashed)
     LOCAL CONST num SILENCE_S := 1;
-    ! the time each byte of a frame may take once its sync has come (a slow or bursty line; 9600 baud needs 1 ms)
-    LOCAL CONST num BYTE_S := 0.05;
+    ! the rest of a frame must come within FRAME_S of its sync (while the robot moves, also before the watchdog is
+    ! due), or its sync is dropped and the scan resumes at the byte after it: a truncated frame, or a corrupted length
+    ! byte claiming more than came, costs at most this. The longest frame takes 40 ms at 9600 baud.
+    LOCAL CONST num FRAME_S := 0.5;
     ! a motion is over once every axis is this close to its target (deg): status MOVING -> IDLE
     LOCAL CONST num ARRIVED_DEG := 0.05;
     ! the safety envelope (the PC checks the same numbers: maniskill_irb120/abb/envelope.py)
@@ -101,6 +104,7 @@ MODULE IRB120Server
     LOCAL CONST num E_OPERATING_MODE := 11;
     LOCAL CONST num E_RESTARTED := 12;
     LOCAL CONST num E_VERSION := 13;
+    LOCAL CONST num E_BAD_VALUE := 14;
     !
     ! CRC-16/CCITT-FALSE, table-driven (poly 0x1021): entry i is the CRC register after shifting byte i through
     ! it, split into its high and low byte (BitXOr works on bytes). Three statements a byte instead of ~50.
@@ -133,9 +137,16 @@ MODULE IRB120Server
     LOCAL VAR signaldo doGripper;
     LOCAL VAR signaldo doMotors;
     LOCAL VAR signaldo doEstop;
-    LOCAL VAR byte rx{40};
+    ! the receive buffer: rx{rxFirst..rxLast} came from the channel and is not consumed yet. A frame candidate starts
+    ! at rx{frm} (its sync; 0: none), so rx{frm + 1} is its length, rx{frm + 2} its type, rx{frm + 3} its sequence
+    ! number and rx{frm + 4} its first payload byte. RX_SIZE (rx's size) holds the longest frame (38 bytes) and a read
+    ! of what came after it.
+    LOCAL CONST num RX_SIZE := 96;
+    LOCAL VAR byte rx{96};
+    LOCAL VAR num rxFirst := 1;
+    LOCAL VAR num rxLast := 0;
+    LOCAL VAR num frm := 0;
     LOCAL VAR byte tx{40};
-    LOCAL VAR num rxLen := 0;
     LOCAL VAR num txLen := 0;
     ! the duplicate cache: the last command executed (sequence number, type, CRC); its reply is still in tx.
     ! Cleared whenever a connection (re)opens: a new peer's sequence numbers are its own.
@@ -151,9 +162,11 @@ MODULE IRB120Server
     ! set by the RESTART event routine: the program was stopped and started again where it stood
     LOCAL VAR bool restarted := FALSE;
     LOCAL VAR bool restartHeld := FALSE;
-    ! time since the last valid frame (the watchdog's) and since the last read (the silence before a new peer)
+    ! time since the last valid frame (the watchdog's), since the last read (the silence before a new peer) and since
+    ! the frame candidate's sync was found (its frame time)
     LOCAL VAR clock clkValid;
     LOCAL VAR clock clkHeard;
+    LOCAL VAR clock clkFrame;
     ! where the controller is taking the TCP (the last motion queued; where it stands once still): the reply
     ! carries it, so the PC knows every pose a next step could be taken from (docs/protocol.md)
     LOCAL VAR robtarget lastTarget;
@@ -197,13 +210,30 @@ MODULE IRB120Server
     ENDPROC
 
     LOCAL PROC NewSession()
-        ! a connection (re)opened: nothing of the previous peer's is answered to this one
+        ! a connection (re)opened: nothing of the previous peer's is answered to this one or run for it, and a
+        ! watchdog stop of the previous peer's is not held against it (the robot is held: its replies say HELD)
+        ClearCache;
+        watchdogFired := FALSE;
+        rxFirst := 1;
+        rxLast := 0;
+        frm := 0;
+        RestartClock clkValid;
+        RestartClock clkHeard;
+    ENDPROC
+
+    LOCAL PROC StartSession()
+        ! an accepted HELLO: the PC has learned of a restart or a watchdog stop (the reply's status says HELD), and
+        ! nothing it sent before is answered from the cache
+        ClearCache;
+        watchdogFired := FALSE;
+        restartHeld := FALSE;
+        lastLogged := E_OK;
+    ENDPROC
+
+    LOCAL PROC ClearCache()
         lastSeq := -1;
         lastKind := -1;
         lastCrc := -1;
-        rxLen := 0;
-        RestartClock clkValid;
-        RestartClock clkHeard;
     ENDPROC
 
     LOCAL PROC RestartClock(VAR clock c)
@@ -221,7 +251,8 @@ MODULE IRB120Server
 
     LOCAL PROC CheckRestart()
         ! after a stop and a start without PP to main: hold the robot (the planner may be finishing the path it had
-        ! queued) and refuse motion until the PC opens a new session, so commands it sent before the stop never run
+        ! queued) and refuse motion until the PC opens a new session (an accepted HELLO), so commands it sent before the
+        ! stop never run
         IF restarted THEN
             restarted := FALSE;
             HoldRobot\Quick;
@@ -245,18 +276,37 @@ MODULE IRB120Server
     ENDPROC
 
     ! ---------------------------------------------------------------- receiving
-    LOCAL FUNC num ReadRx(num first, num count, num timeout)
-        ! count bytes into rx{first..}, in one channel call: count; -1 when they did not all come within timeout
-        ! seconds; -2 when the peer went away (the robot is held and the next peer is being served)
+    LOCAL FUNC num ReadMore(num timeout)
+        ! appends what the channel has (waiting at most timeout s for the first byte) to rx: how many bytes came; -1
+        ! none within timeout; -2 the peer went away (the robot is held and the next peer is being served)
         VAR num got;
-        got := IRB120ChanRead(rx, first, count, timeout);
+        IF rxFirst > rxLast THEN
+            rxFirst := 1;
+            rxLast := 0;
+        ELSEIF RX_SIZE - rxLast < MAX_PAYLOAD + 6 THEN
+            CompactRx;
+        ENDIF
+        got := IRB120ChanRead(rx, rxLast + 1, RX_SIZE - rxLast, timeout);
         IF got > 0 THEN
+            rxLast := rxLast + got;
             RestartClock clkHeard;
         ELSEIF got < -1 THEN
             Reconnect;
         ENDIF
         RETURN got;
     ENDFUNC
+
+    LOCAL PROC CompactRx()
+        ! rx{rxFirst..rxLast} to the front (at most a frame candidate's 37 bytes: room for the next read)
+        VAR num k;
+        k := rxFirst - 1;
+        FOR i FROM rxFirst TO rxLast DO
+            rx{i - k} := rx{i};
+        ENDFOR
+        rxLast := rxLast - k;
+        rxFirst := 1;
+        IF frm > 0 frm := frm - k;
+    ENDPROC
 
     LOCAL FUNC num WaitTime()
         ! how long a read may wait: until the watchdog is due while the robot moves, else one heartbeat
@@ -269,45 +319,90 @@ MODULE IRB120Server
         RETURN t;
     ENDFUNC
 
+    LOCAL FUNC num FrameWait()
+        ! how long to wait for more of the frame candidate: until FRAME_S after its sync, and while the robot moves no
+        ! longer than the watchdog allows (a frame under way never delays a watchdog stop)
+        VAR num t;
+        t := FRAME_S - ClkRead(clkFrame);
+        IF status = S_MOVING AND t > WaitTime() t := WaitTime();
+        IF t < 0.01 t := 0.01;
+        RETURN t;
+    ENDFUNC
+
+    LOCAL FUNC bool SkipToSync()
+        ! rxFirst to the next sync in rx: TRUE; FALSE when rx has none (every byte before it is noise)
+        WHILE rxFirst <= rxLast DO
+            IF rx{rxFirst} = SYNC RETURN TRUE;
+            rxFirst := rxFirst + 1;
+        ENDWHILE
+        RETURN FALSE;
+    ENDFUNC
+
+    LOCAL FUNC bool NextFrame()
+        ! the next frame whose CRC checks: TRUE, it starts at rx{frm}; FALSE, nothing came within WaitTime (or the
+        ! peer was replaced). A sync whose length byte is over MAX_PAYLOAD, whose CRC fails or whose rest does not
+        ! come within FRAME_S is dropped alone: the scan resumes at the byte after it, with every byte that
+        ! came after it kept, so a corrupted frame never swallows the valid frame behind it. The watchdog is checked
+        ! at every turn: noise, or a frame under way, never keeps a moving robot going.
+        VAR num need;
+        WHILE TRUE DO
+            IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
+            IF SkipToSync() THEN
+                IF frm <> rxFirst THEN
+                    ! a new candidate: its frame time starts now
+                    frm := rxFirst;
+                    RestartClock clkFrame;
+                ENDIF
+                need := 2;
+                IF rxLast > frm THEN
+                    need := rx{frm + 1} + 6;
+                    IF need > MAX_PAYLOAD + 6 THEN
+                        need := 0;
+                    ELSEIF rxLast - frm + 1 >= need THEN
+                        IF Crc16Rx(frm + 1, need - 3) = rx{frm + need - 2} + 256 * rx{frm + need - 1} RETURN TRUE;
+                        need := 0;
+                    ENDIF
+                ENDIF
+                IF need > 0 THEN
+                    IF ReadMore(FrameWait()) = -1 THEN
+                        IF ClkRead(clkFrame) >= FRAME_S need := 0;
+                    ELSEIF frm = 0 THEN
+                        ! the peer was replaced: rx was emptied
+                        RETURN FALSE;
+                    ENDIF
+                ENDIF
+                IF need = 0 THEN
+                    ! not a frame: its sync is dropped, the scan resumes at the byte after it
+                    rxFirst := frm + 1;
+                    frm := 0;
+                ENDIF
+            ELSE
+                IF ReadMore(WaitTime()) < 0 RETURN FALSE;
+            ENDIF
+        ENDWHILE
+        RETURN FALSE;
+    ENDFUNC
+
     LOCAL PROC ServeOneFrame()
-        ! reads one frame in three channel calls: its sync byte, the rest of its header (length, type, seq), then
-        ! its payload and CRC. Only the sync is read alone: it is the read that routinely times out, and bytes that
-        ! came before a timeout are not relied on, so a frame that begins late in a wait is never cut in two. Any
-        ! byte but the sync is skipped (scanning resynchronises after noise); a length over MAX_PAYLOAD or a bad CRC
-        ! drops what was read and scanning starts again. The rest of a frame must come within FrameTime of its
-        ! sync (a slow or bursty line). The watchdog counts from the last valid frame: noise does not keep a
-        ! moving robot going.
-        VAR num n;
+        ! serves the next frame (NextFrame: scanning, resynchronising, the frame time and the watchdog). A frame is
+        ! consumed before it is handled (a reply that finds the peer gone starts a new session with rx empty). A
+        ! silent peer (a PC that crashed without closing) gives way to a new one waiting.
         CheckRestart;
-        IF ClkRead(clkValid) >= HEARTBEAT_S Watchdog;
-        n := ReadRx(1, 1, WaitTime());
-        IF n = -1 THEN
+        IF NOT NextFrame() THEN
             Watchdog;
             IF ClkRead(clkHeard) >= SILENCE_S THEN
-                ! a silent peer (a PC that crashed without closing) gives way to a new one waiting
                 IF IRB120ChanNewPeer() Reconnect;
             ENDIF
             RETURN;
         ENDIF
-        IF n < 0 OR rx{1} <> SYNC RETURN;
-        IF ReadRx(1, 3, FrameTime(3)) < 0 RETURN;
-        n := rx{1};
-        IF n > MAX_PAYLOAD RETURN;
-        IF ReadRx(4, n + 2, FrameTime(n + 2)) < 0 RETURN;
-        rxLen := n + 5;
-        ! rx: 1 length, 2 type, 3 seq, 4.. payload, then the CRC (low byte first)
-        IF Crc16Rx(n + 3) <> rx{n + 4} + 256 * rx{n + 5} RETURN;
+        rxFirst := frm + rx{frm + 1} + 6;
         ! a reply (type bit 0x80: a line echoing our own frames) is never a command: dropped, no reply
-        IF rx{2} >= T_REPLY RETURN;
-        RestartClock clkValid;
-        HandleFrame;
+        IF rx{frm + 2} < T_REPLY THEN
+            RestartClock clkValid;
+            HandleFrame;
+        ENDIF
+        frm := 0;
     ENDPROC
-
-    LOCAL FUNC num FrameTime(num count)
-        ! how long the next count bytes of a frame under way may take: HEARTBEAT_S, and BYTE_S for each. While a
-        ! frame is being read the watchdog waits: it runs again, late by at most this, once the read is over
-        RETURN HEARTBEAT_S + count * BYTE_S;
-    ENDFUNC
 
     LOCAL PROC Watchdog()
         ! while the robot is commanded to move, the PC must send a valid frame (a STATE request will do) at least
@@ -339,24 +434,17 @@ MODULE IRB120Server
         VAR num kind;
         VAR num seq;
         VAR num crc;
-        kind := rx{2};
-        seq := rx{3};
-        crc := rx{rx{1} + 4} + 256 * rx{rx{1} + 5};
+        kind := rx{frm + 2};
+        seq := rx{frm + 3};
+        crc := rx{frm + rx{frm + 1} + 4} + 256 * rx{frm + rx{frm + 1} + 5};
         CheckRestart;
-        IF kind = T_HELLO THEN
-            ! a new session: nothing the peer sent before is answered from the cache any more, and a PC that opens
-            ! one after a restart has learned that the robot stopped
-            restartHeld := FALSE;
-            lastSeq := -1;
-            lastKind := -1;
-            lastCrc := -1;
-        ENDIF
-        IF seq = lastSeq AND kind = lastKind AND crc = lastCrc THEN
-            ! a repeated frame (same number, type and CRC): answer again from the cache, never execute again
+        IF seq = lastSeq AND kind = lastKind AND crc = lastCrc AND kind <> T_HELLO THEN
+            ! a repeated frame (same number, type and CRC): answer again from the cache, never execute again. A HELLO
+            ! is never answered from the cache: it is checked, and opens a session only if accepted
             SendTx;
             RETURN;
         ENDIF
-        refusal := CheckFrame(kind, rx{1});
+        refusal := CheckFrame(kind, rx{frm + 1});
         IF refusal = E_OK THEN
             TEST kind
             CASE T_TOOL_STEP:
@@ -364,20 +452,29 @@ MODULE IRB120Server
             CASE T_JOINTS:
                 JointMove;
             CASE T_GRIPPER:
-                SetGripper GripperValue(rx{4});
+                SetGripper rx{frm + 4};
             CASE T_STOP:
                 HoldRobot;
             CASE T_HELLO:
-                IF rx{4} <> PROTOCOL_VERSION refusal := E_VERSION;
+                ! only an accepted HELLO opens a session (lifts a restart hold): a refused one changes nothing
+                IF rx{frm + 4} = PROTOCOL_VERSION THEN
+                    StartSession;
+                ELSE
+                    refusal := E_VERSION;
+                ENDIF
             CASE T_RESET:
                 ResetMove;
             ENDTEST
         ENDIF
-        IF refusal <> lastLogged AND refusal <> E_OK THEN
-            ! each new kind of refusal is logged once (a PC repeating a refused step does not flood the log)
+        IF refusal = E_OK THEN
+            ! a refusal is logged again once a command other than a STATE (the heartbeat) has been accepted
+            IF kind <> T_STATE lastLogged := E_OK;
+        ELSEIF refusal <> lastLogged THEN
+            ! each new kind of refusal is logged once: a PC repeating a refused step, with STATE requests between
+            ! the tries, does not flood the log
             ErrWrite\I, "IRB120Server: refused", "command type " + NumToStr(kind, 0) + ", error " + NumToStr(refusal, 0);
+            lastLogged := refusal;
         ENDIF
-        lastLogged := refusal;
         lastSeq := seq;
         lastKind := kind;
         lastCrc := crc;
@@ -400,6 +497,16 @@ MODULE IRB120Server
             RETURN E_UNKNOWN_TYPE;
         ENDTEST
         IF len <> want RETURN E_BAD_LENGTH;
+        ! a gripper byte the protocol does not define (steps: 0 close, 1 open, 2 keep; GRIPPER: 0 or 1) is refused,
+        ! as the PC's parser refuses it: never read as "close"
+        TEST kind
+        CASE T_TOOL_STEP:
+            IF rx{frm + 12} > 2 RETURN E_BAD_VALUE;
+        CASE T_JOINTS, T_RESET:
+            IF rx{frm + 16} > 2 RETURN E_BAD_VALUE;
+        CASE T_GRIPPER:
+            IF rx{frm + 4} > 1 RETURN E_BAD_VALUE;
+        ENDTEST
         ! a fault lasts as long as its cause: every frame reports it, motion commands are refused
         IF DOutput(doEstop) = 1 OR DOutput(doMotors) = 0 THEN
             status := S_FAULT;
@@ -417,7 +524,7 @@ MODULE IRB120Server
             RETURN E_WATCHDOG;
         ENDIF
         ! after a restart, motion waits for a new session: frames the PC sent before the stop (still buffered) and
-        ! a PC that did not notice the stop are refused until it sends HELLO
+        ! a PC that did not notice the stop are refused until it sends a HELLO the server accepts
         IF restartHeld RETURN E_RESTARTED;
         RETURN E_OK;
     ENDFUNC
@@ -440,7 +547,7 @@ MODULE IRB120Server
             refusal := E_STEP_LIMIT;
             RETURN;
         ENDIF
-        grip := GripperChange(rx{12});
+        grip := GripperChange(rx{frm + 12});
         IF dx = 0 AND dy = 0 AND dz = 0 AND rot = 0 THEN
             ! a zero-length step moves nothing: answered without queuing a motion. Its gripper change waits until the
             ! robot stands in position: SetDO fires when the program pointer passes it, which with a step still
@@ -506,7 +613,7 @@ MODULE IRB120Server
             refusal := E_WORKSPACE;
             RETURN;
         ENDIF
-        grip := GripperChange(rx{16});
+        grip := GripperChange(rx{frm + 16});
         IF grip < 0 THEN
             MoveAbsJ jTarget, vStep, zStep, tGripper\WObj:=wobj0;
         ELSE
@@ -557,7 +664,7 @@ MODULE IRB120Server
             ENDIF
         ENDFOR
         jTarget := jMid;
-        IF rx{16} <> 2 SetGripper GripperValue(rx{16});
+        IF rx{frm + 16} <> 2 SetGripper rx{frm + 16};
         MoveAbsJ jTarget, vReset, fine, tGripper\WObj:=wobj0;
         lastTarget := tcp;
         lastJoints := jTarget;
@@ -588,18 +695,11 @@ MODULE IRB120Server
         gripCmd := value;
     ENDPROC
 
-    LOCAL FUNC num GripperValue(num wanted)
-        ! a command's gripper byte as the output's value: 1 opens, any other closes
-        IF wanted = 1 RETURN 1;
-        RETURN 0;
-    ENDFUNC
-
     LOCAL FUNC num GripperChange(num wanted)
-        ! the output value a command's gripper byte changes to, or -1 when it changes nothing (2, or the value the
-        ! output already has or is set to along the queued path)
-        IF wanted = 2 RETURN -1;
-        IF GripperValue(wanted) = gripCmd RETURN -1;
-        RETURN GripperValue(wanted);
+        ! the output value a command's gripper byte (0 close, 1 open, 2 keep: CheckFrame refused any other) changes
+        ! to, or -1 when it changes nothing (2, or the value the output already has or is set to along the queued path)
+        IF wanted = 2 OR wanted = gripCmd RETURN -1;
+        RETURN wanted;
     ENDFUNC
 
     ! ---------------------------------------------------------------- replying
@@ -655,9 +755,9 @@ MODULE IRB120Server
 
     ! ---------------------------------------------------------------- bytes
     LOCAL FUNC num Int16At(num i)
-        ! little-endian int16 at rx{i}, rx{i + 1}
+        ! little-endian int16 at byte i of the frame (rx{frm + i}, rx{frm + i + 1}; 4: the first payload byte)
         VAR num v;
-        v := rx{i} + 256 * rx{i + 1};
+        v := rx{frm + i} + 256 * rx{frm + i + 1};
         IF v >= 32768 v := v - 65536;
         RETURN v;
     ENDFUNC
@@ -672,12 +772,12 @@ MODULE IRB120Server
         tx{i + 1} := v DIV 256;
     ENDPROC
 
-    LOCAL FUNC num Crc16Rx(num count)
-        ! CRC-16/CCITT-FALSE of rx{1..count} (length, type, seq, payload)
+    LOCAL FUNC num Crc16Rx(num first, num count)
+        ! CRC-16/CCITT-FALSE of the count bytes from rx{first} (length, type, seq, payload)
         VAR byte hi := 255;
         VAR byte lo := 255;
         VAR num t;
-        FOR i FROM 1 TO count DO
+        FOR i FROM first TO first + count - 1 DO
             t := BitXOr(hi, rx{i}) + 1;
             hi := BitXOr(lo, CRC_HI{t});
             lo := CRC_LO{t};

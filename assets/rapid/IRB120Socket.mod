@@ -18,10 +18,17 @@ MODULE IRB120Socket
     LOCAL CONST num SOCK_PORT := 5000;
     ! how long IRB120ChanNewPeer waits for a new client (s)
     LOCAL CONST num SOCK_POLL_S := 0.1;
+    ! how long a client the server turns to may stay quiet for its old bytes to count as all drained (s; verify: the
+    ! shortest \Time SocketReceive honours)
+    LOCAL CONST num DRAIN_S := 0.02;
+    LOCAL CONST num DRAIN_READS := 20;
     LOCAL VAR socketdev sockListen;
     LOCAL VAR socketdev sockA;
     LOCAL VAR socketdev sockB;
+    ! the bytes of the last SocketReceive: sockRaw's bytes sockNext..sockLen are not handed to the server yet
     LOCAL VAR rawbytes sockRaw;
+    LOCAL VAR num sockNext := 1;
+    LOCAL VAR num sockLen := 0;
     LOCAL VAR num sockCur := 1;
     LOCAL VAR bool sockPending := FALSE;
 
@@ -31,6 +38,8 @@ MODULE IRB120Socket
         SocketListen sockListen;
         sockCur := 1;
         sockPending := FALSE;
+        sockNext := 1;
+        sockLen := 0;
         AcceptPc sockA;
     ENDPROC
 
@@ -61,19 +70,29 @@ MODULE IRB120Socket
         RAISE;
     ENDFUNC
 
-    FUNC num IRB120ChanRead(VAR byte data{*}, num first, num count, num timeout)
-        ! count bytes into data{first} .. data{first + count - 1}, received in one call: count when all came within
-        ! timeout seconds; -1 when they did not (what did come is not relied on: the server scans for the next
-        ! sync); -2 when the client closed the connection
-        IF sockCur = 1 THEN
-            SocketReceive sockA\RawData:=sockRaw\ReadNoOfBytes:=count\Time:=timeout;
-        ELSE
-            SocketReceive sockB\RawData:=sockRaw\ReadNoOfBytes:=count\Time:=timeout;
+    FUNC num IRB120ChanRead(VAR byte data{*}, num first, num room, num timeout)
+        ! the bytes that have come (at least one, at most room) into data{first..}: how many; -1 when none came within
+        ! timeout seconds; -2 when the client closed the connection. Bytes received beyond room are kept for the
+        ! next call: none is lost, so the server can resynchronise without losing the frame behind a corrupted one
+        VAR num n;
+        IF sockNext > sockLen THEN
+            IF sockCur = 1 THEN
+                SocketReceive sockA\RawData:=sockRaw\Time:=timeout;
+            ELSE
+                SocketReceive sockB\RawData:=sockRaw\Time:=timeout;
+            ENDIF
+            sockNext := 1;
+            sockLen := RawBytesLen(sockRaw);
         ENDIF
-        FOR i FROM 1 TO count DO
-            UnpackRawBytes sockRaw, i, data{first + i - 1}\Hex1;
+        n := sockLen - sockNext + 1;
+        IF n > room n := room;
+        ! (FOR counts down when its end is below its start: nothing to hand over is never a loop)
+        IF n < 1 RETURN -1;
+        FOR i FROM 1 TO n DO
+            UnpackRawBytes sockRaw, sockNext + i - 1, data{first + i - 1}\Hex1;
         ENDFOR
-        RETURN count;
+        sockNext := sockNext + n;
+        RETURN n;
     ERROR
         IF ERRNO = ERR_SOCK_TIMEOUT RETURN -1;
         IF ERRNO = ERR_SOCK_CLOSED RETURN -2;
@@ -106,18 +125,46 @@ MODULE IRB120Socket
     ENDFUNC
 
     PROC IRB120ChanReopen()
-        ! drop the current client; serve the one waiting, or wait for the next
+        ! drop the current client and what it sent; serve the one waiting, or wait for the next. The next client's
+        ! bytes from before the server turned to it are dropped (Drained): they were sent while another client held
+        ! the robot, or by a client that has closed since, and never become motion. A client that has closed is
+        ! passed over. The client's connect resends its HELLO until it is answered (docs/protocol.md).
+        sockNext := 1;
+        sockLen := 0;
         IF sockCur = 1 THEN
             SocketClose sockA;
             IF NOT sockPending AcceptPc sockB;
+            WHILE NOT Drained(sockB) DO
+                AcceptPc sockB;
+            ENDWHILE
             sockCur := 2;
         ELSE
             SocketClose sockB;
             IF NOT sockPending AcceptPc sockA;
+            WHILE NOT Drained(sockA) DO
+                AcceptPc sockA;
+            ENDWHILE
             sockCur := 1;
         ENDIF
         sockPending := FALSE;
     ENDPROC
+
+    LOCAL FUNC bool Drained(VAR socketdev client)
+        ! reads and drops what the client sent before the server turned to it: TRUE once it has been quiet for
+        ! DRAIN_S (or after DRAIN_READS reads: a client that never pauses is served, its next bytes read as frames);
+        ! FALSE when it has closed (it is closed here too)
+        FOR i FROM 1 TO DRAIN_READS DO
+            SocketReceive client\RawData:=sockRaw\Time:=DRAIN_S;
+        ENDFOR
+        RETURN TRUE;
+    ERROR
+        IF ERRNO = ERR_SOCK_TIMEOUT RETURN TRUE;
+        IF ERRNO = ERR_SOCK_CLOSED THEN
+            SocketClose client;
+            RETURN FALSE;
+        ENDIF
+        RAISE;
+    ENDFUNC
 
     PROC IRB120ChanClose()
         ! the server's UNDO (PP to main): every socket closed; the next start listens afresh
@@ -125,5 +172,7 @@ MODULE IRB120Socket
         SocketClose sockB;
         SocketClose sockListen;
         sockPending := FALSE;
+        sockNext := 1;
+        sockLen := 0;
     ENDPROC
 ENDMODULE

@@ -13,6 +13,8 @@ repeated number without executing it again, so a retry never repeats a motion.
 
 from __future__ import annotations
 
+import logging
+import math
 import time
 from collections import deque
 from dataclasses import replace
@@ -23,6 +25,7 @@ import numpy as np
 from maniskill_irb120.abb.envelope import Envelope
 from maniskill_irb120.abb.protocol import (
     ERROR_MEANINGS,
+    FRAME_GAP_S,
     RESET_ORI_DEG_S,
     RESET_TCP_MM_S,
     ErrorCode,
@@ -50,7 +53,13 @@ def _target(state: RobotState) -> np.ndarray:
     return pose_mm(np.asarray(state.target_pos) * 1000, state.target_quat)
 
 
+log = logging.getLogger(__name__)
+
 LOOKAHEAD_TARGETS = 3
+# How long connect resends its HELLO: the TCP server serves one client at a time and turns to a new one once the
+# current one closes, or has been silent for 1 s while this one waits (IRB120Server.mod SILENCE_S; about 1.5 s after
+# this one connects, docs/protocol.md), and drops what this one sent before it turned to it. With a margin.
+CONNECT_WAIT_S = 2.5
 RESET_CHECK_STEP = np.radians(np.full(6, 2.0))  # the reset's joint path is checked every 2 degrees
 
 
@@ -119,19 +128,35 @@ class ABBRobot:
         self.pending: deque[np.ndarray] = deque(maxlen=LOOKAHEAD_TARGETS)
 
     @classmethod
-    def connect(cls, url: str, timeout: float = 0.25, retries: int = 2, envelope: Envelope | None = None) -> ABBRobot:
+    def connect(
+        cls,
+        url: str,
+        timeout: float = 0.25,
+        retries: int = 2,
+        envelope: Envelope | None = None,
+        wait: float = CONNECT_WAIT_S,
+    ) -> ABBRobot:
+        """Open the port and a session. The HELLO is resent every ``timeout`` for up to ``wait`` seconds
+        (:data:`CONNECT_WAIT_S`): a controller serving another client turns to this one only once that client
+        closes or falls silent, and drops what this one sent before. Raises :class:`RobotTimeout` saying so if
+        nothing answers."""
+        if not (math.isfinite(wait) and wait >= 0):
+            raise ValueError(f"wait={wait!r}: how long to wait for the controller to answer, in seconds (>= 0)")
         robot = cls(open_port(url, timeout), timeout, retries, envelope)
         try:
-            robot.hello()  # fail now, not at the first motion, if nothing answers
+            robot.hello(wait)  # fail now, not at the first motion, if nothing answers
         except RobotError:
             robot.port.close()
             raise
         return robot
 
-    def hello(self) -> RobotState:
+    def hello(self, wait: float = 0.0) -> RobotState:
         """Open a session: the controller forgets earlier sequence numbers (ours or another PC's), so none of
-        them is answered with an old reply. ``connect`` does this; a client that reopens its port does it again."""
-        return self._request(Hello())
+        them is answered with an old reply, and lifts its restart hold. ``connect`` does this; a client that
+        reopens its port does it again. ``wait``: keep resending it (every ``timeout``) for that long, as connect
+        does while the controller is serving another client."""
+        attempts = max(1 + self.retries, math.ceil(wait / self.timeout))
+        return self._request(Hello(), attempts=attempts)
 
     def __enter__(self) -> ABBRobot:
         return self
@@ -202,14 +227,21 @@ class ABBRobot:
     def _joints_now(self) -> np.ndarray:
         return np.asarray((self.last_state or self.state()).joints)
 
-    def _request(self, msg, timeout: float | None = None) -> RobotState:
+    def _request(self, msg, timeout: float | None = None, attempts: int | None = None) -> RobotState:
         if self.port is None:
             raise RobotError("the robot connection is closed")
         self.seq = self.seq % 255 + 1  # 1..255: a fresh number for every new command
         raw = command_frame(msg, self.seq).encode()
         want = MsgType.REPLY | msg.TYPE
         bad_before = self.parser.bad_frames
-        for _attempt in range(1 + self.retries):
+        attempts = 1 + self.retries if attempts is None else attempts
+        for attempt in range(attempts):
+            if attempt == 1 and msg.TYPE == MsgType.HELLO and attempts > 1 + self.retries:
+                log.info(
+                    "no reply to HELLO yet: waiting up to %.1f s for the controller to turn to this connection (it "
+                    "serves one client at a time, and replaces one only once it closes or is silent for 1 s)",
+                    attempts * self.timeout,
+                )
             try:
                 self.port.write(raw)  # a retry is the same bytes: the controller answers it without executing it
                 state = self._await_reply(want, self.seq, self.timeout if timeout is None else timeout)
@@ -224,18 +256,26 @@ class ABBRobot:
         detail = (
             f"no valid reply to {type(msg).__name__} (seq {self.seq}) within "
             f"{self.timeout if timeout is None else timeout:.2f} s, "
-            f"{1 + self.retries} attempts" + (f"; {corrupt} corrupted frames were discarded" if corrupt else "")
+            f"{attempts} attempts" + (f"; {corrupt} corrupted frames were discarded" if corrupt else "")
         )
         if msg.TYPE in MOTION_TYPES:  # silence after a command: most likely a stopped controller, not a slow line
             raise ControllerStopped(f"{STOPPED_HINT}: {detail}")
+        if msg.TYPE == MsgType.HELLO:
+            detail += (
+                f" ({attempts * self.timeout:.1f} s): the controller serves one client at a time and turns to a new "
+                "one only once the current one closes or has been silent for 1 s; check that no other client keeps "
+                "it busy, that its program runs (pendant), the URL and the server's PC_ADDRESS"
+            )
         raise RobotTimeout(detail)
 
     def _await_reply(self, want: int, seq: int, timeout: float) -> RobotState | None:
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
-            self.port.timeout = left
+            self.port.timeout = min(left, FRAME_GAP_S)
             data = self.port.read(max(1, self.port.in_waiting))
-            for frame in self.parser.feed(data):
+            # a quiet line: a frame left incomplete (truncated, a corrupted length) is given up and what came
+            # behind it scanned again
+            for frame in self.parser.feed(data) if data else self.parser.expire():
                 if frame.seq != seq or frame.type != want:
                     continue  # a late reply to an earlier attempt or command
                 try:

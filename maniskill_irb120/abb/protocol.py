@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import struct
+import time
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -16,6 +17,10 @@ SYNC = 0xA5
 HEADER = 4  # sync, length, type, sequence
 OVERHEAD = HEADER + 2  # + CRC-16
 MAX_PAYLOAD = 32  # a longer length byte is noise: the parser resynchronises
+# a frame still incomplete when nothing more has come for this long will not complete (a truncated frame, or a
+# corrupted length byte claiming more than came): the parser drops its sync and scans the bytes after it again. A
+# reply (32 bytes) takes 33 ms at 9600 baud and comes in one write.
+FRAME_GAP_S = 0.1
 
 # fixed-point units (one definition for both sides; the RAPID module has the same constants)
 STEP_UNIT_M = 1e-5  # tool-step translation: 0.01 mm
@@ -46,7 +51,7 @@ class MsgType(IntEnum):
 class Status(IntEnum):
     IDLE = 0
     MOVING = 1
-    HELD = 2  # stopped by STOP or by the controller's watchdog; the next valid command resumes
+    HELD = 2  # stopped by STOP, the watchdog or a restart; an accepted motion command moves it again (docs/protocol.md)
     FAULT = 3  # motors off, emergency stop: nothing moves until the operator clears it
 
 
@@ -65,6 +70,7 @@ class ErrorCode(IntEnum):
     OPERATING_MODE = 11
     RESTARTED = 12
     VERSION = 13
+    BAD_VALUE = 14
 
 
 ERROR_MEANINGS = {
@@ -86,6 +92,8 @@ ERROR_MEANINGS = {
     "again; the controller holds the robot and refuses motion until a new session: call ABBRobot.hello()",
     ErrorCode.VERSION: "refused: the controller's RAPID server speaks another protocol version (load the RAPID files "
     "of this package version)",
+    ErrorCode.BAD_VALUE: "refused: a field holds a value the protocol does not define (a gripper byte other than 0 "
+    "close, 1 open, 2 keep; GRIPPER: 0 or 1)",
 }
 
 
@@ -119,16 +127,44 @@ class Frame:
 
 
 class FrameParser:
-    """Incremental decoder: ``feed(bytes)`` returns the complete frames; bytes before a sync, frames with a
-    bad CRC and impossible lengths are skipped (counted in ``dropped_bytes`` / ``bad_frames``)."""
+    """Incremental, resynchronising decoder: ``feed(bytes)`` returns the complete frames; bytes before a sync are
+    skipped, and a sync whose length byte is over MAX_PAYLOAD or whose CRC fails is dropped alone: the scan resumes
+    at the byte after it with every byte after it kept, so a corrupted frame never swallows the valid one behind it
+    (counted in ``dropped_bytes`` / ``bad_frames``). A frame that stays incomplete (truncated, or a corrupted length
+    claiming more than came) is dropped the same way by :meth:`expire` once the line has been quiet for
+    ``gap_s``; the reader calls it when a read returns nothing."""
 
-    def __init__(self) -> None:
+    def __init__(self, gap_s: float = FRAME_GAP_S) -> None:
+        if not (math.isfinite(gap_s) and gap_s > 0):
+            raise ProtocolError(f"gap_s={gap_s!r}: a positive time in seconds")
+        self.gap_s = gap_s
         self.buf = bytearray()
         self.dropped_bytes = 0
         self.bad_frames = 0
+        self.last_byte_at = -math.inf  # time.monotonic() of the last byte fed
+
+    def expire(self, now: float | None = None) -> list[Frame]:
+        """The frames found once an incomplete frame is given up: when nothing has come for ``gap_s`` (by ``now``,
+        time.monotonic()), the pending frame's sync is dropped and the bytes after it scanned again, until none is
+        pending. Nothing changes while bytes may still be on their way."""
+        now = time.monotonic() if now is None else now
+        frames: list[Frame] = []
+        if now - self.last_byte_at < self.gap_s:
+            return frames
+        while self.buf:  # feed leaves the buffer empty or starting at the sync of an incomplete frame
+            self.bad_frames += 1
+            self.dropped_bytes += 1
+            del self.buf[:1]
+            frames += self._scan()
+        return frames
 
     def feed(self, data: bytes) -> list[Frame]:
-        self.buf += data
+        if data:
+            self.buf += data
+            self.last_byte_at = time.monotonic()
+        return self._scan()
+
+    def _scan(self) -> list[Frame]:
         frames = []
         while True:
             start = self.buf.find(SYNC)

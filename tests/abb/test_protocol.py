@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import random
+import time
 from importlib import resources
 
 import pytest
@@ -157,3 +158,38 @@ def test_frames_fit_20_hz_at_9600_baud():
     assert max(sizes.values()) <= 48 and reply <= 48
     wire_s = lambda n: n * 10 / 9600  # noqa: E731  (start + 8 data + stop bits)
     assert wire_s(sizes[ToolStep(0, 0, 0, 0)] + reply) < 0.050
+
+
+# each class of corruption the original report found swallowing the valid frame behind it
+STEP_RAW = command_frame(ToolStep(0.006, 0.0, 0.0, 0.0), 9).encode()
+CORRUPTIONS = {
+    "truncated frame": STEP_RAW[:8],
+    "length 32 header": bytes([0xA5, 0x20, 0x01, 0x00]),
+    "length over 32": bytes([0xA5, 0x21, 0x01, 0x00]),
+    "A5 FF": bytes([0xA5, 0xFF]),
+    "lone sync": bytes([0xA5]),
+    "bad CRC": STEP_RAW[:-1] + bytes([STEP_RAW[-1] ^ 0x55]),
+}
+
+
+@pytest.mark.parametrize("corruption", list(CORRUPTIONS))
+def test_the_client_parser_recovers_a_reply_behind_a_corrupted_frame(corruption):
+    """The PC's side of the resynchronising scan: a reply behind each corruption is found, at once or once the line
+    has been quiet for FRAME_GAP_S (an incomplete frame given up); the bytes after it are kept."""
+    reply = Frame(MsgType.REPLY | MsgType.STATE, 4, bytes(26)).encode()
+    parser = FrameParser()
+    frames = parser.feed(CORRUPTIONS[corruption] + reply)
+    frames += parser.expire(time.monotonic() + parser.gap_s)
+    assert [(f.type, f.seq) for f in frames] == [(MsgType.REPLY | MsgType.STATE, 4)]
+    assert parser.dropped_bytes >= 1 and not parser.buf
+    assert parser.feed(reply) == frames  # and the parser goes on
+
+
+def test_the_client_parser_waits_while_bytes_may_still_come():
+    """A frame still arriving is not given up: expire drops nothing until the line has been quiet for gap_s."""
+    reply = Frame(MsgType.REPLY | MsgType.STATE, 4, bytes(26)).encode()
+    parser = FrameParser(gap_s=0.1)
+    assert parser.feed(reply[:10]) == [] and parser.expire() == []
+    assert [f.seq for f in parser.feed(reply[10:])] == [4]
+    with pytest.raises(ProtocolError, match="gap_s"):
+        FrameParser(gap_s=0.0)

@@ -377,3 +377,14 @@ def test_a_run_stopped_by_its_budget_validates_its_last_weights_once(tmp_path, m
 def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
     with pytest.raises(ValueError, match="fewer than 2 rows"):
         run(tmp_path, obs="state", num_envs=1, num_steps=4, num_minibatches=4)
+
+
+def test_the_budget_spans_a_resume(tmp_path):
+    """--budget-min is the run's, as in DAgger and SAC: a resumed run trains only what its checkpoint left of it."""
+    kw = dict(obs="state", state_net="mlp", total_timesteps=10**6, eval_episodes=0, num_envs=1, num_steps=8)
+    first = run(tmp_path, budget_min=0.02, **kw)
+    assert first["wall_clock_s"] >= 1.2
+    again = run(tmp_path, budget_min=0.02, resume=Path(first["checkpoint"]), **kw)
+    assert again["iterations_this_run"] == 0 and again["wall_clock_s"] >= 1.2
+    longer = run(tmp_path, budget_min=0.1, resume=Path(again["checkpoint"]), **kw)
+    assert longer["iterations_this_run"] > 1 and longer["wall_clock_s"] >= 6.0

@@ -218,3 +218,30 @@ def test_state_obs_without_a_world_are_refused_naming_the_pose():
     finally:
         agent.stop()
         emu.stop()
+
+
+# --------------------------------------------------------------------------- a camera policy from the reward alone
+def test_from_the_reward_to_a_camera_policy_with_no_expert(tmp_path, monkeypatch):
+    """docs/adding_a_task.md's path at toy size: PPO learns a state teacher from the task's reward, then DAgger distils
+    it into a camera student (--teacher). The expert is unregistered first: nothing in the pipeline may use it."""
+    from agents import dagger, ppo
+    from maniskill_irb120.policies import read_policy_section
+
+    monkeypatch.delitem(EXPERTS, ENV_ID)
+    toy = dict(env_id=ENV_ID, budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, progress=False, capture_video=False)
+    teacher = ppo.main(
+        ppo.Args(
+            **toy, exp_name="teacher", obs="state", state_net="mlp", obs_norm=True, num_envs=1, num_steps=8,
+            num_minibatches=2, total_timesteps=16, eval_freq=0,
+        )
+    )  # fmt: skip
+    student = dagger.main(
+        dagger.Args(
+            **toy, exp_name="student", obs="rgbd", action_frame="tool", encoder="keypoints",
+            teacher=Path(teacher["checkpoint"]), num_envs=1, expert_episodes=1, episodes_per_round=1,
+            updates_per_round=5, batch_size=16,
+        )
+    )  # fmt: skip
+    section = read_policy_section(Path(student["checkpoint"]))
+    assert section["obs"] == "rgbd" and section["env_id"] == ENV_ID
+    assert student["env_steps"] > 0 and 0.0 <= student["success_rate"] <= 1.0

@@ -269,7 +269,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
 
     reg.add("Open", lambda name, dev, Bin=False, **_: setattr(dev, "value", name))
     reg.add("Close", lambda dev: setattr(dev, "value", None))
-    reg.add("ClearIOBuff", lambda dev: link.clear())
+    reg.add("ClearIOBuff", lambda dev: link.discard_input())
     reg.add("ReadBin", io(read_bin))
     reg.add("ReadRawBytes", io(read_raw_bytes))
     reg.add("WriteRawBytes", io(write_raw_bytes))

@@ -73,14 +73,34 @@ class Channel:
                 src = self.fd if self.conn is None else self.conn
                 if self.buf or src is None or not select.select([src], [], [], 0)[0]:
                     break
-            b = self.read_byte(0.0)
+            try:
+                b = self.read_byte(0.0)
+            except EOFError:  # the peer closed after these bytes: they are read now, the close on the next read
+                break
             if b is None:
                 break
             out.append(b)
         return bytes(out)
 
     def clear(self) -> None:
+        """The bytes taken from the line and not yet read are dropped (the link turns to another connection)."""
         self.buf.clear()
+
+    def discard_input(self) -> None:
+        """ClearIOBuff: every byte received and not yet read is dropped, those the emulator has taken from the line
+        and those still waiting in the device (the pty's input). ABB's ClearIOBuff clears the input buffer of a
+        serial channel (docs/rapid_subset.md, "Controller behaviour the emulator models"): a byte the PC sent
+        before it is never read after it."""
+        self.buf.clear()
+        src = self.fd if self.conn is None else self.conn
+        while src is not None and select.select([src], [], [], 0)[0]:
+            try:
+                data = os.read(self.fd, 4096) if self.conn is None else self.conn.recv(4096)
+            except OSError:  # the other end is gone (a pty's slave closed: EIO)
+                break
+            if not data:
+                break
+        self._rx_free = 0.0
 
     def write(self, data: bytes) -> None:
         self.replies += 1

@@ -6,6 +6,7 @@ ON event routine runs before the server's entry routine ``IRB120Server``. What t
 is in ``builtins.py`` (kinematics, motion, world zones, I/O) over ``channel.py`` (the link) and ``robot.py``.
 
     maniskill-irb120 emulator --listen tcp://127.0.0.1:0      # first line printed: the URL to connect to
+    maniskill-irb120 emulator --pendant -                     # and the pendant's buttons from stdin (see PENDANT)
 """
 
 from __future__ import annotations
@@ -14,7 +15,10 @@ import math
 import os
 import re
 import socket
+import sys
 import threading
+import time
+from collections.abc import Iterable
 from importlib import resources
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
@@ -24,7 +28,7 @@ import numpy as np
 from maniskill_irb120.abb.emulator.builtins import OP_MODE_NAMES, controller_builtins
 from maniskill_irb120.abb.emulator.channel import Channel, parse_faults
 from maniskill_irb120.abb.emulator.motion import MANUAL_REDUCED_TCP_MM_S
-from maniskill_irb120.abb.emulator.pendant import Pendant
+from maniskill_irb120.abb.emulator.pendant import ControllerStateError, Pendant
 from maniskill_irb120.abb.emulator.rapid import (
     Builtins,
     Interpreter,
@@ -274,6 +278,83 @@ class ControllerEmulator(Pendant):
         return controller_builtins(self)
 
 
+# The pendant's controls as commands (``--pendant``: one or more a line, separated by ``;``), so that a fault and
+# the operator's restart can be scripted out of process, as an integrator's test harness drives a cell.
+PENDANT = {
+    "stop": "the Stop button: the program halts, the robot stops on its path",
+    "start": "the Start button: the program goes on where it stood, or from the top after pp-to-main",
+    "pp-to-main": "PP to main (the program stopped): UNDO handlers run, the path is cleared",
+    "estop": "an emergency stop: motors off, the program halts",
+    "reset-estop": "the emergency stop released and reset (the motors stay off)",
+    "motors-off": "motors off while the program runs (a guard stop; in manual mode the enabling device let go)",
+    "motors-on": "motors on: the enabling device held (manual modes), the Motors On button (auto)",
+    "wait": "wait SECONDS before the next command",
+    "state": "print the program state, the motors, the emergency stop and the key switch",
+    "quit": "stop the emulator",
+}
+
+
+def pendant_command(emu: ControllerEmulator, command: str) -> str:
+    """Does one pendant command (:data:`PENDANT`) on ``emu``; returns the line to print: ``pendant: COMMAND: ...``
+    with the controller's state after it, or why the controller refused it. A command that is not one of them
+    raises ValueError naming it; ``quit`` returns ``pendant: quit``."""
+    name, *args = command.split()
+    if name not in PENDANT or len(args) != (name == "wait"):
+        usage = ", ".join(f"{k} SECONDS" if k == "wait" else k for k in PENDANT)
+        raise ValueError(f"pendant command {command!r}: use one of {usage}")
+    if name == "wait":
+        try:
+            seconds = float(args[0])
+        except ValueError:
+            seconds = math.nan
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"pendant command {command!r}: wait takes a time in seconds >= 0")
+        time.sleep(seconds)
+    elif name != "state" and name != "quit":
+        action = {
+            "stop": emu.press_stop,
+            "start": emu.press_start,
+            "pp-to-main": emu.pp_to_main,
+            "estop": emu.emergency_stop,
+            "reset-estop": emu.reset_emergency_stop,
+            "motors-off": lambda: emu.motors_off_fault("pendant command"),
+            "motors-on": lambda: emu.enabling_device(True) if emu.op_mode != "auto" else emu.motors_on_button(),
+        }[name]
+        try:
+            action()
+        except ControllerStateError as e:
+            return f"pendant: {command}: refused: {e}"
+        if emu.interp.is_halted:  # the program stands still when the line is printed
+            emu.interp.halted.wait(1.0)
+    if name == "quit":
+        return "pendant: quit"
+    estop = "active" if emu.emergency_stop_active else "off"
+    return (
+        f"pendant: {command}: program {emu.program_state}, motors {'on' if emu.motors_on else 'off'}, "
+        f"emergency stop {estop}, key {emu.op_mode}"
+    )
+
+
+def run_pendant(emu: ControllerEmulator, lines: Iterable[str], out=None, done: threading.Event | None = None) -> None:
+    """Runs the pendant commands in ``lines`` (``;`` separates commands on a line, ``#`` starts a comment), printing
+    each one's line to ``out`` (stdout); a bad command prints its error and the next goes on. ``quit`` sets
+    ``done`` and ends the script."""
+    out = out or sys.stdout
+    for line in lines:
+        for command in line.split("#", 1)[0].split(";"):
+            if not command.strip():
+                continue
+            try:
+                print(pendant_command(emu, command.strip()), file=out, flush=True)
+            except ValueError as e:
+                print(f"pendant: error: {e}", file=out, flush=True)
+                continue
+            if command.split()[0] == "quit":
+                if done is not None:
+                    done.set()
+                return
+
+
 def main(
     listen: str = "tcp://127.0.0.1:0",
     rapid: str | None = None,
@@ -284,8 +365,12 @@ def main(
     op_mode: str = "manual_reduced",
     statement_cost_us: float = STATEMENT_COST_US,
     pc_address: str | None = None,
+    pendant: str | None = None,
 ) -> int:
-    """Run the emulator until interrupted; prints the URL to connect to as its first line. ``options``:
+    """Run the emulator until interrupted; prints the URL to connect to as its first line. ``pendant``: ``-``
+    reads pendant commands (:data:`PENDANT`) from stdin, a path reads them from that file; each prints one
+    ``pendant: ...`` line, and ``quit`` ends the emulator (so does a program that ends while no pendant can
+    restart it). ``options``:
     installed RobotWare option ids, comma-separated (``""``: none; None: :data:`CHANNEL_OPTIONS`). ``op_mode``:
     the key switch (:data:`OP_MODE_NAMES`). ``statement_cost_us``: :data:`STATEMENT_COST_US`. ``pc_address``: the
     TCP build's PC_ADDRESS (None: 127.0.0.1, the local client's). A module the controller would refuse to load
@@ -329,8 +414,13 @@ def main(
         print(f"RAPID module not loaded: {e}", flush=True)
         return 1
     print(emu.start(), flush=True)
+    done = threading.Event()
+    if pendant is not None:
+        source = sys.stdin if pendant == "-" else Path(pendant).read_text().splitlines()
+        threading.Thread(target=run_pendant, args=(emu, source, sys.stdout, done), daemon=True).start()
     try:
-        while emu.thread.is_alive() and not emu.ended:  # a stopped program waits for the operator (Ctrl-C ends it)
+        # a stopped program waits for the operator (Ctrl-C ends it); an ended one too while a pendant can restart it
+        while emu.thread.is_alive() and not done.is_set() and not (emu.ended and pendant is None):
             emu.thread.join(0.1)
     except KeyboardInterrupt:
         pass

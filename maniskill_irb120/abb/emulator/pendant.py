@@ -150,7 +150,12 @@ class Pendant:
         self.at_main = True
         if state == "stopped" and self.interp.is_halted:
             self.interp.pp_to_main()  # the task's thread unwinds, then waits for Start
+        # the path is cleared and the stop that held it (the halt's, or the program's own StopMove) is over: the
+        # program started from main moves the robot again. An IRC5 starts a program from main with a fresh path
+        # and no StopMove in force (docs/rapid_subset.md, "Controller behaviour the emulator models"; verify).
         self.robot.clear_path()
+        self.robot.start()
+        self._path_was_stopped = False
         self.log_event(None, "PP to main")
 
     def press_start(self) -> None:

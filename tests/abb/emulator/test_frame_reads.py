@@ -1,6 +1,7 @@
-"""Whole-frame reads: the server reads a frame in three channel calls (sync, header, payload and CRC) instead of one
-call per byte, through base RAPID on the serial side (ReadRawBytes on an ``Open ...\\Bin`` device, UnpackRawBytes)
-and SocketReceive ``\\RawData \\ReadNoOfBytes`` on TCP; and the emulator's ReadRawBytes as the server relies on it."""
+"""Whole-frame reads: the server takes what has come on the channel in one call (not one call per byte), through
+base RAPID on the serial side (ReadRawBytes on an ``Open ...\\Bin`` device, RawBytesLen, UnpackRawBytes) and
+SocketReceive ``\\RawData`` on TCP, and keeps every byte it has not consumed (the channel module keeps what did
+not fit); and the emulator's ReadRawBytes as the server relies on it."""
 
 from __future__ import annotations
 
@@ -29,9 +30,9 @@ def counted(fn, calls: list):
 
 
 @pytest.mark.parametrize("channel", ["serial", "tcp"])
-def test_a_frame_is_read_in_three_channel_calls(channel):
+def test_a_frame_is_read_in_one_channel_call(channel):
     """One call per byte cost a channel call and its statements per byte (a STATE frame is 6 bytes, a tool step 15):
-    now the sync byte, the rest of the header, then the payload and CRC."""
+    a frame that comes at once is taken in one call."""
     emu = ControllerEmulator(channel, statement_cost_us=0.0)
     calls = []
     for name in READS[channel]:
@@ -42,7 +43,7 @@ def test_a_frame_is_read_in_three_channel_calls(channel):
         n0, s0 = len(calls), emu.interp.statements
         robot.state()
         robot.move_tool([0.2, 0, 0, 0, 1.0])
-        assert len(calls) - n0 <= 2 * 3 + 1  # two frames (and the read waiting for the next one)
+        assert len(calls) - n0 <= 2 * 1 + 1  # two frames (and the read waiting for the next one)
         assert emu.interp.statements - s0 < 800  # the per-byte reads took ~1,000 for these two
     emu.stop()
     assert emu.error is None, emu.error
@@ -58,9 +59,14 @@ PROBE = """MODULE Probe
         ReadRawBytes shut, raw\\NoOfBytes:=1\\Time:=0.1;
         RETURN 0;
     ENDFUNC
-    FUNC num ReadMax(num n)
-        IRB120ChanOpen;
-        RETURN IRB120ChanRead(buf, 1, n, 0.1);
+    FUNC num ReadCount(num n)
+        VAR iodev dev;
+        Open "COM1:", dev\\Bin;
+        ReadRawBytes dev, raw\\NoOfBytes:=n\\Time:=0.1;
+        RETURN n;
+    ERROR
+        IF ERRNO = ERR_DEV_MAXTIME RETURN -1;
+        RAISE;
     ENDFUNC
 ENDMODULE
 """
@@ -80,25 +86,30 @@ def probe(tmp_path):
     os.close(emu.link.fd)
 
 
-def read(emu, first: int, count: int, timeout: float) -> tuple[float, list[int]]:
-    got = emu.interp.call("IRB120ChanRead", emu.interp.ref("buf"), first, count, timeout)
+def read(emu, first: int, room: int, timeout: float) -> tuple[float, list[int]]:
+    got = emu.interp.call("IRB120ChanRead", emu.interp.ref("buf"), first, room, timeout)
     return got, [int(b) for b in emu.interp.get("buf")]
 
 
-def test_readrawbytes_reads_the_count_in_one_call_at_an_offset(probe):
+def test_the_channel_hands_over_what_came_at_an_offset_and_keeps_the_rest(probe):
+    """IRB120ChanRead takes what has come (ReadRawBytes without \\NoOfBytes), at most ``room`` bytes into the
+    server's buffer from ``first``; what did not fit is handed over by the next call, before the device is read
+    again: no byte is lost, so the server can rescan the bytes after a corrupted frame."""
     emu, pc = probe
     os.write(pc, bytes([0xA5, 1, 2, 3, 4]))
     assert read(emu, 1, 1, 0.5) == (1, [0xA5, 0, 0, 0, 0, 0, 0, 0])
-    assert read(emu, 3, 4, 0.5) == (4, [0xA5, 0, 1, 2, 3, 4, 0, 0])
+    assert read(emu, 3, 3, 0.5) == (3, [0xA5, 0, 1, 2, 3, 0, 0, 0])
+    assert read(emu, 6, 3, 0.5) == (1, [0xA5, 0, 1, 2, 3, 4, 0, 0])
+    assert read(emu, 1, 8, 0.1)[0] == -1  # nothing more came: ERR_DEV_MAXTIME, -1
 
 
-def test_readrawbytes_times_out_when_not_all_came_and_what_came_is_not_kept(probe):
-    """\\Time expiring before \\NoOfBytes came raises ERR_DEV_MAXTIME (the channel returns -1); the bytes that did come
-    are consumed (the emulator's conservative reading of an undocumented case, verify): the next read starts after
-    them, which the server survives by scanning for the next sync."""
+def test_readrawbytes_with_a_count_times_out_when_not_all_came(probe):
+    """\\Time expiring before \\NoOfBytes came raises ERR_DEV_MAXTIME; the bytes that did come are consumed (the
+    emulator's conservative reading of an undocumented case, verify). The server therefore never reads with a
+    count: it takes what has come and keeps it."""
     emu, pc = probe
     os.write(pc, bytes([7, 8]))
-    assert read(emu, 1, 4, 0.1)[0] == -1
+    assert emu.interp.call("ReadCount", 4) == -1
     os.write(pc, bytes([9]))
     assert read(emu, 1, 1, 0.5) == (1, [9, 0, 0, 0, 0, 0, 0, 0])
 
@@ -106,6 +117,6 @@ def test_readrawbytes_times_out_when_not_all_came_and_what_came_is_not_kept(prob
 def test_readrawbytes_refuses_more_than_a_rawbytes_holds_and_a_closed_device(probe):
     emu, _ = probe
     with pytest.raises(RapidRuntimeError, match=r"1025 bytes asked, 1\.\.1024 can be read at once"):
-        emu.interp.call("ReadMax", 1025)
+        emu.interp.call("ReadCount", 1025)
     with pytest.raises(RapidRuntimeError, match="the device is not open"):
         emu.interp.call("ReadShut")

@@ -28,10 +28,11 @@ def server(joints_deg=(0.0,) * 6, tcp_mm=(350.0, 0.0, 250.0), quat=(0.0, 0.0, 1.
 
 
 def load_rx(interp: Interpreter, raw: bytes) -> None:
+    """The frame in the receive buffer as the parser leaves it: its sync at rx{frm}, here rx{1}."""
     rx = interp.get("rx")
-    for i, b in enumerate(raw[1:]):  # rx{1} is the length byte: the sync is consumed by the reader
-        rx[i] = b
+    rx[: len(raw)] = raw
     interp.set("rx", rx)
+    interp.set("frm", 1)
 
 
 @pytest.mark.parametrize("vec", VECTORS, ids=lambda v: v["name"])
@@ -39,7 +40,7 @@ def test_rapid_crc_matches_every_vector(vec):
     interp = server()
     raw = bytes.fromhex(vec["hex"])
     load_rx(interp, raw)
-    assert interp.call("Crc16Rx", raw[1] + 3) == raw[-2] + 256 * raw[-1]
+    assert interp.call("Crc16Rx", 2, raw[1] + 3) == raw[-2] + 256 * raw[-1]
 
 
 def test_rapid_decodes_a_tool_step():

@@ -1,0 +1,252 @@
+"""The original report's experiment run again: PPO from the 84x84 hand camera on TableClearing, with the report's
+reward (``reward_mode="dense"``, unchanged: -1000 per collision) and with ``normalized_dense``, for as many env
+steps as fit in the budget, and the report's Figures 5.2-5.5 against env steps: the collision penalty, the grasp
+reward, the drop penalty and the mean episode reward (the report's reward, the sum of its terms, in both runs).
+
+Each run is a recipe of ``benchmarks/learning.py`` (``ppo-rgbd-dense``, ``ppo-rgbd``) trained by ``agents.ppo`` under
+``runs/original_experiment/``, and resumed from its last checkpoint when this script runs again: the budget
+(``--budget-min``, 150 by default) spans sessions, and ``--stop-after-min`` ends a session's share cleanly (the
+trainer is stopped and continues from its checkpoint next time, losing at most its last few iterations). Once a run
+has finished, its row joins the learning table with ``learning.py --recipes RECIPE --adopt RUN --merge``.
+
+    python benchmarks/original_experiment.py --stop-after-min 160            # what fits; run again to continue
+    python benchmarks/original_experiment.py --update-results                # plot and write the RESULTS section
+    python benchmarks/original_experiment.py --quick --out-dir /tmp/oe       # smoke run (~1 min)
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from learning import QUICK_FLAGS, RECIPES, recipe_flags  # noqa: E402
+from results_md import replace_section  # noqa: E402
+
+ENV_ID = "TableClearing-IRB120-v1"
+EXPERIMENT = ("ppo-rgbd-dense", "ppo-rgbd")
+# Figures 5.2-5.5 of the original report: the reward term each plots (its per-episode sum; None: the sum of all
+# terms, the report's episode reward) and its caption, quoted
+FIGURES = (
+    ("r_collision", "Figure 5.2: Collision penalty. Optimum value is 0"),
+    ("r_grasp", "Figure 5.3: Grasp reward. Optimum value is 100"),
+    ("r_drop", "Figure 5.4: Drop penalty. Optimum value is 100"),
+    (None, "Figure 5.5: Mean episode reward. Optimum value ≥ 200"),
+)
+REPORT = "PPO (Ray RLlib) on a T4 for 4M env steps: no success; about 80M steps estimated for the optimum"
+
+
+@dataclass
+class Args:
+    recipes: list[str] = field(default_factory=lambda: list(EXPERIMENT))
+    """the runs: ppo-rgbd-dense (the report's reward) and ppo-rgbd (normalized_dense)"""
+    seed: int = 1
+    """the training seed"""
+    budget_min: float = 150.0
+    """wall-clock minutes of training per run, over every session it spans"""
+    eval_episodes: int = 100
+    """held-out episodes at the end of each run"""
+    stop_after_min: Optional[float] = None
+    """stop training after this many minutes of this invocation (the runs continue from their checkpoints next time)"""
+    runs_dir: Path = ROOT / "runs" / "original_experiment"
+    """where the runs train (their TensorBoard logs and checkpoints)"""
+    out_dir: Path = ROOT / "benchmarks" / "results"
+    """original_experiment.json and original_experiment.png go here"""
+    train: bool = True
+    """train (or resume) the unfinished runs first; --no-train only plots what the runs logged"""
+    update_results: bool = False
+    """rewrite the section of benchmarks/RESULTS.md"""
+    quick: bool = False
+    """smoke run: toy sizes, 2 evaluation episodes"""
+
+
+def run_dir(recipe: str, args: Args) -> Path:
+    return args.runs_dir / f"{recipe}__s{args.seed}"
+
+
+def command(recipe: str, args: Args) -> list[str]:
+    """The trainer's command for ``recipe``: a new run, or ``--resume`` of its last checkpoint."""
+    flags = [*recipe_flags(recipe, ENV_ID), "--env-id", ENV_ID, "--seed", str(args.seed)]
+    flags += ["--budget-min", f"{args.budget_min:g}", "--eval-episodes", str(args.eval_episodes)]
+    flags += ["--runs-dir", str(args.runs_dir), "--exp-name", run_dir(recipe, args).name, "--no-progress"]
+    flags += ["--no-capture-video"]
+    if args.quick:
+        flags += QUICK_FLAGS["agents.ppo"]
+    latest = run_dir(recipe, args) / "checkpoints" / "latest.pt"
+    if latest.is_file():
+        flags += ["--resume", str(latest)]
+    return [sys.executable, "-m", RECIPES[recipe][0], *flags]
+
+
+def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
+    """Train or resume ``recipe`` until it finishes ("done") or the deadline passes ("stopped")."""
+    if (run_dir(recipe, args) / "summary.json").is_file():
+        return "done"
+    cmd = command(recipe, args)
+    log = args.runs_dir / "logs" / f"{run_dir(recipe, args).name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    print(f"[original] {' '.join(cmd[1:])}", flush=True)
+    with open(log, "a") as out:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+        while proc.poll() is None:
+            if deadline is not None and time.time() > deadline:
+                proc.send_signal(signal.SIGINT)  # the run continues from its last checkpoint next time
+                try:
+                    proc.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                return "stopped"
+            time.sleep(2)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{recipe} exited with {proc.returncode}; its output is in {log}")
+    return "done"
+
+
+def scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar the run logged, over all its TensorBoard files (one per resume), sorted by env step."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out: dict[str, dict[int, float]] = {}
+    for events in sorted(folder.glob("events.out.tfevents.*"), key=lambda f: f.stat().st_mtime):
+        acc = EventAccumulator(str(events), size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            out.setdefault(tag, {}).update({e.step: e.value for e in acc.Scalars(tag)})
+    return {tag: sorted(v.items()) for tag, v in out.items()}
+
+
+def figures(folder: Path) -> dict:
+    """Per logged point: env steps, and each figure's per-episode value (the report's reward is the sum of its
+    terms, whichever reward the run trained on)."""
+    logged = scalars(folder)
+    terms = sorted(t for t in logged if t.startswith("train/return_r_"))
+    if not terms:
+        return dict(env_steps=[], **{name or "episode_reward": [] for name, _ in FIGURES})
+    steps = [s for s, _ in logged[terms[0]]]
+    value = {t: dict(logged[t]) for t in terms}
+    out = dict(env_steps=steps)
+    for name, _ in FIGURES:
+        if name is None:
+            out["episode_reward"] = [sum(value[t].get(s, 0.0) for t in terms) for s in steps]
+        else:
+            out[name] = [value.get(f"train/return_{name}", {}).get(s, 0.0) for s in steps]
+    return out
+
+
+def smoothed(values: list[float], points: int = 60) -> np.ndarray:
+    v = np.asarray(values, dtype=float)
+    if len(v) == 0:
+        return v
+    k = max(1, len(v) // points)
+    return np.convolve(v, np.ones(k) / k, mode="full")[: len(v)] * (k / np.minimum(np.arange(1, len(v) + 1), k))
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.2), dpi=80)
+    for i, (recipe, row) in enumerate(report["runs"].items()):
+        c = row["curve"]
+        for ax, (name, _) in zip(axes, FIGURES):
+            ax.plot(c["env_steps"], smoothed(c[name or "episode_reward"]), color=f"C{i}", lw=1, label=recipe)
+    for ax, (_, caption) in zip(axes, FIGURES):
+        ax.set_title(caption, fontsize=8)
+        ax.set_xlabel("env steps")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"PPO from the hand camera, TableClearing, trailing mean per episode; the original report: {REPORT}",
+                 fontsize=8)  # fmt: skip
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def summary_of(recipe: str, args: Args) -> dict:
+    folder = run_dir(recipe, args)
+    summary = folder / "summary.json"
+    result = json.loads(summary.read_text()) if summary.is_file() else {}
+    row = dict(
+        recipe=recipe, finished=summary.is_file(), curve=figures(folder), command=" ".join(command(recipe, args)[1:])
+    )
+    for k in ("success_rate", "grasped_rate", "collided_rate", "env_steps", "wall_clock_s"):
+        if k in result:
+            row[k] = result[k]
+    c = row["curve"]
+    if c["env_steps"]:
+        row["env_steps_logged"] = c["env_steps"][-1]
+        tail = slice(-max(1, len(c["env_steps"]) // 10), None)  # the last tenth of training
+        row["last_tenth"] = {
+            name or "episode_reward": float(np.mean(c[name or "episode_reward"][tail])) for name, _ in FIGURES
+        }
+    return row
+
+
+def section(report: dict, args: Args) -> str:
+    lines = [
+        "| run | reward trained on | finished | env steps | wall clock (min) | held-out success | "
+        + " | ".join(caption.split(":")[0] for _, caption in FIGURES)
+        + " (last tenth of training) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for recipe, r in report["runs"].items():
+        mode = "dense (the report's)" if recipe.endswith("dense") else "normalized_dense"
+        last = r.get("last_tenth", {})
+        cells = " | ".join(f"{last[name or 'episode_reward']:.1f}" if last else "–" for name, _ in FIGURES)
+        wall = f"{r['wall_clock_s'] / 60:.0f}" if "wall_clock_s" in r else "–"
+        success = f"{r['success_rate']:.2f}" if "success_rate" in r else "–"
+        steps = r.get("env_steps", r.get("env_steps_logged", 0))
+        lines.append(
+            f"| {recipe} | {mode} | {'yes' if r['finished'] else 'no'} | {steps:,} | {wall} | {success} | {cells} |"
+        )
+    return (
+        "## The original report's experiment: PPO from the hand camera\n\n"
+        f"The original report: {REPORT}. Here: `python benchmarks/original_experiment.py` (2-core CPU, "
+        f"{args.budget_min:g} min per run; commands in [the JSON](results/original_experiment.json)).\n\n"
+        + "\n".join(lines)
+        + "\n\n![Figures 5.2-5.5](results/original_experiment.png)\n\n"
+    )
+
+
+def main(args: Args) -> dict:
+    unknown = set(args.recipes) - set(EXPERIMENT)
+    if unknown:
+        raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {list(EXPERIMENT)}")
+    if args.quick:
+        args.budget_min, args.eval_episodes = 0.05, 2
+    deadline = None if args.stop_after_min is None else time.time() + 60 * args.stop_after_min
+    status = {}
+    for recipe in args.recipes:
+        status[recipe] = train(recipe, args, deadline) if args.train else "not trained now"
+    report = dict(
+        env_id=ENV_ID,
+        budget_min=args.budget_min,
+        seed=args.seed,
+        original_report=REPORT,
+        status=status,
+        runs={recipe: summary_of(recipe, args) for recipe in args.recipes},
+    )
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    (args.out_dir / "original_experiment.json").write_text(json.dumps(report, indent=1))
+    plot(report, args.out_dir / "original_experiment.png")
+    text = section(report, args)
+    print(text)
+    if args.update_results:
+        replace_section(ROOT / "benchmarks" / "RESULTS.md", "## The original report's experiment", text)
+    return report
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,82 @@
+"""Teacher–student: a trained state policy labels the states in place of the scripted expert
+(``agents.dagger --teacher``), reading the privileged state observation while the learner reads the camera."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch
+
+import maniskill_irb120  # noqa: F401
+from agents.common import make_envs
+from agents.common.envs import privileged_state_obs
+from maniskill_irb120.action import tcp_rotation, world_to_tool
+from maniskill_irb120.experts import expert_for
+from maniskill_irb120.policies import acting, read_policy_section
+
+ENV = "GraspLift-IRB120-v1"
+
+
+@pytest.mark.parametrize("env_id", ["TableClearing-IRB120-v1", ENV, "StackCube-IRB120-v1"])
+def test_the_privileged_state_is_the_state_observation(env_id):
+    """From the camera env, bit for bit what obs_mode="state" gives on the same seed and actions."""
+    cam = gym.make(env_id, obs_mode="rgbd")
+    ref = gym.make(env_id, obs_mode="state", render_backend="none")
+    _, info = cam.reset(seed=4)
+    obs, _ = ref.reset(seed=4)
+    expert = expert_for(ref, reactive=True)
+    expert.reset(None)
+    for t in range(30):
+        if t % 10 == 0:
+            assert torch.equal(privileged_state_obs(cam, {**cam.unwrapped.get_info(), **info}), obs), t
+        a = expert.act()
+        _, _, _, _, info = cam.step(a)
+        obs, *_ = ref.step(a)
+    assert torch.equal(privileged_state_obs(cam, info), obs)
+    cam.close()
+    ref.close()
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory, tiny_dagger):
+    """A state policy in the world frame (a tiny agents.dagger run: any trained state policy will do)."""
+    out = tiny_dagger(tmp_path_factory.mktemp("teacher"), env_id=ENV, obs="state", action_frame="world")
+    return out["checkpoint"]
+
+
+def test_labels_are_the_teachers_actions_in_the_learners_frame(teacher):
+    section = read_policy_section(teacher)
+    act = acting(section)
+    envs = make_envs(ENV, "rgbd", 1, backend="cpu", action_frame="tool", teacher=teacher)
+    ref = gym.make(ENV, obs_mode="state", render_backend="none")
+    try:
+        _, info = envs.reset(seed=9)
+        obs, _ = ref.reset(seed=9)
+        g = torch.Generator().manual_seed(0)
+        for _ in range(5):
+            with torch.no_grad():
+                want = world_to_tool(act({"state": obs}).clamp(-1, 1), tcp_rotation(ref.unwrapped.tcp_pose))
+            torch.testing.assert_close(info["expert_action"], want, atol=1e-6, rtol=0)
+            a = torch.rand(1, 5, generator=g) * 2 - 1
+            _, _, _, _, info = envs.step(a)
+            obs, *_ = ref.step(a)
+    finally:
+        envs.close()
+        ref.close()
+
+
+def test_a_camera_student_trains_from_the_teacher(teacher, tiny_dagger, tmp_path):
+    out = tiny_dagger(tmp_path, env_id=ENV, obs="rgbd", action_frame="tool", encoder="keypoints", teacher=teacher)
+    student = read_policy_section(out["checkpoint"])
+    assert student["obs"] == "rgbd" and out["env_steps"] > 0 and out["dataset"] > 0
+    assert 0.0 <= out["success_rate"] <= 1.0
+
+
+def test_a_teacher_that_cannot_label_the_run_is_named(teacher, tiny_dagger, tmp_path):
+    with pytest.raises(FileNotFoundError, match="--teacher"):
+        make_envs(ENV, "rgbd", 1, backend="cpu", teacher=tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match=r"--teacher .*env_id='GraspLift-IRB120-v1'"):
+        make_envs("TableClearing-IRB120-v1", "state", 1, backend="cpu", teacher=teacher)
+    camera = tiny_dagger(tmp_path, env_id=ENV, obs="rgbd", action_frame="tool")["checkpoint"]
+    with pytest.raises(ValueError, match=r"--teacher .*obs='rgbd' \(needed: 'state'\)"):
+        make_envs(ENV, "rgbd", 1, backend="cpu", teacher=camera)
