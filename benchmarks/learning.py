@@ -9,7 +9,7 @@ random actions and the scripted expert.
 Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
 episodes within each (a two-level stratified bootstrap, the method of ``rliable``; written here in numpy
 because rliable 1.2 does not import beside our stack: it needs ``arch < 8``, and arch 7.2 fails at import with
-the pandas 3.1 installed here, ``TypeError: deprecate_kwarg()``, tried 2026-11-25; rliable's bootstrap also
+the pandas 3.1 installed here, ``TypeError: deprecate_kwarg()``; rliable's bootstrap also
 resamples runs only, which with 1-3 seeds ignores the 100 episodes' own sampling noise), and the interquartile
 mean of the seeds' success rates
 (rliable's aggregate over runs; over single episodes, each 0 or 1, it would only say whether success is above
@@ -55,9 +55,10 @@ from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
 # the field of view, lights, surfaces, depth, the object and command latency: each range covers its shift in
 # benchmarks/sim2real_gap.py (75 deg, light x0.5, colour 0.25 and every surface textured, 4 mm noise + 5 % dropout,
 # object x1.2 / x2 / x0.5, 30 ms). Not the camera's mount: with camera_pos -0.015:0.015 and camera_rot -6:6 as well,
-# training collapsed to 0-10 % from scratch and from the 95 % policy alike (benchmarks/RESULTS.md). The latency
-# range stays for this row's continuity; a policy meant for the default deployment (each real step waits for the
-# robot) is trained without it, since there latency costs the step time, not motion (README, deploy step 1)
+# training collapsed to 0-10 % from scratch and from the 95 % policy alike (docs/notes/camera-policy-on-the-twin.md).
+# The latency range stays for this row's continuity; a policy meant for the default deployment (each real step waits
+# for the robot) is trained without it, since there latency costs the step time, not motion (docs/real_robot.md,
+# deploy step 1)
 CAMERA_RANDOMIZATION = (
     "camera_fov=70:95,light=0.4:1.6,color=0.3,texture=0.7,roughness=0.1:0.9,specular=0.1:0.9,"
     "depth_noise=0:5,depth_dropout=0:0.06,object_size=0.8:1.25,object_mass=0.5:2,object_friction=0.5:1.5,"
@@ -71,7 +72,7 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
     "dagger-state": ("agents.dagger", ["--obs", "state"], "state", "short"),
     # from the camera one 64-row update takes ~0.09 s on 2 cores, so small batches and 500 updates a round buy
     # many DAgger rounds; the tool frame (the camera's axes), the keypoint encoder and the auxiliary object-pose
-    # loss are what let the policy localise the cube (benchmarks/RESULTS.md, "the camera recipe")
+    # loss are what let the policy localise the cube (docs/notes/state-recipes.md, "the camera recipe")
     "dagger-rgbd": (
         "agents.dagger",
         "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
@@ -154,7 +155,8 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
         "vision",
     ),
     # PPO fine-tuning of a DAgger policy (the base below), within the same budget: a frozen base plus a residual
-    # held near it by the KL term, little exploration noise and a critic warm-up (README, "without the wash-out")
+    # held near it by the KL term, little exploration noise and a critic warm-up (docs/training.md, "without the
+    # wash-out")
     "ppo-finetune-state": (
         "agents.ppo",
         "--obs state --num-envs 2 --action-frame world --kl-coef 1 --init-logstd -2 --critic-warmup-iters 10 "
@@ -167,7 +169,7 @@ RECIPES: dict[str, tuple[str, list[str], str, str]] = {
 # noise from a head on the state (--logstd state), since its 20 still steps need the held object's noise small while
 # the approach still explores, which one log std per dimension cannot give (it shrank until no sampled episode could
 # succeed, and the run then collapsed); on TableClearing the same head learned no grasp in 320k env steps, where the
-# one log std grasped in 38 % of training episodes by 100k (seed 1 each; benchmarks/RESULTS.md)
+# one log std grasped in 38 % of training episodes by 100k (seed 1 each; docs/notes/rl-from-the-reward.md)
 TASK_FLAGS: dict[str, dict[str, list[str]]] = {"GraspLift-IRB120-v1": {"ppo-state": ["--logstd", "state"]}}
 RL_BUDGET_MIN = {"GraspLift-IRB120-v1": 90.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
 """RL from the reward alone, minutes per run (issue targets: GraspLift in 90, TableClearing in 150)"""

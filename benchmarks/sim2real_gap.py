@@ -39,6 +39,7 @@ import tyro
 
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift
+from maniskill_irb120.sim2real.policy import resolve_policy
 from maniskill_irb120.sim2real.report import agreement, paired_gap
 
 SHIFTS = {
@@ -105,7 +106,8 @@ def spec_of(name: str) -> str | None:
 @dataclass
 class Args:
     policy: tuple[str, ...] = ("expert",)
-    """'expert' or checkpoints of agents.ppo, agents.dagger or agents.sac; with several, every one runs every
+    """'expert', checkpoints of agents.ppo, agents.dagger or agents.sac, or committed policies by file or by their
+    short name in benchmarks/results/policies/MANIFEST.json; with several, every one runs every
     row and the sim/twin agreement (MMRV, Pearson r) is over all (policy, shift) cells"""
     camera: str = "twin"
     """twin (the twin's render) or none (a state policy: no frames rendered for it)"""
@@ -198,6 +200,7 @@ def _set_torch_threads(threads: int) -> None:
 
 
 def main(args: Args) -> dict:
+    args.policy = tuple(resolve_policy(p) for p in args.policy)  # short names (MANIFEST.json) become their files
     unknown = sorted(n for n in set(args.shifts) - set(SHIFTS) if JOIN not in n)
     if unknown:
         raise ValueError(f"--shifts {unknown}: the rows are {list(SHIFTS)}")

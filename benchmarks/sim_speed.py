@@ -166,7 +166,7 @@ SCALING = (("one", 1, "inprocess"), ("one_worker", 1, "workers"), ("two", 2, "cp
 def measure_scaling(env_id: str, steps: int, seed: int, obs_mode: str = "rgbd", blocks: int = 4) -> dict:
     """Aggregate env steps/s of the CPU vector-env configurations (``SCALING``), all built in this process and
     stepped in turns, ``blocks`` blocks of ``steps // blocks`` batched steps each: the machine's drift, which moves
-    whole minutes (see RESULTS.md), then lands on every configuration alike instead of on whichever ran later.
+    whole minutes (docs/notes/sim-speed.md), then lands on every configuration alike instead of on whichever ran later.
     Idle workers sleep on their pipes. Per configuration also this process's CPU time per batched step (what the
     workers wait for while it gathers their results)."""
     import torch
@@ -241,7 +241,7 @@ def measure_batched(
 ) -> dict:
     """The GPU sweep's measurement, shared with ``maniskill-irb120 doctor --gpu`` (imported here, not at the top:
     the PyBullet and CPU configurations' processes must not load ManiSkill)."""
-    from maniskill_irb120.acceptance_runs import measure_batched as measure
+    from maniskill_irb120.diagnostics.acceptance_runs import measure_batched as measure
 
     return measure(env_id, num_envs, steps, seed, backend=backend, obs_mode=obs_mode)
 

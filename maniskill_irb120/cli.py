@@ -23,7 +23,7 @@ def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, 
     fails, 2 without CUDA; takes a few minutes). ``--jobs N``: N checks side by side, each in its own process (the
     obs-mode sweep split per task and mode); the steps/s are timed afterwards, alone. ``--json``: print the
     report as JSON; ``--json-path PATH``: also write it there."""
-    from maniskill_irb120.doctor import gpu_main, main
+    from maniskill_irb120.diagnostics.doctor import gpu_main, main
 
     if gpu:
         return gpu_main(json_output=json, json_path=json_path, jobs=jobs)
@@ -259,8 +259,9 @@ def sim2real_eval(
     RAPID module on the emulator with a digital twin as the world (``--shift "camera_fov=80,latency=0.02"``
     makes it differ from the sim; ``--sim-shift`` puts the sim in the same condition, its own prediction of it);
     ``--robot tcp://HOST:PORT`` or ``serial:///dev/ttyUSB0?baudrate=N``: a real
-    IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert or an agents.ppo,
-    agents.dagger or agents.sac checkpoint. ``--camera-mount "camera_pos=X;Y;Z,camera_rot=A;B;C"``: the camera's
+    IRC5 (``--camera realsense``; the operator scores each episode). ``--policy``: expert, an agents.ppo,
+    agents.dagger or agents.sac checkpoint, or a committed policy's name in benchmarks/results/policies/MANIFEST.json
+    (``camera-dr-mount-nolat``). ``--camera-mount "camera_pos=X;Y;Z,camera_rot=A;B;C"``: the camera's
     mount as hand-eye calibration measured it; frames are reprojected to the trained mount. ``--actions``: a
     checkpoint's action as its trainer evaluated it (as-trained), its mean, or a sample (agents.sac/agents.ppo;
     seeded by the episode seed on both sides). ``--step-end``: a real step ends when the robot stands at its target

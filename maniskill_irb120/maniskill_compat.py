@@ -168,7 +168,7 @@ def raw_pose(obj) -> torch.Tensor:
     """(N, 7) raw pose (position, wxyz quaternion) of a ManiSkill ``Actor`` or ``Link``: ``obj.pose.raw_pose``. On
     the CPU ManiSkill builds it through ``Pose.create`` and ``to_tensor`` from a list of SAPIEN poses, several times
     slower than reading the same float32 numbers straight from SAPIEN, as this does (entity poses, and a link's
-    ``entity_pose``, as ManiSkill's CPU branch reads them; the tasks read two a step; benchmarks/RESULTS.md).
+    ``entity_pose``, as ManiSkill's CPU branch reads them; the tasks read two a step; docs/notes/sim-speed.md).
     GPU: ManiSkill's batched buffers."""
     if obj.scene.gpu_sim_enabled:
         return obj.pose.raw_pose

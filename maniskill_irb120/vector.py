@@ -9,7 +9,7 @@ optional ``episode`` metrics.
 
 Why env 0 runs here: a step is synchronous, so while the workers step this process only waits, and while it
 gathers their results they wait. Stepping env 0 in that wait fills it, and that env pays no pipe, pickling or
-wake-up (benchmarks/RESULTS.md has the measurement).
+wake-up (docs/notes/sim-speed.md).
 """
 
 from __future__ import annotations

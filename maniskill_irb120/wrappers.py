@@ -3,7 +3,7 @@
 The original report's action moves the TCP along its own axes. Which world direction a tool-axis command
 means depends on the tool's yaw, which changes every episode (the gripper turns to the object's faces), so
 "move towards the tray" is a product of the tool's rotation and a world vector: a bilinear map an MLP
-regresses poorly (benchmarks/RESULTS.md has the measurement). ManiSkill's own EE controllers offer
+regresses poorly (docs/notes/state-recipes.md). ManiSkill's own EE controllers offer
 the same choice (``frame="root_translation:..."``). :class:`WorldFrameToolAction` takes the translation in
 world axes and rotates it into the tool frame before the controller, so the executed action is still a
 ``pd_ee_delta_tool`` action within its limits (the real-robot adapter and its safety envelope see nothing new).

@@ -5,8 +5,8 @@ scenario the agent's own tests use), as ``bench.make(...)``, with ``bench.OPEN``
 gripper open), ``bench.tcp_matrix(env)``, ``bench.CUBE_HALF`` and ``bench.REPO`` (the repository root).
 ``make_task``: ``make_task(env_id, **kwargs)`` builds a task (``obs_mode="state"`` unless given) and closes it
 after the test.
-``readme_snippet``: ``readme_snippet(name)`` is the python block marked ``<!-- README snippet "name" ... -->`` in
-README.md, so tests run the README itself.
+``readme_snippet``: ``readme_snippet(name)`` is the python block marked ``<!-- snippet "name" ... -->`` in
+README.md or a docs page (``docs/*.md``), so tests run the pages themselves.
 """
 
 from __future__ import annotations
@@ -102,14 +102,18 @@ def make_task():
 
 
 def _readme_snippet(name: str) -> str:
-    """The fenced python block right after the marker ``<!-- README snippet "name" ... -->`` in README.md."""
-    text = (REPO / "README.md").read_text()
-    m = re.search(rf'<!-- README snippet "{re.escape(name)}".*?-->\s*```python\n(.*?)```', text, re.S)
-    assert m, f"README.md has no snippet marked {name!r}"
-    return m.group(1)
+    """The fenced python block right after the marker ``<!-- snippet "name" ... -->`` in README.md or a docs page."""
+    for page in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        m = re.search(
+            rf'<!-- (?:README )?snippet "{re.escape(name)}".*?-->\s*```python\n(.*?)```', page.read_text(), re.S
+        )
+        if m:
+            return m.group(1)
+    raise AssertionError(f"neither README.md nor docs/*.md has a snippet marked {name!r}")
 
 
 @pytest.fixture
 def readme_snippet():
-    """``readme_snippet(name)``: the README's python block marked with that name, so the tests run the README itself."""
+    """``readme_snippet(name)``: the python block marked with that name in the README or the docs, so the tests run
+    the pages themselves."""
     return _readme_snippet

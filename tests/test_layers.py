@@ -103,6 +103,14 @@ RULES = {
         (M + ".integrations",),
     ),
     "integrations/ never imports the trainers or the benchmarks": (files("integrations"), ("agents", "benchmarks")),
+    "diagnostics/ never imports the trainers or the benchmarks (it runs them as programs, in a checkout)": (
+        files("diagnostics"),
+        ("agents", "benchmarks"),
+    ),
+    "no layer imports diagnostics/ (it checks the layers; the CLI starts it)": (
+        [p for p in sorted(PKG.rglob("*.py")) if "diagnostics" not in p.parts and p.name != "cli.py"],
+        (M + ".diagnostics",),
+    ),
 }
 
 

@@ -6,7 +6,7 @@ MODULE IRB120Server
     ! IRB120Serial.mod (serial, no RobotWare option) or IRB120Socket.mod (TCP, 616-1 PC Interface or 672-1 Socket
     ! Messaging), which provides the global routines IRB120ChanOpen, IRB120ChanRead, IRB120ChanWrite,
     ! IRB120ChanNewPeer and IRB120ChanReopen. The world zone around the workspace is the system module
-    ! IRB120Zone.sys (608-1 World Zones), installed at power on. See docs/deploy_irc5.md.
+    ! IRB120Zone.sys (608-1 World Zones), installed at power on. See docs/real_robot.md.
     !
     ! Everything here is LOCAL except the entry routine IRB120Server (set the task's main entry to it, or call it
     ! from the stock MainModule's main) and the RESTART event routine IRB120ServerRestart (Controller > Event
@@ -24,7 +24,7 @@ MODULE IRB120Server
     !
     ! Units on the wire: tool steps 0.01 mm and 0.001 deg, joints 0.02 deg, TCP position 0.05 mm.
     !
-    ! ---------------------------------------------------------------- configuration (see docs/deploy_irc5.md)
+    ! ---------------------------------------------------------------- configuration (see docs/real_robot.md)
     LOCAL CONST string GRIPPER_SIGNAL := "doGripperOpen";
     LOCAL CONST string MOTORS_ON_SIGNAL := "doMotorsOn";
     LOCAL CONST string ESTOP_SIGNAL := "doEmergencyStop";
@@ -55,7 +55,7 @@ MODULE IRB120Server
     LOCAL CONST speeddata vFull := [250, 250, 5000, 1000];
     ! Every motion runs at SPEED_PERCENT of vFull (TCP and reorientation speed). For the first runs of a cell set
     ! it to 50: a full step then takes 80 ms and the robot lags the policy rather than keeping up with it; back to
-    ! 100 once the cell has been proven (docs/deploy_irc5.md).
+    ! 100 once the cell has been proven (docs/real_robot.md).
     LOCAL CONST num SPEED_PERCENT := 100;
     LOCAL VAR speeddata vStep;
     LOCAL CONST zonedata zStep := z1;
@@ -69,7 +69,7 @@ MODULE IRB120Server
     ! Motion only in manual reduced speed (OpMode() = OP_MAN_PROG: TCP at most 250 mm/s, the operator holding the
     ! enabling device): in OP_AUTO or OP_MAN_TEST (manual full speed) every motion command is refused with
     ! E_OPERATING_MODE, so a policy never runs unattended by default. An integrator sets this TRUE deliberately, after
-    ! a risk assessment of the cell for unattended operation (docs/deploy_irc5.md).
+    ! a risk assessment of the cell for unattended operation (docs/real_robot.md).
     LOCAL CONST bool ALLOW_AUTO := FALSE;
     !
     ! ---------------------------------------------------------------- protocol constants

@@ -5,7 +5,7 @@ The steps, each refusing before anything changes where the controller says no:
 
 1. read the RobotWare version, the installed options, the operating mode, the controller state and whether the
    program runs (a running program is never touched: stop it first);
-2. pick the files the option matrix allows (docs/deploy_irc5.md, section 1): the serial build needs no option, the
+2. pick the files the option matrix allows (docs/real_robot.md, section 1): the serial build needs no option, the
    TCP build 616-1 PC Interface or 672-1 Socket Messaging, the controller-side world zone 608-1 World Zones; a
    build asked for that the options do not allow is refused with the option's name;
 3. upload them to ``$HOME/IRB120/`` (the file service);
@@ -16,14 +16,14 @@ The steps, each refusing before anything changes where the controller says no:
    ``IRB120Server``; the program stays stopped.
 
 ``deploy start`` starts the program remotely in AUTO only, and only when the loaded server's ``ALLOW_AUTO`` is
-TRUE (docs/deploy_irc5.md, section 3): the server moves the robot in manual reduced speed unless an integrator
+TRUE (docs/real_robot.md, section 3): the server moves the robot in manual reduced speed unless an integrator
 changed that constant deliberately; in the manual modes the operator starts it on the FlexPendant with the
 enabling device held. ``deploy status``, ``deploy stop`` and ``deploy unload`` (our modules and files out, the
 program pointer back to main) complete it.
 
 abb-robot-client (0.4) has no calls for the system's options, mastership, the file service's folders, loading
 modules or the program pointer: :class:`Controller` adds them over its own request path (its session, digest
-authentication and error parsing), with the resources RWS 1.0 documents (docs/deploy_irc5.md has the table).
+authentication and error parsing), with the resources RWS 1.0 documents (docs/real_robot.md has the table).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ TASK = "T_ROB1"
 FOLDER = "IRB120"  # under $HOME
 DEFAULT_USER = "Default User"  # RWS's documented default user and password (abb-robot-client's defaults)
 DEFAULT_PASSWORD = "robotics"
-# the constants an integrator sets in the files before loading them (docs/deploy_irc5.md, section 2)
+# the constants an integrator sets in the files before loading them (docs/real_robot.md, section 2)
 SHOWN_CONSTANTS = ("SER_CHANNEL", "SOCK_ADDRESS", "SOCK_PORT", "PC_ADDRESS", "ALLOW_AUTO", "SPEED_PERCENT")
 
 
@@ -140,7 +140,7 @@ def connect(url: str, user: str = DEFAULT_USER, password: str = DEFAULT_PASSWORD
     if not re.fullmatch(r"http://[^/\s]+", url.rstrip("/")):
         raise DeployRefused(
             f"--controller {url!r}: use http://HOST (RWS 1.0, RobotWare 6); RobotWare 7 / OmniCore serves RWS 2.0 "
-            "over https, which this command does not speak (docs/deploy_irc5.md)"
+            "over https, which this command does not speak (docs/real_robot.md)"
         )
     RWS = _rws_base()
 
@@ -387,7 +387,7 @@ def start(c, say: Callable[[str], None], confirm: Callable[[str], bool]) -> None
     if allow.strip().upper() != "TRUE":
         raise DeployRefused(
             "refused to start in AUTO: ALLOW_AUTO is FALSE in the loaded IRB120Server.mod, so the server moves the "
-            "robot only in manual reduced speed (docs/deploy_irc5.md, section 3); switch to manual reduced speed, or "
+            "robot only in manual reduced speed (docs/real_robot.md, section 3); switch to manual reduced speed, or "
             "set ALLOW_AUTO := TRUE deliberately after the cell's risk assessment and deploy again"
         )
     if not confirm("Start the program in AUTO (ALLOW_AUTO is TRUE; the robot moves on the PC's commands)?"):

@@ -284,7 +284,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         gripper is commanded closed. The open fingers leave 26 mm, less than a 20 mm cube's diagonal: pushed down
         on a cube yawed 23-45 degrees off them, they wedge it and push on it along their closing direction too, and
         SAC from the reward alone learned to collect the grasp stage's pay that way, never closing the gripper
-        (benchmarks/RESULTS.md, "RL from the reward alone")."""
+        (docs/notes/rl-from-the-reward.md)."""
         squeeze = self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
         return squeeze & self.agent.gripper_commanded_closed if closed else squeeze
 
@@ -373,7 +373,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
     def _after_control_step(self):
         """Start this step's camera frame now, before ``evaluate``: on the CPU the rasteriser draws it in its
         own threads while this thread evaluates the step, and ``get_obs`` then only reads it back (the gain is in
-        benchmarks/RESULTS.md). The scene does not change in between, so the images are the
+        docs/notes/sim-speed.md). The scene does not change in between, so the images are the
         ones ManiSkill's capture in ``get_obs`` takes (tested). GPU sim: ManiSkill's path."""
         if (
             not self.render_ahead

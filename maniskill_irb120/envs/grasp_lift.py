@@ -46,11 +46,8 @@ class GraspLiftIRB120Env(IRB120TableEnv):
     =====  ===========================  =============================================  ========
 
     ``settle`` = ``1 - tanh(speed / 5 cm/s)``, 0 for a step whose command the controller refused
-    (``ik_unreachable``). ``hold_steps`` alone is flat until the object is already still, so nothing taught PPO to
-    slow down: a policy that learned the task got still only by driving the held object at full speed until the
-    IK refused every further target and the arm froze, a stillness no robot offers (ManiSkill pays
-    ``1 - tanh(5·|qvel|)`` for the same stage). With the settle term alone a frozen arm still counted as still, and
-    PPO still found the freeze, so ``still`` now excludes refused steps too (tests/envs/test_rewards.py).
+    (``ik_unreachable``), and ``still`` excludes refused steps: the hold pays for slowing the object down, and a
+    frozen arm is stuck, not holding (why: docs/reward_design.md, "GraspLift's hold stage").
 
     **Episode length:** 150 steps (the scripted expert needs 60).
     """
@@ -96,7 +93,7 @@ class GraspLiftIRB120Env(IRB120TableEnv):
         """Without the count of still steps: it changes no right action (keep still until it reaches 20), and
         sampled actions are seldom still for more than a few steps, so a policy trained by RL only ever
         extrapolated from it. PPO's mean action held the object nearly still and jerked as the count reached 3,
-        every time; with the count zeroed, the same policy succeeded (benchmarks/RESULTS.md, "GraspLift")."""
+        every time; with the count zeroed, the same policy succeeded (docs/notes/rl-from-the-reward.md)."""
         obj, tcp = state["obj_pose"], state["tcp_pose"]
         return dict(
             obj_pose=obj.clone(),

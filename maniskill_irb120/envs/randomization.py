@@ -42,7 +42,7 @@ them, with the figures and their sources in envs/depth_model.py.
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
 size would be one size for a whole training run, and a policy trained so fits that one draw only
-(benchmarks/RESULTS.md has the measurement). ``reconfiguration_freq=0`` keeps one draw per build on purpose.
+(docs/notes/adapter-state-policies.md). ``reconfiguration_freq=0`` keeps one draw per build on purpose.
 """
 
 from __future__ import annotations

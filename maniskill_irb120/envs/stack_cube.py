@@ -56,7 +56,7 @@ class StackCubeIRB120Env(IRB120TableEnv):
     The place is cube_b's top, which the stack test needs to within 8 mm across and 4 mm in height: stage 1 pays
     ``aligned_reach_reward`` (envs/base.py), which resolves millimetres there and pays lowering only once over
     cube_b (a plain ``1 - tanh(3·d)`` is flat there: 5 mm off cost 0.0035 of ``normalized_dense``; what PPO learned
-    with it is in benchmarks/RESULTS.md). Opening the gripper on cube_b pays more than
+    with it is in docs/notes/stackcube-from-the-reward.md). Opening the gripper on cube_b pays more than
     holding there (ManiSkill's ungrasp term), so letting go is never a step down; while the fingers still hold,
     the gripper command's approach to "open" pays a quarter of a band (the gripper is one thresholded action, so
     the fingers give no signal before the command crosses zero; TableClearing's release term).

@@ -69,25 +69,12 @@ class TableClearingIRB120Env(IRB120TableEnv):
     -      collision                                   0                                           0
     =====  ==========================================  ==========================================  ==========
 
-    Holding the object at its place pays at most 3.5 of 4: with the full band it paid 3.97, within 1 % of
-    delivering, and PPO learned to carry the object into the tray and hold it there to the time limit without
-    ever opening the fingers (benchmarks/RESULTS.md, "RL from the reward alone"). ``release`` is the gripper
-    command mapped from [-1, 1] to [0, 1] (it opens above ½): the gripper is one thresholded action, so the fingers
-    (the object blocks them) say nothing until the command crosses the threshold, and a policy that learned to keep
-    it shut for the whole carry samples "open" at the place too rarely to find the last stage; paying for the
-    command's approach to "open" there, and only there, is ManiSkill's StackCube "ungrasp" term for a binary
-    gripper. A held object earns at most 3.75, below letting it go (3 + place, then 4).
-
-    Let go above the tray, the object falls into it through stage 3, not stage 0: from the expert's carry height
-    the fall takes two control steps, and when it paid the reach stage (~0.2 normalised against ~0.84 held)
-    those two steps cost more, at PPO's γ = 0.8, than delivering gained, so dropping the object into the tray
-    from any height above its walls taught "hold on" (tests/envs/test_rewards.py drops it from the carry height).
-
-    Stages 1 and 2 need the gripper commanded closed (``held_closed``); stage 3 takes any hold, so the release
-    there never falls back a stage. The contact-only hold pays stages 1 and 2 for a wedge: pushed down on a cube
-    yawed ~25° off them, the open fingers (26 mm apart; the cube's diagonal is 28 mm) jam it and lift it,
-    with no closing ever learned (GraspLift's SAC found this; tests/envs/test_rewards.py wedges this task's cube).
-    ``grasped`` stays the original report's contact-only event, which its reward terms read.
+    Held at its place the object earns at most 3.75, below letting it go (3 + place, then 4), so releasing is
+    never a step down; ``release`` (the gripper command mapped to [0, 1]) pays its approach to "open" there, as
+    ManiSkill's StackCube "ungrasp" term does for a binary gripper. A released object falls through stage 3, not
+    stage 0, so dropping it into the tray never costs a stage. Stages 1 and 2 need ``held_closed``, so a wedge of
+    the open fingers earns nothing; ``grasped`` stays the original report's contact-only event for its terms.
+    Why each rule (what PPO and SAC learned without it): docs/reward_design.md, "TableClearing's staged reward".
 
     **Episode length:** 250 control steps (12.5 s at 20 Hz). The scripted expert needs about 75;
     the original report allowed 3000 actions of a much slower loop. 250 leaves 2.5x margin for learners without

@@ -198,7 +198,7 @@ def reproject_to_mount(
     and ``rot_deg`` (the randomisation's ``camera_pos``/``camera_rot``, ``camera_mount_offset``).
 
     A policy trained on one mount loses its grasp when the camera sits a centimetre or a few degrees off
-    (benchmarks/RESULTS.md, the twin's camera-mount row); a depth camera lets the frame be moved back instead:
+    (docs/notes/camera-mount.md); a depth camera lets the frame be moved back instead:
     every valid depth pixel is lifted to 3-D, moved into the trained camera's frame and projected again, the
     nearest point winning where several land on one pixel. Pixels nothing lands on (the strip the offset camera
     did not see, surfaces it saw edge-on, its own invalid readings) take the nearest reprojected pixel's colour

@@ -17,6 +17,39 @@ from maniskill_irb120.experts import expert_for
 from maniskill_irb120.policies import acting, read_policy_section
 from maniskill_irb120.wrappers import observation_setup
 
+MANIFEST_ENV = "MANISKILL_IRB120_POLICIES"
+"""names a policies MANIFEST.json to read short names from (default: the repository's, when run from a checkout)"""
+MANIFEST = Path("benchmarks") / "results" / "policies" / "MANIFEST.json"
+
+
+def policy_manifests() -> list[Path]:
+    """Where short policy names are looked up: ``$MANISKILL_IRB120_POLICIES``, else the committed
+    ``benchmarks/results/policies/MANIFEST.json`` under the working directory or beside this source checkout."""
+    import os
+
+    if os.environ.get(MANIFEST_ENV):
+        return [Path(os.environ[MANIFEST_ENV])]
+    return [Path.cwd() / MANIFEST, Path(__file__).resolve().parents[2] / MANIFEST]
+
+
+def resolve_policy(policy: str) -> str:
+    """``policy`` as a file: 'expert' and existing files are returned as given; a short name (a key of a policies
+    MANIFEST.json, e.g. ``camera-bf16-s1``) becomes its file, relative to the manifest's folder."""
+    if policy == "expert" or Path(policy).is_file():
+        return policy
+    import json
+
+    for manifest in policy_manifests():
+        if manifest.is_file():
+            entries = json.loads(manifest.read_text())["policies"]
+            if policy in entries:
+                return str(manifest.parent / entries[policy]["file"])
+    raise FileNotFoundError(
+        f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file, nor a name in "
+        + " or ".join(str(m) for m in policy_manifests())
+    )
+
+
 # how a checkpoint's action is chosen: as its trainer evaluated it (the section's eval_deterministic: agents.sac's
 # --eval-deterministic; the others: the mean), the mean, or a sample of the policy's distribution (ppo, sac)
 ACTIONS = ("as-trained", "mean", "sample")
@@ -82,7 +115,8 @@ def load_policy(
     sim_shift: str | Randomization | None = None,
     expert_obs_mode: str = "rgbd",
 ) -> tuple[gym.Env, Callable[[gym.Env], object]]:
-    """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert' or a checkpoint path;
+    """(sim env, policy factory taking the env the policy reads). ``policy``: 'expert', a checkpoint path or a
+    committed policy's short name (:func:`resolve_policy`);
     ``actions``: one of :data:`ACTIONS`; ``sim_shift``: the sim side's own randomisation (the sim's model of a
     condition the real side is in), else the nominal task. ``expert_obs_mode``: the scripted expert reads the
     simulator, not its observation; ``state`` runs it without a camera on either side."""
@@ -96,9 +130,7 @@ def load_policy(
             env_id, obs_mode=expert_obs_mode, control_mode="pd_ee_delta_tool", sim_backend="physx_cpu", **shifted
         )
         return sim_env, ExpertPolicy
-    path = Path(policy)
-    if not path.is_file():
-        raise FileNotFoundError(f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file")
+    path = Path(resolve_policy(policy))
     section = read_policy_section(path, f"--policy {path}")
     if actions == "sample" and not section["stochastic"]:  # refused before a sim env is built
         raise ValueError(f"--actions sample: {path} is a {section['kind']} policy, deterministic; use as-trained")

@@ -48,7 +48,7 @@ def snapshot(emu: RWSEmulator) -> tuple:
     return [m.name for m in vc.modules.values()], files, vc.pcp(), vc.exec_state
 
 
-# options -> the modules deploy loads (docs/deploy_irc5.md, section 1)
+# options -> the modules deploy loads (docs/real_robot.md, section 1)
 EXPECTED = {
     "": ["IRB120Server", "IRB120Serial"],
     "616-1": ["IRB120Server", "IRB120Socket"],

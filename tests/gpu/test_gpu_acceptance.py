@@ -10,8 +10,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from maniskill_irb120 import acceptance as A
-from maniskill_irb120 import acceptance_runs as R
+from maniskill_irb120.diagnostics import acceptance as A
+from maniskill_irb120.diagnostics import acceptance_runs as R
 
 pytestmark = [
     pytest.mark.gpu,
@@ -65,7 +65,7 @@ def test_sim_speed_gpu_only_smoke():
 
 
 def test_doctor_gpu_report_runs_its_checks_in_fresh_processes():
-    from maniskill_irb120.doctor import format_gpu_report, gpu_report
+    from maniskill_irb120.diagnostics.doctor import format_gpu_report, gpu_report
 
     r = gpu_report(checks=("rgbd frames",), throughput_envs=(NUM_ENVS,), throughput_steps=10)
     text = format_gpu_report(r)

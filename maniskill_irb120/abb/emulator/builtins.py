@@ -136,7 +136,7 @@ def controller_builtins(self: ControllerEmulator) -> Builtins:
     def move_l_do(to, speed, zone, tool, signal, value, WObj=None):
         """MoveLDO: MoveL that sets a digital output in the middle of the corner path of its fly-by point, or at
         its stop point with fine (ABB, MoveLDO; base RAPID, no option), i.e. where the robot reaches the target,
-        not when the program pointer passes the instruction as SetDO does (REFERENCE.md, look-ahead). A path
+        not when the program pointer passes the instruction as SetDO does (docs/reference.md, look-ahead). A path
         cleared (ClearPath) or stopped at a motion error before the point never sets it (verify)."""
         if value not in (0.0, 1.0):
             raise RapidError("ERR_ARGVALERR", f"MoveLDO: a digital output takes 0 or 1, not {value}")

@@ -84,13 +84,13 @@ STOCK_MAIN_MODULE = """MODULE MainModule
 ENDMODULE
 """
 
-# What each channel's build needs at the least (docs/deploy_irc5.md): serial, nothing (a licence-free controller);
+# What each channel's build needs at the least (docs/real_robot.md): serial, nothing (a licence-free controller);
 # tcp, the socket API of 616-1 PC Interface (or 672-1 Socket Messaging).
 CHANNEL_OPTIONS: dict[str, tuple[str, ...]] = {"serial": (), "tcp": ("616-1",)}
 
 
 # The controller time one executed RAPID statement costs: an estimate (no IRC5 was measured for this project;
-# measure yours with ClkRead\\HighRes around a loop, docs/deploy_irc5.md). 0 turns the pacing off.
+# measure yours with ClkRead\\HighRes around a loop, docs/real_robot.md). 0 turns the pacing off.
 STATEMENT_COST_US = 10.0
 
 RESTART_ROUTINE = "IRB120ServerRestart"  # the core module's RESTART event routine
@@ -239,7 +239,7 @@ class ControllerEmulator(Pendant):
 
     def _motion_supervision(self) -> None:
         """An error the robot met while moving (outside reach, a world zone) stops the program wherever it is:
-        it never reaches a RAPID ERROR handler (REFERENCE.md, "path errors during execution")."""
+        it never reaches a RAPID ERROR handler (docs/reference.md, "path errors during execution")."""
         err = self.robot.motion_error
         if err is not None:
             self.robot.motion_error = None

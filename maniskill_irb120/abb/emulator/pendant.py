@@ -2,7 +2,7 @@
 
 On an IRC5 an emergency stop, motors off (a guard stop, or releasing the enabling device in manual mode) and the
 pendant's Stop button all halt the motion task's program where it stands and stop the robot on its path; the
-program sends nothing more (REFERENCE.md, "IRC5 / RAPID behaviour": status that must survive a stop needs a
+program sends nothing more (docs/reference.md, "IRC5 / RAPID behaviour": status that must survive a stop needs a
 second task, abb_driver's ROS_stateServer). Start goes on where the program stood, and the robot first finishes
 the path it had queued; "PP to main" instead unwinds the program (UNDO handlers run) and Start then runs the
 entry routine from the top, with the path cleared. Start needs the motors on: in manual mode while the enabling

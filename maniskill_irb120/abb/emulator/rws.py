@@ -3,7 +3,7 @@ deploy`` (``abb-robot-client`` underneath) is tested against the same checks a R
 
     maniskill-irb120 emulator --rws 127.0.0.1:0 --options 616-1,608-1   # first line printed: the RWS URL
 
-What is served (docs/deploy_irc5.md, "What was verified on the emulator only", has the table with sources):
+What is served (docs/real_robot.md, "What was verified on the emulator only", has the table with sources):
 
 * HTTP digest authentication (RFC 7616: MD5, ``qop=auth``), realm ``validusers@robapi.abb`` (verify), user
   ``Default User`` / ``robotics`` (the defaults abb-robot-client and ABB's manuals name); a wrong password gets

@@ -258,7 +258,7 @@ def test_tool_steps_from_rest_across_quadrant_boundaries():
     assert crossing >= 2
 
 
-# ------------------------------------------------------------------ streaming: fine vs z1 (docs/deploy_irc5.md)
+# ------------------------------------------------------------------ streaming: fine vs z1 (docs/real_robot.md)
 def stream(period_s: float, steps: int = 20, step_mm: float = 10.0, flyby: bool = True) -> dict:
     """A PC streaming ``steps`` MoveL steps of ``step_mm`` at v250 through the server: it sends a step every
     ``period_s`` at the earliest, and the server answers (so the PC may send the next) once the MoveL has

@@ -1,6 +1,6 @@
 """The operating-mode gate of the shipped RAPID server, on the controller emulator. ABB's ``OpMode()`` (RAPID
 Instructions, Functions and Data types: OpMode) returns OP_AUTO, OP_MAN_PROG (manual reduced speed, TCP at most
-250 mm/s, the operator holding the enabling device) or OP_MAN_TEST (manual full speed) (/work/shared/REFERENCE.md,
+250 mm/s, the operator holding the enabling device) or OP_MAN_TEST (manual full speed) (docs/reference.md,
 ABB section). The issue's finding: nothing read it, so in automatic mode a learned policy ran unattended. The server
 now moves only in manual reduced speed unless ALLOW_AUTO is set deliberately; STATE and STOP always work. Also:
 zero-length tool steps queue no motion, and a client whose controller stops answering after a motion command is

@@ -737,7 +737,7 @@ def test_interpreter_implements_the_runtime_contract_its_parts_are_typed_against
 
 
 def test_num_is_a_32_bit_float():
-    """REFERENCE.md: a num is a 32-bit float, exact integers up to 2^23 and then in steps: 16777216 + 1 is 16777216,
+    """docs/reference.md: num is a 32-bit float, exact integers up to 2^23 and then in steps: 16777216 + 1 is 16777216,
     0.1 is stored as float32(0.1); a dnum keeps the double; a value beyond float32's range stops the program."""
     src = """MODULE M
     VAR num a := 0;

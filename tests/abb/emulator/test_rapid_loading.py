@@ -1,7 +1,7 @@
 """Loading a task as an IRC5 does: RobotWare options gate names at load time, global names are task-wide and must
 be unambiguous, LOCAL names belong to their module; and ``byte`` range errors stop the program.
 
-Sources: ``REFERENCE.md`` "IRC5 / RAPID behaviour an emulator must reproduce" and the public threads it cites
+Sources: ``docs/reference.md`` "IRC5 / RAPID behaviour an emulator must reproduce" and the public threads it cites
 (open_abb issue 6, ros-industrial/abb issue 147); "(verify)" marks integrator knowledge, as there.
 """
 
@@ -68,7 +68,7 @@ def test_either_socket_option_provides_the_socket_api(option):
 
 def test_socket_types_and_error_names_are_gated_too():
     """The socket API is types (socketdev) and ERR_SOCK_* names as well as routines (open_abb issue 6;
-    REFERENCE.md), wherever they appear: a declaration, an ERROR handler's filter, a compared ERRNO."""
+    docs/reference.md), wherever they appear: a declaration, an ERROR handler's filter, a compared ERRNO."""
     decl = "MODULE M\n  VAR socketdev s;\nENDMODULE"
     with pytest.raises(RapidLoadError, match="line 2: socketdev needs RobotWare option 616-1"):
         Interpreter(decl, options=())
@@ -79,7 +79,7 @@ def test_socket_types_and_error_names_are_gated_too():
 
 
 def test_world_zone_names_need_608_1():
-    """REFERENCE.md: WZBoxDef, WZLimSup, wztemporary, wzstationary, shapedata -> 608-1 World Zones (verify)."""
+    """docs/reference.md: WZBoxDef, WZLimSup, wztemporary, wzstationary, shapedata -> 608-1 World Zones (verify)."""
     with pytest.raises(RapidLoadError, match=r"line 2: wztemporary needs RobotWare option 608-1 World Zones") as e:
         Interpreter(ZONE_MODULE, options=("616-1", "672-1"))
     assert e.value.options == ("608-1 World Zones",)
@@ -118,7 +118,7 @@ def test_option_ids_are_checked_by_name():
     ],
 )
 def test_a_global_name_declared_in_two_modules_is_ambiguous(a, b):
-    """REFERENCE.md: routine and data names are global to a task unless LOCAL; the same global name in two
+    """docs/reference.md: routine and data names are global to a task unless LOCAL; the same global name in two
     modules is an ambiguous name and the task does not load (verify: the exact controller message)."""
     with pytest.raises(RapidLoadError, match=r"ambiguous name \w+: declared in modules A \(line 2\) and B") as e:
         Interpreter(two(a, b))
@@ -132,7 +132,7 @@ def test_a_name_declared_twice_in_one_module_is_refused():
 
 
 def test_local_names_of_the_same_name_in_two_modules_each_module_sees_its_own():
-    """REFERENCE.md: LOCAL names are the module's own (abb_driver's ROS_*.mod declare everything LOCAL)."""
+    """docs/reference.md: LOCAL names are the module's own (abb_driver's ROS_*.mod declare everything LOCAL)."""
     a = "LOCAL VAR num rx := 1;\nLOCAL PROC Bump()\n  rx := rx + 10;\nENDPROC\nPROC BumpA()\n  Bump;\nENDPROC"
     b = "LOCAL VAR num rx := 2;\nLOCAL PROC Bump()\n  rx := rx + 20;\nENDPROC\nPROC main()\n  BumpA;\n  Bump;\nENDPROC"
     interp = Interpreter(two(a, b))
@@ -187,7 +187,7 @@ def test_a_single_local_name_is_reachable_by_its_bare_name():
     ],
 )
 def test_a_byte_out_of_range_stops_the_program(decl, stmt, where, value):
-    """REFERENCE.md: byte is 0..255 and an out-of-range assignment is a run-time error that stops the program
+    """docs/reference.md: byte is 0..255 and an out-of-range assignment is a run-time error that stops the program
     (fatal, not an ERRNO: the ERROR handler below never sees it)."""
     src = (
         f"MODULE M\n{decl}\nVAR num handled;\nPROC main()\n  {stmt}\nERROR\n  handled := 1;\n  TRYNEXT;\nENDPROC\n"
@@ -237,7 +237,7 @@ def controller():
 
 
 def test_beside_the_stock_main_module_a_global_main_is_ambiguous(controller, tmp_path):
-    """REFERENCE.md: a second global PROC main beside the stock MainModule of a new task is an ambiguous name;
+    """docs/reference.md: a second global PROC main beside the stock MainModule of a new task is an ambiguous name;
     declared LOCAL, the server's main loads (and runs when named as the entry, "Module:main")."""
     rapid = tmp_path / "server.mod"
     rapid.write_text(SERVER.format(scope=""))
@@ -293,7 +293,7 @@ def test_cli_options(controller, tmp_path, capsys):
 def test_the_shipped_server_loads_beside_the_stock_main_module_with_exactly_its_options(
     controller, channel, options, loads
 ):
-    """The option matrix of the shipped files (docs/deploy_irc5.md), loaded as an integrator loads them next to a new
+    """The option matrix of the shipped files (docs/real_robot.md), loaded as an integrator loads them next to a new
     task's stock MainModule: what loads serves a STATE request; what does not names the missing option."""
     from maniskill_irb120.abb.client import ABBRobot
 

@@ -55,7 +55,7 @@ def test_a_full_step_fits_one_control_period():
     speed = const("vFull")  # v_tcp mm/s, v_ori deg/s: the speed with SPEED_PERCENT at 100
     assert const("STEP_POS_MM") / speed[0] <= CONTROL_PERIOD_S
     assert const("STEP_ROT_DEG") / speed[1] <= CONTROL_PERIOD_S
-    assert 0 < const("SPEED_PERCENT") <= 100  # first runs: a fraction of it (docs/deploy_irc5.md)
+    assert 0 < const("SPEED_PERCENT") <= 100  # first runs: a fraction of it (docs/real_robot.md)
 
 
 def code(name: str) -> str:

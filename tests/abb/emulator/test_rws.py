@@ -1,7 +1,7 @@
 """Robot Web Services 1.0 on the emulator (``abb/emulator/rws.py``), through abb-robot-client's own calls where it
 has them: every answer parses; digest authentication refuses a wrong password, a wrong user and a replayed
 request; an unknown resource gets RWS's error body; loading, unloading and moving the program pointer need
-mastership; the option matrix of docs/deploy_irc5.md is enforced on modules loaded over RWS, the controller's
+mastership; the option matrix of docs/real_robot.md is enforced on modules loaded over RWS, the controller's
 message going to the event log; remote start needs AUTO and the motors on."""
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ def test_loading_needs_mastership_and_a_refusal_changes_nothing(emulator):
     a._do_post("rw/mastership?action=request")
 
 
-# docs/deploy_irc5.md, section 1: which files load with which options (the emulator's load-time check over RWS)
+# docs/real_robot.md, section 1: which files load with which options (the emulator's load-time check over RWS)
 MATRIX = [
     ("", ["IRB120Serial.mod"], None),
     ("", ["IRB120Socket.mod"], "socketdev needs RobotWare option 616-1 PC Interface or 672-1 Socket Messaging"),

@@ -54,7 +54,7 @@ def emu(request):
 
 
 def test_an_emergency_stop_halts_the_program_and_a_restart_holds_the_robot(emu):
-    """REFERENCE.md: an e-stop halts the program itself, so no FAULT reply can be sent; the PC sees silence and
+    """docs/reference.md: an e-stop halts the program itself, so no FAULT reply can be sent; the PC sees silence and
     says to check the pendant. Start is refused until the e-stop is reset and the motors are on; then the program
     goes on where it stood, the RESTART event routine makes the server hold the robot and refuse the next motion
     command (the PC learns the robot stopped), and the one after runs."""

@@ -6,7 +6,7 @@ moved to main, and every statement costing controller time.
   goes on from there, inside the instruction that was running (a read resumes its wait), after the task's
   RESTART event routines. This is why an IRC5 program that was stopped mid-read does not start over: the
   controller resumes the program pointer where it stood (ABB Operating manual IRC5, "Starting programs";
-  REFERENCE.md "Start without PP to main resumes").
+  docs/reference.md "Start without PP to main resumes").
 * **PP to main**: :meth:`pp_to_main` unwinds every active routine, innermost first, running each one's ``UNDO``
   handler (RAPID's UNDO: "executed when the program pointer is moved out of the routine", used to close what
   the routine opened); the next start runs the entry routine from its first statement after the START event

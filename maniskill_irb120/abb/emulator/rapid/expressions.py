@@ -140,7 +140,7 @@ def compare(rt: Runtime, a: Any, op: str, b: Any) -> bool:
 def _arith(rt: Runtime, kind: str, a: Any, b: Any) -> Any:
     nums = isinstance(a, float) and isinstance(b, float)
     r = _arith_double(rt, kind, a, b)
-    # num arithmetic is float32 on the IRC5 (REFERENCE.md): the result rounded, unless an operand is not a float32
+    # num arithmetic is float32 on the IRC5 (docs/reference.md): the result rounded, unless an operand is not a float32
     # (a dnum's, a clock reading, a literal like 0.1) and the result is kept for a dnum or rounded when stored
     return num32(r) if nums and is_num32(a) and is_num32(b) else r
 

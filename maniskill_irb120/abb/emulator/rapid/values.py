@@ -1,7 +1,7 @@
 """RAPID data in Python: how each data type is represented, its default value, and assignment rules.
 
 * ``num``/``dnum``/``byte``/``errnum``/``intnum`` -> ``float``; ``bool`` -> ``bool``; ``string`` -> ``str``. A ``num``
-  is a 32-bit float on the IRC5 (exact integers up to 2^23; REFERENCE.md): every stored value is rounded to the
+  is a 32-bit float on the IRC5 (exact integers up to 2^23; docs/reference.md): every stored value is rounded to the
   nearest float32 (:func:`num32`), a ``dnum`` (a variable declared so) keeps the double.
 * Record types (``pos``, ``robtarget``, ``tooldata``, user ``RECORD``\\ s ...) -> :class:`Record`, ordered named fields.
 * Arrays -> Python lists (nested for 2-D/3-D); RAPID's 1-based indices are translated by the interpreter.

@@ -22,13 +22,14 @@ from pathlib import Path
 from typing import Any
 
 TRAINERS = ("ppo", "sac", "dagger")
+CHECKOUT_HINT = "clone the repository and pip install -e . there"
 BENCH_ENVS = (16, 64)
 """num_envs of the benchmark's smoke sweep (small: it proves the script runs, the doctor times the rest)"""
 
 
 def source_checkout() -> Path | None:
     """The repository this package runs from (an editable install or PYTHONPATH), if it has the trainers."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     return root if (root / "agents" / "ppo.py").is_file() and (root / "benchmarks" / "sim_speed.py").is_file() else None
 
 
@@ -47,7 +48,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         steps = 8
         args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
         args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
-        if obs == "state":  # the RL-from-the-reward network (README): its running normaliser on the GPU's tensors
+        if obs == "state":  # the RL-from-the-reward network (docs/training.md): its normaliser on the GPU's tensors
             args += ["--state-net", "mlp", "--obs-norm"]
     elif name == "sac":
         args = ["--budget-min", "0.05", "--demo-episodes", "1", "--bc-pretrain-updates", "5"]
@@ -56,7 +57,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
     elif name == "dagger":
         args = ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
-        if obs == "rgbd":  # the camera recipe (README), --precision auto: bf16 on a CPU that has it
+        if obs == "rgbd":  # the camera recipe (docs/training.md), --precision auto: bf16 on a CPU that has it
             args += ["--action-frame", "tool", "--encoder", "keypoints", "--aux-weight", "1", "--precision", "auto"]
     else:
         raise ValueError(f"unknown trainer {name!r}; expected one of {TRAINERS}")
@@ -107,7 +108,7 @@ def check_trainer(
     """``agents.TRAINER --backend gpu`` (or cpu) runs its tiny loop and writes its result."""
     root = source_checkout()
     if root is None:
-        return None, "needs the source checkout (agents/ is not part of the installed package)"
+        return None, f"needs a source checkout: agents/ ships with the repository, not the package ({CHECKOUT_HINT})"
     with tempfile.TemporaryDirectory(prefix=f"accept_{trainer}_") as tmp:
         cmd = trainer_command(trainer, sim_backend, num_envs, Path(tmp), obs)
         return trainer_verdict(trainer, *run_program(cmd, root, timeout_s))
@@ -134,7 +135,10 @@ def check_benchmark(timeout_s: float = 600) -> tuple[bool | None, str]:
     """``benchmarks/sim_speed.py --gpu-only`` runs its sweep end to end (tiny) and writes its JSON."""
     root = source_checkout()
     if root is None:
-        return None, "needs the source checkout (benchmarks/ is not part of the installed package)"
+        return (
+            None,
+            f"needs a source checkout: benchmarks/ ships with the repository, not the package ({CHECKOUT_HINT})",
+        )
     with tempfile.TemporaryDirectory(prefix="accept_bench_") as tmp:
         path = Path(tmp) / "gpu.json"
         rc, _, tail = run_program(benchmark_command(path), root, timeout_s)
@@ -272,12 +276,12 @@ the benchmark"""
 
 def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: int = 64) -> dict:
     """One check of :data:`CHECK_NAMES` as a :class:`CheckResult` dict (what :func:`isolated` can hand back)."""
-    from maniskill_irb120.acceptance import ENV_CHECKS, CheckResult, timed_check
+    from maniskill_irb120.diagnostics.acceptance import ENV_CHECKS, CheckResult, timed_check
 
     if name == PHYSX_GPU:
         return timed_check(name, check_physx_gpu, sim_backend=sim_backend).to_dict()
     if name == RANDOMISED_FRAMES:
-        from maniskill_irb120.acceptance import check_randomised_frames
+        from maniskill_irb120.diagnostics.acceptance import check_randomised_frames
 
         return timed_check(name, check_randomised_frames).to_dict()
     if name in ENV_CHECKS:
@@ -302,7 +306,7 @@ def run_named_check(name: str, sim_backend: str, num_envs: int, trainer_envs: in
 def run_obs_mode_check(env_id: str, obs_mode: str, sim_backend: str, num_envs: int) -> dict:
     """One task in one obs mode: a part of the ``obs modes`` check that :func:`doctor.gpu_report` runs in its own
     process when it runs checks side by side (the whole sweep, 24 scenes one after another, is its longest)."""
-    from maniskill_irb120.acceptance import check_obs_modes, timed_check
+    from maniskill_irb120.diagnostics.acceptance import check_obs_modes, timed_check
 
     name = f"obs modes [{env_id} {obs_mode}]"
     kw = dict(sim_backend=sim_backend, num_envs=num_envs, env_ids=[env_id], obs_modes=[obs_mode])

@@ -184,7 +184,7 @@ def _driver_version() -> str | None:
 def _git_commit() -> str | None:
     import subprocess
 
-    from maniskill_irb120.acceptance_runs import source_checkout
+    from maniskill_irb120.diagnostics.acceptance_runs import source_checkout
 
     root = source_checkout()
     if root is None:
@@ -230,7 +230,7 @@ def gpu_report(
     env_ids: tuple[str, ...] | None = None,
     obs_modes: tuple[str, ...] | None = None,
 ) -> dict:
-    """Run the acceptance suite (``maniskill_irb120.acceptance``) and time state-obs steps/s per batch size.
+    """Run the acceptance suite (``maniskill_irb120.diagnostics.acceptance``) and time state-obs steps/s per batch size.
     ``isolate``: each check and timing in a fresh process, so a GPU crash is one FAIL, not the end of the report.
     The tests run it on ``physx_cpu`` with one env and ``isolate=False``. ``say``: called with a line as each
     check ends (the whole run takes minutes). ``jobs`` > 1 (needs ``isolate``): that many checks side by side,
@@ -239,9 +239,9 @@ def gpu_report(
     ``env_ids`` / ``obs_modes``: narrow the obs-mode sweep (default: every task, every mode)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from maniskill_irb120 import acceptance_runs as runs
-    from maniskill_irb120.acceptance import ENV_IDS, OBS_MODES
-    from maniskill_irb120.acceptance_runs import (
+    from maniskill_irb120.diagnostics import acceptance_runs as runs
+    from maniskill_irb120.diagnostics.acceptance import ENV_IDS, OBS_MODES
+    from maniskill_irb120.diagnostics.acceptance_runs import (
         CHECK_NAMES,
         PHYSX_GPU,
         WITHOUT_PHYSX_GPU,
@@ -272,7 +272,7 @@ def gpu_report(
         checks=[],
         throughput=[],
     )
-    mod = "maniskill_irb120.acceptance_runs"
+    mod = "maniskill_irb120.diagnostics.acceptance_runs"
     base = dict(sim_backend=sim_backend, num_envs=num_envs)
 
     def one(fn: str, kw: dict, name: str) -> tuple[dict, float, float]:

@@ -15,11 +15,11 @@ import pytest
 import torch
 import tyro
 
-from maniskill_irb120 import acceptance as A
-from maniskill_irb120 import acceptance_runs as R
-from maniskill_irb120.doctor import format_gpu_report, gpu_report
+from maniskill_irb120.diagnostics import acceptance as A
+from maniskill_irb120.diagnostics import acceptance_runs as R
+from maniskill_irb120.diagnostics.doctor import format_gpu_report, gpu_report
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CPU = "physx_cpu"
 
 
@@ -293,7 +293,9 @@ def test_isolated_reports_a_crash_and_an_exception():
     with pytest.raises(RuntimeError, match=r"_exit crashed \(exit status 3\)"):
         R.isolated("os", "_exit", status=3)
     with pytest.raises(RuntimeError, match="ValueError: unknown check 'nope'"):
-        R.isolated("maniskill_irb120.acceptance_runs", "run_named_check", name="nope", sim_backend=CPU, num_envs=1)
+        R.isolated(
+            "maniskill_irb120.diagnostics.acceptance_runs", "run_named_check", name="nope", sim_backend=CPU, num_envs=1
+        )
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")

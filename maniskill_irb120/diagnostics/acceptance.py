@@ -1,8 +1,8 @@
 """The GPU acceptance checks: what the first run on a GPU has to show before anyone trains there.
 
-No GPU has run this package's ``physx_cuda`` path, so each check here drives a task the way training does and
-returns a verdict (:class:`CheckResult`) with a one-line reason, instead of leaving a failure to be found deep in
-a training run. Every check takes the sim backend and the batch size: ``tests/gpu/`` runs them on
+Each check drives a task the way training does and returns a verdict (:class:`CheckResult`) with a one-line
+reason, so that a GPU path that breaks says so here instead of deep in a training run (which GPU runs the
+project has had: ``docs/gpu.md``). Every check takes the sim backend and the batch size: ``tests/gpu/`` runs them on
 ``physx_cuda`` with 512 envs, ``maniskill-irb120 doctor --gpu`` runs them for its report, and the default test
 suite runs the same functions on ``physx_cpu`` (one env, ManiSkill's limit there) so that the check code itself
 is known to work before a GPU ever runs it. The verdicts are separate pure functions (``*_verdict``), tested on
@@ -28,7 +28,7 @@ from maniskill_irb120.envs.table_clearing import ENV_ID as TABLE_CLEARING
 
 ENV_IDS = (TABLE_CLEARING, GRASP_LIFT, STACK_CUBE)
 OBS_MODES = ("state", "state_dict", "none", "rgbd", "rgb", "depth", "pointcloud", "sensor_data")
-"""the obs modes the README promises (every ManiSkill mode we name, plus rgbd); combinations are not swept"""
+"""the obs modes docs/tasks.md promises (every ManiSkill mode we name, plus rgbd); combinations are not swept"""
 STATE_ONLY = ("state", "state_dict", "none")
 CAMERA = "hand_camera"
 IMAGE_HW = (84, 84)

@@ -1,0 +1,104 @@
+"""MkDocs hooks (``mkdocs.yml``): pages made at build time, so they cannot go stale.
+
+* ``cli.md``: ``maniskill-irb120 --help`` and every subcommand's ``--help``, as tyro prints them.
+* ``results.md``: ``benchmarks/RESULTS.md`` with its links made relative to the site, and the plots and JSON it
+  links (``benchmarks/results/``) beside it.
+
+Nothing is fetched from the network.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import re
+from pathlib import Path
+
+from mkdocs.structure.files import File, Files
+
+ROOT = Path(__file__).resolve().parents[1]
+WIDTH = "80"  # the width of the page's code column
+
+
+def _help(argv: list[str]) -> str:
+    """What ``maniskill-irb120 ARGV`` prints (tyro exits after a help)."""
+    import tyro
+
+    from maniskill_irb120.cli import COMMANDS
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
+        tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="maniskill-irb120", args=argv)
+    return out.getvalue().rstrip()
+
+
+def cli_page() -> str:
+    """The CLI reference page, from ``--help`` (the docstrings of ``maniskill_irb120/cli.py``)."""
+    os.environ["COLUMNS"] = WIDTH
+    os.environ["NO_COLOR"] = "1"
+    from maniskill_irb120.cli import COMMANDS
+
+    parts = [
+        "# Command line: `maniskill-irb120`",
+        "",
+        "Generated at build time from `maniskill-irb120 --help` and each subcommand's `--help` "
+        "(`python -m maniskill_irb120` is the same command).",
+        "",
+        "```text",
+        _help(["--help"]),
+        "```",
+    ]
+    for name in COMMANDS:
+        parts += ["", f"## `maniskill-irb120 {name}`", "", "```text", _help([name, "--help"]), "```"]
+    return "\n".join(parts) + "\n"
+
+
+LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
+
+
+def site_links(text: str, source_dir: Path, page_uri: str) -> str:
+    """Links that are right in the repository (relative to ``source_dir``) made right on the site: the results
+    page and its files move to ``results.md`` and ``results/``; other files outside ``docs/`` become their path."""
+    page_dir = Path(page_uri).parent
+
+    def fix(m: re.Match) -> str:
+        bang, label, target = m.groups()
+        if re.match(r"[a-z]+:|#", target):
+            return m.group(0)
+        path, _, anchor = target.partition("#")
+        dest = (source_dir / path).resolve()
+        if dest.is_relative_to(ROOT / "docs"):
+            site = dest.relative_to(ROOT / "docs")
+        elif dest == ROOT / "benchmarks" / "RESULTS.md":
+            site = Path("results.md")
+        elif dest.is_relative_to(ROOT / "benchmarks" / "results"):
+            site = Path("results") / dest.relative_to(ROOT / "benchmarks" / "results")
+        else:
+            return f"{label} (`{dest.relative_to(ROOT).as_posix()}`)" if dest.is_relative_to(ROOT) else m.group(0)
+        rel = os.path.relpath(site, page_dir).replace(os.sep, "/")
+        return f"{bang}[{label}]({rel}{'#' + anchor if anchor else ''})"
+
+    return LINK.sub(fix, text)
+
+
+def results_page() -> str:
+    """``benchmarks/RESULTS.md`` as the site's ``results.md``."""
+    return site_links((ROOT / "benchmarks" / "RESULTS.md").read_text(), ROOT / "benchmarks", "results.md")
+
+
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    if page.file.src_uri in ("results.md", "cli.md"):
+        return markdown
+    return site_links(markdown, (ROOT / "docs" / page.file.src_uri).parent, page.file.src_uri)
+
+
+def on_files(files: Files, config) -> Files:
+    files.append(File.generated(config, "cli.md", content=cli_page()))
+    files.append(File.generated(config, "results.md", content=results_page()))
+    results = ROOT / "benchmarks" / "results"
+    for path in sorted(results.rglob("*")):
+        if path.suffix in (".png", ".json") and path.is_file():
+            uri = "results/" + path.relative_to(results).as_posix()
+            files.append(File.generated(config, uri, abs_src_path=str(path)))
+    return files
