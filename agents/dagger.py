@@ -46,7 +46,6 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 import torch.nn.functional as F
-import tyro
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents import common
@@ -62,6 +61,7 @@ from agents.common import (
     atomic_save,
     autocast,
     budget_bar,
+    cli,
     evaluate_checkpoint,
     evaluate_on_seeds,
     finish,
@@ -461,4 +461,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.dagger"))

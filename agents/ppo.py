@@ -41,7 +41,6 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.optim as optim
-import tyro
 
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
@@ -53,6 +52,7 @@ from agents.common import (
     action_wrappers,
     args_json,
     atomic_save,
+    cli,
     evaluate_checkpoint,
     evaluate_on_seeds,
     flatten_obs,
@@ -731,4 +731,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.ppo"))

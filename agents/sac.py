@@ -43,7 +43,6 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 import torch.nn.functional as F
-import tyro
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
@@ -58,6 +57,7 @@ from agents.common import (
     args_json,
     atomic_save,
     budget_bar,
+    cli,
     evaluate_checkpoint,
     evaluate_on_seeds,
     finish,
@@ -531,4 +531,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.sac"))

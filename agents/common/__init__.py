@@ -1,12 +1,12 @@
 """What every trainer in ``agents/`` shares besides the policy networks (those live in the library,
-``maniskill_irb120.policies``): the common flags (``args``), the envs and observation layout (``envs``), the
-replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
+``maniskill_irb120.policies``): the common flags and ``--recipe`` (``args``), the envs and observation layout
+(``envs``), the replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
 evaluation every recipe is scored on (``evaluation``), the loggers (``logging``) and mixed precision
 (``precision``). It may import the library
 ``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
 ``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
 
-from agents.common.args import RunArgs
+from agents.common.args import RunArgs, cli, recipe_argv
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset
 from agents.common.checkpoints import args_json, atomic_save, load_for_evaluation, load_torch, rng_state, set_rng_state
 from agents.common.envs import (
@@ -53,6 +53,7 @@ __all__ = [
     "atomic_save",
     "autocast",
     "budget_bar",
+    "cli",
     "evaluate_checkpoint",
     "evaluate_on_seeds",
     "finish",
@@ -65,6 +66,7 @@ __all__ = [
     "one_thread_beside_workers",
     "privileged_aux",
     "prune_row_files",
+    "recipe_argv",
     "resolve_device",
     "resolve_precision",
     "restore_dataset",
