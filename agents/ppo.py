@@ -30,7 +30,6 @@ seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is what ``
 from __future__ import annotations
 
 import json
-import random
 import time
 from collections import defaultdict
 from dataclasses import dataclass, replace
@@ -46,22 +45,24 @@ import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
     VALIDATION_SEED,
+    Clock,
     EpisodeTracker,
     Logger,
     RunArgs,
     action_wrappers,
-    args_json,
     atomic_save,
+    checkpoint,
     cli,
     evaluate_checkpoint,
-    evaluate_on_seeds,
+    finish,
     flatten_obs,
+    held_out_evaluation,
     load_torch,
     obs_to,
     one_thread_beside_workers,
+    open_run,
     resolve_device,
-    rng_state,
-    set_rng_state,
+    restore,
     shapes_of,
     torch_threads,
 )
@@ -384,14 +385,13 @@ FORMAT = "maniskill_irb120.ppo/1"
 
 def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: Args) -> None:
     atomic_save(
-        dict(
+        checkpoint(
+            FORMAT,
+            args,
+            counters,
             model=agent.state_dict(),
             optimizer=optimizer.state_dict(),
-            counters=counters,
-            rng=rng_state(),
-            args=args_json(args),
             signature=agent.signature(),
-            format=FORMAT,
             policy=policy_section(
                 "ppo",
                 agent,
@@ -474,19 +474,15 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
+def read_resume(path: Path, args: Args) -> dict:
+    """The checkpoint ``--resume`` continues from."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"--resume: checkpoint {path} does not exist")
+    return read_checkpoint(path, args)
+
+
 def train(args: Args) -> dict:
-    if args.resume is not None:
-        if not Path(args.resume).is_file():
-            raise FileNotFoundError(f"--resume: checkpoint {args.resume} does not exist")
-        saved = read_checkpoint(args.resume, args)
-        run_dir = Path(args.resume).resolve().parent.parent
-    else:
-        saved = None
-        name = args.exp_name or f"{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
-        run_dir = args.runs_dir / name
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
+    saved, run_dir = open_run(args, "", lambda path: read_resume(path, args))
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = resolve_device(args.device)
 
@@ -504,8 +500,7 @@ def train(args: Args) -> dict:
     if saved is not None:
         load_checkpoint(args.resume, agent, args, saved)
         optimizer.load_state_dict(saved["optimizer"])
-        counters = dict(saved["counters"])
-        set_rng_state(saved["rng"])
+        counters = restore(saved)
     elif args.checkpoint is not None:
         load_checkpoint(args.checkpoint, agent, args, init)
     logger = Logger(run_dir, args)
@@ -531,10 +526,7 @@ def train(args: Args) -> dict:
     last_eval: dict = {}
     history: list[dict] = []
     start_iteration = counters["iteration"]
-    t_start = time.perf_counter()
-    wall_before = counters.get("wall_s", 0.0)  # trained before this --resume: the budget is the run's, as in DAgger
-
-    elapsed = lambda: wall_before + time.perf_counter() - t_start  # noqa: E731
+    elapsed = Clock(counters.get("wall_s", 0.0))  # with the time trained before this --resume: the budget is the run's
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
         counters["wall_s"] = elapsed()  # saved with every checkpoint
@@ -611,9 +603,7 @@ def train(args: Args) -> dict:
         if recent:
             scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
         logger.scalars(scalars, counters["global_step"])
-        history.append(
-            dict(iteration=it, global_step=counters["global_step"], wall_s=time.perf_counter() - t_start, **scalars)
-        )
+        history.append(dict(iteration=it, global_step=counters["global_step"], wall_s=elapsed.session(), **scalars))
         if bar is not None:
             bar.update(args.batch_size)
             bar.set_postfix(
@@ -667,8 +657,9 @@ def train(args: Args) -> dict:
         )
     if args.eval_episodes > 0:
         result.update(final_evaluation(agent, args, device))
-        (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
+        finish(result, run_dir)
+    else:
+        print(json.dumps(result))
     result["history"] = history
     return result
 
@@ -679,16 +670,13 @@ def final_evaluation(
     """The deterministic policy on held-out seeds (or, for checkpoint selection, on validation seeds), scored like
     every other trainer (agents.common)."""
     agent.eval()
-    seeds = list(range(first_seed, first_seed + args.eval_episodes))
-
-    def act(obs: dict) -> torch.Tensor:
-        with torch.no_grad():
-            return agent.get_action(obs_to(obs, device), deterministic=True).cpu()
-
-    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, control_mode=args.control_mode)
-    wrappers = action_wrappers(args.action_frame)
-    return evaluate_on_seeds(
-        act, args.env_id, args.obs, seeds, video_dir=video_dir, progress=args.progress, wrappers=wrappers, **kwargs
+    return held_out_evaluation(
+        lambda obs: agent.get_action(obs_to(obs, device), deterministic=True).cpu(),
+        args,
+        video_dir,
+        first_seed,
+        reward_mode=args.reward_mode,
+        control_mode=args.control_mode,
     )
 
 
