@@ -49,7 +49,6 @@ from agents.common import (
     EpisodeTracker,
     Logger,
     RunArgs,
-    action_wrappers,
     atomic_save,
     checkpoint,
     cli,
@@ -65,10 +64,10 @@ from agents.common import (
     restore,
     shapes_of,
     torch_threads,
+    vec_envs,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
-from maniskill_irb120.vector import make_vec_env
 
 
 @dataclass
@@ -169,65 +168,48 @@ class Args(RunArgs):
 
 
 def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
-    from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
+    """PPO's envs (agents.common.vec_envs) on its reward and controller, unlabelled, their tensors where the env
+    keeps them. Training: auto-resetting envs beside this process's one thread. ``evaluate``: the periodic
+    evaluation's, recorded to ``video_dir``."""
+    env_kwargs = dict(reward_mode=args.reward_mode, **args.env_kwargs)
+    setup = dict(action_frame=args.action_frame, control_mode=args.control_mode, env_kwargs=env_kwargs)
+    if not evaluate:
+        if not args.partial_reset:
+            raise ValueError(
+                "training needs partial resets (auto-reset of finished envs); --partial-reset must stay on"
+            )
+        return one_thread_beside_workers(vec_envs(args.env_id, args.obs, num_envs, backend=args.backend, **setup))
     from mani_skill.utils.wrappers.record import RecordEpisode
 
-    kwargs = dict(
-        obs_mode="rgbd" if args.obs == "rgbd" else "state",
-        control_mode=args.control_mode,
-        reward_mode=args.reward_mode,
-        **args.env_kwargs,
-    )
-    needs_render = args.obs == "rgbd" or (evaluate and video_dir is not None)
-    if needs_render:
-        kwargs["render_mode"] = "rgb_array"
-    else:  # state-only envs skip the renderer entirely (less memory, faster steps)
-        kwargs.setdefault("render_backend", "none")
-    wrappers = []
-    if args.obs == "rgbd":
-        wrappers.append(FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
-    wrappers += action_wrappers(args.action_frame)
-    if evaluate:
-        if args.eval_reconfiguration_freq is not None:
-            kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
-        backend = args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "inprocess")
-        if backend == "cpu":
-            backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
-            num_envs = 1
-        if video_dir is not None:
-            wrappers.append(
-                lambda e: RecordEpisode(
-                    e,
-                    output_dir=str(video_dir),
-                    save_trajectory=False,
-                    max_steps_per_video=None,
-                    video_fps=20,
-                    info_on_video=False,
-                )
+    if args.eval_reconfiguration_freq is not None:
+        env_kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
+    backend = args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "inprocess")
+    if backend == "cpu":
+        backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
+        num_envs = 1
+    record = []
+    if video_dir is not None:
+        record.append(
+            lambda e: RecordEpisode(
+                e,
+                output_dir=str(video_dir),
+                save_trajectory=False,
+                max_steps_per_video=None,
+                video_fps=20,
+                info_on_video=False,
             )
-        # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
-        # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
-        return make_vec_env(
-            args.env_id,
-            num_envs,
-            backend=backend,
-            wrappers=wrappers,
-            ignore_terminations=backend == "gpu",
-            record_metrics=True,
-            **kwargs,
         )
-    if not args.partial_reset:
-        raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
-    return one_thread_beside_workers(
-        make_vec_env(
-            args.env_id,
-            num_envs,
-            backend=args.backend,
-            wrappers=wrappers,
-            ignore_terminations=False,
-            record_metrics=True,
-            **kwargs,
-        )
+    # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
+    # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
+    return vec_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=backend,
+        render=video_dir is not None,
+        outer_wrappers=record,
+        ignore_terminations=backend == "gpu",
+        **setup,
     )
 
 

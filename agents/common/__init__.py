@@ -21,6 +21,7 @@ from agents.common.envs import (
     resolve_device,
     shapes_of,
     torch_threads,
+    vec_envs,
 )
 from agents.common.evaluation import (
     EVAL_SEED,
@@ -82,4 +83,5 @@ __all__ = [
     "shapes_of",
     "torch_threads",
     "train_seed",
+    "vec_envs",
 ]
