@@ -22,12 +22,11 @@ rollouts are only as informative as it. ``--aux-weight``: the policy's features 
 position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
 policy never sees it); from the camera it makes the encoder find the cube.
 
-    python -m agents.dagger --obs state --budget-min 60                 # the state recipe
-    python -m agents.dagger --obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 \\
-        --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
-    python -m agents.dagger ... (the camera flags) --precision auto --budget-min 60  # bf16 encoder: within the hour
-    python -m agents.dagger --obs rgbd --backend gpu --num-envs 32 --device cuda ...    # GPU-batched envs
-    python -m agents.dagger ... (the camera flags) --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
+    python -m agents.dagger --recipe dagger-state --budget-min 60       # the state recipe
+    python -m agents.dagger --recipe dagger-rgbd --budget-min 120       # the camera recipe, CPU
+    python -m agents.dagger --recipe dagger-rgbd-bf16 --budget-min 60   # bf16 encoder: within the hour
+    python -m agents.dagger --recipe dagger-rgbd --backend gpu --num-envs 32 --device cuda   # GPU-batched envs
+    python -m agents.dagger --recipe dagger-rgbd-bf16 --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 

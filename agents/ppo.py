@@ -7,6 +7,7 @@ normalisation, ``normalized_dense`` reward, partial resets, separate eval envs.
 
     python -m agents.ppo --num-envs 2 --total-timesteps 20000              # CPU workers, rgbd
     python -m agents.ppo --obs state --num-envs 512 --backend gpu           # GPU, state
+    python -m agents.ppo --recipe ppo-state --env-id GraspLift-IRB120-v1   # a named recipe, its task's flags too
     python -m agents.ppo --resume runs/NAME/checkpoints/latest.pt           # continue exactly
     python -m agents.ppo --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
     python -m agents.ppo --obs state --action-frame world --base-checkpoint DAGGER.pt --kl-coef 1 --init-logstd -2

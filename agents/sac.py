@@ -24,6 +24,7 @@ defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes
 ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
 policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
 
+    python -m agents.sac --recipe sac-state --budget-min 120              # the recipe (maniskill_irb120/recipes.py)
     python -m agents.sac --obs state --budget-min 120
     python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
