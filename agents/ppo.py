@@ -362,6 +362,71 @@ def compute_gae(rewards, values, dones, next_value, next_done, final_values, arg
     return advantages, advantages + values
 
 
+class Rollout:
+    """PPO's on-policy storage: ``--num-steps`` steps of the ``--num-envs`` envs, and the envs' current observation
+    carried from one rollout to the next."""
+
+    def __init__(self, envs, next_obs: dict, args: Args, device):
+        T, N = args.num_steps, args.num_envs
+        self.envs, self.args, self.device = envs, args, device
+        self.next_obs, self.next_done = next_obs, torch.zeros(N, device=device)
+        self.obs = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
+        self.actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
+        self.logprobs, self.rewards, self.dones, self.values, self.final_values = (
+            torch.zeros((T, N), device=device) for _ in range(5)
+        )
+        self.tracker = EpisodeTracker(N, device)
+
+    def collect(self, agent: Agent, counters: dict, recent: dict[str, list[float]]) -> tuple[dict, float]:
+        """One rollout of the sampling policy: the flat batch :func:`ppo_update` trains on, with GAE's advantages
+        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``."""
+        args, device, envs = self.args, self.device, self.envs
+        agent.eval()
+        self.final_values.zero_()
+        sim_time = 0.0
+        for step in range(args.num_steps):
+            counters["global_step"] += args.num_envs
+            for k in self.obs:
+                self.obs[k][step] = self.next_obs[k]
+            self.dones[step] = self.next_done
+            with torch.no_grad():
+                action, logprob, _, value = agent.get_action_and_value(self.next_obs)
+            self.values[step] = value.flatten()
+            self.actions[step], self.logprobs[step] = action, logprob
+            ts = time.perf_counter()
+            o, reward, term, trunc, info = envs.step(action if envs.device.type == device.type else action.cpu())
+            sim_time += time.perf_counter() - ts
+            self.next_obs = obs_to(flatten_obs(o), device)
+            done = (term | trunc).to(device)
+            self.next_done = done.float()
+            self.rewards[step] = reward.to(device).view(-1) * args.reward_scale
+            if "final_info" in info:
+                mask = bootstrap_mask(info, term).to(device)
+                if mask.any():
+                    fin = obs_to(flatten_obs(info["final_observation"]), device)
+                    with torch.no_grad():
+                        self.final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin.items()}).view(-1)
+                if args.absorbing_success:
+                    absorbing = args.reward_scale / (1 - args.gamma)
+                    self.final_values[step, succeeded_mask(info, term).to(device)] = absorbing
+            for k, v in self.tracker.update(info.get("final_info", info), done).items():
+                recent[k] += v
+        with torch.no_grad():
+            next_value = agent.get_value(self.next_obs).reshape(1, -1)[0]
+            advantages, returns = compute_gae(
+                self.rewards, self.values, self.dones, next_value, self.next_done, self.final_values, args
+            )
+        batch = dict(
+            obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in self.obs.items()},
+            actions=self.actions.reshape((-1,) + envs.single_action_space.shape),
+            logprobs=self.logprobs.reshape(-1),
+            advantages=advantages.reshape(-1),
+            returns=returns.reshape(-1),
+            values=self.values.reshape(-1),
+        )
+        return batch, sim_time
+
+
 # ----------------------------------------------------------------------------- checkpoints
 FORMAT = "maniskill_irb120.ppo/1"
 
@@ -489,16 +554,10 @@ def train(args: Args) -> dict:
     logger = Logger(run_dir, args)
     ckpt_dir = run_dir / "checkpoints"
 
-    T, N = args.num_steps, args.num_envs
     num_iterations = max(1, args.total_timesteps // args.batch_size)
     next_obs, _ = envs.reset(seed=args.seed + counters["iteration"])
-    next_obs = obs_to(flatten_obs(next_obs), device)
-    next_done = torch.zeros(N, device=device)
-    obs_buf = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
-    actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
-    logprobs, rewards, dones, values, final_values = (torch.zeros((T, N), device=device) for _ in range(5))
+    rollout = Rollout(envs, obs_to(flatten_obs(next_obs), device), args, device)
     recent: dict[str, list[float]] = defaultdict(list)
-    tracker = EpisodeTracker(N, device)
     bar = None
     if args.progress:
         from tqdm import tqdm
@@ -522,46 +581,7 @@ def train(args: Args) -> dict:
         t0 = time.perf_counter()
         if args.anneal_lr:
             optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
-        agent.eval()
-        final_values.zero_()
-        sim_time = 0.0
-        for step in range(T):
-            counters["global_step"] += N
-            for k in obs_buf:
-                obs_buf[k][step] = next_obs[k]
-            dones[step] = next_done
-            with torch.no_grad():
-                action, logprob, _, value = agent.get_action_and_value(next_obs)
-            values[step] = value.flatten()
-            actions[step], logprobs[step] = action, logprob
-            ts = time.perf_counter()
-            o, reward, term, trunc, info = envs.step(action if envs.device.type == device.type else action.cpu())
-            sim_time += time.perf_counter() - ts
-            next_obs = obs_to(flatten_obs(o), device)
-            done = (term | trunc).to(device)
-            next_done = done.float()
-            rewards[step] = reward.to(device).view(-1) * args.reward_scale
-            if "final_info" in info:
-                mask = bootstrap_mask(info, term).to(device)
-                if mask.any():
-                    fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
-                    with torch.no_grad():
-                        final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
-                if args.absorbing_success:
-                    final_values[step, succeeded_mask(info, term).to(device)] = args.reward_scale / (1 - args.gamma)
-            for k, v in tracker.update(info.get("final_info", info), done).items():
-                recent[k] += v
-        with torch.no_grad():
-            next_value = agent.get_value(next_obs).reshape(1, -1)[0]
-            advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, final_values, args)
-        batch = dict(
-            obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in obs_buf.items()},
-            actions=actions.reshape((-1,) + envs.single_action_space.shape),
-            logprobs=logprobs.reshape(-1),
-            advantages=advantages.reshape(-1),
-            returns=returns.reshape(-1),
-            values=values.reshape(-1),
-        )
+        batch, sim_time = rollout.collect(agent, counters, recent)
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
