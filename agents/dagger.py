@@ -22,12 +22,11 @@ rollouts are only as informative as it. ``--aux-weight``: the policy's features 
 position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
 policy never sees it); from the camera it makes the encoder find the cube.
 
-    python -m agents.dagger --obs state --budget-min 60                 # the state recipe
-    python -m agents.dagger --obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 \\
-        --initial-updates 2000 --batch-size 64 --updates-per-round 500 --budget-min 120   # camera, CPU
-    python -m agents.dagger ... (the camera flags) --precision auto --budget-min 60  # bf16 encoder: within the hour
-    python -m agents.dagger --obs rgbd --backend gpu --num-envs 32 --device cuda ...    # GPU-batched envs
-    python -m agents.dagger ... (the camera flags) --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
+    python -m agents.dagger --recipe dagger-state --budget-min 60       # the state recipe
+    python -m agents.dagger --recipe dagger-rgbd --budget-min 120       # the camera recipe, CPU
+    python -m agents.dagger --recipe dagger-rgbd-bf16 --budget-min 60   # bf16 encoder: within the hour
+    python -m agents.dagger --recipe dagger-rgbd --backend gpu --num-envs 32 --device cuda   # GPU-batched envs
+    python -m agents.dagger --recipe dagger-rgbd-bf16 --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 
@@ -36,7 +35,6 @@ The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``e
 
 from __future__ import annotations
 
-import random
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -46,42 +44,40 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 import torch.nn.functional as F
-import tyro
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents import common
 from agents.common import (
     AUX_DIM,
-    EVAL_SEED,
+    Clock,
     Dataset,
     EpisodeTracker,
     Logger,
     RunArgs,
-    action_wrappers,
-    args_json,
     atomic_save,
     autocast,
     budget_bar,
+    checkpoint,
+    cli,
+    evaluate_and_finish,
     evaluate_checkpoint,
-    evaluate_on_seeds,
-    finish,
     flatten_obs,
+    held_out_evaluation,
     load_for_evaluation,
     load_torch,
     obs_to,
+    open_run,
     prune_row_files,
     resolve_device,
     resolve_precision,
+    restore,
     restore_dataset,
-    rng_state,
-    set_rng_state,
     shapes_of,
     torch_threads,
     train_seed,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
 from maniskill_irb120.policies.nets import DeterministicActor, random_shift
-from maniskill_irb120.wrappers import observation_setup
 
 FORMAT = "maniskill_irb120.dagger/1"
 
@@ -254,15 +250,14 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
     (``rows``: the last save's manifest): returns the new manifest."""
     rows = data.save_new_rows(path.parent / "data", rows)
     atomic_save(
-        dict(
-            format=FORMAT,
+        checkpoint(
+            FORMAT,
+            args,
+            counters,
             model=policy.state_dict(),
             aux_head=aux_head.state_dict() if aux_head is not None else None,
             optimizer=optimizer.state_dict(),
             data_rows=rows,
-            counters=counters,
-            rng=rng_state(),
-            args=args_json(args),
             signature=policy.signature(),
             policy=policy_section(
                 "dagger",
@@ -288,18 +283,7 @@ def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
 
 
 def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:
-    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
-    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
-    return evaluate_on_seeds(
-        lambda o: policy(obs_to(o, device)).cpu(),
-        args.env_id,
-        args.obs,
-        seeds,
-        video_dir=video_dir,
-        progress=args.progress,
-        wrappers=[*obs_wrappers, *action_wrappers(args.action_frame)],
-        **dict(args.env_kwargs, obs_mode=obs_mode),
-    )
+    return held_out_evaluation(lambda o: policy(obs_to(o, device)).cpu(), args, video_dir)
 
 
 def run_evaluation_only(args: Args) -> dict:
@@ -345,17 +329,8 @@ def check_args(args: Args) -> None:
 
 def train(args: Args) -> dict:
     check_args(args)
-    t_start = time.perf_counter()
-    saved = load_torch(args.resume, FORMAT, "agents.dagger") if args.resume is not None else None
-    if saved is not None:
-        run_dir = Path(args.resume).resolve().parent.parent
-    else:
-        run_dir = args.runs_dir / (
-            args.exp_name or f"dagger__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
-        )
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
+    clock = Clock()
+    saved, run_dir = open_run(args, "dagger__", lambda path: load_torch(path, FORMAT, "agents.dagger"))
     device = resolve_device(args.device)
     precision = resolve_precision(args.precision, device)
     learner_threads = torch.get_num_threads()  # before CPU workers claim the cores (make_envs: one thread)
@@ -387,12 +362,12 @@ def train(args: Args) -> dict:
         optimizer.load_state_dict(saved["optimizer"])
         rows = saved.get("data_rows")
         restore_dataset(data, saved, Path(args.resume).parent / "data")
-        counters = dict(saved["counters"])
-        set_rng_state(saved["rng"])
+        counters = restore(saved)
+        clock.before = counters["wall_s"]
     logger = Logger(run_dir, args)
     ckpt_dir = run_dir / "checkpoints"
     budget_s = args.budget_min * 60
-    elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
+    elapsed = clock
     o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
     state = labels(o, info)
     bar = budget_bar(args, budget_s, counters["wall_s"], "dagger")
@@ -438,22 +413,17 @@ def train(args: Args) -> dict:
         envs.close()
         counters["wall_s"] = elapsed()
         save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args, aux_head, rows)
-    t_eval = time.perf_counter()
-    result = final_evaluation(policy, args, device, None)
-    logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])
-    logger.close()
-    result.update(
-        env_steps=counters["env_steps"],
-        wall_clock_s=counters["wall_s"],
-        eval_wall_s=time.perf_counter() - t_eval,
+    return evaluate_and_finish(
+        lambda: final_evaluation(policy, args, device, None),
+        logger,
+        counters,
+        run_dir,
         rounds=counters["round"],
         train_episodes=counters["episodes"],
         dataset=data.size,
         precision=precision,
         checkpoint=str(ckpt_dir / "latest.pt"),
-        run_dir=str(run_dir),
     )
-    return finish(result, run_dir)
 
 
 def main(args: Args) -> dict:
@@ -461,4 +431,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.dagger"))

@@ -7,6 +7,7 @@ normalisation, ``normalized_dense`` reward, partial resets, separate eval envs.
 
     python -m agents.ppo --num-envs 2 --total-timesteps 20000              # CPU workers, rgbd
     python -m agents.ppo --obs state --num-envs 512 --backend gpu           # GPU, state
+    python -m agents.ppo --recipe ppo-state --env-id GraspLift-IRB120-v1   # a named recipe, its task's flags too
     python -m agents.ppo --resume runs/NAME/checkpoints/latest.pt           # continue exactly
     python -m agents.ppo --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
     python -m agents.ppo --obs state --action-frame world --base-checkpoint DAGGER.pt --kl-coef 1 --init-logstd -2
@@ -30,7 +31,6 @@ seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is what ``
 from __future__ import annotations
 
 import json
-import random
 import time
 from collections import defaultdict
 from dataclasses import dataclass, replace
@@ -41,33 +41,34 @@ import numpy as np
 import torch
 import torch.nn as nn
 import torch.optim as optim
-import tyro
 
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
     VALIDATION_SEED,
+    Clock,
     EpisodeTracker,
     Logger,
     RunArgs,
-    action_wrappers,
-    args_json,
     atomic_save,
+    checkpoint,
+    cli,
     evaluate_checkpoint,
-    evaluate_on_seeds,
+    finish,
     flatten_obs,
+    held_out_evaluation,
     load_torch,
     obs_to,
     one_thread_beside_workers,
+    open_run,
     resolve_device,
-    rng_state,
-    set_rng_state,
+    restore,
     shapes_of,
     torch_threads,
+    vec_envs,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
-from maniskill_irb120.vector import make_vec_env
 
 
 @dataclass
@@ -168,65 +169,48 @@ class Args(RunArgs):
 
 
 def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
-    from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
+    """PPO's envs (agents.common.vec_envs) on its reward and controller, unlabelled, their tensors where the env
+    keeps them. Training: auto-resetting envs beside this process's one thread. ``evaluate``: the periodic
+    evaluation's, recorded to ``video_dir``."""
+    env_kwargs = dict(reward_mode=args.reward_mode, **args.env_kwargs)
+    setup = dict(action_frame=args.action_frame, control_mode=args.control_mode, env_kwargs=env_kwargs)
+    if not evaluate:
+        if not args.partial_reset:
+            raise ValueError(
+                "training needs partial resets (auto-reset of finished envs); --partial-reset must stay on"
+            )
+        return one_thread_beside_workers(vec_envs(args.env_id, args.obs, num_envs, backend=args.backend, **setup))
     from mani_skill.utils.wrappers.record import RecordEpisode
 
-    kwargs = dict(
-        obs_mode="rgbd" if args.obs == "rgbd" else "state",
-        control_mode=args.control_mode,
-        reward_mode=args.reward_mode,
-        **args.env_kwargs,
-    )
-    needs_render = args.obs == "rgbd" or (evaluate and video_dir is not None)
-    if needs_render:
-        kwargs["render_mode"] = "rgb_array"
-    else:  # state-only envs skip the renderer entirely (less memory, faster steps)
-        kwargs.setdefault("render_backend", "none")
-    wrappers = []
-    if args.obs == "rgbd":
-        wrappers.append(FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
-    wrappers += action_wrappers(args.action_frame)
-    if evaluate:
-        if args.eval_reconfiguration_freq is not None:
-            kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
-        backend = args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "inprocess")
-        if backend == "cpu":
-            backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
-            num_envs = 1
-        if video_dir is not None:
-            wrappers.append(
-                lambda e: RecordEpisode(
-                    e,
-                    output_dir=str(video_dir),
-                    save_trajectory=False,
-                    max_steps_per_video=None,
-                    video_fps=20,
-                    info_on_video=False,
-                )
+    if args.eval_reconfiguration_freq is not None:
+        env_kwargs["reconfiguration_freq"] = args.eval_reconfiguration_freq
+    backend = args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "inprocess")
+    if backend == "cpu":
+        backend = "inprocess"  # videos are recorded in this process: one env, episodes in sequence
+        num_envs = 1
+    record = []
+    if video_dir is not None:
+        record.append(
+            lambda e: RecordEpisode(
+                e,
+                output_dir=str(video_dir),
+                save_trajectory=False,
+                max_steps_per_video=None,
+                video_fps=20,
+                info_on_video=False,
             )
-        # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
-        # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
-        return make_vec_env(
-            args.env_id,
-            num_envs,
-            backend=backend,
-            wrappers=wrappers,
-            ignore_terminations=backend == "gpu",
-            record_metrics=True,
-            **kwargs,
         )
-    if not args.partial_reset:
-        raise ValueError("training needs partial resets (auto-reset of finished envs); --partial-reset must stay on")
-    return one_thread_beside_workers(
-        make_vec_env(
-            args.env_id,
-            num_envs,
-            backend=args.backend,
-            wrappers=wrappers,
-            ignore_terminations=False,
-            record_metrics=True,
-            **kwargs,
-        )
+    # GPU: batched eval envs run fixed-length episodes without early-termination resets (as ManiSkill's
+    # ppo_rgb.py does, which also allows --eval-reconfiguration-freq); success/grasp are counted "once".
+    return vec_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=backend,
+        render=video_dir is not None,
+        outer_wrappers=record,
+        ignore_terminations=backend == "gpu",
+        **setup,
     )
 
 
@@ -378,20 +362,84 @@ def compute_gae(rewards, values, dones, next_value, next_done, final_values, arg
     return advantages, advantages + values
 
 
+class Rollout:
+    """PPO's on-policy storage: ``--num-steps`` steps of the ``--num-envs`` envs, and the envs' current observation
+    carried from one rollout to the next."""
+
+    def __init__(self, envs, next_obs: dict, args: Args, device):
+        T, N = args.num_steps, args.num_envs
+        self.envs, self.args, self.device = envs, args, device
+        self.next_obs, self.next_done = next_obs, torch.zeros(N, device=device)
+        self.obs = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
+        self.actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
+        self.logprobs, self.rewards, self.dones, self.values, self.final_values = (
+            torch.zeros((T, N), device=device) for _ in range(5)
+        )
+        self.tracker = EpisodeTracker(N, device)
+
+    def collect(self, agent: Agent, counters: dict, recent: dict[str, list[float]]) -> tuple[dict, float]:
+        """One rollout of the sampling policy: the flat batch :func:`ppo_update` trains on, with GAE's advantages
+        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``."""
+        args, device, envs = self.args, self.device, self.envs
+        agent.eval()
+        self.final_values.zero_()
+        sim_time = 0.0
+        for step in range(args.num_steps):
+            counters["global_step"] += args.num_envs
+            for k in self.obs:
+                self.obs[k][step] = self.next_obs[k]
+            self.dones[step] = self.next_done
+            with torch.no_grad():
+                action, logprob, _, value = agent.get_action_and_value(self.next_obs)
+            self.values[step] = value.flatten()
+            self.actions[step], self.logprobs[step] = action, logprob
+            ts = time.perf_counter()
+            o, reward, term, trunc, info = envs.step(action if envs.device.type == device.type else action.cpu())
+            sim_time += time.perf_counter() - ts
+            self.next_obs = obs_to(flatten_obs(o), device)
+            done = (term | trunc).to(device)
+            self.next_done = done.float()
+            self.rewards[step] = reward.to(device).view(-1) * args.reward_scale
+            if "final_info" in info:
+                mask = bootstrap_mask(info, term).to(device)
+                if mask.any():
+                    fin = obs_to(flatten_obs(info["final_observation"]), device)
+                    with torch.no_grad():
+                        self.final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin.items()}).view(-1)
+                if args.absorbing_success:
+                    absorbing = args.reward_scale / (1 - args.gamma)
+                    self.final_values[step, succeeded_mask(info, term).to(device)] = absorbing
+            for k, v in self.tracker.update(info.get("final_info", info), done).items():
+                recent[k] += v
+        with torch.no_grad():
+            next_value = agent.get_value(self.next_obs).reshape(1, -1)[0]
+            advantages, returns = compute_gae(
+                self.rewards, self.values, self.dones, next_value, self.next_done, self.final_values, args
+            )
+        batch = dict(
+            obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in self.obs.items()},
+            actions=self.actions.reshape((-1,) + envs.single_action_space.shape),
+            logprobs=self.logprobs.reshape(-1),
+            advantages=advantages.reshape(-1),
+            returns=returns.reshape(-1),
+            values=self.values.reshape(-1),
+        )
+        return batch, sim_time
+
+
 # ----------------------------------------------------------------------------- checkpoints
 FORMAT = "maniskill_irb120.ppo/1"
 
 
 def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: Args) -> None:
     atomic_save(
-        dict(
+        checkpoint(
+            FORMAT,
+            args,
+            counters,
             model=agent.state_dict(),
             optimizer=optimizer.state_dict(),
-            counters=counters,
-            rng=rng_state(),
-            args=args_json(args),
             signature=agent.signature(),
-            format=FORMAT,
             policy=policy_section(
                 "ppo",
                 agent,
@@ -474,19 +522,15 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
+def read_resume(path: Path, args: Args) -> dict:
+    """The checkpoint ``--resume`` continues from."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"--resume: checkpoint {path} does not exist")
+    return read_checkpoint(path, args)
+
+
 def train(args: Args) -> dict:
-    if args.resume is not None:
-        if not Path(args.resume).is_file():
-            raise FileNotFoundError(f"--resume: checkpoint {args.resume} does not exist")
-        saved = read_checkpoint(args.resume, args)
-        run_dir = Path(args.resume).resolve().parent.parent
-    else:
-        saved = None
-        name = args.exp_name or f"{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
-        run_dir = args.runs_dir / name
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
+    saved, run_dir = open_run(args, "", lambda path: read_resume(path, args))
     torch.backends.cudnn.deterministic = args.torch_deterministic
     device = resolve_device(args.device)
 
@@ -504,23 +548,16 @@ def train(args: Args) -> dict:
     if saved is not None:
         load_checkpoint(args.resume, agent, args, saved)
         optimizer.load_state_dict(saved["optimizer"])
-        counters = dict(saved["counters"])
-        set_rng_state(saved["rng"])
+        counters = restore(saved)
     elif args.checkpoint is not None:
         load_checkpoint(args.checkpoint, agent, args, init)
     logger = Logger(run_dir, args)
     ckpt_dir = run_dir / "checkpoints"
 
-    T, N = args.num_steps, args.num_envs
     num_iterations = max(1, args.total_timesteps // args.batch_size)
     next_obs, _ = envs.reset(seed=args.seed + counters["iteration"])
-    next_obs = obs_to(flatten_obs(next_obs), device)
-    next_done = torch.zeros(N, device=device)
-    obs_buf = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
-    actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
-    logprobs, rewards, dones, values, final_values = (torch.zeros((T, N), device=device) for _ in range(5))
+    rollout = Rollout(envs, obs_to(flatten_obs(next_obs), device), args, device)
     recent: dict[str, list[float]] = defaultdict(list)
-    tracker = EpisodeTracker(N, device)
     bar = None
     if args.progress:
         from tqdm import tqdm
@@ -531,10 +568,7 @@ def train(args: Args) -> dict:
     last_eval: dict = {}
     history: list[dict] = []
     start_iteration = counters["iteration"]
-    t_start = time.perf_counter()
-    wall_before = counters.get("wall_s", 0.0)  # trained before this --resume: the budget is the run's, as in DAgger
-
-    elapsed = lambda: wall_before + time.perf_counter() - t_start  # noqa: E731
+    elapsed = Clock(counters.get("wall_s", 0.0))  # with the time trained before this --resume: the budget is the run's
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     while counters["iteration"] < num_iterations:
         counters["wall_s"] = elapsed()  # saved with every checkpoint
@@ -547,46 +581,7 @@ def train(args: Args) -> dict:
         t0 = time.perf_counter()
         if args.anneal_lr:
             optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
-        agent.eval()
-        final_values.zero_()
-        sim_time = 0.0
-        for step in range(T):
-            counters["global_step"] += N
-            for k in obs_buf:
-                obs_buf[k][step] = next_obs[k]
-            dones[step] = next_done
-            with torch.no_grad():
-                action, logprob, _, value = agent.get_action_and_value(next_obs)
-            values[step] = value.flatten()
-            actions[step], logprobs[step] = action, logprob
-            ts = time.perf_counter()
-            o, reward, term, trunc, info = envs.step(action if envs.device.type == device.type else action.cpu())
-            sim_time += time.perf_counter() - ts
-            next_obs = obs_to(flatten_obs(o), device)
-            done = (term | trunc).to(device)
-            next_done = done.float()
-            rewards[step] = reward.to(device).view(-1) * args.reward_scale
-            if "final_info" in info:
-                mask = bootstrap_mask(info, term).to(device)
-                if mask.any():
-                    fin_obs = obs_to(flatten_obs(info["final_observation"]), device)
-                    with torch.no_grad():
-                        final_values[step, mask] = agent.get_value({k: v[mask] for k, v in fin_obs.items()}).view(-1)
-                if args.absorbing_success:
-                    final_values[step, succeeded_mask(info, term).to(device)] = args.reward_scale / (1 - args.gamma)
-            for k, v in tracker.update(info.get("final_info", info), done).items():
-                recent[k] += v
-        with torch.no_grad():
-            next_value = agent.get_value(next_obs).reshape(1, -1)[0]
-            advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, final_values, args)
-        batch = dict(
-            obs={k: v.reshape((-1,) + v.shape[2:]) for k, v in obs_buf.items()},
-            actions=actions.reshape((-1,) + envs.single_action_space.shape),
-            logprobs=logprobs.reshape(-1),
-            advantages=advantages.reshape(-1),
-            returns=returns.reshape(-1),
-            values=values.reshape(-1),
-        )
+        batch, sim_time = rollout.collect(agent, counters, recent)
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
@@ -611,9 +606,7 @@ def train(args: Args) -> dict:
         if recent:
             scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
         logger.scalars(scalars, counters["global_step"])
-        history.append(
-            dict(iteration=it, global_step=counters["global_step"], wall_s=time.perf_counter() - t_start, **scalars)
-        )
+        history.append(dict(iteration=it, global_step=counters["global_step"], wall_s=elapsed.session(), **scalars))
         if bar is not None:
             bar.update(args.batch_size)
             bar.set_postfix(
@@ -667,8 +660,9 @@ def train(args: Args) -> dict:
         )
     if args.eval_episodes > 0:
         result.update(final_evaluation(agent, args, device))
-        (run_dir / "summary.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result))
+        finish(result, run_dir)
+    else:
+        print(json.dumps(result))
     result["history"] = history
     return result
 
@@ -679,16 +673,13 @@ def final_evaluation(
     """The deterministic policy on held-out seeds (or, for checkpoint selection, on validation seeds), scored like
     every other trainer (agents.common)."""
     agent.eval()
-    seeds = list(range(first_seed, first_seed + args.eval_episodes))
-
-    def act(obs: dict) -> torch.Tensor:
-        with torch.no_grad():
-            return agent.get_action(obs_to(obs, device), deterministic=True).cpu()
-
-    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, control_mode=args.control_mode)
-    wrappers = action_wrappers(args.action_frame)
-    return evaluate_on_seeds(
-        act, args.env_id, args.obs, seeds, video_dir=video_dir, progress=args.progress, wrappers=wrappers, **kwargs
+    return held_out_evaluation(
+        lambda obs: agent.get_action(obs_to(obs, device), deterministic=True).cpu(),
+        args,
+        video_dir,
+        first_seed,
+        reward_mode=args.reward_mode,
+        control_mode=args.control_mode,
     )
 
 
@@ -731,4 +722,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.ppo"))

@@ -24,6 +24,7 @@ defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes
 ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
 policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
 
+    python -m agents.sac --recipe sac-state --budget-min 120              # the recipe (maniskill_irb120/recipes.py)
     python -m agents.sac --obs state --budget-min 120
     python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
@@ -34,8 +35,6 @@ The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``e
 
 from __future__ import annotations
 
-import random
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
@@ -43,40 +42,39 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 import torch.nn.functional as F
-import tyro
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents import common
 from agents.common import (
     EVAL_SEED,
+    Clock,
     Dataset,
     EpisodeTracker,
     Logger,
     RunArgs,
-    action_wrappers,
-    args_json,
     atomic_save,
     budget_bar,
+    checkpoint,
+    cli,
+    evaluate_and_finish,
     evaluate_checkpoint,
-    evaluate_on_seeds,
-    finish,
     flatten_obs,
+    held_out_evaluation,
     load_for_evaluation,
     load_torch,
     obs_to,
+    open_run,
     prune_row_files,
     resolve_device,
+    restore,
     restore_dataset,
-    rng_state,
-    set_rng_state,
     shapes_of,
     train_seed,
 )
 from maniskill_irb120.policies import policy_module, policy_section, section_of
 from maniskill_irb120.policies.nets import random_shift
 from maniskill_irb120.policies.sac import SAC
-from maniskill_irb120.wrappers import observation_setup
 
 FORMAT = "maniskill_irb120.sac/1"
 
@@ -296,14 +294,13 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
     data = dict(online=online, demos=demos)
     rows = {k: d.save_new_rows(path.parent / "data" / k, (rows or {}).get(k)) for k, d in data.items()}
     atomic_save(
-        dict(
-            format=FORMAT,
+        checkpoint(
+            FORMAT,
+            args,
+            counters,
             model=model.state_dict(),
             opts={k: o.state_dict() for k, o in opts.items()},
             data_rows=rows,
-            counters=counters,
-            rng=rng_state(),
-            args=args_json(args),
             signature=model.signature(),
             policy=policy_section(
                 "sac",
@@ -332,19 +329,12 @@ def load_model(path: Path, device) -> tuple[SAC, dict]:
 
 
 def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:
-    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
-    obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
-    kwargs = dict(args.env_kwargs, reward_mode=args.reward_mode, obs_mode=obs_mode)
     torch.manual_seed(EVAL_SEED)  # a stochastic evaluation's noise is seeded too
-    return evaluate_on_seeds(
+    return held_out_evaluation(
         lambda o: model.act(obs_to(o, device), deterministic=args.eval_deterministic, noise=args.init_std).cpu(),
-        args.env_id,
-        args.obs,
-        seeds,
-        video_dir=video_dir,
-        progress=args.progress,
-        wrappers=[*obs_wrappers, *action_wrappers(args.action_frame)],
-        **kwargs,
+        args,
+        video_dir,
+        reward_mode=args.reward_mode,
     )
 
 
@@ -398,17 +388,9 @@ def demo_rows(args: Args) -> int:
 
 
 def train(args: Args) -> dict:
-    t_start = time.perf_counter()
+    clock = Clock()
     args = resolved(args)
-    saved = load_torch(args.resume, FORMAT, "agents.sac") if args.resume is not None else None
-    run_dir = (
-        Path(args.resume).resolve().parent.parent
-        if saved is not None
-        else args.runs_dir / (args.exp_name or f"sac__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}")
-    )
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
+    saved, run_dir = open_run(args, "sac__", lambda path: load_torch(path, FORMAT, "agents.sac"))
     device = resolve_device(args.device)
     envs = make_envs(replace(args, env_kwargs={**args.env_kwargs, "reward_mode": args.reward_mode}), args.num_envs)
     image_shape, state_dim = shapes_of(envs.single_observation_space)
@@ -432,11 +414,11 @@ def train(args: Args) -> dict:
         rows = saved.get("data_rows")
         restore_dataset(online, saved, Path(args.resume).parent / "data", "online")
         restore_dataset(demos, saved, Path(args.resume).parent / "data", "demos")
-        counters = dict(saved["counters"])
-        set_rng_state(saved["rng"])
+        counters = restore(saved)
+        clock.before = counters["wall_s"]
     logger = Logger(run_dir, args)
     ckpt_path = run_dir / "checkpoints" / "latest.pt"
-    elapsed = lambda: counters["wall_s"] + time.perf_counter() - t_start  # noqa: E731
+    elapsed = clock
     budget_s = 60 * args.budget_min
     o, info = envs.reset(seed=train_seed(args.seed, counters["episodes"]))
     state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
@@ -505,21 +487,16 @@ def train(args: Args) -> dict:
         envs.close()
         counters["wall_s"] = elapsed()
         save(ckpt_path, model, opts, online, demos, counters, args, rows)
-    t_eval = time.perf_counter()
     model.eval()
-    result = final_evaluation(model, args, device, None)
-    logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])
-    logger.close()
-    result.update(
-        env_steps=counters["env_steps"],
-        wall_clock_s=counters["wall_s"],
-        eval_wall_s=time.perf_counter() - t_eval,
+    return evaluate_and_finish(
+        lambda: final_evaluation(model, args, device, None),
+        logger,
+        counters,
+        run_dir,
         updates=counters["updates"],
         train_episodes=counters["episodes"],
         checkpoint=str(ckpt_path),
-        run_dir=str(run_dir),
     )
-    return finish(result, run_dir)
 
 
 def main(args: Args) -> dict:
@@ -531,4 +508,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(cli(Args, "agents.sac"))

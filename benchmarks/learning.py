@@ -25,7 +25,9 @@ Budgets (the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-s
 last trains its DAgger base for half of it, then fine-tunes with PPO for the rest), ppo-state and
 sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd and sac-state
 ``--long-budget-min`` (120); the final evaluation is extra. A recipe's flags are the same on every task but for
-TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``). ``--update-results`` rewrites the Learning section
+TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``). The recipes, their budgets and TASK_FLAGS live in
+``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer started
+by hand with the same recipe get the same flags. ``--update-results`` rewrites the Learning section
 of benchmarks/RESULTS.md.
 """
 
@@ -51,139 +53,18 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from results_md import replace_section  # noqa: E402
 
 from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
-
-# the field of view, lights, surfaces, depth, the object and command latency: each range covers its shift in
-# benchmarks/sim2real_gap.py (75 deg, light x0.5, colour 0.25 and every surface textured, 4 mm noise + 5 % dropout,
-# object x1.2 / x2 / x0.5, 30 ms). Not the camera's mount: with camera_pos -0.015:0.015 and camera_rot -6:6 as well,
-# training collapsed to 0-10 % from scratch and from the 95 % policy alike (docs/notes/camera-policy-on-the-twin.md).
-# The latency range stays for this row's continuity; a policy meant for the default deployment (each real step waits
-# for the robot) is trained without it, since there latency costs the step time, not motion (docs/real_robot.md,
-# deploy step 1)
-CAMERA_RANDOMIZATION = (
-    "camera_fov=70:95,light=0.4:1.6,color=0.3,texture=0.7,roughness=0.1:0.9,specular=0.1:0.9,"
-    "depth_noise=0:5,depth_dropout=0:0.06,object_size=0.8:1.25,object_mass=0.5:2,object_friction=0.5:1.5,"
-    "latency=0:0.035"
+from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one home, which the trainers' --recipe reads)
+    BASES,
+    DEFAULT_ENV,
+    LONG_BUDGET_MIN,
+    RECIPES,
+    RL_BUDGET_MIN,
+    SHORT_BUDGET_MIN,
+    VISION_BUDGET_MIN,
+    recipe_flags,
+    seeded,
 )
-# recipe -> (module, fixed flags ("{seed}" in one: the run's seed), observation, budget: "short" = --budget-min,
-# "long" = --long-budget-min, "rl" = --rl-budget-min, as the issues' targets: imitation from state in 60 min; from
-# the camera, and RL with demos, in 120 min; RL from the reward alone in RL_BUDGET_MIN[task]); the budget, seed and
-# evaluation flags are added per run
-RECIPES: dict[str, tuple[str, list[str], str, str]] = {
-    "dagger-state": ("agents.dagger", ["--obs", "state"], "state", "short"),
-    # from the camera one 64-row update takes ~0.09 s on 2 cores, so small batches and 500 updates a round buy
-    # many DAgger rounds; the tool frame (the camera's axes), the keypoint encoder and the auxiliary object-pose
-    # loss are what let the policy localise the cube (docs/notes/state-recipes.md, "the camera recipe")
-    "dagger-rgbd": (
-        "agents.dagger",
-        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
-        "--batch-size 64 --updates-per-round 500".split(),
-        "rgbd",
-        "long",
-    ),
-    # the same camera recipe within the hour (issue 32's target): the encoder under bf16 autocast where the CPU
-    # has native bf16 (agents/common/precision.py; fp32 elsewhere), which halves an update, so twice the rounds
-    "dagger-rgbd-bf16": (
-        "agents.dagger",
-        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
-        "--batch-size 64 --updates-per-round 500 --precision auto".split(),
-        "rgbd",
-        "short",
-    ),
-    # the same camera recipe trained on under vision and object randomisation (issue 30), from the committed
-    # dagger-rgbd-bf16 policy of the same seed; the object draws rebuild the scene, every 5th episode per env
-    "dagger-rgbd-bf16-dr": (
-        "agents.dagger",
-        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
-        "--batch-size 64 --updates-per-round 500 --precision auto".split()
-        + ["--init-policy", "benchmarks/results/policies/dagger-rgbd-bf16-s{seed}-60min.pt"]
-        + ["--env-kwargs", "randomization", CAMERA_RANDOMIZATION, "reconfiguration_freq", "5"],
-        "rgbd",
-        "short",
-    ),
-    # evaluated as it acts in training (see agents.sac --eval-deterministic: the mean action stalls)
-    "sac-state": ("agents.sac", ["--obs", "state", "--no-eval-deterministic"], "state", "long"),
-    # PPO from the reward alone: ManiSkill's state baseline (separate 3x256 tanh actor and critic, gamma 0.8,
-    # lambda 0.9, target KL 0.1, logstd -0.5, bootstrapped truncations, partial resets) on CPU workers: 4 envs x
-    # 128 steps a rollout (ManiSkill: 512 x 50 on a GPU), so 8 epochs of 64-row minibatches, and a running
-    # observation normaliser, without which the millimetres of tcp_to_obj_pos are invisible next to metres; a
-    # delivery bootstrapped with the absorbing value (--absorbing-success), not the critic's guess at a state
-    # nothing in training follows, which on TableClearing sat below holding on; and the checkpoint it deploys chosen
-    # on 30 validation seeds every 25 iterations (--select-episodes), since on GraspLift it peaks and then unlearns
-    "ppo-state": (
-        "agents.ppo",
-        "--obs state --state-net mlp --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
-        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --absorbing-success --eval-freq 0 --select-episodes 30 "
-        "--total-timesteps 100000000".split(),
-        "state",
-        "rl",
-    ),
-    # SAC from the reward alone: the RLPD setup (LayerNorm critics, UTD 0.5 on 2 cores) with no demo buffer, no
-    # cloning and no reference policy
-    "sac-scratch-state": (
-        "agents.sac",
-        "--obs state --demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0 --no-reference "
-        "--actor-delay 0 --no-eval-deterministic".split(),
-        "state",
-        "rl",
-    ),
-    # the original report's experiment (benchmarks/original_experiment.py): PPO from the hand camera with the report's
-    # reward (dense: -1000 per collision; no --absorbing-success, which values success in normalized_dense's units)
-    # and with normalized_dense, the ppo-state recipe's flags otherwise
-    "ppo-rgbd-dense": (
-        "agents.ppo",
-        "--obs rgbd --reward-mode dense --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
-        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --eval-freq 0 --select-episodes 30 "
-        "--total-timesteps 100000000".split(),
-        "rgbd",
-        "vision",
-    ),
-    "ppo-rgbd": (
-        "agents.ppo",
-        "--obs rgbd --obs-norm --num-envs 4 --num-steps 128 --num-minibatches 8 --update-epochs 8 "
-        "--gamma 0.8 --gae-lambda 0.9 --target-kl 0.1 --absorbing-success --eval-freq 0 --select-episodes 30 "
-        "--total-timesteps 100000000".split(),
-        "rgbd",
-        "vision",
-    ),
-    # teacher–student from the reward alone: ppo-state trains a state teacher (BASES), then the camera recipe's student
-    # imitates it by DAgger (--teacher), with no scripted expert and no demos anywhere; the budget is both stages'
-    "teacher-student-rgbd": (
-        "agents.dagger",
-        "--obs rgbd --action-frame tool --encoder keypoints --aux-weight 1 --initial-updates 2000 "
-        "--batch-size 64 --updates-per-round 500 --precision auto".split(),
-        "rgbd",
-        "vision",
-    ),
-    # PPO fine-tuning of a DAgger policy (the base below), within the same budget: a frozen base plus a residual
-    # held near it by the KL term, little exploration noise and a critic warm-up (docs/training.md, "without the
-    # wash-out")
-    "ppo-finetune-state": (
-        "agents.ppo",
-        "--obs state --num-envs 2 --action-frame world --kl-coef 1 --init-logstd -2 --critic-warmup-iters 10 "
-        "--total-timesteps 100000000".split(),
-        "state",
-        "short",
-    ),
-}
-# task -> recipe -> flags added on that task only, as ManiSkill's baselines tune per task. GraspLift's ppo-state: the
-# noise from a head on the state (--logstd state), since its 20 still steps need the held object's noise small while
-# the approach still explores, which one log std per dimension cannot give (it shrank until no sampled episode could
-# succeed, and the run then collapsed); on TableClearing the same head learned no grasp in 320k env steps, where the
-# one log std grasped in 38 % of training episodes by 100k (seed 1 each; docs/notes/rl-from-the-reward.md)
-TASK_FLAGS: dict[str, dict[str, list[str]]] = {"GraspLift-IRB120-v1": {"ppo-state": ["--logstd", "state"]}}
-RL_BUDGET_MIN = {"GraspLift-IRB120-v1": 90.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
-"""RL from the reward alone, minutes per run (issue targets: GraspLift in 90, TableClearing in 150)"""
-VISION_BUDGET_MIN = {"GraspLift-IRB120-v1": 120.0, "TableClearing-IRB120-v1": 150.0, "StackCube-IRB120-v1": 150.0}
-"""a camera policy from the reward alone, every stage together, minutes per run (targets: GraspLift 90 % within
-120, TableClearing 90 % within 150)"""
-DEFAULT_ENV = "TableClearing-IRB120-v1"
-# recipe -> (recipe that trains its base, that run's share of the budget, the flag that hands the base's checkpoint
-# on); the row's env steps and wall clock are both stages', its curve the two joined, and the base's own held-out
-# success is kept. The state teacher's share: 45 of GraspLift's 120 min (PPO from state peaks there in 35-45 min)
-BASES: dict[str, tuple[str, float, str]] = {
-    "ppo-finetune-state": ("dagger-state", 0.5, "--base-checkpoint"),
-    "teacher-student-rgbd": ("ppo-state", 0.375, "--teacher"),
-}
+
 REFERENCES = ("random", "expert")
 # what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
 RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
@@ -232,10 +113,10 @@ class Args:
     sac-scratch-state, ppo-finetune-state, teacher-student-rgbd, ppo-rgbd-dense, ppo-rgbd to train (random and the
     expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
-    budget_min: float = 60.0
+    budget_min: float = SHORT_BUDGET_MIN
     """wall-clock minutes per run of dagger-state, dagger-rgbd-bf16 and ppo-finetune-state (its base and
     fine-tuning together; data collection and training)"""
-    long_budget_min: float = 120.0
+    long_budget_min: float = LONG_BUDGET_MIN
     """wall-clock minutes per run of dagger-rgbd and sac-state"""
     eval_episodes: int = 100
     """held-out episodes per run and per reference (seeds agents.common.EVAL_SEED onwards)"""
@@ -394,16 +275,6 @@ def joined(base: dict, tuned: dict) -> dict:
     return out
 
 
-def recipe_flags(recipe: str, env_id: str) -> list[str]:
-    """A recipe's fixed flags on one task (RECIPES', then TASK_FLAGS')."""
-    return [*RECIPES[recipe][1], *TASK_FLAGS.get(env_id, {}).get(recipe, [])]
-
-
-def seeded(flags: list[str], seed) -> list[str]:
-    """A recipe's flags for one seed (a flag may name a file per seed, e.g. the policy it starts from)."""
-    return [f.replace("{seed}", str(seed)) for f in flags]
-
-
 def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: float, args: Args) -> dict:
     cmd = [sys.executable, "-m", module, *seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed)]
     cmd += ["--budget-min", f"{budget:.4g}", "--eval-episodes", str(args.eval_episodes)]
@@ -428,8 +299,9 @@ def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: flo
     return out
 
 
-# where and how a run logged, not what it learned: the only arguments an adopted run may differ in
-ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video")
+# where and how a run logged, not what it learned: the only arguments an adopted run may differ in (``recipe``: the
+# name a run was started with, whose flags are compared one by one like those given by hand)
+ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe")
 
 
 def logged_args(events: Path) -> tuple[dict, float]:

@@ -1,6 +1,7 @@
 """The docs site builds offline with ``mkdocs build --strict`` (every link resolves, the CLI page comes from
 ``--help``, the API page from the docstrings); the README stays a front page, and its headline table is what
-``benchmarks/headline.py`` generates from the committed JSON now. (The pages' python blocks run in
+``benchmarks/headline.py`` generates from the committed JSON now; the training page's recipe table and every
+``--recipe`` command of the pages agree with ``maniskill_irb120/recipes.py``. (The pages' python blocks run in
 ``tests/test_readme.py``.)"""
 
 from __future__ import annotations
@@ -67,3 +68,38 @@ def test_site_builds_strict_offline(tmp_path):
     for page in site.rglob("*.html"):  # nothing the site loads comes from the network (fonts, CDN scripts)
         text = page.read_text()
         assert 'src="http' not in text and "fonts.googleapis" not in text, page
+
+
+def test_the_training_pages_recipe_table_is_the_recipes_module():
+    """docs/training.md's table names every recipe of maniskill_irb120/recipes.py once, with its trainer (a
+    two-stage recipe: its base's, then its own) and observation."""
+    import re
+
+    from maniskill_irb120.recipes import BASES, RECIPES
+
+    page = (REPO / "docs" / "training.md").read_text()
+    rows = re.findall(r"^\| `([\w-]+)` \| (.+?) \| (\w+) \|", page, re.M)
+    assert sorted(name for name, _, _ in rows) == sorted(RECIPES)
+    for name, trainer, obs in rows:
+        module = f"`{RECIPES[name].module}`"
+        expected = f"`{RECIPES[BASES[name][0]].module}` then {module}" if name in BASES else module
+        assert (trainer, obs) == (expected, RECIPES[name].obs), name
+
+
+def test_every_recipe_command_of_the_docs_parses_on_its_trainer():
+    """A ``-m agents.X --recipe NAME ...`` line of the README or a docs page is a command the trainer accepts."""
+    import importlib
+    import re
+    import shlex
+
+    from agents.common import cli
+
+    commands = []
+    for page in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        text = page.read_text().replace("\\\n", " ")
+        for module, rest in re.findall(r"-m (agents\.\w+) (--recipe [^\n#`]*)", text):
+            commands.append((page.name, module, shlex.split(rest)))
+    assert len(commands) >= 8, commands
+    for page, module, argv in commands:
+        args = cli(importlib.import_module(module).Args, module, argv)
+        assert args.recipe == argv[1], (page, argv)

@@ -5,14 +5,25 @@ evaluation, the device and env backend, where runs go, resuming and evaluating a
 ``--num-envs`` worker processes (1: one env in this process); ``auto`` picks gpu when CUDA is available.
 ``--resume`` continues a run: networks, optimisers, data, counters and RNG, the budget counting the time
 already spent. Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs
-another one."""
+another one.
+
+``--recipe NAME`` (:func:`cli`) runs a named recipe of ``maniskill_irb120/recipes.py``, the one place recipes are
+written: its flags for the task of ``--env-id`` (the task's own additions included) go first and the command
+line's after them, so an explicit flag overrides the recipe's (the last of a repeated flag wins)."""
 
 from __future__ import annotations
 
 import ast
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, TypeVar
+
+import tyro
+
+from maniskill_irb120.recipes import BASES, RECIPES, recipe_flags, seeded
+
+A = TypeVar("A", bound="RunArgs")
 
 
 @dataclass
@@ -52,6 +63,9 @@ class RunArgs:
     """the W&B project"""
     comet_project: str = "maniskill_irb120"
     """the Comet project"""
+    recipe: Optional[str] = None
+    """a named recipe of maniskill_irb120/recipes.py: its flags for --env-id first, this command line's after them
+    (so they override); only this trainer's single-stage recipes"""
     env_kwargs: dict = field(default_factory=dict)
     """extra gym.make keyword arguments, e.g. domain randomisation ranges; a value that reads as a Python
     literal is one (``reconfiguration_freq 5`` an int), any other stays a string"""
@@ -68,3 +82,47 @@ def _literal(value):
         return ast.literal_eval(value)
     except (ValueError, SyntaxError):
         return value
+
+
+def _flag(argv: list[str], name: str) -> Optional[str]:
+    """The last value given to ``--name`` in ``argv`` (``--name V`` or ``--name=V``), or None."""
+    value = None
+    for i, a in enumerate(argv):
+        if a == name and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif a.startswith(name + "="):
+            value = a.split("=", 1)[1]
+    return value
+
+
+def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[str]:
+    """``argv`` with ``--recipe NAME`` expanded: the recipe's flags for the task (``--env-id``, else ``env_id``)
+    and seed (``--seed``, else ``seed``) first, ``argv`` after them. A recipe of another trainer, an unknown name
+    or a two-stage recipe (its base is another run: ``benchmarks/learning.py`` chains the two) is refused, naming
+    the problem and this trainer's recipes."""
+    name = _flag(argv, "--recipe")
+    if name is None:
+        return list(argv)
+    valid = sorted(r for r, recipe in RECIPES.items() if recipe.module == module and r not in BASES)
+    if name not in RECIPES:
+        raise ValueError(f"--recipe {name!r}: no such recipe; {module}'s recipes: {', '.join(valid)}")
+    if RECIPES[name].module != module:
+        raise ValueError(
+            f"--recipe {name}: a recipe of {RECIPES[name].module}, not of {module}; {module}'s recipes: "
+            f"{', '.join(valid)}"
+        )
+    if name in BASES:
+        base, _, hand_on = BASES[name]
+        raise ValueError(
+            f"--recipe {name}: a two-stage recipe (a {base} run first, its checkpoint handed on by {hand_on}); "
+            f"run it with benchmarks/learning.py --recipes {name}, or the two runs by hand; {module}'s recipes: "
+            f"{', '.join(valid)}"
+        )
+    env = _flag(argv, "--env-id") or env_id
+    return [*seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed), *argv]
+
+
+def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None) -> A:
+    """A trainer's command line (``sys.argv`` by default) parsed into ``args_type``, ``--recipe`` expanded first."""
+    argv = sys.argv[1:] if argv is None else argv
+    return tyro.cli(args_type, args=recipe_argv(module, argv, args_type.env_id, args_type.seed))

@@ -1,9 +1,10 @@
-"""The envs trainers collect from and the observations they read: batched torch obs as a dict, devices, the
-policy's action-frame wrappers, and the labelled vector envs of the imitation and demo-seeded trainers."""
+"""The envs trainers collect from and the observations they read: every trainer's vector envs (:func:`vec_envs`),
+batched torch obs as a dict, devices, the policy's action-frame wrappers, and the labelled vector envs of the
+imitation and demo-seeded trainers (:func:`make_envs`)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
@@ -167,6 +168,46 @@ def action_wrappers(frame: str) -> list:
     return [WorldFrameToolAction] if frame == "world" else []
 
 
+def vec_envs(
+    env_id: str,
+    obs: str,
+    num_envs: int,
+    *,
+    backend: str = "auto",
+    action_frame: str = "world",
+    obs_without: tuple[str, ...] = (),
+    control_mode: str = "pd_ee_delta_tool",
+    env_kwargs: Optional[dict] = None,
+    render: bool = False,
+    outer_wrappers: Sequence[Callable] = (),
+    ignore_terminations: bool = False,
+):
+    """``num_envs`` envs of the task as a policy on ``obs`` sees and drives them: its observation (the camera's
+    image flattened to rgb/depth/state, the ``obs_without`` keys hidden) and its action frame, with
+    ``outer_wrappers`` outside those (labels, video), through ``make_vec_env``. Every trainer's envs are made here;
+    an env that renders nothing (state obs, no ``render``) skips the renderer (less memory, faster steps)."""
+    obs_mode, obs_wrappers = observation_setup(obs, obs_without)
+    kwargs = dict(obs_mode=obs_mode, control_mode=control_mode, **(env_kwargs or {}))
+    if obs == "rgbd" or render:
+        kwargs["render_mode"] = "rgb_array"
+    else:
+        kwargs.setdefault("render_backend", "none")
+    wrappers = [*obs_wrappers, *action_wrappers(action_frame), *outer_wrappers]
+    if obs == "rgbd":
+        from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
+
+        wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)  # -> {"rgb", "depth", "state"}
+    return make_vec_env(
+        env_id,
+        num_envs,
+        backend=backend,
+        wrappers=wrappers,
+        ignore_terminations=ignore_terminations,
+        record_metrics=True,
+        **kwargs,
+    )
+
+
 def make_envs(
     env_id: str,
     obs: str,
@@ -182,25 +223,23 @@ def make_envs(
     """``num_envs`` envs whose info carries a label for every state, the reactive expert's (:class:`ExpertLabels`) or
     with ``teacher`` a trained state policy's (:class:`TeacherLabels`), with ``aux`` the auxiliary targets too, in
     the policy's observation and action frame, as host tensors."""
-    obs_mode, obs_wrappers = observation_setup(obs, obs_without)
-    kwargs = dict(obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **(env_kwargs or {}))
-    if obs == "rgbd":
-        kwargs["render_mode"] = "rgb_array"
-    else:
-        kwargs.setdefault("render_backend", "none")
     if teacher is None:
         labels = partial(ExpertLabels, frame=action_frame, aux=aux)
     else:
         check_teacher_file(teacher)
         labels = partial(TeacherLabels, teacher=Path(teacher), frame=action_frame, aux=aux)
-    wrappers = [*obs_wrappers, *action_wrappers(action_frame), labels]
-    if obs == "rgbd":
-        from mani_skill.utils.wrappers.flatten import FlattenRGBDObservationWrapper
-
-        wrappers.insert(len(obs_wrappers), FlattenRGBDObservationWrapper)
     backend = "inprocess" if backend == "cpu" and num_envs == 1 else backend  # auto: make_vec_env's
     envs = one_thread_beside_workers(
-        make_vec_env(env_id, num_envs, backend=backend, wrappers=wrappers, record_metrics=True, **kwargs)
+        vec_envs(
+            env_id,
+            obs,
+            num_envs,
+            backend=backend,
+            action_frame=action_frame,
+            obs_without=obs_without,
+            env_kwargs=env_kwargs,
+            outer_wrappers=[labels],
+        )
     )
     # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
     return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)

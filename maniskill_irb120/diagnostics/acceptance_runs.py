@@ -3,7 +3,8 @@ throughput the doctor reports, and running a check in a fresh process.
 
 The trainers (``agents/``) and the benchmark (``benchmarks/``) live in the source checkout, not in the package:
 the library never imports them, it runs them as a user would (``python -m agents.ppo --backend gpu ...``), so
-a check here needs a checkout and says SKIP without one. A GPU-side crash (a PhysX or Vulkan abort) kills a
+a check here needs a checkout and says SKIP without one. The flags a check shares with a recipe come from
+``maniskill_irb120/recipes.py``, the recipes' one home. A GPU-side crash (a PhysX or Vulkan abort) kills a
 process, not a Python exception: :func:`isolated` runs one check in a fresh interpreter so that the doctor's
 report survives it as a FAIL.
 """
@@ -21,8 +22,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from maniskill_irb120.recipes import RECIPES, STATE_PPO_NET
+
 TRAINERS = ("ppo", "sac", "dagger")
 CHECKOUT_HINT = "clone the repository and pip install -e . there"
+CAMERA_RECIPE = "dagger-rgbd-bf16"
+"""the recipe the camera check runs (at toy sizes): the committed camera policies' recipe"""
 BENCH_ENVS = (16, 64)
 """num_envs of the benchmark's smoke sweep (small: it proves the script runs, the doctor times the rest)"""
 
@@ -48,17 +53,18 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         steps = 8
         args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
         args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
-        if obs == "state":  # the RL-from-the-reward network (docs/training.md): its normaliser on the GPU's tensors
-            args += ["--state-net", "mlp", "--obs-norm"]
+        if obs == "state":  # the RL-from-the-reward network (recipes.py): its normaliser on the GPU's tensors
+            args += STATE_PPO_NET
     elif name == "sac":
         args = ["--budget-min", "0.05", "--demo-episodes", "1", "--bc-pretrain-updates", "5"]
         args += ["--critic-warmup-updates", "5", "--batch-size", "16", "--log-freq", "20", "--save-freq", "40"]
         args += ["--eval-episodes", "1", "--no-capture-video"]
     elif name == "dagger":
-        args = ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
+        # the camera recipe (dagger-rgbd-bf16; --precision auto: bf16 on a CPU that has it) at toy sizes: its flags,
+        # then this run's over them (round 0 as many updates as the other rounds)
+        args = [*RECIPES[CAMERA_RECIPE].flags, "--initial-updates", "0"] if obs == "rgbd" else []
+        args += ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
-        if obs == "rgbd":  # the camera recipe (docs/training.md), --precision auto: bf16 on a CPU that has it
-            args += ["--action-frame", "tool", "--encoder", "keypoints", "--aux-weight", "1", "--precision", "auto"]
     else:
         raise ValueError(f"unknown trainer {name!r}; expected one of {TRAINERS}")
     return [sys.executable, "-m", f"agents.{name}", *common, *args]

@@ -1,0 +1,111 @@
+"""The frame of a training run, the same for every trainer, so that a trainer file keeps only its algorithm: where
+the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`), the checkpoint's
+common part and its restore (:func:`checkpoint`, :func:`restore`), the held-out evaluation
+(:func:`held_out_evaluation`) and the run's last word (:func:`evaluate_and_finish`).
+
+``--budget-min`` means one thing across ``--resume``: the clock counts the seconds trained before the resume (the
+checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so one budget spans
+sessions and a resumed run stops where an uninterrupted one would have."""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from agents.common.args import RunArgs
+from agents.common.checkpoints import args_json, rng_state, set_rng_state
+from agents.common.envs import action_wrappers
+from agents.common.evaluation import EVAL_SEED, evaluate_on_seeds
+from agents.common.logging import finish
+from maniskill_irb120.wrappers import observation_setup
+
+
+def open_run(args: RunArgs, prefix: str, read: Callable[[Path], dict]) -> tuple[Optional[dict], Path]:
+    """(the checkpoint ``--resume`` names, read by ``read``, or None; the run's folder), with python, numpy and torch
+    seeded by ``--seed`` (a resumed run then restores its checkpoint's RNG: :func:`restore`). A resumed run continues
+    in its checkpoint's folder; a new one is ``runs_dir/exp_name``, by default ``prefix`` + env__obs__seed__time."""
+    saved = read(args.resume) if args.resume is not None else None
+    if saved is not None:
+        run_dir = Path(args.resume).resolve().parent.parent
+    else:
+        run_dir = args.runs_dir / (
+            args.exp_name or f"{prefix}{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
+        )
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    return saved, run_dir
+
+
+class Clock:
+    """Seconds of training on the run's budget: ``before`` (trained before a ``--resume``: its checkpoint's
+    ``counters["wall_s"]``) plus this process's since the clock started."""
+
+    def __init__(self, before: float = 0.0):
+        self.before = before
+        self.t0 = time.perf_counter()
+
+    def __call__(self) -> float:
+        return self.before + self.session()
+
+    def session(self) -> float:
+        """Seconds since this process's clock started (this session's share of the run)."""
+        return time.perf_counter() - self.t0
+
+
+def checkpoint(fmt: str, args: RunArgs, counters: dict, **state) -> dict:
+    """A checkpoint's contents: the trainer's format tag, counters (with ``wall_s``, the budget clock), the RNG and
+    the run's flags, around ``state`` (networks, optimisers, data manifests, the policy section)."""
+    return dict(format=fmt, counters=counters, rng=rng_state(), args=args_json(args), **state)
+
+
+def restore(saved: dict) -> dict:
+    """The counters of a checkpoint being resumed, with its RNG state restored."""
+    set_rng_state(saved["rng"])
+    return dict(saved["counters"])
+
+
+def held_out_evaluation(
+    act: Callable[[dict], torch.Tensor],
+    args: RunArgs,
+    video_dir: Optional[Path] = None,
+    first_seed: int = EVAL_SEED,
+    **env_kwargs,
+) -> dict:
+    """``act`` (batched obs -> actions) on ``args.eval_episodes`` seeds from ``first_seed`` (the held-out ones by
+    default), in the run's task, observation (hiding ``obs_without`` for a trainer that has it) and action frame,
+    with ``env_kwargs`` over the run's ``--env-kwargs``: how every trainer's policy is scored."""
+    seeds = list(range(first_seed, first_seed + args.eval_episodes))
+    wrappers = action_wrappers(args.action_frame)
+    kwargs = dict(args.env_kwargs)
+    if hasattr(args, "obs_without"):
+        obs_mode, obs_wrappers = observation_setup(args.obs, args.obs_without)
+        wrappers = [*obs_wrappers, *wrappers]
+        kwargs["obs_mode"] = obs_mode
+    kwargs.update(env_kwargs)
+    return evaluate_on_seeds(
+        act, args.env_id, args.obs, seeds, video_dir=video_dir, progress=args.progress, wrappers=wrappers, **kwargs
+    )
+
+
+def evaluate_and_finish(evaluate: Callable[[], dict], logger, counters: dict, run_dir: Path, **extra) -> dict:
+    """The run's end: ``evaluate()`` (the held-out episodes) logged as ``eval/``, then ``summary.json`` and the
+    printed JSON line with the counters' env steps and training wall clock, the evaluation's own time and ``extra``."""
+    t_eval = time.perf_counter()
+    result = evaluate()
+    logger.scalars({f"eval/{k}": v for k, v in result.items() if isinstance(v, float)}, counters["env_steps"])
+    logger.close()
+    result.update(
+        env_steps=counters["env_steps"],
+        wall_clock_s=counters["wall_s"],
+        eval_wall_s=time.perf_counter() - t_eval,
+        **extra,
+        run_dir=str(run_dir),
+    )
+    return finish(result, run_dir)

@@ -1,0 +1,70 @@
+"""``--recipe NAME`` on each trainer: the recipe's flags for the task, the command line's over them, and a clear
+refusal of a name the trainer cannot run (another trainer's, an unknown one, a two-stage one)."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agents.common import cli, recipe_argv
+from maniskill_irb120.recipes import BASES, RECIPES, TASK_FLAGS, recipe_flags, seeded
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def parsed(module: str, argv: list[str]):
+    return cli(importlib.import_module(module).Args, module, argv)
+
+
+@pytest.mark.parametrize("name", [r for r in RECIPES if r not in BASES])
+def test_every_single_stage_recipe_parses_on_its_trainer_as_its_flags_do(name):
+    module = RECIPES[name].module
+    by_name = parsed(module, ["--recipe", name, "--seed", "2"])
+    by_hand = parsed(module, [*seeded(recipe_flags(name, "TableClearing-IRB120-v1"), 2), "--seed", "2"])
+    assert by_name.recipe == name and by_name.obs == RECIPES[name].obs
+    assert {**vars(by_name), "recipe": None} == {**vars(by_hand), "recipe": None}
+
+
+def test_a_recipe_takes_its_tasks_own_flags_and_the_runs_seed():
+    grasp = parsed("agents.ppo", ["--recipe", "ppo-state", "--env-id", "GraspLift-IRB120-v1"])
+    clear = parsed("agents.ppo", ["--recipe=ppo-state"])
+    assert TASK_FLAGS["GraspLift-IRB120-v1"]["ppo-state"] == ["--logstd", "state"]
+    assert (grasp.logstd, clear.logstd) == ("state", "param")
+    assert (grasp.state_net, grasp.obs_norm, grasp.num_steps, grasp.select_episodes) == ("mlp", True, 128, 30)
+    dr = parsed("agents.dagger", ["--recipe", "dagger-rgbd-bf16-dr", "--seed", "3"])
+    assert str(dr.init_policy).endswith("dagger-rgbd-bf16-s3-60min.pt")
+    assert dr.env_kwargs["reconfiguration_freq"] == 5
+
+
+def test_explicit_flags_override_the_recipes():
+    args = parsed("agents.dagger", ["--recipe", "dagger-rgbd", "--batch-size", "32", "--obs-without", "state"])
+    assert (args.batch_size, args.updates_per_round, args.encoder) == (32, 500, "keypoints")
+    assert tuple(args.obs_without) == ("state",)
+    assert recipe_argv("agents.sac", ["--seed", "4"], "TableClearing-IRB120-v1", 1) == ["--seed", "4"]
+
+
+def test_a_name_the_trainer_cannot_run_is_refused_with_the_valid_names():
+    ppo_names = "ppo-rgbd, ppo-rgbd-dense, ppo-state"
+    with pytest.raises(
+        ValueError, match=f"a recipe of agents.dagger, not of agents.ppo; agents.ppo's recipes: {ppo_names}$"
+    ):
+        parsed("agents.ppo", ["--recipe", "dagger-state"])
+    with pytest.raises(ValueError, match="'nope': no such recipe; agents.sac's recipes: sac-scratch-state, sac-state$"):
+        parsed("agents.sac", ["--recipe", "nope"])
+    with pytest.raises(ValueError, match=r"ppo-finetune-state: a two-stage recipe \(a dagger-state run first, its "):
+        parsed("agents.ppo", ["--recipe", "ppo-finetune-state"])
+    with pytest.raises(ValueError, match="benchmarks/learning.py --recipes teacher-student-rgbd"):
+        parsed("agents.dagger", ["--recipe", "teacher-student-rgbd"])
+
+
+def test_the_trainers_command_line_expands_a_recipe():
+    code = "import sys; from agents.common import cli; from agents.sac import Args; a = cli(Args, 'agents.sac'); "
+    code += "print(a.recipe, a.demo_episodes, a.eval_deterministic, a.batch_size)"
+    argv = ["--recipe", "sac-scratch-state", "--batch-size", "64"]
+    out = subprocess.run([sys.executable, "-c", code, *argv], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["sac-scratch-state", "0", "False", "64"]

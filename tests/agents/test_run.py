@@ -1,0 +1,76 @@
+"""The run scaffold every trainer shares (agents/common/run.py): one budget clock across --resume, the run's folder
+and seeding, the checkpoint's common part and its restore, and the held-out evaluation's settings."""
+
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agents.common import RunArgs, run
+from agents.common.run import Clock, checkpoint, held_out_evaluation, open_run, restore
+
+
+@dataclass
+class Args(RunArgs):
+    obs: str = "state"
+    action_frame: str = "world"
+
+
+@dataclass
+class HidingArgs(Args):
+    obs_without: tuple[str, ...] = ("agent/qvel",)
+
+
+def test_the_clock_counts_the_time_before_a_resume_and_this_sessions():
+    clock = Clock(before=100.0)
+    time.sleep(0.05)
+    assert 0.05 <= clock.session() < 5 and 100.05 <= clock() < clock.session() + 100.001
+    clock.before = 3.0  # a trainer learns what it resumes only after its clock started
+    assert 3.05 <= clock() < 8
+
+
+def test_a_new_run_gets_its_own_folder_and_a_resumed_one_its_checkpoints(tmp_path):
+    args = Args(runs_dir=tmp_path, seed=7)
+    saved, run_dir = open_run(args, "algo__", lambda path: {"never": "read"})
+    assert (
+        saved is None
+        and run_dir.parent == tmp_path
+        and run_dir.name.startswith("algo__TableClearing-IRB120-v1__state__7__")
+    )
+    first = (random.random(), float(np.random.rand()), float(torch.rand(())))
+    open_run(Args(runs_dir=tmp_path, seed=7, exp_name="named"), "algo__", lambda path: {})
+    assert first == (random.random(), float(np.random.rand()), float(torch.rand(())))  # seeded alike
+    ckpt = tmp_path / "named" / "checkpoints" / "latest.pt"
+    saved, run_dir = open_run(Args(resume=ckpt), "algo__", lambda path: {"read": Path(path).name})
+    assert saved == {"read": "latest.pt"} and run_dir == (tmp_path / "named").resolve()
+
+
+def test_a_checkpoint_carries_counters_rng_and_flags_and_restore_continues_the_rng():
+    args = Args(seed=3)
+    torch.manual_seed(0)
+    ckpt = checkpoint("fmt/1", args, dict(wall_s=12.5, env_steps=4), model={"w": 1})
+    expected = torch.rand(3)
+    torch.manual_seed(99)
+    counters = restore(ckpt)
+    assert torch.equal(torch.rand(3), expected)
+    assert counters == dict(wall_s=12.5, env_steps=4) and counters is not ckpt["counters"]
+    assert (ckpt["format"], ckpt["model"], ckpt["args"]["seed"]) == ("fmt/1", {"w": 1}, 3)
+
+
+def test_the_held_out_evaluation_uses_the_runs_task_frame_and_hidden_keys(monkeypatch):
+    calls = []
+    monkeypatch.setattr(run, "evaluate_on_seeds", lambda *a, **kw: calls.append((a, kw)) or {})
+    held_out_evaluation(None, Args(eval_episodes=2, env_kwargs={"reward_mode": "dense"}), control_mode="pd")
+    ((args, kw),) = calls
+    assert args[1:] == ("TableClearing-IRB120-v1", "state", [10_000_000, 10_000_001])
+    assert kw["reward_mode"] == "dense" and kw["control_mode"] == "pd" and "obs_mode" not in kw
+    assert [w.__name__ for w in kw["wrappers"]] == ["WorldFrameToolAction"]
+    held_out_evaluation(None, HidingArgs(eval_episodes=1), first_seed=5, reward_mode="sparse")
+    args, kw = calls[1]
+    assert args[3] == [5] and (kw["obs_mode"], kw["reward_mode"]) == ("state_dict", "sparse")
+    assert len(kw["wrappers"]) == 2  # the hidden keys' wrapper, then the action frame's
