@@ -386,5 +386,7 @@ def test_the_budget_spans_a_resume(tmp_path):
     assert first["wall_clock_s"] >= 1.2
     again = run(tmp_path, budget_min=0.02, resume=Path(first["checkpoint"]), **kw)
     assert again["iterations_this_run"] == 0 and again["wall_clock_s"] >= 1.2
-    longer = run(tmp_path, budget_min=0.1, resume=Path(again["checkpoint"]), **kw)
-    assert longer["iterations_this_run"] > 1 and longer["wall_clock_s"] >= 6.0
+    # a budget a few seconds past what the run spent (its first iteration alone takes seconds on a busy machine)
+    more = again["wall_clock_s"] + 3.0
+    longer = run(tmp_path, budget_min=more / 60, resume=Path(again["checkpoint"]), **kw)
+    assert longer["iterations_this_run"] >= 1 and longer["wall_clock_s"] >= more
