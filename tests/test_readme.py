@@ -21,9 +21,7 @@ BLOCKS = [
     for page in PAGES
     for _, test, slow, code in re.findall(MARKER, page.read_text(), re.S)
 ]
-FRAGMENTS = {  # pages whose block is an illustration that needs files and objects the page does not make
-    "docs/rapid_subset.md": "a fragment: it opens server.mod and reads an emulated robot; issue 61 owns the page",
-}
+FRAGMENTS: dict[str, str] = {}  # page -> why its block cannot run as written (none today: every block runs)
 OURS = [(page, slow, code) for page, test, slow, code in BLOCKS if test in ("", "test_readme")]
 
 
