@@ -24,7 +24,7 @@ observation wrappers: :func:`observation_wrappers`.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Optional
+from typing import Any, Optional
 
 import gymnasium as gym
 import torch
@@ -158,3 +158,16 @@ def make_vector_env(
     if isinstance(env, CPUVectorEnv):
         torch.set_num_threads(1)
     return env
+
+
+def wrapped_vector_env(wrap: Callable[[gym.vector.VectorEnv], Any], env_id: str, num_envs: int, obs: str, **kwargs):
+    """``wrap`` (a library's adapter) around :func:`make_vector_env`'s envs (``kwargs``: its keywords); the envs are
+    closed again, worker processes and all, if the adapter refuses them."""
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    venv = make_vector_env(env_id, num_envs, obs, **kwargs)
+    try:
+        return wrap(venv)
+    except BaseException:
+        venv.close()
+        raise

@@ -37,7 +37,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_irb120.integrations.observations import CONTROL_MODE, make_single_env, make_vector_env
+from maniskill_irb120.integrations.observations import CONTROL_MODE, make_single_env, wrapped_vector_env
 
 try:
     from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
@@ -174,9 +174,8 @@ def make_sb3_vec_env(
     ``control_mode`` passed to the task (default: its ``normalized_dense`` reward, the tool-frame action).
     ``seed``: the first reset's (env i gets ``seed + i`` on the CPU). ``backend``: ``"cpu"``, ``"gpu"`` or
     ``"auto"`` (the GPU when CUDA is there)."""
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    venv = make_vector_env(
+    out = wrapped_vector_env(
+        IRB120SB3VecEnv,
         env_id,
         num_envs,
         obs,
@@ -186,11 +185,6 @@ def make_sb3_vec_env(
         wrappers=wrappers,
         env_kwargs=env_kwargs,
     )
-    try:
-        out = IRB120SB3VecEnv(venv)
-    except BaseException:
-        venv.close()
-        raise
     if seed is not None:
         out.seed(seed)
     return out

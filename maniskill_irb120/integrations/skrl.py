@@ -34,7 +34,7 @@ import gymnasium as gym
 import torch
 import torch.nn as nn
 
-from maniskill_irb120.integrations.observations import CONTROL_MODE, IMAGE_KEY, STATE_KEY, make_vector_env
+from maniskill_irb120.integrations.observations import CONTROL_MODE, IMAGE_KEY, STATE_KEY, wrapped_vector_env
 
 try:
     from skrl.envs.wrappers.torch.mani_skill_envs import ManiSkillWrapper
@@ -101,9 +101,8 @@ def make_skrl_env(
     """``num_envs`` envs of ``env_id`` for skrl, giving ``obs`` (``"state"`` or ``"rgbd"``: image + state, flattened
     by skrl), with ``reward_mode`` and ``control_mode`` passed to the task (default: its ``normalized_dense`` reward,
     the tool-frame action). ``backend``: ``"cpu"``, ``"gpu"`` or ``"auto"`` (the GPU when CUDA is there)."""
-    if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-    venv = make_vector_env(
+    return wrapped_vector_env(
+        lambda venv: IRB120SkrlWrapper(venv, seed=seed),
         env_id,
         num_envs,
         obs,
@@ -113,11 +112,6 @@ def make_skrl_env(
         wrappers=wrappers,
         env_kwargs=env_kwargs,
     )
-    try:
-        return IRB120SkrlWrapper(venv, seed=seed)
-    except BaseException:
-        venv.close()
-        raise
 
 
 # ---------------------------------------------------------------------------- models
