@@ -18,23 +18,6 @@ from maniskill_irb120.abb.emulator.rws import RWSEmulator  # noqa: E402
 from maniskill_irb120.cli import main  # noqa: E402
 
 
-@pytest.fixture
-def emulator():
-    emus = []
-
-    def start(**kwargs) -> RWSEmulator:
-        emu = RWSEmulator(**kwargs)
-        emu.start()
-        emus.append(emu)
-        return emu
-
-    yield start
-    for emu in emus:
-        program = emu.controller.program
-        emu.stop()
-        assert program is None or program.error is None, program.error
-
-
 def run(capsys, *argv: str) -> tuple[int, str, str]:
     rc = main(["deploy", *argv])
     out = capsys.readouterr()
@@ -61,8 +44,8 @@ EXPECTED = {
 
 
 @pytest.mark.parametrize("options", list(EXPECTED))
-def test_deploy_loads_what_the_options_allow(emulator, capsys, options):
-    emu = emulator(options=options)
+def test_deploy_loads_what_the_options_allow(rws_emulator, capsys, options):
+    emu = rws_emulator(options=options)
     rc, out, err = run(capsys, "--controller", emu.url, "--yes")
     assert rc == 0, err
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule", *EXPECTED[options]]
@@ -92,16 +75,16 @@ def test_deploy_loads_what_the_options_allow(emulator, capsys, options):
         ("616-1", ["--zone", "on"], "608-1 World Zones"),
     ],
 )
-def test_a_build_the_options_do_not_allow_is_refused_naming_the_option(emulator, capsys, options, flags, missing):
-    emu = emulator(options=options)
+def test_a_build_the_options_do_not_allow_is_refused_naming_the_option(rws_emulator, capsys, options, flags, missing):
+    emu = rws_emulator(options=options)
     before = snapshot(emu)
     rc, _, err = run(capsys, "--controller", emu.url, "--yes", *flags)
     assert rc == 1 and "refused" in err and missing in err, err
     assert snapshot(emu) == before
 
 
-def test_asked_for_builds_that_fit_are_loaded(emulator, capsys):
-    emu = emulator(options="616-1,608-1")
+def test_asked_for_builds_that_fit_are_loaded(rws_emulator, capsys):
+    emu = rws_emulator(options="616-1,608-1")
     rc, out, err = run(capsys, "--controller", emu.url, "--yes", "--channel", "serial", "--zone", "off")
     assert rc == 0, err
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule", "IRB120Server", "IRB120Serial"]
@@ -113,14 +96,14 @@ def test_the_option_names_agree_with_the_emulator_s_option_table():
         assert OPTIONS[opt].name == name
 
 
-def test_a_module_that_does_not_load_shows_the_controller_s_message(emulator, capsys, tmp_path):
+def test_a_module_that_does_not_load_shows_the_controller_s_message(rws_emulator, capsys, tmp_path):
     for f in ("IRB120Server.mod", "IRB120Serial.mod"):
         (tmp_path / f).write_text((dep.shipped_rapid_dir() / f).read_text())
     text = (tmp_path / "IRB120Serial.mod").read_text()
     broken = text.replace("ENDPROC", "ENDPROC )", 1)
     line = next(i for i, t in enumerate(broken.splitlines(), 1) if "ENDPROC )" in t)
     (tmp_path / "IRB120Serial.mod").write_text(broken)
-    emu = emulator()
+    emu = rws_emulator()
     rc, out, err = run(capsys, "--controller", emu.url, "--yes", "--rapid-dir", str(tmp_path))
     assert rc == 1
     assert "loading $HOME/IRB120/IRB120Serial.mod into T_ROB1 failed" in err
@@ -130,16 +113,16 @@ def test_a_module_that_does_not_load_shows_the_controller_s_message(emulator, ca
     assert "program pointer" not in out
 
 
-def test_a_wrong_password_is_refused_and_nothing_changes(emulator, capsys):
-    emu = emulator()
+def test_a_wrong_password_is_refused_and_nothing_changes(rws_emulator, capsys):
+    emu = rws_emulator()
     before = snapshot(emu)
     rc, _, err = run(capsys, "--controller", emu.url, "--yes", "--password", "guess")
     assert rc == 1 and "refused the user name or password (HTTP 401)" in err, err
     assert snapshot(emu) == before
 
 
-def test_deploy_while_the_program_runs_is_refused_and_nothing_changes(emulator, capsys):
-    emu = emulator()
+def test_deploy_while_the_program_runs_is_refused_and_nothing_changes(rws_emulator, capsys):
+    emu = rws_emulator()
     assert run(capsys, "--controller", emu.url, "--yes")[0] == 0
     emu.controller.start(remote=False)  # the operator: enabling device held, Start on the FlexPendant
     with ABBRobot.connect(emu.controller.program_url, timeout=2.0) as robot:
@@ -155,8 +138,8 @@ def test_deploy_while_the_program_runs_is_refused_and_nothing_changes(emulator, 
     assert emu.controller.exec_state == "stopped"
 
 
-def test_unload_leaves_the_controller_as_it_found_it(emulator, capsys):
-    emu = emulator(options="616-1,608-1")
+def test_unload_leaves_the_controller_as_it_found_it(rws_emulator, capsys):
+    emu = rws_emulator(options="616-1,608-1")
     before = snapshot(emu)
     assert before[:3] == (["MainModule"], [], ("MainModule", "main"))
     assert run(capsys, "--controller", emu.url, "--yes")[0] == 0
@@ -172,8 +155,8 @@ def test_unload_leaves_the_controller_as_it_found_it(emulator, capsys):
     assert snapshot(emu) == before
 
 
-def test_without_confirmation_the_program_pointer_stays_unset(emulator, capsys):
-    emu = emulator()
+def test_without_confirmation_the_program_pointer_stays_unset(rws_emulator, capsys):
+    emu = rws_emulator()
     rc, out, _ = run(capsys, "--controller", emu.url)  # pytest's stdin is no terminal, and no --yes
     assert rc == 0
     assert "not confirmed: no terminal to answer at (pass --yes in scripts)" in out
@@ -182,8 +165,8 @@ def test_without_confirmation_the_program_pointer_stays_unset(emulator, capsys):
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule", "IRB120Server", "IRB120Serial"]
 
 
-def test_start_runs_only_in_auto_with_allow_auto_set_deliberately(emulator, capsys, tmp_path):
-    emu = emulator(op_mode="manual_reduced")
+def test_start_runs_only_in_auto_with_allow_auto_set_deliberately(rws_emulator, capsys, tmp_path):
+    emu = rws_emulator(op_mode="manual_reduced")
     assert run(capsys, "--controller", emu.url, "--yes")[0] == 0
     rc, _, err = run(capsys, "start", "--controller", emu.url, "--yes")
     assert rc == 1 and "started remotely in AUTO only" in err and "presses Start on the FlexPendant" in err

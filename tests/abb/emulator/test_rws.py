@@ -19,26 +19,9 @@ rws_client = pytest.importorskip("abb_robot_client.rws")
 requests = pytest.importorskip("requests")
 
 from maniskill_irb120.abb.emulator.controller import rapid_file  # noqa: E402
-from maniskill_irb120.abb.emulator.rws import REALM, RWSEmulator  # noqa: E402
+from maniskill_irb120.abb.emulator.rws import REALM  # noqa: E402
 
 ABBException, RWS = rws_client.ABBException, rws_client.RWS
-
-
-@pytest.fixture
-def emulator():
-    emus = []
-
-    def start(**kwargs) -> RWSEmulator:
-        emu = RWSEmulator(**kwargs)
-        emu.start()
-        emus.append(emu)
-        return emu
-
-    yield start
-    for emu in emus:
-        program = emu.controller.program
-        emu.stop()
-        assert program is None or program.error is None, program.error
 
 
 def upload(r, *files: str, text: dict[str, str] | None = None) -> None:
@@ -58,8 +41,8 @@ def modules(r) -> list[str]:
     return [m["name"] for m in r._do_get("rw/rapid/tasks/T_ROB1/modules")["_embedded"]["_state"]]
 
 
-def test_abb_robot_client_parses_every_answer(emulator):
-    emu = emulator(options="616-1,608-1", op_mode="auto")
+def test_abb_robot_client_parses_every_answer(rws_emulator):
+    emu = rws_emulator(options="616-1,608-1", op_mode="auto")
     r = RWS(emu.url)
     assert r.get_execution_state().ctrlexecstate == "stopped"
     assert r.get_controller_state() == "motoroff"
@@ -110,8 +93,8 @@ def _gripper_with_mass(text: str) -> str:
     return text.replace(",[0.6,", ",[0.7,")
 
 
-def test_wrong_credentials_get_401_and_no_session(emulator):
-    emu = emulator()
+def test_wrong_credentials_get_401_and_no_session(rws_emulator):
+    emu = rws_emulator()
     for user, password in (("Default User", "wrong"), ("Someone", "robotics")):
         with pytest.raises(ABBException, match="401") as e:
             RWS(emu.url, user, password).get_execution_state()
@@ -124,9 +107,9 @@ def test_wrong_credentials_get_401_and_no_session(emulator):
     assert requests.get(f"{emu.url}/rw/panel/opmode?json=1", cookies={"ABBCX": "guessed"}).status_code == 401
 
 
-def test_a_replayed_digest_answer_is_refused(emulator):
+def test_a_replayed_digest_answer_is_refused(rws_emulator):
     """RFC 7616: the nonce count of a nonce must grow; the same Authorization header sent twice is a replay."""
-    emu = emulator()
+    emu = rws_emulator()
     uri = "/rw/panel/opmode?json=1"
     nonce = re.search(r'nonce="([^"]+)"', requests.get(emu.url + uri).headers["WWW-Authenticate"]).group(1)
     md5 = lambda s: hashlib.md5(s.encode()).hexdigest()  # noqa: E731
@@ -145,8 +128,8 @@ def test_a_replayed_digest_answer_is_refused(emulator):
     )
 
 
-def test_an_unknown_resource_gets_rws_s_error_body(emulator):
-    emu = emulator()
+def test_an_unknown_resource_gets_rws_s_error_body(rws_emulator):
+    emu = rws_emulator()
     r = RWS(emu.url)
     with pytest.raises(ABBException, match="no such resource") as e:
         r._do_get("rw/rapid/nothing")
@@ -166,8 +149,8 @@ def test_an_unknown_resource_gets_rws_s_error_body(emulator):
     assert r.get_operation_mode() == "MANR"  # the controller serves on after each refusal
 
 
-def test_loading_needs_mastership_and_a_refusal_changes_nothing(emulator):
-    emu = emulator()
+def test_loading_needs_mastership_and_a_refusal_changes_nothing(rws_emulator):
+    emu = rws_emulator()
     a, b = RWS(emu.url), RWS(emu.url)
     upload(a, "IRB120Server.mod")
     with pytest.raises(ABBException, match="needs mastership") as e:
@@ -206,8 +189,8 @@ MATRIX = [
 
 
 @pytest.mark.parametrize("options,files,refusal", MATRIX)
-def test_the_option_matrix_holds_for_modules_loaded_over_rws(emulator, options, files, refusal):
-    emu = emulator(options=options)
+def test_the_option_matrix_holds_for_modules_loaded_over_rws(rws_emulator, options, files, refusal):
+    emu = rws_emulator(options=options)
     r = RWS(emu.url)
     files = ["IRB120Server.mod", *files]
     upload(r, *files)
@@ -227,8 +210,8 @@ def test_the_option_matrix_holds_for_modules_loaded_over_rws(emulator, options, 
         assert modules(r) == ["MainModule"] + [p.split(".")[0] for p in files]
 
 
-def test_a_syntax_error_s_line_reaches_the_event_log(emulator):
-    emu = emulator()
+def test_a_syntax_error_s_line_reaches_the_event_log(rws_emulator):
+    emu = rws_emulator()
     r = RWS(emu.url)
     broken = rapid_file("IRB120Serial.mod").read_text().replace("ENDPROC", "ENDPROC )", 1)
     line = next(i for i, t in enumerate(broken.splitlines(), 1) if "ENDPROC )" in t)
@@ -241,8 +224,8 @@ def test_a_syntax_error_s_line_reaches_the_event_log(emulator):
     assert modules(r) == ["MainModule"]
 
 
-def test_remote_start_needs_auto_and_the_motors_on(emulator):
-    emu = emulator(op_mode="manual_reduced")
+def test_remote_start_needs_auto_and_the_motors_on(rws_emulator):
+    emu = rws_emulator(op_mode="manual_reduced")
     r = RWS(emu.url)
     r._do_post("rw/mastership?action=request")
     with pytest.raises(ABBException, match="remote start needs AUTO") as e:
@@ -272,8 +255,8 @@ def test_the_command_line_serves_rws_on_loopback_only():
         proc.wait(10)
 
 
-def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_on(emulator):
-    emu = emulator()
+def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_on(rws_emulator):
+    emu = rws_emulator()
     r = RWS(emu.url)
     upload(r, "Bad.mod", text={"Bad.mod": "MODULE Bad\n  VAR byte b := 300;\nENDMODULE\n"})
     r._do_post("rw/mastership?action=request")
@@ -287,8 +270,8 @@ def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_o
     assert r.get_rapid_variables() == []  # the stock MainModule has none
 
 
-def test_nothing_is_loaded_unloaded_or_moved_while_the_program_runs(emulator):
-    emu = emulator()
+def test_nothing_is_loaded_unloaded_or_moved_while_the_program_runs(rws_emulator):
+    emu = rws_emulator()
     r = RWS(emu.url)
     upload(r, "IRB120Server.mod", "IRB120Serial.mod")
     r._do_post("rw/mastership?action=request")
