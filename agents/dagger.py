@@ -57,8 +57,10 @@ from agents.common import (
     atomic_save,
     autocast,
     budget_bar,
+    check_resume_signature,
     checkpoint,
     cli,
+    close_and_save,
     evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
@@ -350,10 +352,7 @@ def train(args: Args) -> dict:
     rows = None  # the manifest of the dataset's row files on disk
     counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
     if saved is not None:
-        if saved["signature"] != policy.signature():
-            raise ValueError(
-                f"--resume {args.resume}: checkpoint {saved['signature']} != this run {policy.signature()}"
-            )
+        check_resume_signature(saved, policy.signature(), args.resume)
         if (saved.get("aux_head") is None) != (aux_head is None):
             raise ValueError(f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0")
         policy.load_state_dict(saved["model"])
@@ -362,8 +361,7 @@ def train(args: Args) -> dict:
         optimizer.load_state_dict(saved["optimizer"])
         rows = saved.get("data_rows")
         restore_dataset(data, saved, Path(args.resume).parent / "data")
-        counters = restore(saved)
-        clock.before = counters["wall_s"]
+        counters = restore(saved, clock)
     logger = Logger(run_dir, args)
     ckpt_dir = run_dir / "checkpoints"
     budget_s = args.budget_min * 60
@@ -408,11 +406,13 @@ def train(args: Args) -> dict:
                 counted = dict(counters, wall_s=elapsed())
                 rows = save(ckpt_dir / "latest.pt", policy, optimizer, data, counted, args, aux_head, rows)
     finally:
-        if bar is not None:
-            bar.close()
-        envs.close()
-        counters["wall_s"] = elapsed()
-        save(ckpt_dir / "latest.pt", policy, optimizer, data, counters, args, aux_head, rows)
+        close_and_save(
+            bar,
+            envs,
+            counters,
+            elapsed,
+            lambda c: save(ckpt_dir / "latest.pt", policy, optimizer, data, c, args, aux_head, rows),
+        )
     return evaluate_and_finish(
         lambda: final_evaluation(policy, args, device, None),
         logger,

@@ -55,8 +55,10 @@ from agents.common import (
     RunArgs,
     atomic_save,
     budget_bar,
+    check_resume_signature,
     checkpoint,
     cli,
+    close_and_save,
     evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
@@ -406,16 +408,14 @@ def train(args: Args) -> dict:
     rows = None  # the manifests of the datasets' row files on disk
     counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
     if saved is not None:
-        if saved["signature"] != model.signature():
-            raise ValueError(f"--resume {args.resume}: checkpoint {saved['signature']} != this run {model.signature()}")
+        check_resume_signature(saved, model.signature(), args.resume)
         model.load_state_dict(saved["model"])
         for k, o in opts.items():
             o.load_state_dict(saved["opts"][k])
         rows = saved.get("data_rows")
         restore_dataset(online, saved, Path(args.resume).parent / "data", "online")
         restore_dataset(demos, saved, Path(args.resume).parent / "data", "demos")
-        counters = restore(saved)
-        clock.before = counters["wall_s"]
+        counters = restore(saved, clock)
     logger = Logger(run_dir, args)
     ckpt_path = run_dir / "checkpoints" / "latest.pt"
     elapsed = clock
@@ -482,11 +482,9 @@ def train(args: Args) -> dict:
                 next_save += args.save_freq
                 rows = save(ckpt_path, model, opts, online, demos, dict(counters, wall_s=elapsed()), args, rows)
     finally:
-        if bar is not None:
-            bar.close()
-        envs.close()
-        counters["wall_s"] = elapsed()
-        save(ckpt_path, model, opts, online, demos, counters, args, rows)
+        close_and_save(
+            bar, envs, counters, elapsed, lambda c: save(ckpt_path, model, opts, online, demos, c, args, rows)
+        )
     model.eval()
     return evaluate_and_finish(
         lambda: final_evaluation(model, args, device, None),

@@ -3,10 +3,10 @@ learns from and the kind of wall-clock budget it is held to. This module is the 
 the trainers' ``--recipe NAME``, ``benchmarks/learning.py``, the docs' recipe table and the acceptance runs
 all read it.
 
-It is data and imports nothing (no trainer, no benchmark, no simulator): the package's diagnostics
-(``diagnostics/acceptance_runs.py``) build their trainer commands from it and may not import ``agents/``
-(tests/test_layers.py), while the trainers and the benchmark import the package anyway. A recipe names its
-trainer as a module string (``agents.dagger``), which only a source checkout has; nothing here runs it.
+It is data and imports nothing (no trainer, no benchmark, no simulator), so whoever runs a recipe reads it
+without pulling in the rest: the trainers, the benchmarks and the GPU acceptance runs
+(``benchmarks/gpu_acceptance.py``, which builds its trainer commands from it). A recipe names its trainer as a
+module string (``agents.dagger``), which only a source checkout has; nothing in the package runs it.
 
 The budget kinds are the issues' targets: ``short`` (imitation from state, and the camera within the hour,
 SHORT_BUDGET_MIN), ``long`` (the camera, and RL with demos, LONG_BUDGET_MIN), ``rl`` (RL from the reward alone,

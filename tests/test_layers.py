@@ -4,11 +4,17 @@ Imports point one way: ``action`` < ``robot/`` < ``envs/`` < ``vector``/``wrappe
 ``policies/`` < ``sim2real/``; ``abb/`` beside them (its wire side: no ManiSkill, no SAPIEN; a robot PC needs
 neither); ``teleop/`` over ``experts/`` and ``abb/`` (its devices and jogging: no ManiSkill, no SAPIEN either).
 Imports inside functions count as much as module-level ones: a lazy import is still a dependency.
+
+Nor does the package run what it does not ship: no module of it starts a program other than the few system tools
+allowed below (with the reason), and what it runs in a fresh interpreter is its own code. The trainers
+(``agents/``), the benchmarks and ``scripts/`` are a source checkout's, which an installed wheel does not have;
+the checks that run them are ``benchmarks/gpu_acceptance.py``'s.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 import textwrap
@@ -103,7 +109,7 @@ RULES = {
         (M + ".integrations",),
     ),
     "integrations/ never imports the trainers or the benchmarks": (files("integrations"), ("agents", "benchmarks")),
-    "diagnostics/ never imports the trainers or the benchmarks (it runs them as programs, in a checkout)": (
+    "diagnostics/ never imports the trainers or the benchmarks (a wheel has neither)": (
         files("diagnostics"),
         ("agents", "benchmarks"),
     ),
@@ -119,6 +125,125 @@ def test_imports_point_one_way(rule):
     paths, forbidden = RULES[rule]
     assert paths, rule
     assert offenders(paths, forbidden) == [], rule
+
+
+# --------------------------------------------------------------------------- programs the package starts
+STARTERS = {
+    "subprocess": {"run", "call", "check_call", "check_output", "Popen", "getoutput", "getstatusoutput"},
+    "os": {"system", "popen", "startfile", "posix_spawn", "posix_spawnp"}
+    | {f"exec{s}" for s in ("l", "le", "lp", "lpe", "v", "ve", "vp", "vpe")}
+    | {f"spawn{s}" for s in ("l", "le", "lp", "lpe", "v", "ve", "vp", "vpe")},
+    "asyncio": {"create_subprocess_exec", "create_subprocess_shell"},
+    "pty": {"spawn"},
+}
+"""every standard-library call that starts a program, by module"""
+ALLOWED_PROGRAMS = {
+    ("maniskill_irb120/diagnostics/doctor.py", "nvidia-smi"): "the NVIDIA driver's version for the GPU report "
+    "(torch knows only the CUDA it was built with); a system tool, not a file of the checkout",
+}
+"""(module, program) -> why the package may start it"""
+
+
+def program_starts(path: Path, root: Path) -> list[str]:
+    """``file:line starts PROGRAM`` for each call in ``path`` that starts a program (``subprocess``, ``os.system``,
+    ``os.exec*``/``spawn*``, ``asyncio``'s and ``pty``'s, under any alias), PROGRAM the command's first word when
+    it is written out, else ``<a command built at run time>``; and ``file:line runs MODULE in a fresh
+    interpreter`` for each ``isolated(MODULE, ...)`` (acceptance_runs), MODULE resolved through a name assigned
+    a string in the same file."""
+    tree = ast.parse(path.read_text())
+    where = path.relative_to(root).as_posix()
+    modules: dict[str, str] = {}  # alias -> module (import subprocess as sp)
+    functions: dict[str, tuple[str, str]] = {}  # alias -> (module, function) (from subprocess import run)
+    strings: dict[str, str] = {}  # name -> the string constant assigned to it
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules.update({a.asname or a.name: a.name for a in node.names if a.name in STARTERS})
+        elif isinstance(node, ast.ImportFrom) and node.module in STARTERS:
+            functions.update({a.asname or a.name: (node.module, a.name) for a in node.names})
+        elif (
+            isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)
+        ):
+            strings.update({t.id: node.value.value for t in node.targets if isinstance(t, ast.Name)})
+
+    def text(arg: ast.AST | None) -> str | None:
+        if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+            return arg.value
+        if isinstance(arg, ast.Attribute) and ast.unparse(arg) == "sys.executable":
+            return "python"
+        return strings.get(arg.id) if isinstance(arg, ast.Name) else None
+
+    def first_arg(call: ast.Call) -> ast.AST | None:
+        return call.args[0] if call.args else next((k.value for k in call.keywords if k.arg in ("args", "cmd")), None)
+
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f = node.func
+        if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id in modules:
+            target = (modules[f.value.id], f.attr)
+        elif isinstance(f, ast.Name) and f.id in functions:
+            target = functions[f.id]
+        else:
+            target = None
+        if target is not None and target[1] in STARTERS[target[0]]:
+            cmd = first_arg(node)
+            word = text(cmd.elts[0]) if isinstance(cmd, (ast.List, ast.Tuple)) and cmd.elts else text(cmd)
+            program = word.split()[0] if word and word.split() else "<a command built at run time>"
+            found.append(f"{where}:{node.lineno} starts {program}")
+        elif (f.id if isinstance(f, ast.Name) else getattr(f, "attr", None)) == "isolated":
+            found.append(f"{where}:{node.lineno} runs {text(first_arg(node))} in a fresh interpreter")
+    return found
+
+
+def test_the_package_starts_no_program_of_a_checkout():
+    found = [hit for p in sorted(PKG.rglob("*.py")) for hit in program_starts(p, PKG.parent)]
+    allowed = {f"{module} starts {program}" for module, program in ALLOWED_PROGRAMS}
+    bad = [
+        hit
+        for hit in found
+        if not (" runs maniskill_irb120." in hit or re.sub(r":\d+ starts", " starts", hit) in allowed)
+    ]
+    assert bad == [], (
+        "the package may start only the programs ALLOWED_PROGRAMS names and run only its own modules in a fresh "
+        "interpreter (agents/, benchmarks/, scripts/ are a checkout's: benchmarks/gpu_acceptance.py runs them):\n"
+        + "\n".join(bad)
+    )
+    stale = allowed - {re.sub(r":\d+ starts", " starts", hit) for hit in found}
+    assert not stale, f"ALLOWED_PROGRAMS names programs the package no longer starts: {sorted(stale)}"
+
+
+def test_the_program_scan_finds_each_way_to_start_one(tmp_path):
+    p = tmp_path / "m.py"
+    p.write_text(
+        textwrap.dedent(
+            """
+            import os, subprocess as sp, sys
+            from subprocess import Popen as P
+            from maniskill_irb120.diagnostics.acceptance_runs import isolated
+
+            MOD = "agents.ppo"
+            sp.run([sys.executable, "-m", "agents.ppo"])
+            P(["python", "benchmarks/sim_speed.py"])
+            os.system("bash scripts/setup.sh")
+            os.execvp("nvidia-smi", ["nvidia-smi"])
+            cmd = ["x"]
+            sp.check_output(args=cmd)
+            isolated(MOD, "main")
+            isolated("maniskill_irb120.diagnostics.acceptance_runs", "run_named_check")
+            print("subprocess.run")
+            """
+        )
+    )
+    assert program_starts(p, tmp_path) == [
+        "m.py:7 starts python",
+        "m.py:8 starts python",
+        "m.py:9 starts bash",
+        "m.py:10 starts nvidia-smi",
+        "m.py:12 starts <a command built at run time>",
+        "m.py:13 runs agents.ppo in a fresh interpreter",
+        "m.py:14 runs maniskill_irb120.diagnostics.acceptance_runs in a fresh interpreter",
+    ]
 
 
 def test_every_folder_says_what_it_may_import():

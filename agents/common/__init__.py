@@ -36,7 +36,16 @@ from agents.common.evaluation import (
 )
 from agents.common.logging import Logger, budget_bar, finish
 from agents.common.precision import PRECISIONS, autocast, resolve_precision
-from agents.common.run import Clock, checkpoint, evaluate_and_finish, held_out_evaluation, open_run, restore
+from agents.common.run import (
+    Clock,
+    check_resume_signature,
+    checkpoint,
+    close_and_save,
+    evaluate_and_finish,
+    held_out_evaluation,
+    open_run,
+    restore,
+)
 
 __all__ = [
     "AUX_DIM",
@@ -56,8 +65,10 @@ __all__ = [
     "atomic_save",
     "autocast",
     "budget_bar",
+    "check_resume_signature",
     "checkpoint",
     "cli",
+    "close_and_save",
     "evaluate_and_finish",
     "evaluate_checkpoint",
     "evaluate_on_seeds",

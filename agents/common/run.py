@@ -1,7 +1,8 @@
 """The frame of a training run, the same for every trainer, so that a trainer file keeps only its algorithm: where
 the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`), the checkpoint's
-common part and its restore (:func:`checkpoint`, :func:`restore`), the held-out evaluation
-(:func:`held_out_evaluation`) and the run's last word (:func:`evaluate_and_finish`).
+common part and its restore (:func:`checkpoint`, :func:`restore`, :func:`check_resume_signature`), the last
+checkpoint however training ends (:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`)
+and the run's last word (:func:`evaluate_and_finish`).
 
 ``--budget-min`` means one thing across ``--resume``: the clock counts the seconds trained before the resume (the
 checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so one budget spans
@@ -65,10 +66,33 @@ def checkpoint(fmt: str, args: RunArgs, counters: dict, **state) -> dict:
     return dict(format=fmt, counters=counters, rng=rng_state(), args=args_json(args), **state)
 
 
-def restore(saved: dict) -> dict:
-    """The counters of a checkpoint being resumed, with its RNG state restored."""
+def restore(saved: dict, clock: Optional[Clock] = None) -> dict:
+    """The counters of a checkpoint being resumed, with its RNG state restored; given the run's ``clock`` (started
+    before the checkpoint was read), the seconds trained before the resume go on it (``counters["wall_s"]``)."""
     set_rng_state(saved["rng"])
-    return dict(saved["counters"])
+    counters = dict(saved["counters"])
+    if clock is not None:
+        clock.before = counters["wall_s"]
+    return counters
+
+
+def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
+    """The checkpoint ``--resume`` names holds networks of this run's shapes (``signature``: the model's
+    ``signature()``, what its observation and flags make of it), else ValueError naming both: loading the weights
+    would fail deep in torch, or worse, fit and mean something else."""
+    if saved["signature"] != signature:
+        raise ValueError(f"--resume {resume}: checkpoint {saved['signature']} != this run {signature}")
+
+
+def close_and_save(bar, envs, counters: dict, clock: Clock, save: Callable[[dict], object]) -> None:
+    """The end of training however it comes (the budget, an exception, Ctrl-C: call it in a ``finally``): the
+    progress bar (or None) and the envs closed, the training clock read into ``counters["wall_s"]`` and
+    ``save(counters)`` writing the last checkpoint, so that ``--resume`` continues from where it stopped."""
+    if bar is not None:
+        bar.close()
+    envs.close()
+    counters["wall_s"] = clock()
+    save(counters)
 
 
 def held_out_evaluation(

@@ -8,7 +8,9 @@ suite runs the same functions on ``physx_cpu`` (one env, ManiSkill's limit there
 is known to work before a GPU ever runs it. The verdicts are separate pure functions (``*_verdict``), tested on
 hand-made batches that hold the bugs each check exists to catch.
 
-This module imports without CUDA; the trainer, benchmark and timing runs are in ``acceptance_runs.py``.
+This module imports without CUDA; the checks by name, the timing and the fresh-process runs are in
+``acceptance_runs.py``; the trainers' and the benchmark's runs are a source checkout's
+(``benchmarks/gpu_acceptance.py``).
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ import importlib.metadata as md
 import platform
 import re
 import time
+from collections.abc import Callable, Mapping
 
 FIX_HINT = (
     "No usable Vulkan device. On Debian 12 (root): add the bookworm-backports suite and run "
@@ -157,6 +158,12 @@ NO_CUDA = (
     "build of torch (scripts/setup.sh picks one when nvidia-smi works), then run this again."
 )
 THROUGHPUT_ENVS = (512, 1024, 4096)
+PROGRAM = "program"
+"""a report unit that is one of ``gpu_report``'s ``programs`` (not a function of acceptance_runs)"""
+CHECKOUT_PROGRAMS = (
+    "the trainers' tiny --backend gpu runs and the benchmark's GPU sweep are a source checkout's programs; "
+    "there, python benchmarks/gpu_acceptance.py runs this report with them added"
+)
 
 
 def _driver_version() -> str | None:
@@ -181,28 +188,12 @@ def _driver_version() -> str | None:
         return None
 
 
-def _git_commit() -> str | None:
-    import subprocess
-
-    from maniskill_irb120.diagnostics.acceptance_runs import source_checkout
-
-    root = source_checkout()
-    if root is None:
-        return None
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
-        )
-        return (out.stdout.strip() or None) if out.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
-def gpu_environment() -> dict:
-    """What a GPU report must name so that a failure can be reproduced: the device, driver and versions."""
+def gpu_environment(commit: str | None = None) -> dict:
+    """What a GPU report must name so that a failure can be reproduced: the device, driver and versions.
+    ``commit``: the source checkout's, which only a checkout's script knows (an installed package has its version)."""
     import torch
 
-    env: dict = dict(python=platform.python_version(), platform=platform.platform(), commit=_git_commit())
+    env: dict = dict(python=platform.python_version(), platform=platform.platform(), commit=commit)
     for pkg in ("maniskill-irb120", "mani-skill", "sapien", "torch"):
         try:
             env[f"version_{pkg}"] = md.version(pkg)
@@ -229,9 +220,17 @@ def gpu_report(
     jobs: int = 1,
     env_ids: tuple[str, ...] | None = None,
     obs_modes: tuple[str, ...] | None = None,
+    programs: Mapping[str, Callable[..., tuple[bool | None, str]]] | None = None,
+    commit: str | None = None,
 ) -> dict:
     """Run the acceptance suite (``maniskill_irb120.diagnostics.acceptance``) and time state-obs steps/s per batch size.
     ``isolate``: each check and timing in a fresh process, so a GPU crash is one FAIL, not the end of the report.
+    ``programs``: checks that start programs of their own, by name, reported after the package's checks (a source
+    checkout's ``benchmarks/gpu_acceptance.py`` passes the trainers' and the benchmark's runs: the package cannot
+    start them, an installed wheel has neither); each is called as ``fn(sim_backend=..., num_envs=trainer_envs)``
+    in a thread of this process (its own program is its isolation) and, like the others, skipped without PhysX's
+    GPU library. ``trainer_envs`` is recorded only with programs (``None`` without: nothing ran at that size).
+    ``commit``: the checkout's commit, for the report's environment.
     The tests run it on ``physx_cpu`` with one env and ``isolate=False``. ``say``: called with a line as each
     check ends (the whole run takes minutes). ``jobs`` > 1 (needs ``isolate``): that many checks side by side,
     the obs-mode sweep split into one process per task and mode (a GPU machine's cores and memory take them;
@@ -240,7 +239,7 @@ def gpu_report(
     from concurrent.futures import ThreadPoolExecutor
 
     from maniskill_irb120.diagnostics import acceptance_runs as runs
-    from maniskill_irb120.diagnostics.acceptance import ENV_IDS, OBS_MODES
+    from maniskill_irb120.diagnostics.acceptance import ENV_IDS, OBS_MODES, timed_check
     from maniskill_irb120.diagnostics.acceptance_runs import (
         CHECK_NAMES,
         PHYSX_GPU,
@@ -251,10 +250,15 @@ def gpu_report(
     )
     from maniskill_irb120.envs.table_clearing import ENV_ID
 
-    names = CHECK_NAMES if checks is None else checks
-    unknown = [c for c in names if c not in CHECK_NAMES]
+    programs = dict(programs or {})
+    valid = (*CHECK_NAMES, *programs)
+    clash = [p for p in programs if p in CHECK_NAMES]
+    if clash:
+        raise ValueError(f"programs {clash} have the names of the package's own checks; name them apart")
+    names = valid if checks is None else checks
+    unknown = [c for c in names if c not in valid]
     if unknown:
-        raise ValueError(f"unknown checks {unknown}; expected some of {list(CHECK_NAMES)}")
+        raise ValueError(f"unknown checks {unknown}; expected some of {list(valid)}")
     if jobs < 1 or (jobs > 1 and not isolate):
         raise ValueError(f"jobs={jobs}: expected 1, or more with isolate=True (checks side by side in processes)")
     env_ids = ENV_IDS if env_ids is None else tuple(env_ids)
@@ -266,9 +270,9 @@ def gpu_report(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
         sim_backend=sim_backend,
         num_envs=num_envs,
-        trainer_envs=trainer_envs,
+        trainer_envs=trainer_envs if programs else None,
         jobs=jobs,
-        environment=gpu_environment(),
+        environment=gpu_environment(commit),
         checks=[],
         throughput=[],
     )
@@ -278,8 +282,12 @@ def gpu_report(
     def one(fn: str, kw: dict, name: str) -> tuple[dict, float, float]:
         t0 = time.perf_counter()
         try:
-            # 1200 s: the obs-mode sweep in one process builds 24 GPU scenes of num_envs each
-            result = isolated(mod, fn, timeout_s=1200, **kw) if isolate else getattr(runs, fn)(**kw)
+            if fn == PROGRAM:  # it starts its own process: a crash there is its FAIL already
+                result = timed_check(name, programs[name], sim_backend=sim_backend, num_envs=trainer_envs).to_dict()
+            elif isolate:  # 1200 s: the obs-mode sweep in one process builds 24 GPU scenes of num_envs each
+                result = isolated(mod, fn, timeout_s=1200, **kw)
+            else:
+                result = getattr(runs, fn)(**kw)
         except RuntimeError as e:
             result = dict(name=name, ok=False, status="FAIL", reason=str(e).splitlines()[0], seconds=0.0)
         if say is not None:
@@ -288,14 +296,14 @@ def gpu_report(
         return result, t0, time.perf_counter()
 
     if PHYSX_GPU in names:  # first and alone: without it every physx_cuda check would fail the same way
-        first, _, _ = one("run_named_check", dict(base, name=PHYSX_GPU, trainer_envs=trainer_envs), PHYSX_GPU)
+        first, _, _ = one("run_named_check", dict(base, name=PHYSX_GPU), PHYSX_GPU)
         report["checks"].append(first)
         names = tuple(n for n in names if n != PHYSX_GPU)
         if first["ok"] is False:
             why = f"not run: PhysX's GPU library is not available ({PHYSX_GPU}, above)"
             for n in names:
                 if n in WITHOUT_PHYSX_GPU:
-                    report["checks"].append(one("run_named_check", dict(base, name=n, trainer_envs=trainer_envs), n)[0])
+                    report["checks"].append(one("run_named_check", dict(base, name=n), n)[0])
                 else:
                     report["checks"].append(dict(name=n, ok=None, status="SKIP", reason=why, seconds=0.0))
             report["throughput"] = [dict(num_envs=n, error=f"not run ({PHYSX_GPU})") for n in throughput_envs]
@@ -307,8 +315,10 @@ def gpu_report(
         if name == "obs modes" and split:
             parts = [dict(base, env_id=e, obs_mode=m) for e in env_ids for m in obs_modes]
             units += [(name, "run_obs_mode_check", kw) for kw in parts]
+        elif name in programs:
+            units.append((name, PROGRAM, {}))
         else:
-            units.append((name, "run_named_check", dict(base, name=name, trainer_envs=trainer_envs)))
+            units.append((name, "run_named_check", dict(base, name=name)))
     if jobs == 1:  # in this thread: the in-process path (isolate=False) builds its envs here
         done = [one(fn, kw, name) for name, fn, kw in units]
     else:
@@ -352,9 +362,12 @@ def format_gpu_report(r: dict) -> str:
             lines.append(f"  {k[8:]:<18} {v or 'NOT INSTALLED'}")
     lines.append(f"  commit             {env.get('commit') or 'unknown'}")
     lines.append(f"  python             {env['python']} on {env['platform']}")
-    lines.append(f"checks ({r['sim_backend']}, num_envs={r['num_envs']}; trainers num_envs={r['trainer_envs']}):")
+    trainers = f"; trainers num_envs={r['trainer_envs']}" if r["trainer_envs"] is not None else ""
+    lines.append(f"checks ({r['sim_backend']}, num_envs={r['num_envs']}{trainers}):")
     for c in r["checks"]:
         lines.append(f"  {c['status']:<4}  {c['name']:<24} {c['reason']} [{c['seconds']:.0f} s]")
+    if r["trainer_envs"] is None:
+        lines.append(f"  not run here: {CHECKOUT_PROGRAMS}")
     if r["throughput"]:
         lines.append("steps/s (TableClearing-IRB120-v1, state obs, random actions, auto-reset):")
         for t in r["throughput"]:
@@ -370,8 +383,16 @@ def format_gpu_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def gpu_main(json_output: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
-    """``doctor --gpu``: 0 when every check passes, 1 when one fails, 2 without a CUDA device."""
+def gpu_main(
+    json_output: bool = False,
+    json_path: str | None = None,
+    jobs: int = 1,
+    programs: Mapping[str, Callable[..., tuple[bool | None, str]]] | None = None,
+    trainer_envs: int = 64,
+    commit: str | None = None,
+) -> int:
+    """``doctor --gpu``: 0 when every check passes, 1 when one fails, 2 without a CUDA device. ``programs``,
+    ``trainer_envs``, ``commit``: as :func:`gpu_report` (a source checkout's ``benchmarks/gpu_acceptance.py``)."""
     import json
     import sys
 
@@ -380,7 +401,8 @@ def gpu_main(json_output: bool = False, json_path: str | None = None, jobs: int 
     if not torch.cuda.is_available():
         print(NO_CUDA, file=sys.stderr)
         return 2
-    r = gpu_report(say=lambda line: print(line, file=sys.stderr, flush=True), jobs=jobs)
+    say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    r = gpu_report(say=say, jobs=jobs, programs=programs, trainer_envs=trainer_envs, commit=commit)
     print(json.dumps(r, indent=2) if json_output else format_gpu_report(r))
     if json_path:
         _write_json(json_path, r)

@@ -9,10 +9,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from agents.common import RunArgs, run
-from agents.common.run import Clock, checkpoint, held_out_evaluation, open_run, restore
+from agents.common.run import (
+    Clock,
+    check_resume_signature,
+    checkpoint,
+    close_and_save,
+    held_out_evaluation,
+    open_run,
+    restore,
+)
 
 
 @dataclass
@@ -60,6 +69,42 @@ def test_a_checkpoint_carries_counters_rng_and_flags_and_restore_continues_the_r
     assert torch.equal(torch.rand(3), expected)
     assert counters == dict(wall_s=12.5, env_steps=4) and counters is not ckpt["counters"]
     assert (ckpt["format"], ckpt["model"], ckpt["args"]["seed"]) == ("fmt/1", {"w": 1}, 3)
+    clock = Clock()  # a trainer's clock starts before it reads what it resumes
+    restore(ckpt, clock)
+    assert 12.5 <= clock() < 17.5
+
+
+def test_a_resume_of_other_networks_is_refused_naming_both():
+    saved = dict(signature=dict(state_dim=3, image=False))
+    check_resume_signature(saved, dict(state_dim=3, image=False), Path("r/latest.pt"))
+    with pytest.raises(ValueError) as e:
+        check_resume_signature(saved, dict(state_dim=4, image=False), Path("r/latest.pt"))
+    assert str(e.value) == (
+        "--resume r/latest.pt: checkpoint {'state_dim': 3, 'image': False} != this run {'state_dim': 4, 'image': False}"
+    )
+
+
+def test_however_training_ends_the_envs_close_and_the_last_checkpoint_has_the_clock():
+    events, saved = [], []
+
+    class Closes:
+        def __init__(self, name):
+            self.name = name
+
+        def close(self):
+            events.append(self.name)
+
+    counters = dict(env_steps=8, wall_s=0.0)
+    try:
+        try:
+            raise KeyboardInterrupt  # Ctrl-C in the training loop
+        finally:
+            close_and_save(Closes("bar"), Closes("envs"), counters, Clock(before=30.0), saved.append)
+    except KeyboardInterrupt:
+        pass
+    assert events == ["bar", "envs"] and saved == [counters] and 30.0 <= counters["wall_s"] < 35
+    close_and_save(None, Closes("envs"), counters, Clock(), saved.append)  # no progress bar (--no-progress)
+    assert events[-1] == "envs" and len(saved) == 2
 
 
 def test_the_held_out_evaluation_uses_the_runs_task_frame_and_hidden_keys(monkeypatch):

@@ -4,8 +4,6 @@ for on hand-made batches (several envs, which the CPU cannot simulate in one pro
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import json
 import subprocess
 import sys
@@ -13,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-import tyro
 
 from maniskill_irb120.diagnostics import acceptance as A
 from maniskill_irb120.diagnostics import acceptance_runs as R
@@ -44,12 +41,6 @@ def test_randomised_frames_check_renders_the_cpu_sims_randomised_frames():
     ok, why = A.check_randomised_frames()
     assert ok, why
     assert "CPU physics, rendered on cpu" in why and A.RANDOMISED_FRAMES in why
-
-
-def test_ppo_check_runs_the_trainer_on_cpu():
-    ok, why = R.check_trainer("ppo", CPU, 1, obs="state")
-    assert ok, why
-    assert why.startswith("iterations=2")
 
 
 # --------------------------------------------------------------------------- the verdicts catch their bugs
@@ -138,65 +129,23 @@ def test_frames_verdict():
     assert "dtype torch.float32" in A.frames_verdict(rgb.float(), depth, 3)[1]
 
 
-def test_program_verdicts():
-    assert R.trainer_verdict("ppo", 0, dict(iterations=2, env_steps=32, wall_clock_s=1.0), "")[0]
-    assert R.trainer_verdict("ppo", 0, dict(iterations=1), "") == (False, "iterations=1, expected >= 2")
-    assert R.trainer_verdict("dagger", 1, None, "x\nRuntimeError: boom\n") == (
-        False,
-        "exit status 1: RuntimeError: boom",
-    )
-    assert "no result JSON" in R.trainer_verdict("sac", 0, None, "tqdm line")[1]
-    rows = [dict(num_envs=n, env_steps_per_s=100.0) for n in R.BENCH_ENVS]
-    assert R.benchmark_verdict(0, dict(gpu_scaling=rows), "")[0]
-    assert "expected (16, 64)" in R.benchmark_verdict(0, dict(gpu_scaling=rows[:1]), "")[1]
-    assert R.benchmark_verdict(1, None, "SystemExit: --gpu-only needs CUDA")[1].endswith("needs CUDA")
-
-
-# --------------------------------------------------------------------------- the programs' command lines
-@pytest.mark.parametrize("trainer", R.TRAINERS)
-def test_trainer_commands_parse_with_the_trainers_own_args(trainer, tmp_path):
-    cmd = R.trainer_command(trainer, "physx_cuda", 64, tmp_path, obs="state")
-    assert cmd[:3] == [sys.executable, "-m", f"agents.{trainer}"]
-    module = importlib.import_module(f"agents.{trainer}")
-    args = tyro.cli(module.Args, args=cmd[3:])
-    assert (args.backend, args.num_envs, args.runs_dir, args.progress) == ("gpu", 64, tmp_path, False)
-    if trainer == "ppo":
-        assert args.total_timesteps // args.batch_size == 2
-        assert args.state_net == "mlp" and args.obs_norm  # the from-the-reward recipe's network, on the GPU
-    with pytest.raises(ValueError, match="unknown trainer 'td3'"):
-        R.trainer_command("td3", "physx_cuda", 1, tmp_path)
-
-
-def test_benchmark_command_parses_with_the_benchmarks_args(tmp_path):
-    cmd = R.benchmark_command(tmp_path / "g.json")
-    spec = importlib.util.spec_from_file_location("sim_speed_cmd", REPO / cmd[1])
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up while the file executes
-    sys.path.insert(0, str(REPO / "benchmarks"))  # sim_speed imports its sibling pybullet_original
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
-    args = tyro.cli(mod.Args, args=cmd[2:])
-    assert args.gpu_only and args.gpu_num_envs == R.BENCH_ENVS and args.json == tmp_path / "g.json"
-    assert R.source_checkout() == REPO
-
-
 # --------------------------------------------------------------------------- the doctor's report
 def test_report_on_cpu_lists_each_check_and_the_steps():
     r = gpu_report(
         CPU,
         num_envs=1,
         trainer_envs=1,
-        checks=("controller targets", "sim_speed.py --gpu-only"),
+        checks=("controller targets",),
         throughput_envs=(1,),
         throughput_steps=3,
         isolate=False,
     )
     text = format_gpu_report(r)
     assert r["ok"] and json.loads(json.dumps(r)) == r
-    assert "  PASS  controller targets " in text and "  SKIP  sim_speed.py --gpu-only  the GPU sweep needs" in text
-    assert "num_envs=1" in text and "env steps/s" in text
+    assert "  PASS  controller targets " in text and "num_envs=1" in text and "env steps/s" in text
+    # the package's report runs no program of a checkout, and says where they are
+    assert r["trainer_envs"] is None and "trainers num_envs" not in text
+    assert "benchmarks/gpu_acceptance.py runs this report with them added" in text
     for field in ("device ", "driver ", "CUDA (torch build)", "torch ", "sapien ", "mani-skill ", "commit "):
         assert f"  {field}" in text, field
     assert text.splitlines()[-1] == "VERDICT: PASS - every check passed on physx_cpu"
@@ -245,11 +194,40 @@ def test_merged_parts_fail_naming_each_failed_part():
     assert R.merge_parts("x", [skip, ok], 1.0)["status"] == "PASS"
 
 
-def test_the_camera_recipe_is_a_check_of_its_own(tmp_path):
-    assert R.CAMERA_DAGGER in R.CHECK_NAMES
-    cmd = R.trainer_command("dagger", "physx_cuda", R.CAMERA_DAGGER_ENVS, tmp_path, obs="rgbd")
-    args = tyro.cli(importlib.import_module("agents.dagger").Args, args=cmd[3:])
-    assert (args.obs, args.encoder, args.precision, args.num_envs) == ("rgbd", "keypoints", "auto", 8)
+def _fake_programs(ran: list):
+    def ok(sim_backend, num_envs):
+        ran.append(("ok", sim_backend, num_envs))
+        return True, f"ran on {sim_backend} at {num_envs} envs"
+
+    def crash(sim_backend, num_envs):
+        raise RuntimeError("the program exited 134")
+
+    return {"fake ok": ok, "fake crash": crash}
+
+
+def test_a_checkouts_programs_join_the_report_after_the_packages_checks():
+    """benchmarks/gpu_acceptance.py's way in: its programs run at trainer_envs, in report order, an exception is
+    their FAIL, and the report names the checkout's commit"""
+    ran: list = []
+    programs = _fake_programs(ran)
+    r = gpu_report(
+        CPU,
+        num_envs=1,
+        trainer_envs=3,
+        checks=("fake ok", "fake crash"),
+        throughput_envs=(),
+        programs=programs,
+        commit="abc1234",
+    )
+    assert ran == [("ok", CPU, 3)] and r["trainer_envs"] == 3 and r["environment"]["commit"] == "abc1234"
+    assert [(c["name"], c["status"]) for c in r["checks"]] == [("fake ok", "PASS"), ("fake crash", "FAIL")]
+    assert r["checks"][1]["reason"] == "RuntimeError: the program exited 134" and not r["ok"]
+    text = format_gpu_report(r)
+    assert "trainers num_envs=3" in text and "not run here" not in text and "  commit             abc1234" in text
+    with pytest.raises(ValueError, match=r"programs \['contacts'\] have the names of the package's own checks"):
+        gpu_report(CPU, programs={"contacts": programs["fake ok"]})
+    with pytest.raises(ValueError, match="unknown checks \\['agents.ppo'\\]"):
+        gpu_report(CPU, checks=("agents.ppo",))  # the trainers are the checkout's, not the package's
 
 
 def test_without_physx_gpu_library_the_check_names_the_file_and_the_fix(monkeypatch):
@@ -272,8 +250,10 @@ def test_without_physx_gpu_library_the_check_names_the_file_and_the_fix(monkeypa
 def test_report_stops_at_a_missing_physx_gpu_library(monkeypatch):
     """one FAIL that says why and the rest SKIP, in seconds, instead of every check failing alike"""
     monkeypatch.setattr(R, "check_physx_gpu", lambda sim_backend: (False, "libPhysXGpu_64.so is missing"))
-    r = gpu_report(CPU, num_envs=1, throughput_envs=(512,), isolate=False)
-    assert not r["ok"] and [c["name"] for c in r["checks"]] == list(R.CHECK_NAMES)
+    ran: list = []
+    r = gpu_report(CPU, num_envs=1, throughput_envs=(512,), isolate=False, programs=_fake_programs(ran))
+    assert not r["ok"] and [c["name"] for c in r["checks"]] == [*R.CHECK_NAMES, "fake ok", "fake crash"]
+    assert ran == []  # a checkout's programs skip too
     status = {c["name"]: c["status"] for c in r["checks"]}
     assert status.pop("physx gpu library") == "FAIL" and status.pop(R.RANDOMISED_FRAMES) == "PASS"  # needs no PhysX GPU
     assert set(status.values()) == {"SKIP"}
