@@ -39,6 +39,14 @@ def run_batched(fn, consts, *tensors: torch.Tensor):
     return fn(torch, consts(torch, like), *tensors)
 
 
+def columns(xp, arrays):
+    """``xp.stack(arrays, 1)`` for (N,) arrays, the same numbers: numpy's ``stack`` is a Python function costing
+    several microseconds at N = 1, its ``concatenate`` one call."""
+    if xp is np:
+        return np.concatenate([a[:, None] for a in arrays], 1)
+    return torch.stack(arrays, 1)
+
+
 def backend_consts(cache: dict, xp, like, build) -> SimpleNamespace:
     """Constants for one backend, built once per (module, dtype, device) and cached in ``cache``:
     ``build(conv)`` gets ``conv(tensor)``, which returns that tensor as an ``xp`` array like ``like``."""
@@ -292,7 +300,7 @@ class SphericalWristIK:
         # remaining rotation R_36 = R_3^T R_6 with R_3 = Rz(q1) Ry(q2 + q3) and R_6 = R_tip R_to^T
         c1, s1, c23, s23 = xp.cos(q1), xp.sin(q1), xp.cos(q2 + q3), xp.sin(q2 + q3)
         # rows of R_3^T: (c1 c23, s1 c23, -s23), (-s1, c1, 0), (c1 s23, s1 s23, c23)
-        r3t = xp.stack([c1 * c23, s1 * c23, -s23, -s1, c1, 0 * c1, c1 * s23, s1 * s23, c23], 1).reshape(-1, 3, 3)
+        r3t = columns(xp, [c1 * c23, s1 * c23, -s23, -s1, c1, 0 * c1, c1 * s23, s1 * s23, c23]).reshape(-1, 3, 3)
         m = r3t @ rot @ c.r_to_t
         # two wrist solutions: q5 >= 0 and its flip (q4 + pi, -q5, q6 + pi); take the one nearer q0, so that
         # passing through the wrist singularity (q5 = 0) moves q5 through zero instead of turning q4 and
@@ -303,13 +311,13 @@ class SphericalWristIK:
         q5 = xp.atan2(sb, m[:, 0, 0])
         q6 = xp.where(singular, xp.atan2(m[:, 2, 1], m[:, 1, 1]) - q0[:, 3], xp.atan2(m[:, 0, 1], m[:, 0, 2]))
         half = xp.where(singular, 0 * q4, xp.where(q4 > 0, -math.pi + 0 * q4, math.pi + 0 * q4))
-        wq = xp.stack([xp.stack([q4, q5, q6], 1), xp.stack([q4 + half, -q5, q6 - half], 1)], 1)  # (N, 2, 3)
+        wq = columns(xp, [q4, q5, q6, q4 + half, -q5, q6 - half]).reshape(-1, 2, 3)  # (N, 2, 3)
         wq6 = wq[:, :, 2] + 2 * math.pi * xp.round((q0[:, 5:6] - wq[:, :, 2]) / (2 * math.pi))  # turn nearest q0
         wq = xp.concatenate([wq[:, :, :2], wq6[:, :, None]], 2)
         out = ((wq < c.lower[3:]) | (wq > c.upper[3:])).any(2)
         cost = xp.abs(wq - q0[:, None, 3:]).sum(2) + 100.0 * out
         best = xp.where((cost[:, 1] < cost[:, 0])[:, None], wq[:, 1], wq[:, 0])
-        q = xp.concatenate([xp.stack([q1, q2, q3], 1), best], 1)
+        q = xp.concatenate([columns(xp, [q1, q2, q3]), best], 1)
         ok = reachable & ((q >= c.lower) & (q <= c.upper)).all(1)
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
 
