@@ -292,7 +292,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         on a cube yawed 23-45 degrees off them, they wedge it and push on it along their closing direction too, and
         SAC from the reward alone learned to collect the grasp stage's pay that way, never closing the gripper
         (docs/notes/rl-from-the-reward.md)."""
-        squeeze = self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
+        squeeze = self.agent.is_grasping(None, finger_forces=finger_forces, tcp_quat=tcp_quat)
         return squeeze & self.agent.gripper_commanded_closed if closed else squeeze
 
     def _common_info(self, robot_hit: torch.Tensor, grasped: torch.Tensor) -> dict[str, torch.Tensor]:
