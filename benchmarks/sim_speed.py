@@ -12,6 +12,11 @@ the same seeded uniform random actions for every simulator; episodes that end ar
 
     python benchmarks/sim_speed.py                       # full run (~5 min on 2 cores)
     python benchmarks/sim_speed.py --quick --json out.json
+    python benchmarks/sim_speed.py --baseline HEAD~3      # also an earlier commit's code, in the same rounds
+
+``--baseline REF`` measures the task at another commit of this repository beside this checkout's, configuration by
+configuration in the same rounds, so that a change's speed-up is a ratio from one run rather than two runs minutes
+apart on a machine that drifts (the other commit's Python code; the robot assets are the installed ones).
 """
 
 from __future__ import annotations
@@ -21,7 +26,9 @@ import multiprocessing as mp
 import os
 import platform
 import resource
+import shlex
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +43,12 @@ from pybullet_original import random_actions  # noqa: E402  (one action policy f
 
 ENV_ID = "TableClearing-IRB120-v1"
 MODES = ("render_realtime", "render", "no_render")
+SPLIT = ("physics", "controller", "evaluate", "reward", "observation", "render")
+"""where an action's time goes: PhysX's substeps, the agent's set_action (controller and IK), the task's evaluate
+(events and reward terms), the reward, the observation's agent and extra parts (state observations included), and
+the camera frame's capture and read-back; the rest of ``env.step`` is ManiSkill's plumbing and the wrappers"""
+BASELINE_MODES = ("render", "no_render")
+"""the modes measured at the --baseline commit too (real time is paced, so it shows no code's speed)"""
 
 
 def summarize(times) -> dict:
@@ -93,9 +106,13 @@ def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int
     u = env.unwrapped
     env.reset(seed=seed)
     make_s = time.perf_counter() - t_make
-    acc = dict(physics=0.0, controller=0.0, render=0.0)
+    acc = dict.fromkeys(SPLIT, 0.0)
     _timed(u.scene, "step", acc, "physics")
     _timed(u.agent, "set_action", acc, "controller")
+    _timed(u, "evaluate", acc, "evaluate")
+    _timed(u, "get_reward", acc, "reward")
+    _timed(u, "_get_obs_agent", acc, "observation")
+    _timed(u, "_get_obs_extra", acc, "observation")
     if obs_mode != "state":
         _timed(u, "_get_obs_sensor_data", acc, "render")
     acts = random_actions(steps + warmup, seed, env.action_space.shape[-1]).astype(np.float32)
@@ -103,7 +120,7 @@ def measure_maniskill(env_id: str, mode: str, steps: int, seed: int, warmup: int
     times, resets = [], 0
     for i, a in enumerate(acts):
         if i == warmup:
-            acc.update(physics=0.0, controller=0.0, render=0.0)
+            acc.update(dict.fromkeys(SPLIT, 0.0))
         t0 = time.perf_counter()
         _, _, term, trunc, _ = env.step(a)
         if mode == "render_realtime":  # the sim advances dt_real per action: do not run ahead of the clock
@@ -255,7 +272,9 @@ def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
     )
 
 
-def _run(conn, fn: str, kwargs: dict) -> None:
+def _run(conn, fn: str, kwargs: dict, tree: Optional[str] = None) -> None:
+    if tree is not None:  # another commit's package first on the path (imported inside the measurement)
+        sys.path.insert(0, tree)
     try:
         conn.send(("ok", globals()[fn](**kwargs)))
     except BaseException as e:  # noqa: BLE001 - reported to the parent, which re-raises
@@ -268,13 +287,14 @@ def _run(conn, fn: str, kwargs: dict) -> None:
 ISOLATE = True
 
 
-def isolated(fn: str, **kwargs) -> dict:
-    """Run one measurement in a fresh (non-daemonic: it may start workers) process."""
-    if not ISOLATE:  # --quick: one process, imports paid once
+def isolated(fn: str, tree: Optional[str] = None, **kwargs) -> dict:
+    """Run one measurement in a fresh (non-daemonic: it may start workers) process; ``tree``: a source tree whose
+    ``maniskill_irb120`` it imports instead of this checkout's (always a fresh process)."""
+    if not ISOLATE and tree is None:  # --quick: one process, imports paid once
         return globals()[fn](**kwargs)
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_run, args=(child, fn, kwargs))
+    proc = ctx.Process(target=_run, args=(child, fn, kwargs, tree))
     proc.start()
     child.close()
     try:
@@ -303,6 +323,13 @@ class Args:
     """timed batched steps per num_envs in the GPU sweep (auto-reset, fresh random actions each step)"""
     gpu_only: bool = False
     """run only the GPU sweep (skips the CPU / PyBullet suite; needs CUDA)"""
+    baseline: Optional[str] = None
+    """a git ref of this repository (e.g. main, HEAD~3, a commit): its code is measured beside this checkout's in
+    every round (modes render and no_render), and the JSON gets its rates and this code's speed-up over it"""
+    update_results: bool = False
+    """rewrite the Simulator speed section of benchmarks/RESULTS.md from this run (needs --json)"""
+    note: str = ""
+    """what else ran on the machine during the run, for the RESULTS section (a wall-clock figure needs it)"""
 
 
 def fmt_row(name: str, s: dict) -> str:
@@ -312,13 +339,17 @@ def fmt_row(name: str, s: dict) -> str:
     )
 
 
-def one_round(args: Args, steps: int) -> dict:
+def one_round(args: Args, steps: int, baseline_tree: Optional[str] = None) -> dict:
     """Every configuration once, back to back (a round); rounds are interleaved against drift."""
     rt_steps = max(10, steps // 4)
-    r: dict = dict(ours={}, pyb={})
+    r: dict = dict(ours={}, pyb={}, base={})
     for mode in MODES:
         n = rt_steps if mode == "render_realtime" else steps
         r["ours"][mode] = isolated("measure_maniskill", env_id=ENV_ID, mode=mode, steps=n, seed=args.seed)
+        if baseline_tree is not None and mode in BASELINE_MODES:
+            r["base"][mode] = isolated(
+                "measure_maniskill", tree=baseline_tree, env_id=ENV_ID, mode=mode, steps=n, seed=args.seed
+            )
         r["pyb"][mode] = isolated("measure_pybullet", mode=mode, steps=n, seed=args.seed)
     r["pick"] = isolated(
         "measure_maniskill",
@@ -346,7 +377,31 @@ def one_round(args: Args, steps: int) -> dict:
         rgbd_fraction_of_floor=rate(r["ours"]["render"]) / rate(r["floor"]),
         machine_two_process_ceiling=r["ceiling"]["speedup"],
     )
+    if r["base"]:
+        r["ratios"]["vs_baseline"] = {m: rate(r["ours"][m]) / rate(r["base"][m]) for m in r["base"]}
+        r["ratios"]["baseline_vs_pybullet_original"] = {m: rate(r["base"][m]) / rate(r["pyb"][m]) for m in r["base"]}
     return r
+
+
+def baseline_tree(ref: str, into: Path) -> str:
+    """The commit ``ref`` names, and its files (``git archive``) unpacked under ``into``; a ref git does not know is a
+    SystemExit naming it."""
+    import subprocess
+    import tarfile
+
+    root = HERE.parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--verify", f"{ref}^{{commit}}"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError) as e:
+        raise SystemExit(f"--baseline {ref!r}: not a commit of this repository ({e})") from None
+    archive = into / "tree.tar"
+    with archive.open("wb") as f:
+        subprocess.run(["git", "archive", "--format=tar", commit], cwd=root, stdout=f, check=True)
+    with tarfile.open(archive) as tar:
+        tar.extractall(into / "tree", filter="data")
+    return commit
 
 
 # ratio name -> (configuration, reference configuration) of SCALING
@@ -397,11 +452,16 @@ def main(args: Args) -> dict:
             processor=platform.processor(),
         ),
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=" ".join(sys.argv),
+        command=shlex.join(sys.argv),
+        note=args.note,
         steps=steps,
         rounds=rounds,
     )
-    runs = [one_round(args, steps) for _ in range(rounds)]
+    with tempfile.TemporaryDirectory(prefix="sim_speed_baseline_") as tmp:
+        base = None
+        if args.baseline is not None:
+            base = dict(ref=args.baseline, commit=baseline_tree(args.baseline, Path(tmp)))
+        runs = [one_round(args, steps, str(Path(tmp) / "tree") if base else None) for _ in range(rounds)]
     pooled = lambda get: [t for r in runs for t in get(r)["times"]]  # noqa: E731
     ours, pyb = {}, {}
     for mode in MODES:
@@ -445,6 +505,15 @@ def main(args: Args) -> dict:
         rgbd_fraction_of_floor=med(lambda x: x["rgbd_fraction_of_floor"]),
         machine_two_process_ceiling=med(lambda x: x["machine_two_process_ceiling"]),
     )
+    if base is not None:
+        for key in ("vs_baseline", "baseline_vs_pybullet_original"):
+            ratios[key] = {m: med(lambda x, k=key, m=m: x[k][m]) for m in BASELINE_MODES}
+        base["ours"] = {}
+        for m in BASELINE_MODES:
+            split = {
+                k: float(np.mean([r["base"][m]["split_s"].get(k, np.nan) for r in runs])) for k in SPLIT + ("python",)
+            }
+            base["ours"][m] = dict(summarize(pooled(lambda r, m=m: r["base"][m])), split_s=split)
     floor = summarize(pooled(lambda r: r["floor"]))
     import torch
 
@@ -462,6 +531,7 @@ def main(args: Args) -> dict:
         floor=floor,
         cpu_scaling=scaling,
         gpu_scaling=gpu,
+        baseline=base,
     )
     print(markdown(out))
     if args.json:
@@ -469,6 +539,12 @@ def main(args: Args) -> dict:
         args.json.write_text(json.dumps(out, indent=2))
     if args.plot:
         plot(out, args.plot)
+    if args.update_results:
+        if not args.json:
+            raise SystemExit("--update-results needs --json: the section links the JSON it came from")
+        from results_md import replace_section
+
+        replace_section(HERE / "RESULTS.md", RESULTS_HEAD, results_section(out, args.json, args.plot))
     return out
 
 
@@ -512,6 +588,12 @@ def markdown(r: dict) -> str:
     lines.append(
         f"- this machine's own ceiling for two CPU-bound processes: {r['ratios']['machine_two_process_ceiling']:.2f}x"
     )
+    if r.get("baseline"):
+        vs = r["ratios"]["vs_baseline"]
+        lines.append(
+            f"- this code vs the baseline commit {r['baseline']['commit'][:7]} ({r['baseline']['ref']}): "
+            + ", ".join(f"{m} {vs[m]:.2f}x" for m in BASELINE_MODES)
+        )
     per_round = ", ".join(f"{x['vs_pickcube_rgbd']:.2f}" for x in r["ratios_per_round"])
     lines.append(
         f"- per round, vs PickCube: {per_round}; vs PyBullet (render): "
@@ -520,18 +602,101 @@ def markdown(r: dict) -> str:
     lines += [
         "",
         "## Where an action's time goes (ManiSkill, ms per action)",
-        "| mode | physics | controller (IK) | rendering | Python/other | peak RSS (MB) |",
-        "|---|---|---|---|---|---|",
+        split_table(r),
     ]
-    for m in MODES:
-        s = r["ours"][m]["split_s"]
-        lines.append(
-            f"| {m} | {1e3 * s['physics']:.2f} | {1e3 * s['controller']:.2f} | {1e3 * s['render']:.2f} | "
-            f"{1e3 * s['python']:.2f} | {r['ours'][m]['peak_rss_mb']:.0f} |"
-        )
     if r["gpu_scaling"]:
         lines += ["", gpu_markdown(r["gpu_scaling"])]
     return "\n".join(lines)
+
+
+def split_table(r: dict) -> str:
+    """Where an action's time goes (:data:`SPLIT`), ms per action, this code's and the baseline's."""
+    cols = [*SPLIT, "python"]
+    lines = [
+        "| code | mode | " + " | ".join(c if c != "python" else "ManiSkill + wrappers" for c in cols) + " | total |",
+        "|---" * (len(cols) + 3) + "|",
+    ]
+    rows = [("this", m, r["ours"][m]) for m in MODES if m != "render_realtime"]
+    if r.get("baseline"):
+        rows += [(f"baseline `{r['baseline']['commit'][:7]}`", m, r["baseline"]["ours"][m]) for m in BASELINE_MODES]
+    for who, m, o in rows:
+        s = o["split_s"]
+        cells = " | ".join(f"{1e3 * s[c]:.2f}" if c in s and s[c] == s[c] else "" for c in cols)
+        lines.append(f"| {who} | {m} | {cells} | {1e3 * o['mean']:.2f} |")
+    return "\n".join(lines)
+
+
+RESULTS_HEAD = "## Simulator speed — `benchmarks/sim_speed.py`"
+# the targets the section checks (ratios from one run): name -> (ratio key, lowest acceptable value)
+TARGETS = {
+    "state vs the original report's PyBullet loop without a camera": (("vs_pybullet_original", "no_render"), 1.3),
+    "rgbd vs the PyBullet loop with its camera": (("vs_pybullet_original", "render"), 4.0),
+    "rgbd as a fraction of the physics + frame floor's speed": (("rgbd_fraction_of_floor",), 0.6),
+    "rgbd vs ManiSkill's PickCube-v1 at 84x84 RGB-D": (("vs_pickcube_rgbd",), 8.0),
+}
+
+
+def results_section(r: dict, json_path: Path, plot_path: Optional[Path]) -> str:
+    """The RESULTS.md section of one run: its command and machine note, the targets table, the speed-up over the
+    baseline commit (when measured), where the time goes, and the plot."""
+    rel = lambda p: os.path.relpath(Path(p).resolve(), HERE)  # noqa: E731
+    ratios = r["ratios"]
+
+    def get(keys):
+        v = ratios
+        for k in keys:
+            v = v[k]
+        return v
+
+    lines = [
+        RESULTS_HEAD,
+        "",
+        "*Generated by `benchmarks/sim_speed.py --update-results`.*",
+        "",
+        f"Command: `{r['command']}`, run {r['date']}: {r['rounds']} interleaved rounds x {r['steps']} random actions "
+        f"per configuration, each in a fresh process. Beside it: {r.get('note') or 'not recorded'}. "
+        f"Raw data: [`{rel(json_path)}`]({rel(json_path)}) (per-round ratios in `ratios_per_round`).",
+        "",
+        "| ratio (median over rounds) | this run | target | |",
+        "|---|---|---|---|",
+    ]
+    for name, (keys, target) in TARGETS.items():
+        v = get(keys)
+        shown = f"{100 * v:.0f} %" if keys == ("rgbd_fraction_of_floor",) else f"{v:.2f}x"
+        goal = f"≥ {100 * target:.0f} %" if keys == ("rgbd_fraction_of_floor",) else f"≥ {target:g}x"
+        lines.append(f"| {name} | **{shown}** | {goal} | {'met' if v >= target else 'not met'} |")
+    for mode, suffix in (("state", "_state"), ("rgbd", "")):
+        lines.append(
+            f"| {mode}: 2 envs (env 0 here, env 1 in a worker) vs 1 env here | "
+            f"{ratios['two_envs_vs_one' + suffix]:.2f}x | | |"
+        )
+    lines.append(
+        f"| this machine's ceiling: two CPU-bound processes vs one | {ratios['machine_two_process_ceiling']:.2f}x | | |"
+    )
+    rates = r["env_steps_per_s"]
+    lines += [
+        "",
+        f"One process: state {rates['no_render']:.0f} steps/s, rgbd {rates['render']:.0f} steps/s; the PyBullet loop "
+        f"{r['reference_steps_per_s']['pybullet_original']['no_render']:.0f} and "
+        f"{r['reference_steps_per_s']['pybullet_original']['render']:.0f}; the floor {r['floor']['steps_per_s']:.0f}.",
+    ]
+    if r.get("baseline"):
+        b = r["baseline"]
+        vs, bp = ratios["vs_baseline"], ratios["baseline_vs_pybullet_original"]
+        lines += [
+            "",
+            f"Against the baseline commit `{b['commit'][:7]}` (`--baseline {b['ref']}`), in the same rounds: state "
+            f"**{vs['no_render']:.2f}x** as fast (it ran {bp['no_render']:.2f}x the PyBullet loop), rgbd "
+            f"**{vs['render']:.2f}x** (it ran {bp['render']:.2f}x).",
+        ]
+    lines += ["", "Where an action's time goes, ms per action (the mean over rounds):", "", split_table(r), ""]
+    if plot_path:
+        lines.append(f"![simulator speed]({rel(plot_path)})")
+    lines.append(
+        "Why a step costs what it does, and what each optimisation gained: "
+        "[How fast is a step on 2 cores](../docs/notes/sim-speed.md)."
+    )
+    return "\n".join(lines) + "\n"
 
 
 def gpu_markdown(rows: list[dict]) -> str:

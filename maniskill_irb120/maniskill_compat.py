@@ -175,7 +175,9 @@ def raw_pose(obj) -> torch.Tensor:
     from sapien.physx import PhysxArticulationLinkComponent
 
     poses = [o.entity_pose if isinstance(o, PhysxArticulationLinkComponent) else o.pose for o in obj._objs]
-    return torch.from_numpy(np.stack([np.concatenate([p.p, p.q]) for p in poses]).astype(np.float32, copy=False))
+    return torch.from_numpy(
+        np.concatenate([np.concatenate([p.p, p.q])[None] for p in poses]).astype(np.float32, copy=False)
+    )
 
 
 def read_sensor_obs(env, apply_texture_transforms: bool = True) -> dict:

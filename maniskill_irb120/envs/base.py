@@ -182,6 +182,9 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         with torch.device(self.device):
             self.source_center = torch.tensor([*SOURCE_TRAY_XY, TRAY_FLOOR_TOP]).repeat(self.num_envs, 1)
             self._fresh = torch.ones(self.num_envs, dtype=torch.bool)
+        # host-side: no env is fresh (known without reading _fresh, which on the GPU would wait for it); then
+        # the last step's values need no select against this step's (_last)
+        self._none_fresh = False
         self._cur: dict[str, torch.Tensor] = {}
         self._prev: dict[str, torch.Tensor] = {}
 
@@ -241,6 +244,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         self.agent.robot.set_pose(sapien.Pose())
         self.agent.invalid_action[env_idx] = False
         self._fresh[env_idx] = True
+        self._none_fresh = False
         self._captured_ahead = False  # a reset's observation is always captured afresh
         self._randomize_episode(env_idx)
 
@@ -259,10 +263,13 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         """The state evaluated after the last step (or reset) becomes the reference for this step."""
         self._prev = {k: v.clone() for k, v in self._cur.items()}
         self._fresh[:] = False
+        self._none_fresh = True
         self.contacts.stepped()
 
     def _last(self, key: str, now: torch.Tensor) -> torch.Tensor:
         """The last step's value of ``key`` (``now`` itself right after a reset)."""
+        if self._none_fresh and key in self._prev:
+            return self._prev[key]
         return torch.where(self._fresh.view(-1, *[1] * (now.dim() - 1)), now, self._prev.get(key, now))
 
     def _previous(self, cur: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -285,7 +292,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         on a cube yawed 23-45 degrees off them, they wedge it and push on it along their closing direction too, and
         SAC from the reward alone learned to collect the grasp stage's pay that way, never closing the gripper
         (docs/notes/rl-from-the-reward.md)."""
-        squeeze = self.agent.is_grasping(None, finger_forces=(finger_forces[0], finger_forces[1]), tcp_quat=tcp_quat)
+        squeeze = self.agent.is_grasping(None, finger_forces=finger_forces, tcp_quat=tcp_quat)
         return squeeze & self.agent.gripper_commanded_closed if closed else squeeze
 
     def _common_info(self, robot_hit: torch.Tensor, grasped: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -446,12 +453,14 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         if memory is None:
             self.agent.set_memory(rows, None)
             self._fresh[rows] = True
+            self._none_fresh = False
             self.contacts.stepped()
             return
         # (D,) rows too: ManiSkill's CPU replay restores one env's unbatched state
         memory = {k: torch.as_tensor(v, device=self.device).reshape(len(rows), -1) for k, v in memory.items()}
         self.agent.set_memory(rows, memory)
         self._fresh[rows] = memory["fresh"][:, 0] > 0.5
+        self._none_fresh = False
         self.contacts.restore({k: memory[f"contact_{k}"] for k in ("robot_hit", "object_hit", "finger_forces")}, rows)
         if not self._cur:
             self.evaluate()
@@ -489,11 +498,24 @@ def grasp_approach_reward(
     millimetres and degrees; and the alignment times ``1 - tanh(40·|height error|)``, so descending pays only
     once aligned (descending beside the object hits it or the tray). ``obj_pose``/``tcp_pose``: (N, 7) raw;
     ``yaw_error``: their :func:`grasp_yaw_error` when the caller has it (:func:`step_grasp_yaw_error`)."""
-    grasp_point = obj_pose[:, :3].clone()
-    grasp_point[:, 2] += GRASP_POINT_OFFSET
     if yaw_error is None:
         yaw_error = grasp_yaw_error(obj_pose, tcp_pose)
+    grasp_point = obj_pose[:, :3] + up(GRASP_POINT_OFFSET, obj_pose)
     return aligned_reach_reward(grasp_point - tcp_pose[:, :3], 1 - yaw_error.abs() / (math.pi / 4))
+
+
+_UP: dict[tuple, torch.Tensor] = {}
+
+
+def up(height: float, like: torch.Tensor) -> torch.Tensor:
+    """(3,) the offset ``height`` straight up, as ``like``'s dtype and device, made once: adding it to positions is
+    one op where a copy and an in-place add to its z are three, for the same numbers."""
+    key = (height, like.dtype, like.device)
+    if key not in _UP:
+        if len(_UP) > 64:  # a size drawn anew at each build (domain randomisation) would otherwise pile up
+            _UP.clear()
+        _UP[key] = torch.tensor([0.0, 0.0, height], dtype=like.dtype, device=like.device)
+    return _UP[key]
 
 
 def aligned_reach_reward(offset: torch.Tensor, align_factor: torch.Tensor | None = None) -> torch.Tensor:

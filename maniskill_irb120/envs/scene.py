@@ -188,6 +188,10 @@ class TableScene:
         return [self.table, self.source_tray, self.dest_tray, self.ground]
 
 
+# the kinds of body :meth:`Contacts.scan` tells apart, as bits: a contact's pair of kinds is their OR
+_SCENE, _ROBOT, _FINGER, _OBJ = 1, 2, 4, 8
+
+
 class ContactFlags(NamedTuple):
     """One step's contacts (a touch is a force above CONTACT_FORCE_EPS); object j is the j-th watched object."""
 
@@ -287,37 +291,52 @@ class Contacts:
         return ContactFlags(hit[:r].any(0), obj_hit, forces[r + m * s :].view(m, 2, -1, 3))
 
     def scan(self) -> ContactFlags:
-        """CPU (one env): one pass over PhysX's contact list, same answer as :meth:`pairwise`."""
+        """CPU (one env): one pass over PhysX's contact list, same answer as :meth:`pairwise`. A contact's impulse
+        (a sum over its points, read from SAPIEN one point at a time) is summed only where it can change the answer:
+        always between a finger and an object, between the scene and a body only until that body is known to touch."""
         if self._kind is None:
-            kind = {a._bodies[0].entity: ("scene", 0) for a in self.scene_actors}
-            kind.update({link._bodies[0].entity: ("robot", 0) for link in self.robot_links})
-            kind.update({f._bodies[0].entity: ("finger", i) for i, f in enumerate(self.fingers)})
-            kind.update({o._bodies[0].entity: ("obj", j) for j, o in enumerate(self.objects)})
+            kind = {a._bodies[0].entity: (_SCENE, 0) for a in self.scene_actors}
+            kind.update({link._bodies[0].entity: (_ROBOT, 0) for link in self.robot_links})
+            kind.update({f._bodies[0].entity: (_FINGER, i) for i, f in enumerate(self.fingers)})
+            kind.update({o._bodies[0].entity: (_OBJ, j) for j, o in enumerate(self.objects)})
             self._kind = kind
         kind, m = self._kind, len(self.objects)
         dt = self.scene.px.timestep
         eps_sq = (CONTACT_FORCE_EPS * dt) ** 2
-        robot_hit, obj_hit = False, [False] * m
+        robot_hit, hits = False, np.zeros(m, dtype=bool)
         finger = np.zeros((m, 2, 3))
         for c in self.scene.px.get_contacts():
-            k0, k1 = kind.get(c.bodies[0].entity), kind.get(c.bodies[1].entity)
+            bodies = c.bodies
+            k0, k1 = kind.get(bodies[0].entity), kind.get(bodies[1].entity)
             if k0 is None or k1 is None:
                 continue
             t0, t1 = k0[0], k1[0]
-            if {t0, t1} <= {"robot", "finger"} or (t0 == t1 and t0 != "obj"):
-                continue
-            impulse = sum(p.impulse for p in c.points) if c.points else np.zeros(3)
-            if {t0, t1} == {"finger", "obj"}:  # impulse on the finger, ManiSkill's pairwise sign convention
-                if t0 == "obj":
+            pair = t0 | t1
+            if pair == _FINGER | _OBJ:  # impulse on the finger, ManiSkill's pairwise sign convention
+                points = c.points
+                impulse = sum(p.impulse for p in points) if points else np.zeros(3)
+                if t0 == _OBJ:
                     finger[k0[1], k1[1]] -= impulse
                 else:
                     finger[k1[1], k0[1]] += impulse
-            elif float(impulse @ impulse) > eps_sq and "scene" in (t0, t1):
-                other = k1 if t0 == "scene" else k0
-                if other[0] == "obj":
-                    obj_hit[other[1]] = True
-                elif other[0] in ("robot", "finger"):
-                    robot_hit = True
+            elif pair & _SCENE and pair != _SCENE:  # the scene and a body
+                other = k1 if t0 == _SCENE else k0
+                if other[0] == _OBJ:
+                    if hits[other[1]]:
+                        continue
+                elif robot_hit:
+                    continue
+                points = c.points
+                impulse = sum(p.impulse for p in points) if points else np.zeros(3)
+                if float(impulse @ impulse) > eps_sq:
+                    if other[0] == _OBJ:
+                        hits[other[1]] = True
+                    else:
+                        robot_hit = True
         dev = self.scene.device
-        forces = torch.from_numpy((finger / dt).astype(np.float32)).to(dev)[:, :, None]  # (M, 2, 1, 3)
-        return ContactFlags(torch.tensor([robot_hit], device=dev), torch.tensor(obj_hit, device=dev)[:, None], forces)
+        forces = torch.from_numpy((finger / dt).astype(np.float32))[:, :, None]  # (M, 2, 1, 3)
+        robot = torch.from_numpy(np.array([robot_hit]))
+        obj = torch.from_numpy(hits[:, None])
+        if dev.type != "cpu":
+            robot, obj, forces = robot.to(dev), obj.to(dev), forces.to(dev)
+        return ContactFlags(robot, obj, forces)

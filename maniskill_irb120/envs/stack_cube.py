@@ -14,6 +14,7 @@ from maniskill_irb120.envs.base import (
     aligned_reach_reward,
     grasp_approach_reward,
     step_grasp_yaw_error,
+    up,
 )
 from maniskill_irb120.envs.scene import TRAY_INNER
 from maniskill_irb120.maniskill_compat import raw_pose
@@ -141,6 +142,4 @@ class StackCubeIRB120Env(IRB120TableEnv):
 
 def place_on(base_pose: torch.Tensor, half_size: float) -> torch.Tensor:
     """(N, 3) where the centre of an object of ``half_size`` rests on the one at ``base_pose`` (N, 7)."""
-    goal = base_pose[:, :3].clone()
-    goal[:, 2] += 2 * half_size
-    return goal
+    return base_pose[:, :3] + up(2 * half_size, base_pose)

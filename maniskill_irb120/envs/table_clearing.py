@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from mani_skill.utils.registration import register_env
 
-from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error
+from maniskill_irb120.envs.base import IRB120TableEnv, grasp_approach_reward, reach_reward, step_grasp_yaw_error, up
 from maniskill_irb120.envs.scene import DEST_TRAY_XY, TRAY_FLOOR_TOP, TRAY_INNER, TRAY_WALL_H
 from maniskill_irb120.maniskill_compat import raw_pose
 
@@ -130,16 +130,14 @@ class TableClearingIRB120Env(IRB120TableEnv):
         )
         prev = self._previous(cur)
 
-        ones = torch.ones_like(cur["tcp_obj_dist"])
-        zeros = torch.zeros_like(ones)
+        zeros = torch.zeros_like(cur["tcp_obj_dist"])
         moved = torch.linalg.norm(obj_p - self.obj_start_pos, dim=1) >= APPROACH_MOVE_LIMIT
         closer = cur["tcp_obj_dist"] < prev["tcp_obj_dist"]
-        r_approach = torch.where(~grasped & ~moved, torch.where(closer, ones, -ones) * R_APPROACH, zeros)
         closer_dest = cur["tcp_dest_dist"] < prev["tcp_dest_dist"]
-        r_carry = torch.where(grasped, torch.where(closer_dest, ones, -ones) * R_CARRY, zeros)
         # nothing happens "during" a reset (unconditional: testing fresh.any() would wait for the GPU)
-        r_approach = torch.where(self._fresh, zeros, r_approach)
-        r_carry = torch.where(self._fresh, zeros, r_carry)
+        moving = ~self._fresh
+        r_approach = torch.where(moving & ~grasped & ~moved, torch.where(closer, R_APPROACH, -R_APPROACH), zeros)
+        r_carry = torch.where(moving & grasped, torch.where(closer_dest, R_CARRY, -R_CARRY), zeros)
         dropped = prev["grasped"] & ~grasped & ~over_dest
         return dict(
             **self._common_info(robot_hit, grasped),
@@ -153,7 +151,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
             held_closed=held_closed,
             r_approach=r_approach,
             r_carry=r_carry,
-            r_time=ones * R_TIME,
+            r_time=torch.full_like(zeros, R_TIME),
             r_collision=torch.where(robot_hit, R_COLLISION, zeros),
             r_grasp=torch.where(grasped & ~prev["grasped"], R_GRASP, zeros),
             r_drop=torch.where(dropped, R_DROP, zeros),
@@ -186,8 +184,7 @@ class TableClearingIRB120Env(IRB120TableEnv):
             self.step_state["obj_pose"], self.tcp_pose, step_grasp_yaw_error(self.step_state, "obj_pose")
         )
         lift = ((obj_p[:, 2] - self.source_center[:, 2]) / GRASP_LIFT).clamp(0, 0.999)
-        goal = self.dest_center.clone()
-        goal[:, 2] += self.object_half_size
+        goal = self.dest_center + up(self.object_half_size, obj_p)
         place = reach_reward(torch.linalg.norm(goal - obj_p, dim=1)).clamp(max=0.999)
         reward = torch.where(info["held_closed"], 1 + lift, reach)
         reward = torch.where(info["held_closed"] & info["object_lifted"], 2 + place, reward)

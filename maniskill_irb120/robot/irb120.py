@@ -165,6 +165,7 @@ class IRB120Metalwork(BaseAgent):
         m[0, 0, 1], m[2, 2, 1], m[1, 1, 1], m[3, 3, 1] = 1.0, 1.0, -1.0, -1.0  # w² + y² - x² - z²
         m[2, 3, 2], m[0, 1, 2] = 2.0, 2.0  # 2yz + 2wx
         self._opening_map = m.reshape(16, 3).to(self.device)
+        self._closing_sign = torch.tensor([[1.0], [-1.0]], device=self.device)  # left +, right - (is_grasping)
 
     # ------------------------------------------------------------------ actions
     def set_action(self, action):
@@ -180,8 +181,10 @@ class IRB120Metalwork(BaseAgent):
                 f"action has shape {tuple(action.shape)}, expected {expected} for control mode {self.control_mode!r}"
             )
         if action.device.type == "cpu":
-            if not bool(torch.isfinite(action).all()):
-                raise ValueError(f"action contains NaN or inf: {action.numpy()}")
+            # numpy where it can read the dtype: a third of torch's cost on one row
+            numpy_ok = action.dtype in (torch.float32, torch.float64)
+            if not (np.isfinite(action.detach().numpy()).all() if numpy_ok else bool(torch.isfinite(action).all())):
+                raise ValueError(f"action contains NaN or inf: {action.detach().float().numpy()}")
             self.invalid_action = torch.zeros(expected[0], dtype=torch.bool)
         else:
             action, self.invalid_action = self.hold_nonfinite(action)
@@ -249,26 +252,31 @@ class IRB120Metalwork(BaseAgent):
         object: Actor,
         min_force: float = 0.5,
         max_angle: float = 85.0,
-        finger_forces: tuple[torch.Tensor, torch.Tensor] | None = None,
+        finger_forces: tuple[torch.Tensor, torch.Tensor] | torch.Tensor | None = None,
         tcp_quat: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Both fingers push on ``object`` with at least ``min_force`` N roughly along their closing direction.
 
-        ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object``, and
+        ``finger_forces``: the (N,3) contact forces on the left and right finger from ``object`` (or both as one
+        (2, N, 3) tensor), and
         ``tcp_quat`` the (N,4) wxyz TCP orientation, when the caller already has them (a task that scans
         the contact list and reads poses once per step); else queried here.
         """
         if finger_forces is None:
-            lf = self.scene.get_pairwise_contact_forces(self.finger_left, object)
-            rf = self.scene.get_pairwise_contact_forces(self.finger_right, object)
+            finger_forces = (
+                self.scene.get_pairwise_contact_forces(self.finger_left, object),
+                self.scene.get_pairwise_contact_forces(self.finger_right, object),
+            )
+        if isinstance(finger_forces, torch.Tensor):  # (2, N, 3), as a contact scan gives them: two ops, not four
+            push = finger_forces.transpose(0, 1) * self._closing_sign
         else:
             lf, rf = finger_forces
+            push = torch.stack([lf, -rf], 1)  # (N, 2, 3): each finger's force, signed towards its closing direction
         # both fingers slide along the TCP's y axis (left opens towards +y, right towards -y): the rotation
         # matrix's second column, [2(xy - wz), 1 - 2(x² + z²), 2(yz + wx)], as one product of the
         # quaternion's outer product with a constant (this runs every step; fewer small ops is faster)
         q = self.tcp.pose.q if tcp_quat is None else tcp_quat
         opening = (q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ self._opening_map  # unit q: w²+x²+y²+z² = 1
-        push = torch.stack([lf, -rf], 1)  # (N, 2, 3): each finger's force, signed towards its closing direction
         norm = torch.linalg.vector_norm(push, dim=2)
         along = (push @ opening[:, :, None])[..., 0]
         return ((norm >= min_force) & (along >= math.cos(math.radians(max_angle)) * norm)).all(1)

@@ -39,6 +39,14 @@ def run_batched(fn, consts, *tensors: torch.Tensor):
     return fn(torch, consts(torch, like), *tensors)
 
 
+def columns(xp, arrays):
+    """``xp.stack(arrays, 1)`` for (N,) arrays, the same numbers: numpy's ``stack`` is a Python function costing
+    several microseconds at N = 1, its ``concatenate`` one call."""
+    if xp is np:
+        return np.concatenate([a[:, None] for a in arrays], 1)
+    return torch.stack(arrays, 1)
+
+
 def backend_consts(cache: dict, xp, like, build) -> SimpleNamespace:
     """Constants for one backend, built once per (module, dtype, device) and cached in ``cache``:
     ``build(conv)`` gets ``conv(tensor)``, which returns that tensor as an ``xp`` array like ``like``."""
@@ -163,6 +171,10 @@ class SerialChain:
             like,
             lambda conv: SimpleNamespace(
                 off_r=conv(self.offsets[:, :3, :3]),
+                # no joint origin rotates (the IRB 120's URDF): fk skips the product with identities
+                off_r_eye=bool(
+                    torch.equal(self.offsets[:, :3, :3], torch.eye(3).to(self.offsets).expand(self.dof, 3, 3))
+                ),
                 off_p=conv(self.offsets[:, :3, 3]),
                 K=conv(self.K),
                 K2=conv(self.K2),
@@ -180,13 +192,16 @@ class SerialChain:
     def fk(xp, c: SimpleNamespace, q):
         """Tip pose (N,4,4) for joint angles (N,dof), with ``xp`` numpy or torch."""
         s, co = xp.sin(q)[..., None, None], xp.cos(q)[..., None, None]
-        b = c.off_r @ (c.eye3 + s * c.K + (1 - co) * c.K2)  # (N, dof, 3, 3): offset then Rodrigues
+        b = c.eye3 + s * c.K + (1 - co) * c.K2  # (N, dof, 3, 3): Rodrigues
+        if not c.off_r_eye:
+            b = c.off_r @ b  # the offset first
         a, p = b[:, 0], c.off_p[0]
         for i in range(1, b.shape[1]):
             p = p + a @ c.off_p[i]
             a = a @ b[:, i]
         top = xp.concatenate([a @ c.tip_r, (p + a @ c.tip_p)[..., None]], 2)
-        return xp.concatenate([top, xp.broadcast_to(c.last_row, (top.shape[0], 1, 4))], 1)
+        last = c.last_row if top.shape[0] == 1 else xp.broadcast_to(c.last_row, (top.shape[0], 1, 4))
+        return xp.concatenate([top, last], 1)
 
     def forward_kinematics(self, q: torch.Tensor) -> torch.Tensor:
         """Tip pose (N,4,4) in the root frame (no Jacobian)."""
@@ -283,7 +298,7 @@ class SphericalWristIK:
         r, z = shoulder * rxy, w[:, 2] - c.h
         sin_b = (r * r + z * z - (a2 * a2 + L * L)) / (2 * a2 * L)
         reachable = xp.abs(sin_b) <= 1.0
-        b_principal = xp.asin(xp.clip(sin_b, -one, one))
+        b_principal = xp.asin(xp.minimum(xp.maximum(sin_b, -one), one))  # a clip (numpy's clip is slow at N = 1)
         beta = xp.where(elbow_up, b_principal, math.pi - b_principal)
         q2 = xp.atan2(r, z) - xp.atan2(L * xp.cos(beta), a2 + L * xp.sin(beta))
         q2 = xp.remainder(q2 + math.pi, 2 * math.pi) - math.pi
@@ -292,7 +307,7 @@ class SphericalWristIK:
         # remaining rotation R_36 = R_3^T R_6 with R_3 = Rz(q1) Ry(q2 + q3) and R_6 = R_tip R_to^T
         c1, s1, c23, s23 = xp.cos(q1), xp.sin(q1), xp.cos(q2 + q3), xp.sin(q2 + q3)
         # rows of R_3^T: (c1 c23, s1 c23, -s23), (-s1, c1, 0), (c1 s23, s1 s23, c23)
-        r3t = xp.stack([c1 * c23, s1 * c23, -s23, -s1, c1, 0 * c1, c1 * s23, s1 * s23, c23], 1).reshape(-1, 3, 3)
+        r3t = columns(xp, [c1 * c23, s1 * c23, -s23, -s1, c1, 0 * c1, c1 * s23, s1 * s23, c23]).reshape(-1, 3, 3)
         m = r3t @ rot @ c.r_to_t
         # two wrist solutions: q5 >= 0 and its flip (q4 + pi, -q5, q6 + pi); take the one nearer q0, so that
         # passing through the wrist singularity (q5 = 0) moves q5 through zero instead of turning q4 and
@@ -303,13 +318,14 @@ class SphericalWristIK:
         q5 = xp.atan2(sb, m[:, 0, 0])
         q6 = xp.where(singular, xp.atan2(m[:, 2, 1], m[:, 1, 1]) - q0[:, 3], xp.atan2(m[:, 0, 1], m[:, 0, 2]))
         half = xp.where(singular, 0 * q4, xp.where(q4 > 0, -math.pi + 0 * q4, math.pi + 0 * q4))
-        wq = xp.stack([xp.stack([q4, q5, q6], 1), xp.stack([q4 + half, -q5, q6 - half], 1)], 1)  # (N, 2, 3)
-        wq6 = wq[:, :, 2] + 2 * math.pi * xp.round((q0[:, 5:6] - wq[:, :, 2]) / (2 * math.pi))  # turn nearest q0
+        wq = columns(xp, [q4, q5, q6, q4 + half, -q5, q6 - half]).reshape(-1, 2, 3)  # (N, 2, 3)
+        nearest = np.rint if xp is np else torch.round  # both round half to even; rint is numpy's ufunc, round is not
+        wq6 = wq[:, :, 2] + 2 * math.pi * nearest((q0[:, 5:6] - wq[:, :, 2]) / (2 * math.pi))  # turn nearest q0
         wq = xp.concatenate([wq[:, :, :2], wq6[:, :, None]], 2)
         out = ((wq < c.lower[3:]) | (wq > c.upper[3:])).any(2)
         cost = xp.abs(wq - q0[:, None, 3:]).sum(2) + 100.0 * out
         best = xp.where((cost[:, 1] < cost[:, 0])[:, None], wq[:, 1], wq[:, 0])
-        q = xp.concatenate([xp.stack([q1, q2, q3], 1), best], 1)
+        q = xp.concatenate([columns(xp, [q1, q2, q3]), best], 1)
         ok = reachable & ((q >= c.lower) & (q <= c.upper)).all(1)
         return xp.where(ok[:, None], q, q0).astype(q0.dtype) if xp is np else xp.where(ok[:, None], q, q0), ok
 

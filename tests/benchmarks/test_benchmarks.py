@@ -15,6 +15,7 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
+IN_GIT = (REPO / ".git").exists()  # a source checkout: --baseline can name its commits
 
 
 @pytest.mark.slow
@@ -29,6 +30,7 @@ def test_sim_speed_quick_writes_json(tmp_path):
             str(out),
             "--plot",
             str(tmp_path / "p.png"),
+            *(["--baseline", "HEAD"] if IN_GIT else []),
         ],
         capture_output=True,
         text=True,
@@ -36,6 +38,14 @@ def test_sim_speed_quick_writes_json(tmp_path):
     )
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
+    if IN_GIT:  # the last commit's code measured beside this checkout's, in the same round
+        assert set(r["ratios"]["vs_baseline"]) == {"render", "no_render"}
+        assert all(v > 0 for v in r["ratios"]["vs_baseline"].values())
+        assert len(r["baseline"]["commit"]) == 40 and r["baseline"]["ours"]["no_render"]["steps_per_s"] > 0
+    section = _sim_speed_module().results_section(r, out, tmp_path / "p.png")
+    assert section.startswith("## Simulator speed — `benchmarks/sim_speed.py`")
+    assert "--quick" in section and "| state vs the original report's PyBullet loop without a camera |" in section
+    assert ("Against the baseline commit" in section) == IN_GIT and "| this | no_render |" in section
     for mode in ("render_realtime", "render", "no_render"):
         assert r["env_steps_per_s"][mode] > 0
         assert r["reference_steps_per_s"]["pybullet_original"][mode] > 0
@@ -345,6 +355,15 @@ def _bench_module(name: str):
 
 def _sim_speed_module():
     return _bench_module("sim_speed")
+
+
+def test_sim_speed_baseline_names_a_commit_or_refuses(tmp_path):
+    mod = _sim_speed_module()
+    with pytest.raises(SystemExit, match="not-a-ref"):
+        mod.baseline_tree("not-a-ref", tmp_path)
+    if IN_GIT:
+        commit = mod.baseline_tree("HEAD", tmp_path)
+        assert len(commit) == 40 and (tmp_path / "tree" / "maniskill_irb120" / "envs" / "base.py").is_file()
 
 
 def test_floor_times_physics_substeps_and_one_rgbd_frame():
