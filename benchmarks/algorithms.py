@@ -23,6 +23,7 @@ starts no cell that would end after it.
     python benchmarks/algorithms.py --update-results                          # every cell (resumes)
     python benchmarks/algorithms.py --only 'state/GraspLift/*' --stop-after-min 170 --update-results
     python benchmarks/algorithms.py --quick --out-dir /tmp/alg --only state/GraspLift/sb3-ppo/s1   # smoke run
+    python benchmarks/algorithms.py --render-only   # the section again from algorithms.json, no cell run
 """
 
 from __future__ import annotations
@@ -143,6 +144,8 @@ class Args:
     """start no cell whose budget would end after this many minutes of this run (one session's length)"""
     update_results: bool = False
     """rewrite this table's section of --results-md"""
+    render_only: bool = False
+    """run no cell: rewrite this table's section of --results-md from algorithms.json in --out-dir"""
     results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
     quick: bool = False
     """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples"""
@@ -575,6 +578,11 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
 
 
 def main(args: Args) -> dict:
+    if args.render_only:
+        json_path = args.out_dir / "algorithms.json"
+        report = json.loads(json_path.read_text())
+        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
+        return report
     if args.quick:
         args.budget_min = args.budget_min if args.budget_min is not None else 0.05
         args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)

@@ -12,6 +12,7 @@ recorded, in three configurations run in interleaved rounds so the ratios come f
     python benchmarks/learner_speed.py                     # ~2 min on 2 cores
     python benchmarks/learner_speed.py --quick --json /tmp/l.json
     python benchmarks/learner_speed.py --update-results    # also rewrites its section of RESULTS.md
+    python benchmarks/learner_speed.py --render-only       # rewrites the section from --json, measuring nothing
     python benchmarks/learner_speed.py --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md, "GPU")
 """
 
@@ -34,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from results_md import replace_section  # noqa: E402
+from results_md import RESULTS, raw_link, replace_section  # noqa: E402
 
 HEAD = "## Camera learner update — `benchmarks/learner_speed.py`"
 RECIPE = (
@@ -56,6 +57,8 @@ class Args:
     json: Path = ROOT / "benchmarks" / "results" / "learner_speed.json"
     update_results: bool = False
     """rewrite this benchmark's section of benchmarks/RESULTS.md (CPU figures only)"""
+    render_only: bool = False
+    """measure nothing: rewrite the section of benchmarks/RESULTS.md from the JSON at --json"""
     device: str = "cpu"
     """where the updates run (``cuda``: the frames are recorded on the CPU envs as always, then the network,
     its optimiser and each minibatch live on the GPU)"""
@@ -94,6 +97,9 @@ def record(args: Args):
 
 
 def main(args: Args) -> dict:
+    if args.render_only:
+        update_results(args.json)
+        return json.loads(args.json.read_text())
     import agents.dagger as dagger
     from agents.common.precision import native_bf16
 
@@ -152,7 +158,7 @@ def main(args: Args) -> dict:
     table = markdown(rows)
     print(table)
     if args.update_results:
-        update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")
+        update_results(args.json)
     return report
 
 
@@ -167,17 +173,24 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def update_results(report: dict, table: str, results: Path) -> None:
-    """Replace this benchmark's section of RESULTS.md (up to the next ``## ``) with this run's."""
-    section = (
+def section(report: dict, json_path: Path) -> str:
+    """This benchmark's section of RESULTS.md, from its JSON (at ``json_path``, which it links) alone."""
+    if report.get("device", "cpu") != "cpu":
+        raise ValueError(f"the section holds CPU figures; this JSON's are {report['device']}'s (RESULTS.md, GPU)")
+    table = markdown(report["rows"])
+    return (
         f"{HEAD}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}; torch "
         f"{report['versions']['torch']}; {report['wall_min']:.1f} min). One update of the camera DAgger recipe "
         f"(`{report['recipe']}`): `agents.dagger.train_round` on {report['dataset']} frames the noisy expert "
         "recorded, the configurations in interleaved rounds. Raw data: "
-        "[`results/learner_speed.json`](results/learner_speed.json).\n\n"
+        f"{raw_link(json_path)}.\n\n"
         f"{table}\n\n"
     )
-    replace_section(results, HEAD, section)
+
+
+def update_results(json_path: Path, results: Path = RESULTS) -> None:
+    """Rewrite this benchmark's section of ``results`` from the JSON at ``json_path``."""
+    replace_section(results, HEAD, section(json.loads(json_path.read_text()), json_path))
 
 
 if __name__ == "__main__":

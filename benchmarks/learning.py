@@ -28,7 +28,7 @@ sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd a
 TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``). The recipes, their budgets and TASK_FLAGS live in
 ``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer started
 by hand with the same recipe get the same flags. ``--update-results`` rewrites the Learning section
-of benchmarks/RESULTS.md.
+of benchmarks/RESULTS.md; ``--render-only`` rewrites it from the task's committed learning.json, training nothing.
 """
 
 from __future__ import annotations
@@ -142,6 +142,8 @@ class Args:
     run, in the same order"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
+    render_only: bool = False
+    """train nothing: rewrite the task's Learning section of benchmarks/RESULTS.md from learning.json in --out-dir"""
     quick: bool = False
     """smoke run: dagger-state, ppo-state, ppo-finetune-state and sac-scratch-state, one seed, toy sizes, 2 evaluation
     episodes"""
@@ -508,6 +510,10 @@ def update_results(report: dict, table: str, results: Path) -> None:
 
 
 def main(args: Args) -> dict:
+    if args.render_only:
+        report = json.loads(((args.out_dir or default_out_dir(args.env_id)) / "learning.json").read_text())
+        update_results(report, markdown(report["rows"]), ROOT / "benchmarks" / "RESULTS.md")
+        return report
     unknown = set(args.recipes) - set(RECIPES)
     if unknown:
         raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")

@@ -1,8 +1,17 @@
-"""The one way a benchmark rewrites its own section of benchmarks/RESULTS.md (hand-written sections stay)."""
+"""The one way a benchmark rewrites its own section of benchmarks/RESULTS.md (hand-written sections stay).
+
+A benchmark renders its section from its JSON alone, so the page shows exactly what the JSON says: after a run
+(``--update-results``) and again from the committed JSON without measuring anything (``--render-only``), and a
+test renders it once more and compares it with the page.
+"""
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "RESULTS.md"
 
 
 def replace_section(results: Path, head: str, section: str) -> None:
@@ -15,3 +24,34 @@ def replace_section(results: Path, head: str, section: str) -> None:
         end = text.find("\n## ", start + len(head))
         text = text[:start] + section + (text[end + 1 :] if end >= 0 else "")
     results.write_text(text)
+
+
+def read_section(results: Path, head: str) -> str | None:
+    """The section that starts with ``head``, as ``replace_section`` would replace it (None if absent)."""
+    text = results.read_text()
+    start = text.find(head)
+    if start < 0:
+        return None
+    end = text.find("\n## ", start + len(head))
+    return text[start : end + 1 if end >= 0 else len(text)]
+
+
+def raw_link(path: Path | str) -> str:
+    """A markdown link to a file the section shows, relative to RESULTS.md where it lies inside the repository."""
+    path = Path(path)
+    path = (path if path.is_absolute() else ROOT / path).resolve()
+    try:
+        rel = path.relative_to((ROOT / "benchmarks").resolve()).as_posix()
+    except ValueError:  # a JSON written outside the repository is linked where it lies
+        rel = path.as_posix()
+    return f"[`{rel}`]({rel})"
+
+
+def recorded_command(command: str) -> str:
+    """A JSON's recorded command as it is typed: scripts that stored ``sys.argv`` joined start at the script."""
+    return command if command.split(" ", 1)[0].endswith(("python", "python3")) else f"python {command}"
+
+
+def argv_command(script: str, argv: list[str]) -> str:
+    """The command to store in a benchmark's JSON: quoted as a shell reads it, so the page's copy runs as shown."""
+    return "python " + shlex.join([script, *argv])

@@ -12,6 +12,7 @@ turns with both kept running (the grid above runs minutes apart; these machines 
     python benchmarks/rllib_speed.py                      # ~6 min on 2 cores
     python benchmarks/rllib_speed.py --quick --json /tmp/r.json
     python benchmarks/rllib_speed.py --update-results     # also rewrites its section of RESULTS.md
+    python benchmarks/rllib_speed.py --render-only        # rewrites the section from --json, measuring nothing
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from results_md import replace_section  # noqa: E402
+from results_md import RESULTS, raw_link, replace_section  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
 HEAD = "## Ray RLlib against our trainer — `benchmarks/rllib_speed.py`"
@@ -59,6 +60,8 @@ class Args:
     json: Path = ROOT / "benchmarks" / "results" / "rllib_speed.json"
     update_results: bool = False
     """rewrite this benchmark's section of benchmarks/RESULTS.md"""
+    render_only: bool = False
+    """measure nothing: rewrite the section of benchmarks/RESULTS.md from the JSON at --json"""
 
 
 def rss_mb(pid: Optional[int] = None) -> float:
@@ -257,6 +260,9 @@ def markdown(rows: list[dict], pair: dict) -> str:
 
 
 def main(args: Args) -> dict:
+    if args.render_only:
+        update_results(args.json)
+        return json.loads(args.json.read_text())
     import ray
 
     from agents.rllib.env import register
@@ -300,22 +306,27 @@ def main(args: Args) -> dict:
     table = markdown(rows, pair)
     print(table)
     if args.update_results:
-        update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")
+        update_results(args.json)
     return report
 
 
-def update_results(report: dict, table: str, results: Path) -> None:
-    """Replace this benchmark's section of RESULTS.md (up to the next ``## ``) with this run's."""
+def section(report: dict, json_path: Path) -> str:
+    """This benchmark's section of RESULTS.md, from its JSON (at ``json_path``, which it links) alone."""
     v = report["versions"]
-    section = (
+    table = markdown(report["rows"], report["paired"])
+    return (
         f"{HEAD}\n\nCommand: `{report['command']}` ({report['date']}, {report['machine']}; ray {v['ray']}, "
         f"gymnasium {v['gymnasium']}, torch {v['torch']}, mani_skill {v['mani_skill']}; {report['wall_min']:.1f} min). "
         "State observations, PPO, random initial weights; *sampled* = every runner's `sample()` in parallel, "
         "*trained* = whole training iterations (sampling + update) after a warm-up iteration. Raw data: "
-        "[`results/rllib_speed.json`](results/rllib_speed.json).\n\n"
+        f"{raw_link(json_path)}.\n\n"
         f"{table}\n\n"
     )
-    replace_section(results, HEAD, section)
+
+
+def update_results(json_path: Path, results: Path = RESULTS) -> None:
+    """Rewrite this benchmark's section of ``results`` from the JSON at ``json_path``."""
+    replace_section(results, HEAD, section(json.loads(json_path.read_text()), json_path))
 
 
 if __name__ == "__main__":

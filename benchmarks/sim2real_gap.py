@@ -20,6 +20,15 @@ from the trained mount a camera may sit before the policy fails.
 ``--workers N`` runs N cells at once, each in its own process with its own emulator (one torch thread each on a
 2-core machine). A real step ends when the robot stands at its target, so a busy machine makes the cells
 slower, not different; the round-trip column, a time, is then the loaded machine's.
+
+The section of benchmarks/RESULTS.md is rendered from JSON alone, a table per JSON in ``--section-json`` (the
+current figures: the expert's table and the committed policies' runs), so several runs (policies, seed ranges)
+stand side by side with their own commands: ``--update-results`` adds this run's ``--json`` to them and
+rewrites the section, ``--render-only`` rewrites it without running anything.
+
+    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --json benchmarks/results/X.json --update-results \\
+        --section-json benchmarks/results/sim2real_gap.json
+    .venv/bin/python benchmarks/sim2real_gap.py --render-only
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import json
 import multiprocessing
 import os
 import platform
+import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -37,10 +47,26 @@ from typing import Optional
 
 import tyro
 
-from maniskill_irb120.envs.randomization import Randomization
-from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift
-from maniskill_irb120.sim2real.policy import resolve_policy
-from maniskill_irb120.sim2real.report import agreement, paired_gap
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
+
+from maniskill_irb120.envs.randomization import Randomization  # noqa: E402
+from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift  # noqa: E402
+from maniskill_irb120.sim2real.policy import resolve_policy  # noqa: E402
+from maniskill_irb120.sim2real.report import agreement, paired_gap  # noqa: E402
+
+HEAD = "## Sim vs real on the emulator's digital twin — `benchmarks/sim2real_gap.py`"
+RESULTS_DIR = ROOT / "benchmarks" / "results"
+MANIFEST = RESULTS_DIR / "policies" / "MANIFEST.json"
+SECTION_JSONS = (
+    RESULTS_DIR / "sim2real_gap.json",
+    RESULTS_DIR / "sim2real_camera_dr_mount40min_nolat_s5000.json",
+    RESULTS_DIR / "sim2real_camera_dr_mount40min_nolat_s5030.json",
+)
+"""the runs RESULTS.md shows, a table each: the expert through the adapter, and the committed camera policy
+trained at the twin's measured mount without the latency range, two training seeds on two seed ranges"""
 
 SHIFTS = {
     "none": None,
@@ -125,6 +151,13 @@ class Args:
     reuse: bool = False
     """a cell whose folder under --out already holds a finished report of the same configuration (policy,
     episodes, seed, shift, camera) is read, not run again: a table that was stopped goes on where it stood"""
+    section_json: tuple[Path, ...] = SECTION_JSONS
+    """the JSONs the section of benchmarks/RESULTS.md shows, a table each (--update-results and --render-only add
+    --json where it is not among them)"""
+    update_results: bool = False
+    """after the run, rewrite the section of benchmarks/RESULTS.md from --section-json and this run's --json"""
+    render_only: bool = False
+    """run nothing: rewrite the section of benchmarks/RESULTS.md from --section-json (and --json, if named)"""
 
 
 def folder(name: str) -> str:
@@ -200,6 +233,11 @@ def _set_torch_threads(threads: int) -> None:
 
 
 def main(args: Args) -> dict:
+    if args.render_only:
+        update_results(section_jsons(args))
+        return {}
+    if args.update_results and args.json is None:
+        raise ValueError("--update-results: name the run's --json, which the section shows and links")
     args.policy = tuple(resolve_policy(p) for p in args.policy)  # short names (MANIFEST.json) become their files
     unknown = sorted(n for n in set(args.shifts) - set(SHIFTS) if JOIN not in n)
     if unknown:
@@ -229,7 +267,7 @@ def main(args: Args) -> dict:
     agree = agreement(*pairs) if len(scored) > 1 else None
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=" ".join(sys.argv),
+        command=argv_command("benchmarks/sim2real_gap.py", sys.argv[1:]),
         machine=platform.platform(),
         policy=list(args.policy),
         episodes=args.episodes,
@@ -241,26 +279,181 @@ def main(args: Args) -> dict:
     )
     print(f"policies {', '.join(args.policy)} (camera {args.camera}), {args.episodes} episodes from seed {args.seed}")
     print("the sim side: " + ("in each row's condition" if args.sim_shift else "the nominal task in every row"))
-    print(
-        "| policy | shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
-        "| round trip p50 (ms) | refused | seeds won in sim only / on the twin only (McNemar p) |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(
-            f"| {_short(r['policy'])} | {r['shift']} | {100 * r['sim_success']:.0f} % | "
-            f"{100 * r['real_success']:.0f} % | "
-            f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
-            f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} | "
-            f"{r['paired']['sim_only']} / {r['paired']['real_only']} (p {r['paired']['mcnemar_p']:.2f}) |"
-        )
+    print(markdown(out))
     if agree is not None:
-        pearson = "undefined (one side constant)" if agree["pearson"] is None else f"{agree['pearson']:.2f}"
-        print(f"sim/twin agreement over {agree['pairs']} cells: MMRV {agree['mmrv']:.3f}, Pearson r {pearson}")
+        print(agreement_line(agree))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=2))
+    if args.update_results:
+        update_results(section_jsons(args))
     return out
+
+
+# ----------------------------------------------------------------------------- the section of RESULTS.md
+def manifest_entries() -> dict[str, tuple[str, dict]]:
+    """The committed policies by file name: (short name, MANIFEST.json entry)."""
+    if not MANIFEST.is_file():
+        return {}
+    return {e["file"]: (name, e) for name, e in json.loads(MANIFEST.read_text())["policies"].items()}
+
+
+def policy_name(policy: str) -> str:
+    """A committed policy's short name (MANIFEST.json), else its run or file name, or 'expert'."""
+    entry = manifest_entries().get(Path(policy).name)
+    return entry[0] if entry else _short(policy)
+
+
+def policies_of(report: dict) -> list[str]:
+    """The policies of a run (a run recorded before several could run at once names one, as a string)."""
+    return report["policy"] if isinstance(report["policy"], list) else [report["policy"]]
+
+
+def markdown(report: dict) -> str:
+    """A run's table, a row per (policy, shift) cell."""
+    lines = [
+        "| policy | shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
+        "| round trip p50 (ms) | refused | seeds won in sim only / on the twin only (McNemar p) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in report["rows"]:
+        policy = r.get("policy", policies_of(report)[0])
+        p = r.get("paired")
+        paired = f"{p['sim_only']} / {p['real_only']} (p {p['mcnemar_p']:.2f})" if p else "–"
+        lines.append(
+            f"| {policy_name(policy)} | {r['shift']} | {100 * r['sim_success']:.0f} % | "
+            f"{100 * r['real_success']:.0f} % | "
+            f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
+            f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} | {paired} |"
+        )
+    return "\n".join(lines)
+
+
+def agreement_line(agree: dict) -> str:
+    pearson = "undefined (one side constant)" if agree["pearson"] is None else f"{agree['pearson']:.2f}"
+    return f"sim/twin agreement over {agree['pairs']} cells: MMRV {agree['mmrv']:.3f}, Pearson r {pearson}"
+
+
+def requoted(command: str) -> str:
+    """The recorded command with its ``--shifts`` quoted as typed: runs that stored ``sys.argv`` joined by spaces
+    lost the quotes around row names with spaces ("camera mount"); the words are regrouped into the longest row
+    names (and ``&`` combinations) they spell."""
+    words = shlex.split(recorded_command(command))
+    if "--shifts" not in words:
+        return shlex.join(words)
+    i = j = words.index("--shifts") + 1
+    while j < len(words) and not words[j].startswith("--"):
+        j += 1
+    names, k = [], i
+    while k < j:
+        ends = [m for m in range(j, k, -1) if " ".join(words[k:m]) in SHIFTS]
+        m = ends[0] if ends else k + 1
+        names.append(" ".join(words[k:m]))
+        k = m
+    rows: list[str] = []
+    for name in names:  # "lighting" "&" "colours/textures": one combined row
+        if rows and (name == JOIN or rows[-1].endswith(JOIN)):
+            rows[-1] = f"{rows[-1]} {name}"
+        else:
+            rows.append(name)
+    return shlex.join(words[:i] + rows + words[j:])
+
+
+def run_paragraph(report: dict, json_path: Path) -> str:
+    names = ", ".join(policy_name(p) for p in policies_of(report))
+    sim_side = (
+        "the sim side in each row's condition"
+        if report.get("sim_shift", False)  # runs recorded before the sim side could be shifted ran it nominal
+        else "the sim side the nominal task in every row"
+    )
+    expert = (
+        " The expert reads the twin's object pose (privileged state), so vision shifts cannot touch it: its rows "
+        "test the adapter path, not a vision policy's robustness."
+        if policies_of(report) == ["expert"]
+        else ""
+    )
+    agree = f"; {agreement_line(report['agreement'])}" if report.get("agreement") else ""
+    return (
+        f"Command: `{requoted(report['command'])}` ({report['date']}, {report['machine']}). "
+        f"{'Policy' if len(policies_of(report)) == 1 else 'Policies'} {names}, {report['episodes']} episodes "
+        f"from seed {report['seed']}; {sim_side}{agree}.{expert} Raw data: {raw_link(json_path)}."
+    )
+
+
+def policy_legend(reports: list[dict]) -> str:
+    """What each committed policy of the tables is (MANIFEST.json's recipe and change)."""
+    entries = manifest_entries()
+    seen = []
+    for report in reports:
+        for p in policies_of(report):
+            if Path(p).name in entries and entries[Path(p).name] not in seen:
+                seen.append(entries[Path(p).name])
+    parts = []
+    for name, e in seen:
+        mount = (
+            '; trained with the camera at the "camera mount" row\'s mount, so for it that row is the no-shift one'
+            if SHIFTS["camera mount"] in e.get("command", "")
+            else ""
+        )
+        parts.append(f"**{name}** (`{e['file']}`, recipe `{e['recipe']}`: {e['changes']}{mount})")
+    if not parts:
+        return ""
+    return "The committed policies (`benchmarks/results/policies/MANIFEST.json`): " + "; ".join(parts) + "."
+
+
+def pooled(reports: list[dict]) -> str:
+    """Successes of the cells (policy, shift) that several runs share, summed over their episodes."""
+    cells: dict[tuple[str, str], list[int]] = {}
+    for report in reports:
+        for r in report["rows"]:
+            key = (policy_name(r.get("policy", policies_of(report)[0])), r["shift"])
+            n = report["episodes"]
+            c = cells.setdefault(key, [0, 0, 0, 0])
+            c[0], c[1] = c[0] + 1, c[1] + n
+            c[2] += round(n * r["sim_success"])
+            c[3] += round(n * r["real_success"])
+    shared = {k: c for k, c in cells.items() if c[0] > 1}
+    if not shared:
+        return ""
+    lines = [
+        "Pooled over the runs above (cells of the same policy and row, on different seeds):",
+        "",
+        "| policy | shift | runs | sim successes | real successes |",
+        "|---|---|---|---|---|",
+    ]
+    for (policy, shift), (runs, n, sim, real) in shared.items():
+        lines.append(f"| {policy} | {shift} | {runs} | {sim}/{n} | {real}/{n} |")
+    return "\n".join(lines)
+
+
+def section(paths: list[Path]) -> str:
+    """This benchmark's section of RESULTS.md, from the JSONs at ``paths`` alone."""
+    reports = [json.loads(Path(p).read_text()) for p in paths]
+    parts = [
+        HEAD,
+        "`sim2real-eval` on the same seeds in the sim and on the twin, a cell per policy and row: the sim side is "
+        "`TableClearing-IRB120-v1`; the real side is `IRB120Sim2RealEnv` (ManiSkill's `Sim2RealEnv`) → `ABBRobot` "
+        "over TCP → the controller emulator running `IRB120Server.mod`, with the digital twin, shifted as the row "
+        "names (`SHIFTS` in the script), as the world. TCP dev: the mean distance between the sim's and the twin's "
+        "tool at the same step index; the last column: the seeds won on one side only, and McNemar's exact p.",
+    ]
+    for report, path in zip(reports, paths):
+        parts += [run_paragraph(report, Path(path)), markdown(report)]
+    parts += [p for p in (policy_legend(reports), pooled(reports)) if p]
+    return "\n\n".join(parts) + "\n\n"
+
+
+def section_jsons(args: Args) -> list[Path]:
+    """--section-json, and --json after them where it is not among them."""
+    paths = list(args.section_json)
+    if args.json is not None and args.json.resolve() not in {p.resolve() for p in paths}:
+        paths.append(args.json)
+    return paths
+
+
+def update_results(paths: list[Path], results: Path = RESULTS) -> None:
+    """Rewrite this benchmark's section of ``results`` from the JSONs at ``paths``."""
+    replace_section(results, HEAD, section(paths))
 
 
 def _short(policy: str) -> str:

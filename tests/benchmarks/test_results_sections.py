@@ -1,0 +1,205 @@
+"""Every generated section of benchmarks/RESULTS.md is what its benchmark renders from the committed JSON now (rerun
+the benchmark with ``--render-only`` after its JSON changes), each renderer writes its table and its command, and
+``--render-only`` measures nothing. Nothing here runs a benchmark."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+BENCH = REPO / "benchmarks"
+RESULTS = BENCH / "RESULTS.md"
+DATA = BENCH / "results"
+
+
+def bench(name: str):
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod  # dataclasses look their module up while the file executes
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(BENCH))
+    return mod
+
+
+@pytest.fixture(scope="module")
+def results_md():
+    return bench("results_md")
+
+
+def rendered(tmp_path: Path, update, *args) -> str:
+    """What ``update(*args, results=...)`` leaves in a copy of RESULTS.md."""
+    copy = tmp_path / "RESULTS.md"
+    shutil.copy(RESULTS, copy)
+    update(*args, results=copy)
+    return copy.read_text()
+
+
+# ----------------------------------------------------------------------------- each renderer writes its table
+def test_adapter_section_has_every_channel_and_the_command():
+    mod = bench("adapter_latency")
+    report = json.loads((DATA / "adapter_latency.json").read_text())
+    text = mod.section(report, DATA / "adapter_latency.json")
+    assert text.startswith(mod.HEAD + "\n\n")
+    assert f"Command: `python {report['command']}`" in text
+    for label in ("TCP loopback", "pty, no line speed", "pty paced at 115200 baud", "pty paced at 9600 baud"):
+        assert f"| {label} (emulator) |" in text
+    tcp = report["round_trip"][0]
+    assert f"| {tcp['mean_ms']:.2f} | {tcp['p50_ms']:.2f} |" in text
+    assert "[`results/adapter_latency.json`](results/adapter_latency.json)" in text
+    assert "49.0 ms at 9600 baud" in text
+
+
+def test_sysid_section_has_every_case_and_the_command():
+    mod = bench("sysid_recovery")
+    report = json.loads((DATA / "sysid_recovery.json").read_text())
+    text = mod.section(report, DATA / "sysid_recovery.json")
+    assert f"Command: `python {report['command']}`" in text
+    rows = [line for line in text.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    assert len(rows) == len(mod.CASES) == len(report["rows"])
+    assert rows[0].startswith("| 0 | 0.0 ± ")  # the no-injection case is the emulator's own latency, by definition
+    assert f"{1000 * report['own_latency_s']:.1f} ms here" in text
+
+
+def test_sim2real_section_has_a_table_per_run_and_pools_shared_cells():
+    mod = bench("sim2real_gap")
+    text = mod.section(list(mod.SECTION_JSONS))
+    assert text.count("| policy | shift | sim success |") == len(mod.SECTION_JSONS)
+    for path in mod.SECTION_JSONS:
+        assert f"[`results/{path.name}`](results/{path.name})" in text
+    assert "| expert | none | 100 % | 100 % |" in text and "test the adapter path" in text
+    # the two seed ranges of the two committed policies, pooled: 60 episodes a cell
+    assert "| camera-dr-mount-nolat | all together | 2 | 40/60 | 42/60 |" in text
+    assert "| camera-dr-mount-nolat-s43 | camera mount | 2 | 46/60 | 47/60 |" in text
+    # the recorded command lost the quotes around row names; the page's copy runs as shown
+    assert "--shifts 'camera mount' 'all together' --out" in text
+
+
+def test_sim2real_requotes_row_names_and_keeps_quoted_commands():
+    mod = bench("sim2real_gap")
+    old = "benchmarks/sim2real_gap.py --policy a.pt --shifts none camera mount x0.25 lighting & colours/textures"
+    assert mod.requoted(old + " --json x.json") == (
+        "python benchmarks/sim2real_gap.py --policy a.pt --shifts none 'camera mount x0.25' "
+        "'lighting & colours/textures' --json x.json"
+    )
+    new = "python benchmarks/sim2real_gap.py --shifts 'camera mount' 'all together, mount corrected' --episodes 3"
+    assert mod.requoted(new) == new
+    assert mod.requoted("benchmarks/sim2real_gap.py --episodes 10") == "python benchmarks/sim2real_gap.py --episodes 10"
+
+
+def test_rllib_and_learner_sections_have_their_tables_and_commands():
+    rllib = bench("rllib_speed")
+    report = json.loads((DATA / "rllib_speed.json").read_text())
+    text = rllib.section(report, DATA / "rllib_speed.json")
+    assert f"Command: `{report['command']}`" in text and text.count("| rllib PPO |") == 6
+    learner = bench("learner_speed")
+    report = json.loads((DATA / "learner_speed.json").read_text())
+    text = learner.section(report, DATA / "learner_speed.json")
+    assert f"Command: `{report['command']}`" in text and "| bf16 encoder |" in text
+    gpu = json.loads((DATA / "learner_speed_h200_cuda.json").read_text())
+    with pytest.raises(ValueError, match="CPU figures"):  # a GPU run has its own section, kept apart
+        learner.section(gpu, DATA / "learner_speed_h200_cuda.json")
+
+
+# ----------------------------------------------------------------------------- RESULTS.md is what they render
+@pytest.mark.parametrize(
+    "name, args",
+    [
+        ("adapter_latency", (DATA / "adapter_latency.json",)),
+        ("sysid_recovery", (DATA / "sysid_recovery.json",)),
+        ("rllib_speed", (DATA / "rllib_speed.json",)),
+        ("learner_speed", (DATA / "learner_speed.json",)),
+        ("sim2real_gap", None),
+    ],
+)
+def test_results_md_section_is_what_the_benchmark_renders(name, args, tmp_path, results_md):
+    mod = bench(name)
+    args = args or (list(mod.SECTION_JSONS),)
+    assert rendered(tmp_path, mod.update_results, *args) == RESULTS.read_text(), (
+        f"benchmarks/RESULTS.md's section {mod.HEAD!r} is not what the JSON renders: "
+        f"python benchmarks/{name}.py --render-only"
+    )
+    assert results_md.read_section(RESULTS, mod.HEAD) is not None
+
+
+@pytest.mark.parametrize("env_id", ["TableClearing-IRB120-v1", "GraspLift-IRB120-v1", "StackCube-IRB120-v1"])
+def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path):
+    learning = bench("learning")
+    report = json.loads((learning.ROOT / learning.default_out_dir(env_id) / "learning.json").read_text())
+    update = lambda results: learning.update_results(report, learning.markdown(report["rows"]), results)
+    assert rendered(tmp_path, update) == RESULTS.read_text(), (
+        f"python benchmarks/learning.py --render-only --env-id {env_id}"
+    )
+
+
+def test_no_issue_numbers_in_the_generated_sections(results_md):
+    heads = [
+        bench(n).HEAD for n in ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed")
+    ]
+    for head in heads:
+        assert "issue" not in results_md.read_section(RESULTS, head).lower(), head
+
+
+# ----------------------------------------------------------------------------- --render-only measures nothing
+@pytest.mark.parametrize("name", ["adapter_latency", "sysid_recovery"])
+def test_render_only_reads_the_committed_json_and_measures_nothing(name, monkeypatch):
+    mod = bench(name)
+    written = []
+    monkeypatch.setattr(mod, "update_results", lambda path: written.append(path))
+    for runner in ("measure", "run"):  # adapter_latency's and sysid_recovery's measurement
+        if hasattr(mod, runner):
+            monkeypatch.setattr(mod, runner, lambda *a, **k: pytest.fail("--render-only measured"))
+    report = mod.main(mod.Args(render_only=True))
+    assert written == [mod.RESULTS_JSON] and report == json.loads(mod.RESULTS_JSON.read_text())
+
+
+def test_sim2real_render_only_runs_no_cell_and_adds_json(monkeypatch, tmp_path):
+    mod = bench("sim2real_gap")
+    written = []
+    monkeypatch.setattr(mod, "update_results", lambda paths: written.append(paths))
+    monkeypatch.setattr(mod, "evaluate", lambda cfg: pytest.fail("--render-only ran a cell"))
+    mod.main(mod.Args(render_only=True))
+    extra = tmp_path / "new.json"
+    mod.main(mod.Args(render_only=True, json=extra))
+    mod.main(mod.Args(render_only=True, json=mod.SECTION_JSONS[0]))  # already shown: not twice
+    assert written == [list(mod.SECTION_JSONS), [*mod.SECTION_JSONS, extra], list(mod.SECTION_JSONS)]
+    with pytest.raises(ValueError, match="name the run's --json"):
+        mod.main(mod.Args(update_results=True))
+
+
+def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path):
+    """adapter_latency and sysid_recovery end to end with their measurements faked: the JSON the run writes is
+    what the section shows, with the run's command quoted as typed."""
+    adapter, sysid = bench("adapter_latency"), bench("sysid_recovery")
+    copy = tmp_path / "RESULTS.md"
+    shutil.copy(RESULTS, copy)
+    monkeypatch.setattr(sys, "argv", ["benchmarks/x.py", "--steps", "3", "--note", "two words"])
+
+    def fake_measure(channel, steps, cost_us, baud=None):
+        name = channel if baud is None else f"{channel} @ {baud} baud"
+        return dict(channel=name, statements_per_step=600.0, statement_ms_per_step=6.0, mean_ms=12.345,
+                    p50_ms=1.0, p95_ms=2.0, max_ms=3.0)  # fmt: skip
+
+    def fake_fit(latency_ms, scale, steps, seed):
+        return dict(latency_s=0.02 + latency_ms / 1000, speed_scale=scale, rms_joint_error_fit_rad=0.001,
+                    rms_joint_error_nominal_rad=0.005)  # fmt: skip
+
+    for mod, fake, name in ((adapter, fake_measure, "measure"), (sysid, fake_fit, "run")):
+        real_update = mod.update_results
+        monkeypatch.setattr(mod, name, fake)
+        monkeypatch.setattr(mod, "update_results", lambda path, real_update=real_update: real_update(path, copy))
+        out = tmp_path / f"{mod.__name__}.json"
+        mod.main(mod.Args(steps=3, json=out, update_results=True))
+        section = bench("results_md").read_section(copy, mod.HEAD)
+        assert section == mod.section(json.loads(out.read_text()), out)
+        assert f"Command: `python benchmarks/{mod.__name__}.py --steps 3 --note 'two words'`" in section
+    assert "| TCP loopback (emulator) | 600 | 6.00 | 12.35 |" in copy.read_text()
+    assert "| 40 | 40.0 ± 0.0 | 0.60 | 0.600 ± 0.000 | 1.00 / 5.00 |" in copy.read_text()
