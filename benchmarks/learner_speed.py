@@ -13,7 +13,11 @@ recorded, in three configurations run in interleaved rounds so the ratios come f
     python benchmarks/learner_speed.py --quick --json /tmp/l.json
     python benchmarks/learner_speed.py --update-results    # also rewrites its section of RESULTS.md
     python benchmarks/learner_speed.py --render-only       # rewrites the section from --json, measuring nothing
-    python benchmarks/learner_speed.py --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md, "GPU")
+    python benchmarks/learner_speed.py --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md's GPU section)
+
+A GPU run's table, beside the same machine's ``--device cpu`` run, is RESULTS.md's GPU section, which
+``benchmarks/gpu_acceptance.py --render-only`` renders (its ``LEARNER_JSONS``); this script's section holds CPU
+figures only.
 """
 
 from __future__ import annotations
@@ -107,7 +111,10 @@ def main(args: Args) -> dict:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit(f"--device {args.device}: torch.cuda.is_available() is False here")
     if dev.type != "cpu" and args.update_results:
-        raise SystemExit("--update-results writes the CPU section of RESULTS.md; record GPU figures in its GPU section")
+        raise SystemExit(
+            "--update-results writes the CPU section of RESULTS.md; a GPU run's JSON goes into its GPU section "
+            "(benchmarks/gpu_acceptance.py's LEARNER_JSONS, then gpu_acceptance.py --render-only)"
+        )
     if args.quick:
         args.updates, args.rounds, args.episodes = 3, 1, 1
     t0 = time.time()

@@ -109,6 +109,64 @@ def test_rllib_and_learner_sections_have_their_tables_and_commands():
         learner.section(gpu, DATA / "learner_speed_h200_cuda.json")
 
 
+def test_gpu_section_has_the_machine_the_checks_and_the_learner_table(results_md):
+    mod = bench("gpu_acceptance")
+    report = json.loads((DATA / "gpu_acceptance.json").read_text())
+    text = mod.section(report, DATA / "gpu_acceptance.json", [mod.LEARNER_JSONS])
+    assert text.startswith(mod.HEAD + "\n\n")
+    env = report["environment"]
+    for fact in (env["device"], f"driver {env['driver']}", f"CUDA {env['cuda_runtime']}", f"commit `{env['commit']}`",
+                 f"sapien {env['version_sapien']}", report["date"]):  # fmt: skip
+        assert fact in text.split("\n\n")[1], fact
+    for check in report["checks"]:
+        assert f"| {check['name']} | {'**FAILED**' if check['ok'] is False else 'skipped'} |" in text
+    # the failed check, in one line: the exception's repr shortened, the fix kept whole
+    assert "fetching it failed (ConnectionError …); without internet access unzip https://" in text
+    assert "linux-so.zip into /root/.sapien/physx/105.1-physx-5.3.1.patch0 |" in text
+    assert "`physx_cuda` did not start there: `physx gpu library` failed, so the other 11 checks" in text
+    assert "No steps/s were timed: at 512, 1024, 4096 envs" in text
+    # the JSON predates recorded commands: the page says so instead of inventing one
+    assert "The JSON records no command; `python benchmarks/gpu_acceptance.py --jobs 8 --json-path " in text
+    for path in (DATA / "gpu_acceptance.json", *mod.LEARNER_JSONS):
+        assert results_md.raw_link(path) in text
+        if path.name.startswith("learner"):
+            assert f"`{results_md.recorded_command(json.loads(path.read_text())['command'])}`" in text
+    assert "| fp32 | 4.9 | 22.0 | 4.5x |" in text and "| bf16 encoder | 5.3 | 12.9 | 2.5x |" in text
+    assert "median of 7 rounds" in text and "(../docs/notes/gpu-h200.md)" in text
+
+
+def test_gpu_section_of_a_passing_report_and_bad_learner_pairs(tmp_path):
+    mod = bench("gpu_acceptance")
+    report = json.loads((DATA / "gpu_acceptance.json").read_text())
+    report["command"] = "python benchmarks/gpu_acceptance.py --jobs 8 --json-path 'a b.json'"
+    report["checks"] = [dict(c, ok=True, status="PASS", reason="fine | well") for c in report["checks"]]
+    report["throughput"] = [dict(num_envs=512, env_steps_per_s=12345.6, gpu_mem_used_gb=3.21),
+                            dict(num_envs=4096, error="RuntimeError: out of memory")]  # fmt: skip
+    text = mod.section(report, tmp_path / "g.json")
+    assert f"Command: `{report['command']}`." in text and "Every check that ran passed (12 of 12; 0 skipped)" in text
+    assert "| agents.ppo | ok | fine \\| well |" in text
+    assert "| 512 | 12346 | 3.2 |" in text and "| 4096 | RuntimeError: out of memory | |" in text
+    assert "did not start" not in text and "| configuration |" not in text
+    cuda, cpu = mod.LEARNER_JSONS
+    with pytest.raises(ValueError, match="a CUDA run and a CPU run"):
+        mod.section(report, tmp_path / "g.json", [(cpu, cpu)])
+    other = tmp_path / "other_machine.json"
+    other.write_text(json.dumps(dict(json.loads(cpu.read_text()), machine="elsewhere")))
+    with pytest.raises(ValueError, match="different machines"):
+        mod.section(report, tmp_path / "g.json", [(cuda, other)])
+
+
+def test_one_line_keeps_what_to_do_and_cuts_the_rest():
+    mod = bench("gpu_acceptance")
+    assert mod.one_line("short (kept as is)\nsecond line") == "short (kept as is)"
+    nested = "x failed (OSError: " + "y" * 80 + " (inner) more); do this"
+    assert mod.one_line(nested) == "x failed (OSError …); do this"
+    assert mod.one_line("a (unclosed " + "z" * 10) == "a (unclosed " + "z" * 10
+    cut = mod.one_line("w" * 500, limit=20)
+    assert len(cut) == 20 and cut.endswith("…")
+    assert mod.one_line("a | b") == "a \\| b"
+
+
 # ----------------------------------------------------------------------------- RESULTS.md is what they render
 @pytest.mark.parametrize(
     "name, args",
@@ -117,6 +175,7 @@ def test_rllib_and_learner_sections_have_their_tables_and_commands():
         ("sysid_recovery", (DATA / "sysid_recovery.json",)),
         ("rllib_speed", (DATA / "rllib_speed.json",)),
         ("learner_speed", (DATA / "learner_speed.json",)),
+        ("gpu_acceptance", (DATA / "gpu_acceptance.json",)),
         ("sim2real_gap", None),
     ],
 )
@@ -141,9 +200,8 @@ def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path
 
 
 def test_no_issue_numbers_in_the_generated_sections(results_md):
-    heads = [
-        bench(n).HEAD for n in ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed")
-    ]
+    names = ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed", "gpu_acceptance")
+    heads = [bench(n).HEAD for n in names]
     for head in heads:
         assert "issue" not in results_md.read_section(RESULTS, head).lower(), head
 
@@ -203,3 +261,54 @@ def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path):
         assert f"Command: `python benchmarks/{mod.__name__}.py --steps 3 --note 'two words'`" in section
     assert "| TCP loopback (emulator) | 600 | 6.00 | 12.35 |" in copy.read_text()
     assert "| 40 | 40.0 ± 0.0 | 0.60 | 0.600 ± 0.000 | 1.00 / 5.00 |" in copy.read_text()
+
+
+def test_gpu_render_only_needs_no_cuda_and_runs_no_check(monkeypatch, tmp_path):
+    """``gpu_acceptance.py --render-only`` on a machine without CUDA: no check starts, the section is the
+    committed one."""
+    import torch
+
+    from maniskill_irb120.diagnostics import doctor
+
+    mod = bench("gpu_acceptance")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(doctor, "gpu_main", lambda **k: pytest.fail("--render-only ran the checks"))
+    monkeypatch.setattr(doctor, "gpu_report", lambda **k: pytest.fail("--render-only ran the checks"))
+    copy = tmp_path / "RESULTS.md"
+    shutil.copy(RESULTS, copy)
+    real_update = mod.update_results
+    written = []
+    monkeypatch.setattr(mod, "update_results", lambda path: (written.append(path), real_update(path, copy)))
+    assert mod.main(mod.Args(render_only=True)) == 0
+    assert written == [mod.RESULTS_JSON] and copy.read_text() == RESULTS.read_text()
+
+
+def test_gpu_run_with_update_results_records_its_command_and_renders_its_json(monkeypatch, tmp_path):
+    """The acceptance run with the doctor faked: the JSON it leaves carries the command as typed, and the section
+    shows that JSON, failed checks and all."""
+    from maniskill_irb120.diagnostics import doctor
+
+    mod = bench("gpu_acceptance")
+    report = json.loads((DATA / "gpu_acceptance.json").read_text())
+    report["checks"][1] = dict(report["checks"][1], ok=False, status="FAIL", reason="exit status 1: boom")
+
+    def fake_gpu_main(json_path, **kw):
+        Path(json_path).write_text(json.dumps(report))
+        return 1
+
+    monkeypatch.setattr(doctor, "gpu_main", fake_gpu_main)
+    out = tmp_path / "my report.json"
+    monkeypatch.setattr(sys, "argv", ["benchmarks/gpu_acceptance.py", "--jobs", "8", "--json-path", str(out)])
+    copy = tmp_path / "RESULTS.md"
+    shutil.copy(RESULTS, copy)
+    real_update = mod.update_results
+    monkeypatch.setattr(mod, "update_results", lambda path: real_update(path, copy))
+    assert mod.main(mod.Args(jobs=8, json_path=out, update_results=True)) == 1
+    saved = json.loads(out.read_text())
+    assert saved["command"] == f"python benchmarks/gpu_acceptance.py --jobs 8 --json-path '{out}'"
+    section = bench("results_md").read_section(copy, mod.HEAD)
+    assert section == mod.section(saved, out, [mod.LEARNER_JSONS])
+    assert (
+        f"Command: `{saved['command']}`." in section and "| obs modes | **FAILED** | exit status 1: boom |" in section
+    )
+    assert copy.read_text().count(mod.HEAD) == 1
