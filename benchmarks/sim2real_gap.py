@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
 
 from maniskill_irb120.envs.randomization import Randomization  # noqa: E402
+from maniskill_irb120.policies import read_policy_section  # noqa: E402
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift  # noqa: E402
 from maniskill_irb120.sim2real.policy import resolve_policy  # noqa: E402
 from maniskill_irb120.sim2real.report import agreement, paired_gap  # noqa: E402
@@ -137,6 +138,9 @@ class Args:
     row and the sim/twin agreement (MMRV, Pearson r) is over all (policy, shift) cells"""
     camera: str = "twin"
     """twin (the twin's render) or none (a state policy: no frames rendered for it)"""
+    env_id: Optional[str] = None
+    """the task (the twin builds the same one): by default the one each policy was trained on, and
+    TableClearing-IRB120-v1 for the expert"""
     shifts: tuple[str, ...] = ()
     """rows to run, by name (default: SHIFTS but MOUNT_ERRORS; without a camera, those of them that correct none)"""
     episodes: int = 10
@@ -172,6 +176,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
     spec = spec_of(name)
     cfg = EvalConfig(
         policy=policy,
+        env_id=task_of(policy, args),
         camera=args.camera,
         episodes=args.episodes,
         seed=args.seed,
@@ -188,6 +193,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
         t0 -= r["wall_clock_s"]
     return dict(
         policy=policy,
+        env_id=cfg.env_id,
         shift=name,
         spec=spec,
         camera_mount=MOUNTS.get(name),
@@ -203,6 +209,15 @@ def cell(policy: str, name: str, args: Args) -> dict:
         paired=paired_gap(r["per_episode"]),
         wall_s=time.time() - t0,
     )
+
+
+def task_of(policy: str, args: Args) -> str:
+    """The task a cell runs: ``--env-id``, else the policy's own (its checkpoint says which), else the expert's."""
+    if args.env_id is not None:
+        return args.env_id
+    if policy == "expert":
+        return EvalConfig.env_id
+    return read_policy_section(Path(resolve_policy(policy)), f"--policy {policy}")["env_id"]
 
 
 def _finished_report(cfg: EvalConfig) -> dict | None:

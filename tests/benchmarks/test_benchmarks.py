@@ -460,3 +460,11 @@ def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_
     assert learning.adopted_run("sac-scratch-state", trained("ok", []), args)["success_rate"] == 0.0
     with pytest.raises(ValueError, match=r"buffer_size=1000 \(the recipe's: 300000\)"):
         learning.adopted_run("sac-scratch-state", trained("small", ["--buffer-size", "1000"]), args)
+
+
+def test_sim2real_gap_runs_each_policy_on_its_own_task():
+    gap = _bench_module("sim2real_gap")
+    assert gap.task_of("expert", gap.Args()) == "TableClearing-IRB120-v1"
+    assert gap.task_of("teacher-student-grasplift-s1", gap.Args()) == "GraspLift-IRB120-v1"  # from its checkpoint
+    forced = gap.Args(env_id="StackCube-IRB120-v1")
+    assert gap.task_of("teacher-student-grasplift-s1", forced) == "StackCube-IRB120-v1"  # load_policy refuses it later
