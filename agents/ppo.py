@@ -377,15 +377,16 @@ class Rollout:
         )
         self.tracker = EpisodeTracker(N, device)
 
-    def collect(self, agent: Agent, counters: dict, recent: dict[str, list[float]]) -> tuple[dict, float]:
+    def collect(self, agent: Agent, recent: dict[str, list[float]]) -> tuple[dict, float]:
         """One rollout of the sampling policy: the flat batch :func:`ppo_update` trains on, with GAE's advantages
-        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``."""
+        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``. The
+        run's step counter moves when the iteration is done (:func:`train`), not here: a run stopped mid-rollout
+        saves counters that match the iterations its weights have trained."""
         args, device, envs = self.args, self.device, self.envs
         agent.eval()
         self.final_values.zero_()
         sim_time = 0.0
         for step in range(args.num_steps):
-            counters["global_step"] += args.num_envs
             for k in self.obs:
                 self.obs[k][step] = self.next_obs[k]
             self.dones[step] = self.next_done
@@ -581,7 +582,7 @@ def train(args: Args) -> dict:
         t0 = time.perf_counter()
         if args.anneal_lr:
             optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
-        batch, sim_time = rollout.collect(agent, counters, recent)
+        batch, sim_time = rollout.collect(agent, recent)
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
@@ -589,6 +590,7 @@ def train(args: Args) -> dict:
             agent.norm.update(batch["obs"]["state"])
         update_time = time.perf_counter() - tu
         counters["iteration"] = it
+        counters["global_step"] += args.batch_size
         dt = time.perf_counter() - t0
         y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
         var_y = np.var(y_true)
