@@ -23,9 +23,12 @@ arXiv 2311.02198).
 ``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``;
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
-every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON. With
-``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the weights that did best on N validation
-seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is what ``--resume`` continues).
+every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON and ``summary.json``
+(written with or without them). With ``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the
+weights that did best on N validation seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is
+what ``--resume`` continues). However training ends (its budget, its last iteration, an exception, Ctrl-C),
+``checkpoints/latest.pt`` holds where it stopped, with the iterations done and the clock
+(``agents.common.run.close_and_save``).
 """
 
 from __future__ import annotations
