@@ -23,14 +23,16 @@ arXiv 2311.02198).
 ``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``;
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
-every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON. With
-``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the weights that did best on N validation
-seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is what ``--resume`` continues).
+every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON and ``summary.json``
+(written with or without them). With ``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the
+weights that did best on N validation seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is
+what ``--resume`` continues). However training ends (its budget, its last iteration, an exception, Ctrl-C),
+``checkpoints/latest.pt`` holds where it stopped, with the iterations done and the clock
+(``agents.common.run.close_and_save``).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections import defaultdict
 from dataclasses import dataclass, replace
@@ -51,10 +53,12 @@ from agents.common import (
     Logger,
     RunArgs,
     atomic_save,
+    check_resume_signature,
     checkpoint,
     cli,
+    close_and_save,
+    evaluate_and_finish,
     evaluate_checkpoint,
-    finish,
     flatten_obs,
     held_out_evaluation,
     load_torch,
@@ -377,15 +381,16 @@ class Rollout:
         )
         self.tracker = EpisodeTracker(N, device)
 
-    def collect(self, agent: Agent, counters: dict, recent: dict[str, list[float]]) -> tuple[dict, float]:
+    def collect(self, agent: Agent, recent: dict[str, list[float]]) -> tuple[dict, float]:
         """One rollout of the sampling policy: the flat batch :func:`ppo_update` trains on, with GAE's advantages
-        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``."""
+        and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``. The
+        run's step counter moves when the iteration is done (:func:`train`), not here: a run stopped mid-rollout
+        saves counters that match the iterations its weights have trained."""
         args, device, envs = self.args, self.device, self.envs
         agent.eval()
         self.final_values.zero_()
         sim_time = 0.0
         for step in range(args.num_steps):
-            counters["global_step"] += args.num_envs
             for k in self.obs:
                 self.obs[k][step] = self.next_obs[k]
             self.dones[step] = self.next_done
@@ -546,7 +551,8 @@ def train(args: Args) -> dict:
     optimizer = optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
     counters = dict(global_step=0, iteration=0)
     if saved is not None:
-        load_checkpoint(args.resume, agent, args, saved)
+        check_resume_signature(saved, agent.signature(), args.resume)
+        agent.load_state_dict(saved["model"])
         optimizer.load_state_dict(saved["optimizer"])
         counters = restore(saved)
     elif args.checkpoint is not None:
@@ -568,102 +574,110 @@ def train(args: Args) -> dict:
     last_eval: dict = {}
     history: list[dict] = []
     start_iteration = counters["iteration"]
-    elapsed = Clock(counters.get("wall_s", 0.0))  # with the time trained before this --resume: the budget is the run's
+    # started here, after the envs are built, as PPO's budget always has been; with the time trained before this
+    # --resume (a checkpoint written before the clock was saved has none): the budget is the run's
+    elapsed = Clock(counters.get("wall_s", 0.0))
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
-    while counters["iteration"] < num_iterations:
-        counters["wall_s"] = elapsed()  # saved with every checkpoint
-        if max_wall_s is not None and counters["wall_s"] > max_wall_s:
-            if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
-                select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
-            save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
-            break
-        it = counters["iteration"] + 1
-        t0 = time.perf_counter()
-        if args.anneal_lr:
-            optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
-        batch, sim_time = rollout.collect(agent, counters, recent)
-        agent.train()
-        tu = time.perf_counter()
-        stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
-        if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
-            agent.norm.update(batch["obs"]["state"])
-        update_time = time.perf_counter() - tu
-        counters["iteration"] = it
-        dt = time.perf_counter() - t0
-        y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
-        var_y = np.var(y_true)
-        scalars = {f"losses/{k}": v for k, v in stats.items()}
-        scalars.update(
-            {
-                "charts/SPS": args.batch_size / dt,
-                "charts/learning_rate": optimizer.param_groups[0]["lr"],
-                "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
-                "time/rollout_s": dt - update_time,
-                "time/sim_s": sim_time,
-                "time/update_s": update_time,
-            }
-        )
-        if recent:
-            scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
-        logger.scalars(scalars, counters["global_step"])
-        history.append(dict(iteration=it, global_step=counters["global_step"], wall_s=elapsed.session(), **scalars))
-        if bar is not None:
-            bar.update(args.batch_size)
-            bar.set_postfix(
-                SPS=f"{args.batch_size / dt:.0f}",
-                success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-",
+    try:
+        while counters["iteration"] < num_iterations:
+            counters["wall_s"] = elapsed()  # saved with every checkpoint
+            if max_wall_s is not None and counters["wall_s"] > max_wall_s:
+                if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
+                    select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
+                break  # latest.pt is written on the way out
+            it = counters["iteration"] + 1
+            t0 = time.perf_counter()
+            if args.anneal_lr:
+                optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
+            batch, sim_time = rollout.collect(agent, recent)
+            agent.train()
+            tu = time.perf_counter()
+            stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
+            if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
+                agent.norm.update(batch["obs"]["state"])
+            update_time = time.perf_counter() - tu
+            counters["iteration"] = it
+            counters["global_step"] += args.batch_size
+            dt = time.perf_counter() - t0
+            y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
+            var_y = np.var(y_true)
+            scalars = {f"losses/{k}": v for k, v in stats.items()}
+            scalars.update(
+                {
+                    "charts/SPS": args.batch_size / dt,
+                    "charts/learning_rate": optimizer.param_groups[0]["lr"],
+                    "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
+                    "time/rollout_s": dt - update_time,
+                    "time/sim_s": sim_time,
+                    "time/update_s": update_time,
+                }
             )
-        recent.clear()
-        if args.eval_freq and it % args.eval_freq == 0:
-            if eval_envs is None:
-                eval_envs = make_envs(
-                    args,
-                    args.num_eval_envs,
-                    evaluate=True,
-                    video_dir=run_dir / "videos" if args.capture_video else None,
+            if recent:
+                scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
+            logger.scalars(scalars, counters["global_step"])
+            history.append(dict(iteration=it, global_step=counters["global_step"], wall_s=elapsed.session(), **scalars))
+            if bar is not None:
+                bar.update(args.batch_size)
+                bar.set_postfix(
+                    SPS=f"{args.batch_size / dt:.0f}",
+                    success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-",
                 )
-            agent.eval()
-            last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
-            logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
-        if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
-            select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
-        if it % args.save_freq == 0 or it == num_iterations:
-            counters["wall_s"] = elapsed()
-            save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
-            save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
-    if bar is not None:
-        bar.close()
-    envs.close()
-    if eval_envs is not None:
-        eval_envs.close()
-    logger.close()
-    result = dict(
-        run_dir=str(run_dir),
+            recent.clear()
+            if args.eval_freq and it % args.eval_freq == 0:
+                if eval_envs is None:
+                    eval_envs = make_envs(
+                        args,
+                        args.num_eval_envs,
+                        evaluate=True,
+                        video_dir=run_dir / "videos" if args.capture_video else None,
+                    )
+                agent.eval()
+                last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
+                logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
+            if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
+                select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
+            if it % args.save_freq == 0 or it == num_iterations:
+                counters["wall_s"] = elapsed()
+                save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
+                save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
+    finally:  # the budget, the last iteration, an exception or Ctrl-C: latest.pt is what --resume continues
+        try:
+            close_and_save(
+                bar,
+                envs,
+                counters,
+                elapsed,
+                lambda c: save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, c, args),
+            )
+        finally:
+            if eval_envs is not None:
+                eval_envs.close()
+    extra = dict(
         global_step=counters["global_step"],
         iterations=counters["iteration"],
         iterations_this_run=counters["iteration"] - start_iteration,
         last_eval=last_eval,
         checkpoint=str(ckpt_dir / "latest.pt"),
-        env_steps=counters["global_step"],
-        wall_clock_s=elapsed(),  # training only (every --resume of the run together), as the other trainers report it
     )
     if args.select_episodes and counters.get("best") is not None:
         selected = counters["best"]
         load_checkpoint(ckpt_dir / "best.pt", agent, args)
         # the policy the held-out episodes score is the run's checkpoint; --resume continues from the last weights
-        result.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
-        result["selected"] = dict(
+        extra.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
+        extra["selected"] = dict(
             iteration=selected["iteration"],
             global_step=selected["global_step"],
             validation_success_rate=selected["score"][0],
             validation_episodes=args.select_episodes,
         )
-    if args.eval_episodes > 0:
-        result.update(final_evaluation(agent, args, device))
-        finish(result, run_dir)
-    else:
-        print(json.dumps(result))
-    result["history"] = history
+    result = evaluate_and_finish(
+        (lambda: final_evaluation(agent, args, device)) if args.eval_episodes > 0 else dict,  # 0: no evaluation
+        logger,
+        dict(counters, env_steps=counters["global_step"]),  # PPO's counters call its env steps global_step
+        run_dir,
+        **extra,
+    )
+    result["history"] = history  # every iteration's scalars, for the caller: not in summary.json
     return result
 
 

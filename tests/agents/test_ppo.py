@@ -41,6 +41,8 @@ def test_one_rgbd_iteration_writes_events_and_checkpoint(trained):
     assert list(run_dir.glob("events.out.tfevents.*"))
     ckpt = torch.load(run_dir / "checkpoints" / "latest.pt", weights_only=False)
     assert ckpt["counters"]["global_step"] == 16
+    # the run's last word is written without a held-out evaluation too (--eval-episodes 0)
+    assert json.loads((run_dir / "summary.json").read_text()) == {k: v for k, v in result.items() if k != "history"}
     assert ckpt["signature"]["image_shape"] == [84, 84, 4]
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -390,3 +392,33 @@ def test_the_budget_spans_a_resume(tmp_path):
     more = again["wall_clock_s"] + 3.0
     longer = run(tmp_path, budget_min=more / 60, resume=Path(again["checkpoint"]), **kw)
     assert longer["iterations_this_run"] >= 1 and longer["wall_clock_s"] >= more
+
+
+def test_an_exception_mid_training_keeps_the_iterations_done_and_resume_carries_on(tmp_path, monkeypatch):
+    """No checkpoint is lost: an exception (or Ctrl-C) in iteration 2, after its rollout, leaves latest.pt with the
+    one iteration done and the clock, though --save-freq would not have saved yet; --resume continues from it."""
+    import agents.ppo as ppo
+
+    update, calls = ppo.ppo_update, []
+
+    def fails_second(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("the second update fails")
+        return update(*a, **kw)
+
+    monkeypatch.setattr(ppo, "ppo_update", fails_second)
+    kw = dict(obs="state", state_net="mlp", num_envs=1, num_steps=8, num_minibatches=2, total_timesteps=32)
+    with pytest.raises(RuntimeError, match="second update"):
+        run(tmp_path, save_freq=100, **kw)
+    ckpts = tmp_path / "t" / "checkpoints"
+    assert sorted(p.name for p in ckpts.iterdir()) == ["latest.pt"]
+    saved = torch.load(ckpts / "latest.pt", weights_only=False)["counters"]
+    assert saved["iteration"] == 1 and saved["global_step"] == 8 and saved["wall_s"] > 0  # not iteration 2's rollout
+    assert not (tmp_path / "t" / "summary.json").exists()
+    monkeypatch.undo()
+    again = run(tmp_path, resume=ckpts / "latest.pt", save_freq=100, **kw)
+    assert (again["iterations"], again["iterations_this_run"], again["global_step"]) == (4, 3, 32)
+    assert again["wall_clock_s"] > saved["wall_s"]  # the clock carries on from the checkpoint's
+    with pytest.raises(ValueError, match="--resume .*latest.pt: checkpoint .* != this run"):
+        run(tmp_path, **{**kw, "state_net": "shared"}, resume=ckpts / "latest.pt")
