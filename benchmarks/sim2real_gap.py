@@ -212,12 +212,16 @@ def cell(policy: str, name: str, args: Args) -> dict:
 
 
 def task_of(policy: str, args: Args) -> str:
-    """The task a cell runs: ``--env-id``, else the policy's own (its checkpoint says which), else the expert's."""
+    """The task a cell runs: ``--env-id``, else the policy's own (its checkpoint says which), else the expert's. A
+    checkpoint that cannot be read gets the default task here: the evaluation reads it again and says why it fails."""
     if args.env_id is not None:
         return args.env_id
     if policy == "expert":
         return EvalConfig.env_id
-    return read_policy_section(Path(resolve_policy(policy)), f"--policy {policy}")["env_id"]
+    try:
+        return read_policy_section(Path(resolve_policy(policy)), f"--policy {policy}")["env_id"]
+    except Exception:  # noqa: BLE001 - reported by load_policy when the cell runs
+        return EvalConfig.env_id
 
 
 def _finished_report(cfg: EvalConfig) -> dict | None:

@@ -468,3 +468,12 @@ def test_sim2real_gap_runs_each_policy_on_its_own_task():
     assert gap.task_of("teacher-student-grasplift-s1", gap.Args()) == "GraspLift-IRB120-v1"  # from its checkpoint
     forced = gap.Args(env_id="StackCube-IRB120-v1")
     assert gap.task_of("teacher-student-grasplift-s1", forced) == "StackCube-IRB120-v1"  # load_policy refuses it later
+
+
+def test_sim2real_gap_leaves_an_unreadable_checkpoint_to_the_evaluation(tmp_path):
+    gap = _bench_module("sim2real_gap")
+    bogus = tmp_path / "policy.pt"
+    bogus.write_bytes(b"weights")
+    assert gap.task_of(str(bogus), gap.Args()) == "TableClearing-IRB120-v1"
+    with pytest.raises(Exception, match="policy.pt"):  # the cell's evaluation names the file it cannot read
+        gap.evaluate(gap.EvalConfig(policy=str(bogus), episodes=1, out=tmp_path / "cell"))
