@@ -10,8 +10,9 @@ Every cell is scored alike: 100 deterministic episodes on the held-out seeds ``a
 95 % Wilson interval for one seed and ``benchmarks/learning.py``'s two-level bootstrap over seeds and episodes for
 three. The library cells run through ``maniskill_irb120.integrations`` on ``--num-envs`` CPU worker envs with each
 library's documented defaults for continuous control (``ALGORITHMS`` says which, and where a cell deviates and why);
-the project's cells run ``benchmarks/learning.py``'s recipes (``ppo-state``; ``dagger-rgbd-bf16``, which imitates
-the scripted expert: the table marks it as not from the reward).
+the project's cells run ``benchmarks/learning.py``'s recipes (``ppo-state``; from the camera ``teacher-student-rgbd``,
+a state PPO teacher learned from the reward and distilled into the camera policy, both stages within the cell's
+budget).
 
 Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of the best cells' seeds 2 and 3, plus
 1-5 min of evaluation a cell) and a session is shorter: the JSON keeps every finished cell and a rerun
@@ -106,11 +107,11 @@ ALGORITHMS = {
         recipe="ppo-state",
     ),
     "project-camera": Algorithm(
-        "DAgger", "this project (agents.dagger)", "project",
-        "learning.py's dagger-rgbd-bf16 recipe: the project's best camera recipe; it imitates the scripted "
-        "expert, so it is a reference, not a reward-only cell",
-        recipe="dagger-rgbd-bf16",
-        from_reward=False,
+        "PPO teacher + DAgger student", "this project (agents.ppo, agents.dagger)", "project",
+        "learning.py's teacher-student-rgbd recipe, the project's camera recipe from the reward alone: ppo-state "
+        "learns a state teacher in 0.375 of the budget, DAgger distils it into the camera policy (agents.dagger "
+        "--teacher) in the rest",
+        recipe="teacher-student-rgbd",
     ),
 }  # fmt: skip
 NOT_RUNNABLE = {
@@ -388,11 +389,33 @@ def curve_of(points: list) -> dict:
 
 # ----------------------------------------------------------------------------- project cells
 def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name: str, args: Args) -> dict:
-    """learning.py's ``recipe`` as its trainer's subprocess, continued with the trainer's ``--resume`` when an earlier
-    session left a checkpoint and no result."""
+    """learning.py's ``recipe`` in ``budget_min``: one trainer, or for a two-stage recipe (``learning.BASES``) its base
+    in its share of the budget and then the recipe's trainer, handed the base's checkpoint, in the rest; the cell's
+    env steps, wall clock and curve are both stages' (``learning.joined``), as in learning.py's rows."""
     module, _, _, _ = learning.RECIPES[recipe]
     flags = learning.seeded(learning.recipe_flags(recipe, env_id), seed)
+    if recipe not in learning.BASES:
+        return run_stage(module, flags, env_id, seed, budget_min, run_name, args)
+    base_recipe, share, hand_on = learning.BASES[recipe]
+    base_flags = learning.seeded(learning.recipe_flags(base_recipe, env_id), seed)
+    base_module = learning.RECIPES[base_recipe][0]
+    base = run_stage(base_module, base_flags, env_id, seed, share * budget_min, f"{run_name}__base", args)
+    rest = max(budget_min - base["wall_clock_s"] / 60, 0.02 * budget_min)  # an overrun shows in the cell's time
+    tuned = run_stage(module, [*flags, hand_on, base["checkpoint"]], env_id, seed, rest, run_name, args)
+    return learning.joined(base, tuned)
+
+
+def run_stage(
+    module: str, flags: list[str], env_id: str, seed: int, budget_min: float, run_name: str, args: Args
+) -> dict:
+    """One trainer as a subprocess, continued with its own ``--resume`` when an earlier session left a checkpoint
+    and no result; a stage that finished in an earlier session (a two-stage cell stopped in its second) is read
+    from the ``stage.json`` it left, not trained again."""
     runs = args.runs_dir / "project"
+    done = runs / run_name / "stage.json"  # this function's result, written when the stage finished
+    if done.is_file():
+        print(f"[algorithms] {run_name}: finished earlier, read from {done}", flush=True)
+        return json.loads(done.read_text())
     cmd = [sys.executable, "-m", module, *flags, "--env-id", env_id, "--seed", str(seed)]
     cmd += ["--budget-min", f"{budget_min:.4g}", "--eval-episodes", str(args.eval_episodes)]
     cmd += ["--runs-dir", str(runs), "--exp-name", run_name, "--no-progress", "--no-capture-video"]
@@ -414,7 +437,9 @@ def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name
     if missing:
         raise RuntimeError(f"{run_name}: its result lacks {sorted(missing)}; output in {log}")
     out = {k: result[k] for k in learning.RESULT_KEPT if k in result}
-    return dict(out, command=" ".join(cmd[1:]), curve=learning.curve(runs / run_name, t0))
+    out = dict(out, command=" ".join(cmd[1:]), curve=learning.curve(runs / run_name, t0))
+    done.write_text(json.dumps(out))
+    return out
 
 
 def run_cell(cell: str, args: Args) -> dict:

@@ -85,12 +85,12 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     plan = alg.planned(done, args)
     assert "state/GraspLift/sb3-sac/s2" in plan and "state/GraspLift/sb3-sac/s3" in plan
     assert not any(c.startswith("state/TableClearing/") and not c.endswith("/s1") for c in plan)
-    # the camera group's best is a reward-only cell, even when the imitation reference scores higher
+    # every camera cell learns from the reward alone (the project's is teacher-student-rgbd): the best one gets seeds
     for algo, rate in (("sb3-ppo", 0.1), ("sb3-sac", 0.2), ("project-camera", 0.9)):
         done[f"rgbd/GraspLift/{algo}/s1"] = {"success_rate": rate}
-    assert alg.best_algo(done, "rgbd", "GraspLift") == "sb3-sac"
+    assert alg.best_algo(done, "rgbd", "GraspLift") == "project-camera"
     args.only = ["rgbd/*"]
-    assert alg.planned(done, args) == ["rgbd/GraspLift/sb3-sac/s2", "rgbd/GraspLift/sb3-sac/s3"]
+    assert alg.planned(done, args) == ["rgbd/GraspLift/project-camera/s2", "rgbd/GraspLift/project-camera/s3"]
 
 
 def test_bad_cells_and_backends_are_named(alg, tmp_path):
@@ -104,3 +104,42 @@ def test_wilson_interval(alg):
     lo, hi = alg.wilson(50, 100)
     assert lo == pytest.approx(0.4038, abs=1e-4) and hi == pytest.approx(0.5962, abs=1e-4)
     assert alg.wilson(0, 100)[0] == 0.0 and alg.wilson(100, 100)[1] == 1.0
+
+
+def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_one_budget(alg, tmp_path, monkeypatch):
+    """teacher-student-rgbd from the reward alone: the teacher (ppo-state) in its share, the student handed its
+    checkpoint in the rest; the cell counts both stages, and a stage finished in an earlier session is not rerun."""
+    calls = []
+
+    def fake_trainer(cmd, **kwargs):
+        flags = cmd[3:]
+        name = flags[flags.index("--exp-name") + 1]
+        budget = float(flags[flags.index("--budget-min") + 1])
+        calls.append((cmd[2], name, budget, flags))
+        wall = 60 * budget * 0.9
+        result = dict(
+            success_rate=0.5, successes=[1, 0], env_steps=1000, wall_clock_s=wall, checkpoint=f"/ckpt/{name}.pt"
+        )
+        line = json.dumps(result)
+        return type("P", (), dict(returncode=0, stdout=line + "\n", stderr=""))()
+
+    monkeypatch.setattr(alg.subprocess, "run", fake_trainer)
+    args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs")
+    assert (
+        alg.ALGORITHMS["project-camera"].from_reward
+        and alg.ALGORITHMS["project-camera"].recipe == "teacher-student-rgbd"
+    )
+    for stage in ("cell__base", "cell"):
+        (tmp_path / "runs" / "project" / stage).mkdir(parents=True)
+    r = alg.run_project("teacher-student-rgbd", "GraspLift-IRB120-v1", 1, 60.0, "cell", args)
+    (teacher, t_name, t_budget, _), (student, s_name, s_budget, s_flags) = calls
+    assert (teacher, t_name, t_budget) == ("agents.ppo", "cell__base", 22.5)  # 0.375 of 60 min
+    assert student == "agents.dagger" and s_name == "cell" and "--obs" in s_flags
+    assert s_flags[s_flags.index("--teacher") + 1] == "/ckpt/cell__base.pt"
+    assert s_budget == pytest.approx(60 - 22.5 * 0.9, abs=1e-3)  # the rest of the budget after the teacher's time
+    assert r["env_steps"] == 2000 and r["wall_clock_s"] == pytest.approx(60 * (22.5 + s_budget) * 0.9)
+    assert r["base"]["checkpoint"] == "/ckpt/cell__base.pt"
+    calls.clear()
+    (tmp_path / "runs" / "project" / "cell" / "stage.json").unlink()  # the student was cut short: only it runs again
+    alg.run_project("teacher-student-rgbd", "GraspLift-IRB120-v1", 1, 60.0, "cell", args)
+    assert [c[1] for c in calls] == ["cell"]
