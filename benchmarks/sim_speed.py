@@ -645,6 +645,7 @@ def split_table(r: dict) -> str:
 
 
 RESULTS_HEAD = "## Simulator speed — `benchmarks/sim_speed.py`"
+HEAD = RESULTS_HEAD  # the name every benchmark gives its section head
 # the targets the section checks (ratios from one run): name -> (ratio key, lowest acceptable value)
 TARGETS = {
     "state vs the original report's PyBullet loop without a camera": (("vs_pybullet_original", "no_render"), 1.3),

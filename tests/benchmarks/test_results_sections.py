@@ -176,6 +176,7 @@ def test_one_line_keeps_what_to_do_and_cuts_the_rest():
         ("rllib_speed", (DATA / "rllib_speed.json",)),
         ("learner_speed", (DATA / "learner_speed.json",)),
         ("gpu_acceptance", (DATA / "gpu_acceptance.json",)),
+        ("sim_speed", (DATA / "sim_speed.json",)),
         ("sim2real_gap", None),
     ],
 )
@@ -201,6 +202,7 @@ def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path
 
 def test_no_issue_numbers_in_the_generated_sections(results_md):
     names = ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed", "gpu_acceptance")
+    names += ("sim_speed",)
     heads = [bench(n).HEAD for n in names]
     for head in heads:
         assert "issue" not in results_md.read_section(RESULTS, head).lower(), head
