@@ -36,14 +36,19 @@ def read_section(results: Path, head: str) -> str | None:
     return text[start : end + 1 if end >= 0 else len(text)]
 
 
-def raw_link(path: Path | str) -> str:
-    """A markdown link to a file the section shows, relative to RESULTS.md where it lies inside the repository."""
+def linked_path(path: Path | str) -> str:
+    """Where a section links a file: relative to RESULTS.md where it lies inside the repository, else as it lies."""
     path = Path(path)
     path = (path if path.is_absolute() else ROOT / path).resolve()
     try:
-        rel = path.relative_to((ROOT / "benchmarks").resolve()).as_posix()
+        return path.relative_to((ROOT / "benchmarks").resolve()).as_posix()
     except ValueError:  # a JSON written outside the repository is linked where it lies
-        rel = path.as_posix()
+        return path.as_posix()
+
+
+def raw_link(path: Path | str) -> str:
+    """A markdown link to a file the section shows (:func:`linked_path`)."""
+    rel = linked_path(path)
     return f"[`{rel}`]({rel})"
 
 

@@ -39,7 +39,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from pybullet_original import random_actions  # noqa: E402  (one action policy for every simulator)
-from results_md import argv_command, raw_link, recorded_command, replace_section  # noqa: E402
+from results_md import argv_command, linked_path, raw_link, recorded_command, replace_section  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
 MODES = ("render_realtime", "render", "no_render")
@@ -709,7 +709,7 @@ def results_section(r: dict, json_path: Path, plot_path: Optional[Path]) -> str:
         ]
     lines += ["", "Where an action's time goes, ms per action (the mean over rounds):", "", split_table(r), ""]
     if plot_path:
-        lines += [f"![simulator speed]({raw_link(plot_path).split('(', 1)[1][:-1]})", ""]
+        lines += [f"![simulator speed]({linked_path(plot_path)})", ""]
     lines.append(
         "Why a step costs what it does, and what each optimisation gained: "
         "[How fast is a step on 2 cores](../docs/notes/sim-speed.md)."
