@@ -434,7 +434,30 @@ def markdown(rows: list[dict]) -> str:
             f"| {r['recipe']} | {r['obs']} | {seeds} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] | "
             f"{r['success_iqm']:.2f} | {per} | {r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} |"
         )
-    return "\n".join(lines)
+    stages = stage_lines(rows)
+    return "\n".join(lines) + (f"\n\n{stages}" if stages else "")
+
+
+def stage_lines(rows: list[dict]) -> str:
+    """Each stage of the two-stage rows, seed by seed: the row counts both stages' env steps and minutes, and a
+    reader needs to see what the first stage (a teacher, a base) reached on its own held-out episodes."""
+    blocks = []
+    for r in rows:
+        runs = [run for run in r.get("runs", []) if "base" in run]
+        if not runs:
+            continue
+        first = BASES[r["recipe"]][0]
+        lines = [f"{r['recipe']}, stage by stage (held-out success, env steps, minutes):", ""]
+        for run in runs:
+            base = run["base"]
+            steps, minutes = run["env_steps"] - base["env_steps"], (run["wall_clock_s"] - base["wall_clock_s"]) / 60
+            lines.append(
+                f"- seed {run['seed']}: {first} {base['success_rate']:.2f}, {base['env_steps']:,}, "
+                f"{base['wall_clock_s'] / 60:.1f}; then {r['recipe']} {run['success_rate']:.2f}, {steps:,}, "
+                f"{minutes:.1f}"
+            )
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
 
 
 def carried_rows(path: Path, retrained: list[str]) -> list[dict]:

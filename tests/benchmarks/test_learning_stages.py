@@ -49,6 +49,12 @@ def test_a_teacher_and_its_student_join_the_row_as_one_run(tmp_path):
     assert run["env_steps"] == 10**6 + 10**5 and run["wall_clock_s"] == 7200.0
     assert run["base"]["checkpoint"] == ckpt and run["base"]["env_steps"] == 10**6
     assert f"--teacher {ckpt}" in run["command"] and run["adopted_from"] == f"{teacher} + {student}"
+    # the results table shows each stage on its own line: the teacher's own held-out success, steps and minutes
+    row = dict(recipe="teacher-student-rgbd", runs=[dict(run, seed=7)])
+    assert learning.stage_lines([row]).splitlines()[-1] == (
+        "- seed 7: ppo-state 0.90, 1,000,000, 45.0; then teacher-student-rgbd 0.90, 100,000, 75.0"
+    )
+    assert learning.stage_lines([dict(recipe="ppo-state", runs=[dict(seed=7, success_rate=0.5)])]) == ""  # one stage
     # a student of another teacher, or one that trained longer than the budget left it, is not this recipe's
     other = trained(
         tmp_path, dagger, "teacher-student-rgbd", "other", ["--teacher", "x.pt", "--budget-min", rest], 4500.0, 10**5
