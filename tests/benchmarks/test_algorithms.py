@@ -115,7 +115,7 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
         line = json.dumps(result)
         return type("P", (), dict(returncode=0, stdout=line + "\n", stderr=""))()
 
-    monkeypatch.setattr(alg.subprocess, "run", fake_trainer)
+    monkeypatch.setattr(alg.learning.subprocess, "run", fake_trainer)  # learning.run_trainer runs it
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs")
     assert (
         alg.ALGORITHMS["project-camera"].from_reward
