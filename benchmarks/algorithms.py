@@ -33,7 +33,6 @@ import fnmatch
 import json
 import math
 import platform
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -393,11 +392,11 @@ def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name
     in its share of the budget and then the recipe's trainer, handed the base's checkpoint, in the rest; the cell's
     env steps, wall clock and curve are both stages' (``learning.joined``), as in learning.py's rows."""
     module, _, _, _ = learning.RECIPES[recipe]
-    flags = learning.seeded(learning.recipe_flags(recipe, env_id), seed)
+    flags = learning.recipe_flags(recipe, env_id)  # learning.run_trainer fills in the seed
     if recipe not in learning.BASES:
         return run_stage(module, flags, env_id, seed, budget_min, run_name, args)
     base_recipe, share, hand_on = learning.BASES[recipe]
-    base_flags = learning.seeded(learning.recipe_flags(base_recipe, env_id), seed)
+    base_flags = learning.recipe_flags(base_recipe, env_id)
     base_module = learning.RECIPES[base_recipe][0]
     base = run_stage(base_module, base_flags, env_id, seed, share * budget_min, f"{run_name}__base", args)
     rest = max(budget_min - base["wall_clock_s"] / 60, 0.02 * budget_min)  # an overrun shows in the cell's time
@@ -408,36 +407,26 @@ def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name
 def run_stage(
     module: str, flags: list[str], env_id: str, seed: int, budget_min: float, run_name: str, args: Args
 ) -> dict:
-    """One trainer as a subprocess, continued with its own ``--resume`` when an earlier session left a checkpoint
-    and no result; a stage that finished in an earlier session (a two-stage cell stopped in its second) is read
-    from the ``stage.json`` it left, not trained again."""
+    """One trainer as a subprocess (``learning.run_trainer``), continued with its own ``--resume`` when an earlier
+    session left a checkpoint and no result; a stage that finished in an earlier session (a two-stage cell stopped
+    in its second) is read from the ``stage.json`` it left, not trained again."""
     runs = args.runs_dir / "project"
     done = runs / run_name / "stage.json"  # this function's result, written when the stage finished
     if done.is_file():
         print(f"[algorithms] {run_name}: finished earlier, read from {done}", flush=True)
         return json.loads(done.read_text())
-    cmd = [sys.executable, "-m", module, *flags, "--env-id", env_id, "--seed", str(seed)]
-    cmd += ["--budget-min", f"{budget_min:.4g}", "--eval-episodes", str(args.eval_episodes)]
-    cmd += ["--runs-dir", str(runs), "--exp-name", run_name, "--no-progress", "--no-capture-video"]
-    if args.quick:
-        cmd += learning.QUICK_FLAGS[module]
-    latest = runs / run_name / "checkpoints" / "latest.pt"
-    if latest.is_file() and not (runs / run_name / "summary.json").is_file():
-        cmd += ["--resume", str(latest)]
-    print(f"[algorithms] {' '.join(cmd[1:])}", flush=True)
-    t0 = time.time()
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    log = args.runs_dir / "logs" / f"{run_name}.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{run_name} exited with {proc.returncode}; its output is in {log}")
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
-    missing = learning.RESULT_NEEDS - set(result)
-    if missing:
-        raise RuntimeError(f"{run_name}: its result lacks {sorted(missing)}; output in {log}")
-    out = {k: result[k] for k in learning.RESULT_KEPT if k in result}
-    out = dict(out, command=" ".join(cmd[1:]), curve=learning.curve(runs / run_name, t0))
+    out = learning.run_trainer(
+        run_name,
+        module,
+        flags,
+        seed,
+        budget_min,
+        args,
+        env_id=env_id,
+        runs_dir=runs,
+        logs_dir=args.runs_dir / "logs",
+        resume=True,
+    )
     done.write_text(json.dumps(out))
     return out
 

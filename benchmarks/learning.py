@@ -277,17 +277,44 @@ def joined(base: dict, tuned: dict) -> dict:
     return out
 
 
-def run_trainer(name: str, module: str, flags: list[str], seed: int, budget: float, args: Args) -> dict:
-    cmd = [sys.executable, "-m", module, *seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed)]
+def run_trainer(
+    name: str,
+    module: str,
+    flags: list[str],
+    seed: int,
+    budget: float,
+    args: Args,
+    *,
+    env_id: Optional[str] = None,
+    runs_dir: Optional[Path] = None,
+    logs_dir: Optional[Path] = None,
+    resume: bool = False,
+) -> dict:
+    """``module`` as a subprocess for ``budget`` minutes, as the run ``name`` in ``runs_dir`` (default
+    ``args.out_dir / "runs"``) on ``env_id`` (default ``args.env_id``), its output kept in ``logs_dir / name.log``
+    (default ``args.out_dir / "logs"``); returns its checked result line with its curve. benchmarks/algorithms.py
+    passes its own args (``eval_episodes`` and ``quick`` are read from them) with the other three given.
+
+    ``resume``: the run folder is kept, not moved aside (:func:`make_room`), and a run there that left a checkpoint
+    and no result continues with the trainer's own ``--resume``."""
+    env_id = args.env_id if env_id is None else env_id
+    runs_dir = args.out_dir / "runs" if runs_dir is None else runs_dir
+    logs_dir = args.out_dir / "logs" if logs_dir is None else logs_dir
+    cmd = [sys.executable, "-m", module, *seeded(flags, seed), "--env-id", env_id, "--seed", str(seed)]
     cmd += ["--budget-min", f"{budget:.4g}", "--eval-episodes", str(args.eval_episodes)]
-    cmd += ["--runs-dir", str(args.out_dir / "runs"), "--exp-name", name, "--no-progress", "--no-capture-video"]
+    cmd += ["--runs-dir", str(runs_dir), "--exp-name", name, "--no-progress", "--no-capture-video"]
     if args.quick:
         cmd += QUICK_FLAGS[module]
-    run_dir = make_room(args.out_dir / "runs" / name)
+    run_dir = runs_dir / name
+    latest = run_dir / "checkpoints" / "latest.pt"
+    if not resume:
+        make_room(run_dir)
+    elif latest.is_file() and not (run_dir / "summary.json").is_file():
+        cmd += ["--resume", str(latest)]
     print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
     t0 = time.time()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    log = args.out_dir / "logs" / f"{name}.log"
+    log = logs_dir / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
     if proc.returncode != 0:

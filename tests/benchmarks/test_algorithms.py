@@ -4,23 +4,15 @@ extra seeds, --only)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture(scope="module")
-def alg():
-    spec = importlib.util.spec_from_file_location("bench_algorithms", REPO / "benchmarks" / "algorithms.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+def alg(bench_script):
+    return bench_script("algorithms")
 
 
 def results_md(tmp_path: Path) -> Path:
@@ -123,7 +115,7 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
         line = json.dumps(result)
         return type("P", (), dict(returncode=0, stdout=line + "\n", stderr=""))()
 
-    monkeypatch.setattr(alg.subprocess, "run", fake_trainer)
+    monkeypatch.setattr(alg.learning.subprocess, "run", fake_trainer)  # learning.run_trainer runs it
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs")
     assert (
         alg.ALGORITHMS["project-camera"].from_reward

@@ -19,7 +19,7 @@ IN_GIT = (REPO / ".git").exists()  # a source checkout: --baseline can name its 
 
 
 @pytest.mark.slow
-def test_sim_speed_quick_writes_json(tmp_path):
+def test_sim_speed_quick_writes_json(tmp_path, bench_script):
     out = tmp_path / "sim_speed.json"
     run = subprocess.run(
         [
@@ -42,7 +42,7 @@ def test_sim_speed_quick_writes_json(tmp_path):
         assert set(r["ratios"]["vs_baseline"]) == {"render", "no_render"}
         assert all(v > 0 for v in r["ratios"]["vs_baseline"].values())
         assert len(r["baseline"]["commit"]) == 40 and r["baseline"]["ours"]["no_render"]["steps_per_s"] > 0
-    section = _sim_speed_module().results_section(r, out, tmp_path / "p.png")
+    section = bench_script("sim_speed").results_section(r, out, tmp_path / "p.png")
     assert section.startswith("## Simulator speed — `benchmarks/sim_speed.py`")
     assert "--quick" in section and "| state vs the original report's PyBullet loop without a camera |" in section
     assert ("Against the baseline commit" in section) == IN_GIT and "| this | no_render |" in section
@@ -137,7 +137,7 @@ def test_rllib_speed_quick_writes_json(tmp_path):
     assert r["versions"]["ray"] == "2.60.0" and "| rllib PPO | 1 | 1 |" in run.stdout
 
 
-def test_sim2real_gap_runs_the_named_rows(tmp_path):
+def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
     out = tmp_path / "gap.json"
     cmd = [sys.executable, str(REPO / "benchmarks" / "sim2real_gap.py"), "--episodes", "1", "--out", str(tmp_path)]
     run = subprocess.run(
@@ -162,7 +162,7 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
         )
     assert "McNemar p" in run.stdout
     assert "| expert | none |" in run.stdout and "| expert | lighting |" in run.stdout
-    gap = _bench_module("sim2real_gap")  # the refusals come before any work: checked in this process
+    gap = bench_script("sim2real_gap")  # the refusals come before any work: checked in this process
 
     class WouldRun(Exception):
         pass
@@ -205,10 +205,10 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path):
             gap.main(gap.Args(shifts=["none", bad], out=tmp_path))
 
 
-def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(tmp_path):
+def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(tmp_path, bench_script):
     from maniskill_irb120.envs.randomization import Randomization
 
-    gap = _bench_module("sim2real_gap")
+    gap = bench_script("sim2real_gap")
     full = Randomization.parse(gap.SHIFTS["camera mount"])
     quarter = Randomization.parse(gap.SHIFTS["camera mount x0.25"])
     assert quarter.camera_pos == pytest.approx([v / 4 for v in full.camera_pos])
@@ -338,27 +338,8 @@ def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
     assert "| dagger-state | state | 2 | 0.94 |" in text
 
 
-def _bench_module(name: str):
-    import importlib.util
-
-    bench = REPO / "benchmarks"
-    sys.path.insert(0, str(bench))  # sim_speed imports its sibling pybullet_original
-    try:
-        spec = importlib.util.spec_from_file_location(name, bench / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod  # dataclasses look their module up while the file executes
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(bench))
-    return mod
-
-
-def _sim_speed_module():
-    return _bench_module("sim_speed")
-
-
-def test_sim_speed_baseline_names_a_commit_or_refuses(tmp_path):
-    mod = _sim_speed_module()
+def test_sim_speed_baseline_names_a_commit_or_refuses(tmp_path, bench_script):
+    mod = bench_script("sim_speed")
     with pytest.raises(SystemExit, match="not-a-ref"):
         mod.baseline_tree("not-a-ref", tmp_path)
     if IN_GIT:
@@ -366,14 +347,14 @@ def test_sim_speed_baseline_names_a_commit_or_refuses(tmp_path):
         assert len(commit) == 40 and (tmp_path / "tree" / "maniskill_irb120" / "envs" / "base.py").is_file()
 
 
-def test_floor_times_physics_substeps_and_one_rgbd_frame():
-    r = _sim_speed_module().measure_floor("TableClearing-IRB120-v1", steps=5, seed=0, warmup=2)
+def test_floor_times_physics_substeps_and_one_rgbd_frame(bench_script):
+    r = bench_script("sim_speed").measure_floor("TableClearing-IRB120-v1", steps=5, seed=0, warmup=2)
     assert len(r["times"]) == 5 and min(r["times"]) > 0
     assert r["substeps"] == 5 and r["pictures"] == ["Color", "PositionSegmentation"]
 
 
-def test_batched_benchmark_loop_runs_with_auto_reset():
-    mod = _sim_speed_module()
+def test_batched_benchmark_loop_runs_with_auto_reset(bench_script):
+    mod = bench_script("sim_speed")
     r = mod.measure_batched("TableClearing-IRB120-v1", 1, steps=260, seed=0, backend="inprocess", obs_mode="state")
     assert r["env_steps_per_s"] > 0
     assert r["episodes_finished"] >= 1  # random actions collide or time out at 250 steps: auto-reset ran
@@ -462,16 +443,16 @@ def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_
         learning.adopted_run("sac-scratch-state", trained("small", ["--buffer-size", "1000"]), args)
 
 
-def test_sim2real_gap_runs_each_policy_on_its_own_task():
-    gap = _bench_module("sim2real_gap")
+def test_sim2real_gap_runs_each_policy_on_its_own_task(bench_script):
+    gap = bench_script("sim2real_gap")
     assert gap.task_of("expert", gap.Args()) == "TableClearing-IRB120-v1"
     assert gap.task_of("teacher-student-grasplift-s1", gap.Args()) == "GraspLift-IRB120-v1"  # from its checkpoint
     forced = gap.Args(env_id="StackCube-IRB120-v1")
     assert gap.task_of("teacher-student-grasplift-s1", forced) == "StackCube-IRB120-v1"  # load_policy refuses it later
 
 
-def test_sim2real_gap_leaves_an_unreadable_checkpoint_to_the_evaluation(tmp_path):
-    gap = _bench_module("sim2real_gap")
+def test_sim2real_gap_leaves_an_unreadable_checkpoint_to_the_evaluation(tmp_path, bench_script):
+    gap = bench_script("sim2real_gap")
     bogus = tmp_path / "policy.pt"
     bogus.write_bytes(b"weights")
     assert gap.task_of(str(bogus), gap.Args()) == "TableClearing-IRB120-v1"

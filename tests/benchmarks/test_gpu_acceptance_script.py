@@ -5,7 +5,6 @@ passes on the CPU backend, and its programs join the doctor's report."""
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -18,26 +17,15 @@ REPO = Path(__file__).resolve().parents[2]
 CPU = "physx_cpu"
 
 
-def load_script(name: str):
-    """A benchmarks/ script as a module (they are programs, not a package; dataclasses look their module up)."""
-    bench = REPO / "benchmarks"
-    sys.path.insert(0, str(bench))  # sim_speed imports its sibling pybullet_original
-    try:
-        spec = importlib.util.spec_from_file_location(name, bench / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(bench))
-    return mod
-
-
-G = load_script("gpu_acceptance")
+@pytest.fixture(scope="module")
+def G(bench_script):
+    """benchmarks/gpu_acceptance.py, loaded once for this file."""
+    return bench_script("gpu_acceptance")
 
 
 # --------------------------------------------------------------------------- the programs' command lines
-@pytest.mark.parametrize("trainer", G.TRAINERS)
-def test_trainer_commands_parse_with_the_trainers_own_args(trainer, tmp_path):
+def test_trainer_commands_parse_with_the_trainers_own_args(G, gpu_trainer, tmp_path):
+    trainer = gpu_trainer  # each of G.TRAINERS in turn (conftest.py parametrizes it)
     cmd = G.trainer_command(trainer, "physx_cuda", 64, tmp_path, obs="state")
     assert cmd[:3] == [sys.executable, "-m", f"agents.{trainer}"]
     module = importlib.import_module(f"agents.{trainer}")
@@ -50,23 +38,23 @@ def test_trainer_commands_parse_with_the_trainers_own_args(trainer, tmp_path):
         G.trainer_command("td3", "physx_cuda", 1, tmp_path)
 
 
-def test_the_camera_recipe_is_a_check_of_its_own(tmp_path):
+def test_the_camera_recipe_is_a_check_of_its_own(G, tmp_path):
     assert G.PROGRAMS[G.CAMERA_DAGGER] is G.check_camera_dagger
     cmd = G.trainer_command("dagger", "physx_cuda", G.CAMERA_DAGGER_ENVS, tmp_path, obs="rgbd")
     args = tyro.cli(importlib.import_module("agents.dagger").Args, args=cmd[3:])
     assert (args.obs, args.encoder, args.precision, args.num_envs) == ("rgbd", "keypoints", "auto", 8)
 
 
-def test_benchmark_command_parses_with_the_benchmarks_args(tmp_path):
+def test_benchmark_command_parses_with_the_benchmarks_args(G, tmp_path, bench_script):
     cmd = G.benchmark_command(tmp_path / "g.json")
     assert cmd[1] == "benchmarks/sim_speed.py" and (REPO / cmd[1]).is_file()
-    sim_speed = load_script("sim_speed")
+    sim_speed = bench_script("sim_speed")
     args = tyro.cli(sim_speed.Args, args=cmd[2:])
     assert args.gpu_only and args.gpu_num_envs == G.BENCH_ENVS and args.json == tmp_path / "g.json"
 
 
 # --------------------------------------------------------------------------- the verdicts
-def test_program_verdicts():
+def test_program_verdicts(G):
     assert G.trainer_verdict("ppo", 0, dict(iterations=2, env_steps=32, wall_clock_s=1.0), "")[0]
     assert G.trainer_verdict("ppo", 0, dict(iterations=1), "") == (False, "iterations=1, expected >= 2")
     assert G.trainer_verdict("dagger", 1, None, "x\nRuntimeError: boom\n") == (
@@ -81,13 +69,13 @@ def test_program_verdicts():
 
 
 # --------------------------------------------------------------------------- the runs, and the report
-def test_ppo_check_runs_the_trainer_on_cpu():
+def test_ppo_check_runs_the_trainer_on_cpu(G):
     ok, why = G.check_trainer("ppo", CPU, 1, obs="state")
     assert ok, why
     assert why.startswith("iterations=2")
 
 
-def test_its_programs_join_the_doctors_report_after_the_packages_checks():
+def test_its_programs_join_the_doctors_report_after_the_packages_checks(G):
     r = gpu_report(
         CPU,
         num_envs=1,
@@ -105,7 +93,7 @@ def test_its_programs_join_the_doctors_report_after_the_packages_checks():
     assert "trainers num_envs=1" in text and "not run here" not in text
 
 
-def test_commit_and_bad_input(tmp_path):
+def test_commit_and_bad_input(G, tmp_path):
     assert G.git_commit() and G.git_commit(tmp_path) is None
     for flags, message in ((dict(jobs=0), "--jobs 0: expected 1 or more"), (dict(trainer_envs=0), "--trainer-envs 0")):
         with pytest.raises(SystemExit, match=message):

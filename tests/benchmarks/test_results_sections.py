@@ -4,7 +4,6 @@ the benchmark with ``--render-only`` after its JSON changes), each renderer writ
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import sys
@@ -18,21 +17,9 @@ RESULTS = BENCH / "RESULTS.md"
 DATA = BENCH / "results"
 
 
-def bench(name: str):
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod  # dataclasses look their module up while the file executes
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(BENCH))
-    return mod
-
-
 @pytest.fixture(scope="module")
-def results_md():
-    return bench("results_md")
+def results_md(bench_script):
+    return bench_script("results_md")
 
 
 def rendered(tmp_path: Path, update, *args) -> str:
@@ -44,8 +31,8 @@ def rendered(tmp_path: Path, update, *args) -> str:
 
 
 # ----------------------------------------------------------------------------- each renderer writes its table
-def test_adapter_section_has_every_channel_and_the_command():
-    mod = bench("adapter_latency")
+def test_adapter_section_has_every_channel_and_the_command(bench_script):
+    mod = bench_script("adapter_latency")
     report = json.loads((DATA / "adapter_latency.json").read_text())
     text = mod.section(report, DATA / "adapter_latency.json")
     assert text.startswith(mod.HEAD + "\n\n")
@@ -58,8 +45,8 @@ def test_adapter_section_has_every_channel_and_the_command():
     assert "49.0 ms at 9600 baud" in text
 
 
-def test_sysid_section_has_every_case_and_the_command():
-    mod = bench("sysid_recovery")
+def test_sysid_section_has_every_case_and_the_command(bench_script):
+    mod = bench_script("sysid_recovery")
     report = json.loads((DATA / "sysid_recovery.json").read_text())
     text = mod.section(report, DATA / "sysid_recovery.json")
     assert f"Command: `python {report['command']}`" in text
@@ -69,8 +56,8 @@ def test_sysid_section_has_every_case_and_the_command():
     assert f"{1000 * report['own_latency_s']:.1f} ms here" in text
 
 
-def test_sim2real_section_has_a_table_per_run_and_pools_shared_cells():
-    mod = bench("sim2real_gap")
+def test_sim2real_section_has_a_table_per_run_and_pools_shared_cells(bench_script):
+    mod = bench_script("sim2real_gap")
     text = mod.section(list(mod.SECTION_JSONS))
     assert text.count("| policy | shift | sim success |") == len(mod.SECTION_JSONS)
     for path in mod.SECTION_JSONS:
@@ -83,8 +70,8 @@ def test_sim2real_section_has_a_table_per_run_and_pools_shared_cells():
     assert "--shifts 'camera mount' 'all together' --out" in text
 
 
-def test_sim2real_requotes_row_names_and_keeps_quoted_commands():
-    mod = bench("sim2real_gap")
+def test_sim2real_requotes_row_names_and_keeps_quoted_commands(bench_script):
+    mod = bench_script("sim2real_gap")
     old = "benchmarks/sim2real_gap.py --policy a.pt --shifts none camera mount x0.25 lighting & colours/textures"
     assert mod.requoted(old + " --json x.json") == (
         "python benchmarks/sim2real_gap.py --policy a.pt --shifts none 'camera mount x0.25' "
@@ -95,12 +82,12 @@ def test_sim2real_requotes_row_names_and_keeps_quoted_commands():
     assert mod.requoted("benchmarks/sim2real_gap.py --episodes 10") == "python benchmarks/sim2real_gap.py --episodes 10"
 
 
-def test_rllib_and_learner_sections_have_their_tables_and_commands():
-    rllib = bench("rllib_speed")
+def test_rllib_and_learner_sections_have_their_tables_and_commands(bench_script):
+    rllib = bench_script("rllib_speed")
     report = json.loads((DATA / "rllib_speed.json").read_text())
     text = rllib.section(report, DATA / "rllib_speed.json")
     assert f"Command: `{report['command']}`" in text and text.count("| rllib PPO |") == 6
-    learner = bench("learner_speed")
+    learner = bench_script("learner_speed")
     report = json.loads((DATA / "learner_speed.json").read_text())
     text = learner.section(report, DATA / "learner_speed.json")
     assert f"Command: `{report['command']}`" in text and "| bf16 encoder |" in text
@@ -109,8 +96,8 @@ def test_rllib_and_learner_sections_have_their_tables_and_commands():
         learner.section(gpu, DATA / "learner_speed_h200_cuda.json")
 
 
-def test_gpu_section_has_the_machine_the_checks_and_the_learner_table(results_md):
-    mod = bench("gpu_acceptance")
+def test_gpu_section_has_the_machine_the_checks_and_the_learner_table(results_md, bench_script):
+    mod = bench_script("gpu_acceptance")
     report = json.loads((DATA / "gpu_acceptance.json").read_text())
     text = mod.section(report, DATA / "gpu_acceptance.json", [mod.LEARNER_JSONS])
     assert text.startswith(mod.HEAD + "\n\n")
@@ -135,8 +122,8 @@ def test_gpu_section_has_the_machine_the_checks_and_the_learner_table(results_md
     assert "median of 7 rounds" in text and "(../docs/notes/gpu-h200.md)" in text
 
 
-def test_gpu_section_of_a_passing_report_and_bad_learner_pairs(tmp_path):
-    mod = bench("gpu_acceptance")
+def test_gpu_section_of_a_passing_report_and_bad_learner_pairs(tmp_path, bench_script):
+    mod = bench_script("gpu_acceptance")
     report = json.loads((DATA / "gpu_acceptance.json").read_text())
     report["command"] = "python benchmarks/gpu_acceptance.py --jobs 8 --json-path 'a b.json'"
     report["checks"] = [dict(c, ok=True, status="PASS", reason="fine | well") for c in report["checks"]]
@@ -156,8 +143,8 @@ def test_gpu_section_of_a_passing_report_and_bad_learner_pairs(tmp_path):
         mod.section(report, tmp_path / "g.json", [(cuda, other)])
 
 
-def test_one_line_keeps_what_to_do_and_cuts_the_rest():
-    mod = bench("gpu_acceptance")
+def test_one_line_keeps_what_to_do_and_cuts_the_rest(bench_script):
+    mod = bench_script("gpu_acceptance")
     assert mod.one_line("short (kept as is)\nsecond line") == "short (kept as is)"
     nested = "x failed (OSError: " + "y" * 80 + " (inner) more); do this"
     assert mod.one_line(nested) == "x failed (OSError …); do this"
@@ -180,8 +167,8 @@ def test_one_line_keeps_what_to_do_and_cuts_the_rest():
         ("sim2real_gap", None),
     ],
 )
-def test_results_md_section_is_what_the_benchmark_renders(name, args, tmp_path, results_md):
-    mod = bench(name)
+def test_results_md_section_is_what_the_benchmark_renders(name, args, tmp_path, results_md, bench_script):
+    mod = bench_script(name)
     args = args or (list(mod.SECTION_JSONS),)
     assert rendered(tmp_path, mod.update_results, *args) == RESULTS.read_text(), (
         f"benchmarks/RESULTS.md's section {mod.HEAD!r} is not what the JSON renders: "
@@ -191,8 +178,8 @@ def test_results_md_section_is_what_the_benchmark_renders(name, args, tmp_path, 
 
 
 @pytest.mark.parametrize("env_id", ["TableClearing-IRB120-v1", "GraspLift-IRB120-v1", "StackCube-IRB120-v1"])
-def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path):
-    learning = bench("learning")
+def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path, bench_script):
+    learning = bench_script("learning")
     report = json.loads((learning.ROOT / learning.default_out_dir(env_id) / "learning.json").read_text())
     update = lambda results: learning.update_results(report, learning.markdown(report["rows"]), results)
     assert rendered(tmp_path, update) == RESULTS.read_text(), (
@@ -200,18 +187,18 @@ def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path
     )
 
 
-def test_no_issue_numbers_in_the_generated_sections(results_md):
+def test_no_issue_numbers_in_the_generated_sections(results_md, bench_script):
     names = ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed", "gpu_acceptance")
     names += ("sim_speed",)
-    heads = [bench(n).HEAD for n in names]
+    heads = [bench_script(n).HEAD for n in names]
     for head in heads:
         assert "issue" not in results_md.read_section(RESULTS, head).lower(), head
 
 
 # ----------------------------------------------------------------------------- --render-only measures nothing
 @pytest.mark.parametrize("name", ["adapter_latency", "sysid_recovery"])
-def test_render_only_reads_the_committed_json_and_measures_nothing(name, monkeypatch):
-    mod = bench(name)
+def test_render_only_reads_the_committed_json_and_measures_nothing(name, monkeypatch, bench_script):
+    mod = bench_script(name)
     written = []
     monkeypatch.setattr(mod, "update_results", lambda path: written.append(path))
     for runner in ("measure", "run"):  # adapter_latency's and sysid_recovery's measurement
@@ -221,8 +208,8 @@ def test_render_only_reads_the_committed_json_and_measures_nothing(name, monkeyp
     assert written == [mod.RESULTS_JSON] and report == json.loads(mod.RESULTS_JSON.read_text())
 
 
-def test_sim2real_render_only_runs_no_cell_and_adds_json(monkeypatch, tmp_path):
-    mod = bench("sim2real_gap")
+def test_sim2real_render_only_runs_no_cell_and_adds_json(monkeypatch, tmp_path, bench_script):
+    mod = bench_script("sim2real_gap")
     written = []
     monkeypatch.setattr(mod, "update_results", lambda paths: written.append(paths))
     monkeypatch.setattr(mod, "evaluate", lambda cfg: pytest.fail("--render-only ran a cell"))
@@ -235,10 +222,10 @@ def test_sim2real_render_only_runs_no_cell_and_adds_json(monkeypatch, tmp_path):
         mod.main(mod.Args(update_results=True))
 
 
-def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path):
+def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path, bench_script):
     """adapter_latency and sysid_recovery end to end with their measurements faked: the JSON the run writes is
     what the section shows, with the run's command quoted as typed."""
-    adapter, sysid = bench("adapter_latency"), bench("sysid_recovery")
+    adapter, sysid = bench_script("adapter_latency"), bench_script("sysid_recovery")
     copy = tmp_path / "RESULTS.md"
     shutil.copy(RESULTS, copy)
     monkeypatch.setattr(sys, "argv", ["benchmarks/x.py", "--steps", "3", "--note", "two words"])
@@ -258,21 +245,21 @@ def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path):
         monkeypatch.setattr(mod, "update_results", lambda path, real_update=real_update: real_update(path, copy))
         out = tmp_path / f"{mod.__name__}.json"
         mod.main(mod.Args(steps=3, json=out, update_results=True))
-        section = bench("results_md").read_section(copy, mod.HEAD)
+        section = bench_script("results_md").read_section(copy, mod.HEAD)
         assert section == mod.section(json.loads(out.read_text()), out)
         assert f"Command: `python benchmarks/{mod.__name__}.py --steps 3 --note 'two words'`" in section
     assert "| TCP loopback (emulator) | 600 | 6.00 | 12.35 |" in copy.read_text()
     assert "| 40 | 40.0 ± 0.0 | 0.60 | 0.600 ± 0.000 | 1.00 / 5.00 |" in copy.read_text()
 
 
-def test_gpu_render_only_needs_no_cuda_and_runs_no_check(monkeypatch, tmp_path):
+def test_gpu_render_only_needs_no_cuda_and_runs_no_check(monkeypatch, tmp_path, bench_script):
     """``gpu_acceptance.py --render-only`` on a machine without CUDA: no check starts, the section is the
     committed one."""
     import torch
 
     from maniskill_irb120.diagnostics import doctor
 
-    mod = bench("gpu_acceptance")
+    mod = bench_script("gpu_acceptance")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setattr(doctor, "gpu_main", lambda **k: pytest.fail("--render-only ran the checks"))
     monkeypatch.setattr(doctor, "gpu_report", lambda **k: pytest.fail("--render-only ran the checks"))
@@ -285,12 +272,12 @@ def test_gpu_render_only_needs_no_cuda_and_runs_no_check(monkeypatch, tmp_path):
     assert written == [mod.RESULTS_JSON] and copy.read_text() == RESULTS.read_text()
 
 
-def test_gpu_run_with_update_results_records_its_command_and_renders_its_json(monkeypatch, tmp_path):
+def test_gpu_run_with_update_results_records_its_command_and_renders_its_json(monkeypatch, tmp_path, bench_script):
     """The acceptance run with the doctor faked: the JSON it leaves carries the command as typed, and the section
     shows that JSON, failed checks and all."""
     from maniskill_irb120.diagnostics import doctor
 
-    mod = bench("gpu_acceptance")
+    mod = bench_script("gpu_acceptance")
     report = json.loads((DATA / "gpu_acceptance.json").read_text())
     report["checks"][1] = dict(report["checks"][1], ok=False, status="FAIL", reason="exit status 1: boom")
 
@@ -308,7 +295,7 @@ def test_gpu_run_with_update_results_records_its_command_and_renders_its_json(mo
     assert mod.main(mod.Args(jobs=8, json_path=out, update_results=True)) == 1
     saved = json.loads(out.read_text())
     assert saved["command"] == f"python benchmarks/gpu_acceptance.py --jobs 8 --json-path '{out}'"
-    section = bench("results_md").read_section(copy, mod.HEAD)
+    section = bench_script("results_md").read_section(copy, mod.HEAD)
     assert section == mod.section(saved, out, [mod.LEARNER_JSONS])
     assert (
         f"Command: `{saved['command']}`." in section and "| obs modes | **FAILED** | exit status 1: boom |" in section
