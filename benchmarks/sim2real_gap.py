@@ -72,7 +72,8 @@ SECTION_JSONS = (
 )
 """the runs RESULTS.md shows, a table each: the expert through the adapter, the committed camera policy trained at
 the twin's measured mount without the latency range (two training seeds on two seed ranges), and GraspLift's camera
-policy learned from the reward alone (teacher-student-rgbd, no randomisation): seed 1 on two seed ranges, seeds 2 and 3"""
+policy learned from the reward alone (teacher-student-rgbd, no randomisation): seed 1 on two seed ranges, seeds 2
+and 3"""
 
 SHIFTS = {
     "none": None,
