@@ -362,7 +362,7 @@ def train(args: Args) -> dict:
         rows = saved.get("data_rows")
         restore_dataset(data, saved, Path(args.resume).parent / "data")
         counters = restore(saved, clock)
-    logger = Logger(run_dir, args)
+    logger = Logger(run_dir, args, clock)
     ckpt_dir = run_dir / "checkpoints"
     budget_s = args.budget_min * 60
     elapsed = clock

@@ -557,7 +557,6 @@ def train(args: Args) -> dict:
         counters = restore(saved)
     elif args.checkpoint is not None:
         load_checkpoint(args.checkpoint, agent, args, init)
-    logger = Logger(run_dir, args)
     ckpt_dir = run_dir / "checkpoints"
 
     num_iterations = max(1, args.total_timesteps // args.batch_size)
@@ -577,6 +576,7 @@ def train(args: Args) -> dict:
     # started here, after the envs are built, as PPO's budget always has been; with the time trained before this
     # --resume (a checkpoint written before the clock was saved has none): the budget is the run's
     elapsed = Clock(counters.get("wall_s", 0.0))
+    logger = Logger(run_dir, args, elapsed)
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
     try:
         while counters["iteration"] < num_iterations:

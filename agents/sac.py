@@ -416,7 +416,7 @@ def train(args: Args) -> dict:
         restore_dataset(online, saved, Path(args.resume).parent / "data", "online")
         restore_dataset(demos, saved, Path(args.resume).parent / "data", "demos")
         counters = restore(saved, clock)
-    logger = Logger(run_dir, args)
+    logger = Logger(run_dir, args, clock)
     ckpt_path = run_dir / "checkpoints" / "latest.pt"
     elapsed = clock
     budget_s = 60 * args.budget_min

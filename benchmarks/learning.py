@@ -3,7 +3,7 @@
 Each recipe is a trainer CLI in ``agents/`` run as a subprocess with ``--budget-min``, ``--seed`` and
 ``--eval-episodes``; the last line it prints is its JSON result (``success_rate``, ``successes`` per
 episode, ``env_steps``, ``wall_clock_s``), and its TensorBoard log gives the curve (training-episode success
-against env steps and wall clock). References measured in the same run on the same held-out seeds: uniform
+against env steps and the trainer's budget clock, across every session of a resumed run). References measured in the same run on the same held-out seeds: uniform
 random actions and the scripted expert.
 
 Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from results_md import replace_section  # noqa: E402
 
 from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
+from agents.common.logging import event_files, read_scalars  # noqa: E402
 from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one home, which the trainers' --recipe reads)
     BASES,
     DEFAULT_ENV,
@@ -136,7 +137,8 @@ class Args:
     adopt: list[Path] = field(default_factory=list)
     """run folders of the one recipe in --recipes trained outside this script, by the trainer's own command
     (e.g. in an earlier session): each joins the row if its logged arguments are the recipe's, for this task, budget
-    and --eval-episodes (only where and how it logged may differ); its seed may not be in --seeds"""
+    and --eval-episodes (only where and how it logged may differ); its seed may not be in --seeds. A run that
+    ``--resume`` continued across sessions joins whole, if every session logged the same arguments"""
     adopt_base: list[Path] = field(default_factory=list)
     """for a two-stage recipe (teacher-student-rgbd, ppo-finetune-state), the first stage's run folder of each --adopt
     run, in the same order"""
@@ -207,22 +209,14 @@ def reference(name: str, args: Args) -> dict:
     return dict(r, seed=None, env_steps=0, wall_clock_s=0.0)
 
 
-def curve(run_dir: Path, t0_wall: float) -> dict:
-    """Training-episode success (as logged) against env steps and wall-clock minutes."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    files = sorted(run_dir.glob("events.out.tfevents.*"), key=lambda f: f.stat().st_mtime)
-    if not files:
-        return dict(env_steps=[], wall_min=[], success=[])
-    acc = EventAccumulator(str(files[-1]), size_guidance={"scalars": 0})  # this run's (a resumed run appends one)
-    acc.Reload()
-    if "train/success_rate" not in acc.Tags()["scalars"]:
-        return dict(env_steps=[], wall_min=[], success=[])
-    ev = acc.Scalars("train/success_rate")
+def curve(run_dir: Path) -> dict:
+    """Training-episode success (as logged) against env steps and minutes of training, over every session of a
+    resumed run (``agents.common.logging.read_scalars``: the minutes are the trainer's budget clock)."""
+    points = read_scalars(run_dir).get("train/success_rate", [])
     return dict(
-        env_steps=[e.step for e in ev],
-        wall_min=[(e.wall_time - t0_wall) / 60 for e in ev],
-        success=[e.value for e in ev],
+        env_steps=[step for step, _, _ in points],
+        wall_min=[minutes for _, minutes, _ in points],
+        success=[value for _, _, value in points],
     )
 
 
@@ -312,7 +306,6 @@ def run_trainer(
     elif latest.is_file() and not (run_dir / "summary.json").is_file():
         cmd += ["--resume", str(latest)]
     print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
-    t0 = time.time()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     log = logs_dir / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -324,13 +317,15 @@ def run_trainer(
     if missing:
         raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
     out = {k: result[k] for k in RESULT_KEPT if k in result}
-    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(run_dir, t0))
+    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(run_dir))
     return out
 
 
 # where and how a run logged, not what it learned: the only arguments an adopted run may differ in (``recipe``: the
 # name a run was started with, whose flags are compared one by one like those given by hand)
 ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe")
+# what a --resume may change of a run's logged arguments besides those (the checkpoint it continued from)
+RESUME_FREE = ("resume", "progress", "capture_video")
 
 
 def logged_args(events: Path) -> tuple[dict, float]:
@@ -370,12 +365,18 @@ def adopted_run(
     flags = [*recipe_flags(recipe, args.env_id), *extra]
     if recipe in BASES and not extra:
         raise ValueError(f"--adopt: {recipe} trains in two stages; name each run's first stage with --adopt-base")
-    summary, events = run_dir / "summary.json", sorted(run_dir.glob("events.out.tfevents.*"))
+    summary, events = run_dir / "summary.json", event_files(run_dir)
     if not summary.is_file():
         raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
-    if len(events) != 1:
-        raise ValueError(f"--adopt: {run_dir} has {len(events)} TensorBoard logs (a resumed or foreign run?), not 1")
+    if not events:
+        raise ValueError(f"--adopt: {run_dir} has no TensorBoard log")
     logged, opened = logged_args(events[0])
+    for later in events[1:]:  # a resumed run: each session logged the arguments it continued with
+        theirs, _ = logged_args(later)
+        differ = sorted(k for k in set(logged) | set(theirs) if k not in RESUME_FREE and logged.get(k) != theirs.get(k))
+        if differ:
+            shown = ", ".join(f"{k}={theirs.get(k)!r} (first: {logged.get(k)!r})" for k in differ)
+            raise ValueError(f"--adopt: {later} continued {run_dir} with other arguments: {shown}")
     budget = budget_for(kind, args) if stage_budget is None else stage_budget
     seed = logged.get("seed")
     argv = [*seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed), "--budget-min", f"{budget:.4g}"]
@@ -400,7 +401,7 @@ def adopted_run(
         adopted_from=str(run_dir),
         benchmark_command=f"python -m {module} {' '.join(argv)}",
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(opened)),
-        curve=curve(run_dir, opened),
+        curve=curve(run_dir),
     )
     return out
 

@@ -31,7 +31,7 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, recipe_flags  # noqa: E402
+from learning import QUICK_FLAGS, RECIPES, read_scalars, recipe_flags  # noqa: E402
 from results_md import replace_section  # noqa: E402
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -115,15 +115,7 @@ def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
 
 def scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
     """Every scalar the run logged, over all its TensorBoard files (one per resume), sorted by env step."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    out: dict[str, dict[int, float]] = {}
-    for events in sorted(folder.glob("events.out.tfevents.*"), key=lambda f: f.stat().st_mtime):
-        acc = EventAccumulator(str(events), size_guidance={"scalars": 0})
-        acc.Reload()
-        for tag in acc.Tags()["scalars"]:
-            out.setdefault(tag, {}).update({e.step: e.value for e in acc.Scalars(tag)})
-    return {tag: sorted(v.items()) for tag, v in out.items()}
+    return {tag: [(step, value) for step, _, value in points] for tag, points in read_scalars(folder).items()}
 
 
 def figures(folder: Path) -> dict:

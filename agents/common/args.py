@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import ast
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Literal, Optional, TypeVar
+from types import UnionType
+from typing import Literal, Optional, TypeVar, Union, get_args, get_origin, get_type_hints
 
 import tyro
 
@@ -123,6 +124,46 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
 
 
 def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None) -> A:
-    """A trainer's command line (``sys.argv`` by default) parsed into ``args_type``, ``--recipe`` expanded first."""
+    """A trainer's command line (``sys.argv`` by default) parsed into ``args_type``, ``--recipe`` expanded first.
+    With ``--resume CKPT`` every flag the command line leaves out is the resumed run's own, read from the checkpoint
+    (:func:`resumed_args`): ``--resume`` alone continues the run as it was started, and a flag given again (a longer
+    ``--budget-min``) overrides it."""
     argv = sys.argv[1:] if argv is None else argv
-    return tyro.cli(args_type, args=recipe_argv(module, argv, args_type.env_id, args_type.seed))
+    resume = _flag(argv, "--resume")
+    if resume is None or resume == "None":
+        return tyro.cli(args_type, args=recipe_argv(module, argv, args_type.env_id, args_type.seed))
+    started = resumed_args(args_type, Path(resume))
+    return tyro.cli(args_type, args=recipe_argv(module, argv, started.env_id, started.seed), default=started)
+
+
+def resumed_args(args_type: type[A], path: Path) -> A:
+    """The arguments the run whose checkpoint is ``path`` was started with (every trainer's checkpoint keeps them,
+    as JSON: ``agents.common.run.checkpoint``), as ``args_type``; a field the checkpoint predates keeps its default.
+    A missing file, or one without arguments, is refused by name."""
+    from agents.common.checkpoints import read_checkpoint
+
+    if not path.is_file():
+        raise FileNotFoundError(f"--resume: checkpoint {path} does not exist")
+    saved = read_checkpoint(path)
+    saved = saved.get("args") if isinstance(saved, dict) else None
+    if not isinstance(saved, dict):
+        raise ValueError(f"--resume {path}: the file holds no run arguments (not a trainer's latest.pt?)")
+    hints = get_type_hints(args_type)
+    values = {f.name: _from_json(hints[f.name], saved[f.name]) for f in fields(args_type) if f.init and f.name in saved}
+    return args_type(**values)
+
+
+def _from_json(hint, value):
+    """``value`` as JSON kept it (a path as a string, a tuple as a list) back as the field's type ``hint``."""
+    if value is None:
+        return None
+    options = get_args(hint) if get_origin(hint) in (Union, UnionType) else (hint,)
+    for option in (o for o in options if o is not type(None)):
+        kind = get_origin(option) or option
+        if kind is Path:
+            return Path(value)
+        if kind is tuple:
+            return tuple(value)
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            return float(value)
+    return value

@@ -68,3 +68,29 @@ def test_the_trainers_command_line_expands_a_recipe():
     out = subprocess.run([sys.executable, "-c", code, *argv], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ["sac-scratch-state", "0", "False", "64"]
+
+
+@pytest.mark.parametrize("module", ["agents.ppo", "agents.dagger", "agents.sac"])
+def test_resume_alone_continues_with_the_runs_own_flags_and_a_flag_given_again_overrides(tmp_path, module):
+    """``--resume CKPT`` without the flags the run was started with: each is read back from the checkpoint (a path,
+    a tuple, a float given as an int), not left at the trainer's default; a flag on the command line wins."""
+    from agents.common.checkpoints import atomic_save
+    from agents.common.run import checkpoint
+
+    trainer = importlib.import_module(module)
+    started = parsed(module, ["--env-id", "GraspLift-IRB120-v1", "--seed", "3", "--budget-min", "56", "--obs", "state"])
+    started.runs_dir, started.exp_name = tmp_path / "runs", "cut"
+    if hasattr(started, "obs_without"):
+        started.obs_without = ("agent/qvel",)
+    ckpt = tmp_path / "latest.pt"
+    atomic_save(checkpoint(trainer.FORMAT, started, dict(wall_s=60.0)), ckpt)
+    resumed = parsed(module, ["--resume", str(ckpt)])
+    assert {**vars(resumed), "resume": None} == vars(started) and resumed.resume == ckpt
+    assert isinstance(resumed.runs_dir, Path) and isinstance(resumed.budget_min, float)
+    longer = parsed(module, ["--resume", str(ckpt), "--budget-min", "90"])
+    assert longer.budget_min == 90.0 and longer.env_id == "GraspLift-IRB120-v1" and longer.seed == 3
+    with pytest.raises(FileNotFoundError, match="--resume: checkpoint .*missing.pt does not exist"):
+        parsed(module, ["--resume", str(tmp_path / "missing.pt")])
+    atomic_save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="other.pt: the file holds no run arguments"):
+        parsed(module, ["--resume", str(tmp_path / "other.pt")])

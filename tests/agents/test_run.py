@@ -119,3 +119,44 @@ def test_the_held_out_evaluation_uses_the_runs_task_frame_and_hidden_keys(monkey
     args, kw = calls[1]
     assert args[3] == [5] and (kw["obs_mode"], kw["reward_mode"]) == ("state_dict", "sparse")
     assert len(kw["wrappers"]) == 2  # the hidden keys' wrapper, then the action frame's
+
+
+def test_a_resumed_runs_scalars_join_on_the_budget_clock(tmp_path):
+    """Two sessions of one run: the second resumed from the checkpoint at step 200, so what the first logged from step
+    300 on is dropped; each point sits at the budget clock's minute it was logged at, not at the hours between the
+    sessions."""
+    from agents.common.logging import Logger, read_scalars
+
+    readings = iter([60.0, 120.0, 180.0, 150.0, 210.0])  # the budget clock's seconds at each scalars() call
+    first = Logger(tmp_path, Args(), clock=lambda: next(readings))
+    for step, value in ((100, 0.1), (200, 0.2), (300, 0.3)):
+        first.scalars({"train/success_rate": value}, step)
+    first.close()
+    time.sleep(0.05)
+    second = Logger(tmp_path, Args(resume=tmp_path / "checkpoints" / "latest.pt"), clock=lambda: next(readings))
+    for step, value in ((300, 0.5), (400, 0.6)):
+        second.scalars({"train/success_rate": value}, step)
+    second.close()
+    got = read_scalars(tmp_path)["train/success_rate"]
+    assert [s for s, _, _ in got] == [100, 200, 300, 400]
+    assert [v for _, _, v in got] == pytest.approx([0.1, 0.2, 0.5, 0.6])  # TensorBoard keeps float32
+    assert [m for _, m, _ in got] == pytest.approx([1.0, 2.0, 2.5, 3.5], abs=0.01)
+
+
+def test_a_run_logged_without_a_clock_continues_each_session_where_the_last_ended(tmp_path):
+    """Logs from before the clock was logged (or by another writer): a file's minutes count from its opening, the
+    next file's from where the one before it ended."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from agents.common.logging import read_scalars
+
+    for steps in ((100, 200), (300,)):
+        with SummaryWriter(tmp_path) as w:
+            opened = time.time()  # the writer's first event is at most this late
+            for i, step in enumerate(steps):
+                w.add_scalar("train/success_rate", step / 1000, step, walltime=opened + 60 * (i + 1))
+        time.sleep(0.05)
+    got = read_scalars(tmp_path)["train/success_rate"]
+    assert [s for s, _, _ in got] == [100, 200, 300]
+    assert [m for _, m, _ in got] == pytest.approx([1.0, 2.0, 3.0], abs=0.01)
+    assert read_scalars(tmp_path / "nothing") == {}

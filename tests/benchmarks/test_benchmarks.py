@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -262,11 +263,11 @@ def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     assert learning.make_room(run) == run and not run.exists()
     (old,) = (tmp_path / "runs").glob("dagger-rgbd__s1.before-*")
     assert list(old.glob("events.out.tfevents.*"))  # nothing of the earlier run is lost
-    for value in (0.25, 0.75):  # a resumed run appends a second event file: the newest is this run's
+    for value in (0.25, 0.75):  # a resume appends a second event file, and trains step 200 again
         with SummaryWriter(run) as w:
             w.add_scalar("train/success_rate", value, 200)
         time.sleep(0.05)
-    assert learning.curve(run, time.time())["success"] == [0.75]
+    assert learning.curve(run)["success"] == [0.75]
 
 
 def test_learning_iqm_is_over_seeds_not_single_episodes():
@@ -414,6 +415,35 @@ def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
     (tmp_path / "ok" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="no summary.json"):
         learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", args)
+
+
+def test_learning_adopts_a_run_resumed_across_sessions_whole_and_only_with_its_own_arguments(tmp_path):
+    """A run the session's end cut short and ``--resume`` continued: both sessions' points make its curve; a session
+    that continued it with another learning argument is refused by name."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import tyro
+
+    from agents import dagger
+    from agents.common.logging import Logger, finish
+
+    flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", "2", "--no-progress"]
+    args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", "cut"])
+    run_dir = tmp_path / "cut"
+    for session, (step, value) in enumerate(((1000, 0.5), (2000, 0.7))):
+        resumed = dict(resume=run_dir / "checkpoints" / "latest.pt") if session else {}
+        log = Logger(run_dir, replace(args, **resumed))
+        log.scalars({"train/success_rate": value}, step)
+        log.close()
+        time.sleep(0.05)
+    finish(dict(success_rate=0.9, successes=[1] * 9 + [0], env_steps=2000, wall_clock_s=3600.0), run_dir)
+    largs = learning.Args(recipes=["dagger-rgbd-bf16"], seeds=[], out_dir=tmp_path)
+    run = learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)
+    assert run["curve"]["env_steps"] == [1000, 2000] and run["curve"]["success"] == pytest.approx([0.5, 0.7])
+    log = Logger(run_dir, replace(args, batch_size=32, resume=run_dir / "checkpoints" / "latest.pt"))
+    log.close()
+    with pytest.raises(ValueError, match=r"continued .*cut with other arguments: batch_size=32"):
+        learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)
 
 
 def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_path):
