@@ -3,8 +3,8 @@
 Each recipe is a trainer CLI in ``agents/`` run as a subprocess with ``--budget-min``, ``--seed`` and
 ``--eval-episodes``; the last line it prints is its JSON result (``success_rate``, ``successes`` per
 episode, ``env_steps``, ``wall_clock_s``), and its TensorBoard log gives the curve (training-episode success
-against env steps and the trainer's budget clock, across every session of a resumed run). References measured in the same run on the same held-out seeds: uniform
-random actions and the scripted expert.
+against env steps and the trainer's budget clock, across every session of a resumed run). References measured in
+the same run on the same held-out seeds: uniform random actions and the scripted expert.
 
 Intervals: the mean success over seeds with a 95 % percentile bootstrap that resamples seeds and then the
 episodes within each (a two-level stratified bootstrap, the method of ``rliable``; written here in numpy
@@ -28,7 +28,8 @@ sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd a
 TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``). The recipes, their budgets and TASK_FLAGS live in
 ``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer started
 by hand with the same recipe get the same flags. ``--update-results`` rewrites the Learning section
-of benchmarks/RESULTS.md; ``--render-only`` rewrites it from the task's committed learning.json, training nothing.
+of benchmarks/RESULTS.md; ``--render-only`` redraws it and the plot from the task's committed learning.json,
+training nothing.
 """
 
 from __future__ import annotations
@@ -435,13 +436,22 @@ def plot(rows: list[dict], path: Path) -> None:
             success = smoothed(c["success"])
             axes[0].plot(c["env_steps"], success, color=color, lw=1, alpha=0.8, label=label)
             axes[1].plot(c["wall_min"], success, color=color, lw=1, alpha=0.8)
+            # where each run ended, at its held-out success; a two-stage run's first stage, hollow, where it ended
+            ends = [(run, dict(color=color))]
+            if "base" in run:
+                ends.append((run["base"], dict(markerfacecolor="white", markeredgecolor=color)))
+            for end, style in ends:
+                x = (end["env_steps"], end["wall_clock_s"] / 60)
+                for ax, xi in zip(axes, x):
+                    ax.plot([xi], [end["success_rate"]], "o", ms=4, zorder=3, **style)
     axes[0].set(xlabel="env steps (thousands)", ylabel="training-episode success", ylim=(-0.05, 1.05))
     axes[0].xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda x, _: f"{x / 1000:g}"))
     axes[1].set(xlabel="wall clock (min)", ylim=(-0.05, 1.05))
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=7, loc="center left")
     fig.suptitle(
-        "training episodes, trailing mean (DAgger: β-mixed with the expert in early rounds, then the noisy learner); "
-        "dashed: expert (black), random (grey) on the held-out seeds",
+        "lines: training episodes, trailing mean (DAgger: β-mixed with the expert or teacher early, then the noisy "
+        "learner)\ndots: held-out success where each run ended (hollow: a two-stage run's first stage); dashed: "
+        "expert (black), random (grey) on the held-out seeds",
         fontsize=7,
     )
     fig.tight_layout()
@@ -562,7 +572,9 @@ def update_results(report: dict, table: str, results: Path) -> None:
 
 def main(args: Args) -> dict:
     if args.render_only:
-        report = json.loads(((args.out_dir or default_out_dir(args.env_id)) / "learning.json").read_text())
+        out_dir = args.out_dir or default_out_dir(args.env_id)
+        report = json.loads((out_dir / "learning.json").read_text())
+        plot(report["rows"], out_dir / "learning.png")
         update_results(report, markdown(report["rows"]), ROOT / "benchmarks" / "RESULTS.md")
         return report
     unknown = set(args.recipes) - set(RECIPES)

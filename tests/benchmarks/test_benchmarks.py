@@ -270,6 +270,42 @@ def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     assert learning.curve(run)["success"] == [0.75]
 
 
+def test_learning_plot_marks_each_runs_held_out_success_where_it_ended_and_a_teachers_too(tmp_path, monkeypatch):
+    """A teacher-student run's training curve sits near 0 while its student learns (the noisy learner collects),
+    so the plot also puts a dot at each run's held-out success: filled at the run's end, hollow at its first
+    stage's."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    from matplotlib import pyplot
+
+    curve = dict(env_steps=[1000, 2000, 3000], wall_min=[10.0, 50.0, 120.0], success=[0.5, 0.0, 0.0])
+    base = dict(success_rate=0.9, env_steps=1500, wall_clock_s=2700.0, checkpoint="teacher.pt")
+    run = dict(curve=curve, success_rate=0.92, env_steps=3000, wall_clock_s=7200.0, base=base)
+    rows = [dict(recipe="teacher-student-rgbd", runs=[run]), dict(recipe="expert", success_mean=1.0)]
+    drawn = []
+    real_savefig = pyplot.Figure.savefig
+
+    def savefig(fig, path, *a, **k):
+        drawn.extend((ax.get_xlabel(), line) for ax in fig.axes for line in ax.get_lines())
+        return real_savefig(fig, path, *a, **k)
+
+    monkeypatch.setattr(pyplot.Figure, "savefig", savefig)
+    learning.plot(rows, tmp_path / "learning.png")
+    dots = {
+        (x, line.get_xdata()[0], line.get_ydata()[0], line.get_markerfacecolor() == "white")
+        for x, line in drawn
+        if line.get_marker() == "o"
+    }
+    steps, minutes = "env steps (thousands)", "wall clock (min)"
+    assert dots == {
+        (steps, 3000, 0.92, False),
+        (minutes, 120.0, 0.92, False),
+        (steps, 1500, 0.9, True),
+        (minutes, 45.0, 0.9, True),
+    }
+    assert (tmp_path / "learning.png").stat().st_size > 1000
+
+
 def test_learning_iqm_is_over_seeds_not_single_episodes():
     sys.path.insert(0, str(REPO / "benchmarks"))
     import learning
