@@ -31,8 +31,10 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, read_scalars, recipe_flags  # noqa: E402
+from learning import QUICK_FLAGS, RECIPES, recipe_flags  # noqa: E402
 from results_md import replace_section  # noqa: E402
+
+from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
 
 ENV_ID = "TableClearing-IRB120-v1"
 EXPERIMENT = ("ppo-rgbd-dense", "ppo-rgbd")
