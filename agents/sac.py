@@ -85,6 +85,8 @@ FORMAT = "maniskill_irb120.sac/1"
 class Args(RunArgs):
     budget_min: float = 120.0
     """wall-clock minutes for everything before the final evaluation"""
+    total_timesteps: Optional[int] = None
+    """also stop once this many env steps are done (demos included): a run sized in steps, whatever the load"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
@@ -438,7 +440,7 @@ def train(args: Args) -> dict:
     owed, next_log, next_save = 0.0, counters["env_steps"] + args.log_freq, counters["env_steps"] + args.save_freq
     bar = budget_bar(args, budget_s, counters["wall_s"], "sac")
     try:
-        while elapsed() < budget_s:
+        while elapsed() < budget_s and (args.total_timesteps is None or counters["env_steps"] < args.total_timesteps):
             obs = state["obs"]
             if online.size < args.learning_starts and demos.size == 0:
                 action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
@@ -502,6 +504,8 @@ def main(args: Args) -> dict:
         raise ValueError(f"--demo-ratio must be in [0, 1], got {args.demo_ratio}")
     if not args.init_std > 0:
         raise ValueError(f"--init-std must be > 0, got {args.init_std}")
+    if args.total_timesteps is not None and args.total_timesteps < 1:
+        raise ValueError(f"--total-timesteps must be >= 1 env step, got {args.total_timesteps}")
     return run_evaluation_only(args) if args.evaluate else train(args)
 
 

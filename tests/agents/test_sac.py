@@ -28,8 +28,11 @@ from agents.sac import (
 
 
 def tiny(tmp_path: Path, **kw) -> dict:
+    """A toy run sized in env steps (the expert's demo episode, ~110, and the rest online), with a budget far above
+    it: the same run on a quiet machine and on a loaded CI box."""
     base = dict(
-        budget_min=0.1,
+        budget_min=5.0,
+        total_timesteps=310,
         num_envs=1,
         demo_episodes=1,
         bc_pretrain_updates=5,
@@ -160,8 +163,10 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, 250 steps each)
     assert rows["online"]["capacity"] == 300_000 and rows["demos"]["capacity"] == 500
     assert saved["args"]["buffer_size"] == 300_000
-    # the budget counts the first run's wall clock too: 3 s more than it used
-    again = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=res["wall_clock_s"] / 60 + 0.05)
+    # the budget counts the first run's wall clock too: one it has already used up stops the resumed run at once
+    spent = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.001, total_timesteps=None)
+    assert spent["env_steps"] == res["env_steps"] and spent["updates"] == res["updates"]
+    again = tiny(tmp_path, resume=Path(res["checkpoint"]), total_timesteps=res["env_steps"] + 40)
     assert again["env_steps"] > res["env_steps"] and again["updates"] > res["updates"]
     assert again["wall_clock_s"] > res["wall_clock_s"]
     ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=True)
@@ -206,12 +211,12 @@ def sim2real_acts_as_trained(ckpt: Path, tmp_path: Path) -> None:
 
 def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):
     # a small replay: allocating RGB-D rows is slow after the RLlib tests (Ray's object store holds shared
-    # memory; the old 300k-row default took 29 s of the budget, profiled: torch.empty). 18 s, not 6: rendering the
-    # demo and the first steps took all of 6 s once while CI loaded both cores (0 updates)
+    # memory; the old 300k-row default took 29 s, profiled: torch.empty). Sized in env steps (tiny), not seconds: a
+    # budget of 6 s, then 18, once went to rendering the demo alone while CI loaded both cores (0 updates)
     res = tiny(
         tmp_path,
         obs="rgbd",
-        budget_min=0.3,
+        total_timesteps=140,
         batch_size=8,
         bc_pretrain_updates=2,
         critic_warmup_updates=2,
@@ -229,6 +234,8 @@ def test_bad_input_is_named(tmp_path):
         main(Args(evaluate=True))
     with pytest.raises(ValueError, match="--buffer-size 0"):
         main(Args(buffer_size=0))
+    with pytest.raises(ValueError, match="--total-timesteps must be >= 1"):
+        main(Args(total_timesteps=0))
     wrong = tmp_path / "dagger.pt"
     torch.save(dict(format="maniskill_irb120.dagger/1"), wrong)
     with pytest.raises(ValueError, match="not written by agents.sac"):
