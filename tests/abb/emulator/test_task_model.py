@@ -250,8 +250,12 @@ def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu):
     """A gripper change on a zero-length step (the expert stops, then closes) waits until the robot stands in
     position (WaitRob \\InPos): SetDO fires when the program pointer passes it, so without the wait it fired while the
     step before was still under way."""
+    # the robot model's clock at a third of wall-clock speed, as below: at full speed a loaded CI box once let the
+    # step's ~58 ms pass before the first assertion looked (the reply still comes well inside the client's timeout)
+    t0 = time.monotonic()
+    emu.robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
     robot = ABBRobot.connect(emu.url, timeout=0.5)
-    robot.move_tool([1.0, 0, 0, 0, 1.0])  # a full step: answered once planned, ~58 ms of motion follow
+    robot.move_tool([1.0, 0, 0, 0, 1.0])  # a full step: answered once planned, ~175 ms of motion follow
     assert emu.robot.busy()
     state = robot.move_tool([0.0, 0.0, 0.0, 0.0, -1.0])  # stop and close
     assert not emu.robot.busy() and emu.signals["doGripperOpen"] == 0 and not state.gripper_open
