@@ -325,6 +325,9 @@ def run_trainer(
 # where and how a run logged, not what it learned: the only arguments an adopted run may differ in (``recipe``: the
 # name a run was started with, whose flags are compared one by one like those given by hand)
 ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe")
+BUDGET_ROUNDING = 0.01
+"""minutes an adopted run's --budget-min may differ from the recipe's: a second stage's budget (the total less the
+first stage's wall clock) typed to two decimals, as the policies MANIFEST's commands give it"""
 # what a --resume may change of a run's logged arguments besides those (the checkpoint it continued from)
 RESUME_FREE = ("resume", "progress", "capture_video")
 
@@ -388,6 +391,9 @@ def adopted_run(
         trainer_args = trainer.resolved(trainer_args)
     expected = json.loads(json.dumps(asdict(trainer_args), default=str))
     differ = {k: (logged.get(k), v) for k, v in expected.items() if k not in ADOPT_FREE and logged.get(k) != v}
+    typed = differ.get("budget_min")
+    if typed and abs(float(typed[0]) - float(typed[1])) <= BUDGET_ROUNDING + 1e-9:
+        del differ["budget_min"]  # a second stage's budget typed to two decimals: its rounding, not another budget
     if differ:
         shown = ", ".join(f"{k}={a!r} (the recipe's: {b!r})" for k, (a, b) in sorted(differ.items()))
         raise ValueError(f"--adopt: {run_dir} was not trained by the {recipe} recipe: {shown}")

@@ -448,6 +448,10 @@ def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
         learning.adopted_run("dagger-rgbd-bf16", trained("other", ["--batch-size", "32"], seed=3), args)
     with pytest.raises(ValueError, match="budget_min=60.0 \\(the recipe's: 30.0\\)"):
         learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", learning.Args(budget_min=30))
+    # a budget typed to two decimals (a second stage's: the total less the first's wall clock) is the recipe's
+    assert learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", learning.Args(budget_min=59.99))["seed"] == 2
+    with pytest.raises(ValueError, match="budget_min=60.0 \\(the recipe's: 59.98\\)"):
+        learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", learning.Args(budget_min=59.98))
     (tmp_path / "ok" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="no summary.json"):
         learning.adopted_run("dagger-rgbd-bf16", tmp_path / "ok", args)
