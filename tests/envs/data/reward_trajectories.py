@@ -1,8 +1,9 @@
 """Writes reward_trajectories.npz beside this file: for every task and reward mode, two seeded episodes (the expert
 with noise on its arm actions for its first steps, and uniform random actions) with each step's action, reward and
 every numeric ``info`` entry, as the envs compute them when it was written. ``tests/envs/test_reward_regression.py``
-replays the actions and asks for the same numbers bit for bit, so a change meant to be a speed-up cannot change what a
-learner sees. Run it again only for a change that is meant to change rewards, terms or events, and say so in the commit:
+replays the actions and asks for the same numbers to float32 rounding (its RTOL and ATOL: another CPU differs in the
+last bits), so a change meant to be a speed-up cannot change what a learner sees. Run it again only for a change
+that is meant to change rewards, terms or events, and say so in the commit:
 
     .venv/bin/python tests/envs/data/reward_trajectories.py
 """
