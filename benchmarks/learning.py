@@ -326,8 +326,8 @@ def run_trainer(
 # name a run was started with, whose flags are compared one by one like those given by hand)
 ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe")
 BUDGET_ROUNDING = 0.01
-"""minutes an adopted run's --budget-min may differ from the recipe's: a second stage's budget (the total less the
-first stage's wall clock) typed to two decimals, as the policies MANIFEST's commands give it"""
+"""minutes any adopted run's --budget-min may differ from the recipe's: the rounding of a budget typed to two
+decimals, as the policies MANIFEST's commands give a second stage's (the total less the first stage's wall clock)"""
 # what a --resume may change of a run's logged arguments besides those (the checkpoint it continued from)
 RESUME_FREE = ("resume", "progress", "capture_video")
 
