@@ -152,13 +152,21 @@ def test_a_fixed_period_step_end_reads_the_robot_moving(rig):
     the IRC5's ramps, is still under way when read at 50 ms."""
     env = rig["env"]
     env.reset(seed=4)
+    # the robot model's clock at a third of wall-clock speed after the reset (the step's motion ~175 ms): at full
+    # speed a loaded CI box once read the robot only after it had arrived
+    t0 = time.monotonic()
+    rig["emu"].robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
     env.step_end = "period"
     try:
         obs = env.step(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0]))[0]
         assert rig["agent"].state.status == Status.MOVING
-        assert obs["agent"]["qvel"].abs().max() > 0.05
+        # the step's displacement so far, x 20 Hz: on the slowed clock, 0.04-0.1 rad/s at the 50 ms read (0.0035 is
+        # the protocol's 0.01 deg at 20 Hz)
+        assert obs["agent"]["qvel"].abs().max() > 0.01
     finally:
         env.step_end = "arrived"
+        rig["emu"].robot.wait_done(timeout=2.0)  # the rig is the module's: its next test starts on the real clock
+        rig["emu"].robot.clock = time.monotonic
 
 
 def test_command_latency_delays_the_real_step_but_not_what_the_policy_sees():
