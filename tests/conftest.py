@@ -7,6 +7,9 @@ gripper open), ``bench.tcp_matrix(env)``, ``bench.CUBE_HALF`` and ``bench.REPO``
 after the test.
 ``readme_snippet``: ``readme_snippet(name)`` is the python block marked ``<!-- snippet "name" ... -->`` in
 README.md or a docs page (``docs/*.md``), so tests run the pages themselves.
+``slow_clock``: ``slow_clock(robot, factor=3)`` runs an emulator robot model's clock ``factor`` times slower than
+the wall clock, for tests that read the robot mid-motion; the robot finishes its motion and gets its clock back after
+the test.
 """
 
 from __future__ import annotations
@@ -117,3 +120,24 @@ def readme_snippet():
     """``readme_snippet(name)``: the python block marked with that name in the README or the docs, so the tests run
     the pages themselves."""
     return _readme_snippet
+
+
+@pytest.fixture
+def slow_clock():
+    """The emulator's robot model moves over an injectable clock. A test that reads the robot while it moves (a
+    reply sent mid-step, a sample half a step away) runs it slower than the wall clock, so that a loaded CI box, which
+    once read the robot only after it had arrived, still finds it under way; the motions stay well inside the
+    client's timeouts and the server's heartbeat. After the test each slowed robot ends its motion and gets its own
+    clock back (a module-scoped rig's next test starts on the real clock)."""
+    slowed = []
+
+    def slow(robot, factor: float = 3.0) -> None:
+        own = robot.clock
+        t0 = own()
+        robot.clock = lambda: t0 + (own() - t0) / factor
+        slowed.append((robot, own))
+
+    yield slow
+    for robot, own in reversed(slowed):
+        robot.wait_done(timeout=2.0)
+        robot.clock = own

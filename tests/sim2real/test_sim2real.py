@@ -147,15 +147,14 @@ def test_real_observations_mean_what_the_sim_s_mean_term_by_term(rig):
         np.testing.assert_allclose(real_state[key][0, :3], pose[0, :3], atol=2e-3, err_msg=key)
 
 
-def test_a_fixed_period_step_end_reads_the_robot_moving(rig):
+def test_a_fixed_period_step_end_reads_the_robot_moving(rig, slow_clock):
     """``step_end="period"`` keeps the robot's own timing (for studying that gap): a full 10 mm step, ~58 ms with
     the IRC5's ramps, is still under way when read at 50 ms."""
     env = rig["env"]
     env.reset(seed=4)
-    # the robot model's clock at a third of wall-clock speed after the reset (the step's motion ~175 ms): at full
-    # speed a loaded CI box once read the robot only after it had arrived
-    t0 = time.monotonic()
-    rig["emu"].robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
+    # the robot at a third of wall-clock speed after the reset (the step's motion ~175 ms): at full speed a loaded CI
+    # box once read the robot only after it had arrived
+    slow_clock(rig["emu"].robot)
     env.step_end = "period"
     try:
         obs = env.step(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0]))[0]
@@ -165,8 +164,6 @@ def test_a_fixed_period_step_end_reads_the_robot_moving(rig):
         assert obs["agent"]["qvel"].abs().max() > 0.01
     finally:
         env.step_end = "arrived"
-        rig["emu"].robot.wait_done(timeout=2.0)  # the rig is the module's: its next test starts on the real clock
-        rig["emu"].robot.clock = time.monotonic
 
 
 def test_command_latency_delays_the_real_step_but_not_what_the_policy_sees():

@@ -187,14 +187,13 @@ def test_watchdog_stops_a_silent_pc_mid_motion(tmp_path):
     assert emu.error is None
 
 
-def test_a_pause_after_the_robot_arrived_is_not_a_fault(emulator):
+def test_a_pause_after_the_robot_arrived_is_not_a_fault(emulator, slow_clock):
     """MOVING ends when the robot arrives: a PC that pauses longer than the heartbeat between episodes (an
     operator, a scene reset) finds the robot IDLE and its next command runs."""
     emu, url = emulator
-    # the robot model's clock at a third of wall-clock speed (~90 ms of motion for this half step): at full speed a
-    # loaded CI box once sent the reply after the robot had already arrived
-    t0 = time.monotonic()
-    emu.robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
+    # the robot at a third of wall-clock speed (~90 ms of motion for this half step): at full speed a loaded CI box
+    # once sent the reply after the robot had already arrived
+    slow_clock(emu.robot)
     with ABBRobot.connect(url, timeout=1.0) as robot:
         assert robot.move_tool([0.5, 0, 0, 0, 1]).status == Status.MOVING
         time.sleep(0.8)

@@ -246,14 +246,13 @@ def test_statements_cost_controller_time():
     emu.stop()
 
 
-def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu):
+def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu, slow_clock):
     """A gripper change on a zero-length step (the expert stops, then closes) waits until the robot stands in
     position (WaitRob \\InPos): SetDO fires when the program pointer passes it, so without the wait it fired while the
     step before was still under way."""
-    # the robot model's clock at a third of wall-clock speed, as below: at full speed a loaded CI box once let the
-    # step's ~58 ms pass before the first assertion looked (the reply still comes well inside the client's timeout)
-    t0 = time.monotonic()
-    emu.robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
+    # the robot at a third of wall-clock speed: at full speed a loaded CI box once let the step's ~58 ms pass before
+    # the first assertion looked
+    slow_clock(emu.robot)
     robot = ABBRobot.connect(emu.url, timeout=0.5)
     robot.move_tool([1.0, 0, 0, 0, 1.0])  # a full step: answered once planned, ~175 ms of motion follow
     assert emu.robot.busy()
@@ -262,14 +261,13 @@ def test_a_grasp_on_a_zero_length_step_waits_for_the_robot_to_stand(emu):
     robot.close()
 
 
-def test_a_gripper_change_on_a_moving_step_happens_where_the_robot_reaches_the_target(emu):
+def test_a_gripper_change_on_a_moving_step_happens_where_the_robot_reaches_the_target(emu, slow_clock):
     """SetDO fires when the program pointer passes it: after a fly-by MoveL, while the robot is still a step away.
     The server ties the change to the path (MoveLDO): the output holds until the TCP reaches the target, within the
     z1 zone, and changes there; a step that keeps the gripper as it is sets nothing."""
-    # the robot model's clock (injectable) at a third of wall-clock speed, still well inside the server's heartbeat:
-    # at full speed the first half of the step (~30 ms) could pass unseen by the sampler on a slow, noisy machine
-    t0 = time.monotonic()
-    emu.robot.clock = lambda: t0 + (time.monotonic() - t0) / 3
+    # the robot at a third of wall-clock speed: at full speed the first half of the step (~30 ms) could pass unseen
+    # by the sampler on a slow, noisy machine
+    slow_clock(emu.robot)
     robot = ABBRobot.connect(emu.url, timeout=0.5)
     robot.move_tool([0.0, 0.0, 0.0, 0.0, 1.0])  # settle a session, the gripper open
     # sampled from before the command on, in a thread: by the time the client has the reply, part of the step is over
