@@ -93,6 +93,8 @@ def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_l
     fig = oe.figures(oe.run_dir("ppo-rgbd-dense", args))
     assert fig["env_steps"] == [512, 1024] and fig["r_collision"] == [-1000.0, 0.0] and fig["r_grasp"] == [0.0, 100.0]
     assert fig["episode_reward"] == [-1005.0, 97.0]
+    # each figure gets its optimum line; the captions' values but Figure 5.4's (see OPTIMA_NOTE)
+    assert len(oe.OPTIMA) == len(oe.FIGURES) and oe.OPTIMA[1] == 100.0 and oe.OPTIMA[2] == 0.0
 
 
 @pytest.mark.slow
