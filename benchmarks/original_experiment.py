@@ -100,9 +100,12 @@ def command(recipe: str, args: Args) -> list[str]:
 
 
 def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
-    """Train or resume ``recipe`` until it finishes ("done") or the deadline passes ("stopped")."""
+    """Train or resume ``recipe`` until it finishes ("done") or the deadline passes ("stopped"); nothing is started
+    once the deadline has passed ("not started")."""
     if (run_dir(recipe, args) / "summary.json").is_file():
         return "done"
+    if deadline is not None and time.time() >= deadline:  # the run before took this session's share
+        return "not started"
     cmd = command(recipe, args)
     log = args.runs_dir / "logs" / f"{run_dir(recipe, args).name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -190,6 +193,9 @@ def summary_of(recipe: str, args: Args) -> dict:
     c = row["curve"]
     if c["env_steps"]:
         row["env_steps_logged"] = c["env_steps"][-1]
+        clock = scalars(folder).get("charts/clock_min")  # the run's training minutes, over every session so far
+        if clock:
+            row["minutes_logged"] = clock[-1][1]
         tail = slice(-max(1, len(c["env_steps"]) // 10), None)  # the last tenth of training
         row["last_tenth"] = {
             name or "episode_reward": float(np.mean(c[name or "episode_reward"][tail])) for name, _ in FIGURES
@@ -209,6 +215,8 @@ def section(report: dict, args: Args) -> str:
         last = r.get("last_tenth", {})
         cells = " | ".join(f"{last[name or 'episode_reward']:.1f}" if last else "–" for name, _ in FIGURES)
         wall = f"{r['wall_clock_s'] / 60:.0f}" if "wall_clock_s" in r else "–"
+        if "wall_clock_s" not in r and "minutes_logged" in r:
+            wall = f"{r['minutes_logged']:.0f} so far"
         success = f"{r['success_rate']:.2f}" if "success_rate" in r else "–"
         steps = r.get("env_steps", r.get("env_steps_logged", 0))
         lines.append(

@@ -4,6 +4,7 @@ by the trainers' own commands, as teacher-student-rgbd is across sessions."""
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -85,6 +86,9 @@ def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_l
     (oe.run_dir("ppo-rgbd", args)).mkdir(parents=True)
     (oe.run_dir("ppo-rgbd", args) / "summary.json").write_text("{}")
     assert oe.train("ppo-rgbd", args, deadline=None) == "done"
+    # past the deadline (the run before took the session's share) nothing starts: no process, no log
+    assert oe.train("ppo-rgbd-dense", args, deadline=time.time() - 1) == "not started"
+    assert not (args.runs_dir / "logs").exists()
     log = Logger(oe.run_dir("ppo-rgbd-dense", args), ppo.Args())
     terms = dict(r_collision=[-1000.0, 0.0], r_grasp=[0.0, 100.0], r_drop=[0.0, 0.0], r_time=[-5.0, -3.0])
     for i, step in enumerate((512, 1024)):
