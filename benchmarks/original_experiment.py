@@ -131,10 +131,9 @@ def scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
     return {tag: [(step, value) for step, _, value in points] for tag, points in read_scalars(folder).items()}
 
 
-def figures(folder: Path) -> dict:
+def figures(logged: dict[str, list[tuple[int, float]]]) -> dict:
     """Per logged point: env steps, and each figure's per-episode value (the report's reward is the sum of its
     terms, whichever reward the run trained on)."""
-    logged = scalars(folder)
     terms = sorted(t for t in logged if t.startswith("train/return_r_"))
     if not terms:
         return dict(env_steps=[], **{name or "episode_reward": [] for name, _ in FIGURES})
@@ -184,8 +183,9 @@ def summary_of(recipe: str, args: Args) -> dict:
     folder = run_dir(recipe, args)
     summary = folder / "summary.json"
     result = json.loads(summary.read_text()) if summary.is_file() else {}
+    logged = scalars(folder)  # read once: the figures and the minutes so far
     row = dict(
-        recipe=recipe, finished=summary.is_file(), curve=figures(folder), command=" ".join(command(recipe, args)[1:])
+        recipe=recipe, finished=summary.is_file(), curve=figures(logged), command=" ".join(command(recipe, args)[1:])
     )
     for k in ("success_rate", "grasped_rate", "collided_rate", "env_steps", "wall_clock_s"):
         if k in result:
@@ -193,7 +193,7 @@ def summary_of(recipe: str, args: Args) -> dict:
     c = row["curve"]
     if c["env_steps"]:
         row["env_steps_logged"] = c["env_steps"][-1]
-        clock = scalars(folder).get("charts/clock_min")  # the run's training minutes, over every session so far
+        clock = logged.get("charts/clock_min")  # the run's training minutes, over every session so far
         if clock:
             row["minutes_logged"] = clock[-1][1]
         tail = slice(-max(1, len(c["env_steps"]) // 10), None)  # the last tenth of training

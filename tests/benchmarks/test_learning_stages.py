@@ -94,7 +94,7 @@ def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_l
     for i, step in enumerate((512, 1024)):
         log.scalars({f"train/return_{k}": v[i] for k, v in terms.items()}, step)
     log.close()
-    fig = oe.figures(oe.run_dir("ppo-rgbd-dense", args))
+    fig = oe.figures(oe.scalars(oe.run_dir("ppo-rgbd-dense", args)))
     assert fig["env_steps"] == [512, 1024] and fig["r_collision"] == [-1000.0, 0.0] and fig["r_grasp"] == [0.0, 100.0]
     assert fig["episode_reward"] == [-1005.0, 97.0]
     # each figure gets its optimum line; the captions' values but Figure 5.4's (see OPTIMA_NOTE)
