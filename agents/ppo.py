@@ -28,7 +28,8 @@ every other trainer, whose success_rate, env_steps and wall_clock_s end the prin
 weights that did best on N validation seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is
 what ``--resume`` continues). However training ends (its budget, its last iteration, an exception, Ctrl-C),
 ``checkpoints/latest.pt`` holds where it stopped, with the iterations done and the clock
-(``agents.common.run.close_and_save``).
+(``agents.common.run.close_and_save``). Every ``--save-freq`` iterations a ``checkpoints/ckpt_N.pt`` is written
+too; the newest ``--keep-checkpoints`` of them stay (0 keeps every one).
 """
 
 from __future__ import annotations
@@ -156,6 +157,8 @@ class Args(RunArgs):
     """iterations between two checkpoint-selection evaluations"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
+    keep_checkpoints: int = 5
+    """periodic checkpoints/ckpt_N.pt kept, the newest (0: every one); latest.pt and best.pt are never removed"""
     torch_deterministic: bool = True
     """cudnn.deterministic"""
     critic_warmup_iters: int = 0
@@ -461,6 +464,21 @@ def save_checkpoint(path: Path, agent: Agent, optimizer, counters: dict, args: A
     )
 
 
+def prune_checkpoints(ckpt_dir: Path, keep: int) -> list[Path]:
+    """Removes all but the ``keep`` newest ``ckpt_N.pt`` (by N) and returns what it removed. A camera run writes
+    a 17 MB checkpoint every ``--save-freq`` iterations, gigabytes over a long run; ``latest.pt`` (what --resume
+    continues) and ``best.pt`` (what selection kept) are other names and never touched."""
+    if keep <= 0:
+        return []
+    numbered = sorted(
+        (int(p.stem.split("_", 1)[1]), p) for p in ckpt_dir.glob("ckpt_*.pt") if p.stem.split("_", 1)[1].isdigit()
+    )
+    removed = [p for _, p in numbered[:-keep]]
+    for p in removed:
+        p.unlink()
+    return removed
+
+
 def read_checkpoint(path: Path, args: Args) -> dict:
     """A PPO checkpoint, refused when it acted in another frame than ``--action-frame``."""
     ckpt = load_torch(path, FORMAT, "agents.ppo")
@@ -640,6 +658,7 @@ def train(args: Args) -> dict:
                 counters["wall_s"] = elapsed()
                 save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
                 save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
+                prune_checkpoints(ckpt_dir, args.keep_checkpoints)
     finally:  # the budget, the last iteration, an exception or Ctrl-C: latest.pt is what --resume continues
         try:
             close_and_save(
@@ -720,6 +739,8 @@ def main(args: Args) -> dict:
         )
     if args.kl_coef < 0:
         raise ValueError(f"--kl-coef must be >= 0, got {args.kl_coef}")
+    if args.keep_checkpoints < 0:
+        raise ValueError(f"--keep-checkpoints must be >= 0 (0 keeps every one), got {args.keep_checkpoints}")
     if args.select_episodes < 0 or args.select_freq < 1:
         raise ValueError(
             f"--select-episodes must be >= 0 and --select-freq >= 1, got {args.select_episodes} and {args.select_freq}"

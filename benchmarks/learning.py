@@ -322,14 +322,14 @@ def run_trainer(
     return out
 
 
-# where and how a run logged, not what it learned: the only arguments an adopted run may differ in (``recipe``: the
-# name a run was started with, whose flags are compared one by one like those given by hand)
-ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe")
+# where and how a run logged and kept its files, not what it learned: the only arguments an adopted run may differ
+# in (``recipe``: the name a run was started with, whose flags are compared one by one like those given by hand)
+ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe", "keep_checkpoints")
 BUDGET_ROUNDING = 0.01
 """minutes any adopted run's --budget-min may differ from the recipe's: the rounding of a budget typed to two
 decimals, as the policies MANIFEST's commands give a second stage's (the total less the first stage's wall clock)"""
 # what a --resume may change of a run's logged arguments besides those (the checkpoint it continued from)
-RESUME_FREE = ("resume", "progress", "capture_video")
+RESUME_FREE = ("resume", "progress", "capture_video", "keep_checkpoints")
 
 
 def logged_args(events: Path) -> tuple[dict, float]:

@@ -422,3 +422,23 @@ def test_an_exception_mid_training_keeps_the_iterations_done_and_resume_carries_
     assert again["wall_clock_s"] > saved["wall_s"]  # the clock carries on from the checkpoint's
     with pytest.raises(ValueError, match="--resume .*latest.pt: checkpoint .* != this run"):
         run(tmp_path, **{**kw, "state_net": "shared"}, resume=ckpts / "latest.pt")
+
+
+def test_periodic_checkpoints_keep_the_newest_and_never_latest_or_best(tmp_path):
+    """A long camera run writes a 17 MB ckpt_N.pt every --save-freq iterations: only the newest
+    --keep-checkpoints stay, ordered by N (not by name: ckpt_10 is newer than ckpt_9), and 0 keeps every one."""
+    from agents.ppo import prune_checkpoints
+
+    result = run(tmp_path, obs="state", total_timesteps=64, keep_checkpoints=2)  # 4 iterations, one each
+    ckpt_dir = Path(result["run_dir"]) / "checkpoints"
+    assert sorted(p.name for p in ckpt_dir.glob("*.pt")) == ["ckpt_3.pt", "ckpt_4.pt", "latest.pt"]
+    assert torch.load(ckpt_dir / "ckpt_4.pt", weights_only=False)["counters"]["iteration"] == 4
+
+    names = ["ckpt_9.pt", "ckpt_10.pt", "ckpt_11.pt", "best.pt", "latest.pt", "ckpt_notes.pt"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    assert prune_checkpoints(tmp_path, 0) == []
+    assert [p.name for p in prune_checkpoints(tmp_path, 2)] == ["ckpt_9.pt"]
+    assert sorted(p.name for p in tmp_path.glob("*.pt")) == sorted(set(names) - {"ckpt_9.pt"})
+    with pytest.raises(ValueError, match="--keep-checkpoints must be >= 0"):
+        run(tmp_path, obs="state", keep_checkpoints=-1)

@@ -486,6 +486,33 @@ def test_learning_adopts_a_run_resumed_across_sessions_whole_and_only_with_its_o
         learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)
 
 
+def test_learning_adopts_a_ppo_run_that_kept_other_periodic_checkpoints(tmp_path):
+    """--keep-checkpoints decides which files stay on disk, not what the run learns: a run started keeping every
+    checkpoint and resumed keeping the default is the recipe's run (the camera run of the original report's
+    experiment was started before the flag existed)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import tyro
+
+    from agents import ppo
+    from agents.common.logging import Logger, finish
+
+    flags = [*learning.RECIPES["ppo-state"][1], "--budget-min", "30", "--eval-episodes", "100", "--seed", "2"]
+    flags += ["--runs-dir", str(tmp_path), "--exp-name", "kept", "--no-progress", "--keep-checkpoints", "0"]
+    args = tyro.cli(ppo.Args, args=flags)
+    run_dir = tmp_path / "kept"
+    for session, step in enumerate((1000, 2000)):
+        resumed = dict(resume=run_dir / "checkpoints" / "latest.pt", keep_checkpoints=5) if session else {}
+        log = Logger(run_dir, replace(args, **resumed))
+        log.scalars({"train/success_rate": 0.5}, step)
+        log.close()
+        time.sleep(0.05)
+    finish(dict(success_rate=0.9, successes=[1] * 9 + [0], env_steps=2000, wall_clock_s=1800.0), run_dir)
+    largs = learning.Args(recipes=["ppo-state"], seeds=[], out_dir=tmp_path, rl_budget_min=30)
+    run = learning.adopted_run("ppo-state", run_dir, largs)
+    assert run["seed"] == 2 and run["curve"]["env_steps"] == [1000, 2000]
+
+
 def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_path):
     """agents.sac logs --buffer-size filled in (300,000 from state), the recipe leaves it to the trainer: the
     run is the recipe's; one that kept another buffer is not."""
