@@ -39,17 +39,18 @@ from agents.common.logging import read_scalars  # noqa: E402  (learning put the 
 ENV_ID = "TableClearing-IRB120-v1"
 EXPERIMENT = ("ppo-rgbd-dense", "ppo-rgbd")
 # Figures 5.2-5.5 of the original report: the reward term each plots (its per-episode sum; None: the sum of all
-# terms, the report's episode reward) and its caption, quoted
+# terms, the report's episode reward), its caption, quoted, and the optimum the caption states, drawn beside our
+# curves (the report's own curves are images its text does not carry). Figure 5.4's caption says 100, but its reward
+# gives only -200 per drop and nothing for not dropping, so the best a run can log there is 0, which is drawn instead
 FIGURES = (
-    ("r_collision", "Figure 5.2: Collision penalty. Optimum value is 0"),
-    ("r_grasp", "Figure 5.3: Grasp reward. Optimum value is 100"),
-    ("r_drop", "Figure 5.4: Drop penalty. Optimum value is 100"),
-    (None, "Figure 5.5: Mean episode reward. Optimum value ≥ 200"),
+    ("r_collision", "Figure 5.2: Collision penalty. Optimum value is 0", 0.0),
+    ("r_grasp", "Figure 5.3: Grasp reward. Optimum value is 100", 100.0),
+    ("r_drop", "Figure 5.4: Drop penalty. Optimum value is 100", 0.0),
+    (None, "Figure 5.5: Mean episode reward. Optimum value ≥ 200", 200.0),
 )
-# the optimum each caption states, drawn beside our curves (the report's own curves are images its text does not
-# carry). Figure 5.4's caption says 100, but its reward gives only -200 per drop and nothing for not dropping, so the
-# best a run can log there is 0, which is drawn instead
-OPTIMA = (0.0, 100.0, 0.0, 200.0)
+CURVE_POINTS = 250
+"""points kept of each curve in the JSON: the mean of consecutive logged points (one per PPO iteration, ~2,000 a
+run), so the committed file stays small and still draws the figures"""
 OPTIMA_NOTE = (
     "The dashed lines mark each figure's optimum as its caption states it, but for Figure 5.4: its caption gives 100, "
     "while the report's reward pays -200 per drop and nothing otherwise, so its best is 0, as drawn."
@@ -131,21 +132,28 @@ def scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
     return {tag: [(step, value) for step, _, value in points] for tag, points in read_scalars(folder).items()}
 
 
-def figures(logged: dict[str, list[tuple[int, float]]]) -> dict:
+def figures(logged: dict[str, list[tuple[int, float]]], points: int = CURVE_POINTS) -> dict:
     """Per logged point: env steps, and each figure's per-episode value (the report's reward is the sum of its
-    terms, whichever reward the run trained on)."""
+    terms, whichever reward the run trained on); more than ``points`` logged points are averaged in consecutive runs
+    of equal length, each at its last env step."""
     terms = sorted(t for t in logged if t.startswith("train/return_r_"))
     if not terms:
-        return dict(env_steps=[], **{name or "episode_reward": [] for name, _ in FIGURES})
+        return dict(env_steps=[], **{name or "episode_reward": [] for name, _, _ in FIGURES})
     steps = [s for s, _ in logged[terms[0]]]
     value = {t: dict(logged[t]) for t in terms}
     out = dict(env_steps=steps)
-    for name, _ in FIGURES:
+    for name, _, _ in FIGURES:
         if name is None:
             out["episode_reward"] = [sum(value[t].get(s, 0.0) for t in terms) for s in steps]
         else:
             out[name] = [value.get(f"train/return_{name}", {}).get(s, 0.0) for s in steps]
-    return out
+    if len(steps) <= points:
+        return out
+    bins = np.array_split(np.arange(len(steps)), points)
+    return {
+        k: [int(steps[b[-1]]) for b in bins] if k == "env_steps" else [float(np.mean(np.asarray(v)[b])) for b in bins]
+        for k, v in out.items()
+    }
 
 
 def smoothed(values: list[float], points: int = 60) -> np.ndarray:
@@ -165,9 +173,9 @@ def plot(report: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.2), dpi=80)
     for i, (recipe, row) in enumerate(report["runs"].items()):
         c = row["curve"]
-        for ax, (name, _) in zip(axes, FIGURES):
+        for ax, (name, _, _) in zip(axes, FIGURES):
             ax.plot(c["env_steps"], smoothed(c[name or "episode_reward"]), color=f"C{i}", lw=1, label=recipe)
-    for ax, (_, caption), optimum in zip(axes, FIGURES, OPTIMA):
+    for ax, (_, caption, optimum) in zip(axes, FIGURES):
         ax.axhline(optimum, color="grey", ls="--", lw=0.8, label="the report's optimum")
         ax.set_title(caption.replace(". ", ".\n"), fontsize=8)  # the caption as quoted, on two lines
         ax.set_xlabel("env steps")
@@ -185,7 +193,10 @@ def summary_of(recipe: str, args: Args) -> dict:
     result = json.loads(summary.read_text()) if summary.is_file() else {}
     logged = scalars(folder)  # read once: the figures and the minutes so far
     row = dict(
-        recipe=recipe, finished=summary.is_file(), curve=figures(logged), command=" ".join(command(recipe, args)[1:])
+        recipe=recipe,
+        finished=summary.is_file(),
+        curve=figures(logged),
+        command=" ".join(command(recipe, args)[1:]).replace(f"{ROOT}/", ""),  # paths as a clone of the repo has them
     )
     for k in ("success_rate", "grasped_rate", "collided_rate", "env_steps", "wall_clock_s"):
         if k in result:
@@ -198,7 +209,7 @@ def summary_of(recipe: str, args: Args) -> dict:
             row["minutes_logged"] = clock[-1][1]
         tail = slice(-max(1, len(c["env_steps"]) // 10), None)  # the last tenth of training
         row["last_tenth"] = {
-            name or "episode_reward": float(np.mean(c[name or "episode_reward"][tail])) for name, _ in FIGURES
+            name or "episode_reward": float(np.mean(c[name or "episode_reward"][tail])) for name, _, _ in FIGURES
         }
     return row
 
@@ -206,14 +217,14 @@ def summary_of(recipe: str, args: Args) -> dict:
 def section(report: dict, args: Args) -> str:
     lines = [
         "| run | reward trained on | finished | env steps | wall clock (min) | held-out success | "
-        + " | ".join(caption.split(":")[0] for _, caption in FIGURES)
+        + " | ".join(caption.split(":")[0] for _, caption, _ in FIGURES)
         + " (last tenth of training) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for recipe, r in report["runs"].items():
         mode = "dense (the report's)" if recipe.endswith("dense") else "normalized_dense"
         last = r.get("last_tenth", {})
-        cells = " | ".join(f"{last[name or 'episode_reward']:.1f}" if last else "–" for name, _ in FIGURES)
+        cells = " | ".join(f"{last[name or 'episode_reward']:.1f}" if last else "–" for name, _, _ in FIGURES)
         wall = f"{r['wall_clock_s'] / 60:.0f}" if "wall_clock_s" in r else "–"
         if "wall_clock_s" not in r and "minutes_logged" in r:
             wall = f"{r['minutes_logged']:.0f} so far"

@@ -98,7 +98,13 @@ def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_l
     assert fig["env_steps"] == [512, 1024] and fig["r_collision"] == [-1000.0, 0.0] and fig["r_grasp"] == [0.0, 100.0]
     assert fig["episode_reward"] == [-1005.0, 97.0]
     # each figure gets its optimum line; the captions' values but Figure 5.4's (see OPTIMA_NOTE)
-    assert len(oe.OPTIMA) == len(oe.FIGURES) and oe.OPTIMA[1] == 100.0 and oe.OPTIMA[2] == 0.0
+    assert [optimum for _, _, optimum in oe.FIGURES] == [0.0, 100.0, 0.0, 200.0]
+    # a long run's curve is kept as the means of consecutive points, each at its last env step
+    many = {"train/return_r_grasp": [(512 * (i + 1), float(i)) for i in range(10)]}
+    thin = oe.figures(many, points=4)  # runs of 3, 3, 2 and 2 points
+    assert thin["env_steps"] == [1536, 3072, 4096, 5120] and thin["r_grasp"] == [1.0, 4.0, 6.5, 8.5]
+    assert thin["episode_reward"] == thin["r_grasp"] and thin["r_collision"] == [0.0] * 4
+    assert oe.figures(many, points=10)["r_grasp"] == [float(i) for i in range(10)]  # short enough: every point
 
 
 @pytest.mark.slow
