@@ -31,13 +31,16 @@ policy never sees it); from the camera it makes the encoder find the cube.
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 
 The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
+With ``--select-episodes N`` the held-out episodes score ``checkpoints/best.pt``, the policy that did best on N
+validation seeds every ``--select-freq`` rounds and at the end (the JSON's ``checkpoint``; ``last_checkpoint`` is
+what ``--resume`` continues), as ``agents.ppo``'s selection does: a student can end below the best it reached.
 """
 
 from __future__ import annotations
 
 import time
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -49,6 +52,8 @@ import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents import common
 from agents.common import (
     AUX_DIM,
+    EVAL_SEED,
+    VALIDATION_SEED,
     Clock,
     Dataset,
     EpisodeTracker,
@@ -137,6 +142,12 @@ class Args(RunArgs):
     """a trained state policy (an agents.ppo, agents.sac or agents.dagger checkpoint, or an exported policy, of this
     task and control mode, obs state) labels the states in place of the scripted expert: teacher–student, the camera
     student imitating a teacher that learned from the reward alone"""
+    select_episodes: int = 0
+    """checkpoint selection: every --select-freq rounds and at the end, the policy on this many validation seeds
+    (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out evaluation scores it
+    instead of the last weights (0: no selection). Its episodes count in --budget-min"""
+    select_freq: int = 25
+    """rounds between two checkpoint-selection evaluations"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
     weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 on a
@@ -278,14 +289,53 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
     return rows
 
 
+def save_selected(path: Path, policy, counters: dict, args: Args) -> None:
+    """``best.pt``: the selected policy with the run's counters and arguments, for ``--evaluate`` and export; no
+    optimiser and no dataset, so it is a policy to deploy, not a run to continue (``--resume`` refuses it)."""
+    atomic_save(
+        checkpoint(
+            FORMAT,
+            args,
+            counters,
+            model=policy.state_dict(),
+            signature=policy.signature(),
+            policy=policy_section(
+                "dagger",
+                policy,
+                policy.signature(),
+                env_id=args.env_id,
+                obs=args.obs,
+                action_frame=args.action_frame,
+                obs_without=args.obs_without,
+                env_kwargs=args.env_kwargs,
+            ),
+        ),
+        path,
+    )
+
+
+def select_checkpoint(policy, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
+    """Scores the policy on the validation seeds and keeps it as ``best.pt`` when it beats the best so far (success
+    rate, then mean return). A camera student tracks its teacher's labels with a few millimetres of error, and which
+    round's weights turn that into the fewest contacts is measured here, not assumed to be the last."""
+    v = final_evaluation(policy, replace(args, eval_episodes=args.select_episodes, progress=False), device, None,
+                         first_seed=VALIDATION_SEED)  # fmt: skip
+    logger.scalars({f"select/{k}": v[k] for k in ("success_rate", "return") if k in v}, counters["env_steps"])
+    score = [v.get("success_rate", 0.0), v["return"]]
+    best = counters.get("best")
+    if best is None or score > best["score"]:
+        counters["best"] = dict(score=score, round=counters["round"], env_steps=counters["env_steps"])
+        save_selected(ckpt_dir / "best.pt", policy, counters, args)
+
+
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
     """A trained DAgger policy (eval mode) and its checkpoint dict."""
     ckpt = load_for_evaluation(path, FORMAT, "agents.dagger", "dagger")
     return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 
-def final_evaluation(policy, args: Args, device, video_dir: Optional[Path]) -> dict:
-    return held_out_evaluation(lambda o: policy(obs_to(o, device)).cpu(), args, video_dir)
+def final_evaluation(policy, args: Args, device, video_dir: Optional[Path], first_seed: int = EVAL_SEED) -> dict:
+    return held_out_evaluation(lambda o: policy(obs_to(o, device)).cpu(), args, video_dir, first_seed)
 
 
 def run_evaluation_only(args: Args) -> dict:
@@ -327,6 +377,10 @@ def check_args(args: Args) -> None:
         raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
+    if args.select_episodes < 0 or args.select_freq < 1:
+        raise ValueError(
+            f"--select-episodes must be >= 0 and --select-freq >= 1, got {args.select_episodes} and {args.select_freq}"
+        )
 
 
 def train(args: Args) -> dict:
@@ -352,6 +406,11 @@ def train(args: Args) -> dict:
     rows = None  # the manifest of the dataset's row files on disk
     counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
     if saved is not None:
+        if "optimizer" not in saved:
+            raise ValueError(
+                f"--resume {args.resume} holds a selected policy (best.pt), not a run to continue: resume from the "
+                "run's checkpoints/latest.pt"
+            )
         check_resume_signature(saved, policy.signature(), args.resume)
         if (saved.get("aux_head") is None) != (aux_head is None):
             raise ValueError(f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0")
@@ -374,6 +433,8 @@ def train(args: Args) -> dict:
         while True:
             r = counters["round"]
             if r > 0 and elapsed() + last_round_s > budget_s:
+                if args.select_episodes and r % args.select_freq:  # else validated already
+                    select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
                 break
             t0 = time.perf_counter()
             if r == 0:
@@ -402,6 +463,8 @@ def train(args: Args) -> dict:
                     loss=f"{losses.get('bc', 0):.4f}",
                     success=f"{stats.get('success_rate', 0):.2f}",
                 )
+            if args.select_episodes and counters["round"] % args.select_freq == 0:
+                select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
             if counters["round"] % args.save_freq == 0:
                 counted = dict(counters, wall_s=elapsed())
                 rows = save(ckpt_dir / "latest.pt", policy, optimizer, data, counted, args, aux_head, rows)
@@ -413,6 +476,18 @@ def train(args: Args) -> dict:
             elapsed,
             lambda c: save(ckpt_dir / "latest.pt", policy, optimizer, data, c, args, aux_head, rows),
         )
+    extra = dict(checkpoint=str(ckpt_dir / "latest.pt"))
+    if args.select_episodes and counters.get("best") is not None:
+        selected = counters["best"]
+        # the policy the held-out episodes score is the run's checkpoint; --resume continues from the last weights
+        policy.load_state_dict(load_torch(ckpt_dir / "best.pt", FORMAT, "agents.dagger")["model"])
+        extra.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
+        extra["selected"] = dict(
+            round=selected["round"],
+            env_steps=selected["env_steps"],
+            validation_success_rate=selected["score"][0],
+            validation_episodes=args.select_episodes,
+        )
     return evaluate_and_finish(
         lambda: final_evaluation(policy, args, device, None),
         logger,
@@ -422,7 +497,7 @@ def train(args: Args) -> dict:
         train_episodes=counters["episodes"],
         dataset=data.size,
         precision=precision,
-        checkpoint=str(ckpt_dir / "latest.pt"),
+        **extra,
     )
 
 

@@ -374,9 +374,13 @@ def adopted_run(
         raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
     if not events:
         raise ValueError(f"--adopt: {run_dir} has no TensorBoard log")
+    trainer = importlib.import_module(module)
+    # a field a run's log predates was the field's default then (as --resume reads an older checkpoint)
+    defaults = json.loads(json.dumps(asdict(trainer.Args()), default=str))
     logged, opened = logged_args(events[0])
+    logged = {**defaults, **logged}
     for later in events[1:]:  # a resumed run: each session logged the arguments it continued with
-        theirs, _ = logged_args(later)
+        theirs = {**defaults, **logged_args(later)[0]}
         differ = sorted(k for k in set(logged) | set(theirs) if k not in RESUME_FREE and logged.get(k) != theirs.get(k))
         if differ:
             shown = ", ".join(f"{k}={theirs.get(k)!r} (first: {logged.get(k)!r})" for k in differ)
@@ -385,7 +389,6 @@ def adopted_run(
     seed = logged.get("seed")
     argv = [*seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed), "--budget-min", f"{budget:.4g}"]
     argv += ["--eval-episodes", str(args.eval_episodes)]
-    trainer = importlib.import_module(module)
     trainer_args = tyro.cli(trainer.Args, args=argv)
     if hasattr(trainer, "resolved"):  # defaults a trainer fills in from other flags, logged filled in
         trainer_args = trainer.resolved(trainer_args)

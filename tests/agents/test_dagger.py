@@ -430,3 +430,65 @@ def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_po
         tiny(tmp_path, exp_name="d", init_policy=Path(a["checkpoint"]), action_frame="tool")
     with pytest.raises(ValueError, match="pick one"):
         tiny(tmp_path, exp_name="e", init_policy=Path(a["checkpoint"]), resume=Path(a["checkpoint"]))
+
+
+def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evaluation_scores_it(
+    tmp_path, tiny, monkeypatch
+):
+    """--select-episodes: every --select-freq rounds the policy plays the validation seeds (not the held-out ones);
+    best.pt changes only on a better score (success, then return), the held-out episodes score it, --evaluate reads
+    it, and --resume refuses it (no dataset, no optimiser: a policy, not a run)."""
+    import agents.dagger as dagger
+    from agents.common import EVAL_SEED, VALIDATION_SEED
+
+    scores = [(0.2, 5.0), (0.6, 9.0), (0.6, 8.0), (0.1, 2.0)]
+    validations, held_out = [], []
+    real = dagger.final_evaluation
+
+    def scripted(policy, args, device, video_dir, first_seed=EVAL_SEED):
+        weights = [p.detach().clone() for p in policy.parameters()]
+        if first_seed == EVAL_SEED:
+            held_out.append(weights)
+            return dict(success_rate=0.0)
+        validations.append((first_seed, args.eval_episodes, weights))
+        s, r = scores[len(validations) - 1] if len(validations) <= len(scores) else (0.0, 0.0)
+        return {"success_rate": s, "return": r}
+
+    monkeypatch.setattr(dagger, "final_evaluation", scripted)
+    res = tiny(tmp_path, budget_min=0.15, select_episodes=3, select_freq=1)
+    assert res["rounds"] >= 3 and len(validations) == res["rounds"]  # one a round; none again at the budget's end
+    assert {(seed, n) for seed, n, _ in validations} == {(VALIDATION_SEED, 3)}
+    assert res["selected"] == dict(round=2, env_steps=res["selected"]["env_steps"], validation_success_rate=0.6,
+                                   validation_episodes=3)  # fmt: skip
+    ckpts = tmp_path / "t" / "checkpoints"
+    assert res["checkpoint"] == str(ckpts / "best.pt") and res["last_checkpoint"] == str(ckpts / "latest.pt")
+    best = torch.load(ckpts / "best.pt", weights_only=False)
+    assert best["counters"]["best"]["round"] == 2 and "optimizer" not in best and "data_rows" not in best
+    second = validations[1][2]
+    assert all(torch.equal(a, b) for a, b in zip(held_out[0], second))  # the held-out episodes scored round 2
+    last = torch.load(ckpts / "latest.pt", weights_only=False)["model"]
+    assert any(not torch.equal(a, b) for a, b in zip(last.values(), best["model"].values()))  # training went on
+
+    monkeypatch.setattr(dagger, "final_evaluation", real)
+    assert tiny(tmp_path, evaluate=True, checkpoint=ckpts / "best.pt")["episodes"] == 1
+    with pytest.raises(ValueError, match="holds a selected policy .*latest.pt"):
+        tiny(tmp_path, resume=ckpts / "best.pt")
+    with pytest.raises(ValueError, match="--select-freq"):
+        tiny(tmp_path, select_episodes=2, select_freq=0)
+
+
+def test_a_student_stopped_by_its_budget_validates_its_last_round_once(tmp_path, tiny, monkeypatch):
+    """Selection rounds that never come before the budget ends: the last weights are validated once, at the end."""
+    import agents.dagger as dagger
+    from agents.common import EVAL_SEED
+
+    validations = []
+
+    def scripted(policy, args, device, video_dir, first_seed=EVAL_SEED):
+        if first_seed != EVAL_SEED:
+            validations.append(first_seed)
+        return {"success_rate": 0.5, "return": 1.0}
+
+    monkeypatch.setattr(dagger, "final_evaluation", scripted)
+    res = tiny(tmp_path, select_episodes=2, select_freq=1000)
+    assert len(validations) == 1 and res["selected"]["round"] == res["rounds"]

@@ -513,6 +513,47 @@ def test_learning_adopts_a_ppo_run_that_kept_other_periodic_checkpoints(tmp_path
     assert run["seed"] == 2 and run["curve"]["env_steps"] == [1000, 2000]
 
 
+def test_learning_reads_a_field_a_runs_log_predates_as_its_default(tmp_path, monkeypatch):
+    """A run trained before a trainer gained a flag logged no value for it: it ran with what is now the default, so
+    the recipe's run is adopted, whether the flag is missing from every session's log or only from the first's; a
+    logged value other than the recipe's is still refused."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    import tyro
+
+    from agents import dagger
+    from agents.common.logging import Logger, finish
+
+    flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", "2", "--eval-episodes", "100"]
+    args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", "old", "--no-progress"])
+    run_dir = tmp_path / "old"
+    for session, step in enumerate((1000, 2000)):
+        resumed = dict(resume=run_dir / "checkpoints" / "latest.pt") if session else {}
+        log = Logger(run_dir, replace(args, **resumed))
+        log.scalars({"train/success_rate": 0.5}, step)
+        log.close()
+        time.sleep(0.05)
+    finish(dict(success_rate=0.9, successes=[1] * 9 + [0], env_steps=2000, wall_clock_s=3600.0), run_dir)
+    read = learning.logged_args
+    first = learning.event_files(run_dir)[0]
+
+    def predating(events, keep_first=False):
+        logged, opened = read(events)
+        if events == first or not keep_first:
+            logged = {k: v for k, v in logged.items() if k not in ("select_episodes", "select_freq")}
+        return logged, opened
+
+    largs = learning.Args(recipes=["dagger-rgbd-bf16"], seeds=[], out_dir=tmp_path)
+    for keep_first in (False, True):  # the flag missing from both sessions' logs, or from the first's only
+        monkeypatch.setattr(learning, "logged_args", lambda e, k=keep_first: predating(e, k))
+        assert learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)["seed"] == 2
+    monkeypatch.setattr(learning, "logged_args", read)
+    log = Logger(run_dir, replace(args, select_episodes=30, resume=run_dir / "checkpoints" / "latest.pt"))
+    log.close()
+    with pytest.raises(ValueError, match=r"continued .*old with other arguments: select_episodes=30 \(first: 0\)"):
+        learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)
+
+
 def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_path):
     """agents.sac logs --buffer-size filled in (300,000 from state), the recipe leaves it to the trainer: the
     run is the recipe's; one that kept another buffer is not."""
