@@ -395,7 +395,8 @@ def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name
     flags = learning.recipe_flags(recipe, env_id)  # learning.run_trainer fills in the seed
     if recipe not in learning.BASES:
         return run_stage(module, flags, env_id, seed, budget_min, run_name, args)
-    base_recipe, share, hand_on = learning.BASES[recipe]
+    base_recipe, _, hand_on = learning.BASES[recipe]
+    share = learning.base_share(recipe, env_id)
     base_flags = learning.recipe_flags(base_recipe, env_id)
     base_module = learning.RECIPES[base_recipe][0]
     base = run_stage(base_module, base_flags, env_id, seed, share * budget_min, f"{run_name}__base", args)

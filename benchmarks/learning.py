@@ -63,6 +63,7 @@ from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one ho
     RL_BUDGET_MIN,
     SHORT_BUDGET_MIN,
     VISION_BUDGET_MIN,
+    base_share,
     recipe_flags,
     seeded,
 )
@@ -70,7 +71,7 @@ from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one ho
 REFERENCES = ("random", "expert")
 # what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
 RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
-# selected: agents.ppo --select-episodes' choice (the checkpoint the held-out episodes scored)
+# selected: agents.ppo's or agents.dagger's --select-episodes choice (the checkpoint the held-out episodes scored)
 RESULT_KEPT = (
     *sorted(RESULT_NEEDS),
     *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
@@ -112,8 +113,8 @@ QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
     """which of dagger-state, dagger-rgbd, dagger-rgbd-bf16, dagger-rgbd-bf16-dr, sac-state, ppo-state,
-    sac-scratch-state, ppo-finetune-state, teacher-student-rgbd, ppo-rgbd-dense, ppo-rgbd to train (random and the
-    expert always run)"""
+    sac-scratch-state, ppo-finetune-state, teacher-student-rgbd, teacher-student-rgbd-sel, ppo-rgbd-dense, ppo-rgbd
+    to train (random and the expert always run)"""
     seeds: list[int] = field(default_factory=lambda: [1, 2, 3])
     budget_min: float = SHORT_BUDGET_MIN
     """wall-clock minutes per run of dagger-state, dagger-rgbd-bf16 and ppo-finetune-state (its base and
@@ -125,8 +126,8 @@ class Args:
     rl_budget_min: Optional[float] = None
     """wall-clock minutes per run of ppo-state and sac-scratch-state (default: RL_BUDGET_MIN of the task)"""
     vision_budget_min: Optional[float] = None
-    """wall-clock minutes per run of teacher-student-rgbd (both stages), ppo-rgbd-dense and ppo-rgbd (default:
-    VISION_BUDGET_MIN of the task)"""
+    """wall-clock minutes per run of teacher-student-rgbd and -sel (both stages), ppo-rgbd-dense and ppo-rgbd
+    (default: VISION_BUDGET_MIN of the task)"""
     env_id: str = DEFAULT_ENV
     """the task; each has its own report (--out-dir) and its own Learning section in RESULTS.md"""
     out_dir: Optional[Path] = None
@@ -141,8 +142,8 @@ class Args:
     and --eval-episodes (only where and how it logged may differ); its seed may not be in --seeds. A run that
     ``--resume`` continued across sessions joins whole, if every session logged the same arguments"""
     adopt_base: list[Path] = field(default_factory=list)
-    """for a two-stage recipe (teacher-student-rgbd, ppo-finetune-state), the first stage's run folder of each --adopt
-    run, in the same order"""
+    """for a two-stage recipe (teacher-student-rgbd(-sel), ppo-finetune-state), the first stage's run folder of each
+    --adopt run, in the same order"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     render_only: bool = False
@@ -247,7 +248,8 @@ def train_run(recipe: str, seed: int, args: Args) -> dict:
     budget = budget_for(kind, args)
     if recipe not in BASES:
         return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
-    base_recipe, share, hand_on = BASES[recipe]
+    base_recipe, _, hand_on = BASES[recipe]
+    share = base_share(recipe, args.env_id)
     base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
     base = run_trainer(f"{recipe}__s{seed}__base", base_module, base_flags, seed, share * budget, args)
     flags = [*flags, hand_on, base["checkpoint"]]
@@ -348,7 +350,8 @@ def adopted_pair(recipe: str, base_dir: Path, run_dir: Path, args: Args) -> dict
     """A two-stage run trained outside this script: the base stage checked against the base recipe at its share of
     the budget, the second against ``recipe`` with the rest of it and the base's checkpoint handed on, as
     ``train_run`` would have run them."""
-    base_recipe, share, hand_on = BASES[recipe]
+    base_recipe, _, hand_on = BASES[recipe]
+    share = base_share(recipe, args.env_id)
     budget = budget_for(RECIPES[recipe][3], args)
     base = adopted_run(base_recipe, base_dir, args, stage_budget=share * budget)
     rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)

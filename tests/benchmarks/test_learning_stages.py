@@ -21,9 +21,11 @@ from agents.common.logging import Logger, finish  # noqa: E402
 ENV = "GraspLift-IRB120-v1"
 
 
-def trained(tmp_path: Path, module, recipe: str, name: str, extra: list[str], wall_s: float, steps: int) -> Path:
+def trained(
+    tmp_path: Path, module, recipe: str, name: str, extra: list[str], wall_s: float, steps: int, env: str = ENV
+) -> Path:
     """A finished run of ``recipe``'s flags plus ``extra``, as the trainer logs and summarises it."""
-    flags = [*learning.recipe_flags(recipe, ENV), "--env-id", ENV, "--eval-episodes", "100", *extra]
+    flags = [*learning.recipe_flags(recipe, env), "--env-id", env, "--eval-episodes", "100", *extra]
     args = tyro.cli(module.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", name, "--no-progress"])
     run_dir = tmp_path / name
     log = Logger(run_dir, module.resolved(args) if hasattr(module, "resolved") else args)
@@ -69,6 +71,31 @@ def test_a_teacher_and_its_student_join_the_row_as_one_run(tmp_path):
         learning.adopted_pair("teacher-student-rgbd", teacher, longer, args)
     with pytest.raises(ValueError, match="--adopt-base"):
         learning.adopted_run("teacher-student-rgbd", student, args)
+
+
+def test_the_selecting_teacher_student_gives_its_teacher_a_tasks_own_share(tmp_path):
+    """teacher-student-rgbd-sel: on TableClearing the teacher gets 0.6 of the 150 min (90) and the student, which
+    selects on 30 validation seeds, the rest; GraspLift keeps the 0.375 of BASES. A TableClearing teacher trained
+    for the old share is not this recipe's."""
+    from maniskill_irb120.recipes import base_share
+
+    tc = "TableClearing-IRB120-v1"
+    assert base_share("teacher-student-rgbd-sel", tc) == 0.6 and base_share("teacher-student-rgbd", tc) == 0.375
+    assert base_share("teacher-student-rgbd-sel", ENV) == 0.375
+    student_flags = learning.recipe_flags("teacher-student-rgbd-sel", tc)
+    assert student_flags[student_flags.index("--select-episodes") + 1] == "30"
+    args = learning.Args(recipes=["teacher-student-rgbd-sel"], seeds=[], out_dir=tmp_path, env_id=tc)
+    teacher = trained(tmp_path, ppo, "ppo-state", "teacher", ["--budget-min", "90"], 5400.0, 10**6, env=tc)
+    ckpt = str(teacher / "checkpoints" / "best.pt")
+    student = trained(
+        tmp_path, dagger, "teacher-student-rgbd-sel", "student", ["--teacher", ckpt, "--budget-min", "60"],
+        3600.0, 10**5, env=tc,
+    )  # fmt: skip
+    run = learning.adopted_pair("teacher-student-rgbd-sel", teacher, student, args)
+    assert run["wall_clock_s"] == 9000.0 and run["base"]["wall_clock_s"] == 5400.0
+    old = trained(tmp_path, ppo, "ppo-state", "old-teacher", ["--budget-min", "56.25"], 3375.0, 10**6, env=tc)
+    with pytest.raises(ValueError, match=r"budget_min=56\.25 \(the recipe's: 90\.0\)"):
+        learning.adopted_pair("teacher-student-rgbd-sel", old, student, args)
 
 
 def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_logs(tmp_path):
