@@ -20,22 +20,27 @@ mean of the seeds' success rates
     python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
     python benchmarks/learning.py --recipes dagger-rgbd-bf16 --seeds --adopt runs/s1 runs/s2 --merge
                                  # runs trained by the trainer's own command join the row, once checked
+    python benchmarks/learning.py --env-id TableClearing-IRB120-v1 --recipes teacher-student-rgbd-sel --merge \
+        --stop-after-min 140     # runs longer than a session: run the same command again until none is unfinished
 
 Budgets (the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-state ``--budget-min`` (60; the
 last trains its DAgger base for half of it, then fine-tunes with PPO for the rest), ppo-state and
 sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd and sac-state
 ``--long-budget-min`` (120); the final evaluation is extra. A recipe's flags are the same on every task but for
-TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``). The recipes, their budgets and TASK_FLAGS live in
-``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer started
-by hand with the same recipe get the same flags. ``--update-results`` rewrites the Learning section
-of benchmarks/RESULTS.md; ``--render-only`` redraws it and the plot from the task's committed learning.json,
-training nothing.
+TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``), and a two-stage recipe's base gets its share of the
+budget from BASES but where TASK_BASE_SHARES gives a task its own. The recipes, their budgets and these tables live
+in ``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer
+started by hand with the same recipe get the same flags. With ``--stop-after-min`` the run in progress is
+interrupted at its checkpoint when the minutes are up, and the same command continues it. ``--update-results``
+rewrites the Learning section of benchmarks/RESULTS.md; ``--render-only`` redraws it and the plot from the task's
+committed learning.json, training nothing.
 """
 
 from __future__ import annotations
 
 import json
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -144,6 +149,11 @@ class Args:
     adopt_base: list[Path] = field(default_factory=list)
     """for a two-stage recipe (teacher-student-rgbd(-sel), ppo-finetune-state), the first stage's run folder of each
     --adopt run, in the same order"""
+    stop_after_min: Optional[float] = None
+    """stop training after this many minutes of this invocation (a session's share): the run then training is
+    interrupted at its checkpoint, and the same command run again continues it and every unfinished run (their
+    folders in --out-dir/runs are kept), reads the finished ones from their summary.json, and puts only finished runs
+    in the rows (with --merge, a seed's earlier run stays until its new one finishes)"""
     update_results: bool = False
     """rewrite the Learning section of benchmarks/RESULTS.md with this run's table"""
     render_only: bool = False
@@ -242,20 +252,34 @@ def budget_for(kind: str, args: Args) -> float:
     return dict(long=args.long_budget_min).get(kind) or args.budget_min
 
 
-def train_run(recipe: str, seed: int, args: Args) -> dict:
+def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = None) -> Optional[dict]:
+    """One run of ``recipe`` (both stages of a two-stage one); None when ``deadline`` (``--stop-after-min``) cut it
+    short, to be continued by the same command."""
     module, _, obs, kind = RECIPES[recipe]
     flags = recipe_flags(recipe, args.env_id)
     budget = budget_for(kind, args)
+    resume = args.stop_after_min is not None
     if recipe not in BASES:
-        return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args)
+        return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args, resume=resume, deadline=deadline)
     base_recipe, _, hand_on = BASES[recipe]
     share = base_share(recipe, args.env_id)
     base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
-    base = run_trainer(f"{recipe}__s{seed}__base", base_module, base_flags, seed, share * budget, args)
+    base = run_trainer(
+        f"{recipe}__s{seed}__base",
+        base_module,
+        base_flags,
+        seed,
+        share * budget,
+        args,
+        resume=resume,
+        deadline=deadline,
+    )
+    if base is None:
+        return None
     flags = [*flags, hand_on, base["checkpoint"]]
     rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)  # an overrun of the base shows in the row's time
-    tuned = run_trainer(f"{recipe}__s{seed}", module, flags, seed, rest, args)
-    return joined(base, tuned)
+    tuned = run_trainer(f"{recipe}__s{seed}", module, flags, seed, rest, args, resume=resume, deadline=deadline)
+    return None if tuned is None else joined(base, tuned)
 
 
 def joined(base: dict, tuned: dict) -> dict:
@@ -286,14 +310,17 @@ def run_trainer(
     runs_dir: Optional[Path] = None,
     logs_dir: Optional[Path] = None,
     resume: bool = False,
-) -> dict:
+    deadline: Optional[float] = None,
+) -> Optional[dict]:
     """``module`` as a subprocess for ``budget`` minutes, as the run ``name`` in ``runs_dir`` (default
     ``args.out_dir / "runs"``) on ``env_id`` (default ``args.env_id``), its output kept in ``logs_dir / name.log``
     (default ``args.out_dir / "logs"``); returns its checked result line with its curve. benchmarks/algorithms.py
     passes its own args (``eval_episodes`` and ``quick`` are read from them) with the other three given.
 
-    ``resume``: the run folder is kept, not moved aside (:func:`make_room`), and a run there that left a checkpoint
-    and no result continues with the trainer's own ``--resume``."""
+    ``resume``: the run folder is kept, not moved aside (:func:`make_room`); a run there that finished is read from
+    its summary.json, not trained again, and one that left a checkpoint and no result continues with the trainer's
+    own ``--resume``. ``deadline`` (a ``time.time()``): the trainer is interrupted then (it saves its checkpoint on
+    the way out) and None returned, as it is when the deadline has passed before the run starts."""
     env_id = args.env_id if env_id is None else env_id
     runs_dir = args.out_dir / "runs" if runs_dir is None else runs_dir
     logs_dir = args.out_dir / "logs" if logs_dir is None else logs_dir
@@ -303,25 +330,57 @@ def run_trainer(
     if args.quick:
         cmd += QUICK_FLAGS[module]
     run_dir = runs_dir / name
-    latest = run_dir / "checkpoints" / "latest.pt"
-    if not resume:
-        make_room(run_dir)
-    elif latest.is_file() and not (run_dir / "summary.json").is_file():
-        cmd += ["--resume", str(latest)]
-    print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    latest, summary = run_dir / "checkpoints" / "latest.pt", run_dir / "summary.json"
+    shown = " ".join(cmd[1:])  # the command that trains the run from the start, without a --resume
     log = logs_dir / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text(proc.stdout + "\n--- stderr ---\n" + proc.stderr)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{name} exited with {proc.returncode}; its output is in {log}")
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    if resume and summary.is_file():
+        print(f"[learning] {name}: finished earlier, read from {summary}", flush=True)
+        result = json.loads(summary.read_text())
+    elif deadline is not None and time.time() >= deadline:
+        print(f"[learning] {name}: not started, --stop-after-min has run out", flush=True)
+        return None
+    else:
+        if not resume:
+            make_room(run_dir)
+        elif latest.is_file():
+            cmd += ["--resume", str(latest)]
+        print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
+        stdout, stderr, returncode = run_until(cmd, deadline)
+        with open(log, "a" if resume else "w") as f:  # a resumed run's log keeps each session's output
+            f.write(stdout + "\n--- stderr ---\n" + stderr)
+        if returncode is None:
+            print(f"[learning] {name}: stopped at --stop-after-min; the same command continues it", flush=True)
+            return None
+        if returncode != 0:
+            raise RuntimeError(f"{name} exited with {returncode}; its output is in {log}")
+        result = json.loads(stdout.strip().splitlines()[-1])
     missing = RESULT_NEEDS - set(result)
     if missing:
         raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
     out = {k: result[k] for k in RESULT_KEPT if k in result}
-    out.update(seed=seed, command=" ".join(cmd[1:]), curve=curve(run_dir))
+    out.update(seed=seed, command=shown, curve=curve(run_dir))
     return out
+
+
+def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Optional[int]]:
+    """``cmd``'s stdout, stderr and exit code; at ``deadline`` it gets SIGINT (a trainer's Ctrl-C: it saves its
+    checkpoint and exits) and the code is None."""
+    if deadline is None:
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+        return proc.stdout, proc.stderr, proc.returncode
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        stdout, stderr = proc.communicate(timeout=max(deadline - time.time(), 0.0))
+        return stdout, stderr, proc.returncode
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGINT)
+        try:
+            stdout, stderr = proc.communicate(timeout=120)  # its checkpoint written
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            stdout, stderr = proc.communicate()
+        return stdout, stderr, None
 
 
 # where and how a run logged and kept its files, not what it learned: the only arguments an adopted run may differ
@@ -617,19 +676,31 @@ def main(args: Args) -> dict:
         )
     rng = np.random.default_rng(0)
     t0 = time.time()
-    rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
+    deadline = None if args.stop_after_min is None else t0 + 60 * args.stop_after_min
+    if args.merge and not (args.out_dir / "learning.json").is_file():  # refused before hours of training
+        raise FileNotFoundError(f"--merge: no earlier report at {args.out_dir / 'learning.json'}")
     command = "python benchmarks/learning.py " + " ".join(sys.argv[1:])
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    kept = carried_rows(args.out_dir / "learning.json", args.recipes) if args.merge else []
+    trained, unfinished = {}, []
     for recipe in args.recipes:
-        runs = adopted + [
-            dict(train_run(recipe, seed, args), benchmark_command=command, date=date) for seed in args.seeds
-        ]
-        if args.merge:
-            runs += earlier_runs(args.out_dir / "learning.json", recipe, seeds)
-        runs.sort(key=lambda r: r["seed"])
-        rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
-    rows += kept
+        trained[recipe] = list(adopted)
+        for seed in args.seeds:
+            run = train_run(recipe, seed, args, deadline)
+            if run is None:
+                unfinished.append(f"{recipe} seed {seed}")
+            else:
+                trained[recipe].append(dict(run, benchmark_command=command, date=date))
+    rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
+    for recipe, runs in trained.items():
+        if args.merge:  # the seeds finished now replace their earlier runs; the others' earlier runs stay
+            runs += earlier_runs(args.out_dir / "learning.json", recipe, [r["seed"] for r in runs])
+        if runs:
+            runs.sort(key=lambda r: r["seed"])
+            rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
+    if args.merge:
+        rows += carried_rows(args.out_dir / "learning.json", [r["recipe"] for r in rows])
+    if unfinished:
+        print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
     report = dict(
         command=command,
         date=date,

@@ -3,6 +3,7 @@ by the trainers' own commands, as teacher-student-rgbd is across sessions."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -153,3 +154,81 @@ def test_the_original_experiment_trains_resumes_and_plots(tmp_path):
     assert (tmp_path / "original_experiment.png").stat().st_size > 1000
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and "[original] " not in again.stdout  # nothing left to train
+
+
+def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path):
+    """learning.run_until: at the deadline the trainer gets SIGINT, its Ctrl-C (which saves its checkpoint), and the
+    run counts as unfinished; before it, the trainer's own exit code comes back."""
+    code = (
+        "import sys, time\n"
+        "try:\n    print('training', flush=True); time.sleep(30)\n"
+        "except KeyboardInterrupt:\n    print('checkpoint saved', flush=True); sys.exit(1)\n"
+    )
+    t0 = time.time()
+    out, err, rc = learning.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
+    assert rc is None and "checkpoint saved" in out and time.time() - t0 < 20
+    out, err, rc = learning.run_until([sys.executable, "-c", "print(7)"], deadline=time.time() + 30)
+    assert (out.strip(), rc) == ("7", 0)
+
+
+def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_the_others(tmp_path, monkeypatch):
+    """learning.main with --stop-after-min: a seed cut short adds no run (the same command continues it), its
+    earlier run in the report stays until its new one finishes, and a finished seed replaces its earlier run."""
+    import json
+
+    import numpy as np
+
+    def run(seed, rate):
+        return dict(seed=seed, success_rate=rate, successes=[1] * int(rate * 10) + [0] * (10 - int(rate * 10)),
+                    env_steps=100, wall_clock_s=60.0, curve=dict(env_steps=[], wall_min=[], success=[]))  # fmt: skip
+
+    old_runs = [run(1, 0.5), run(2, 0.5)]
+    old_row = learning.summarise("ppo-state", "state", old_runs, learning.Args(bootstrap=50), np.random.default_rng(0))
+    (tmp_path / "learning.json").write_text(json.dumps(dict(command="old", date="d", rows=[old_row])))
+    calls = []
+
+    def fake_train(recipe, seed, args, deadline):
+        calls.append((recipe, seed, deadline is not None))
+        return run(seed, 0.9) if seed == 1 else None  # seed 2 cut short by the deadline
+
+    monkeypatch.setattr(learning, "train_run", fake_train)
+    monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
+    args = learning.Args(recipes=["ppo-state"], seeds=[1, 2], out_dir=tmp_path, merge=True, stop_after_min=5.0)
+    report = learning.main(dataclasses.replace(args, bootstrap=50))
+    assert calls == [("ppo-state", 1, True), ("ppo-state", 2, True)]
+    (row,) = [r for r in report["rows"] if r["recipe"] == "ppo-state"]
+    assert row["seeds"] == [1, 2] and row["per_seed"] == [0.9, 0.5]  # seed 2's earlier run stays
+    assert row["runs"][1]["benchmark_command"] == "old"
+    with pytest.raises(FileNotFoundError, match="--merge: no earlier report"):  # before any training
+        learning.main(dataclasses.replace(args, out_dir=tmp_path / "none"))
+    assert len(calls) == 2
+
+
+@pytest.mark.slow
+def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
+    """benchmarks/learning.py --stop-after-min, twice: the first session's PPO run is interrupted at its checkpoint
+    and gives no row; the same command continues it to its budget, and the row's run has both sessions' steps."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, str(REPO / "benchmarks" / "learning.py"), "--env-id", ENV, "--recipes", "ppo-state"]
+    cmd += ["--seeds", "1", "--rl-budget-min", "1", "--eval-episodes", "2", "--bootstrap", "100"]
+    cmd += ["--out-dir", str(tmp_path)]
+    first = subprocess.run([*cmd, "--stop-after-min", "0.6"], capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert "unfinished, continued by the same command: ppo-state seed 1" in first.stdout
+    report = json.loads((tmp_path / "learning.json").read_text())
+    assert "ppo-state" not in [r["recipe"] for r in report["rows"]]
+    latest = tmp_path / "runs" / "ppo-state__s1" / "checkpoints" / "latest.pt"
+    import torch
+
+    steps_then = torch.load(latest, weights_only=False)["counters"]["global_step"]
+    assert steps_then > 0
+    again = subprocess.run([*cmd, "--stop-after-min", "60"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "--resume" in again.stdout and "unfinished" not in again.stdout
+    (row,) = [r for r in json.loads((tmp_path / "learning.json").read_text())["rows"] if r["recipe"] == "ppo-state"]
+    assert row["runs"][0]["env_steps"] > steps_then and "--resume" not in row["runs"][0]["command"]
+    assert 55 < row["runs"][0]["wall_clock_s"] < 60 + 30  # one budget over both sessions
+    third = subprocess.run([*cmd, "--stop-after-min", "60"], capture_output=True, text=True, timeout=600)
+    assert "finished earlier, read from" in third.stdout  # nothing trained again
