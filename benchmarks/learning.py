@@ -690,6 +690,9 @@ def main(args: Args) -> dict:
                 unfinished.append(f"{recipe} seed {seed}")
             else:
                 trained[recipe].append(dict(run, benchmark_command=command, date=date))
+    if unfinished and not any(trained.values()):  # nothing to add: the report stays as it is
+        print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
+        return dict(unfinished=unfinished)
     rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
     for recipe, runs in trained.items():
         if args.merge:  # the seeds finished now replace their earlier runs; the others' earlier runs stay

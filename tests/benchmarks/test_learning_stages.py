@@ -202,6 +202,9 @@ def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_t
     with pytest.raises(FileNotFoundError, match="--merge: no earlier report"):  # before any training
         learning.main(dataclasses.replace(args, out_dir=tmp_path / "none"))
     assert len(calls) == 2
+    before = (tmp_path / "learning.json").read_text()
+    nothing = learning.main(dataclasses.replace(args, seeds=[2], bootstrap=50))  # no run finished: no new report
+    assert nothing == {"unfinished": ["ppo-state seed 2"]} and (tmp_path / "learning.json").read_text() == before
 
 
 @pytest.mark.slow
