@@ -24,6 +24,22 @@ LEARNING = {  # task -> its learning.json (TableClearing's report predates the p
     "StackCube-IRB120-v1": RESULTS / "learning" / "StackCube-IRB120-v1" / "learning.json",
 }
 REFERENCES = ("random", "expert")
+# the order of each task's rows, whatever order its report holds them in (the last trained first): a camera
+# policy from the reward alone, then state RL from the reward, the original report's experiment, then imitation
+ORDER = (
+    "teacher-student-rgbd-sel",
+    "teacher-student-rgbd",
+    "ppo-state",
+    "sac-scratch-state",
+    "ppo-rgbd",
+    "ppo-rgbd-dense",
+    "dagger-rgbd-bf16",
+    "dagger-rgbd",
+    "dagger-rgbd-bf16-dr",
+    "dagger-state",
+    "sac-state",
+    "ppo-finetune-state",
+)
 
 
 def pct(x: float) -> str:
@@ -34,9 +50,8 @@ def learning_rows() -> list[str]:
     rows = []
     for task, path in LEARNING.items():
         report = json.loads(path.read_text())
-        for r in report["rows"]:
-            if r["recipe"] in REFERENCES:
-                continue
+        trained = [r for r in report["rows"] if r["recipe"] not in REFERENCES]
+        for r in sorted(trained, key=lambda r: ORDER.index(r["recipe"]) if r["recipe"] in ORDER else len(ORDER)):
             lo, hi = r["success_ci95"]
             seeds = len(r["seeds"])
             what = f"`{task}`, recipe `{r['recipe']}` ({r['obs']} obs)"

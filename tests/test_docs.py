@@ -45,6 +45,9 @@ def test_readme_headline_table_is_current():
     h = headline()
     assert h.block() in README
     assert h.rewrite(README) == README
+    # each task's rows in the fixed order, not the report's (its last trained recipe first)
+    tc = [line.split("recipe `")[1].split("`")[0] for line in h.learning_rows() if "`TableClearing-IRB120-v1`" in line]
+    assert tc == sorted(tc, key=h.ORDER.index) and tc[0].startswith("teacher-student-rgbd")
 
 
 @pytest.mark.skipif(MKDOCS is None, reason="mkdocs is in the docs and dev extras")
