@@ -239,7 +239,8 @@ def section(report: dict, args: Args) -> str:
         f"{args.budget_min:g} min per run; commands in [the JSON](results/original_experiment.json)).\n\n"
         + "\n".join(lines)
         + "\n\n![Figures 5.2-5.5](results/original_experiment.png)\n\n"
-        + f"{OPTIMA_NOTE}\n\n"
+        + f"{OPTIMA_NOTE} What each run learned, and why: "
+        + "[the original report's experiment](../docs/notes/original-experiment.md).\n\n"
     )
 
 
