@@ -262,29 +262,8 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
     """The checkpoint, with the dataset as files of the rows new since the last save beside it in ``data/``
     (``rows``: the last save's manifest): returns the new manifest."""
     rows = data.save_new_rows(path.parent / "data", rows)
-    atomic_save(
-        checkpoint(
-            FORMAT,
-            args,
-            counters,
-            model=policy.state_dict(),
-            aux_head=aux_head.state_dict() if aux_head is not None else None,
-            optimizer=optimizer.state_dict(),
-            data_rows=rows,
-            signature=policy.signature(),
-            policy=policy_section(
-                "dagger",
-                policy,
-                policy.signature(),
-                env_id=args.env_id,
-                obs=args.obs,
-                action_frame=args.action_frame,
-                obs_without=args.obs_without,
-                env_kwargs=args.env_kwargs,
-            ),
-        ),
-        path,
-    )
+    aux = aux_head.state_dict() if aux_head is not None else None
+    write(path, policy, counters, args, aux_head=aux, optimizer=optimizer.state_dict(), data_rows=rows)
     prune_row_files(path.parent / "data", rows)
     return rows
 
@@ -292,26 +271,24 @@ def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Arg
 def save_selected(path: Path, policy, counters: dict, args: Args) -> None:
     """``best.pt``: the selected policy with the run's counters and arguments, for ``--evaluate`` and export; no
     optimiser and no dataset, so it is a policy to deploy, not a run to continue (``--resume`` refuses it)."""
-    atomic_save(
-        checkpoint(
-            FORMAT,
-            args,
-            counters,
-            model=policy.state_dict(),
-            signature=policy.signature(),
-            policy=policy_section(
-                "dagger",
-                policy,
-                policy.signature(),
-                env_id=args.env_id,
-                obs=args.obs,
-                action_frame=args.action_frame,
-                obs_without=args.obs_without,
-                env_kwargs=args.env_kwargs,
-            ),
-        ),
-        path,
+    write(path, policy, counters, args)
+
+
+def write(path: Path, policy, counters: dict, args: Args, **state) -> None:
+    """A checkpoint of ``policy`` with ``state`` beside it, and the policy section that ``--evaluate``, export and
+    the robot read."""
+    section = policy_section(
+        "dagger",
+        policy,
+        policy.signature(),
+        env_id=args.env_id,
+        obs=args.obs,
+        action_frame=args.action_frame,
+        obs_without=args.obs_without,
+        env_kwargs=args.env_kwargs,
     )
+    model, signature = policy.state_dict(), policy.signature()
+    atomic_save(checkpoint(FORMAT, args, counters, model=model, signature=signature, policy=section, **state), path)
 
 
 def select_checkpoint(policy, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
