@@ -86,8 +86,9 @@ def run_dir(recipe: str, args: Args) -> Path:
     return args.runs_dir / f"{recipe}__s{args.seed}"
 
 
-def command(recipe: str, args: Args) -> list[str]:
-    """The trainer's command for ``recipe``: a new run, or ``--resume`` of its last checkpoint."""
+def command(recipe: str, args: Args, resume: bool = True) -> list[str]:
+    """The trainer's command for ``recipe``: a new run, or ``--resume`` of its last checkpoint (``resume=False``:
+    the command that trains it from the start, as the report shows it)."""
     flags = [*recipe_flags(recipe, ENV_ID), "--env-id", ENV_ID, "--seed", str(args.seed)]
     flags += ["--budget-min", f"{args.budget_min:g}", "--eval-episodes", str(args.eval_episodes)]
     flags += ["--runs-dir", str(args.runs_dir), "--exp-name", run_dir(recipe, args).name, "--no-progress"]
@@ -95,7 +96,7 @@ def command(recipe: str, args: Args) -> list[str]:
     if args.quick:
         flags += QUICK_FLAGS["agents.ppo"]
     latest = run_dir(recipe, args) / "checkpoints" / "latest.pt"
-    if latest.is_file():
+    if resume and latest.is_file():
         flags += ["--resume", str(latest)]
     return [sys.executable, "-m", RECIPES[recipe][0], *flags]
 
@@ -196,7 +197,7 @@ def summary_of(recipe: str, args: Args) -> dict:
         recipe=recipe,
         finished=summary.is_file(),
         curve=figures(logged),
-        command=" ".join(command(recipe, args)[1:]).replace(f"{ROOT}/", ""),  # paths as a clone of the repo has them
+        command=" ".join(command(recipe, args, resume=False)[1:]).replace(f"{ROOT}/", ""),  # as a clone has them
     )
     for k in ("success_rate", "grasped_rate", "collided_rate", "env_steps", "wall_clock_s"):
         if k in result:

@@ -111,6 +111,7 @@ def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_l
     latest.write_bytes(b"")
     cmd = oe.command("ppo-rgbd-dense", args)
     assert cmd[cmd.index("--resume") + 1] == str(latest) and cmd[cmd.index("--reward-mode") + 1] == "dense"
+    assert "--resume" not in oe.command("ppo-rgbd-dense", args, resume=False)  # the report's: from the start
     (oe.run_dir("ppo-rgbd", args)).mkdir(parents=True)
     (oe.run_dir("ppo-rgbd", args) / "summary.json").write_text("{}")
     assert oe.train("ppo-rgbd", args, deadline=None) == "done"
