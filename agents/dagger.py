@@ -364,6 +364,11 @@ def train(args: Args) -> dict:
     check_args(args)
     clock = Clock()
     saved, run_dir = open_run(args, "dagger__", lambda path: load_torch(path, FORMAT, "agents.dagger"))
+    if saved is not None and "optimizer" not in saved:  # refused before any env worker starts
+        raise ValueError(
+            f"--resume {args.resume} holds a selected policy (best.pt), not a run to continue: resume from the "
+            "run's checkpoints/latest.pt"
+        )
     device = resolve_device(args.device)
     precision = resolve_precision(args.precision, device)
     learner_threads = torch.get_num_threads()  # before CPU workers claim the cores (make_envs: one thread)
@@ -383,11 +388,6 @@ def train(args: Args) -> dict:
     rows = None  # the manifest of the dataset's row files on disk
     counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
     if saved is not None:
-        if "optimizer" not in saved:
-            raise ValueError(
-                f"--resume {args.resume} holds a selected policy (best.pt), not a run to continue: resume from the "
-                "run's checkpoints/latest.pt"
-            )
         check_resume_signature(saved, policy.signature(), args.resume)
         if (saved.get("aux_head") is None) != (aux_head is None):
             raise ValueError(f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0")
