@@ -690,9 +690,10 @@ def main(args: Args) -> dict:
                 unfinished.append(f"{recipe} seed {seed}")
             else:
                 trained[recipe].append(dict(run, benchmark_command=command, date=date))
-    if unfinished and not any(trained.values()):  # nothing to add: the report stays as it is
+    if unfinished:
         print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
-        return dict(unfinished=unfinished)
+        if not any(trained.values()):  # nothing to add: the report stays as it is
+            return dict(unfinished=unfinished)
     rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
     for recipe, runs in trained.items():
         if args.merge:  # the seeds finished now replace their earlier runs; the others' earlier runs stay
@@ -702,8 +703,6 @@ def main(args: Args) -> dict:
             rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
     if args.merge:
         rows += carried_rows(args.out_dir / "learning.json", [r["recipe"] for r in rows])
-    if unfinished:
-        print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
     report = dict(
         command=command,
         date=date,
