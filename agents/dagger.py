@@ -277,17 +277,18 @@ def save_selected(path: Path, policy, counters: dict, args: Args) -> None:
 def write(path: Path, policy, counters: dict, args: Args, **state) -> None:
     """A checkpoint of ``policy`` with ``state`` beside it, and the policy section that ``--evaluate``, export and
     the robot read."""
+    signature = policy.signature()
     section = policy_section(
         "dagger",
         policy,
-        policy.signature(),
+        signature,
         env_id=args.env_id,
         obs=args.obs,
         action_frame=args.action_frame,
         obs_without=args.obs_without,
         env_kwargs=args.env_kwargs,
     )
-    model, signature = policy.state_dict(), policy.signature()
+    model = policy.state_dict()
     atomic_save(checkpoint(FORMAT, args, counters, model=model, signature=signature, policy=section, **state), path)
 
 
