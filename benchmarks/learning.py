@@ -221,14 +221,37 @@ def reference(name: str, args: Args) -> dict:
     return dict(r, seed=None, env_steps=0, wall_clock_s=0.0)
 
 
+CURVE_POINTS = 300
+"""points kept of each stage's curve in the JSON: PPO logs a point per iteration (~4,000 in a 90-minute run), and
+the figure draws a trailing mean over ~1/60 of a curve, which 300 bin means still give"""
+CLOCKS = ("env_steps", "wall_min")
+"""a curve's x-axes: a bin of points is placed at its last one's"""
+
+
+def thinned(columns: dict[str, list], points: int = CURVE_POINTS) -> dict[str, list]:
+    """``columns`` (equal-length lists) in at most ``points`` consecutive bins of equal length: the clocks
+    (``CLOCKS``) at each bin's last point, every other column the bin's mean; returned unchanged if short enough."""
+    n = len(next(iter(columns.values()), []))
+    if n <= points:
+        return columns
+    bins = np.array_split(np.arange(n), points)
+    return {
+        k: [v[b[-1]] for b in bins] if k in CLOCKS else [float(np.mean(np.asarray(v, dtype=float)[b])) for b in bins]
+        for k, v in columns.items()
+    }
+
+
 def curve(run_dir: Path) -> dict:
     """Training-episode success (as logged) against env steps and minutes of training, over every session of a
-    resumed run (``agents.common.logging.read_scalars``: the minutes are the trainer's budget clock)."""
+    resumed run (``agents.common.logging.read_scalars``: the minutes are the trainer's budget clock), ``thinned``."""
     points = read_scalars(run_dir).get("train/success_rate", [])
-    return dict(
-        env_steps=[step for step, _, _ in points],
-        wall_min=[minutes for _, minutes, _ in points],
-        success=[value for _, _, value in points],
+    return thinned(
+        dict(
+            env_steps=[step for step, _, _ in points],
+            wall_min=[minutes for _, minutes, _ in points],
+            success=[value for _, _, value in points],
+        ),
+        CURVE_POINTS,
     )
 
 

@@ -31,7 +31,7 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, recipe_flags  # noqa: E402
+from learning import QUICK_FLAGS, RECIPES, recipe_flags, thinned  # noqa: E402
 from results_md import replace_section  # noqa: E402
 
 from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
@@ -148,13 +148,7 @@ def figures(logged: dict[str, list[tuple[int, float]]], points: int = CURVE_POIN
             out["episode_reward"] = [sum(value[t].get(s, 0.0) for t in terms) for s in steps]
         else:
             out[name] = [value.get(f"train/return_{name}", {}).get(s, 0.0) for s in steps]
-    if len(steps) <= points:
-        return out
-    bins = np.array_split(np.arange(len(steps)), points)
-    return {
-        k: [int(steps[b[-1]]) for b in bins] if k == "env_steps" else [float(np.mean(np.asarray(v)[b])) for b in bins]
-        for k, v in out.items()
-    }
+    return thinned(out, points)
 
 
 def smoothed(values: list[float], points: int = 60) -> np.ndarray:

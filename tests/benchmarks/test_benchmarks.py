@@ -270,6 +270,29 @@ def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
     assert learning.curve(run)["success"] == [0.75]
 
 
+def test_learning_keeps_a_long_curve_as_bin_means_and_a_two_stage_runs_stages_apart(tmp_path, monkeypatch):
+    """A run's curve is thinned to ``CURVE_POINTS`` bin means, each at its bin's last env step and minute, so the
+    committed JSON stays small; a two-stage run joins two thinned curves, so no bin mixes teacher and student."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import learning
+    from torch.utils.tensorboard import SummaryWriter
+
+    monkeypatch.setattr(learning, "CURVE_POINTS", 4)
+    run = tmp_path / "run"
+    with SummaryWriter(run) as w:
+        for i in range(10):
+            w.add_scalar("train/success_rate", i / 10, 100 * (i + 1))
+    c = learning.curve(run)
+    assert c["env_steps"] == [300, 600, 800, 1000]  # bins of 3, 3, 2 and 2 points
+    assert c["success"] == pytest.approx([0.1, 0.4, 0.65, 0.85]) and len(c["wall_min"]) == 4
+    short = dict(env_steps=[1, 2], wall_min=[0.1, 0.2], success=[0.0, 1.0])
+    assert learning.thinned(short, points=4) == short
+    base = dict(env_steps=1000, wall_clock_s=60.0, success_rate=1.0, checkpoint="b.pt", command="teach", curve=c)
+    tuned = dict(base, env_steps=50, wall_clock_s=30.0, command="learn", curve=short)
+    joined = learning.joined(base, tuned)["curve"]
+    assert joined["env_steps"] == [300, 600, 800, 1000, 1001, 1002] and joined["success"][4:] == [0.0, 1.0]
+
+
 def test_learning_plot_marks_each_runs_held_out_success_where_it_ended_and_a_teachers_too(tmp_path, monkeypatch):
     """A teacher-student run's training curve sits near 0 while its student learns (the noisy learner collects),
     so the plot also puts a dot at each run's held-out success: filled at the run's end, hollow at its first
