@@ -621,7 +621,11 @@ def main(args: Args) -> dict:
             if ends > args.stop_after_min:
                 print(f"[algorithms] stopping: {cell} would end at {ends:.0f} min > --stop-after-min", flush=True)
                 break
-        cells[cell] = run_cell(cell, args)
+        try:
+            cells[cell] = run_cell(cell, args)
+        except learning.Interrupted:  # a project cell's trainer saved its checkpoint; the finished cells are written
+            print(f"[algorithms] {cell}: interrupted; the same command continues it", flush=True)
+            raise SystemExit(130) from None
         print(f"[algorithms] {cell}: success {cells[cell]['success_rate']:.2f}", flush=True)
         write_report(cells, args)  # after every cell: a session that ends keeps what it finished
     report = write_report(cells, args)

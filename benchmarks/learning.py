@@ -31,13 +31,15 @@ TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``), and a two-stage reci
 budget from BASES but where TASK_BASE_SHARES gives a task its own. The recipes, their budgets and these tables live
 in ``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer
 started by hand with the same recipe get the same flags. With ``--stop-after-min`` the run in progress is
-interrupted at its checkpoint when the minutes are up, and the same command continues it. ``--update-results``
+interrupted at its checkpoint when the minutes are up, and the same command continues it; Ctrl-C or SIGTERM does the
+same at once (``run_until``), and the exit status is then 130. ``--update-results``
 rewrites the Learning section of benchmarks/RESULTS.md; ``--render-only`` redraws it and the plot from the task's
 committed learning.json, training nothing.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import platform
 import signal
@@ -369,9 +371,18 @@ def run_trainer(
         elif latest.is_file():
             cmd += ["--resume", str(latest)]
         print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
-        stdout, stderr, returncode = run_until(cmd, deadline)
-        with open(log, "a" if resume else "w") as f:  # a resumed run's log keeps each session's output
-            f.write(stdout + "\n--- stderr ---\n" + stderr)
+
+        def keep(stdout: str, stderr: str) -> None:
+            with open(log, "a" if resume else "w") as f:  # a resumed run's log keeps each session's output
+                f.write(stdout + "\n--- stderr ---\n" + stderr)
+
+        try:
+            stdout, stderr, returncode = run_until(cmd, deadline)
+        except Interrupted as stop:
+            keep(*stop.args)
+            print(f"[learning] {name}: interrupted at its checkpoint; the same command continues it", flush=True)
+            raise
+        keep(stdout, stderr)
         if returncode is None:
             print(f"[learning] {name}: stopped at --stop-after-min; the same command continues it", flush=True)
             return None
@@ -386,24 +397,65 @@ def run_trainer(
     return out
 
 
+class Interrupted(Exception):
+    """Ctrl-C (SIGINT) or SIGTERM reached this process while a trainer ran: the trainer was interrupted at its
+    checkpoint, as at ``--stop-after-min``; ``args`` are its (stdout, stderr)."""
+
+
+SAVE_WAIT_S = 600
+"""how long an interrupted trainer may take to save its checkpoint and close its envs before it is killed"""
+
+
+def stop_with_parent() -> None:
+    """In the trainer, before it starts: SIGINT, its Ctrl-C, when the process that started it dies, even by SIGKILL
+    (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
+
+
 def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Optional[int]]:
     """``cmd``'s stdout, stderr and exit code; at ``deadline`` it gets SIGINT (a trainer's Ctrl-C: it saves its
-    checkpoint and exits) and the code is None."""
-    if deadline is None:
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-        return proc.stdout, proc.stderr, proc.returncode
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    checkpoint and exits) and the code is None.
+
+    The trainer runs in its own session, so a Ctrl-C at the terminal reaches this process alone, which then sends
+    the trainer one SIGINT and waits while it saves (a second Ctrl-C is ignored meanwhile: one during the trainer's
+    save would lose it) before raising :class:`Interrupted`. SIGTERM is taken the same way."""
+    proc = subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=stop_with_parent,
+    )
+    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        stdout, stderr = proc.communicate(timeout=max(deadline - time.time(), 0.0))
+        stdout, stderr = proc.communicate(timeout=None if deadline is None else max(deadline - time.time(), 0.0))
         return stdout, stderr, proc.returncode
     except subprocess.TimeoutExpired:
+        return (*stopped(proc), None)
+    except KeyboardInterrupt:
+        print(f"[learning] interrupted: the trainer saves its checkpoint (up to {SAVE_WAIT_S} s)", flush=True)
+        raise Interrupted(*stopped(proc)) from None
+    finally:
+        signal.signal(signal.SIGTERM, on_term)
+
+
+def stopped(proc: subprocess.Popen) -> tuple[str, str]:
+    """``proc``'s stdout and stderr after one SIGINT, its checkpoint written (killed if it takes over
+    ``SAVE_WAIT_S``), with this process's SIGINT and SIGTERM ignored meanwhile."""
+    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
         proc.send_signal(signal.SIGINT)
         try:
-            stdout, stderr = proc.communicate(timeout=120)  # its checkpoint written
+            return proc.communicate(timeout=SAVE_WAIT_S)
         except subprocess.TimeoutExpired:
             proc.kill()
-            stdout, stderr = proc.communicate()
-        return stdout, stderr, None
+            return proc.communicate()
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
 
 
 # where and how a run logged and kept its files, not what it learned: the only arguments an adopted run may differ
@@ -704,11 +756,14 @@ def main(args: Args) -> dict:
         raise FileNotFoundError(f"--merge: no earlier report at {args.out_dir / 'learning.json'}")
     command = "python benchmarks/learning.py " + " ".join(sys.argv[1:])
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    trained, unfinished = {}, []
+    trained, unfinished, interrupted = {}, [], False
     for recipe in args.recipes:
         trained[recipe] = list(adopted)
         for seed in args.seeds:
-            run = train_run(recipe, seed, args, deadline)
+            try:  # after a Ctrl-C, no run starts, and the report gets the runs finished before it
+                run = None if interrupted else train_run(recipe, seed, args, deadline)
+            except Interrupted:
+                run, interrupted = None, True
             if run is None:
                 unfinished.append(f"{recipe} seed {seed}")
             else:
@@ -716,6 +771,8 @@ def main(args: Args) -> dict:
     if unfinished:
         print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
         if not any(trained.values()):  # nothing to add: the report stays as it is
+            if interrupted:
+                raise SystemExit(130)  # a Ctrl-C's exit status, so that a chain of commands stops here
             return dict(unfinished=unfinished)
     rows = [summarise(ref, "state", [reference(ref, args)], args, rng) for ref in REFERENCES]
     for recipe, runs in trained.items():
@@ -746,6 +803,8 @@ def main(args: Args) -> dict:
     print(table)
     if args.update_results:
         update_results(report, table, ROOT / "benchmarks" / "RESULTS.md")
+    if interrupted:
+        raise SystemExit(130)
     return report
 
 

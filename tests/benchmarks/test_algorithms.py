@@ -113,9 +113,9 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
             success_rate=0.5, successes=[1, 0], env_steps=1000, wall_clock_s=wall, checkpoint=f"/ckpt/{name}.pt"
         )
         line = json.dumps(result)
-        return type("P", (), dict(returncode=0, stdout=line + "\n", stderr=""))()
+        return type("P", (), dict(returncode=0, communicate=lambda self, timeout=None: (line + "\n", "")))()
 
-    monkeypatch.setattr(alg.learning.subprocess, "run", fake_trainer)  # learning.run_trainer runs it
+    monkeypatch.setattr(alg.learning.subprocess, "Popen", fake_trainer)  # learning.run_trainer runs it
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs")
     assert (
         alg.ALGORITHMS["project-camera"].from_reward

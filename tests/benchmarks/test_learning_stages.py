@@ -172,6 +172,110 @@ def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path)
     assert (out.strip(), rc) == ("7", 0)
 
 
+FAKE_TRAINER = """
+import signal, sys, time
+from pathlib import Path
+out = Path(sys.argv[1])
+def on_int(*_):  # a trainer's Ctrl-C: it saves its checkpoint, slowly, then exits
+    with open(out / "sigint", "a") as f:
+        f.write("1")
+    time.sleep(1.0)
+    (out / "saved").write_text("yes")
+    print("checkpoint saved", flush=True)
+    sys.exit(1)
+signal.signal(signal.SIGINT, on_int)
+(out / "started").write_text("yes")
+time.sleep(60)
+"""
+
+DRIVER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import learning
+try:
+    learning.run_until([sys.executable, "-c", sys.argv[2], sys.argv[3]], deadline=None)
+    print("not interrupted")
+except learning.Interrupted as stop:
+    print("interrupted:", stop.args[0].strip())
+"""
+
+
+def started(path: Path, timeout: float = 30.0) -> None:
+    t0 = time.time()
+    while not path.exists():
+        assert time.time() - t0 < timeout, f"{path} never appeared"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_a_ctrl_c_reaches_the_trainer_once_and_waits_for_its_checkpoint(tmp_path, signum):
+    """A Ctrl-C (or SIGTERM) on the benchmark, not on the trainer (its own session): the trainer gets one SIGINT and
+    its save is waited for, a second Ctrl-C during the save is ignored, and run_until raises Interrupted with its
+    output. subprocess.run would have killed the trainer 0.25 s after the Ctrl-C."""
+    import signal
+    import subprocess
+
+    driver = subprocess.Popen(
+        [sys.executable, "-c", DRIVER, str(REPO / "benchmarks"), FAKE_TRAINER, str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    started(tmp_path / "started")
+    driver.send_signal(getattr(signal, signum))
+    started(tmp_path / "sigint", timeout=10)
+    driver.send_signal(signal.SIGINT)  # impatient: during the save
+    out, err = driver.communicate(timeout=30)
+    assert driver.returncode == 0, err[-2000:]
+    assert "interrupted: checkpoint saved" in out and (tmp_path / "saved").read_text() == "yes"
+    assert (tmp_path / "sigint").read_text() == "1"  # one SIGINT, not two
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_benchmark_leaves_no_trainer_training(tmp_path):
+    """SIGKILL on the benchmark: its trainer gets SIGINT (and saves) rather than training on unwatched."""
+    import signal
+    import subprocess
+
+    driver = subprocess.Popen(
+        [sys.executable, "-c", DRIVER, str(REPO / "benchmarks"), FAKE_TRAINER, str(tmp_path)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    started(tmp_path / "started")
+    driver.send_signal(signal.SIGKILL)
+    driver.wait(timeout=10)
+    started(tmp_path / "saved", timeout=10)
+    assert (tmp_path / "sigint").read_text() == "1"
+
+
+def test_a_ctrl_c_keeps_the_finished_seeds_and_starts_no_other(tmp_path, monkeypatch):
+    """learning.main interrupted during seed 2: seed 1's run goes into the report, seed 3 never starts, and the exit
+    status is a Ctrl-C's (130), so a chain of commands stops."""
+    import json
+
+    def run(seed):
+        return dict(seed=seed, success_rate=0.9, successes=[1] * 9 + [0], env_steps=100, wall_clock_s=60.0,
+                    curve=dict(env_steps=[], wall_min=[], success=[]))  # fmt: skip
+
+    calls = []
+
+    def fake_train(recipe, seed, args, deadline):
+        calls.append(seed)
+        if seed == 2:
+            raise learning.Interrupted("", "")
+        return run(seed)
+
+    monkeypatch.setattr(learning, "train_run", fake_train)
+    monkeypatch.setattr(learning, "reference", lambda name, args: dict(run(0), success_rate=0.0, successes=[0] * 10))
+    args = learning.Args(recipes=["ppo-state"], seeds=[1, 2, 3], out_dir=tmp_path, bootstrap=50)
+    with pytest.raises(SystemExit) as stop:
+        learning.main(args)
+    assert stop.value.code == 130 and calls == [1, 2]
+    (row,) = [r for r in json.loads((tmp_path / "learning.json").read_text())["rows"] if r["recipe"] == "ppo-state"]
+    assert row["seeds"] == [1]
+
+
 def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_the_others(tmp_path, monkeypatch):
     """learning.main with --stop-after-min: a seed cut short adds no run (the same command continues it), its
     earlier run in the report stays until its new one finishes, and a finished seed replaces its earlier run."""
