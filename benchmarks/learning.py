@@ -406,11 +406,15 @@ SAVE_WAIT_S = 600
 """how long an interrupted trainer may take to save its checkpoint and close its envs before it is killed"""
 
 
+PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
+"""libc's prctl, looked up here: between fork and exec the child should not load anything"""
+
+
 def stop_with_parent() -> None:
     """In the trainer, before it starts: SIGINT, its Ctrl-C, when the process that started it dies, even by SIGKILL
     (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched."""
-    if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
+    if PRCTL is not None:
+        PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
 
 
 def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Optional[int]]:
