@@ -325,8 +325,7 @@ def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
     first = subprocess.run([*cmd, "--stop-after-min", "0.6"], capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr[-3000:]
     assert "unfinished, continued by the same command: ppo-state seed 1" in first.stdout
-    report = json.loads((tmp_path / "learning.json").read_text())
-    assert "ppo-state" not in [r["recipe"] for r in report["rows"]]
+    assert not (tmp_path / "learning.json").exists()  # nothing finished: no report is written
     latest = tmp_path / "runs" / "ppo-state__s1" / "checkpoints" / "latest.pt"
     import torch
 
