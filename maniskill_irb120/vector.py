@@ -170,6 +170,9 @@ def _strip_masks(info: dict) -> dict:
     return {k: (_strip_masks(v) if isinstance(v, dict) else v) for k, v in info.items() if not k.startswith("_")}
 
 
+CLOSE_TIMEOUT_S = 30.0  # how long close() waits for a step in flight before it terminates the workers
+
+
 class CPUVectorEnv(gym.vector.VectorEnv):
     """N single-env ManiSkill envs, env 0 in this process (``local_first``) and the others in worker processes, with
     ManiSkillVectorEnv's batched torch interface.
@@ -426,6 +429,11 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             )
 
     def close_extras(self, **kwargs):
+        """The workers closed, waiting at most ``timeout`` (default :data:`CLOSE_TIMEOUT_S`) for a step or reset
+        still in flight, then terminated: a Ctrl-C that lands while gymnasium is collecting the workers' results
+        leaves a half-read step, and gymnasium's own close (no timeout) would then wait for a reply that never
+        comes. ``terminate=True`` stops them at once."""
+        kwargs.setdefault("timeout", CLOSE_TIMEOUT_S)
         # getattr: not set when __init__ failed before the envs existed
         if getattr(self, "_venv", None) is not None:
             self._venv.close(**kwargs)

@@ -6,12 +6,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from maniskill_irb120 import vector
 from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
 ENV = "TableClearing-IRB120-v1"
@@ -242,6 +245,28 @@ def test_vector_env_after_close_raises_clear_error():
         with pytest.raises(RuntimeError, match="the vector env is closed"):
             call()
     v.close()
+
+
+def test_vector_env_close_after_an_interrupted_step_returns(monkeypatch):
+    """A Ctrl-C inside gymnasium's step_wait, after it read one worker's result and before the next, leaves the
+    step half-read; gymnasium's close without a timeout then waits on the read pipe forever. Ours waits its
+    timeout, terminates the workers and returns."""
+    monkeypatch.setattr(vector, "CLOSE_TIMEOUT_S", 1.0)
+    v = make_vec_env(ENV, 3, backend="cpu", obs_mode="state")
+    v.reset(seed=0)
+    inner = v._venv
+    inner.step_async(np.zeros((2, 5), dtype=np.float32))
+    inner.parent_pipes[0].recv()  # the first worker's result read, then the interrupt
+    processes = list(inner.processes)
+    closer = threading.Thread(target=v.close, daemon=True)
+    started = time.perf_counter()
+    closer.start()
+    closer.join(timeout=60)
+    assert not closer.is_alive(), "close() did not return"
+    assert time.perf_counter() - started < 30
+    assert not any(p.is_alive() for p in processes)
+    with pytest.raises(RuntimeError, match="the vector env is closed"):
+        v.step(torch.zeros(3, 5))
 
 
 def test_vector_env_after_a_worker_died_says_so():

@@ -86,13 +86,17 @@ def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
 
 def close_and_save(bar, envs, counters: dict, clock: Clock, save: Callable[[dict], object]) -> None:
     """The end of training however it comes (the budget, an exception, Ctrl-C: call it in a ``finally``): the
-    progress bar (or None) and the envs closed, the training clock read into ``counters["wall_s"]`` and
-    ``save(counters)`` writing the last checkpoint, so that ``--resume`` continues from where it stopped."""
-    if bar is not None:
-        bar.close()
-    envs.close()
-    counters["wall_s"] = clock()
-    save(counters)
+    progress bar (or None) closed, the training clock read into ``counters["wall_s"]``, ``save(counters)`` writing
+    the last checkpoint, so that ``--resume`` continues from where it stopped, and then the envs closed (even if the
+    save raised). The checkpoint is written first because a vector env interrupted mid-step may take its close
+    timeout to shut its workers down, or, for an env without one, not return at all."""
+    try:
+        if bar is not None:
+            bar.close()
+        counters["wall_s"] = clock()
+        save(counters)
+    finally:
+        envs.close()
 
 
 def held_out_evaluation(

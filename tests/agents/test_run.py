@@ -94,17 +94,36 @@ def test_however_training_ends_the_envs_close_and_the_last_checkpoint_has_the_cl
         def close(self):
             events.append(self.name)
 
+    def save(counters):  # the checkpoint is written before the envs close: their close may be slow
+        events.append("saved")
+        saved.append(counters)
+
     counters = dict(env_steps=8, wall_s=0.0)
     try:
         try:
             raise KeyboardInterrupt  # Ctrl-C in the training loop
         finally:
-            close_and_save(Closes("bar"), Closes("envs"), counters, Clock(before=30.0), saved.append)
+            close_and_save(Closes("bar"), Closes("envs"), counters, Clock(before=30.0), save)
     except KeyboardInterrupt:
         pass
-    assert events == ["bar", "envs"] and saved == [counters] and 30.0 <= counters["wall_s"] < 35
-    close_and_save(None, Closes("envs"), counters, Clock(), saved.append)  # no progress bar (--no-progress)
-    assert events[-1] == "envs" and len(saved) == 2
+    assert events == ["bar", "saved", "envs"] and saved == [counters] and 30.0 <= counters["wall_s"] < 35
+    close_and_save(None, Closes("envs"), counters, Clock(), save)  # no progress bar (--no-progress)
+    assert events[-2:] == ["saved", "envs"] and len(saved) == 2
+
+
+def test_a_failed_save_still_closes_the_envs():
+    closed = []
+
+    class Envs:
+        def close(self):
+            closed.append(True)
+
+    def save(counters):
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        close_and_save(None, Envs(), dict(env_steps=0, wall_s=0.0), Clock(), save)
+    assert closed == [True]
 
 
 def test_the_held_out_evaluation_uses_the_runs_task_frame_and_hidden_keys(monkeypatch):
