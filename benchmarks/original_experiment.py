@@ -6,7 +6,8 @@ reward, the drop penalty and the mean episode reward (the report's reward, the s
 Each run is a recipe of ``benchmarks/learning.py`` (``ppo-rgbd-dense``, ``ppo-rgbd``) trained by ``agents.ppo`` under
 ``runs/original_experiment/``, and resumed from its last checkpoint when this script runs again: the budget
 (``--budget-min``, 150 by default) spans sessions, and ``--stop-after-min`` ends a session's share cleanly (the
-trainer is stopped and continues from its checkpoint next time, losing at most its last few iterations). Once a run
+trainer is stopped and continues from its checkpoint next time, losing at most its last few iterations); Ctrl-C
+stops it the same way, as in ``benchmarks/learning.py``, and exits 130 after writing the report. Once a run
 has finished, its row joins the learning table with ``learning.py --recipes RECIPE --adopt RUN --merge``.
 
     python benchmarks/original_experiment.py --stop-after-min 160            # what fits; run again to continue
@@ -17,8 +18,6 @@ has finished, its row joins the learning table with ``learning.py --recipes RECI
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, recipe_flags, thinned  # noqa: E402
+from learning import QUICK_FLAGS, RECIPES, Interrupted, recipe_flags, run_until, thinned  # noqa: E402
 from results_md import replace_section  # noqa: E402
 
 from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
@@ -103,7 +102,9 @@ def command(recipe: str, args: Args, resume: bool = True) -> list[str]:
 
 def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
     """Train or resume ``recipe`` until it finishes ("done") or the deadline passes ("stopped"); nothing is started
-    once the deadline has passed ("not started")."""
+    once the deadline has passed ("not started"). The trainer runs as ``learning.run_until`` runs it: at the deadline,
+    on Ctrl-C or SIGTERM it gets one SIGINT and is waited for while it saves its checkpoint (``learning.Interrupted``
+    is raised on, after its output is kept), and if this process is killed it still gets its SIGINT."""
     if (run_dir(recipe, args) / "summary.json").is_file():
         return "done"
     if deadline is not None and time.time() >= deadline:  # the run before took this session's share
@@ -112,19 +113,22 @@ def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
     log = args.runs_dir / "logs" / f"{run_dir(recipe, args).name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     print(f"[original] {' '.join(cmd[1:])}", flush=True)
-    with open(log, "a") as out:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
-        while proc.poll() is None:
-            if deadline is not None and time.time() > deadline:
-                proc.send_signal(signal.SIGINT)  # the run continues from its last checkpoint next time
-                try:
-                    proc.wait(timeout=60)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                return "stopped"
-            time.sleep(2)
-    if proc.returncode != 0:
-        raise RuntimeError(f"{recipe} exited with {proc.returncode}; its output is in {log}")
+
+    def keep(stdout: str, stderr: str) -> None:
+        with open(log, "a") as f:  # each session's output after the last
+            f.write(stdout + "\n--- stderr ---\n" + stderr)
+
+    try:
+        stdout, stderr, returncode = run_until(cmd, deadline)
+    except Interrupted as stop:
+        keep(*stop.args)
+        print(f"[original] {recipe}: interrupted at its checkpoint; the same command continues it", flush=True)
+        raise
+    keep(stdout, stderr)
+    if returncode is None:
+        return "stopped"  # the run continues from its last checkpoint next time
+    if returncode != 0:
+        raise RuntimeError(f"{recipe} exited with {returncode}; its output is in {log}")
     return "done"
 
 
@@ -246,9 +250,15 @@ def main(args: Args) -> dict:
     if args.quick:
         args.budget_min, args.eval_episodes = 0.05, 2
     deadline = None if args.stop_after_min is None else time.time() + 60 * args.stop_after_min
-    status = {}
-    for recipe in args.recipes:
-        status[recipe] = train(recipe, args, deadline) if args.train else "not trained now"
+    status, interrupted = {}, False
+    for recipe in args.recipes:  # after a Ctrl-C no run starts, and the report shows where each run stands
+        if interrupted or not args.train:
+            status[recipe] = "not started" if interrupted else "not trained now"
+            continue
+        try:
+            status[recipe] = train(recipe, args, deadline)
+        except Interrupted:
+            status[recipe], interrupted = "stopped", True
     report = dict(
         env_id=ENV_ID,
         budget_min=args.budget_min,
@@ -264,6 +274,8 @@ def main(args: Args) -> dict:
     print(text)
     if args.update_results:
         replace_section(ROOT / "benchmarks" / "RESULTS.md", "## The original report's experiment", text)
+    if interrupted:
+        raise SystemExit(130)  # a Ctrl-C's exit status, so that a chain of commands stops here
     return report
 
 

@@ -276,6 +276,36 @@ def test_a_ctrl_c_keeps_the_finished_seeds_and_starts_no_other(tmp_path, monkeyp
     assert row["seeds"] == [1]
 
 
+def test_the_original_experiment_on_ctrl_c_keeps_the_trainers_output_and_starts_no_other_run(tmp_path, monkeypatch):
+    """original_experiment.py runs its trainers as learning.run_until does: a Ctrl-C during the first run keeps that
+    trainer's output in its log, starts no second run, writes the report with where each run stands, and exits 130."""
+    import json
+
+    import original_experiment as oe
+
+    calls = []
+
+    def interrupted(cmd, deadline):
+        calls.append(cmd)
+        raise learning.Interrupted("saved latest.pt", "KeyboardInterrupt")
+
+    monkeypatch.setattr(oe, "run_until", interrupted)
+    args = oe.Args(runs_dir=tmp_path / "runs", out_dir=tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        oe.main(args)
+    assert stop.value.code == 130 and len(calls) == 1 and "--reward-mode" in calls[0]  # the report's reward first
+    report = json.loads((tmp_path / "original_experiment.json").read_text())
+    assert report["status"] == {"ppo-rgbd-dense": "stopped", "ppo-rgbd": "not started"}
+    log = (tmp_path / "runs" / "logs" / f"{oe.run_dir('ppo-rgbd-dense', args).name}.log").read_text()
+    assert "saved latest.pt" in log and "KeyboardInterrupt" in log
+    # at the deadline the trainer's exit is "stopped", and the run continues next time; a failure names its log
+    monkeypatch.setattr(oe, "run_until", lambda cmd, deadline: ("out", "err", None))
+    assert oe.train("ppo-rgbd", args, deadline=time.time() + 60) == "stopped"
+    monkeypatch.setattr(oe, "run_until", lambda cmd, deadline: ("out", "Traceback", 1))
+    with pytest.raises(RuntimeError, match=r"ppo-rgbd exited with 1; its output is in .*\.log"):
+        oe.train("ppo-rgbd", args, deadline=None)
+
+
 def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_the_others(tmp_path, monkeypatch):
     """learning.main with --stop-after-min: a seed cut short adds no run (the same command continues it), its
     earlier run in the report stays until its new one finishes, and a finished seed replaces its earlier run."""
