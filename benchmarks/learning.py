@@ -672,6 +672,27 @@ def earlier_runs(path: Path, recipe: str, seeds: list[int]) -> list[dict]:
     return []
 
 
+def reported_and_not_here(recipe: str, seed: int, args: Args) -> Optional[str]:
+    """The date of ``recipe``'s run of ``seed`` in the earlier report when a continued session (``--merge`` with
+    ``--stop-after-min``) should keep it rather than train it again: it is in the report and this machine has none of
+    its run folders (a fresh clone, or a machine whose runs were cleared), so "the same command again" continues a
+    multi-session benchmark from wherever it is run. None when the seed is to be trained or continued."""
+    if not args.merge or args.stop_after_min is None:
+        return None
+    runs_dir = args.out_dir / "runs"
+    names = [f"{recipe}__s{seed}"] + ([f"{recipe}__s{seed}__base"] if recipe in BASES else [])
+    if any((runs_dir / name).exists() for name in names):
+        return None
+    path = args.out_dir / "learning.json"
+    old = json.loads(path.read_text())
+    for row in old["rows"]:
+        if row["recipe"] == recipe:
+            for run in row.get("runs", []):
+                if run.get("seed") == seed:
+                    return str(run.get("date", row.get("date", old.get("date", "undated"))))
+    return None
+
+
 def section_head(env_id: str) -> str:
     """The RESULTS.md heading of a task's Learning section (TableClearing's predates the others)."""
     if env_id == DEFAULT_ENV:
@@ -764,6 +785,14 @@ def main(args: Args) -> dict:
     for recipe in args.recipes:
         trained[recipe] = list(adopted)
         for seed in args.seeds:
+            kept = reported_and_not_here(recipe, seed, args)
+            if kept is not None:  # its earlier run stays in the row (earlier_runs)
+                print(
+                    f"[learning] {recipe} seed {seed}: finished in the report ({kept}) and has no run folder on this "
+                    "machine, so it is kept, not trained again (without --stop-after-min it would be)",
+                    flush=True,
+                )
+                continue
             try:  # after a Ctrl-C, no run starts, and the report gets the runs finished before it
                 run = None if interrupted else train_run(recipe, seed, args, deadline)
             except Interrupted:

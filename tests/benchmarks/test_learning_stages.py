@@ -328,6 +328,8 @@ def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_t
 
     monkeypatch.setattr(learning, "train_run", fake_train)
     monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
+    for seed in (1, 2):  # the runs this machine holds, as a session that trains them leaves them
+        (tmp_path / "runs" / f"ppo-state__s{seed}").mkdir(parents=True)
     args = learning.Args(recipes=["ppo-state"], seeds=[1, 2], out_dir=tmp_path, merge=True, stop_after_min=5.0)
     report = learning.main(dataclasses.replace(args, bootstrap=50))
     assert calls == [("ppo-state", 1, True), ("ppo-state", 2, True)]
@@ -340,6 +342,39 @@ def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_t
     before = (tmp_path / "learning.json").read_text()
     nothing = learning.main(dataclasses.replace(args, seeds=[2], bootstrap=50))  # no run finished: no new report
     assert nothing == {"unfinished": ["ppo-state seed 2"]} and (tmp_path / "learning.json").read_text() == before
+
+
+def test_a_continued_session_on_a_machine_without_the_runs_keeps_the_reported_seeds(tmp_path, monkeypatch):
+    """--merge with --stop-after-min on a fresh clone: a seed in the report whose run folders this machine lacks is
+    kept as reported, not trained again; a seed with a run folder here (a two-stage recipe's first stage counts) is
+    continued, and without --stop-after-min every seed is trained again."""
+    import json
+
+    import numpy as np
+
+    def run(seed, rate=0.5):
+        return dict(seed=seed, success_rate=rate, successes=[1] * int(rate * 10) + [0] * (10 - int(rate * 10)),
+                    env_steps=100, wall_clock_s=60.0, curve=dict(env_steps=[], wall_min=[], success=[]))  # fmt: skip
+
+    recipe = "teacher-student-rgbd-sel"
+    old_row = learning.summarise(
+        recipe, "rgbd", [run(1), run(2)], learning.Args(bootstrap=50), np.random.default_rng(0)
+    )
+    old_row["runs"][0]["date"] = "2026-12-02 08:13 UTC"
+    (tmp_path / "learning.json").write_text(json.dumps(dict(command="old", date="d", rows=[old_row])))
+    (tmp_path / "runs" / f"{recipe}__s2__base").mkdir(parents=True)  # seed 2's teacher is on this machine
+    calls = []
+    monkeypatch.setattr(learning, "train_run", lambda r, seed, a, d: calls.append(seed) or run(seed, 0.9))
+    monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
+    args = learning.Args(recipes=[recipe], seeds=[1, 2, 3], out_dir=tmp_path, merge=True, stop_after_min=5.0)
+    report = learning.main(dataclasses.replace(args, bootstrap=50))
+    assert calls == [2, 3]
+    (row,) = [r for r in report["rows"] if r["recipe"] == recipe]
+    assert row["seeds"] == [1, 2, 3] and row["per_seed"] == [0.5, 0.9, 0.9]
+    assert row["runs"][0]["date"] == "2026-12-02 08:13 UTC"  # seed 1 as it was reported
+    calls.clear()
+    learning.main(dataclasses.replace(args, stop_after_min=None, bootstrap=50))
+    assert calls == [1, 2, 3]
 
 
 @pytest.mark.slow
