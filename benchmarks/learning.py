@@ -371,18 +371,8 @@ def run_trainer(
         elif latest.is_file():
             cmd += ["--resume", str(latest)]
         print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
-
-        def keep(stdout: str, stderr: str) -> None:
-            with open(log, "a" if resume else "w") as f:  # a resumed run's log keeps each session's output
-                f.write(stdout + "\n--- stderr ---\n" + stderr)
-
-        try:
-            stdout, stderr, returncode = run_until(cmd, deadline)
-        except Interrupted as stop:
-            keep(*stop.args)
-            print(f"[learning] {name}: interrupted at its checkpoint; the same command continues it", flush=True)
-            raise
-        keep(stdout, stderr)
+        # a resumed run's log keeps each session's output
+        stdout, returncode = run_logged(cmd, deadline, log, append=resume, who=f"[learning] {name}")
         if returncode is None:
             print(f"[learning] {name}: stopped at --stop-after-min; the same command continues it", flush=True)
             return None
@@ -415,6 +405,27 @@ def stop_with_parent() -> None:
     (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched."""
     if PRCTL is not None:
         PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
+
+
+def run_logged(
+    cmd: list[str], deadline: Optional[float], log: Path, *, append: bool, who: str
+) -> tuple[str, Optional[int]]:
+    """:func:`run_until` with the trainer's output (its stdout, then its stderr) written to ``log``, or added to it
+    with ``append``, however the run ends: on :class:`Interrupted` the output is kept, ``who`` (e.g. ``"[learning]
+    name"``) says so, and it is raised on. Returns (stdout, returncode)."""
+
+    def keep(stdout: str, stderr: str) -> None:
+        with open(log, "a" if append else "w") as f:
+            f.write(stdout + "\n--- stderr ---\n" + stderr)
+
+    try:
+        stdout, stderr, returncode = run_until(cmd, deadline)
+    except Interrupted as stop:
+        keep(*stop.args)
+        print(f"{who}: interrupted at its checkpoint; the same command continues it", flush=True)
+        raise
+    keep(stdout, stderr)
+    return stdout, returncode
 
 
 def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Optional[int]]:

@@ -30,7 +30,7 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, Interrupted, recipe_flags, run_until, thinned  # noqa: E402
+from learning import QUICK_FLAGS, RECIPES, Interrupted, recipe_flags, run_logged, thinned  # noqa: E402
 from results_md import replace_section  # noqa: E402
 
 from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
@@ -113,18 +113,8 @@ def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
     log = args.runs_dir / "logs" / f"{run_dir(recipe, args).name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     print(f"[original] {' '.join(cmd[1:])}", flush=True)
-
-    def keep(stdout: str, stderr: str) -> None:
-        with open(log, "a") as f:  # each session's output after the last
-            f.write(stdout + "\n--- stderr ---\n" + stderr)
-
-    try:
-        stdout, stderr, returncode = run_until(cmd, deadline)
-    except Interrupted as stop:
-        keep(*stop.args)
-        print(f"[original] {recipe}: interrupted at its checkpoint; the same command continues it", flush=True)
-        raise
-    keep(stdout, stderr)
+    # each session's output after the last
+    _, returncode = run_logged(cmd, deadline, log, append=True, who=f"[original] {recipe}")
     if returncode is None:
         return "stopped"  # the run continues from its last checkpoint next time
     if returncode != 0:

@@ -283,13 +283,16 @@ def test_the_original_experiment_on_ctrl_c_keeps_the_trainers_output_and_starts_
 
     import original_experiment as oe
 
+    # the learning module that original_experiment imported: another test's bench_script("learning") may have put a
+    # fresh one in sys.modules since this file imported its own, and each has its own Interrupted class
+    used = oe.run_logged.__globals__
     calls = []
 
     def interrupted(cmd, deadline):
         calls.append(cmd)
-        raise learning.Interrupted("saved latest.pt", "KeyboardInterrupt")
+        raise used["Interrupted"]("saved latest.pt", "KeyboardInterrupt")
 
-    monkeypatch.setattr(oe, "run_until", interrupted)
+    monkeypatch.setitem(used, "run_until", interrupted)
     args = oe.Args(runs_dir=tmp_path / "runs", out_dir=tmp_path)
     with pytest.raises(SystemExit) as stop:
         oe.main(args)
@@ -299,9 +302,9 @@ def test_the_original_experiment_on_ctrl_c_keeps_the_trainers_output_and_starts_
     log = (tmp_path / "runs" / "logs" / f"{oe.run_dir('ppo-rgbd-dense', args).name}.log").read_text()
     assert "saved latest.pt" in log and "KeyboardInterrupt" in log
     # at the deadline the trainer's exit is "stopped", and the run continues next time; a failure names its log
-    monkeypatch.setattr(oe, "run_until", lambda cmd, deadline: ("out", "err", None))
+    monkeypatch.setitem(used, "run_until", lambda cmd, deadline: ("out", "err", None))
     assert oe.train("ppo-rgbd", args, deadline=time.time() + 60) == "stopped"
-    monkeypatch.setattr(oe, "run_until", lambda cmd, deadline: ("out", "Traceback", 1))
+    monkeypatch.setitem(used, "run_until", lambda cmd, deadline: ("out", "Traceback", 1))
     with pytest.raises(RuntimeError, match=r"ppo-rgbd exited with 1; its output is in .*\.log"):
         oe.train("ppo-rgbd", args, deadline=None)
 
