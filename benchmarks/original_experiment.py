@@ -233,6 +233,19 @@ def section(report: dict, args: Args) -> str:
     )
 
 
+def reported_and_not_here(args: Args) -> dict[str, dict]:
+    """The runs of the earlier report (``out_dir/original_experiment.json``) that are kept as it has them, neither
+    trained again nor read again: their run folder is not on this machine (a fresh clone, or runs cleared), and this
+    invocation only plots (``--no-train``) or is one session of a longer run (``--stop-after-min``), so a rerun never
+    writes a finished run's curves over with nothing. Without either flag a missing run is trained from the start, as
+    the report's command does."""
+    path = args.out_dir / "original_experiment.json"
+    if not path.is_file() or (args.train and args.stop_after_min is None):
+        return {}
+    runs = json.loads(path.read_text()).get("runs", {})
+    return {r: runs[r] for r in args.recipes if r in runs and not run_dir(r, args).exists()}
+
+
 def main(args: Args) -> dict:
     unknown = set(args.recipes) - set(EXPERIMENT)
     if unknown:
@@ -240,8 +253,13 @@ def main(args: Args) -> dict:
     if args.quick:
         args.budget_min, args.eval_episodes = 0.05, 2
     deadline = None if args.stop_after_min is None else time.time() + 60 * args.stop_after_min
+    kept = reported_and_not_here(args)
     status, interrupted = {}, False
     for recipe in args.recipes:  # after a Ctrl-C no run starts, and the report shows where each run stands
+        if recipe in kept:
+            print(f"[original] {recipe}: kept from the report, its run folder {run_dir(recipe, args)} is not here")
+            status[recipe] = "kept from the report"
+            continue
         if interrupted or not args.train:
             status[recipe] = "not started" if interrupted else "not trained now"
             continue
@@ -255,7 +273,7 @@ def main(args: Args) -> dict:
         seed=args.seed,
         original_report=REPORT,
         status=status,
-        runs={recipe: summary_of(recipe, args) for recipe in args.recipes},
+        runs={recipe: kept[recipe] if recipe in kept else summary_of(recipe, args) for recipe in args.recipes},
     )
     args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / "original_experiment.json").write_text(json.dumps(report, indent=1))

@@ -407,3 +407,27 @@ def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
     assert 55 < row["runs"][0]["wall_clock_s"] < 60 + 30  # one budget over both sessions
     third = subprocess.run([*cmd, "--stop-after-min", "60"], capture_output=True, text=True, timeout=600)
     assert "finished earlier, read from" in third.stdout  # nothing trained again
+
+
+def test_the_original_experiment_keeps_a_reported_run_whose_folder_is_not_here(tmp_path, monkeypatch):
+    """On a fresh clone (no run folders) --no-train and a --stop-after-min session keep the committed runs as the
+    report has them, rather than writing empty curves over them; without either flag the runs train from the start."""
+    import json
+    import shutil
+
+    import original_experiment as oe
+
+    shutil.copy(REPO / "benchmarks" / "results" / "original_experiment.json", tmp_path)
+    before = json.loads((tmp_path / "original_experiment.json").read_text())["runs"]
+    assert all(run["finished"] and run["curve"]["env_steps"] for run in before.values())
+    used = oe.run_logged.__globals__
+    calls = []
+    monkeypatch.setitem(used, "run_until", lambda cmd, deadline: calls.append(cmd) or ("", "", None))
+    for flags in (dict(train=False), dict(stop_after_min=60.0)):
+        report = oe.main(oe.Args(runs_dir=tmp_path / "runs", out_dir=tmp_path, **flags))
+        assert report["runs"] == before and not calls
+        assert report["status"] == {recipe: "kept from the report" for recipe in oe.EXPERIMENT}
+        assert json.loads((tmp_path / "original_experiment.json").read_text())["runs"] == before
+    report = oe.main(oe.Args(runs_dir=tmp_path / "runs", out_dir=tmp_path))
+    assert len(calls) == 2 and all("--resume" not in cmd for cmd in calls)
+    assert report["status"] == {recipe: "stopped" for recipe in oe.EXPERIMENT}
