@@ -402,7 +402,10 @@ PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linu
 
 def stop_with_parent() -> None:
     """In the trainer, before it starts: SIGINT, its Ctrl-C, when the process that started it dies, even by SIGKILL
-    (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched."""
+    (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched. SIGINT is also set
+    back to its default: a benchmark started in the background (``cmd &`` from a script) inherits SIGINT ignored, and
+    a trainer that inherited that would never see its Ctrl-C, and would be killed unsaved after ``SAVE_WAIT_S``."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # the trainer's Python then turns it into KeyboardInterrupt
     if PRCTL is not None:
         PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
 

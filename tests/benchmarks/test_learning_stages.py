@@ -172,6 +172,26 @@ def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path)
     assert (out.strip(), rc) == ("7", 0)
 
 
+def test_a_benchmark_started_in_the_background_still_interrupts_its_trainer(tmp_path):
+    """A script's ``cmd &`` starts the benchmark with SIGINT ignored, and its trainer would inherit that and never
+    save at the deadline: run_until gives the trainer SIGINT's default back."""
+    import signal
+
+    code = (
+        "import signal, sys, time\n"
+        "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler, flush=True)\n"
+        "try:\n    time.sleep(30)\n"
+        "except KeyboardInterrupt:\n    print('checkpoint saved', flush=True); sys.exit(1)\n"
+    )
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as in a background job
+    try:
+        t0 = time.time()
+        out, err, rc = learning.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert rc is None and out.split() == ["True", "checkpoint", "saved"] and time.time() - t0 < 20, (out, err)
+
+
 FAKE_TRAINER = """
 import signal, sys, time
 from pathlib import Path
@@ -189,7 +209,8 @@ time.sleep(60)
 """
 
 DRIVER = """
-import sys
+import signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as at a terminal, even if pytest runs in the background
 sys.path.insert(0, sys.argv[1])
 import learning
 try:
