@@ -210,7 +210,7 @@ time.sleep(60)
 
 DRIVER = """
 import signal, sys
-signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as at a terminal, even if pytest runs in the background
+signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as at a terminal, even if pytest runs in a job
 sys.path.insert(0, sys.argv[1])
 import learning
 try:
