@@ -157,24 +157,12 @@ def test_the_original_experiment_trains_resumes_and_plots(tmp_path):
     assert again.returncode == 0 and "[original] " not in again.stdout  # nothing left to train
 
 
-def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path):
+@pytest.mark.parametrize("parent_sigint", ["default", "ignored"])
+def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path, parent_sigint):
     """learning.run_until: at the deadline the trainer gets SIGINT, its Ctrl-C (which saves its checkpoint), and the
-    run counts as unfinished; before it, the trainer's own exit code comes back."""
-    code = (
-        "import sys, time\n"
-        "try:\n    print('training', flush=True); time.sleep(30)\n"
-        "except KeyboardInterrupt:\n    print('checkpoint saved', flush=True); sys.exit(1)\n"
-    )
-    t0 = time.time()
-    out, err, rc = learning.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
-    assert rc is None and "checkpoint saved" in out and time.time() - t0 < 20
-    out, err, rc = learning.run_until([sys.executable, "-c", "print(7)"], deadline=time.time() + 30)
-    assert (out.strip(), rc) == ("7", 0)
-
-
-def test_a_benchmark_started_in_the_background_still_interrupts_its_trainer(tmp_path):
-    """A script's ``cmd &`` starts the benchmark with SIGINT ignored, and its trainer would inherit that and never
-    save at the deadline: run_until gives the trainer SIGINT's default back."""
+    run counts as unfinished; before it, the trainer's own exit code comes back. "ignored": a script's ``cmd &``
+    starts the benchmark with SIGINT ignored, which the trainer would inherit and so never save at the deadline;
+    run_until gives the trainer SIGINT's default back."""
     import signal
 
     code = (
@@ -183,13 +171,16 @@ def test_a_benchmark_started_in_the_background_still_interrupts_its_trainer(tmp_
         "try:\n    time.sleep(30)\n"
         "except KeyboardInterrupt:\n    print('checkpoint saved', flush=True); sys.exit(1)\n"
     )
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)  # as in a background job
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN) if parent_sigint == "ignored" else None
     try:
         t0 = time.time()
         out, err, rc = learning.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
     finally:
-        signal.signal(signal.SIGINT, before)
+        if before is not None:
+            signal.signal(signal.SIGINT, before)
     assert rc is None and out.split() == ["True", "checkpoint", "saved"] and time.time() - t0 < 20, (out, err)
+    out, err, rc = learning.run_until([sys.executable, "-c", "print(7)"], deadline=time.time() + 30)
+    assert (out.strip(), rc) == ("7", 0)
 
 
 FAKE_TRAINER = """
