@@ -54,6 +54,7 @@ from agents.common import (
     AUX_DIM,
     EVAL_SEED,
     VALIDATION_SEED,
+    Budget,
     Clock,
     Dataset,
     EpisodeTracker,
@@ -406,14 +407,17 @@ def train(args: Args) -> dict:
     o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
     state = labels(o, info)
     bar = budget_bar(args, budget_s, counters["wall_s"], "dagger")
-    last_round_s, stats = 0.0, {}
+    budget = Budget(budget_s, elapsed, counters, validates=args.select_episodes > 0)
+    stats = {}
     try:
         while True:
             r = counters["round"]
-            if r > 0 and elapsed() + last_round_s > budget_s:
+            if r > 0 and not budget.next_step_fits():
                 if args.select_episodes and r % args.select_freq:  # else validated already
-                    select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
+                    with budget.validation():
+                        select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
                 break
+            budget.start_step()
             t0 = time.perf_counter()
             if r == 0:
                 stats = collect(envs, state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
@@ -422,16 +426,17 @@ def train(args: Args) -> dict:
                 beta = args.beta * args.beta_decay ** (r - 1)
                 stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
             updates = (args.initial_updates or None) if r == 0 else None
-            out_of_time = lambda: elapsed() > budget_s  # noqa: E731
             with torch_threads(learner_threads):  # the workers wait through the updates: every core for them
-                losses = train_round(policy, optimizer, data, args, device, out_of_time, aux_head, updates, precision)
+                losses = train_round(
+                    policy, optimizer, data, args, device, budget.out_of_time, aux_head, updates, precision
+                )
             counters["round"] = r + 1
             counters["env_steps"] += stats.pop("steps")
             counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
-            last_round_s = time.perf_counter() - t0
+            round_s = time.perf_counter() - t0
             scalars = {f"train/{k}": v for k, v in stats.items()}
             scalars.update({f"losses/{k}": v for k, v in losses.items()})
-            scalars.update({"charts/dataset": data.size, "charts/round_s": last_round_s})
+            scalars.update({"charts/dataset": data.size, "charts/round_s": round_s})
             logger.scalars(scalars, counters["env_steps"])
             if bar is not None:
                 bar.n = min(int(elapsed()), int(budget_s))
@@ -442,10 +447,13 @@ def train(args: Args) -> dict:
                     success=f"{stats.get('success_rate', 0):.2f}",
                 )
             if args.select_episodes and counters["round"] % args.select_freq == 0:
-                select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
+                with budget.validation():
+                    select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
             if counters["round"] % args.save_freq == 0:
                 counted = dict(counters, wall_s=elapsed())
                 rows = save(ckpt_dir / "latest.pt", policy, optimizer, data, counted, args, aux_head, rows)
+            if r > 0:  # round 0 (the expert's episodes, --initial-updates) is no estimate of the rounds after it
+                budget.end_step()
     finally:
         close_and_save(
             bar,

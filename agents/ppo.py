@@ -20,7 +20,8 @@ them a cloned policy washes out: the first updates follow a random critic away f
 arXiv 2311.02198).
 
 ``--budget-min`` (the flag every trainer shares) limits training's wall clock, counting the time of the run before a
-``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``;
+``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``; no iteration
+starts that its predecessors say would end after it (``agents.common.run.Budget``);
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
 every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON and ``summary.json``
@@ -49,6 +50,7 @@ import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
     VALIDATION_SEED,
+    Budget,
     Clock,
     EpisodeTracker,
     Logger,
@@ -596,14 +598,17 @@ def train(args: Args) -> dict:
     elapsed = Clock(counters.get("wall_s", 0.0))
     logger = Logger(run_dir, args, elapsed)
     max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
+    budget = Budget(max_wall_s, elapsed, counters, validates=args.select_episodes > 0)
     try:
         while counters["iteration"] < num_iterations:
             counters["wall_s"] = elapsed()  # saved with every checkpoint
-            if max_wall_s is not None and counters["wall_s"] > max_wall_s:
+            if not budget.next_step_fits():
                 if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
-                    select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
+                    with budget.validation():
+                        select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
                 break  # latest.pt is written on the way out
             it = counters["iteration"] + 1
+            budget.start_step()
             t0 = time.perf_counter()
             if args.anneal_lr:
                 optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
@@ -653,12 +658,14 @@ def train(args: Args) -> dict:
                 last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
                 logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
             if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
-                select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
+                with budget.validation():
+                    select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
             if it % args.save_freq == 0 or it == num_iterations:
                 counters["wall_s"] = elapsed()
                 save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
                 save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
                 prune_checkpoints(ckpt_dir, args.keep_checkpoints)
+            budget.end_step()
     finally:  # the budget, the last iteration, an exception or Ctrl-C: latest.pt is what --resume continues
         try:
             close_and_save(

@@ -37,6 +37,7 @@ from agents.common.evaluation import (
 from agents.common.logging import Logger, budget_bar, finish
 from agents.common.precision import PRECISIONS, autocast, resolve_precision
 from agents.common.run import (
+    Budget,
     Clock,
     check_resume_signature,
     checkpoint,
@@ -49,6 +50,7 @@ from agents.common.run import (
 
 __all__ = [
     "AUX_DIM",
+    "Budget",
     "Clock",
     "EVAL_SEED",
     "EVENT_KEYS",

@@ -1,8 +1,9 @@
 """The frame of a training run, the same for every trainer, so that a trainer file keeps only its algorithm: where
-the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`), the checkpoint's
-common part and its restore (:func:`checkpoint`, :func:`restore`, :func:`check_resume_signature`), the last
-checkpoint however training ends (:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`)
-and the run's last word (:func:`evaluate_and_finish`).
+the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`) and when the budget
+stops training (:class:`Budget`), the checkpoint's common part and its restore (:func:`checkpoint`,
+:func:`restore`, :func:`check_resume_signature`), the last checkpoint however training ends
+(:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`) and the run's last word
+(:func:`evaluate_and_finish`).
 
 ``--budget-min`` means one thing across ``--resume``: the clock counts the seconds trained before the resume (the
 checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so one budget spans
@@ -12,7 +13,8 @@ from __future__ import annotations
 
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -82,6 +84,51 @@ def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
     would fail deep in torch, or worse, fit and mean something else."""
     if saved["signature"] != signature:
         raise ValueError(f"--resume {resume}: checkpoint {saved['signature']} != this run {signature}")
+
+
+class Budget:
+    """When a trainer stops for its ``--budget-min``: a step (a PPO iteration, a DAgger round) starts only while the
+    longest step so far, plus the validation that may follow it, still ends within the budget. A trainer that
+    stopped once the clock had passed its budget ran a step and a validation past it (a stage of a staged recipe,
+    whose minutes count towards a target, would then overrun it). The longest, not the last: when unsure, stop
+    early. The estimates live in ``counters`` (``step_s``, ``validation_s``) and so in every checkpoint: a
+    ``--resume`` stops where the run would have. Every time is read on ``clock``, the budget's own. ``budget_s``
+    None: no budget, every step starts."""
+
+    def __init__(self, budget_s: Optional[float], clock: Clock, counters: dict, validates: bool):
+        self.budget_s, self.clock, self.counters, self.validates = budget_s, clock, counters, validates
+        self._t0, self._validating = clock(), 0.0
+
+    def reserve_s(self) -> float:
+        """Seconds kept for the validation that ends the run (0 for a run that validates nothing)."""
+        return self.counters.get("validation_s", 0.0) if self.validates else 0.0
+
+    def next_step_fits(self) -> bool:
+        if self.budget_s is None:
+            return True
+        return self.clock() + self.counters.get("step_s", 0.0) + self.reserve_s() <= self.budget_s
+
+    def out_of_time(self) -> bool:
+        """Within a step (DAgger's updates): only the final validation's time is left."""
+        return self.budget_s is not None and self.clock() + self.reserve_s() > self.budget_s
+
+    def start_step(self) -> None:
+        self._t0, self._validating = self.clock(), 0.0
+
+    def end_step(self) -> None:
+        """The step's seconds since :meth:`start_step`, less its validations (they have their own estimate)."""
+        took = self.clock() - self._t0 - self._validating
+        self.counters["step_s"] = max(self.counters.get("step_s", 0.0), took)
+
+    @contextmanager
+    def validation(self) -> Iterator[None]:
+        t = self.clock()
+        try:
+            yield
+        finally:
+            took = self.clock() - t
+            self._validating += took
+            self.counters["validation_s"] = max(self.counters.get("validation_s", 0.0), took)
 
 
 def close_and_save(bar, envs, counters: dict, clock: Clock, save: Callable[[dict], object]) -> None:

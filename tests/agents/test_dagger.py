@@ -477,6 +477,30 @@ def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evalu
         tiny(tmp_path, select_episodes=2, select_freq=0)
 
 
+def test_no_round_starts_that_would_end_after_the_budget(tmp_path, tiny, monkeypatch):
+    """A student's rounds keep to its stage's minutes: a round and the validation after it start only where the
+    longest of each so far still end within the budget (round 0, the initial fit, estimates nothing). The clock
+    jumps 100 s at each validation, so the stop is the budget's arithmetic and not this machine's speed."""
+    import agents.dagger as dagger
+    from agents.common import EVAL_SEED
+
+    jumped = [0.0]
+
+    class JumpingClock(dagger.Clock):
+        def __call__(self) -> float:
+            return super().__call__() + jumped[0]
+
+    def scripted(policy, args, device, video_dir, first_seed=EVAL_SEED):
+        if first_seed != EVAL_SEED:
+            jumped[0] += 100.0
+        return {"success_rate": 0.5, "return": 1.0}
+
+    monkeypatch.setattr(dagger, "Clock", JumpingClock)
+    monkeypatch.setattr(dagger, "final_evaluation", scripted)
+    res = tiny(tmp_path, budget_min=250 / 60, select_episodes=1, select_freq=1)
+    assert res["rounds"] == 2 and 200.0 < res["wall_clock_s"] <= 250.0
+
+
 def test_a_student_stopped_by_its_budget_validates_its_last_round_once(tmp_path, tiny, monkeypatch):
     """Selection rounds that never come before the budget ends: the last weights are validated once, at the end."""
     import agents.dagger as dagger

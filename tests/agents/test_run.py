@@ -14,6 +14,7 @@ import torch
 
 from agents.common import RunArgs, run
 from agents.common.run import (
+    Budget,
     Clock,
     check_resume_signature,
     checkpoint,
@@ -179,3 +180,42 @@ def test_a_run_logged_without_a_clock_continues_each_session_where_the_last_ende
     assert [s for s, _, _ in got] == [100, 200, 300]
     assert [m for _, m, _ in got] == pytest.approx([1.0, 2.0, 3.0], abs=0.01)
     assert read_scalars(tmp_path / "nothing") == {}
+
+
+class FakeClock:
+    """The budget clock at whatever second a test sets."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_budget_starts_no_step_that_its_longest_step_and_validation_say_would_end_after_it():
+    clock, counters = FakeClock(), {}
+    budget = Budget(100.0, clock, counters, validates=True)
+    assert budget.next_step_fits()  # nothing measured yet: the first step always starts
+    for took, validated in [(10.0, 0.0), (30.0, 5.0), (20.0, 0.0)]:
+        budget.start_step()
+        clock.now += took - validated
+        with budget.validation():
+            clock.now += validated
+        budget.end_step()
+    # steps of 10, 25 (30 less its 5 s validation) and 20 s: the longest step and the longest validation are kept
+    assert clock.now == 60.0 and counters["step_s"] == 25.0 and counters["validation_s"] == 5.0
+    clock.now = 70.0
+    assert budget.next_step_fits()  # 70 + 25 + 5 = 100: ends exactly at the budget
+    clock.now = 70.5
+    assert not budget.next_step_fits() and not budget.out_of_time()
+    clock.now = 95.5
+    assert budget.out_of_time()  # within a step: the final validation's 5 s no longer fit
+    # the estimates travel in the counters (and so in a checkpoint): a resumed run stops where this one would have
+    resumed = Budget(100.0, FakeClock(), dict(counters), validates=True)
+    resumed.clock.now = 70.5
+    assert not resumed.next_step_fits()
+    # a run that validates nothing keeps no time for it; no budget: every step starts
+    assert Budget(100.0, resumed.clock, dict(counters), validates=False).next_step_fits()
+    clock.now = 1e9
+    assert Budget(None, clock, counters, validates=True).next_step_fits()
+    assert not Budget(None, clock, counters, validates=True).out_of_time()
