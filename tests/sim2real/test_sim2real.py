@@ -382,21 +382,82 @@ def logged_steps(tmp_path, latency_ms: float, speed_scale: float) -> Path:
     return out
 
 
-def test_sysid_finds_injected_latency_and_slowness(tmp_path):
-    """The emulator has a latency of its own (its RAPID interpreter: the nominal run's fit); what is injected on
-    top shows in the fit, and so does the slower robot, and the fitted model tracks the logged joints far closer
-    than the nominal robot. The accuracy (fits within ~5 ms and ~10 % on a quiet machine, worse under load) is
-    measured by benchmarks/sysid_recovery.py, not asserted here: on the 2-core CI box the emulator's own timing
-    shifts with the load."""
+class _FakeClock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def robot_log(out: Path, latency_s: float, speed_scale: float, steps: int = 100, period: float = 0.05) -> Path:
+    """What ``excite`` logs, made by the emulator's robot model (``EmulatedIRB120``) on a fake clock: a tool step
+    of random size and direction sent every period takes effect ``latency_s`` later (a MoveL at the module's vStep,
+    fly-by, the look-ahead deciding its corners), and the joints are read as each reply leaves: the motion's own
+    reply and a state read half a period on. Nothing sleeps, so the log is the same on any machine under any load."""
+    from maniskill_irb120.abb.emulator.robot import EmulatedIRB120, interpolate_pose, rel_tool
+    from maniskill_irb120.robot.irb120 import IRB120Metalwork
+    from maniskill_irb120.robot.kinematics import matrix_to_quat, pose_mm
+
+    t_gripper = pose_mm([0, 0, 57], [0.707107, 0, -0.707107, 0])  # the module's tGripper tframe
+    clock = _FakeClock()
+    robot = EmulatedIRB120(np.degrees(IRB120Metalwork.keyframes["rest"].qpos[:6]), clock=clock)
+    robot.max_tcp_speed_mm_s, robot.speed_scale = None, speed_scale
+    rng = np.random.default_rng(0)
+    events = []  # (time, kind, step): the motions' arrivals and the state reads, in time order
+    for i in range(steps):
+        size = rng.uniform(0.15, 1.0) * 10.0  # mm
+        d = rng.uniform(-1, 1, 3) * size * (1 if i % 20 < 10 else -1)
+        events += [(i * period + latency_s, "tool", d), (i * period + period / 2, "state", None)]
+    rows = []
+    for t, kind, d in sorted(events, key=lambda e: e[0]):
+        clock.t = t
+        target = np.full(7, np.nan)
+        if kind == "tool":
+            here = robot.tool_pose(robot.path_end(), t_gripper)
+            goal = rel_tool(here, *d, 0.0)
+            q1 = robot.solve(goal, t_gripper, robot.path_end())
+            via, ok = robot.solve_line(
+                np.stack([interpolate_pose(here, goal, s) for s in np.arange(1, 10) / 10]), t_gripper, q1
+            )
+            assert ok.all()
+            robot.move(q1, via, t_gripper, 250.0, 250.0, True, t)
+            target = np.r_[goal[:3, 3], matrix_to_quat(goal[:3, :3])]
+        t_sent = t - latency_s if kind == "tool" else t
+        rows.append(
+            (kind, t_sent, t, np.r_[d if d is not None else np.zeros(3), 0.0, 1.0], np.radians(robot.joints()), target)
+        )
+    (out / "logs").mkdir(parents=True)
+    np.savez(out / "logs" / "real_0.npz", **log_arrays(rows, period))
+    return out
+
+
+def test_sysid_recovers_the_latency_and_slowness_of_the_emulated_robot(tmp_path):
+    """sysid's model (dead time, then speed-scaled straight-line motion, queued) against the emulator's robot with
+    its acceleration limits and look-ahead, on a fake clock: the injected 40 ms and 0.6 show in the fit beside the
+    nominal run's fit, and the fitted model tracks the logged joints far closer than the nominal robot."""
+    base = sysid(str(robot_log(tmp_path / "base", 0.0, 1.0)))
+    shifted = sysid(str(robot_log(tmp_path / "shifted", 0.040, 0.6)))
+    # the model draws no acceleration ramps: it reads them as ~10 ms of dead time, longer on the slower robot
+    assert 0.0 <= base["latency_s"] < 0.015 and 0.9 < base["speed_scale"] < 1.1
+    assert shifted["latency_s"] - base["latency_s"] == pytest.approx(0.040, abs=0.015)
+    assert shifted["speed_scale"] / base["speed_scale"] == pytest.approx(0.6, rel=0.05)
+    assert shifted["rms_joint_error_fit_rad"] < 0.5 * shifted["rms_joint_error_nominal_rad"]
+    assert shifted["exchanges"] == 200
+
+
+def test_sysid_reads_what_the_emulator_link_logged(tmp_path):
+    """The same through the emulator's TCP link and RAPID interpreter, on the wall clock: a log in
+    sim2real-eval's format that sysid reads and writes back. Only what load cannot hide is asserted (the injected
+    40 ms adds latency; the fit beats the nominal robot): on the 2-core CI box the emulator's threads are starved
+    now and then, and a loaded run once fitted the nominal robot at 0.61 of its speed, slower than the injected
+    0.6. The accuracy on a quiet machine is benchmarks/sysid_recovery.py's; the model's, the test above."""
     base = sysid(str(logged_steps(tmp_path, 0.0, 1.0)))
     shifted_dir = logged_steps(tmp_path, 40.0, 0.6)
     shifted = sysid(str(shifted_dir))
-    assert 0.025 < shifted["latency_s"] - base["latency_s"] < 0.08  # 40 ms injected; load adds up to ~20 ms
-    # 0.6 injected; the nominal robot itself fits at 0.8-1.0 as the emulator's timing shifts with the load (a quiet
-    # fresh-clone CI once fitted 0.80 nominal and 0.76 injected), so the slower robot is asserted slower than the
-    # nominal one and within the load's range, not within 0.15 of 0.6
-    assert 0.45 < shifted["speed_scale"] < min(base["speed_scale"], 0.85)
-    assert shifted["rms_joint_error_fit_rad"] < 0.5 * shifted["rms_joint_error_nominal_rad"]
+    assert shifted["latency_s"] - base["latency_s"] > 0.02  # 40 ms injected; load only adds (starved: 75-85 ms)
+    assert shifted["rms_joint_error_fit_rad"] < 0.7 * shifted["rms_joint_error_nominal_rad"]
+    assert shifted["exchanges"] == 301
     assert json.loads((shifted_dir / "sysid.json").read_text()) == shifted
 
 
