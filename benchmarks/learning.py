@@ -319,7 +319,15 @@ def joined(base: dict, tuned: dict) -> dict:
     out.update(
         wall_clock_s=base["wall_clock_s"] + tuned["wall_clock_s"], command=f"{base['command']} && {tuned['command']}"
     )
-    out["base"] = {k: base[k] for k in ("success_rate", "env_steps", "wall_clock_s", "checkpoint")}
+    if "cpu_steal" in base and "cpu_steal" in tuned:  # both stages, weighted by their minutes
+        w_base, w_tuned = base["wall_clock_s"], tuned["wall_clock_s"]
+        both = (base["cpu_steal"] * w_base + tuned["cpu_steal"] * w_tuned) / max(w_base + w_tuned, 1e-9)
+        out["cpu_steal"] = round(both, 3)
+    else:
+        out.pop("cpu_steal", None)
+    out["base"] = {
+        k: base[k] for k in ("success_rate", "env_steps", "wall_clock_s", "checkpoint", "cpu_steal") if k in base
+    }
     return out
 
 
@@ -359,6 +367,7 @@ def run_trainer(
     shown = " ".join(cmd[1:])  # the command that trains the run from the start, without a --resume
     log = logs_dir / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
+    steal = None
     if resume and summary.is_file():
         print(f"[learning] {name}: finished earlier, read from {summary}", flush=True)
         result = json.loads(summary.read_text())
@@ -372,7 +381,13 @@ def run_trainer(
             cmd += ["--resume", str(latest)]
         print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
         # a resumed run's log keeps each session's output
+        before = cpu_times()
         stdout, returncode = run_logged(cmd, deadline, log, append=resume, who=f"[learning] {name}")
+        steal = steal_fraction(before, cpu_times())
+        if steal is not None:
+            print(
+                f"[learning] {name}: the host took {100 * steal:.0f} % of this machine's CPU time (steal)", flush=True
+            )
         if returncode is None:
             print(f"[learning] {name}: stopped at --stop-after-min; the same command continues it", flush=True)
             return None
@@ -384,7 +399,30 @@ def run_trainer(
         raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
     out = {k: result[k] for k in RESULT_KEPT if k in result}
     out.update(seed=seed, command=shown, curve=curve(run_dir))
+    if steal is not None:  # a run read from its summary was timed in an earlier session: unknown here
+        out["cpu_steal"] = steal
     return out
+
+
+def cpu_times() -> Optional[tuple[int, int]]:
+    """(steal, total) CPU time of every CPU since boot, in ticks, from Linux's ``/proc/stat``; None elsewhere.
+    Steal is the time the hypervisor gave this VM's CPUs to other guests: a budgeted run gets fewer env steps in its
+    minutes, and nothing on the machine itself (ps, top's process list) shows why."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+    except (OSError, IndexError):
+        return None
+    if fields[:1] != ["cpu"] or len(fields) < 9:
+        return None
+    ticks = [int(x) for x in fields[1:9]]  # user nice system idle iowait irq softirq steal
+    return ticks[7], sum(ticks)
+
+
+def steal_fraction(before: Optional[tuple[int, int]], after: Optional[tuple[int, int]]) -> Optional[float]:
+    """The share of the CPU time between two :func:`cpu_times` that the host stole (0 on a machine of its own)."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return round((after[0] - before[0]) / (after[1] - before[1]), 3)
 
 
 class Interrupted(Exception):

@@ -4,6 +4,7 @@ by the trainers' own commands, as teacher-student-rgbd is across sessions."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -443,3 +444,35 @@ def test_the_original_experiment_keeps_a_reported_run_whose_folder_is_not_here(t
     report = oe.main(oe.Args(runs_dir=tmp_path / "runs", out_dir=tmp_path))
     assert len(calls) == 2 and all("--resume" not in cmd for cmd in calls)
     assert report["status"] == {recipe: "stopped" for recipe in oe.EXPERIMENT}
+
+
+def test_a_run_records_the_cpu_time_the_host_stole_while_it_trained(tmp_path, monkeypatch):
+    """On a shared host the hypervisor can take a VM's CPUs (steal): a budgeted run then gets fewer env steps in its
+    minutes with nothing on the machine to show why, so each run keeps the share stolen while it trained."""
+    snapshots = iter([(100, 1000), (400, 2000)])  # (steal, total) ticks before and after: 300 of 1000 stolen
+    monkeypatch.setattr(learning, "cpu_times", lambda: next(snapshots))
+    result = dict(success_rate=1.0, successes=[1], env_steps=10, wall_clock_s=1.0)
+    monkeypatch.setattr(learning, "run_logged", lambda *a, **k: (json.dumps(result), 0))
+    monkeypatch.setattr(learning, "curve", lambda run_dir: {})
+    args = learning.Args(recipes=["ppo-state"], seeds=[], out_dir=tmp_path, env_id=ENV)
+    run = learning.run_trainer("r", "agents.ppo", [], 1, 1.0, args)
+    assert run["cpu_steal"] == 0.3 and run["env_steps"] == 10
+    # a two-stage run: each stage's share, and both stages' weighted by their minutes
+    stage = dict(
+        success_rate=1.0, env_steps=10, checkpoint="c", command="x", curve=dict(env_steps=[], wall_min=[], success=[])
+    )
+    both = learning.joined(dict(stage, wall_clock_s=60.0, cpu_steal=0.4), dict(stage, wall_clock_s=30.0, cpu_steal=0.1))
+    assert both["cpu_steal"] == 0.3 and both["base"]["cpu_steal"] == 0.4
+    assert "cpu_steal" not in learning.joined(
+        dict(stage, wall_clock_s=60.0), dict(stage, wall_clock_s=30.0, cpu_steal=0.1)
+    )
+    # what Linux's /proc/stat gives: every field counted, steal the eighth
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  10 0 5 80 1 0 0 4 0 0\ncpu0 5 0 2 40 0 0 0 2 0 0\n")
+    monkeypatch.undo()
+    real = learning.Path
+    monkeypatch.setattr(learning, "Path", lambda p: stat if p == "/proc/stat" else real(p))
+    assert learning.cpu_times() == (4, 100)
+    assert learning.steal_fraction((4, 100), (4, 100)) is None and learning.steal_fraction(None, (4, 100)) is None
+    stat.write_text("intr 1 2\n")
+    assert learning.cpu_times() is None  # not Linux's format: unknown, not 0
