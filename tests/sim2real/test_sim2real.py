@@ -447,15 +447,14 @@ def test_sysid_recovers_the_latency_and_slowness_of_the_emulated_robot(tmp_path)
 
 
 def test_sysid_reads_what_the_emulator_link_logged(tmp_path):
-    """The same through the emulator's TCP link and RAPID interpreter, on the wall clock: a log in
-    sim2real-eval's format that sysid reads and writes back. Only what load cannot hide is asserted (the injected
-    40 ms adds latency; the fit beats the nominal robot): on the 2-core CI box the emulator's threads are starved
-    now and then, and a loaded run once fitted the nominal robot at 0.61 of its speed, slower than the injected
-    0.6. The accuracy on a quiet machine is benchmarks/sysid_recovery.py's; the model's, the test above."""
-    base = sysid(str(logged_steps(tmp_path, 0.0, 1.0)))
+    """The same through the emulator's TCP link and RAPID interpreter, on the wall clock: a log in sim2real-eval's
+    format that sysid reads and writes back. Only what load cannot hide is asserted (the injected 40 ms is there at
+    least: load only adds delay; the fit beats the nominal robot): on the 2-core CI box the emulator's threads are
+    starved now and then, and a loaded run once fitted the nominal robot at 0.61 of its speed, slower than the
+    injected 0.6. The accuracy on a quiet machine is benchmarks/sysid_recovery.py's; the model's, the test above."""
     shifted_dir = logged_steps(tmp_path, 40.0, 0.6)
     shifted = sysid(str(shifted_dir))
-    assert shifted["latency_s"] - base["latency_s"] > 0.02  # 40 ms injected; load only adds (starved: 75-85 ms)
+    assert shifted["latency_s"] > 0.03  # quiet: ~67 ms (RESULTS: the emulator's own 23 ms and the 40); starved: ~95
     assert shifted["rms_joint_error_fit_rad"] < 0.7 * shifted["rms_joint_error_nominal_rad"]
     assert shifted["exchanges"] == 301
     assert json.loads((shifted_dir / "sysid.json").read_text()) == shifted
