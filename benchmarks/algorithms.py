@@ -440,9 +440,13 @@ def run_cell(cell: str, args: Args) -> dict:
     print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
     if spec.runner == "project":
         r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
-    else:
+    else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
         runner = run_sb3 if spec.runner == "sb3" else run_skrl
+        before = learning.cpu_times()
         r = runner(algo, env_id, obs, seed, budget_min * 60, args.runs_dir / name, args)
+        steal = learning.steal_fraction(before, learning.cpu_times())
+        if steal is not None:
+            r["cpu_steal"] = steal
     r.update(cell=cell, seed=seed, budget_min=budget_min, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
     return r
 
@@ -486,6 +490,8 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                 env_steps_mean=float(np.mean([r["env_steps"] for r in runs])),
                 wall_clock_min_mean=float(np.mean([r["wall_clock_s"] for r in runs])) / 60,
             )
+            steal = [r["cpu_steal"] for r in runs if "cpu_steal" in r]
+            row["cpu_steal_mean"] = float(np.mean(steal)) if steal else None  # None: not measured
         rows.append(row)
     return rows
 
@@ -493,23 +499,24 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
 def markdown(rows: list[dict]) -> str:
     lines = [
         "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
-        "| settings |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| host steal | settings |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
         head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
         if "success_mean" not in r:
-            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | {r['settings']} |")
+            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | | {r['settings']} |")
             continue
         lo, hi = r["success_ci95"]
         per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
+        steal = "–" if r.get("cpu_steal_mean") is None else f"{100 * r['cpu_steal_mean']:.0f} %"
         lines.append(
             f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
-            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {r['settings']} |"
+            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {r['settings']} |"
         )
     for name, why in NOT_RUNNABLE.items():
-        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | {why} |")
+        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | {why} |")
     return "\n".join(lines)
 
 
@@ -560,6 +567,8 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         f"one wall-clock budget per cell ({STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the "
         f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
         f"each group's best; {report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
+        "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
+        "(its seeds' mean; a budgeted cell gets fewer env steps for it). "
         f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
     )
