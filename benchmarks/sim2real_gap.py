@@ -81,7 +81,8 @@ SECTION_JSONS = (
 """the runs RESULTS.md shows, a table each: the expert through the adapter, the committed camera policy trained at
 the twin's measured mount without the latency range (two training seeds on two seed ranges), GraspLift's camera
 policy learned from the reward alone (teacher-student-rgbd, no randomisation): seed 1 on two seed ranges, seeds 2
-and 3, TableClearing's: seeds 1-3, TableClearing's teacher-student-rgbd-sel: seeds 1 and 2, and GraspLift's: seeds 1-3"""
+and 3, TableClearing's: seeds 1-3, TableClearing's teacher-student-rgbd-sel: seeds 1 and 2, and GraspLift's:
+seeds 1-3"""
 
 SHIFTS = {
     "none": None,
