@@ -148,8 +148,11 @@ class Args:
     """run no cell: rewrite this table's section of --results-md from algorithms.json in --out-dir"""
     results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
     quick: bool = False
-    """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples"""
+    """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples,
+    at most 10 reference steps"""
     bootstrap: int = 10_000
+    reference_steps: int = 200
+    """batched steps of seeded random actions timed before and after each cell (0: none), the machine's speed then"""
 
 
 # ----------------------------------------------------------------------------- cells
@@ -432,12 +435,44 @@ def run_stage(
     return out
 
 
+def reference_speed(env_id: str, obs: str, num_envs: int, steps: int, seed: int = 0) -> Optional[float]:
+    """Env steps/s of one fixed workload on this machine now: ``steps`` batched steps of seeded uniform random actions
+    in ``num_envs`` CPU envs of ``env_id`` (env 0 in this process, the others in workers, as the cells run them), with
+    the cell's observation; None for ``steps`` 0.
+
+    Why: a cell's env steps in its budget measure the machine as much as the algorithm, and this host's speed moves
+    by 3x within hours while its steal (``cpu_steal``) stays under 20 % (docs/benchmarks.md). Timed just before and
+    after a cell, it lets cells run hours apart be compared as ratios."""
+    if steps <= 0:
+        return None
+    from maniskill_irb120.vector import make_vec_env
+
+    extra = dict(render_backend="none") if obs == "state" else {}
+    envs = make_vec_env(env_id, num_envs, backend="cpu", obs_mode=obs, record_metrics=False, **extra)
+    try:
+        space = envs.single_action_space
+        rng = np.random.default_rng(seed)
+        acts = rng.uniform(space.low, space.high, size=(steps + 5, num_envs, *space.shape)).astype(np.float32)
+        envs.reset(seed=seed)
+        for a in acts[:5]:  # warm-up: the first steps build caches
+            envs.step(torch.from_numpy(a))
+        t0 = time.perf_counter()
+        for a in acts[5:]:
+            envs.step(torch.from_numpy(a))
+        elapsed = time.perf_counter() - t0
+    finally:
+        envs.close()
+    return round(steps * num_envs / elapsed, 1)
+
+
 def run_cell(cell: str, args: Args) -> dict:
     obs, task, algo, seed = parse_cell(cell)
     spec, env_id = ALGORITHMS[algo], TASKS[task]
     budget_min = budget_of(obs, args)
     name = cell.replace("/", "__")
     print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
+    ref_steps = min(args.reference_steps, 10) if args.quick else args.reference_steps
+    reference = [reference_speed(env_id, obs, args.num_envs, ref_steps)]
     if spec.runner == "project":
         r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
     else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
@@ -447,6 +482,10 @@ def run_cell(cell: str, args: Args) -> dict:
         steal = learning.steal_fraction(before, learning.cpu_times())
         if steal is not None:
             r["cpu_steal"] = steal
+    reference.append(reference_speed(env_id, obs, args.num_envs, ref_steps))
+    if None not in reference:
+        r["reference_sps"] = reference
+        print(f"[algorithms] {cell}: reference env steps/s before and after: {reference[0]:g}, {reference[1]:g}")
     r.update(cell=cell, seed=seed, budget_min=budget_min, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
     return r
 
@@ -492,6 +531,8 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
             )
             steal = [r["cpu_steal"] for r in runs if "cpu_steal" in r]
             row["cpu_steal_mean"] = float(np.mean(steal)) if steal else None  # None: not measured
+            ref = [r["reference_sps"] for r in runs if "reference_sps" in r]
+            row["reference_sps_mean"] = np.mean(ref, axis=0).round(1).tolist() if ref else None  # before, after
         rows.append(row)
     return rows
 
@@ -499,24 +540,25 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
 def markdown(rows: list[dict]) -> str:
     lines = [
         "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
-        "| host steal | settings |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| host steal | reference env steps/s, before / after | settings |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
         head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
         if "success_mean" not in r:
-            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | | {r['settings']} |")
+            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | | | {r['settings']} |")
             continue
         lo, hi = r["success_ci95"]
         per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
         steal = "–" if r.get("cpu_steal_mean") is None else f"{100 * r['cpu_steal_mean']:.0f} %"
+        ref = "–" if r.get("reference_sps_mean") is None else " / ".join(f"{x:.0f}" for x in r["reference_sps_mean"])
         lines.append(
             f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
-            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {r['settings']} |"
+            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
         )
     for name, why in NOT_RUNNABLE.items():
-        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | {why} |")
+        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | {why} |")
     return "\n".join(lines)
 
 
@@ -568,7 +610,10 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
         f"each group's best; {report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
-        "(its seeds' mean; a budgeted cell gets fewer env steps for it). "
+        "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
+        "just before and after the cell, on one fixed workload (seeded random actions in the cell's envs, "
+        "`reference_speed`); this host's speed moves by up to 3x while its steal reads low, so compare env steps "
+        "between cells as ratios to it. "
         f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
     )
@@ -612,6 +657,8 @@ def main(args: Args) -> dict:
         args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
     if args.backend not in ("cpu", "gpu", "auto"):
         raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
+    if args.reference_steps < 0:
+        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
     known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
     for pattern in args.only:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):

@@ -33,6 +33,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     one = data["cells"][cell]
     assert one["env_steps"] > 0 and 0 < one["wall_clock_s"] < 60 and len(one["successes"]) == 2
     assert 0.0 <= one["cpu_steal"] < 1.0  # the share of CPU time the host took while it trained (Linux)
+    assert len(one["reference_sps"]) == 2 and min(one["reference_sps"]) > 0  # the machine's speed before and after
     assert one["budget_min"] == 0.05 and (tmp_path / "runs" / "state__GraspLift__sb3-ppo__s1" / "model.zip").is_file()
     row = next(r for r in data["rows"] if (r["obs"], r["task"], r["algorithm"]) == ("state", "GraspLift", "sb3-ppo"))
     lo, hi = row["success_ci95"]
@@ -45,6 +46,8 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     section = text[text.index(alg.SECTION_HEAD) :]
     assert "| state | GraspLift | PPO | Stable-Baselines3 2.9.2 | 1 |" in section and "| RHPO |" in section
     assert "pending" in section and "](algorithms.png)" in section and report["rows"] == data["rows"]
+    ref = row["reference_sps_mean"]
+    assert f"| {ref[0]:.0f} / {ref[1]:.0f} |" in section and "reference env steps/s, before / after" in section
     # a rerun finds the cell done and runs nothing (its date stays)
     again = alg.main(args)
     assert again["cells"][cell]["date"] == one["date"] and md.read_text().count(alg.SECTION_HEAD) == 1
@@ -91,6 +94,9 @@ def test_bad_cells_and_backends_are_named(alg, tmp_path):
         alg.main(alg.Args(only=["state/Stack/*"], out_dir=tmp_path))
     with pytest.raises(ValueError, match="unknown backend 'tpu'"):
         alg.main(alg.Args(backend="tpu", out_dir=tmp_path))
+    with pytest.raises(ValueError, match="--reference-steps must be >= 0"):
+        alg.main(alg.Args(reference_steps=-1, out_dir=tmp_path))
+    assert alg.reference_speed("GraspLift-IRB120-v1", "state", 2, 0) is None  # no reference asked for
 
 
 def test_wilson_interval(alg):
