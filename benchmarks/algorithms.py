@@ -149,10 +149,10 @@ class Args:
     results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
     quick: bool = False
     """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples,
-    at most 10 reference steps"""
+    a toy reference workload"""
     bootstrap: int = 10_000
     reference_steps: int = 200
-    """batched steps of seeded random actions timed before and after each cell (0: none), the machine's speed then"""
+    """steps of learning.reference_speed's fixed workload timed before and after each cell (0: none)"""
 
 
 # ----------------------------------------------------------------------------- cells
@@ -435,44 +435,13 @@ def run_stage(
     return out
 
 
-def reference_speed(env_id: str, obs: str, num_envs: int, steps: int, seed: int = 0) -> Optional[float]:
-    """Env steps/s of one fixed workload on this machine now: ``steps`` batched steps of seeded uniform random actions
-    in ``num_envs`` CPU envs of ``env_id`` (env 0 in this process, the others in workers, as the cells run them), with
-    the cell's observation; None for ``steps`` 0.
-
-    Why: a cell's env steps in its budget measure the machine as much as the algorithm, and this host's speed moves
-    by 3x within hours while its steal (``cpu_steal``) stays under 20 % (docs/benchmarks.md). Timed just before and
-    after a cell, it lets cells run hours apart be compared as ratios."""
-    if steps <= 0:
-        return None
-    from maniskill_irb120.vector import make_vec_env
-
-    extra = dict(render_backend="none") if obs == "state" else {}
-    envs = make_vec_env(env_id, num_envs, backend="cpu", obs_mode=obs, record_metrics=False, **extra)
-    try:
-        space = envs.single_action_space
-        rng = np.random.default_rng(seed)
-        acts = rng.uniform(space.low, space.high, size=(steps + 5, num_envs, *space.shape)).astype(np.float32)
-        envs.reset(seed=seed)
-        for a in acts[:5]:  # warm-up: the first steps build caches
-            envs.step(torch.from_numpy(a))
-        t0 = time.perf_counter()
-        for a in acts[5:]:
-            envs.step(torch.from_numpy(a))
-        elapsed = time.perf_counter() - t0
-    finally:
-        envs.close()
-    return round(steps * num_envs / elapsed, 1)
-
-
 def run_cell(cell: str, args: Args) -> dict:
     obs, task, algo, seed = parse_cell(cell)
     spec, env_id = ALGORITHMS[algo], TASKS[task]
     budget_min = budget_of(obs, args)
     name = cell.replace("/", "__")
     print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
-    ref_steps = min(args.reference_steps, 10) if args.quick else args.reference_steps
-    reference = [reference_speed(env_id, obs, args.num_envs, ref_steps)]
+    reference = [learning.reference_speed(args.reference_steps, quick=args.quick)]
     if spec.runner == "project":
         r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
     else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
@@ -482,7 +451,7 @@ def run_cell(cell: str, args: Args) -> dict:
         steal = learning.steal_fraction(before, learning.cpu_times())
         if steal is not None:
             r["cpu_steal"] = steal
-    reference.append(reference_speed(env_id, obs, args.num_envs, ref_steps))
+    reference.append(learning.reference_speed(args.reference_steps, quick=args.quick))
     if None not in reference:
         r["reference_sps"] = reference
         print(f"[algorithms] {cell}: reference env steps/s before and after: {reference[0]:g}, {reference[1]:g}")
@@ -611,9 +580,9 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         f"each group's best; {report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
         "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
-        "just before and after the cell, on one fixed workload (seeded random actions in the cell's envs, "
-        "`reference_speed`); this host's speed moves by up to 3x while its steal reads low, so compare env steps "
-        "between cells as ratios to it. "
+        "just before and after the cell, on one fixed workload (seeded random actions in 4 TableClearing state envs, "
+        "`learning.reference_speed`); this host's speed moves by up to 5x while its steal reads low, so compare env "
+        "steps between cells as ratios to it. "
         f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
     )

@@ -116,6 +116,10 @@ QUICK_FLAGS = {
 QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch-state")
 
 
+REFERENCE_ENV, REFERENCE_ENVS, REFERENCE_STEPS = "TableClearing-IRB120-v1", 4, 200
+"""reference_speed's fixed workload: its task, CPU envs and batched steps"""
+
+
 @dataclass
 class Args:
     recipes: list[str] = field(default_factory=lambda: list(RECIPES))
@@ -165,6 +169,8 @@ class Args:
     episodes"""
     bootstrap: int = 10_000
     """bootstrap resamples"""
+    reference_steps: int = REFERENCE_STEPS
+    """steps of reference_speed's fixed workload timed before and after each run this invocation trains (0: none)"""
 
 
 # ----------------------------------------------------------------------------- statistics
@@ -402,6 +408,39 @@ def run_trainer(
     if steal is not None:  # a run read from its summary was timed in an earlier session: unknown here
         out["cpu_steal"] = steal
     return out
+
+
+def reference_speed(steps: int = REFERENCE_STEPS, *, quick: bool = False, seed: int = 0) -> Optional[float]:
+    """Env steps/s of one fixed workload on this machine now: ``steps`` batched steps of seeded uniform random actions
+    in ``REFERENCE_ENVS`` CPU envs of ``REFERENCE_ENV`` from state (env 0 in this process, the others in workers, as
+    the trainers run theirs); None for ``steps`` 0. ``quick``: a toy version for smoke runs (5 steps of one env).
+
+    Why: a budgeted run's env steps measure the machine as much as the method, and this host's speed moves by 5x
+    within hours while its steal (:func:`cpu_times`) stays under 20 % (docs/benchmarks.md). The same workload timed
+    just before and after each run and each algorithm cell lets runs hours apart be compared as ratios."""
+    if steps < 0:
+        raise ValueError(f"reference steps must be >= 0 (0: no reference), got {steps}")
+    if steps == 0:
+        return None
+    from maniskill_irb120.vector import make_vec_env
+
+    steps, num_envs = (min(steps, 5), 1) if quick else (steps, REFERENCE_ENVS)
+    envs = make_vec_env(REFERENCE_ENV, num_envs, obs_mode="state", render_backend="none", record_metrics=False,
+                        backend="cpu" if num_envs > 1 else "inprocess")  # fmt: skip
+    try:
+        space = envs.single_action_space
+        rng = np.random.default_rng(seed)
+        acts = rng.uniform(space.low, space.high, size=(steps + 5, num_envs, *space.shape)).astype(np.float32)
+        envs.reset(seed=seed)
+        for a in acts[:5]:  # warm-up: the first steps fill caches
+            envs.step(torch.from_numpy(a))
+        t0 = time.perf_counter()
+        for a in acts[5:]:
+            envs.step(torch.from_numpy(a))
+        elapsed = time.perf_counter() - t0
+    finally:
+        envs.close()
+    return round(steps * num_envs / elapsed, 1)
 
 
 def cpu_times() -> Optional[tuple[int, int]]:
@@ -691,11 +730,13 @@ def stage_lines(rows: list[dict]) -> str:
         for run in runs:
             base = run["base"]
             steps, minutes = run["env_steps"] - base["env_steps"], (run["wall_clock_s"] - base["wall_clock_s"]) / 60
+            ref = run.get("reference_sps")
             lines.append(
                 f"- seed {run['seed']}: {first} {base['success_rate']:.2f}, {base['env_steps']:,}, "
                 f"{base['wall_clock_s'] / 60:.1f}; then {r['recipe']} {run['success_rate']:.2f}, {steps:,}, "
-                f"{minutes:.1f}"
-            )
+                f"{minutes:.1f}" + ("" if ref is None else f" (reference env steps/s before / after: {ref[0]:.0f} / "
+                                     f"{ref[1]:.0f})")
+            )  # fmt: skip
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
 
@@ -803,6 +844,8 @@ def main(args: Args) -> dict:
     unknown = set(args.recipes) - set(RECIPES)
     if unknown:
         raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
+    if args.reference_steps < 0:
+        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
     if args.quick:
         args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
         args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
@@ -846,12 +889,18 @@ def main(args: Args) -> dict:
                 )
                 continue
             try:  # after a Ctrl-C, no run starts, and the report gets the runs finished before it
+                before = None if interrupted else reference_speed(args.reference_steps, quick=args.quick)
                 run = None if interrupted else train_run(recipe, seed, args, deadline)
             except Interrupted:
                 run, interrupted = None, True
             if run is None:
                 unfinished.append(f"{recipe} seed {seed}")
             else:
+                after = reference_speed(args.reference_steps, quick=args.quick)
+                if before is not None:  # this session's part of the run: one that resumed began in an earlier one
+                    run["reference_sps"] = [before, after]
+                    print(f"[learning] {recipe} seed {seed}: reference env steps/s before and after: {before:g}, "
+                          f"{after:g}", flush=True)  # fmt: skip
                 trained[recipe].append(dict(run, benchmark_command=command, date=date))
     if unfinished:
         print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)

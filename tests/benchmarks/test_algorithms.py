@@ -96,7 +96,6 @@ def test_bad_cells_and_backends_are_named(alg, tmp_path):
         alg.main(alg.Args(backend="tpu", out_dir=tmp_path))
     with pytest.raises(ValueError, match="--reference-steps must be >= 0"):
         alg.main(alg.Args(reference_steps=-1, out_dir=tmp_path))
-    assert alg.reference_speed("GraspLift-IRB120-v1", "state", 2, 0) is None  # no reference asked for
 
 
 def test_wilson_interval(alg):

@@ -91,6 +91,10 @@ def test_learning_quick_writes_json(tmp_path):
     assert tuned["env_steps"] > base["env_steps"] and tuned["wall_clock_s"] > base["wall_clock_s"]
     assert torch.load(tuned["checkpoint"], weights_only=False)["args"]["base_checkpoint"] == base["checkpoint"]
     assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
+    # each run trained here has the machine's speed on the reference workload just before and after it
+    trained = [row for name, row in rows.items() if name not in ("random", "expert")]
+    assert all(min(row["runs"][0]["reference_sps"]) > 0 for row in trained)
+    assert "(reference env steps/s before / after: " in run.stdout
 
 
 def test_learner_speed_quick_times_every_configuration(tmp_path):

@@ -476,3 +476,13 @@ def test_a_run_records_the_cpu_time_the_host_stole_while_it_trained(tmp_path, mo
     assert learning.steal_fraction((4, 100), (4, 100)) is None and learning.steal_fraction(None, (4, 100)) is None
     stat.write_text("intr 1 2\n")
     assert learning.cpu_times() is None  # not Linux's format: unknown, not 0
+
+
+def test_the_reference_workload_times_this_machine_and_refuses_a_negative_count(tmp_path):
+    """The fixed workload each run and algorithm cell is timed against: env steps/s now, none when not asked for."""
+    assert learning.reference_speed(10, quick=True) > 0
+    assert learning.reference_speed(0) is None
+    with pytest.raises(ValueError, match="reference steps must be >= 0"):
+        learning.reference_speed(-1)
+    with pytest.raises(ValueError, match="--reference-steps must be >= 0"):
+        learning.main(learning.Args(recipes=["ppo-state"], reference_steps=-1, out_dir=tmp_path, env_id=ENV))
