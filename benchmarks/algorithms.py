@@ -581,8 +581,8 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
         "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
         "just before and after the cell, on one fixed workload (seeded random actions in 4 TableClearing state envs, "
-        "`learning.reference_speed`); this host's speed moves by up to 5x while its steal reads low, so compare env "
-        "steps between cells as ratios to it. "
+        "`learning.reference_speed`); this host's speed has moved several-fold between days while its steal read low, "
+        "so compare env steps between cells as ratios to it. "
         f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
     )

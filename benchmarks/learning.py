@@ -415,9 +415,10 @@ def reference_speed(steps: int = REFERENCE_STEPS, *, quick: bool = False, seed: 
     in ``REFERENCE_ENVS`` CPU envs of ``REFERENCE_ENV`` from state (env 0 in this process, the others in workers, as
     the trainers run theirs); None for ``steps`` 0. ``quick``: a toy version for smoke runs (5 steps of one env).
 
-    Why: a budgeted run's env steps measure the machine as much as the method, and this host's speed moves by 5x
-    within hours while its steal (:func:`cpu_times`) stays under 20 % (docs/benchmarks.md). The same workload timed
-    just before and after each run and each algorithm cell lets runs hours apart be compared as ratios."""
+    Why: a budgeted run's env steps measure the machine as much as the method, and a shared host's speed can move
+    several-fold from one day to the next while its steal (:func:`cpu_times`) stays low (docs/benchmarks.md). The
+    same workload timed just before and after each run and each algorithm cell lets runs days apart be compared as
+    ratios."""
     if steps < 0:
         raise ValueError(f"reference steps must be >= 0 (0: no reference), got {steps}")
     if steps == 0:
