@@ -88,7 +88,8 @@ def test_learning_quick_writes_json(tmp_path):
     # the fine-tuning starts from its own DAgger run, and the row counts both stages
     tuned, base = rows["ppo-finetune-state"]["runs"][0], rows["ppo-finetune-state"]["runs"][0]["base"]
     assert f"--base-checkpoint {base['checkpoint']}" in tuned["command"] and "__base" in base["checkpoint"]
-    assert tuned["env_steps"] > base["env_steps"] and tuned["wall_clock_s"] > base["wall_clock_s"]
+    # (>=: a budget stop may leave a toy second stage no whole iteration on a slow machine)
+    assert tuned["env_steps"] >= base["env_steps"] and tuned["wall_clock_s"] > base["wall_clock_s"]
     assert torch.load(tuned["checkpoint"], weights_only=False)["args"]["base_checkpoint"] == base["checkpoint"]
     assert "| dagger-state | state | 1 |" in run.stdout and (tmp_path / "learning.png").stat().st_size > 1000
     # each run trained here has the machine's speed on the reference workload just before and after it
