@@ -441,7 +441,6 @@ def run_cell(cell: str, args: Args) -> dict:
     budget_min = budget_of(obs, args)
     name = cell.replace("/", "__")
     print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
-    reference = [learning.reference_speed(args.reference_steps, quick=args.quick)]
     if spec.runner == "project":
         r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
     else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
@@ -451,10 +450,6 @@ def run_cell(cell: str, args: Args) -> dict:
         steal = learning.steal_fraction(before, learning.cpu_times())
         if steal is not None:
             r["cpu_steal"] = steal
-    reference.append(learning.reference_speed(args.reference_steps, quick=args.quick))
-    if None not in reference:
-        r["reference_sps"] = reference
-        print(f"[algorithms] {cell}: reference env steps/s before and after: {reference[0]:g}, {reference[1]:g}")
     r.update(cell=cell, seed=seed, budget_min=budget_min, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
     return r
 
@@ -646,13 +641,23 @@ def main(args: Args) -> dict:
             if ends > args.stop_after_min:
                 print(f"[algorithms] stopping: {cell} would end at {ends:.0f} min > --stop-after-min", flush=True)
                 break
-        try:
+        try:  # the machine's speed on learning.reference_speed's workload just before and after the cell
+            before = learning.reference_speed(args.reference_steps, quick=args.quick)
             cells[cell] = run_cell(cell, args)
-        except learning.Interrupted:  # a project cell's trainer saved its checkpoint; the finished cells are written
+        except (learning.Interrupted, KeyboardInterrupt):  # a cell's checkpoint is what a rerun continues from
             print(f"[algorithms] {cell}: interrupted; the same command continues it", flush=True)
             raise SystemExit(130) from None
         print(f"[algorithms] {cell}: success {cells[cell]['success_rate']:.2f}", flush=True)
         write_report(cells, args)  # after every cell: a session that ends keeps what it finished
+        try:
+            after = learning.reference_speed(args.reference_steps, quick=args.quick)
+        except KeyboardInterrupt:
+            print(f"[algorithms] {cell}: interrupted while timing the reference after it; kept without it", flush=True)
+            raise SystemExit(130) from None
+        if before is not None:
+            cells[cell]["reference_sps"] = [before, after]
+            print(f"[algorithms] {cell}: reference env steps/s before and after: {before:g}, {after:g}", flush=True)
+            write_report(cells, args)
     report = write_report(cells, args)
     print(markdown(report["rows"]))
     left = planned(cells, args)

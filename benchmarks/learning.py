@@ -892,17 +892,22 @@ def main(args: Args) -> dict:
             try:  # after a Ctrl-C, no run starts, and the report gets the runs finished before it
                 before = None if interrupted else reference_speed(args.reference_steps, quick=args.quick)
                 run = None if interrupted else train_run(recipe, seed, args, deadline)
-            except Interrupted:
+            except (Interrupted, KeyboardInterrupt):  # KeyboardInterrupt: while the reference workload was timed
                 run, interrupted = None, True
             if run is None:
                 unfinished.append(f"{recipe} seed {seed}")
-            else:
+                continue
+            trained[recipe].append(dict(run, benchmark_command=command, date=date))
+            if before is None:
+                continue
+            try:  # this session's part of the run: one that resumed began in an earlier one
                 after = reference_speed(args.reference_steps, quick=args.quick)
-                if before is not None:  # this session's part of the run: one that resumed began in an earlier one
-                    run["reference_sps"] = [before, after]
-                    print(f"[learning] {recipe} seed {seed}: reference env steps/s before and after: {before:g}, "
-                          f"{after:g}", flush=True)  # fmt: skip
-                trained[recipe].append(dict(run, benchmark_command=command, date=date))
+            except KeyboardInterrupt:  # the run is kept, without the machine's speed after it
+                interrupted = True
+                continue
+            trained[recipe][-1]["reference_sps"] = [before, after]
+            print(f"[learning] {recipe} seed {seed}: reference env steps/s before and after: {before:g}, {after:g}",
+                  flush=True)  # fmt: skip
     if unfinished:
         print(f"[learning] unfinished, continued by the same command: {', '.join(unfinished)}", flush=True)
         if not any(trained.values()):  # nothing to add: the report stays as it is

@@ -213,7 +213,8 @@ except learning.Interrupted as stop:
 """
 
 
-def started(path: Path, timeout: float = 30.0) -> None:
+def started(path: Path, timeout: float = 180.0) -> None:
+    """Wait for ``path``: the driver imports learning (torch) first, which took 44-63 s on a loaded 2-core VM."""
     t0 = time.time()
     while not path.exists():
         assert time.time() - t0 < timeout, f"{path} never appeared"
@@ -279,14 +280,33 @@ def test_a_ctrl_c_keeps_the_finished_seeds_and_starts_no_other(tmp_path, monkeyp
             raise learning.Interrupted("", "")
         return run(seed)
 
+    timings = iter([100.0, 90.0, 80.0])  # the reference workload before and after seed 1, before seed 2
+
     monkeypatch.setattr(learning, "train_run", fake_train)
+    monkeypatch.setattr(learning, "reference_speed", lambda steps, quick: next(timings))
     monkeypatch.setattr(learning, "reference", lambda name, args: dict(run(0), success_rate=0.0, successes=[0] * 10))
     args = learning.Args(recipes=["ppo-state"], seeds=[1, 2, 3], out_dir=tmp_path, bootstrap=50)
     with pytest.raises(SystemExit) as stop:
         learning.main(args)
     assert stop.value.code == 130 and calls == [1, 2]
     (row,) = [r for r in json.loads((tmp_path / "learning.json").read_text())["rows"] if r["recipe"] == "ppo-state"]
-    assert row["seeds"] == [1]
+    assert row["seeds"] == [1] and row["runs"][0]["reference_sps"] == [100.0, 90.0]
+
+    # a Ctrl-C while the reference is timed after a run: the run is kept, without it, and no other starts
+    def interrupted_after(steps, quick):
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return 100.0
+
+    calls.clear()
+    monkeypatch.setattr(learning, "reference_speed", interrupted_after)
+    with pytest.raises(SystemExit) as stop:
+        learning.main(dataclasses.replace(args, out_dir=tmp_path / "again"))
+    assert stop.value.code == 130 and calls == [1]
+    (row,) = [
+        r for r in json.loads((tmp_path / "again" / "learning.json").read_text())["rows"] if r["recipe"] == "ppo-state"
+    ]
+    assert row["seeds"] == [1] and "reference_sps" not in row["runs"][0]
 
 
 def test_the_original_experiment_on_ctrl_c_keeps_the_trainers_output_and_starts_no_other_run(tmp_path, monkeypatch):
@@ -346,7 +366,8 @@ def test_a_session_stopped_early_keeps_only_finished_seeds_and_earlier_runs_of_t
     monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
     for seed in (1, 2):  # the runs this machine holds, as a session that trains them leaves them
         (tmp_path / "runs" / f"ppo-state__s{seed}").mkdir(parents=True)
-    args = learning.Args(recipes=["ppo-state"], seeds=[1, 2], out_dir=tmp_path, merge=True, stop_after_min=5.0)
+    args = learning.Args(recipes=["ppo-state"], seeds=[1, 2], out_dir=tmp_path, merge=True, stop_after_min=5.0,
+                         reference_steps=0)  # fmt: skip
     report = learning.main(dataclasses.replace(args, bootstrap=50))
     assert calls == [("ppo-state", 1, True), ("ppo-state", 2, True)]
     (row,) = [r for r in report["rows"] if r["recipe"] == "ppo-state"]
@@ -382,7 +403,8 @@ def test_a_continued_session_on_a_machine_without_the_runs_keeps_the_reported_se
     calls = []
     monkeypatch.setattr(learning, "train_run", lambda r, seed, a, d: calls.append(seed) or run(seed, 0.9))
     monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
-    args = learning.Args(recipes=[recipe], seeds=[1, 2, 3], out_dir=tmp_path, merge=True, stop_after_min=5.0)
+    args = learning.Args(recipes=[recipe], seeds=[1, 2, 3], out_dir=tmp_path, merge=True, stop_after_min=5.0,
+                         reference_steps=0)  # fmt: skip
     report = learning.main(dataclasses.replace(args, bootstrap=50))
     assert calls == [2, 3]
     (row,) = [r for r in report["rows"] if r["recipe"] == recipe]
