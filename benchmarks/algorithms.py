@@ -151,7 +151,7 @@ class Args:
     """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples,
     a toy reference workload"""
     bootstrap: int = 10_000
-    reference_steps: int = 200
+    reference_steps: int = learning.REFERENCE_STEPS
     """steps of learning.reference_speed's fixed workload timed before and after each cell (0: none)"""
 
 
