@@ -766,6 +766,24 @@ def earlier_runs(path: Path, recipe: str, seeds: list[int]) -> list[dict]:
     return []
 
 
+def finished_earlier(recipe: str, seed: int, args: Args) -> bool:
+    """Whether a continued session (``--stop-after-min``) finds ``recipe``'s run of ``seed`` finished in its folder,
+    so that ``run_trainer`` reads it from its summary.json and nothing of it trains in this session."""
+    run_dir = args.out_dir / "runs" / f"{recipe}__s{seed}"  # a two-stage recipe's last stage
+    return args.stop_after_min is not None and (run_dir / "summary.json").is_file()
+
+
+def reported_provenance(recipe: str, seed: int, args: Args) -> dict:
+    """What the earlier report (``--merge``) says of when and how ``recipe``'s run of ``seed`` was trained and at what
+    reference speed, for a run read again from its folder; empty when the report lacks it."""
+    path = args.out_dir / "learning.json"
+    if not args.merge or not path.is_file():
+        return {}
+    keys = ("benchmark_command", "date", "reference_sps")
+    runs = [r for r in earlier_runs(path, recipe, []) if r.get("seed") == seed]
+    return {k: runs[0][k] for k in keys if k in runs[0]} if runs else {}
+
+
 def reported_and_not_here(recipe: str, seed: int, args: Args) -> Optional[str]:
     """The date of ``recipe``'s run of ``seed`` in the earlier report when a continued session (``--merge`` with
     ``--stop-after-min``) should keep it rather than train it again: it is in the report and this machine has none of
@@ -889,8 +907,10 @@ def main(args: Args) -> dict:
                     flush=True,
                 )
                 continue
+            done = finished_earlier(recipe, seed, args)  # read from its summary.json: this machine's speed now
             try:  # after a Ctrl-C, no run starts, and the report gets the runs finished before it
-                before = None if interrupted else reference_speed(args.reference_steps, quick=args.quick)
+                timed = not (interrupted or done)
+                before = reference_speed(args.reference_steps, quick=args.quick) if timed else None
                 run = None if interrupted else train_run(recipe, seed, args, deadline)
             except (Interrupted, KeyboardInterrupt):  # KeyboardInterrupt: while the reference workload was timed
                 run, interrupted = None, True
@@ -898,6 +918,8 @@ def main(args: Args) -> dict:
                 unfinished.append(f"{recipe} seed {seed}")
                 continue
             trained[recipe].append(dict(run, benchmark_command=command, date=date))
+            if done:  # it keeps the provenance and reference the session that trained it reported
+                trained[recipe][-1].update(reported_provenance(recipe, seed, args))
             if before is None:
                 continue
             try:  # this session's part of the run: one that resumed began in an earlier one

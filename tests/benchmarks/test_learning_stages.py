@@ -415,6 +415,38 @@ def test_a_continued_session_on_a_machine_without_the_runs_keeps_the_reported_se
     assert calls == [1, 2, 3]
 
 
+def test_a_run_finished_in_an_earlier_session_keeps_its_reported_reference_and_date(tmp_path, monkeypatch):
+    """A continued session that finds a run finished in its folder reads it again, times no reference for it (nothing
+    of it trains now) and keeps the reference speed, date and command the session that trained it reported; a seed
+    trained now gets this session's."""
+    import json
+
+    import numpy as np
+
+    def run(seed, rate=0.5):
+        return dict(seed=seed, success_rate=rate, successes=[1] * int(rate * 10) + [0] * (10 - int(rate * 10)),
+                    env_steps=100, wall_clock_s=60.0, curve=dict(env_steps=[], wall_min=[], success=[]))  # fmt: skip
+
+    old_row = learning.summarise("ppo-state", "state", [run(1)], learning.Args(bootstrap=50), np.random.default_rng(0))
+    old_row["runs"][0].update(reference_sps=[990.0, 980.0], date="2026-12-02 08:13 UTC", benchmark_command="then")
+    (tmp_path / "learning.json").write_text(json.dumps(dict(command="old", date="d", rows=[old_row])))
+    (tmp_path / "runs" / "ppo-state__s1").mkdir(parents=True)
+    (tmp_path / "runs" / "ppo-state__s1" / "summary.json").write_text("{}")  # seed 1 finished on this machine
+    timings = iter([250.0, 240.0])
+    monkeypatch.setattr(learning, "train_run", lambda r, seed, a, d: run(seed))
+    monkeypatch.setattr(learning, "reference_speed", lambda steps, quick: next(timings))
+    monkeypatch.setattr(learning, "reference", lambda name, args: run(0, 0.0))
+    args = learning.Args(recipes=["ppo-state"], seeds=[1, 2], out_dir=tmp_path, merge=True, stop_after_min=5.0,
+                         bootstrap=50)  # fmt: skip
+    report = learning.main(args)
+    (row,) = [r for r in report["rows"] if r["recipe"] == "ppo-state"]
+    first, second = row["runs"]
+    assert first["reference_sps"] == [990.0, 980.0] and first["date"] == "2026-12-02 08:13 UTC"
+    assert first["benchmark_command"] == "then"
+    assert second["reference_sps"] == [250.0, 240.0] and second["date"] != first["date"]
+    assert not learning.finished_earlier("ppo-state", 1, dataclasses.replace(args, stop_after_min=None))
+
+
 @pytest.mark.slow
 def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
     """benchmarks/learning.py --stop-after-min, twice: the first session's PPO run is interrupted at its checkpoint
