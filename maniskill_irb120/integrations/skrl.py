@@ -15,6 +15,8 @@
   env already did, in the same step, so a second reset would start yet another episode and throw the first reset's
   away. Here the step's observation is the new episodes' first one, and the ended episodes' last observation is
   kept in ``info["final_observation"]`` (flattened like every observation skrl sees).
+- actions: clipped to the action space here, not in the policy (:class:`Policy` says why); a NaN still reaches the
+  vector env, which refuses it.
 - episode statistics: skrl's trainers log the scalar entries of ``info["episode"]`` (``TrainerCfg.environment_info``)
   each step, and its agents log ``Episode / Total timesteps`` and ``Reward / Total reward`` from the flags
   themselves. So on a step where episodes end, ``info["episode"]`` holds ``"Episode / Success rate (mean)"`` of
@@ -57,12 +59,17 @@ class IRB120SkrlWrapper(ManiSkillWrapper):
         super().__init__(env)
         if seed is not None:
             self._seed = int(seed)
+        space = self.action_space
+        self._bounds = (space.low, space.high) if isinstance(space, gym.spaces.Box) else None
 
     def _flat(self, obs: Any) -> torch.Tensor:
         return flatten_tensorized_space(tensorize_space(self.observation_space, obs, device=self.device))
 
     def step(self, actions: torch.Tensor):
         actions = unflatten_tensorized_space(self.action_space, actions)
+        if isinstance(self.action_space, gym.spaces.Box):  # the policy's sample, clipped here only (see Policy)
+            low, high = (torch.as_tensor(b, device=actions.device) for b in self._bounds)
+            actions = torch.maximum(torch.minimum(actions, high), low)  # NaN passes through, for the env to refuse
         with torch.no_grad():
             obs, reward, terminated, truncated, info = self._env.step(actions)
         info = {k: v for k, v in info.items() if k != "episode"}
@@ -150,11 +157,16 @@ class Encoder(nn.Module):
 
 class Policy(GaussianMixin, Model):
     """A Gaussian policy: the mean from :class:`Encoder`'s features, a state-independent log std (skrl's examples'
-    layout), actions clipped to the action space."""
+    layout). Its actions are not clipped (``clip_actions=False``, as Isaac Lab's skrl PPO configurations have it):
+    skrl's mixin scores the clipped action's log-probability, so once the mean leaves [-1, 1] the stored
+    log-probabilities reach thousands below zero, PPO's ratio overflows to inf and the update writes NaN into every
+    weight (the state GraspLift
+    cell, seed 1: after ~9,300 env steps). :class:`IRB120SkrlWrapper` clips what reaches the env, as
+    SB3 does, and memory keeps the sample."""
 
     def __init__(self, observation_space, action_space, device, init_log_std: float = 0.0):
         Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
-        GaussianMixin.__init__(self, clip_actions=True, clip_log_std=True, min_log_std=-20, max_log_std=2)
+        GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, min_log_std=-20, max_log_std=2)
         self.encoder = Encoder(observation_space)
         self.mean = nn.Linear(self.encoder.out_dim, self.num_actions)
         self.log_std = nn.Parameter(torch.full((self.num_actions,), float(init_log_std)))

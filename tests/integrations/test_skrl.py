@@ -111,3 +111,35 @@ def test_the_maniskill_vector_env_path_of_the_gpu_runs_on_one_cpu_env():
         assert info["final_observation"].shape == obs.shape and not torch.equal(info["final_observation"], obs)
     finally:
         env.close()
+
+
+def test_the_policy_scores_its_own_sample_and_the_wrapper_clips_what_reaches_the_env():
+    """skrl's ``clip_actions`` would score the clipped action: with the mean far outside [-1, 1] its log-probability
+    falls thousands below zero and PPO's ratio overflows to NaN weights (the state GraspLift skrl PPO cell did, after
+    ~9,300 env steps). The policy keeps its sample and its sample's log-probability; the wrapper steps the env with the
+    action clipped to the bounds, as a reference env stepped with the bounds; a NaN is still refused, and the env
+    steps on after it."""
+    torch.manual_seed(0)
+    env = make_skrl_env(ENV, 1, "state", backend="cpu", seed=7)
+    ref = make_skrl_env(ENV, 1, "state", backend="cpu", seed=7)
+    try:
+        obs, _ = env.reset()
+        ref.reset()
+        policy = policy_and_value(env)["policy"]
+        with torch.no_grad():
+            policy.mean.weight.zero_()
+            policy.mean.bias.fill_(50.0)
+        actions, out = policy.act({"observations": obs}, role="policy")
+        assert actions.min() > 40  # the sample itself, unclipped
+        assert out["log_prob"].min() > -30  # its own: -5 * 0.92 - |z|^2 / 2, not -5 * 49^2 / 2
+        obs, rew, *_ = env.step(actions)
+        ref_obs, ref_rew, *_ = ref.step(torch.ones_like(actions))
+        assert torch.equal(obs, ref_obs) and torch.equal(rew, ref_rew)
+        with pytest.raises(ValueError, match="NaN or inf"):
+            env.step(torch.full_like(actions, float("nan")))
+        obs, rew, *_ = env.step(-actions)
+        ref_obs, ref_rew, *_ = ref.step(-torch.ones_like(actions))
+        assert torch.equal(obs, ref_obs) and torch.equal(rew, ref_rew)
+    finally:
+        env.close()
+        ref.close()
