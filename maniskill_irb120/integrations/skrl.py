@@ -60,15 +60,16 @@ class IRB120SkrlWrapper(ManiSkillWrapper):
         if seed is not None:
             self._seed = int(seed)
         space = self.action_space
-        self._bounds = (space.low, space.high) if isinstance(space, gym.spaces.Box) else None
+        box = isinstance(space, gym.spaces.Box)
+        self._bounds = tuple(torch.as_tensor(b, device=self.device) for b in (space.low, space.high)) if box else None
 
     def _flat(self, obs: Any) -> torch.Tensor:
         return flatten_tensorized_space(tensorize_space(self.observation_space, obs, device=self.device))
 
     def step(self, actions: torch.Tensor):
         actions = unflatten_tensorized_space(self.action_space, actions)
-        if isinstance(self.action_space, gym.spaces.Box):  # the policy's sample, clipped here only (see Policy)
-            low, high = (torch.as_tensor(b, device=actions.device) for b in self._bounds)
+        if self._bounds is not None:  # the policy's sample, clipped here only (see Policy)
+            low, high = (b.to(actions.device) for b in self._bounds)
             actions = torch.maximum(torch.minimum(actions, high), low)  # NaN passes through, for the env to refuse
         with torch.no_grad():
             obs, reward, terminated, truncated, info = self._env.step(actions)
@@ -159,10 +160,8 @@ class Policy(GaussianMixin, Model):
     """A Gaussian policy: the mean from :class:`Encoder`'s features, a state-independent log std (skrl's examples'
     layout). Its actions are not clipped (``clip_actions=False``, as Isaac Lab's skrl PPO configurations have it):
     skrl's mixin scores the clipped action's log-probability, so once the mean leaves [-1, 1] the stored
-    log-probabilities reach thousands below zero, PPO's ratio overflows to inf and the update writes NaN into every
-    weight (the state GraspLift
-    cell, seed 1: after ~9,300 env steps). :class:`IRB120SkrlWrapper` clips what reaches the env, as
-    SB3 does, and memory keeps the sample."""
+    log-probabilities fall thousands below zero, PPO's ratio overflows to inf and one update writes NaN into every
+    weight. :class:`IRB120SkrlWrapper` clips what reaches the env, as SB3 does, and skrl's memory keeps the sample."""
 
     def __init__(self, observation_space, action_space, device, init_log_std: float = 0.0):
         Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)

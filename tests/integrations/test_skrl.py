@@ -115,8 +115,8 @@ def test_the_maniskill_vector_env_path_of_the_gpu_runs_on_one_cpu_env():
 
 def test_the_policy_scores_its_own_sample_and_the_wrapper_clips_what_reaches_the_env():
     """skrl's ``clip_actions`` would score the clipped action: with the mean far outside [-1, 1] its log-probability
-    falls thousands below zero and PPO's ratio overflows to NaN weights (the state GraspLift skrl PPO cell did, after
-    ~9,300 env steps). The policy keeps its sample and its sample's log-probability; the wrapper steps the env with the
+    falls thousands below zero and PPO's ratio overflows to NaN weights (as in the state GraspLift skrl PPO
+    cell). The policy keeps its sample and its sample's log-probability; the wrapper steps the env with the
     action clipped to the bounds, as a reference env stepped with the bounds; a NaN is still refused, and the env
     steps on after it."""
     torch.manual_seed(0)
