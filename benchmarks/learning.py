@@ -283,6 +283,18 @@ def budget_for(kind: str, args: Args) -> float:
     return dict(long=args.long_budget_min).get(kind) or args.budget_min
 
 
+def run_name(recipe: str, seed: int, *, base: bool = False) -> str:
+    """The folder name, under ``--out-dir``/runs, of ``recipe``'s run of ``seed`` (``base``: a two-stage recipe's
+    first stage; without it, its last)."""
+    return f"{recipe}__s{seed}" + ("__base" if base else "")
+
+
+def finished_summary(run_dir: Path) -> Optional[Path]:
+    """The summary.json a finished run leaves in its folder (a trainer writes it last); None while it has none."""
+    summary = run_dir / "summary.json"
+    return summary if summary.is_file() else None
+
+
 def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = None) -> Optional[dict]:
     """One run of ``recipe`` (both stages of a two-stage one); None when ``deadline`` (``--stop-after-min``) cut it
     short, to be continued by the same command."""
@@ -291,12 +303,12 @@ def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = No
     budget = budget_for(kind, args)
     resume = args.stop_after_min is not None
     if recipe not in BASES:
-        return run_trainer(f"{recipe}__s{seed}", module, flags, seed, budget, args, resume=resume, deadline=deadline)
+        return run_trainer(run_name(recipe, seed), module, flags, seed, budget, args, resume=resume, deadline=deadline)
     base_recipe, _, hand_on = BASES[recipe]
     share = base_share(recipe, args.env_id)
     base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
     base = run_trainer(
-        f"{recipe}__s{seed}__base",
+        run_name(recipe, seed, base=True),
         base_module,
         base_flags,
         seed,
@@ -309,7 +321,7 @@ def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = No
         return None
     flags = [*flags, hand_on, base["checkpoint"]]
     rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)  # an overrun of the base shows in the row's time
-    tuned = run_trainer(f"{recipe}__s{seed}", module, flags, seed, rest, args, resume=resume, deadline=deadline)
+    tuned = run_trainer(run_name(recipe, seed), module, flags, seed, rest, args, resume=resume, deadline=deadline)
     return None if tuned is None else joined(base, tuned)
 
 
@@ -369,12 +381,12 @@ def run_trainer(
     if args.quick:
         cmd += QUICK_FLAGS[module]
     run_dir = runs_dir / name
-    latest, summary = run_dir / "checkpoints" / "latest.pt", run_dir / "summary.json"
+    latest, summary = run_dir / "checkpoints" / "latest.pt", finished_summary(run_dir)
     shown = " ".join(cmd[1:])  # the command that trains the run from the start, without a --resume
     log = logs_dir / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     steal = None
-    if resume and summary.is_file():
+    if resume and summary is not None:
         print(f"[learning] {name}: finished earlier, read from {summary}", flush=True)
         result = json.loads(summary.read_text())
     elif deadline is not None and time.time() >= deadline:
@@ -602,8 +614,8 @@ def adopted_run(
     flags = [*recipe_flags(recipe, args.env_id), *extra]
     if recipe in BASES and not extra:
         raise ValueError(f"--adopt: {recipe} trains in two stages; name each run's first stage with --adopt-base")
-    summary, events = run_dir / "summary.json", event_files(run_dir)
-    if not summary.is_file():
+    summary, events = finished_summary(run_dir), event_files(run_dir)
+    if summary is None:
         raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
     if not events:
         raise ValueError(f"--adopt: {run_dir} has no TensorBoard log")
@@ -769,8 +781,8 @@ def earlier_runs(path: Path, recipe: str, seeds: list[int]) -> list[dict]:
 def finished_earlier(recipe: str, seed: int, args: Args) -> bool:
     """Whether a continued session (``--stop-after-min``) finds ``recipe``'s run of ``seed`` finished in its folder,
     so that ``run_trainer`` reads it from its summary.json and nothing of it trains in this session."""
-    run_dir = args.out_dir / "runs" / f"{recipe}__s{seed}"  # a two-stage recipe's last stage
-    return args.stop_after_min is not None and (run_dir / "summary.json").is_file()
+    last_stage = args.out_dir / "runs" / run_name(recipe, seed)  # written after the first stage's
+    return args.stop_after_min is not None and finished_summary(last_stage) is not None
 
 
 def reported_provenance(recipe: str, seed: int, args: Args) -> dict:
@@ -792,7 +804,7 @@ def reported_and_not_here(recipe: str, seed: int, args: Args) -> Optional[str]:
     if not args.merge or args.stop_after_min is None:
         return None
     runs_dir = args.out_dir / "runs"
-    names = [f"{recipe}__s{seed}"] + ([f"{recipe}__s{seed}__base"] if recipe in BASES else [])
+    names = [run_name(recipe, seed)] + ([run_name(recipe, seed, base=True)] if recipe in BASES else [])
     if any((runs_dir / name).exists() for name in names):
         return None
     path = args.out_dir / "learning.json"
