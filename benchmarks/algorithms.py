@@ -97,7 +97,8 @@ ALGORITHMS = {
     "skrl-ppo": Algorithm(
         "PPO", f"skrl {SKRL_VERSION}", "skrl",
         "skrl PPO_CFG defaults: 16 rollout steps/env, 8 epochs, 2 minibatches, lr 1e-3, γ 0.99, λ 0.95, "
-        "value loss 2.5; time_limit_bootstrap on (the step limit is no failure); 2x256 ELU actor and critic",
+        "value loss 2.5; time_limit_bootstrap on (the step limit is no failure); 2x256 ELU actor and critic; the "
+        "policy scores its own Gaussian sample and the adapter clips it to the action bounds at the env, as SB3 does",
     ),
     "project-ppo": Algorithm(
         "PPO", "this project (agents.ppo)", "project",
