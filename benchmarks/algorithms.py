@@ -17,9 +17,9 @@ budget).
 Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of the best cells' seeds 2 and 3, plus
 1-5 min of evaluation a cell) and a session is shorter: the JSON keeps every finished cell and a rerun
 skips them; a library cell checkpoints every ``--checkpoint-min`` (SB3: the model, and for state the replay buffer;
-skrl: the agent's modules) with the wall clock it has spent, and a rerun continues it with the rest of its budget; a
-project cell continues with the trainer's own ``--resume``. ``--only`` picks cells by glob, ``--stop-after-min``
-starts no cell that would end after it.
+skrl: the agent's modules) with the wall clock it has spent, and when Ctrl-C or SIGTERM stops it (exit 130), and a
+rerun continues it with the rest of its budget; a project cell continues with the trainer's own ``--resume``.
+``--only`` picks cells by glob, ``--stop-after-min`` starts no cell that would end after it.
 
     python benchmarks/algorithms.py --update-results                          # every cell (resumes)
     python benchmarks/algorithms.py --only 'state/GraspLift/*' --stop-after-min 170 --update-results
@@ -33,6 +33,7 @@ import fnmatch
 import json
 import math
 import platform
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -253,6 +254,23 @@ def write_state(ckpt_dir: Path, state: dict) -> None:
     tmp.replace(ckpt_dir / "state.json")
 
 
+def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
+    """``train()``, then ``save()``. Ctrl-C or SIGTERM (which :func:`main` turns into Ctrl-C) during training saves the
+    checkpoint too, with both signals ignored while it writes, before the interrupt goes on: a rerun continues from
+    where the cell stopped, not from its last periodic save up to ``--checkpoint-min`` earlier."""
+    try:
+        train()
+    except KeyboardInterrupt:
+        handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            save()
+        finally:
+            for sig, handler in handlers.items():
+                signal.signal(sig, handler)
+        raise
+    save()
+
+
 def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_dir: Path, args: Args) -> dict:
     import stable_baselines3 as sb3
     from stable_baselines3.common.callbacks import BaseCallback
@@ -296,9 +314,11 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
                 save()
             return not clock.over()
 
-    try:
+    def train() -> None:
         model.learn(total_timesteps=10**12, callback=Stop(), reset_num_timesteps=not resumed, tb_log_name="run")
-        save()
+
+    try:
+        train_and_save(train, save)
     finally:
         venv.close()
     env_steps, spent = int(model.num_timesteps), clock.spent_s
@@ -368,10 +388,15 @@ def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_
             raise BudgetSpent
 
     env.step, agent.post_interaction = step, post_interaction
+
+    def train() -> None:
+        try:
+            trainer.train()
+        except BudgetSpent:
+            pass
+
     try:
-        trainer.train()
-    except BudgetSpent:
-        save()
+        train_and_save(train, save)
     finally:
         env.close()
     policy = models["policy"]
@@ -611,26 +636,9 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
     return report
 
 
-def main(args: Args) -> dict:
-    if args.render_only:
-        json_path = args.out_dir / "algorithms.json"
-        report = json.loads(json_path.read_text())
-        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
-        return report
-    if args.quick:
-        args.budget_min = args.budget_min if args.budget_min is not None else 0.05
-        args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
-    if args.backend not in ("cpu", "gpu", "auto"):
-        raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
-    if args.reference_steps < 0:
-        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
-    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
-    for pattern in args.only:
-        if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
-            raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
-                             f"{sorted(known)[0]!r}")  # fmt: skip
-    json_path = args.out_dir / "algorithms.json"
-    cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
+def run_cells(cells: dict[str, dict], args: Args) -> None:
+    """Run the planned cells in turn, adding each to ``cells`` and the report as it finishes, until none is left or
+    the next would end after ``--stop-after-min``. Ctrl-C or SIGTERM: the cell keeps its checkpoint, exit 130."""
     t0 = time.time()
     while True:
         todo = planned(cells, args)
@@ -659,6 +667,33 @@ def main(args: Args) -> dict:
             cells[cell]["reference_sps"] = [before, after]
             print(f"[algorithms] {cell}: reference env steps/s before and after: {before:g}, {after:g}", flush=True)
             write_report(cells, args)
+
+
+def main(args: Args) -> dict:
+    if args.render_only:
+        json_path = args.out_dir / "algorithms.json"
+        report = json.loads(json_path.read_text())
+        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
+        return report
+    if args.quick:
+        args.budget_min = args.budget_min if args.budget_min is not None else 0.05
+        args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
+    if args.backend not in ("cpu", "gpu", "auto"):
+        raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
+    if args.reference_steps < 0:
+        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
+    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
+    for pattern in args.only:
+        if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
+            raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
+                             f"{sorted(known)[0]!r}")  # fmt: skip
+    json_path = args.out_dir / "algorithms.json"
+    cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
+    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops a cell as Ctrl-C does
+    try:
+        run_cells(cells, args)
+    finally:
+        signal.signal(signal.SIGTERM, on_term)
     report = write_report(cells, args)
     print(markdown(report["rows"]))
     left = planned(cells, args)

@@ -5,6 +5,8 @@ extra seeds, --only)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -68,6 +70,39 @@ def test_a_checkpointed_cell_continues_with_the_rest_of_its_budget(alg, tmp_path
     assert f"continuing from {tmp_path / 'runs' / name / 'agent.pt'}" in capsys.readouterr().out
     assert out["env_steps"] > first["env_steps"]
     assert 0.06 * 60 <= out["wall_clock_s"] < 0.06 * 60 + 15
+
+
+@pytest.mark.slow  # two cells' worker start-ups and one evaluation (~25 s)
+def test_sigterm_inside_a_library_cell_saves_what_a_rerun_continues_from(alg, tmp_path, monkeypatch, capsys):
+    """A session stopped with SIGTERM (``kill``, the end of a session) mid-cell: the cell saves its model and clock
+    there and then, not only at its periodic checkpoint, the benchmark exits 130, and the rerun continues it."""
+    pytest.importorskip("stable_baselines3")
+    cell, name = "state/GraspLift/sb3-ppo/s1", "state__GraspLift__sb3-ppo__s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", num_envs=2, reference_steps=0)
+    args.budget_min, args.eval_episodes, args.checkpoint_min, args.bootstrap = 0.05, 1, 100.0, 50  # no periodic save
+    save_due = alg.Budget.save_due
+    sent = []
+
+    def terminated(self):  # asked from inside SB3's learn, after each vector step
+        if not sent:
+            sent.append(self.spent_s)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return save_due(self)
+
+    monkeypatch.setattr(alg.Budget, "save_due", terminated)
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as stop:
+        alg.main(args)
+    assert stop.value.code == 130 and signal.getsignal(signal.SIGTERM) is before  # pytest's own handler is back
+    assert f"{cell}: interrupted; the same command continues it" in capsys.readouterr().out
+    run = tmp_path / "runs" / name
+    saved = json.loads((run / "state.json").read_text())
+    assert (run / "model.zip").is_file() and saved["env_steps"] >= 2 and saved["spent_s"] >= sent[0] > 0
+    assert not (tmp_path / "algorithms.json").exists()  # no result for a cell that did not finish
+    monkeypatch.setattr(alg.Budget, "save_due", save_due)
+    out = alg.main(args)["cells"][cell]
+    assert f"continuing from {run / 'model.zip'}" in capsys.readouterr().out
+    assert out["env_steps"] > saved["env_steps"] and 0.05 * 60 <= out["wall_clock_s"] < 0.05 * 60 + 15
 
 
 def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
