@@ -24,7 +24,7 @@ rerun continues it with the rest of its budget; a project cell continues with th
     python benchmarks/algorithms.py --update-results                          # every cell (resumes)
     python benchmarks/algorithms.py --only 'state/GraspLift/*' --stop-after-min 170 --update-results
     python benchmarks/algorithms.py --quick --out-dir /tmp/alg --only state/GraspLift/sb3-ppo/s1   # smoke run
-    python benchmarks/algorithms.py --render-only   # the section again from algorithms.json, no cell run
+    python benchmarks/algorithms.py --render-only   # the rows and section again from algorithms.json, no cell run
 """
 
 from __future__ import annotations
@@ -147,7 +147,8 @@ class Args:
     update_results: bool = False
     """rewrite this table's section of --results-md"""
     render_only: bool = False
-    """run no cell: rewrite this table's section of --results-md from algorithms.json in --out-dir"""
+    """run no cell: the rows of algorithms.json in --out-dir again from its cells, and this table's section of
+    --results-md"""
     results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
     quick: bool = False
     """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples,
@@ -670,9 +671,13 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
 
 
 def main(args: Args) -> dict:
-    if args.render_only:
+    if args.render_only:  # the rows again from the cells, so a settings text mended since shows in both files
         json_path = args.out_dir / "algorithms.json"
         report = json.loads(json_path.read_text())
+        report["rows"] = rows_of(report["cells"], args)
+        tmp = json_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(report, indent=1))
+        tmp.replace(json_path)
         update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
         return report
     if args.quick:

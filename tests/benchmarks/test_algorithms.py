@@ -105,6 +105,26 @@ def test_sigterm_inside_a_library_cell_saves_what_a_rerun_continues_from(alg, tm
     assert out["env_steps"] > saved["env_steps"] and 0.05 * 60 <= out["wall_clock_s"] < 0.05 * 60 + 15
 
 
+def test_render_only_derives_the_rows_again_from_the_committed_cells(alg, tmp_path):
+    """A settings text mended after its cells ran reaches algorithms.json's rows and RESULTS.md with --render-only,
+    and every measured figure (success, interval, steps, reference) comes out as the cells gave it."""
+    committed = json.loads((alg.ROOT / "benchmarks" / "results" / "algorithms.json").read_text())
+    stale = json.loads(json.dumps(committed))
+    for row in stale["rows"]:
+        row["settings"] = "an old text"
+    (tmp_path / "algorithms.json").write_text(json.dumps(stale))
+    md = results_md(tmp_path)
+    report = alg.main(alg.Args(render_only=True, out_dir=tmp_path, results_md=md))
+    again = json.loads((tmp_path / "algorithms.json").read_text())
+    assert again == report and again["cells"] == committed["cells"]
+    assert [r["settings"] for r in again["rows"]] == [alg.ALGORITHMS[r["algorithm"]].settings for r in again["rows"]]
+    measured = ("success_mean", "success_ci95", "per_seed", "env_steps_mean", "reference_sps_mean", "seeds")
+    assert [{k: r.get(k) for k in measured} for r in again["rows"]] == [
+        {k: r.get(k) for k in measured} for r in committed["rows"]
+    ]
+    assert "an old text" not in md.read_text() and alg.ALGORITHMS["skrl-ppo"].settings in md.read_text()
+
+
 def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     args = alg.Args()
     done: dict[str, dict] = {}
