@@ -16,9 +16,10 @@ budget).
 
 Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of the best cells' seeds 2 and 3, plus
 1-5 min of evaluation a cell) and a session is shorter: the JSON keeps every finished cell and a rerun
-skips them; a library cell checkpoints every ``--checkpoint-min`` (SB3: the model, and for state the replay buffer;
-skrl: the agent's modules) with the wall clock it has spent, and when Ctrl-C or SIGTERM stops it (exit 130), and a
-rerun continues it with the rest of its budget; a project cell continues with the trainer's own ``--resume``.
+skips them; a library cell checkpoints every ``--checkpoint-min`` and when Ctrl-C or SIGTERM stops it (exit 130)
+(SB3: the model, and for state the replay buffer; skrl: the agent's modules), each time with the wall clock it has
+spent, and a rerun continues it with the rest of its budget; a project cell continues with the trainer's own
+``--resume``.
 ``--only`` picks cells by glob, ``--stop-after-min`` starts no cell that would end after it.
 
     python benchmarks/algorithms.py --update-results                          # every cell (resumes)
