@@ -249,11 +249,16 @@ def read_state(ckpt_dir: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {"spent_s": 0.0, "env_steps": 0, "curve": []}
 
 
+def write_json(path: Path, data: dict, indent: Optional[int] = None) -> None:
+    """``data`` to ``path`` through a temporary file and a rename: a session killed mid-write leaves the old file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=indent))
+    tmp.replace(path)
+
+
 def write_state(ckpt_dir: Path, state: dict) -> None:
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    tmp = ckpt_dir / "state.json.tmp"
-    tmp.write_text(json.dumps(state))
-    tmp.replace(ckpt_dir / "state.json")
+    write_json(ckpt_dir / "state.json", state)
 
 
 def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
@@ -627,10 +632,7 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
         cells=cells,
     )
     json_path, png_path = args.out_dir / "algorithms.json", args.out_dir / "algorithms.png"
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = json_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(json_path)
+    write_json(json_path, report, indent=1)
     plot(rows, png_path)
     table = markdown(rows)
     if args.update_results:
@@ -676,9 +678,7 @@ def main(args: Args) -> dict:
         json_path = args.out_dir / "algorithms.json"
         report = json.loads(json_path.read_text())
         report["rows"] = rows_of(report["cells"], args)
-        tmp = json_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(report, indent=1))
-        tmp.replace(json_path)
+        write_json(json_path, report, indent=1)
         update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
         return report
     if args.quick:
