@@ -1,10 +1,12 @@
-"""The RL-library examples run as written, at toy sizes: examples/sb3_ppo.py from its command line (the camera),
-sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves."""
+"""The RL-library examples run as written, at toy sizes: examples/sb3_ppo.py from the README's command line (the
+camera), sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves."""
 
 from __future__ import annotations
 
 import importlib.util
 import os
+import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -23,14 +25,21 @@ def load(name: str):
     return module
 
 
-def test_sb3_ppo_example_runs_from_its_command_line_on_the_camera(tmp_path):
+def test_sb3_ppo_example_runs_as_the_readme_writes_it(tmp_path):
+    """The README's one RL-library command, word for word (the interpreter and the script's path made absolute), run
+    in an empty folder so its default --out-dir lands there."""
     pytest.importorskip("stable_baselines3")
-    cmd = [sys.executable, str(EXAMPLES / "sb3_ppo.py"), "--obs", "rgbd", "--num-envs", "2", "--backend", "cpu"]
-    cmd += ["--n-steps", "32", "--total-timesteps", "64", "--out-dir", str(tmp_path)]
+    readme = (REPO / "README.md").read_text().replace("\n  ", " ")
+    found = re.findall(r"`\.venv/bin/python (examples/sb3_ppo\.py [^`]*)`", readme)
+    assert len(found) == 1, found
+    argv = shlex.split(found[0])
+    assert "--obs" in argv and argv[argv.index("--obs") + 1] == "rgbd", argv  # the camera, as the README says
+    cmd = [sys.executable, str(REPO / argv[0]), *argv[1:]]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert (tmp_path / "model.zip").is_file() and list(tmp_path.glob("PPO_1/events.out.tfevents.*"))
+    run = tmp_path / "runs" / "sb3_ppo"
+    assert (run / "model.zip").is_file() and list(run.glob("PPO_1/events.out.tfevents.*"))
     assert "training-episode success" in out.stdout
 
 
