@@ -182,12 +182,18 @@ def budget_of(obs: str, args: Args) -> float:
 
 
 def best_algo(done: dict[str, dict], obs: str, task: str) -> Optional[str]:
-    """The group's best reward-only algorithm by seed-1 success, once every seed-1 cell of the group is in."""
+    """The group's best reward-only algorithm by seed-1 success, once every seed-1 cell of the group is in.
+
+    None where no seed-1 cell solved a held-out episode: a tie at 0 names no best, and seeds 2 and 3 of an arbitrary
+    one would spend an hour to measure nothing. A tie above 0 goes to the algorithm earlier in the grid."""
     algos = [a for o, t, a in grid() if (o, t) == (obs, task)]
     if any(cell_id(obs, task, a, 1) not in done for a in algos):
         return None
     scored = [(done[cell_id(obs, task, a, 1)]["success_rate"], a) for a in algos if ALGORITHMS[a].from_reward]
-    return max(scored)[1] if scored else None
+    if not scored or max(rate for rate, _ in scored) == 0:
+        return None
+    top = max(rate for rate, _ in scored)
+    return next(a for rate, a in scored if rate == top)
 
 
 def planned(done: dict[str, dict], args: Args) -> list[str]:
@@ -605,7 +611,8 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         "Other RL libraries beside this project's trainers, from the reward alone (the task's `normalized_dense`), "
         f"one wall-clock budget per cell ({STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the "
         f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
-        f"each group's best; {report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
+        "each group's best (none where every seed-1 cell of the group scored 0); "
+        f"{report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
         "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
         "just before and after the cell, on one fixed workload (seeded random actions in 4 TableClearing state envs, "

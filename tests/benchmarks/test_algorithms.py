@@ -136,6 +136,14 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     plan = alg.planned(done, args)
     assert "state/GraspLift/sb3-sac/s2" in plan and "state/GraspLift/sb3-sac/s3" in plan
     assert not any(c.startswith("state/TableClearing/") and not c.endswith("/s1") for c in plan)
+    # a group where nothing solved a held-out episode names no best (not the last name in the alphabet)
+    for cell in (c for c in first if c.startswith("state/TableClearing/")):
+        done[cell] = {"success_rate": 0.0}
+    assert alg.best_algo(done, "state", "TableClearing") is None
+    assert not any(c.startswith("state/TableClearing/") for c in alg.planned(done, args))
+    # a tie above 0 goes to the earlier algorithm in the grid
+    done["state/TableClearing/sb3-td3/s1"] = done["state/TableClearing/skrl-ppo/s1"] = {"success_rate": 0.2}
+    assert alg.best_algo(done, "state", "TableClearing") == "sb3-td3"
     # every camera cell learns from the reward alone (the project's is teacher-student-rgbd): the best one gets seeds
     for algo, rate in (("sb3-ppo", 0.1), ("sb3-sac", 0.2), ("project-camera", 0.9)):
         done[f"rgbd/GraspLift/{algo}/s1"] = {"success_rate": rate}
