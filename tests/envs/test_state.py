@@ -41,7 +41,13 @@ def make(env_id: str, obs_mode: str, **kw) -> gym.Env:
 
 
 def assert_obs_equal(a, b, path: str = "obs") -> None:
-    """Bit for bit, key by key (ManiSkill's test_states compares the same way)."""
+    """Key by key: images, masks, flags and integers bit for bit; floats within 1e-6 (absolute and relative).
+
+    PhysX writes a restored link pose through the body's centre-of-mass frame in float32 and recomputes the other
+    links from the restored root and joints, so the TCP pose, what is measured from it and the camera's pose can come
+    back a float32 rounding off (GraspLift, seed 3: the fixed root's y by 9e-11 m, the TCP's by 7e-9 m; on the
+    earlier hosts these were bit for bit). Everything the env keeps itself (the state's memory) is exact. ManiSkill's
+    own test_states allows 1e-4 and one grey level."""
     if isinstance(a, dict):
         assert a.keys() == b.keys(), path
         for k in a:
@@ -49,8 +55,10 @@ def assert_obs_equal(a, b, path: str = "obs") -> None:
         return
     a, b = torch.as_tensor(a), torch.as_tensor(b)
     assert a.shape == b.shape and a.dtype == b.dtype, path
-    diff = (a.double() - b.double()).abs()
-    assert torch.equal(a, b), f"{path} differs by up to {diff.max().item():.3g}"
+    if a.is_floating_point():
+        torch.testing.assert_close(b, a, atol=1e-6, rtol=1e-6, msg=lambda m: f"{path}: {m}")
+    else:
+        assert torch.equal(a, b), f"{path} differs in {(a != b).sum().item()} of {a.numel()} elements"
 
 
 def random_actions(env: gym.Env, steps: int, seed: int) -> None:
@@ -101,8 +109,7 @@ def test_a_grasp_restores_with_its_observation_and_info(env_id, obs_mode):
         restore()
         assert_obs_equal(obs, u.get_obs())
         restored = u.get_info()
-        for k, v in info.items():
-            assert torch.equal(torch.as_tensor(v), torch.as_tensor(restored[k])), k
+        assert_obs_equal(info, restored, "info")
         env.step(open_gripper)  # a step from the restore: usable, and the frozen contacts give way to PhysX's
     env.close()
 
@@ -226,13 +233,31 @@ def obs_columns(env, key: tuple[str, str]) -> np.ndarray:
     raise KeyError(key)
 
 
+def position_columns(env) -> np.ndarray:
+    """The flat state observation's columns that are positions in metres: each ``*_pos`` entry and the first three of
+    each ``*_pose``."""
+    columns, start = [], 0
+    for entries in env._get_obs_state_dict(env.get_info()).values():
+        for name, value in entries.items():
+            width = value.reshape(value.shape[0], -1).shape[1]
+            if name.endswith("_pos") or name.endswith("_pose"):
+                columns.extend(range(start, start + (3 if name.endswith("_pose") else width)))
+            start += width
+    return np.array(columns)
+
+
 def _read_group(g):
     return {k: _read_group(v) for k, v in g.items()} if isinstance(g, h5py.Group) else g[()]
 
 
 def test_maniskill_replay_with_env_states_reproduces_the_recording(state_demos, tmp_path):
     """ManiSkill's replay tool with --use-env-states: the first observation (taken right after the restore) is the
-    recorded one bit for bit, and every later one (PhysX stepping from a restored state) within 1e-2."""
+    recorded one as :func:`assert_obs_equal` compares, and every later one (one PhysX step from a restored state) is
+    within 1 mm in position and 0.02 elsewhere (quaternion components, radians, joint displacements).
+
+    The state does not carry PhysX's contact cache (solver warm start, friction anchors), so a step from a restore
+    is not the recorded step: a held or just-placed cube settles up to a degree of yaw away (0.012 rad at the place
+    step, TableClearing seed 3, the largest seen) while its position stays within 0.2 mm."""
     import subprocess
     import sys
 
@@ -254,8 +279,14 @@ def test_maniskill_replay_with_env_states_reproduces_the_recording(state_demos, 
         recorded, replayed = f["traj_0"]["obs"][()], g["traj_0"]["obs"][()]
         assert bool(g["traj_0"]["success"][-1])
     assert recorded.shape == replayed.shape
-    np.testing.assert_array_equal(replayed[0], recorded[0])
-    np.testing.assert_allclose(replayed, recorded, atol=1e-2, rtol=0)
+    assert_obs_equal(torch.as_tensor(recorded[0]), torch.as_tensor(replayed[0]))
+    env = make(state_demos["env_id"], "state")
+    env.reset(seed=0)
+    positions = position_columns(env.unwrapped)
+    env.close()
+    others = np.setdiff1d(np.arange(recorded.shape[1]), positions)
+    np.testing.assert_allclose(replayed[:, positions], recorded[:, positions], atol=1e-3, rtol=0)
+    np.testing.assert_allclose(replayed[:, others], recorded[:, others], atol=2e-2, rtol=0)
 
 
 def test_set_state_dict_restores_only_the_rows_of_env_idx():
@@ -300,5 +331,6 @@ def test_maniskill_base_set_state_dict_ignores_the_memory():
     state, obs = u.get_state_dict(), u.get_obs()
     random_actions(env, 3, seed=1)
     BaseEnv.set_state_dict(u, state)
-    assert not torch.equal(obs, u.get_obs())
+    with pytest.raises(AssertionError):  # qvel and the edge-triggered events are off by far more than a rounding
+        assert_obs_equal(obs, u.get_obs())
     env.close()
