@@ -618,7 +618,10 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         "just before and after the cell, on one fixed workload (seeded random actions in 4 TableClearing state envs, "
         "`learning.reference_speed`); this host's speed has moved several-fold between days while its steal read low, "
         "so compare env steps between cells as ratios to it. "
-        f"Command: `{report['command']}` ({when}, {report['machine']}); raw data: "
+        "`python benchmarks/algorithms.py --update-results` runs every planned cell not yet in the raw data (split it "
+        "over sessions with `--stop-after-min N`; an interrupted cell continues from its checkpoint), so the table "
+        f"grew over several runs ({when}); each cell's date and trainer command are in the raw data. Last run: "
+        f"`{report['command']}` ({report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
     )
     replace_section(results, SECTION_HEAD, section)

@@ -50,6 +50,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     assert "pending" in section and "](algorithms.png)" in section and report["rows"] == data["rows"]
     ref = row["reference_sps_mean"]
     assert f"| {ref[0]:.0f} / {ref[1]:.0f} |" in section and "reference env steps/s, before / after" in section
+    assert f"Last run: `{report['command']}`" in section and f"({one['date']} to {one['date']})" in section
     # a rerun finds the cell done and runs nothing (its date stays)
     again = alg.main(args)
     assert again["cells"][cell]["date"] == one["date"] and md.read_text().count(alg.SECTION_HEAD) == 1
