@@ -25,6 +25,10 @@ import torch
 
 from maniskill_irb120.envs.contract import as_action_array, check_env_idx, check_finite_actions
 
+TORCH_THREADS = torch.get_num_threads()
+"""torch's intra-op threads when the package was imported, before a CPU worker env set this process to one: what a
+learner that wants the cores back while the workers wait can use (``integrations.observations.StepThreads``)"""
+
 
 def _to_torch(x: Any) -> Any:
     if isinstance(x, dict):

@@ -23,7 +23,8 @@ observation wrappers: :func:`observation_wrappers`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, Optional
 
 import gymnasium as gym
@@ -140,8 +141,7 @@ def make_vector_env(
     in worker processes, ``"gpu"`` batches them on ``physx_cuda``, ``"auto"`` picks the GPU when CUDA is there).
 
     With CPU workers this process is set to one torch thread, as the project's own trainers are
-    (``agents/common/envs.py``): the learner's small per-step ops run while the workers step, and more intra-op
-    threads only spin against them (SB3's SAC on 2 cores: ~170 ms a step with 2 threads, ~7 ms with 1)."""
+    (``agents/common/envs.py``); the adapters then hand the learner its threads between steps (:class:`StepThreads`)."""
     from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
 
     if backend == "inprocess":
@@ -158,6 +158,52 @@ def make_vector_env(
     if isinstance(env, CPUVectorEnv):
         torch.set_num_threads(1)
     return env
+
+
+class StepThreads:
+    """torch's intra-op threads in this process around a CPU worker env's steps: one while the envs step, ``learner``
+    between steps. Nothing changes on the GPU backend.
+
+    Why one while stepping: env 0 steps in this process beside the worker processes, and each of its many small torch
+    ops would wait at its join for a second thread that a worker holds the core of (SB3's SAC from state on 2 cores:
+    ~170 ms a step with 2 threads throughout, ~7 ms with 1). Why ``learner`` between steps: the workers sleep then,
+    waiting for actions, while the learner acts and updates. A CNN learner gains from the cores (2 cores, 4 envs,
+    GraspLift camera: SB3 PPO 45 -> 62 env steps/s, SAC 2.4 -> 4.0), a small MLP's ops lose to the hand-offs (state:
+    PPO 333 -> 249, SAC 103 -> 115), hence :func:`learner_threads_for`' default (docs/rl_libraries.md)."""
+
+    def __init__(self, env: gym.vector.VectorEnv, learner: int):
+        from maniskill_irb120.vector import CPUVectorEnv
+
+        if isinstance(learner, bool) or not isinstance(learner, int) or learner < 1:
+            raise ValueError(f"learner_threads must be an int >= 1, got {learner!r}")
+        self.active = isinstance(env, CPUVectorEnv)
+        self.learner = learner
+        if self.active:
+            torch.set_num_threads(learner)
+
+    @contextmanager
+    def stepping(self) -> Iterator[None]:
+        """One torch thread inside, ``learner`` after (on CPU workers)."""
+        if not self.active:
+            yield
+            return
+        torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(self.learner)
+
+
+def learner_threads_for(obs: str, threads: Optional[int] = None) -> int:
+    """``threads`` if given, else the default of :class:`StepThreads`' ``learner`` for ``obs``: 1 from state (an MLP),
+    :data:`maniskill_irb120.vector.TORCH_THREADS` from the camera (a CNN)."""
+    from maniskill_irb120.vector import TORCH_THREADS
+
+    if threads is not None:
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"learner_threads must be an int >= 1, got {threads!r}")
+        return threads
+    return TORCH_THREADS if check_obs(obs) == "rgbd" else 1
 
 
 def wrapped_vector_env(wrap: Callable[[gym.vector.VectorEnv], Any], env_id: str, num_envs: int, obs: str, **kwargs):

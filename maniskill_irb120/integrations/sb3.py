@@ -23,6 +23,8 @@ on the GPU). What it does differently from ManiSkill's wrapper, and why:
   ``"TimeLimit.truncated"`` (truncated, not terminated), which SB3 uses to bootstrap a cut-off episode.
 - ``get_attr``/``env_method``: ManiSkill's forward to methods its env does not have; here they reach each CPU
   env (or the one batched GPU env).
+- torch threads: one while the CPU envs step (env 0 steps in this process, beside the workers), the learner's
+  (``learner_threads``) between steps, while the workers wait: ``observations.StepThreads`` says why.
 - its input: a vector env with ``num_envs``. ManiSkill's own example hands it ``gym.make(...)``, whose
   ``TimeLimitWrapper`` has no ``num_envs`` (https://github.com/mani-skill/ManiSkill/issues/1404).
 """
@@ -37,7 +39,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_irb120.integrations.observations import CONTROL_MODE, make_single_env, wrapped_vector_env
+from maniskill_irb120.integrations.observations import (
+    CONTROL_MODE,
+    StepThreads,
+    learner_threads_for,
+    make_single_env,
+    wrapped_vector_env,
+)
 
 try:
     from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
@@ -72,7 +80,8 @@ def _write_rows(dst: Any, src: Any, idx: np.ndarray) -> None:
 class IRB120SB3VecEnv(ManiSkillSB3VectorEnv):
     """An SB3 ``VecEnv`` over a batched env from ``make_vector_env`` (see the module doc)."""
 
-    def __init__(self, env: gym.vector.VectorEnv):
+    def __init__(self, env: gym.vector.VectorEnv, learner_threads: int = 1):
+        self._threads = StepThreads(env, learner_threads)  # torch's threads around each step (module doc)
         # SB3's VecEnv.__init__ reads render_mode through get_attr, i.e. through the env: set it first (ManiSkill's
         # wrapper sets it after, and SB3 then warns that the env has no render_mode)
         self._env = env
@@ -86,7 +95,8 @@ class IRB120SB3VecEnv(ManiSkillSB3VectorEnv):
         return self._env
 
     def reset(self):
-        obs, _ = self._env.reset(seed=self._last_seed, options=self._options[0] or None)
+        with self._threads.stepping():
+            obs, _ = self._env.reset(seed=self._last_seed, options=self._options[0] or None)
         self._last_seed = None  # a seed from seed() applies to the next reset only
         self._reset_options()
         self.episode_returns.zero_()
@@ -94,7 +104,8 @@ class IRB120SB3VecEnv(ManiSkillSB3VectorEnv):
         return _numpy(obs)
 
     def step_wait(self):
-        obs, rew, term, trunc, infos = self._env.step(self.last_actions)
+        with self._threads.stepping():
+            obs, rew, term, trunc, infos = self._env.step(self.last_actions)
         rew, term, trunc = rew.cpu().float(), term.cpu().bool(), trunc.cpu().bool()
         dones = term | trunc
         self.episode_returns += rew
@@ -168,14 +179,18 @@ def make_sb3_vec_env(
     seed: Optional[int] = None,
     wrappers: Sequence[Callable[[gym.Env], gym.Env]] = (),
     env_kwargs: Optional[dict] = None,
+    learner_threads: Optional[int] = None,
 ) -> IRB120SB3VecEnv:
     """``num_envs`` envs of ``env_id`` as an SB3 ``VecEnv`` giving ``obs`` (``"state"``: a vector for
     ``MlpPolicy``; ``"rgbd"``: ``{"image", "state"}`` for ``MultiInputPolicy``), with ``reward_mode`` and
     ``control_mode`` passed to the task (default: its ``normalized_dense`` reward, the tool-frame action).
     ``seed``: the first reset's (env i gets ``seed + i`` on the CPU). ``backend``: ``"cpu"``, ``"gpu"`` or
-    ``"auto"`` (the GPU when CUDA is there)."""
+    ``"auto"`` (the GPU when CUDA is there). ``learner_threads``: torch's threads in this process between CPU worker
+    steps, while the workers wait (default 1 from state, the package's torch threads from the camera; one while the
+    envs step: :class:`~maniskill_irb120.integrations.observations.StepThreads`)."""
+    threads = learner_threads_for(obs, learner_threads)
     out = wrapped_vector_env(
-        IRB120SB3VecEnv,
+        lambda venv: IRB120SB3VecEnv(venv, learner_threads=threads),
         env_id,
         num_envs,
         obs,

@@ -36,7 +36,14 @@ import gymnasium as gym
 import torch
 import torch.nn as nn
 
-from maniskill_irb120.integrations.observations import CONTROL_MODE, IMAGE_KEY, STATE_KEY, wrapped_vector_env
+from maniskill_irb120.integrations.observations import (
+    CONTROL_MODE,
+    IMAGE_KEY,
+    STATE_KEY,
+    StepThreads,
+    learner_threads_for,
+    wrapped_vector_env,
+)
 
 try:
     from skrl.envs.wrappers.torch.mani_skill_envs import ManiSkillWrapper
@@ -53,15 +60,21 @@ SUCCESS_KEY = "Episode / Success rate (mean)"
 
 class IRB120SkrlWrapper(ManiSkillWrapper):
     """skrl's ManiSkill wrapper over an auto-resetting batched env from ``make_vector_env`` (see the module doc).
-    ``seed``: the first reset's (env i gets ``seed + i`` on the CPU); None leaves it to skrl (``config.torch.key``)."""
+    ``seed``: the first reset's (env i gets ``seed + i`` on the CPU); None leaves it to skrl (``config.torch.key``).
+    ``learner_threads``: torch's threads between CPU worker steps (``observations.StepThreads``)."""
 
-    def __init__(self, env: gym.vector.VectorEnv, seed: Optional[int] = None):
+    def __init__(self, env: gym.vector.VectorEnv, seed: Optional[int] = None, learner_threads: int = 1):
+        self._threads = StepThreads(env, learner_threads)
         super().__init__(env)
         if seed is not None:
             self._seed = int(seed)
         space = self.action_space
         box = isinstance(space, gym.spaces.Box)
         self._bounds = tuple(torch.as_tensor(b, device=self.device) for b in (space.low, space.high)) if box else None
+
+    def reset(self) -> tuple[torch.Tensor, Any]:
+        with self._threads.stepping():
+            return super().reset()
 
     def _flat(self, obs: Any) -> torch.Tensor:
         return flatten_tensorized_space(tensorize_space(self.observation_space, obs, device=self.device))
@@ -71,7 +84,7 @@ class IRB120SkrlWrapper(ManiSkillWrapper):
         if self._bounds is not None:  # the policy's sample, clipped here only (see Policy)
             low, high = (b.to(actions.device) for b in self._bounds)
             actions = torch.maximum(torch.minimum(actions, high), low)  # NaN passes through, for the env to refuse
-        with torch.no_grad():
+        with torch.no_grad(), self._threads.stepping():
             obs, reward, terminated, truncated, info = self._env.step(actions)
         info = {k: v for k, v in info.items() if k != "episode"}
         dones = (terminated | truncated).flatten()
@@ -105,12 +118,16 @@ def make_skrl_env(
     seed: Optional[int] = None,
     wrappers: Sequence[Callable[[gym.Env], gym.Env]] = (),
     env_kwargs: Optional[dict] = None,
+    learner_threads: Optional[int] = None,
 ) -> IRB120SkrlWrapper:
     """``num_envs`` envs of ``env_id`` for skrl, giving ``obs`` (``"state"`` or ``"rgbd"``: image + state, flattened
     by skrl), with ``reward_mode`` and ``control_mode`` passed to the task (default: its ``normalized_dense`` reward,
-    the tool-frame action). ``backend``: ``"cpu"``, ``"gpu"`` or ``"auto"`` (the GPU when CUDA is there)."""
+    the tool-frame action). ``backend``: ``"cpu"``, ``"gpu"`` or ``"auto"`` (the GPU when CUDA is there).
+    ``learner_threads``: torch's threads between CPU worker steps (default 1 from state, the package's torch threads
+    from the camera; one while the envs step: ``observations.StepThreads``)."""
+    threads = learner_threads_for(obs, learner_threads)
     return wrapped_vector_env(
-        lambda venv: IRB120SkrlWrapper(venv, seed=seed),
+        lambda venv: IRB120SkrlWrapper(venv, seed=seed, learner_threads=threads),
         env_id,
         num_envs,
         obs,

@@ -19,6 +19,7 @@ from stable_baselines3.common.torch_layers import NatureCNN  # noqa: E402
 
 from maniskill_irb120.integrations.observations import DEPTH_MM_PER_LEVEL  # noqa: E402
 from maniskill_irb120.integrations.sb3 import IRB120SB3VecEnv, make_sb3_env, make_sb3_vec_env  # noqa: E402
+from maniskill_irb120.vector import TORCH_THREADS  # noqa: E402
 
 ENV = "GraspLift-IRB120-v1"
 
@@ -53,6 +54,44 @@ def test_unknown_obs_and_backend_are_named():
         make_sb3_vec_env(ENV, 2, "state", backend="tpu")
     with pytest.raises(ValueError, match="reward_mode='shaped' is not supported"):
         make_sb3_env(ENV, "state", reward_mode="shaped")
+
+
+def threads_seen_while_stepping(venv: IRB120SB3VecEnv) -> list[int]:
+    """torch's thread count in this process each time the CPU envs underneath step or reset."""
+    seen: list[int] = []
+    inner = venv.vector_env
+    step, reset = inner.step, inner.reset
+    inner.step = lambda a: (seen.append(torch.get_num_threads()), step(a))[1]
+    inner.reset = lambda **kw: (seen.append(torch.get_num_threads()), reset(**kw))[1]
+    return seen
+
+
+@pytest.mark.parametrize("obs, given, learner", [("state", None, 1), ("rgbd", None, TORCH_THREADS), ("state", 3, 3)])
+def test_one_torch_thread_while_the_envs_step_and_the_learners_between_steps(obs, given, learner):
+    """Env 0 steps in this process beside the workers on one thread; the learner gets its threads back after."""
+    before = torch.get_num_threads()
+    venv = make_sb3_vec_env(ENV, 2, obs, backend="cpu", seed=0, learner_threads=given)
+    try:
+        seen = threads_seen_while_stepping(venv)
+        assert torch.get_num_threads() == learner
+        venv.reset()
+        assert torch.get_num_threads() == learner
+        venv.step(np.zeros((2, 5), dtype=np.float32))
+        assert seen == [1, 1] and torch.get_num_threads() == learner
+        with pytest.raises(ValueError, match="NaN or inf"):  # a refused step hands the threads back too
+            venv.step(np.full((2, 5), np.nan, dtype=np.float32))
+        assert torch.get_num_threads() == learner
+        venv.step(np.zeros((2, 5), dtype=np.float32))  # and the env steps on
+        assert seen == [1, 1, 1, 1]
+    finally:
+        venv.close()
+        torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True])
+def test_a_bad_learner_threads_is_named_before_any_env_starts(bad):
+    with pytest.raises(ValueError, match=f"learner_threads must be an int >= 1, got {bad!r}"):
+        make_sb3_vec_env(ENV, 2, "state", backend="cpu", learner_threads=bad)
 
 
 def test_ppo_runs_from_the_camera_on_cpu_workers():

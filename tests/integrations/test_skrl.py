@@ -93,6 +93,26 @@ def test_a_partial_reset_reaches_skrl_as_a_new_episode_with_its_final_observatio
         ref.close()
 
 
+def test_one_torch_thread_while_the_envs_step_and_the_learners_between_steps():
+    """As the SB3 test: env 0 steps in this process beside the workers on one thread, skrl's learner gets
+    ``learner_threads`` back after each step and reset."""
+    before, seen = torch.get_num_threads(), []
+    env = make_skrl_env(ENV, 2, "state", backend="cpu", seed=0, learner_threads=3)
+    try:
+        step, reset = env._env.step, env._env.reset
+        env._env.step = lambda a: (seen.append(torch.get_num_threads()), step(a))[1]
+        env._env.reset = lambda **kw: (seen.append(torch.get_num_threads()), reset(**kw))[1]
+        assert torch.get_num_threads() == 3
+        env.reset()
+        env.step(torch.zeros(2, 5))
+        assert seen == [1, 1] and torch.get_num_threads() == 3
+    finally:
+        env.close()
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="learner_threads must be an int >= 1, got 0"):
+        make_skrl_env(ENV, 2, "state", backend="cpu", learner_threads=0)
+
+
 def test_the_maniskill_vector_env_path_of_the_gpu_runs_on_one_cpu_env():
     """``backend="auto"`` with one env and no CUDA is ManiSkill's own ``ManiSkillVectorEnv`` (the GPU backend's
     class) on physx_cpu: the adapter's spaces, device and auto-reset handling run on it here."""
