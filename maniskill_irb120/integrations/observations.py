@@ -174,10 +174,8 @@ class StepThreads:
     def __init__(self, env: gym.vector.VectorEnv, learner: int):
         from maniskill_irb120.vector import CPUVectorEnv
 
-        if isinstance(learner, bool) or not isinstance(learner, int) or learner < 1:
-            raise ValueError(f"learner_threads must be an int >= 1, got {learner!r}")
         self.active = isinstance(env, CPUVectorEnv)
-        self.learner = learner
+        self.learner = check_learner_threads(learner)
         if self.active:
             torch.set_num_threads(learner)
 
@@ -194,15 +192,19 @@ class StepThreads:
             torch.set_num_threads(self.learner)
 
 
+def check_learner_threads(threads: int) -> int:
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"learner_threads must be an int >= 1, got {threads!r}")
+    return threads
+
+
 def learner_threads_for(obs: str, threads: Optional[int] = None) -> int:
     """``threads`` if given, else the default of :class:`StepThreads`' ``learner`` for ``obs``: 1 from state (an MLP),
     :data:`maniskill_irb120.vector.TORCH_THREADS` from the camera (a CNN)."""
     from maniskill_irb120.vector import TORCH_THREADS
 
     if threads is not None:
-        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-            raise ValueError(f"learner_threads must be an int >= 1, got {threads!r}")
-        return threads
+        return check_learner_threads(threads)
     return TORCH_THREADS if check_obs(obs) == "rgbd" else 1
 
 
