@@ -3,7 +3,10 @@
 Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, skrl PPO,
 this project's PPO}, ``STATE_BUDGET_MIN`` each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this project's best
 camera recipe}, ``CAMERA_BUDGET_MIN`` each. Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
-cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run.
+cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run. ``ABLATIONS``
+adds cells outside the defaults rule, one seed each and never a group's best: SB3 PPO from state on GraspLift with
+the settings this project's PPO takes from ManiSkill's baseline, which asks how much of the defaults' zeros is
+settings rather than library.
 
 Every cell is scored alike: 100 deterministic episodes on the held-out seeds ``agents.common.EVAL_SEED`` onwards
 (``agents.common.evaluate_on_seeds``, what every trainer here is scored on; training seeds stay below them), with a
@@ -72,6 +75,8 @@ class Algorithm:
     recipe: str = ""
     """the learning.py recipe of a project cell"""
     from_reward: bool = True
+    ablation: bool = False
+    """outside the table's rule of each library's defaults (a question about the others' zeros): never a group's best"""
 
 
 SB3_OFF_POLICY_NOISE = "Gaussian action noise σ 0.1 (SB3's documented TD3/DDPG example; the class default has none)"
@@ -95,6 +100,14 @@ ALGORITHMS = {
         "DDPG", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
         "SB3 defaults: 1 update per vector step, batch 256, lr 1e-3, γ 0.99, τ 0.005, 400-300 ReLU; "
         + SB3_OFF_POLICY_NOISE,
+    ),
+    "sb3-ppo-maniskill": Algorithm(
+        "PPO, ManiSkill's baseline settings (ablation)", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
+        "an ablation beside the defaults rule: SB3 PPO with the settings of the project's ppo-state recipe "
+        "(ManiSkill's state-PPO baseline on 4 CPU workers): n_steps 128/env, batch 64, 8 epochs, lr 3e-4, γ 0.8, λ 0.9, target KL 0.1, "
+        "3x256 tanh actor and critic, log std -0.5 at the start, observations normalised (VecNormalize, rewards "
+        "not); without the project's absorbing success, state-dependent noise and checkpoint selection",
+        ablation=True,
     ),
     "skrl-ppo": Algorithm(
         "PPO", f"skrl {SKRL_VERSION}", "skrl",
@@ -122,6 +135,8 @@ NOT_RUNNABLE = {
 }
 STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "skrl-ppo", "project-ppo")
 CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera")
+ABLATIONS = (("state", "GraspLift", "sb3-ppo-maniskill"),)
+"""(obs, task, algorithm) cells run after the grid's others, one seed each"""
 SECTION_HEAD = "## RL libraries — `benchmarks/algorithms.py`"
 
 
@@ -172,7 +187,7 @@ def parse_cell(cell: str) -> tuple[str, str, str, int]:
 def grid() -> list[tuple[str, str, str]]:
     """(obs, task, algorithm) of every cell, in the order they run."""
     state = [("state", task, algo) for task in TASKS for algo in STATE_ALGOS]
-    return state + [("rgbd", "GraspLift", algo) for algo in CAMERA_ALGOS]
+    return state + [("rgbd", "GraspLift", algo) for algo in CAMERA_ALGOS] + list(ABLATIONS)
 
 
 def budget_of(obs: str, args: Args) -> float:
@@ -186,7 +201,7 @@ def best_algo(done: dict[str, dict], obs: str, task: str) -> Optional[str]:
 
     None where no seed-1 cell solved a held-out episode: a tie at 0 names no best, and seeds 2 and 3 of an arbitrary
     one would spend an hour to measure nothing. A tie above 0 goes to the algorithm earlier in the grid."""
-    algos = [a for o, t, a in grid() if (o, t) == (obs, task)]
+    algos = [a for o, t, a in grid() if (o, t) == (obs, task) and not ALGORITHMS[a].ablation]
     if any(cell_id(obs, task, a, 1) not in done for a in algos):
         return None
     scored = [(done[cell_id(obs, task, a, 1)]["success_rate"], a) for a in algos if ALGORITHMS[a].from_reward]
@@ -288,20 +303,29 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
     import stable_baselines3 as sb3
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.vec_env import VecNormalize
 
     from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
-    cls = {"sb3-ppo": sb3.PPO, "sb3-sac": sb3.SAC, "sb3-td3": sb3.TD3, "sb3-ddpg": sb3.DDPG}[algo]
+    cls = {"sb3-ppo": sb3.PPO, "sb3-ppo-maniskill": sb3.PPO, "sb3-sac": sb3.SAC, "sb3-td3": sb3.TD3,
+           "sb3-ddpg": sb3.DDPG}[algo]  # fmt: skip
     policy = "MlpPolicy" if obs == "state" else "MultiInputPolicy"
     kwargs: dict = {}
+    if algo == "sb3-ppo-maniskill":  # ALGORITHMS' settings text, as SB3 arguments
+        kwargs.update(n_steps=128, batch_size=64, n_epochs=8, learning_rate=3e-4, gamma=0.8, gae_lambda=0.9,
+                      target_kl=0.1, policy_kwargs=dict(net_arch=dict(pi=[256] * 3, vf=[256] * 3),
+                                                        activation_fn=torch.nn.Tanh, log_std_init=-0.5))  # fmt: skip
     if algo in ("sb3-td3", "sb3-ddpg"):
         kwargs["action_noise"] = NormalActionNoise(np.zeros(5), 0.1 * np.ones(5))
-    if algo != "sb3-ppo" and obs != "state":
+    if cls is not sb3.PPO and obs != "state":
         kwargs["buffer_size"] = 30_000
     state = read_state(ckpt_dir)
     venv = make_sb3_vec_env(env_id, args.num_envs, obs, backend=args.backend, seed=train_seed(seed, 0))
     model_path, replay_path = ckpt_dir / "model.zip", ckpt_dir / "replay.pkl"
+    norm_path = ckpt_dir / "vecnormalize.pkl"  # the running observation statistics, which the policy is trained on
     resumed = model_path.is_file()
+    if algo == "sb3-ppo-maniskill":
+        venv = VecNormalize.load(str(norm_path), venv) if resumed else VecNormalize(venv, norm_reward=False)
     if resumed:
         model = cls.load(model_path, env=venv)  # with its action noise, optimisers and counters
         if replay_path.is_file():
@@ -314,6 +338,8 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
 
     def save() -> None:
         model.save(model_path)
+        if isinstance(venv, VecNormalize):
+            venv.save(str(norm_path))
         if hasattr(model, "replay_buffer") and obs == "state":  # camera buffers are GBs: a resumed cell refills
             model.save_replay_buffer(replay_path)
         write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": int(model.num_timesteps), "curve": curve})
@@ -339,6 +365,8 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
     def act(flat):
         o = library_obs(obs, flat)
         o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
+        if isinstance(venv, VecNormalize):  # the statistics as training left them (normalize_obs updates nothing)
+            o = venv.normalize_obs(o)
         return torch.as_tensor(model.predict(o, deterministic=True)[0])
 
     return dict(held_out(act, env_id, obs, args), env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve))
@@ -611,7 +639,8 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         "Other RL libraries beside this project's trainers, from the reward alone (the task's `normalized_dense`), "
         f"one wall-clock budget per cell ({STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the "
         f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
-        "each group's best (none where every seed-1 cell of the group scored 0); "
+        "each group's best (none where every seed-1 cell of the group scored 0); the ablation row is outside the "
+        "defaults rule (its settings say which), one seed, and never a group's best; "
         f"{report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
         "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
