@@ -104,9 +104,10 @@ ALGORITHMS = {
     "sb3-ppo-maniskill": Algorithm(
         "PPO, ManiSkill's baseline settings (ablation)", f"Stable-Baselines3 {SB3_VERSION}", "sb3",
         "an ablation beside the defaults rule: SB3 PPO with the settings of the project's ppo-state recipe "
-        "(ManiSkill's state-PPO baseline on 4 CPU workers): n_steps 128/env, batch 64, 8 epochs, lr 3e-4, γ 0.8, λ 0.9, target KL 0.1, "
-        "3x256 tanh actor and critic, log std -0.5 at the start, observations normalised (VecNormalize, rewards "
-        "not); without the project's absorbing success, state-dependent noise and checkpoint selection",
+        "(ManiSkill's state-PPO baseline on 4 CPU workers): n_steps 128/env, batch 64, 8 epochs, lr 3e-4, γ 0.8, "
+        "λ 0.9, target KL 0.1, 3x256 tanh actor and critic, log std -0.5 at the start, observations normalised "
+        "(VecNormalize, rewards not); without the project's absorbing success, state-dependent noise and "
+        "checkpoint selection",
         ablation=True,
     ),
     "skrl-ppo": Algorithm(
