@@ -156,35 +156,40 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     assert alg.planned(done, args) == ["rgbd/GraspLift/project-camera/s2", "rgbd/GraspLift/project-camera/s3"]
 
 
-@pytest.mark.slow  # one cell's worker start-ups and evaluation (~15 s)
-def test_the_ablation_cell_trains_sb3_ppo_with_maniskills_settings_on_normalised_observations(alg, tmp_path):
+@pytest.mark.slow  # two runs of one cell: worker start-ups and evaluations (~40 s)
+def test_the_ablation_cell_trains_sb3_ppo_with_maniskills_settings_on_normalised_observations(alg, tmp_path, capsys):
     """The ablation's SB3 PPO gets the settings its row prints, trains on VecNormalize's observations and keeps the
-    running statistics beside the model, which the held-out evaluation and a rerun need."""
+    running statistics beside the model, which the held-out evaluation needs; a rerun of an unfinished cell goes on
+    from those statistics, not from fresh ones."""
     pytest.importorskip("stable_baselines3")
     import pickle
 
     from stable_baselines3 import PPO
+
+    def statistics(run: Path):
+        with open(run / "vecnormalize.pkl", "rb") as f:
+            return pickle.load(f)
 
     cell = "state/GraspLift/sb3-ppo-maniskill/s1"
     args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", num_envs=2, quick=True)
     report = alg.main(args)
     run = tmp_path / "runs" / "state__GraspLift__sb3-ppo-maniskill__s1"
     model = PPO.load(run / "model.zip", device="cpu")
-    assert (model.gamma, model.gae_lambda, model.n_steps, model.batch_size, model.n_epochs, model.target_kl) == (
-        0.8,
-        0.9,
-        128,
-        64,
-        8,
-        0.1,
-    )
+    assert (model.gamma, model.gae_lambda, model.target_kl) == (0.8, 0.9, 0.1)
+    assert (model.n_steps, model.batch_size, model.n_epochs) == (128, 64, 8)
     assert model.policy.net_arch == dict(pi=[256] * 3, vf=[256] * 3) and model.policy.log_std.detach().max() < 0
-    with open(run / "vecnormalize.pkl", "rb") as f:
-        norm = pickle.load(f)
+    norm = statistics(run)
     assert norm.norm_obs and not norm.norm_reward and norm.obs_rms.count > 2  # updated by the training steps
     assert len(report["cells"][cell]["successes"]) == 2
     row = next(r for r in report["rows"] if r["algorithm"] == "sb3-ppo-maniskill")
     assert row["name"].endswith("(ablation)") and "VecNormalize" in row["settings"]
+    # as if the session had ended inside the cell: the rerun continues the model and its statistics
+    (tmp_path / "algorithms.json").unlink()
+    args.budget_min = 0.1
+    alg.main(args)
+    assert f"continuing from {run / 'model.zip'}" in capsys.readouterr().out
+    steps = json.loads((run / "state.json").read_text())["env_steps"]  # both runs' (SB3 counts on when resumed)
+    assert steps > norm.obs_rms.count and statistics(run).obs_rms.count >= steps  # every env step's observation
 
 
 def test_bad_cells_and_backends_are_named(alg, tmp_path):
