@@ -181,18 +181,24 @@ def deploy(
     zone: str = "auto",
     rapid_dir: str | None = None,
     events: int = 5,
+    rmmp_wait: float = 60.0,
+    mastership_wait: float = 60.0,
 ) -> int:
     """Deploy the RAPID server to an IRC5 (RobotWare 6) over Robot Web Services: ``deploy --controller
     http://HOST`` reads the RobotWare version, the options, the operating mode and the controller state, picks the
     files the option matrix allows (serial: no option; TCP: 616-1 or 672-1; the world zone: 608-1) and says why,
-    uploads them to $HOME/IRB120, loads them into T_ROB1 (printing the controller's own event-log messages on a load
-    error) and, after you confirm (``--yes`` for scripts), leaves the program stopped with PP at IRB120Server.
+    then as one transaction: remote access (in the manual modes the operator grants it on the FlexPendant within
+    ``--rmmp-wait`` s) and mastership (waiting ``--mastership-wait`` s while another client holds it), an upload to
+    a new folder under $HOME/IRB120, the load into T_ROB1 (the controller's own event-log messages on a load
+    error), a read-back of the modules and settings, and, after you confirm (``--yes`` for scripts), PP at
+    IRB120Server with the program stopped; on any failure or Ctrl-C the earlier deployment is put back.
     ``--channel serial|tcp`` and ``--zone on|off`` ask for a build (refused naming the missing option);
     ``--rapid-dir DIR``: your edited copies of the files (SER_CHANNEL, PC_ADDRESS, ...). ``deploy status``: the
     execution state, operating mode, controller state, speed ratio and the last ``--events`` events; ``deploy
     start``: start remotely, in AUTO only and only if the loaded server's ALLOW_AUTO is TRUE; ``deploy stop``;
-    ``deploy unload``: our modules and files out, PP back to main. ``--user``/``--password``: RWS's defaults.
-    Needs the ``real`` extra (abb-robot-client). Exit status 1 when refused, 2 on bad flags."""
+    ``deploy unload``: our modules and the files deploy wrote out (PP to main if ours held it).
+    ``--user``/``--password``: RWS's defaults. Needs the ``real`` extra (abb-robot-client). Exit status 1 when
+    refused, 2 on bad flags."""
     from maniskill_irb120.abb import deploy as dep
 
     if controller is None:
@@ -201,6 +207,10 @@ def deploy(
     if channel not in ("auto", "serial", "tcp") or zone not in ("auto", "on", "off"):
         print("deploy: --channel auto|serial|tcp, --zone auto|on|off", file=sys.stderr)
         return 2
+    if not (rmmp_wait >= 0 and mastership_wait >= 0):  # also NaN
+        print("deploy: --rmmp-wait and --mastership-wait are seconds, 0 or more", file=sys.stderr)
+        return 2
+    waits = {"rmmp_wait_s": rmmp_wait, "mastership_wait_s": mastership_wait}
     say = lambda m: print(m, flush=True)  # noqa: E731
 
     def confirm(question: str) -> bool:
@@ -219,7 +229,7 @@ def deploy(
         c = dep.connect(controller, user, password)
         try:
             if action == "load":
-                dep.deploy(c, say, confirm, channel, zone, Path(rapid_dir) if rapid_dir else None)
+                dep.deploy(c, say, confirm, channel, zone, Path(rapid_dir) if rapid_dir else None, **waits)
             elif action == "status":
                 dep.status(c, say, events)
             elif action == "start":
@@ -227,12 +237,15 @@ def deploy(
             elif action == "stop":
                 dep.stop(c, say)
             else:
-                dep.unload(c, say)
+                dep.unload(c, say, **waits)
         finally:
-            c.close()
+            c.close()  # logs out: the session's mastership and remote access end with it
     except dep.DeployRefused as e:
         print(f"deploy {action}: refused: {e}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # outside the transaction, which rolls back and says so itself
+        print(f"deploy {action}: interrupted (Ctrl-C); deploy status shows what the controller holds", file=sys.stderr)
+        return 130
     except Exception as e:  # the controller answered with an error, or did not answer
         print(f"deploy {action}: {dep._explain(e, 'the controller')}", file=sys.stderr)
         return 1

@@ -5,6 +5,9 @@ with nothing changed; ``unload`` leaves the controller as it found it."""
 
 from __future__ import annotations
 
+import json
+import re
+
 import pytest
 
 pytest.importorskip("serial")
@@ -31,6 +34,12 @@ def snapshot(emu: RWSEmulator) -> tuple:
     return [m.name for m in vc.modules.values()], files, vc.pcp(), vc.exec_state
 
 
+def active_folder(emu: RWSEmulator):
+    """The folder of the deployment the manifest on the controller names active."""
+    manifest = json.loads((emu.controller.home / "IRB120" / "deploy.json").read_text())
+    return emu.controller.home / manifest["deployments"][manifest["active"]]["folder"]
+
+
 # options -> the modules deploy loads (docs/real_robot.md, section 1)
 EXPECTED = {
     "": ["IRB120Server", "IRB120Serial"],
@@ -51,8 +60,10 @@ def test_deploy_loads_what_the_options_allow(rws_emulator, capsys, options):
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule", *EXPECTED[options]]
     assert emu.controller.pcp() == ("IRB120Server", "IRB120Server")
     assert emu.controller.exec_state == "stopped"
-    files = sorted(p.name for p in (emu.controller.home / "IRB120").iterdir())
+    folder = active_folder(emu)
+    files = sorted(p.name for p in folder.iterdir())
     assert files == sorted(f"{m}.sys" if m == "IRB120Zone" else f"{m}.mod" for m in EXPECTED[options])
+    assert sorted(p.name for p in (emu.controller.home / "IRB120").iterdir()) == sorted([folder.name, "deploy.json"])
     # it says what it picked and why
     channel = "tcp" if "616-1" in options or "672-1" in options else "serial"
     assert f"picked the {channel} build" in out
@@ -106,9 +117,11 @@ def test_a_module_that_does_not_load_shows_the_controller_s_message(rws_emulator
     emu = rws_emulator()
     rc, out, err = run(capsys, "--controller", emu.url, "--yes", "--rapid-dir", str(tmp_path))
     assert rc == 1
-    assert "loading $HOME/IRB120/IRB120Serial.mod into T_ROB1 failed" in err
-    assert f"controller event: Syntax error: file $HOME/IRB120/IRB120Serial.mod: line {line}, column 13" in err
-    assert "unloaded what this run loaded (IRB120Server)" in err
+    m = re.search(r"loading (\$HOME/IRB120/[^/]+)/IRB120Serial.mod into T_ROB1 failed", err)
+    assert m, err
+    assert f"controller event: Syntax error: file {m[1]}/IRB120Serial.mod: line {line}, column 13" in err
+    assert "rolled back to what this deploy found:\n  unloaded IRB120Server\n" in err
+    assert "the controller holds none of our modules; PP at MainModule/main" in err
     assert [m.name for m in emu.controller.modules.values()] == ["MainModule"]
     assert "program pointer" not in out
 
@@ -148,7 +161,10 @@ def test_unload_leaves_the_controller_as_it_found_it(rws_emulator, capsys):
     rc, out, err = run(capsys, "unload", "--controller", emu.url)
     assert rc == 0, err
     assert "unloaded IRB120Server, IRB120Socket, IRB120Zone" in out
-    assert "removed $HOME/IRB120 (IRB120Server.mod, IRB120Socket.mod, IRB120Zone.sys)" in out
+    assert "program pointer at MainModule/main (the task's main entry; it stood in our IRB120Server)" in out
+    assert re.search(
+        r"removed \$HOME/IRB120 \((\S+)/IRB120Server.mod, \1/IRB120Socket.mod, \1/IRB120Zone.sys, deploy.json\)", out
+    )
     assert snapshot(emu) == before
     rc, out, _ = run(capsys, "unload", "--controller", emu.url)  # nothing of ours: says so, changes nothing
     assert rc == 0 and "nothing (none of ours was loaded)" in out and "no $HOME/IRB120 to remove" in out
