@@ -765,8 +765,12 @@ def status(c, say: Callable[[str], None], events: int = 5, folder: str = FOLDER)
     info = read_info(c)
     _say_info(info, say)
     say(f"speed ratio {info.speedratio:g} %")
-    say(describe(c, folder))
+    h = holdings(c)
+    say(f"our modules in {TASK}: {', '.join(h.modules) or 'none'}")
+    say(f"program pointer: {h.pp[0] + '/' + h.pp[1] if h.pp else 'none'}")
     m = read_manifest(c, folder)
+    if m and m.get("active") in m["deployments"]:
+        say(f"active deployment: {m['active']} ($HOME/{m['deployments'][m['active']]['folder']})")
     if m and m.get("pending"):
         say(f"an interrupted deploy ({m['pending']['id']}) is pending: the next deploy or unload rolls it back")
     log = sorted(c.read_event_log(), key=lambda e: e.seqnum)[-events:]

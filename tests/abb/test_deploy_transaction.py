@@ -167,6 +167,26 @@ def test_a_deploy_refused_for_mastership_writes_nothing(rws_emulator):
     hmi.close()
 
 
+def test_the_manual_modes_need_the_operators_grant_and_auto_asks_none(rws_emulator):
+    """Finding 4: deploy never asked for RMMP, so on a real IRC5 the documented flow (deploy, then Start in MANR)
+    failed at "requesting mastership"; the emulator, which gave mastership anyway, now refuses it without RMMP."""
+    emu = rws_emulator(operator="deny")  # manual reduced speed; the operator rejects remote access
+    before = snapshot(emu)
+    r = cli("--controller", emu.url, "--yes")
+    assert r.returncode == 1 and "the operator did not grant remote access on the FlexPendant" in r.stderr, r.stderr
+    assert "nothing was changed" in r.stderr and snapshot(emu) == before
+    emu.controller.operator = "grant"
+    r = cli("--controller", emu.url, "--yes")
+    assert r.returncode == 0, r.stderr
+    assert "manual mode: waiting up to 60 s for the operator" in r.stdout
+    assert "remote access granted on the FlexPendant" in r.stdout
+    assert emu.controller.pcp() == ("IRB120Server", "IRB120Server")
+    assert emu.controller.master is None and emu.controller.rmmp_state(None)["privilege"] == "none"
+    emu.controller.op_mode = "auto"
+    r = cli("unload", "--controller", emu.url)
+    assert r.returncode == 0 and "remote access" not in r.stdout, r.stdout
+
+
 def test_unload_removes_only_what_deploy_wrote_and_leaves_the_operators_pp(rws_emulator, tmp_path):
     """Finding 5: unload deleted the integrator's files in $HOME/IRB120 and moved PP to main though nothing of
     ours held it."""
@@ -221,7 +241,7 @@ def test_a_killed_deploy_is_recovered_by_the_next_one(rws_emulator, tmp_path):
     """Finding 6: a killed deploy left mastership held and a half-loaded task, and then deploy and unload both
     failed. The next deploy waits for the dead client's mastership to be released (its session ends), finds the
     unfinished deployment in the manifest, rolls it back, and deploys."""
-    emu = rws_emulator(op_mode="auto", session_timeout_s=2.0)
+    emu = rws_emulator(op_mode="auto", session_idle_s=2.0)
     assert cli("--controller", emu.url, "--yes").returncode == 0
     before = snapshot(emu)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
