@@ -245,13 +245,13 @@ def test_a_killed_deploy_is_recovered_by_the_next_one(rws_emulator, tmp_path):
     assert cli("--controller", emu.url, "--yes").returncode == 0
     before = snapshot(emu)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    leader, follower = pty.openpty()  # a terminal, so that deploy stops at its prompt
+    leader, follower = pty.openpty()  # a terminal, so that deploy stops at its prompt (and shows it)
     proc = subprocess.Popen(
         [sys.executable, "-m", "maniskill_irb120.cli", "deploy", "--controller", emu.url]
         + ["--rapid-dir", str(edited(tmp_path, "new", ALLOW_AUTO="TRUE"))],
         stdin=follower,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
+        stdout=follower,
+        stderr=follower,
         env=env,
     )
     os.close(follower)
