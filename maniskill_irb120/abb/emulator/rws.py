@@ -992,147 +992,173 @@ class _Server(ThreadingHTTPServer):
             self._sessions.pop(session, None)
         self.controller.end_session(session)
 
-    # ---- /rw, /logout ----------------------------------------------------------------------------------
+    # ---- /rw, /users, /logout: the route table ----------------------------------------------------------
     def route(self, h: _Handler, method: str, path: str, query: dict, form: dict) -> None:
-        vc, action, session = self.controller, query.get("action"), h._session
-        if path == "/logout" and method == "GET":
-            self.logout(session)
-            return h._send(204)
-        if path == "/rw/system" and method == "GET":
-            return h.state(self._system() + self._options())
-        if path == "/rw/system/options" and method == "GET":
-            return h.state(self._options())
-        if path == "/rw/panel/ctrlstate":
-            if method == "GET":
-                return h.state([{"_type": "pnl-ctrlstate", "_title": "ctrlstate", "ctrlstate": vc.ctrl_state}])
-            if action == "setctrlstate":
-                vc.set_motors(form.get("ctrl-state", ""))
-                return h._send(204)
-        if path == "/rw/panel/opmode" and method == "GET":
-            return h.state([{"_type": "pnl-opmode", "_title": "opmode", "opmode": OPMODES[vc.op_mode]}])
-        if path == "/rw/panel/speedratio":
-            if method == "GET":
-                return h.state([{"_type": "pnl-speedratio", "_title": "speedratio", "speedratio": str(vc.speed_ratio)}])
-            if action == "setspeedratio":
-                try:
-                    ratio = int(float(form.get("speed-ratio", "")))
-                except ValueError:
-                    raise RWSError(400, "speed-ratio: a whole percentage 0..100") from None
-                if not 0 <= ratio <= 100:
-                    raise RWSError(400, f"speed-ratio={ratio}: 0..100")
-                vc.speed_ratio = ratio
-                return h._send(204)
-        if path == "/rw/mastership" and method == "POST" and action in ("request", "release"):
-            if action == "request":
-                vc.request_mastership(session)
-            else:
-                vc.release_mastership(session)
-            return h._send(204)
-        if path == "/users/rmmp":
-            if method == "GET":
-                return h.state([{"_type": "user-rmmp", "_title": "state", **vc.rmmp_state(session)}])
-            if method == "POST" and action is None:
-                vc.request_rmmp(session, form.get("privilege", ""))
-                return h._send(202)
-            if method == "POST" and action == "cancel":
-                vc.cancel_rmmp(session)
-                return h._send(204)
-            if method == "POST" and action == "set":
-                raise RWSError(
-                    403,
-                    "action=set answers an RMMP request: a local client's (the FlexPendant's) call; a remote client "
-                    "cannot grant or deny one, not even its own (verify)",
-                )
-        if path == "/users/rmmp/poll" and method == "GET":
-            status = vc.poll_rmmp(session)
-            item = {"_type": "user-rmmp-poll", "_title": "state", "status": status}
-            if status == "NO SUCH REQUEST":
-                item["code"] = str(CODE_NO_RMMP_REQUEST)
-            return h.state([item])
-        if path == "/rw/rapid/execution":
-            if method == "GET":
-                return h.state(
-                    [
-                        {
-                            "_type": "rap-execution",
-                            "_title": "execution",
-                            "ctrlexecstate": vc.exec_state,
-                            "cycle": "forever",
-                        }
-                    ]
-                )
-            if action == "start":
-                vc.start(remote=True)
-                return h._send(204)
-            if action == "stop":
-                vc.stop()
-                return h._send(204)
-            if action == "resetpp":
-                vc.set_pp(session, None)
-                return h._send(204)
-        if path == "/rw/rapid/tasks" and method == "GET":
-            return h.state([self._task()])
-        if path == f"/rw/rapid/tasks/{TASK}":
-            if method == "GET":
-                return h.state([self._task()])
-            if action == "loadmod":
-                if "modulepath" not in form:
-                    raise RWSError(400, "loadmod: modulepath=$HOME/FILE")
-                vc.load_module(session, form["modulepath"], form.get("replace", "false").lower() == "true")
-                return h._send(204)
-            if action == "unloadmod":
-                if "module" not in form:
-                    raise RWSError(400, "unloadmod: module=NAME")
-                vc.unload_module(session, form["module"])
-                return h._send(204)
-            if action in ("activate", "deactivate"):
-                if action == "deactivate":
-                    raise RWSError(400, f"{TASK} is the motion task: it stays active")
-                return h._send(204)
-        if (
-            path == f"/rw/rapid/tasks/{TASK}/modules" or (path == "/rw/rapid/modules" and query.get("task") == TASK)
-        ) and (method == "GET"):
-            with vc.lock:
-                items = [
-                    {
-                        "_type": "rap-module-info-li",
-                        "_title": m.name,
-                        "name": m.name,
-                        "type": "SysMod" if m.sysmod else "ProgMod",
-                    }
-                    for m in vc.modules.values()
-                ]
-            return h.state(items)
-        if path == f"/rw/rapid/tasks/{TASK}/pcp":
-            if method == "GET":
-                where = vc.pcp()
-                item = {"_type": "pcp-info", "_title": "progpointer", "modulename": "", "routinename": ""}
-                if where is not None:
-                    item.update(modulename=where[0], routinename=where[1])
-                return h.state([item])
-            if action == "set-pp-routine":
-                if not form.get("routine"):
-                    raise RWSError(400, "set-pp-routine: routine=NAME")
-                vc.set_pp(session, form["routine"])
-                return h._send(204)
-        if path in ("/rw/elog/0", "/rw/elog") and method == "GET":
-            return h.state(self._elog())
-        if path == "/rw/rapid/symbols" and action == "search-symbols" and method == "POST":
-            if form.get("symtyp", "per") != "per":
-                raise RWSError(400, "search-symbols: the emulator lists persistents only (symtyp=per)")
-            return h.state(vc.persistents())
-        m = _SYMBOL.fullmatch(path)
-        if m:
-            parts = m.group(1).split("/")
-            if method == "GET":
-                value, name = vc.symbol(parts)
-                return h.state([{"_type": "rap-data", "_title": f"RAPID/{'/'.join(parts)}", "value": value}])
-            if action == "set":
-                if "value" not in form:
-                    raise RWSError(400, "action=set: value=TEXT")
-                vc.set_symbol(session, parts, form["value"])
-                return h._send(204)
+        """Serve ``method path`` from :data:`ROUTES` (a pattern matched whole against the path; its groups go to
+        the handler). An action the resource does not take, or a resource not in the table: 404."""
+        action = query.get("action")
+        for (m, pattern), handler in ROUTES.items():
+            match = pattern.fullmatch(path) if m == method else None
+            if match is not None and handler(self, h, query, form, *match.groups()) is not _NO_SUCH_ACTION:
+                return
         raise RWSError(404, f"{method} {path}{'?action=' + action if action else ''}: no such resource")
+
+    def _logout(self, h: _Handler, query: dict, form: dict) -> None:
+        self.logout(h._session)
+        h._send(204)
+
+    def _get_system(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state(self._system() + self._options())
+
+    def _get_options(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state(self._options())
+
+    def _get_ctrlstate(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state([{"_type": "pnl-ctrlstate", "_title": "ctrlstate", "ctrlstate": self.controller.ctrl_state}])
+
+    def _set_ctrlstate(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.set_motors(form.get("ctrl-state", ""))
+        h._send(204)
+
+    def _get_opmode(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state([{"_type": "pnl-opmode", "_title": "opmode", "opmode": OPMODES[self.controller.op_mode]}])
+
+    def _get_speedratio(self, h: _Handler, query: dict, form: dict) -> None:
+        ratio = str(self.controller.speed_ratio)
+        h.state([{"_type": "pnl-speedratio", "_title": "speedratio", "speedratio": ratio}])
+
+    def _set_speedratio(self, h: _Handler, query: dict, form: dict) -> None:
+        try:
+            ratio = int(float(form.get("speed-ratio", "")))
+        except ValueError:
+            raise RWSError(400, "speed-ratio: a whole percentage 0..100") from None
+        if not 0 <= ratio <= 100:
+            raise RWSError(400, f"speed-ratio={ratio}: 0..100")
+        self.controller.speed_ratio = ratio
+        h._send(204)
+
+    def _request_mastership(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.request_mastership(h._session)
+        h._send(204)
+
+    def _release_mastership(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.release_mastership(h._session)
+        h._send(204)
+
+    def _get_rmmp(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state([{"_type": "user-rmmp", "_title": "state", **self.controller.rmmp_state(h._session)}])
+
+    def _request_rmmp(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.request_rmmp(h._session, form.get("privilege", ""))
+        h._send(202)
+
+    def _cancel_rmmp(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.cancel_rmmp(h._session)
+        h._send(204)
+
+    def _answer_rmmp(self, h: _Handler, query: dict, form: dict) -> None:
+        raise RWSError(
+            403,
+            "action=set answers an RMMP request: a local client's (the FlexPendant's) call; a remote client cannot "
+            "grant or deny one, not even its own (verify)",
+        )
+
+    def _poll_rmmp(self, h: _Handler, query: dict, form: dict) -> None:
+        status = self.controller.poll_rmmp(h._session)
+        item = {"_type": "user-rmmp-poll", "_title": "state", "status": status}
+        if status == "NO SUCH REQUEST":
+            item["code"] = str(CODE_NO_RMMP_REQUEST)
+        h.state([item])
+
+    def _get_execution(self, h: _Handler, query: dict, form: dict) -> None:
+        state = self.controller.exec_state
+        h.state([{"_type": "rap-execution", "_title": "execution", "ctrlexecstate": state, "cycle": "forever"}])
+
+    def _start(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.start(remote=True)
+        h._send(204)
+
+    def _stop(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.stop()
+        h._send(204)
+
+    def _resetpp(self, h: _Handler, query: dict, form: dict) -> None:
+        self.controller.set_pp(h._session, None)
+        h._send(204)
+
+    def _get_task(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state([self._task()])
+
+    def _loadmod(self, h: _Handler, query: dict, form: dict) -> None:
+        if "modulepath" not in form:
+            raise RWSError(400, "loadmod: modulepath=$HOME/FILE")
+        replace = form.get("replace", "false").lower() == "true"
+        self.controller.load_module(h._session, form["modulepath"], replace)
+        h._send(204)
+
+    def _unloadmod(self, h: _Handler, query: dict, form: dict) -> None:
+        if "module" not in form:
+            raise RWSError(400, "unloadmod: module=NAME")
+        self.controller.unload_module(h._session, form["module"])
+        h._send(204)
+
+    def _activate(self, h: _Handler, query: dict, form: dict) -> None:
+        h._send(204)
+
+    def _deactivate(self, h: _Handler, query: dict, form: dict) -> None:
+        raise RWSError(400, f"{TASK} is the motion task: it stays active")
+
+    def _get_modules(self, h: _Handler, query: dict, form: dict) -> None:
+        vc = self.controller
+        with vc.lock:
+            items = [
+                {
+                    "_type": "rap-module-info-li",
+                    "_title": m.name,
+                    "name": m.name,
+                    "type": "SysMod" if m.sysmod else "ProgMod",
+                }
+                for m in vc.modules.values()
+            ]
+        h.state(items)
+
+    def _get_modules_of_task(self, h: _Handler, query: dict, form: dict):
+        """``/rw/rapid/modules?task=T_ROB1`` (abb_librws's form): the modules of the one task there is."""
+        if query.get("task") != TASK:
+            return _NO_SUCH_ACTION
+        return self._get_modules(h, query, form)
+
+    def _get_pcp(self, h: _Handler, query: dict, form: dict) -> None:
+        where = self.controller.pcp()
+        item = {"_type": "pcp-info", "_title": "progpointer", "modulename": "", "routinename": ""}
+        if where is not None:
+            item.update(modulename=where[0], routinename=where[1])
+        h.state([item])
+
+    def _set_pp_routine(self, h: _Handler, query: dict, form: dict) -> None:
+        if not form.get("routine"):
+            raise RWSError(400, "set-pp-routine: routine=NAME")
+        self.controller.set_pp(h._session, form["routine"])
+        h._send(204)
+
+    def _get_elog(self, h: _Handler, query: dict, form: dict) -> None:
+        h.state(self._elog())
+
+    def _search_symbols(self, h: _Handler, query: dict, form: dict) -> None:
+        if form.get("symtyp", "per") != "per":
+            raise RWSError(400, "search-symbols: the emulator lists persistents only (symtyp=per)")
+        h.state(self.controller.persistents())
+
+    def _get_symbol(self, h: _Handler, query: dict, form: dict, name: str) -> None:
+        parts = name.split("/")
+        value, _ = self.controller.symbol(parts)
+        h.state([{"_type": "rap-data", "_title": f"RAPID/{'/'.join(parts)}", "value": value}])
+
+    def _set_symbol(self, h: _Handler, query: dict, form: dict, name: str) -> None:
+        if "value" not in form:
+            raise RWSError(400, "action=set: value=TEXT")
+        self.controller.set_symbol(h._session, name.split("/"), form["value"])
+        h._send(204)
 
     def _system(self) -> list[dict]:
         vc = self.controller
@@ -1185,6 +1211,66 @@ class _Server(ThreadingHTTPServer):
                 }
             )
         return out[::-1]  # newest first, as the pendant lists them (verify)
+
+
+_NO_SUCH_ACTION = object()  # a handler's answer: this resource does not take the request's action
+
+
+def _actions(**by_action):
+    """One handler for a resource that takes ``?action=``: the action's handler, or none (404)."""
+
+    def handler(server: _Server, h: _Handler, query: dict, form: dict, *groups):
+        chosen = by_action.get(query.get("action") or "")
+        return _NO_SUCH_ACTION if chosen is None else chosen(server, h, query, form, *groups)
+
+    return handler
+
+
+def _path(pattern: str) -> re.Pattern:
+    return re.compile(re.escape(pattern).replace(re.escape("{TASK}"), TASK))
+
+
+# (method, path pattern) -> handler: every resource the emulator serves besides the file service. A resource that
+# takes actions maps them by name (no action: the "" entry).
+ROUTES = {
+    ("GET", _path("/logout")): _Server._logout,
+    ("GET", _path("/rw/system")): _Server._get_system,
+    ("GET", _path("/rw/system/options")): _Server._get_options,
+    ("GET", _path("/rw/panel/ctrlstate")): _Server._get_ctrlstate,
+    ("POST", _path("/rw/panel/ctrlstate")): _actions(setctrlstate=_Server._set_ctrlstate),
+    ("GET", _path("/rw/panel/opmode")): _Server._get_opmode,
+    ("GET", _path("/rw/panel/speedratio")): _Server._get_speedratio,
+    ("POST", _path("/rw/panel/speedratio")): _actions(setspeedratio=_Server._set_speedratio),
+    ("POST", _path("/rw/mastership")): _actions(
+        request=_Server._request_mastership, release=_Server._release_mastership
+    ),
+    ("GET", _path("/users/rmmp")): _Server._get_rmmp,
+    ("POST", _path("/users/rmmp")): _actions(
+        **{"": _Server._request_rmmp, "cancel": _Server._cancel_rmmp, "set": _Server._answer_rmmp}
+    ),
+    ("GET", _path("/users/rmmp/poll")): _Server._poll_rmmp,
+    ("GET", _path("/rw/rapid/execution")): _Server._get_execution,
+    ("POST", _path("/rw/rapid/execution")): _actions(
+        start=_Server._start, stop=_Server._stop, resetpp=_Server._resetpp
+    ),
+    ("GET", _path("/rw/rapid/tasks")): _Server._get_task,
+    ("GET", _path("/rw/rapid/tasks/{TASK}")): _Server._get_task,
+    ("POST", _path("/rw/rapid/tasks/{TASK}")): _actions(
+        loadmod=_Server._loadmod,
+        unloadmod=_Server._unloadmod,
+        activate=_Server._activate,
+        deactivate=_Server._deactivate,
+    ),
+    ("GET", _path("/rw/rapid/tasks/{TASK}/modules")): _Server._get_modules,
+    ("GET", _path("/rw/rapid/modules")): _Server._get_modules_of_task,
+    ("GET", _path("/rw/rapid/tasks/{TASK}/pcp")): _Server._get_pcp,
+    ("POST", _path("/rw/rapid/tasks/{TASK}/pcp")): _actions(**{"set-pp-routine": _Server._set_pp_routine}),
+    ("GET", _path("/rw/elog/0")): _Server._get_elog,
+    ("GET", _path("/rw/elog")): _Server._get_elog,
+    ("POST", _path("/rw/rapid/symbols")): _actions(**{"search-symbols": _Server._search_symbols}),
+    ("GET", _SYMBOL): _Server._get_symbol,
+    ("POST", _SYMBOL): _actions(set=_Server._set_symbol),
+}
 
 
 class RWSEmulator:
