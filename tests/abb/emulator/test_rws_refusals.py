@@ -94,7 +94,7 @@ def test_rmmp_is_for_the_manual_modes_only(rws_emulator):
 
 
 def test_a_denied_an_unanswered_and_a_hand_answered_rmmp_request(rws_emulator, monkeypatch):
-    monkeypatch.setattr(rws_mod, "RMMP_TIMEOUT_S", 0.4)  # RWS's 10 s, shortened
+    monkeypatch.setattr(rws_mod, "RMMP_TIMEOUT_S", 1.0)  # RWS's 10 s, shortened
     r = RWS(rws_emulator(operator="deny").url)
     r._do_post("users/rmmp", {"privilege": "modify"})
     assert wait_poll(r, {"GRANTED", "REJECTED"}) == "REJECTED"
@@ -107,10 +107,10 @@ def test_a_denied_an_unanswered_and_a_hand_answered_rmmp_request(rws_emulator, m
     a._do_post("users/rmmp", {"privilege": "exec"})
     with pytest.raises(ABBException, match="holds or awaits RMMP"):  # one request at a time
         b._do_post("users/rmmp", {"privilege": "modify"})
-    for _ in range(4):  # each poll keeps the request alive past the timeout
-        time.sleep(0.2)
+    for _ in range(5):  # each poll keeps the request alive past the timeout
+        time.sleep(0.3)
         assert poll(a) == "PENDING"
-    time.sleep(0.6)  # no poll: the request lapses
+    time.sleep(1.3)  # no poll: the request lapses
     assert poll(a) == "REJECTED" and rmmp(a)["privilege"] == "none"
     b._do_post("users/rmmp", {"privilege": "modify"})
     emu.controller.answer_rmmp(grant=True)  # the operator, by hand
@@ -143,12 +143,12 @@ def test_turning_the_key_to_manual_revokes_mastership_and_rmmp(rws_emulator):
 def test_a_vanished_client_s_mastership_ends_with_its_session(rws_emulator):
     """Finding 8: the client that held mastership never logs out; once its session lapses the next client gets
     mastership (abb-robot-client's clients are sessions; RobotWare ends an idle one)."""
-    emu = rws_emulator(op_mode="auto", session_idle_s=0.5)
+    emu = rws_emulator(op_mode="auto", session_idle_s=1.0)
     gone, next_client = RWS(emu.url), RWS(emu.url)
     gone._do_post("rw/mastership?action=request")  # and then it crashes: no logout
     with pytest.raises(ABBException, match="held by another client"):
         next_client._do_post("rw/mastership?action=request")
-    deadline = time.monotonic() + 0.9
+    deadline = time.monotonic() + 1.5
     while time.monotonic() < deadline:  # the next client keeps its own session alive, the first one's lapses
         next_client.get_operation_mode()
         time.sleep(0.1)
