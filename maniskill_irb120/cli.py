@@ -104,6 +104,9 @@ def emulator(
     pc_address: str | None = None,
     rws: str | None = None,
     pendant: str | None = None,
+    operator: str = "grant",
+    max_sessions: int = 70,
+    session_idle_s: float = 900.0,
 ) -> int:
     """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
     emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
@@ -120,7 +123,10 @@ def emulator(
     local client connects from; any other address makes the server refuse local clients, as a cell would).
     ``--rws 127.0.0.1:PORT``: serve Robot Web Services 1.0 instead (what ``deploy`` talks to): a controller with
     ``--options`` and ``--op-mode`` and the stock MainModule, nothing of ours loaded; prints the RWS URL first and
-    each program URL as the program starts.
+    each program URL as the program starts. With ``--rws``: ``--operator grant|deny|absent``, the person at the
+    FlexPendant who answers a remote client's RMMP request in the manual modes (grants, denies, or is not there);
+    ``--max-sessions`` and ``--session-idle-s``, how many RWS sessions the controller keeps and how long an unused
+    one lasts (RobotWare 6: 70 and 900 s assumed, verify).
     ``--pendant -`` reads the pendant's controls from stdin (``--pendant FILE``: from a file), one or more a line
     separated by ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state,
     quit; each prints a ``pendant: ...`` line with the program's state after it, so a fault and the operator's
@@ -141,6 +147,9 @@ def emulator(
     if not (math.isfinite(statement_cost_us) and statement_cost_us >= 0):
         print(f"--statement-cost-us {statement_cost_us!r}: a time >= 0 us per statement (0: off)", file=sys.stderr)
         return 2
+    if operator not in ("grant", "deny", "absent"):
+        print(f"--operator {operator!r}: grant, deny or absent", file=sys.stderr)
+        return 2
     if rws is not None and pendant is not None:
         print(
             "--pendant drives the program --listen serves; with --rws the program is started over RWS", file=sys.stderr
@@ -150,7 +159,15 @@ def emulator(
         from maniskill_irb120.abb.emulator.rws import main as rws_main
 
         try:
-            return rws_main(rws, options, op_mode, statement_cost_us)
+            return rws_main(
+                rws,
+                options,
+                op_mode,
+                statement_cost_us,
+                operator=operator,
+                max_sessions=max_sessions,
+                session_idle_s=session_idle_s,
+            )
         except ValueError as e:
             print(e, file=sys.stderr)
             return 2

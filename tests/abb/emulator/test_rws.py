@@ -10,6 +10,7 @@ import hashlib
 import re
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -19,7 +20,7 @@ rws_client = pytest.importorskip("abb_robot_client.rws")
 requests = pytest.importorskip("requests")
 
 from maniskill_irb120.abb.emulator.controller import rapid_file  # noqa: E402
-from maniskill_irb120.abb.emulator.rws import REALM  # noqa: E402
+from maniskill_irb120.abb.emulator.rws import CODE_NO_MASTERSHIP, REALM  # noqa: E402
 
 ABBException, RWS = rws_client.ABBException, rws_client.RWS
 
@@ -35,6 +36,19 @@ def upload(r, *files: str, text: dict[str, str] | None = None) -> None:
 
 def load(r, f: str) -> None:
     r._do_post("rw/rapid/tasks/T_ROB1?action=loadmod", {"modulepath": f"$HOME/IRB120/{f}", "replace": "true"})
+
+
+def master(r) -> None:
+    """Mastership in a manual mode: RMMP first, granted by the emulated operator, then the request (RWS 1.0
+    reference: "In manual mode, mastership can be gained after getting RMMP")."""
+    r._do_post("users/rmmp", {"privilege": "modify"})
+    for _ in range(40):
+        status = r._do_get("users/rmmp/poll")["_embedded"]["_state"][0]["status"]
+        if status != "PENDING":
+            break
+        time.sleep(0.05)
+    assert status == "GRANTED", status
+    r._do_post("rw/mastership?action=request")
 
 
 def modules(r) -> list[str]:
@@ -139,7 +153,7 @@ def test_an_unknown_resource_gets_rws_s_error_body(rws_emulator):
     assert set(raw.json()["_embedded"]["status"]) == {"code", "msg"}
     with pytest.raises(ABBException, match="unknown file system location"):
         r.list_files("$TEMP")
-    r._do_post("rw/mastership?action=request")
+    master(r)
     with pytest.raises(ABBException, match=r"'\.\.' and '\.' are not allowed"):
         r._do_post("rw/rapid/tasks/T_ROB1?action=loadmod", {"modulepath": "$HOME/../etc/x.mod"})
     with pytest.raises(Exception, match="Not Found"):  # PUT into a folder nobody created (the client says no more)
@@ -155,9 +169,9 @@ def test_loading_needs_mastership_and_a_refusal_changes_nothing(rws_emulator):
     upload(a, "IRB120Server.mod")
     with pytest.raises(ABBException, match="needs mastership") as e:
         load(a, "IRB120Server.mod")
-    assert e.value.code == -403
+    assert e.value.code == CODE_NO_MASTERSHIP  # 400 and the controller's code, as RWS answers a write without it
     assert modules(a) == ["MainModule"]
-    a._do_post("rw/mastership?action=request")
+    master(a)
     with pytest.raises(ABBException, match="held by another client"):
         b._do_post("rw/mastership?action=request")
     with pytest.raises(ABBException, match="mastership is held by another client"):
@@ -167,11 +181,12 @@ def test_loading_needs_mastership_and_a_refusal_changes_nothing(rws_emulator):
     load(a, "IRB120Server.mod")
     assert modules(b) == ["MainModule", "IRB120Server"]
     a._do_post("rw/mastership?action=release")
-    b._do_post("rw/mastership?action=request")  # free again
+    a._do_post("users/rmmp?action=cancel")  # and the manual-mode privilege it came with
+    master(b)  # free again
     b._do_post("rw/rapid/tasks/T_ROB1?action=unloadmod", {"module": "IRB120Server"})
     assert modules(a) == ["MainModule"]
     b.close()  # logging out releases mastership
-    a._do_post("rw/mastership?action=request")
+    master(a)
 
 
 # docs/real_robot.md, section 1: which files load with which options (the emulator's load-time check over RWS)
@@ -194,7 +209,7 @@ def test_the_option_matrix_holds_for_modules_loaded_over_rws(rws_emulator, optio
     r = RWS(emu.url)
     files = ["IRB120Server.mod", *files]
     upload(r, *files)
-    r._do_post("rw/mastership?action=request")
+    master(r)
     for i, f in enumerate(files):
         if refusal and i == len(files) - 1:
             with pytest.raises(ABBException, match="was not loaded: see the event log") as e:
@@ -216,7 +231,7 @@ def test_a_syntax_error_s_line_reaches_the_event_log(rws_emulator):
     broken = rapid_file("IRB120Serial.mod").read_text().replace("ENDPROC", "ENDPROC )", 1)
     line = next(i for i, t in enumerate(broken.splitlines(), 1) if "ENDPROC )" in t)
     upload(r, "IRB120Serial.mod", text={"IRB120Serial.mod": broken})
-    r._do_post("rw/mastership?action=request")
+    master(r)
     with pytest.raises(ABBException, match="not loaded"):
         load(r, "IRB120Serial.mod")
     event = r.read_event_log()[0]
@@ -227,7 +242,7 @@ def test_a_syntax_error_s_line_reaches_the_event_log(rws_emulator):
 def test_remote_start_needs_auto_and_the_motors_on(rws_emulator):
     emu = rws_emulator(op_mode="manual_reduced")
     r = RWS(emu.url)
-    r._do_post("rw/mastership?action=request")
+    master(r)
     with pytest.raises(ABBException, match="remote start needs AUTO") as e:
         r.start()
     assert e.value.code == -403
@@ -259,7 +274,7 @@ def test_a_module_whose_data_cannot_be_set_up_is_refused_and_the_server_serves_o
     emu = rws_emulator()
     r = RWS(emu.url)
     upload(r, "Bad.mod", text={"Bad.mod": "MODULE Bad\n  VAR byte b := 300;\nENDMODULE\n"})
-    r._do_post("rw/mastership?action=request")
+    master(r)
     with pytest.raises(ABBException, match="not loaded"):
         load(r, "Bad.mod")
     event = r.read_event_log()[0]
@@ -274,7 +289,7 @@ def test_nothing_is_loaded_unloaded_or_moved_while_the_program_runs(rws_emulator
     emu = rws_emulator()
     r = RWS(emu.url)
     upload(r, "IRB120Server.mod", "IRB120Serial.mod")
-    r._do_post("rw/mastership?action=request")
+    master(r)
     load(r, "IRB120Server.mod")
     load(r, "IRB120Serial.mod")
     r._do_post("rw/rapid/tasks/T_ROB1/pcp?action=set-pp-routine", {"routine": "IRB120Server"})
