@@ -42,6 +42,13 @@ def cli(*argv: str, timeout: float = 120, stdin=subprocess.DEVNULL) -> subproces
     )
 
 
+def deployed(emu: RWSEmulator) -> bool:
+    """A first deployment, in this process (what a test starts from; the deploy under test runs in its own)."""
+    from maniskill_irb120.cli import main
+
+    return main(["deploy", "--controller", emu.url, "--yes"]) == 0
+
+
 def snapshot(emu: RWSEmulator) -> tuple:
     """What a deployment may change: the task's modules, $HOME's files and their bytes, PP, the program state."""
     vc = emu.controller
@@ -108,7 +115,7 @@ def test_what_is_loaded_is_read_back_and_a_mismatch_is_rolled_back(rws_emulator,
     """Finding 1, the check itself: a file changed on the controller between upload and load (another writer)
     is caught by reading the loaded module's settings back, and the earlier deployment is put back."""
     emu = rws_emulator(op_mode="auto")
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     before = snapshot(emu)
     c = dep.connect(emu.url)
     real_load = c.load_module
@@ -137,7 +144,7 @@ def test_what_is_loaded_is_read_back_and_a_mismatch_is_rolled_back(rws_emulator,
 def test_a_typo_in_a_redeployed_module_leaves_the_working_server_loaded(rws_emulator, tmp_path):
     """Finding 2: a syntax error used to unload the working modules, overwrite their files and lose PP."""
     emu = rws_emulator(op_mode="auto")
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     before = snapshot(emu)
     broken = edited(tmp_path, "broken")
     text = (broken / "IRB120Serial.mod").read_text()
@@ -156,7 +163,7 @@ def test_a_typo_in_a_redeployed_module_leaves_the_working_server_loaded(rws_emul
 def test_a_deploy_refused_for_mastership_writes_nothing(rws_emulator):
     """Finding 3: refused only after uploading, it left files that differ from what is loaded."""
     emu = rws_emulator(op_mode="auto")
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     hmi = RWS(emu.url)
     hmi._do_post("rw/mastership?action=request")  # an HMI holds mastership
     before = snapshot(emu)
@@ -167,7 +174,7 @@ def test_a_deploy_refused_for_mastership_writes_nothing(rws_emulator):
     hmi.close()
 
 
-def test_the_manual_modes_need_the_operators_grant_and_auto_asks_none(rws_emulator):
+def test_the_manual_modes_need_the_operators_grant_and_auto_asks_none(rws_emulator, capsys):
     """Finding 4: deploy never asked for RMMP, so on a real IRC5 the documented flow (deploy, then Start in MANR)
     failed at "requesting mastership"; the emulator, which gave mastership anyway, now refuses it without RMMP."""
     emu = rws_emulator(operator="deny")  # manual reduced speed; the operator rejects remote access
@@ -183,8 +190,11 @@ def test_the_manual_modes_need_the_operators_grant_and_auto_asks_none(rws_emulat
     assert emu.controller.pcp() == ("IRB120Server", "IRB120Server")
     assert emu.controller.master is None and emu.controller.rmmp_state(None)["privilege"] == "none"
     emu.controller.op_mode = "auto"
-    r = cli("unload", "--controller", emu.url)
-    assert r.returncode == 0 and "remote access" not in r.stdout, r.stdout
+    from maniskill_irb120.cli import main
+
+    capsys.readouterr()
+    assert main(["deploy", "unload", "--controller", emu.url]) == 0
+    assert "remote access" not in capsys.readouterr().out
 
 
 def test_unload_removes_only_what_deploy_wrote_and_leaves_the_operators_pp(rws_emulator, tmp_path):
@@ -197,7 +207,7 @@ def test_unload_removes_only_what_deploy_wrote_and_leaves_the_operators_pp(rws_e
     (vc.home / "IRB120" / "backup").mkdir()
     (vc.home / "IRB120" / "backup" / "IRB120Server.mod").write_text("MODULE IRB120Server\nENDMODULE\n")
     theirs = {p: p.read_bytes() for p in (vc.home / "IRB120").rglob("*") if p.is_file()}
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     r = cli("unload", "--controller", emu.url)
     assert r.returncode == 0, r.stderr
     assert "left what deploy did not write: backup, notes.txt" in r.stdout
@@ -222,7 +232,7 @@ def test_ctrl_c_at_the_prompt_puts_the_earlier_deployment_back(rws_emulator, tmp
     """Finding 6: Ctrl-C left a half-loaded task. Here it comes at the program-pointer prompt, after the new
     modules are loaded."""
     emu = rws_emulator(op_mode="auto")
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     before = snapshot(emu)
     c = dep.connect(emu.url)
 
@@ -242,7 +252,7 @@ def test_a_killed_deploy_is_recovered_by_the_next_one(rws_emulator, tmp_path):
     failed. The next deploy waits for the dead client's mastership to be released (its session ends), finds the
     unfinished deployment in the manifest, rolls it back, and deploys."""
     emu = rws_emulator(op_mode="auto", session_idle_s=2.0)
-    assert cli("--controller", emu.url, "--yes").returncode == 0
+    assert deployed(emu)  # the working deployment the finding starts from
     before = snapshot(emu)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     leader, follower = pty.openpty()  # a terminal, so that deploy stops at its prompt (and shows it)
@@ -270,8 +280,7 @@ def test_a_killed_deploy_is_recovered_by_the_next_one(rws_emulator, tmp_path):
     assert r.returncode == 0, r.stderr
     assert "was interrupted before it finished: rolling it back" in r.stdout
     assert "reloaded IRB120Server, IRB120Serial" in r.stdout
-    r = cli("--controller", emu.url, "--yes")
-    assert r.returncode == 0, r.stderr
+    assert deployed(emu)
     assert snapshot(emu)[0] == before[0] and snapshot(emu)[2] == before[2]
 
 
