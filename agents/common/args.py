@@ -139,6 +139,7 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
 BUDGET_FLAGS = {
     "total_env_steps": "env steps",
     "total_timesteps": "env steps",
+    "timesteps": "env steps",
     "max_minutes": "minutes",
     "budget_min": "minutes",
     "max_wall_s": "seconds",
@@ -146,7 +147,7 @@ BUDGET_FLAGS = {
 """the budget and guard fields a trainer may have, and their units"""
 
 
-def check_budget(args: RunArgs) -> None:
+def check_budget(args) -> None:
     """ValueError naming the flag when a budget or guard is zero or negative: such a run would train nothing, write
     a checkpoint and exit 0, which reads as success to whoever chains runs."""
     for name, unit in BUDGET_FLAGS.items():
@@ -174,12 +175,20 @@ def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, on
     return args
 
 
-def entry(args_type: type[A], module: str, main: Callable[[A], object], argv: Optional[list[str]] = None):
-    """A trainer's ``python -m``: :func:`cli`, then ``main``. A command line that cannot run ends before any env is
-    built with one line on stderr and exit status 2, not a traceback or tyro's boxed panel, so that a script chaining
-    runs reads one reason (errors of the run itself keep their traceback)."""
+def entry(
+    args_type: type[A], module: str, main: Callable[[A], object], argv: Optional[list[str]] = None, recipes: bool = True
+):
+    """A trainer's ``python -m``: :func:`cli` (``recipes`` False: tyro alone, for a trainer without ``--recipe`` and
+    with a ``--resume`` of its own), then ``main``. A command line that cannot run ends before any env is built with
+    one line on stderr and exit status 2, not a traceback or tyro's boxed panel, so that a script chaining runs reads
+    one reason (errors of the run itself keep their traceback)."""
+    argv = sys.argv[1:] if argv is None else argv
     try:
-        args = cli(args_type, module, argv, one_line=True)
+        if recipes:
+            args = cli(args_type, module, argv, one_line=True)
+        else:
+            args = _parse(args_type, argv)
+            check_budget(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"{module}: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None

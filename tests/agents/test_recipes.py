@@ -124,3 +124,19 @@ def test_python_m_a_trainer_with_a_negative_budget_exits_2_with_one_line():
     out = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr == "agents.ppo: error: --budget-min must be a positive number of minutes, got -5.0\n"
+
+
+def test_the_rllib_trainer_refuses_a_budget_in_one_line_too(capsys):
+    from agents.common import entry
+    from agents.rllib.train import Args
+
+    ran = []
+    for argv, says in [
+        (["--timesteps", "0"], "--timesteps must be a positive number of env steps, got 0"),
+        (["--total-env-steps", "-3"], "--total-env-steps must be a positive number of env steps, got -3"),
+        (["--budget-min", "-5"], "--budget-min must be a positive number of minutes, got -5.0"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            entry(Args, "agents.rllib", ran.append, argv, recipes=False)
+        assert stop.value.code == 2 and capsys.readouterr().err == f"agents.rllib: error: {says}\n"
+    assert not ran
