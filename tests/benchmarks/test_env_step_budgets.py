@@ -101,3 +101,14 @@ def test_an_adopted_run_is_checked_against_its_env_step_budget(tmp_path):
     minutes = trained(tmp_path, ppo, "ppo-state", "minutes", ["--budget-min", "36"], 2160.0, 896_000)
     with pytest.raises(ValueError, match=r"total_env_steps=None \(the recipe's: 824960\)"):
         learning.adopted_run("ppo-state", minutes, args)
+
+
+def test_the_original_experiment_runs_its_committed_env_steps_when_asked():
+    import original_experiment as oe
+
+    flags = oe.command("ppo-rgbd", oe.Args(env_step_budgets=True, max_minutes=160.0), resume=False)
+    at = flags.index("--total-env-steps")
+    assert flags[at + 1 : at + 4] == ["967680", "--max-minutes", "160"] and "--budget-min" not in flags
+    minutes = oe.command("ppo-rgbd", oe.Args(), resume=False)  # as the committed runs were started
+    assert minutes[minutes.index("--budget-min") + 1] == "150" and "--total-env-steps" not in minutes
+    assert oe.budget_text(oe.Args(total_env_steps=10**6)) == "1,000,000 env steps"
