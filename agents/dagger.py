@@ -22,9 +22,9 @@ rollouts are only as informative as it. ``--aux-weight``: the policy's features 
 position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
 policy never sees it); from the camera it makes the encoder find the cube.
 
-    python -m agents.dagger --recipe dagger-state --budget-min 60       # the state recipe
-    python -m agents.dagger --recipe dagger-rgbd --budget-min 120       # the camera recipe, CPU
-    python -m agents.dagger --recipe dagger-rgbd-bf16 --budget-min 60   # bf16 encoder: within the hour
+    python -m agents.dagger --recipe dagger-state --total-env-steps 205835       # the committed runs' env steps
+    python -m agents.dagger --recipe dagger-rgbd --total-env-steps 158615        # the camera recipe, CPU
+    python -m agents.dagger --recipe dagger-rgbd-bf16 --total-env-steps 115183   # bf16 encoder: the hour's env steps
     python -m agents.dagger --recipe dagger-rgbd --backend gpu --num-envs 32 --device cuda   # GPU-batched envs
     python -m agents.dagger --recipe dagger-rgbd-bf16 --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
     python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
@@ -62,11 +62,12 @@ from agents.common import (
     RunArgs,
     atomic_save,
     autocast,
-    budget_bar,
+    check_budget,
     check_resume_signature,
     checkpoint,
-    cli,
     close_and_save,
+    entry,
+    env_step_budget,
     evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
@@ -83,6 +84,7 @@ from agents.common import (
     shapes_of,
     torch_threads,
     train_seed,
+    wall_guard_s,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
 from maniskill_irb120.policies.nets import DeterministicActor, random_shift
@@ -92,8 +94,6 @@ FORMAT = "maniskill_irb120.dagger/1"
 
 @dataclass
 class Args(RunArgs):
-    budget_min: float = 60.0
-    """wall-clock minutes for data collection and training together (the final evaluation is extra)"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
@@ -146,7 +146,7 @@ class Args(RunArgs):
     select_episodes: int = 0
     """checkpoint selection: every --select-freq rounds and at the end, the policy on this many validation seeds
     (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out evaluation scores it
-    instead of the last weights (0: no selection). Its episodes count in --budget-min"""
+    instead of the last weights (0: no selection). Its episodes count in the wall guard (--max-minutes)"""
     select_freq: int = 25
     """rounds between two checkpoint-selection evaluations"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
@@ -402,12 +402,14 @@ def train(args: Args) -> dict:
         counters = restore(saved, clock)
     logger = Logger(run_dir, args, clock)
     ckpt_dir = run_dir / "checkpoints"
-    budget_s = args.budget_min * 60
     elapsed = clock
     o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
     state = labels(o, info)
-    bar = budget_bar(args, budget_s, counters["wall_s"], "dagger")
-    budget = Budget(budget_s, elapsed, counters, validates=args.select_episodes > 0)
+    # without --total-env-steps the run is held to --max-minutes, by default 60 (collection and training together)
+    budget = Budget(
+        wall_guard_s(args, 60.0), elapsed, counters, args.select_episodes > 0, total_env_steps=env_step_budget(args)
+    )
+    bar = budget.bar(args, "dagger")
     stats = {}
     try:
         while True:
@@ -439,7 +441,7 @@ def train(args: Args) -> dict:
             scalars.update({"charts/dataset": data.size, "charts/round_s": round_s})
             logger.scalars(scalars, counters["env_steps"])
             if bar is not None:
-                bar.n = min(int(elapsed()), int(budget_s))
+                budget.advance(bar)
                 bar.set_postfix(
                     round=r,
                     data=data.size,
@@ -484,12 +486,14 @@ def train(args: Args) -> dict:
         dataset=data.size,
         precision=precision,
         **extra,
+        **budget.report(),
     )
 
 
 def main(args: Args) -> dict:
+    check_budget(args)
     return run_evaluation_only(args) if args.evaluate else train(args)
 
 
 if __name__ == "__main__":
-    main(cli(Args, "agents.dagger"))
+    entry(Args, "agents.dagger", main)

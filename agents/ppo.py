@@ -19,9 +19,10 @@ exploration noise and ``--critic-warmup-iters`` fits the value function before t
 them a cloned policy washes out: the first updates follow a random critic away from the demonstrations (IBRL,
 arXiv 2311.02198).
 
-``--budget-min`` (the flag every trainer shares) limits training's wall clock, counting the time of the run before a
-``--resume`` as DAgger and SAC do (so one budget can span sessions), and overrides ``--max-wall-s``; no iteration
-starts that its predecessors say would end after it (``agents.common.run.Budget``);
+``--total-env-steps`` (the budget every trainer shares; ``--total-timesteps`` is its older name here) counts the env
+steps of the run before a ``--resume`` too; ``--max-minutes`` (or ``--budget-min``, or ``--max-wall-s``) guards the
+wall clock, started after the envs are built, and no iteration starts that its predecessors say would end after it
+(``agents.common.run.Budget``); a run it stops before its env steps says so (``stopped_early``).
 ``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
 ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
 every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON and ``summary.json``
@@ -56,10 +57,12 @@ from agents.common import (
     Logger,
     RunArgs,
     atomic_save,
+    check_budget,
     check_resume_signature,
     checkpoint,
-    cli,
     close_and_save,
+    entry,
+    env_step_budget,
     evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
@@ -73,6 +76,7 @@ from agents.common import (
     shapes_of,
     torch_threads,
     vec_envs,
+    wall_guard_s,
 )
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
@@ -579,7 +583,8 @@ def train(args: Args) -> dict:
         load_checkpoint(args.checkpoint, agent, args, init)
     ckpt_dir = run_dir / "checkpoints"
 
-    num_iterations = max(1, args.total_timesteps // args.batch_size)
+    total = env_step_budget(args)  # --total-env-steps, else --total-timesteps
+    num_iterations = -(-total // args.batch_size)  # the last starts below the budget
     next_obs, _ = envs.reset(seed=args.seed + counters["iteration"])
     rollout = Rollout(envs, obs_to(flatten_obs(next_obs), device), args, device)
     recent: dict[str, list[float]] = defaultdict(list)
@@ -597,12 +602,13 @@ def train(args: Args) -> dict:
     # --resume (a checkpoint written before the clock was saved has none): the budget is the run's
     elapsed = Clock(counters.get("wall_s", 0.0))
     logger = Logger(run_dir, args, elapsed)
-    max_wall_s = args.max_wall_s if args.budget_min is None else 60 * args.budget_min
-    budget = Budget(max_wall_s, elapsed, counters, validates=args.select_episodes > 0)
+    budget = Budget(
+        wall_guard_s(args), elapsed, counters, args.select_episodes > 0, total_env_steps=total, steps_key="global_step"
+    )
     try:
-        while counters["iteration"] < num_iterations:
+        while budget.steps_left():
             counters["wall_s"] = elapsed()  # saved with every checkpoint
-            if not budget.next_step_fits():
+            if not budget.time_fits():
                 if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
                     with budget.validation():
                         select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
@@ -657,10 +663,11 @@ def train(args: Args) -> dict:
                 agent.eval()
                 last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
                 logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
-            if args.select_episodes and (it % args.select_freq == 0 or it == num_iterations):
+            last = not budget.steps_left()
+            if args.select_episodes and (it % args.select_freq == 0 or last):
                 with budget.validation():
                     select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
-            if it % args.save_freq == 0 or it == num_iterations:
+            if it % args.save_freq == 0 or last:
                 counters["wall_s"] = elapsed()
                 save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
                 save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
@@ -684,6 +691,7 @@ def train(args: Args) -> dict:
         iterations_this_run=counters["iteration"] - start_iteration,
         last_eval=last_eval,
         checkpoint=str(ckpt_dir / "latest.pt"),
+        **budget.report(),
     )
     if args.select_episodes and counters.get("best") is not None:
         selected = counters["best"]
@@ -739,6 +747,7 @@ def select_checkpoint(agent: Agent, optimizer, counters: dict, args: Args, devic
 
 
 def main(args: Args) -> dict:
+    check_budget(args)
     if not args.evaluate and args.norm_adv and args.minibatch_size < 2:
         raise ValueError(
             f"--num-envs {args.num_envs} x --num-steps {args.num_steps} / --num-minibatches {args.num_minibatches} "
@@ -764,4 +773,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(cli(Args, "agents.ppo"))
+    entry(Args, "agents.ppo", main)

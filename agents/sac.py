@@ -24,9 +24,9 @@ defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes
 ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
 policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
 
-    python -m agents.sac --recipe sac-state --budget-min 120              # the recipe (maniskill_irb120/recipes.py)
-    python -m agents.sac --obs state --budget-min 120
-    python -m agents.sac --obs rgbd --budget-min 120 --buffer-size 100000
+    python -m agents.sac --recipe sac-state --total-env-steps 49726   # the committed runs' env steps (recipes.py)
+    python -m agents.sac --obs state --total-env-steps 49726 --max-minutes 30   # with a wall-clock guard
+    python -m agents.sac --obs rgbd --max-minutes 120 --buffer-size 100000      # no env-step budget: the clock's
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
     python -m agents.sac --obs state --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
 
@@ -48,17 +48,19 @@ import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents import common
 from agents.common import (
     EVAL_SEED,
+    Budget,
     Clock,
     Dataset,
     EpisodeTracker,
     Logger,
     RunArgs,
     atomic_save,
-    budget_bar,
+    check_budget,
     check_resume_signature,
     checkpoint,
-    cli,
     close_and_save,
+    entry,
+    env_step_budget,
     evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
@@ -73,6 +75,7 @@ from agents.common import (
     restore_dataset,
     shapes_of,
     train_seed,
+    wall_guard_s,
 )
 from maniskill_irb120.policies import policy_module, policy_section, section_of
 from maniskill_irb120.policies.nets import random_shift
@@ -83,10 +86,9 @@ FORMAT = "maniskill_irb120.sac/1"
 
 @dataclass
 class Args(RunArgs):
-    budget_min: float = 120.0
-    """wall-clock minutes for everything before the final evaluation"""
     total_timesteps: Optional[int] = None
-    """also stop once this many env steps are done (demos included): a run sized in steps, whatever the load"""
+    """the older name of --total-env-steps (env steps, demos included; --total-env-steps wins). With neither, the
+    run is held to --max-minutes, by default 120 (everything before the final evaluation)"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
@@ -421,7 +423,8 @@ def train(args: Args) -> dict:
     logger = Logger(run_dir, args, clock)
     ckpt_path = run_dir / "checkpoints" / "latest.pt"
     elapsed = clock
-    budget_s = 60 * args.budget_min
+    guard_s = wall_guard_s(args, 120.0)
+    budget = Budget(guard_s, elapsed, counters, validates=False, total_env_steps=env_step_budget(args))
     o, info = envs.reset(seed=train_seed(args.seed, counters["episodes"]))
     state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
     if not counters["pretrained"]:
@@ -438,9 +441,9 @@ def train(args: Args) -> dict:
     recent: dict[str, list[float]] = {}
     losses: dict[str, float] = {}
     owed, next_log, next_save = 0.0, counters["env_steps"] + args.log_freq, counters["env_steps"] + args.save_freq
-    bar = budget_bar(args, budget_s, counters["wall_s"], "sac")
+    bar = budget.bar(args, "sac")
     try:
-        while elapsed() < budget_s and (args.total_timesteps is None or counters["env_steps"] < args.total_timesteps):
+        while budget.next_step_fits():
             obs = state["obs"]
             if online.size < args.learning_starts and demos.size == 0:
                 action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
@@ -477,7 +480,7 @@ def train(args: Args) -> dict:
                 scalars["charts/updates"] = counters["updates"]
                 logger.scalars(scalars, counters["env_steps"])
                 if bar is not None:
-                    bar.n = min(int(elapsed()), int(budget_s))
+                    budget.advance(bar)
                     bar.set_postfix(steps=counters["env_steps"], success=f"{scalars.get('train/success_rate', 0):.2f}")
                 recent = {}
             if counters["env_steps"] >= next_save:
@@ -496,6 +499,7 @@ def train(args: Args) -> dict:
         updates=counters["updates"],
         train_episodes=counters["episodes"],
         checkpoint=str(ckpt_path),
+        **budget.report(),
     )
 
 
@@ -506,8 +510,9 @@ def main(args: Args) -> dict:
         raise ValueError(f"--init-std must be > 0, got {args.init_std}")
     if args.total_timesteps is not None and args.total_timesteps < 1:
         raise ValueError(f"--total-timesteps must be >= 1 env step, got {args.total_timesteps}")
+    check_budget(args)
     return run_evaluation_only(args) if args.evaluate else train(args)
 
 
 if __name__ == "__main__":
-    main(cli(Args, "agents.sac"))
+    entry(Args, "agents.sac", main)

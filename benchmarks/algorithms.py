@@ -1,8 +1,14 @@
 """The algorithm table: other RL libraries beside this project's trainers, from the reward alone, one budget per cell.
 
 Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, skrl PPO,
-this project's PPO}, ``STATE_BUDGET_MIN`` each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this project's best
-camera recipe}, ``CAMERA_BUDGET_MIN`` each. Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
+this project's PPO}, ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this
+project's best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
+``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside
+it, ``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
+(``--budget-min`` still runs a cell so, for smoke runs), and their rows say so. A run whose cells should all be
+env-step cells takes its own ``--out-dir``: a rerun skips the cells its JSON has.
+
+Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
 cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run. ``ABLATIONS``
 adds cells outside the defaults rule, one seed each and never a group's best: SB3 PPO from state on GraspLift with
 the settings this project's PPO takes from ManiSkill's baseline, which asks how much of the defaults' zeros is
@@ -59,8 +65,13 @@ from results_md import replace_section  # noqa: E402
 from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed  # noqa: E402
 
 TASKS = {"GraspLift": "GraspLift-IRB120-v1", "TableClearing": "TableClearing-IRB120-v1"}
+STATE_ENV_STEPS = {"GraspLift": 500_000, "TableClearing": 1_000_000}
+CAMERA_ENV_STEPS = 1_000_000
+"""a cell's budget in env steps (issue 91's): the host's speed moved several-fold between days, so a minute budget
+measured the machine as much as the library; the wall clock is recorded beside each cell, and --max-minutes guards it"""
 STATE_BUDGET_MIN = 30.0
 CAMERA_BUDGET_MIN = 60.0
+"""the minutes the cells run before budgets were env steps were held to (their rows say so)"""
 SB3_VERSION, SKRL_VERSION = "2.9.2", "2.1.1"  # pyproject.toml's sb3 and skrl extras
 
 
@@ -155,8 +166,12 @@ class Args:
     best_seeds: list[int] = field(default_factory=lambda: [2, 3])
     """the seeds added to each group's best cell once its seed-1 cells are all in"""
     eval_episodes: int = 100
+    total_env_steps: Optional[int] = None
+    """env steps per cell instead of STATE_ENV_STEPS / CAMERA_ENV_STEPS"""
+    max_minutes: Optional[float] = None
+    """a wall-clock guard per cell (None: none); a cell it stops before its env steps says so ("stopped_early")"""
     budget_min: Optional[float] = None
-    """minutes per cell instead of STATE_BUDGET_MIN / CAMERA_BUDGET_MIN (smoke runs)"""
+    """minutes per cell as its budget instead of env steps, as the first cells ran (smoke runs)"""
     checkpoint_min: float = 10.0
     """a library cell saves what a rerun continues from this often"""
     stop_after_min: Optional[float] = None
@@ -168,8 +183,8 @@ class Args:
     --results-md"""
     results_md: Path = ROOT / "benchmarks" / "RESULTS.md"
     quick: bool = False
-    """toy sizes: 3 s per cell, 2 evaluation episodes, learning.py's --quick trainer flags, 200 bootstrap resamples,
-    a toy reference workload"""
+    """toy sizes: 3 s per cell (or --total-env-steps), 2 evaluation episodes, learning.py's --quick trainer flags,
+    200 bootstrap resamples, a toy reference workload"""
     bootstrap: int = 10_000
     reference_steps: int = learning.REFERENCE_STEPS
     """steps of learning.reference_speed's fixed workload timed before and after each cell (0: none)"""
@@ -191,10 +206,25 @@ def grid() -> list[tuple[str, str, str]]:
     return state + [("rgbd", "GraspLift", algo) for algo in CAMERA_ALGOS] + list(ABLATIONS)
 
 
-def budget_of(obs: str, args: Args) -> float:
+def steps_of(obs: str, task: str, args: Args) -> Optional[int]:
+    """A cell's budget in env steps, or None for one in minutes (``--budget-min``)."""
     if args.budget_min is not None:
-        return args.budget_min
-    return STATE_BUDGET_MIN if obs == "state" else CAMERA_BUDGET_MIN
+        return None
+    if args.total_env_steps is not None:
+        return args.total_env_steps
+    return STATE_ENV_STEPS[task] if obs == "state" else CAMERA_ENV_STEPS
+
+
+def minutes_of(args: Args) -> Optional[float]:
+    """A cell's minutes: its budget (``--budget-min``), else the guard (``--max-minutes``; None: none)."""
+    return args.budget_min if args.budget_min is not None else args.max_minutes
+
+
+def budget_text(minutes: Optional[float], steps: Optional[int]) -> str:
+    """A cell's or row's budget as the table and the log print it."""
+    if steps is None:
+        return f"{minutes:g} min"
+    return f"{steps:,} env steps" + ("" if minutes is None else f" (guard {minutes:g} min)")
 
 
 def best_algo(done: dict[str, dict], obs: str, task: str) -> Optional[str]:
@@ -241,11 +271,12 @@ def library_obs(obs: str, flat: dict) -> object:
 
 # ----------------------------------------------------------------------------- library cells
 class Budget:
-    """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's; checkpoints due every
-    ``every_s``."""
+    """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's, against ``total_s`` (a
+    minute budget or the guard; None: none); checkpoints due every ``every_s``. ``total_steps``: the cell's env-step
+    budget, which the library's own step count keeps (SB3's ``total_timesteps``, skrl's ``timesteps``)."""
 
-    def __init__(self, total_s: float, spent_s: float, every_s: float):
-        self.total_s, self.before_s, self.every_s = total_s, spent_s, every_s
+    def __init__(self, total_s: Optional[float], spent_s: float, every_s: float, total_steps: Optional[int] = None):
+        self.total_s, self.before_s, self.every_s, self.total_steps = total_s, spent_s, every_s, total_steps
         self.t0 = self.last_save = time.time()
 
     @property
@@ -253,11 +284,16 @@ class Budget:
         return self.before_s + time.time() - self.t0
 
     def over(self) -> bool:
-        return self.spent_s >= self.total_s
+        return self.total_s is not None and self.spent_s >= self.total_s
 
-    def point_due(self, curve: list) -> bool:
-        """A curve point every 1 % of the budget (``curve``'s rows: env steps, minutes, success)."""
-        return not curve or self.spent_s / 60 - curve[-1][1] >= self.total_s / 60 / 100
+    def point_due(self, curve: list, steps: int = 0) -> bool:
+        """A curve point every 1 % of the budget, env steps or minutes (``curve``'s rows: env steps, minutes,
+        success)."""
+        if not curve:
+            return True
+        if self.total_steps is not None:
+            return steps - curve[-1][0] >= self.total_steps / 100
+        return self.total_s is not None and self.spent_s / 60 - curve[-1][1] >= self.total_s / 60 / 100
 
     def save_due(self) -> bool:
         if time.time() - self.last_save >= self.every_s:
@@ -300,7 +336,16 @@ def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
     save()
 
 
-def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_dir: Path, args: Args) -> dict:
+def run_sb3(
+    algo: str,
+    env_id: str,
+    obs: str,
+    seed: int,
+    budget_s: Optional[float],
+    ckpt_dir: Path,
+    args: Args,
+    env_steps: Optional[int] = None,
+) -> dict:
     import stable_baselines3 as sb3
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.noise import NormalActionNoise
@@ -334,7 +379,7 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
         print(f"[algorithms] continuing from {model_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     else:
         model = cls(policy, venv, seed=seed, verbose=0, tensorboard_log=str(ckpt_dir / "tb"), **kwargs)
-    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
     curve = state["curve"]
 
     def save() -> None:
@@ -348,14 +393,19 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
     class Stop(BaseCallback):
         def _on_step(self) -> bool:
             buf = self.model.ep_success_buffer
-            if buf and clock.point_due(curve):
+            if buf and clock.point_due(curve, int(self.num_timesteps)):
                 curve.append([int(self.num_timesteps), clock.spent_s / 60, float(np.mean(buf))])
             if clock.save_due():
                 save()
             return not clock.over()
 
+    # SB3 counts env steps itself: learn() runs rollouts (PPO) or vector steps while num_timesteps is below its
+    # total, which a resumed model counts on from (learn adds num_timesteps to it); the callback is the guard
+    left = 10**12 if env_steps is None else env_steps - int(model.num_timesteps)
+
     def train() -> None:
-        model.learn(total_timesteps=10**12, callback=Stop(), reset_num_timesteps=not resumed, tb_log_name="run")
+        if left > 0:
+            model.learn(total_timesteps=left, callback=Stop(), reset_num_timesteps=not resumed, tb_log_name="run")
 
     try:
         train_and_save(train, save)
@@ -373,7 +423,16 @@ def run_sb3(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_d
     return dict(held_out(act, env_id, obs, args), env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve))
 
 
-def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_dir: Path, args: Args) -> dict:
+def run_skrl(
+    algo: str,
+    env_id: str,
+    obs: str,
+    seed: int,
+    budget_s: Optional[float],
+    ckpt_dir: Path,
+    args: Args,
+    env_steps: Optional[int] = None,
+) -> dict:
     from skrl.agents.torch.ppo import PPO, PPO_CFG
     from skrl.memories.torch import RandomMemory
     from skrl.trainers.torch import SequentialTrainer
@@ -392,14 +451,17 @@ def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_
     memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
     agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
                 action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
-    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": 10**10, "headless": True,
+    # skrl's timesteps are vector steps of num_envs env steps each, counted from 0 in every session: the rest of the
+    # cell's env steps (at least one vector step's worth, so a finished budget trains nothing more than that)
+    left = 10**10 if env_steps is None else max(1, -(-(env_steps - state["env_steps"]) // env.num_envs))
+    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": left, "headless": True,
                                                             "disable_progressbar": True,
                                                             "close_environment_at_exit": False})  # fmt: skip
     agent_path = ckpt_dir / "agent.pt"
     if agent_path.is_file():
         agent.load(str(agent_path))
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
-    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
     steps0, curve, recent = state["env_steps"], state["curve"], []
     counted = {"steps": steps0}
 
@@ -422,7 +484,7 @@ def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_
 
     def post_interaction(*, timestep: int, timesteps: int) -> None:
         post(timestep=timestep, timesteps=timesteps)  # skrl's update, when a rollout is full
-        if recent and clock.point_due(curve):
+        if recent and clock.point_due(curve, counted["steps"]):
             curve.append([counted["steps"], clock.spent_s / 60, float(np.mean(recent))])
         if clock.save_due():
             save()
@@ -432,6 +494,8 @@ def run_skrl(algo: str, env_id: str, obs: str, seed: int, budget_s: float, ckpt_
     env.step, agent.post_interaction = step, post_interaction
 
     def train() -> None:
+        if env_steps is not None and steps0 >= env_steps:
+            return  # an earlier session trained the whole budget
         try:
             trainer.train()
         except BudgetSpent:
@@ -458,26 +522,50 @@ def curve_of(points: list) -> dict:
 
 
 # ----------------------------------------------------------------------------- project cells
-def run_project(recipe: str, env_id: str, seed: int, budget_min: float, run_name: str, args: Args) -> dict:
-    """learning.py's ``recipe`` in ``budget_min``: one trainer, or for a two-stage recipe (``learning.BASES``) its base
-    in its share of the budget and then the recipe's trainer, handed the base's checkpoint, in the rest; the cell's
-    env steps, wall clock and curve are both stages' (``learning.joined``), as in learning.py's rows."""
+def run_project(
+    recipe: str,
+    env_id: str,
+    seed: int,
+    budget_min: Optional[float],
+    run_name: str,
+    args: Args,
+    env_steps: Optional[int] = None,
+) -> dict:
+    """learning.py's ``recipe`` in ``env_steps`` with ``budget_min`` as its guard, or without them in ``budget_min``:
+    one trainer, or for a two-stage recipe (``learning.BASES``) its base in its share of the budget (of env steps, the
+    share its committed runs did: ``learning.steps_for``) and then the recipe's trainer, handed the base's checkpoint,
+    in the rest; the cell's env steps, wall clock and curve are both stages' (``learning.joined``), as in learning.py's
+    rows."""
     module, _, _, _ = learning.RECIPES[recipe]
     flags = learning.recipe_flags(recipe, env_id)  # learning.run_trainer fills in the seed
     if recipe not in learning.BASES:
-        return run_stage(module, flags, env_id, seed, budget_min, run_name, args)
+        return run_stage(module, flags, env_id, seed, budget_min, run_name, args, env_steps)
     base_recipe, _, hand_on = learning.BASES[recipe]
-    share = learning.base_share(recipe, env_id)
     base_flags = learning.recipe_flags(base_recipe, env_id)
     base_module = learning.RECIPES[base_recipe][0]
-    base = run_stage(base_module, base_flags, env_id, seed, share * budget_min, f"{run_name}__base", args)
-    rest = max(budget_min - base["wall_clock_s"] / 60, 0.02 * budget_min)  # an overrun shows in the cell's time
-    tuned = run_stage(module, [*flags, hand_on, base["checkpoint"]], env_id, seed, rest, run_name, args)
+    if env_steps is None:
+        base_min, base_steps = learning.base_share(recipe, env_id) * budget_min, None
+    else:
+        base_min, base_steps = (
+            budget_min,
+            learning.steps_for(recipe, learning.Args(env_id=env_id, total_env_steps=env_steps))[1],
+        )
+    base = run_stage(base_module, base_flags, env_id, seed, base_min, f"{run_name}__base", args, base_steps)
+    rest = learning.rest_of(budget_min, base["wall_clock_s"] / 60)  # an overrun shows in the cell's time
+    rest_steps = None if env_steps is None else round(learning.rest_of(env_steps, base["env_steps"]))
+    tuned = run_stage(module, [*flags, hand_on, base["checkpoint"]], env_id, seed, rest, run_name, args, rest_steps)
     return learning.joined(base, tuned)
 
 
 def run_stage(
-    module: str, flags: list[str], env_id: str, seed: int, budget_min: float, run_name: str, args: Args
+    module: str,
+    flags: list[str],
+    env_id: str,
+    seed: int,
+    budget_min: Optional[float],
+    run_name: str,
+    args: Args,
+    env_steps: Optional[int] = None,
 ) -> dict:
     """One trainer as a subprocess (``learning.run_trainer``), continued with its own ``--resume`` when an earlier
     session left a checkpoint and no result; a stage that finished in an earlier session (a two-stage cell stopped
@@ -494,6 +582,7 @@ def run_stage(
         seed,
         budget_min,
         args,
+        env_steps=env_steps,
         env_id=env_id,
         runs_dir=runs,
         logs_dir=args.runs_dir / "logs",
@@ -506,19 +595,28 @@ def run_stage(
 def run_cell(cell: str, args: Args) -> dict:
     obs, task, algo, seed = parse_cell(cell)
     spec, env_id = ALGORITHMS[algo], TASKS[task]
-    budget_min = budget_of(obs, args)
+    minutes, steps = minutes_of(args), steps_of(obs, task, args)
     name = cell.replace("/", "__")
-    print(f"[algorithms] {cell}: {budget_min:g} min", flush=True)
+    print(f"[algorithms] {cell}: {budget_text(minutes, steps)}", flush=True)
     if spec.runner == "project":
-        r = run_project(spec.recipe, env_id, seed, budget_min, name, args)
+        r = run_project(spec.recipe, env_id, seed, minutes, name, args, steps)
     else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
         runner = run_sb3 if spec.runner == "sb3" else run_skrl
         before = learning.cpu_times()
-        r = runner(algo, env_id, obs, seed, budget_min * 60, args.runs_dir / name, args)
+        r = runner(
+            algo, env_id, obs, seed, None if minutes is None else minutes * 60, args.runs_dir / name, args, steps
+        )
         steal = learning.steal_fraction(before, learning.cpu_times())
         if steal is not None:
             r["cpu_steal"] = steal
-    r.update(cell=cell, seed=seed, budget_min=budget_min, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    if steps is None:
+        r.update(budget_min=minutes)
+    else:  # the budget, and whether the guard ended the cell before it
+        r.update(total_env_steps=steps, max_minutes=minutes, stopped_early=r["env_steps"] < steps)
+        r.pop("budget_min", None)
+        if r["stopped_early"]:
+            print(f"[algorithms] {cell}: stopped early at {r['env_steps']} env steps (of {steps})", flush=True)
+    r.update(cell=cell, seed=seed, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
     return r
 
 
@@ -543,7 +641,7 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                       key=lambda c: c["seed"])  # fmt: skip
         spec = ALGORITHMS[algo]
         row = dict(obs=obs, task=task, algorithm=algo, name=spec.name, library=spec.library,
-                   settings=spec.settings, from_reward=spec.from_reward, budget_min=budget_of(obs, args),
+                   settings=spec.settings, from_reward=spec.from_reward, **row_budget(runs, obs, task, args),
                    seeds=[r["seed"] for r in runs])  # fmt: skip
         if runs:
             successes = [r["successes"] for r in runs]
@@ -569,6 +667,17 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
     return rows
 
 
+def row_budget(runs: list[dict], obs: str, task: str, args: Args) -> dict:
+    """A row's budget: its cells' (env steps, or the minutes of a cell run before budgets were env steps), or for a
+    pending row the one this run would give it."""
+    if runs and all("total_env_steps" in r for r in runs):
+        return dict(total_env_steps=runs[0]["total_env_steps"], budget_min=runs[0].get("max_minutes"))
+    if runs:
+        return dict(budget_min=runs[0]["budget_min"])
+    steps = steps_of(obs, task, args)
+    return dict(budget_min=minutes_of(args)) if steps is None else dict(total_env_steps=steps, budget_min=None)
+
+
 def markdown(rows: list[dict]) -> str:
     lines = [
         "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
@@ -579,7 +688,8 @@ def markdown(rows: list[dict]) -> str:
         name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
         head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
         if "success_mean" not in r:
-            lines.append(f"{head} – | pending | | | | ({r['budget_min']:g} min budget) | | | {r['settings']} |")
+            budget = budget_text(r["budget_min"], r.get("total_env_steps"))
+            lines.append(f"{head} – | pending | | | | ({budget} budget) | | | {r['settings']} |")
             continue
         lo, hi = r["success_ci95"]
         per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
@@ -615,7 +725,8 @@ def plot(rows: list[dict], path: Path) -> None:
                         capsize=3, lw=1)  # fmt: skip
         ax.set_xticks(range(len(mine)), [r["algorithm"] for r in mine], rotation=45, ha="right", fontsize=7)
         ax.set_xlim(-0.6, len(mine) - 0.4)
-        ax.set(title=f"{obs}, {task} ({mine[0]['budget_min']:g} min)", ylim=(0, 1.05))
+        ax.set(title=f"{obs}, {task} ({budget_text(mine[0]['budget_min'], mine[0].get('total_env_steps'))})",
+               ylim=(0, 1.05))  # fmt: skip
         ax.title.set_fontsize(8)
     np.atleast_1d(axes)[0].set_ylabel("held-out success (95 % CI)")
     fig.suptitle("success on the held-out seeds, one budget per cell; grey: imitates the scripted expert", fontsize=8)
@@ -638,8 +749,9 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
     section = (
         f"{SECTION_HEAD}\n\n"
         "Other RL libraries beside this project's trainers, from the reward alone (the task's `normalized_dense`), "
-        f"one wall-clock budget per cell ({STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the "
-        f"camera, on {report['num_envs']} CPU worker envs; the final evaluation is extra), 1 seed per cell and 3 for "
+        "one budget per cell, the env steps or minutes its row gives (cells in minutes were run before budgets were "
+        f"env steps: {STATE_BUDGET_MIN:g} min from state, {CAMERA_BUDGET_MIN:g} min from the camera), on "
+        f"{report['num_envs']} CPU worker envs; the final evaluation is extra, 1 seed per cell and 3 for "
         "each group's best (none where every seed-1 cell of the group scored 0); the ablation row is outside the "
         "defaults rule (its settings say which), one seed, and never a group's best; "
         f"{report['eval_episodes']} deterministic held-out episodes per run (seeds {EVAL_SEED}..). "
@@ -666,8 +778,11 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
         machine=f"{platform.node()} {platform.machine()}",
         num_envs=args.num_envs,
         eval_episodes=args.eval_episodes,
-        state_budget_min=budget_of("state", args),
-        camera_budget_min=budget_of("rgbd", args),
+        state_budget_min=args.budget_min,
+        camera_budget_min=args.budget_min,
+        state_env_steps=None if args.budget_min is not None else {t: steps_of("state", t, args) for t in TASKS},
+        camera_env_steps=steps_of("rgbd", "GraspLift", args),
+        max_minutes=args.max_minutes,
         versions=dict(stable_baselines3=SB3_VERSION, skrl=SKRL_VERSION, torch=torch.__version__),
         not_runnable=NOT_RUNNABLE,
         rows=rows,
@@ -692,7 +807,7 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
             break
         cell = todo[0]
         if args.stop_after_min is not None:
-            ends = (time.time() - t0) / 60 + budget_of(parse_cell(cell)[0], args)
+            ends = (time.time() - t0) / 60 + (minutes_of(args) or 0.0)  # a cell without a guard: no estimate
             if ends > args.stop_after_min:
                 print(f"[algorithms] stopping: {cell} would end at {ends:.0f} min > --stop-after-min", flush=True)
                 break
@@ -724,8 +839,13 @@ def main(args: Args) -> dict:
         update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
         return report
     if args.quick:
-        args.budget_min = args.budget_min if args.budget_min is not None else 0.05
+        if args.budget_min is None and args.total_env_steps is None:  # toy minutes, unless toy env steps are given
+            args.budget_min = 0.05
         args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
+    for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
+                        ("--budget-min", args.budget_min)):  # fmt: skip
+        if value is not None and not value > 0:
+            raise ValueError(f"{flag} must be positive, got {value}")
     if args.backend not in ("cpu", "gpu", "auto"):
         raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
     if args.reference_steps < 0:

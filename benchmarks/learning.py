@@ -1,6 +1,6 @@
-"""Does it learn? Every recipe x seeds under one wall-clock budget, scored on held-out seeds, with intervals.
+"""Does it learn? Every recipe x seeds under one budget, scored on held-out seeds, with intervals.
 
-Each recipe is a trainer CLI in ``agents/`` run as a subprocess with ``--budget-min``, ``--seed`` and
+Each recipe is a trainer CLI in ``agents/`` run as a subprocess with its budget, ``--seed`` and
 ``--eval-episodes``; the last line it prints is its JSON result (``success_rate``, ``successes`` per
 episode, ``env_steps``, ``wall_clock_s``), and its TensorBoard log gives the curve (training-episode success
 against env steps and the trainer's budget clock, across every session of a resumed run). References measured in
@@ -17,13 +17,18 @@ mean of the seeds' success rates
 
     python benchmarks/learning.py                                  # every recipe x 3 seeds (hours: see below)
     python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
+    python benchmarks/learning.py --recipes ppo-state --env-step-budgets --max-minutes 60   # the committed env steps
     python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
     python benchmarks/learning.py --recipes dagger-rgbd-bf16 --seeds --adopt runs/s1 runs/s2 --merge
                                  # runs trained by the trainer's own command join the row, once checked
     python benchmarks/learning.py --env-id TableClearing-IRB120-v1 --recipes teacher-student-rgbd-sel --merge \
         --stop-after-min 140     # runs longer than a session: run the same command again until none is unfinished
 
-Budgets (the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-state ``--budget-min`` (60; the
+Budgets in env steps (``--total-env-steps`` for every run, or ``--env-step-budgets``: each recipe's committed runs'
+env steps on the task, ``recipes.ENV_STEP_BUDGETS``), with ``--max-minutes`` as a guard, hold a row to the same
+training whatever the host's speed, which moved several-fold between days; the reference speed before and after each
+run is recorded beside it (``reference_sps``). Without them, the minutes the committed rows were held to, as then
+(the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-state ``--budget-min`` (60; the
 last trains its DAgger base for half of it, then fine-tunes with PPO for the rest), ppo-state and
 sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd and sac-state
 ``--long-budget-min`` (120); the final evaluation is extra. A recipe's flags are the same on every task but for
@@ -71,6 +76,7 @@ from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one ho
     SHORT_BUDGET_MIN,
     VISION_BUDGET_MIN,
     base_share,
+    env_step_budget,
     recipe_flags,
     seeded,
 )
@@ -82,6 +88,7 @@ RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
 RESULT_KEPT = (
     *sorted(RESULT_NEEDS),
     *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
+    *("total_env_steps", "stopped_early"),
 )
 # --quick: the same code paths at toy sizes
 QUICK_FLAGS = {
@@ -139,6 +146,15 @@ class Args:
     vision_budget_min: Optional[float] = None
     """wall-clock minutes per run of teacher-student-rgbd and -sel (both stages), ppo-rgbd-dense and ppo-rgbd
     (default: VISION_BUDGET_MIN of the task)"""
+    total_env_steps: Optional[int] = None
+    """the budget of every run in env steps instead of minutes (a two-stage recipe's both stages, its first getting
+    the share its committed runs did, else BASES' share)"""
+    env_step_budgets: bool = False
+    """each recipe's budget in env steps: the env steps its committed runs on the task did (recipes.ENV_STEP_BUDGETS),
+    so the row repeats the committed one whatever this machine's speed; a recipe with none there is refused"""
+    max_minutes: Optional[float] = None
+    """with an env-step budget: a wall-clock guard per run (a two-stage run's second stage gets what its first left);
+    a run it stops before its env steps says so in its result ("stopped_early")"""
     env_id: str = DEFAULT_ENV
     """the task; each has its own report (--out-dir) and its own Learning section in RESULTS.md"""
     out_dir: Optional[Path] = None
@@ -283,6 +299,40 @@ def budget_for(kind: str, args: Args) -> float:
     return dict(long=args.long_budget_min).get(kind) or args.budget_min
 
 
+def steps_for(recipe: str, args: Args) -> Optional[tuple[int, Optional[int]]]:
+    """(env steps per run of ``recipe``, its first stage's for a two-stage one), or None for a run budgeted in minutes
+    (:func:`budget_for`): ``--total-env-steps``, else with ``--env-step-budgets`` the committed runs' env steps on the
+    task (``recipes.ENV_STEP_BUDGETS``; a recipe without them is refused by name, before any run)."""
+    committed = env_step_budget(recipe, args.env_id)
+    if args.total_env_steps is not None:
+        if recipe not in BASES:
+            return args.total_env_steps, None
+        share = committed[1] / committed[0] if committed else base_share(recipe, args.env_id)
+        return args.total_env_steps, max(1, round(share * args.total_env_steps))
+    if not args.env_step_budgets:
+        return None
+    if committed is None:
+        raise ValueError(
+            f"--env-step-budgets: {recipe} has no committed runs on {args.env_id} to take its env steps from "
+            "(recipes.ENV_STEP_BUDGETS); give --total-env-steps"
+        )
+    return committed
+
+
+def budget_flags(minutes: Optional[float], env_steps: Optional[int]) -> list[str]:
+    """A trainer's budget flags: ``--total-env-steps`` with ``minutes`` as its ``--max-minutes`` guard (if any), or,
+    for a run budgeted in minutes, ``--budget-min`` as the committed runs were started."""
+    if env_steps is None:
+        return ["--budget-min", f"{minutes:.4g}"]
+    return ["--total-env-steps", str(env_steps)] + ([] if minutes is None else ["--max-minutes", f"{minutes:.4g}"])
+
+
+def rest_of(total: Optional[float], spent: float) -> Optional[float]:
+    """What a two-stage run's second stage gets of ``total`` (minutes or env steps) after its first spent ``spent``:
+    at least 2 % of it, so that an overrun of the first shows in the row and the second still runs."""
+    return None if total is None else max(total - spent, 0.02 * total)
+
+
 def run_name(recipe: str, seed: int, *, base: bool = False) -> str:
     """The folder name, under ``--out-dir``/runs, of ``recipe``'s run of ``seed`` (``base``: a two-stage recipe's
     first stage; without it, its last)."""
@@ -300,10 +350,14 @@ def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = No
     short, to be continued by the same command."""
     module, _, obs, kind = RECIPES[recipe]
     flags = recipe_flags(recipe, args.env_id)
-    budget = budget_for(kind, args)
+    steps = steps_for(recipe, args)
+    budget = budget_for(kind, args) if steps is None else args.max_minutes
+    total, base_steps = steps or (None, None)
     resume = args.stop_after_min is not None
     if recipe not in BASES:
-        return run_trainer(run_name(recipe, seed), module, flags, seed, budget, args, resume=resume, deadline=deadline)
+        return run_trainer(
+            run_name(recipe, seed), module, flags, seed, budget, args, env_steps=total, resume=resume, deadline=deadline
+        )
     base_recipe, _, hand_on = BASES[recipe]
     share = base_share(recipe, args.env_id)
     base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
@@ -312,17 +366,26 @@ def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = No
         base_module,
         base_flags,
         seed,
-        share * budget,
+        share * budget if steps is None else budget,
         args,
+        env_steps=base_steps,
         resume=resume,
         deadline=deadline,
     )
     if base is None:
         return None
     flags = [*flags, hand_on, base["checkpoint"]]
-    rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)  # an overrun of the base shows in the row's time
-    tuned = run_trainer(run_name(recipe, seed), module, flags, seed, rest, args, resume=resume, deadline=deadline)
-    return None if tuned is None else joined(base, tuned)
+    rest = rest_of(budget, base["wall_clock_s"] / 60)  # an overrun of the base shows in the row's time
+    rest_steps = None if total is None else round(rest_of(total, base["env_steps"]))
+    tuned = run_trainer(
+        run_name(recipe, seed), module, flags, seed, rest, args, env_steps=rest_steps, resume=resume, deadline=deadline
+    )
+    if tuned is None:
+        return None
+    out = joined(base, tuned)
+    if total is not None:  # the row's budget is both stages'
+        out.update(total_env_steps=total, stopped_early=bool(base.get("stopped_early") or tuned.get("stopped_early")))
+    return out
 
 
 def joined(base: dict, tuned: dict) -> dict:
@@ -354,16 +417,18 @@ def run_trainer(
     module: str,
     flags: list[str],
     seed: int,
-    budget: float,
+    budget: Optional[float],
     args: Args,
     *,
+    env_steps: Optional[int] = None,
     env_id: Optional[str] = None,
     runs_dir: Optional[Path] = None,
     logs_dir: Optional[Path] = None,
     resume: bool = False,
     deadline: Optional[float] = None,
 ) -> Optional[dict]:
-    """``module`` as a subprocess for ``budget`` minutes, as the run ``name`` in ``runs_dir`` (default
+    """``module`` as a subprocess for ``env_steps`` env steps with a ``budget`` minutes guard (None: none), or,
+    without ``env_steps``, for ``budget`` minutes (:func:`budget_flags`), as the run ``name`` in ``runs_dir`` (default
     ``args.out_dir / "runs"``) on ``env_id`` (default ``args.env_id``), its output kept in ``logs_dir / name.log``
     (default ``args.out_dir / "logs"``); returns its checked result line with its curve. benchmarks/algorithms.py
     passes its own args (``eval_episodes`` and ``quick`` are read from them) with the other three given.
@@ -376,7 +441,7 @@ def run_trainer(
     runs_dir = args.out_dir / "runs" if runs_dir is None else runs_dir
     logs_dir = args.out_dir / "logs" if logs_dir is None else logs_dir
     cmd = [sys.executable, "-m", module, *seeded(flags, seed), "--env-id", env_id, "--seed", str(seed)]
-    cmd += ["--budget-min", f"{budget:.4g}", "--eval-episodes", str(args.eval_episodes)]
+    cmd += [*budget_flags(budget, env_steps), "--eval-episodes", str(args.eval_episodes)]
     cmd += ["--runs-dir", str(runs_dir), "--exp-name", name, "--no-progress", "--no-capture-video"]
     if args.quick:
         cmd += QUICK_FLAGS[module]
@@ -594,20 +659,35 @@ def adopted_pair(recipe: str, base_dir: Path, run_dir: Path, args: Args) -> dict
     ``train_run`` would have run them."""
     base_recipe, _, hand_on = BASES[recipe]
     share = base_share(recipe, args.env_id)
-    budget = budget_for(RECIPES[recipe][3], args)
-    base = adopted_run(base_recipe, base_dir, args, stage_budget=share * budget)
-    rest = max(budget - base["wall_clock_s"] / 60, 0.02 * budget)
-    tuned = adopted_run(recipe, run_dir, args, stage_budget=rest, extra=[hand_on, base["checkpoint"]])
+    steps = steps_for(recipe, args)
+    if steps is not None:
+        total, base_steps = steps
+        base = adopted_run(base_recipe, base_dir, args, stage_budget=args.max_minutes, stage_steps=base_steps)
+        rest, rest_steps = (
+            rest_of(args.max_minutes, base["wall_clock_s"] / 60),
+            round(rest_of(total, base["env_steps"])),
+        )
+    else:
+        budget = budget_for(RECIPES[recipe][3], args)
+        base = adopted_run(base_recipe, base_dir, args, stage_budget=share * budget)
+        rest, rest_steps = rest_of(budget, base["wall_clock_s"] / 60), None
+    extra = [hand_on, base["checkpoint"]]
+    tuned = adopted_run(recipe, run_dir, args, stage_budget=rest, extra=extra, stage_steps=rest_steps)
     return dict(joined(base, tuned), adopted_from=f"{base_dir} + {run_dir}")
 
 
 def adopted_run(
-    recipe: str, run_dir: Path, args: Args, stage_budget: Optional[float] = None, extra: list[str] = ()
+    recipe: str,
+    run_dir: Path,
+    args: Args,
+    stage_budget: Optional[float] = None,
+    extra: list[str] = (),
+    stage_steps: Optional[int] = None,
 ) -> dict:
     """A finished run of ``recipe`` trained outside this script, checked against the recipe and read as
     ``run_trainer`` reads its own (its summary.json is the result line; its curve's clock starts when its log was
-    opened, seconds after the process). ``stage_budget`` and ``extra``: one stage of a two-stage recipe
-    (:func:`adopted_pair`)."""
+    opened, seconds after the process). ``stage_budget``, ``stage_steps`` and ``extra``: one stage of a two-stage
+    recipe (:func:`adopted_pair`)."""
     import importlib
 
     module, _, _, kind = RECIPES[recipe]
@@ -630,9 +710,19 @@ def adopted_run(
         if differ:
             shown = ", ".join(f"{k}={theirs.get(k)!r} (first: {logged.get(k)!r})" for k in differ)
             raise ValueError(f"--adopt: {later} continued {run_dir} with other arguments: {shown}")
-    budget = budget_for(kind, args) if stage_budget is None else stage_budget
+    if stage_budget is None and stage_steps is None:  # a single-stage run: the recipe's budget
+        steps = steps_for(recipe, args)
+        stage_steps = None if steps is None else steps[0]
+        stage_budget = budget_for(kind, args) if steps is None else args.max_minutes
     seed = logged.get("seed")
-    argv = [*seeded(flags, seed), "--env-id", args.env_id, "--seed", str(seed), "--budget-min", f"{budget:.4g}"]
+    argv = [
+        *seeded(flags, seed),
+        "--env-id",
+        args.env_id,
+        "--seed",
+        str(seed),
+        *budget_flags(stage_budget, stage_steps),
+    ]
     argv += ["--eval-episodes", str(args.eval_episodes)]
     trainer_args = tyro.cli(trainer.Args, args=argv)
     if hasattr(trainer, "resolved"):  # defaults a trainer fills in from other flags, logged filled in
@@ -640,7 +730,7 @@ def adopted_run(
     expected = json.loads(json.dumps(asdict(trainer_args), default=str))
     differ = {k: (logged.get(k), v) for k, v in expected.items() if k not in ADOPT_FREE and logged.get(k) != v}
     typed = differ.get("budget_min")
-    if typed and abs(float(typed[0]) - float(typed[1])) <= BUDGET_ROUNDING + 1e-9:
+    if typed and None not in typed and abs(float(typed[0]) - float(typed[1])) <= BUDGET_ROUNDING + 1e-9:
         del differ["budget_min"]  # a second stage's budget typed to two decimals: its rounding, not another budget
     if differ:
         shown = ", ".join(f"{k}={a!r} (the recipe's: {b!r})" for k, (a, b) in sorted(differ.items()))
@@ -877,6 +967,11 @@ def main(args: Args) -> dict:
         raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
     if args.reference_steps < 0:
         raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
+    for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes)):
+        if value is not None and not value > 0:
+            raise ValueError(f"{flag} must be positive, got {value}")
+    for recipe in args.recipes:  # a recipe without env steps to take is refused before any run
+        steps_for(recipe, args)
     if args.quick:
         args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
         args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
@@ -969,6 +1064,9 @@ def main(args: Args) -> dict:
         long_budget_min=args.long_budget_min,
         rl_budget_min=args.rl_budget_min,
         vision_budget_min=budget_for("vision", args),
+        total_env_steps=args.total_env_steps,
+        env_step_budgets=args.env_step_budgets,
+        max_minutes=args.max_minutes,
         rows=rows,
     )
     (args.out_dir / "learning.json").write_text(json.dumps(report, indent=1))

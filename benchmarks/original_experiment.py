@@ -30,7 +30,16 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from learning import QUICK_FLAGS, RECIPES, Interrupted, recipe_flags, run_logged, thinned  # noqa: E402
+from learning import (  # noqa: E402
+    QUICK_FLAGS,
+    RECIPES,
+    Interrupted,
+    budget_flags,
+    env_step_budget,
+    recipe_flags,
+    run_logged,
+    thinned,
+)
 from results_md import replace_section  # noqa: E402
 
 from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
@@ -64,7 +73,14 @@ class Args:
     seed: int = 1
     """the training seed"""
     budget_min: float = 150.0
-    """wall-clock minutes of training per run, over every session it spans"""
+    """wall-clock minutes of training per run, over every session it spans (the budget the committed runs had; with
+    an env-step budget, --max-minutes guards instead)"""
+    total_env_steps: Optional[int] = None
+    """the budget of each run in env steps instead of minutes, over every session it spans"""
+    env_step_budgets: bool = False
+    """each run's budget in env steps: its committed run's (recipes.ENV_STEP_BUDGETS), whatever this machine's speed"""
+    max_minutes: Optional[float] = None
+    """with an env-step budget: a wall-clock guard per run; a run it stops first says so ("stopped_early")"""
     eval_episodes: int = 100
     """held-out episodes at the end of each run"""
     stop_after_min: Optional[float] = None
@@ -89,7 +105,11 @@ def command(recipe: str, args: Args, resume: bool = True) -> list[str]:
     """The trainer's command for ``recipe``: a new run, or ``--resume`` of its last checkpoint (``resume=False``:
     the command that trains it from the start, as the report shows it)."""
     flags = [*recipe_flags(recipe, ENV_ID), "--env-id", ENV_ID, "--seed", str(args.seed)]
-    flags += ["--budget-min", f"{args.budget_min:g}", "--eval-episodes", str(args.eval_episodes)]
+    steps = args.total_env_steps
+    if steps is None and args.env_step_budgets:
+        steps = env_step_budget(recipe, ENV_ID)[0]
+    minutes = args.budget_min if steps is None else args.max_minutes
+    flags += [*budget_flags(minutes, steps), "--eval-episodes", str(args.eval_episodes)]
     flags += ["--runs-dir", str(args.runs_dir), "--exp-name", run_dir(recipe, args).name, "--no-progress"]
     flags += ["--no-capture-video"]
     if args.quick:
@@ -225,12 +245,20 @@ def section(report: dict, args: Args) -> str:
     return (
         "## The original report's experiment: PPO from the hand camera\n\n"
         f"The original report: {REPORT}. Here: `python benchmarks/original_experiment.py` (2-core CPU, "
-        f"{args.budget_min:g} min per run; commands in [the JSON](results/original_experiment.json)).\n\n"
+        f"{budget_text(args)} per run; commands in [the JSON](results/original_experiment.json)).\n\n"
         + "\n".join(lines)
         + "\n\n![Figures 5.2-5.5](results/original_experiment.png)\n\n"
         + f"{OPTIMA_NOTE} What each run learned, and why: "
         + "[the original report's experiment](../docs/notes/original-experiment.md).\n\n"
     )
+
+
+def budget_text(args: Args) -> str:
+    """The runs' budget as the section states it: env steps (the committed run's, or --total-env-steps), else
+    minutes."""
+    if args.total_env_steps is not None:
+        return f"{args.total_env_steps:,} env steps"
+    return "the committed run's env steps" if args.env_step_budgets else f"{args.budget_min:g} min"
 
 
 def reported_and_not_here(args: Args) -> dict[str, dict]:
@@ -270,6 +298,9 @@ def main(args: Args) -> dict:
     report = dict(
         env_id=ENV_ID,
         budget_min=args.budget_min,
+        total_env_steps=args.total_env_steps,
+        env_step_budgets=args.env_step_budgets,
+        max_minutes=args.max_minutes,
         seed=args.seed,
         original_report=REPORT,
         status=status,

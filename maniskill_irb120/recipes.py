@@ -11,11 +11,13 @@ module string (``agents.dagger``), which only a source checkout has; nothing in 
 The budget kinds are the issues' targets: ``short`` (imitation from state, and the camera within the hour,
 SHORT_BUDGET_MIN), ``long`` (the camera, and RL with demos, LONG_BUDGET_MIN), ``rl`` (RL from the reward alone,
 RL_BUDGET_MIN of the task) and ``vision`` (a camera policy from the reward alone, VISION_BUDGET_MIN of the task).
+Those minutes are what the committed results were held to; ENV_STEP_BUDGETS restates each committed recipe's budget
+in env steps, the budget a run is held to now (the minutes a guard and a note).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 
 class Recipe(NamedTuple):
@@ -157,6 +159,32 @@ VISION_BUDGET_MIN = {"GraspLift-IRB120-v1": 120.0, "TableClearing-IRB120-v1": 15
 """a camera policy from the reward alone, every stage together, minutes per run (targets: GraspLift 90 % within
 120, TableClearing 90 % within 150)"""
 DEFAULT_ENV = "TableClearing-IRB120-v1"
+# task -> recipe -> (env steps per run, the first stage's of a two-stage recipe): the budget in env steps, since the
+# host's speed moved several-fold between days and a minute budget measures the machine. Each is the mean env steps of
+# the recipe's committed runs on that task (benchmarks/results/learning/**/learning.json, rounded to a step), so a run
+# held to it repeats what the committed row trained; the minutes those runs were held to are the note after each
+ENV_STEP_BUDGETS: dict[str, dict[str, tuple[int, Optional[int]]]] = {
+    "TableClearing-IRB120-v1": {
+        "dagger-state": (205_835, None),  # 3 runs of 60 min
+        "dagger-rgbd": (158_615, None),  # 3 runs of 120 min
+        "dagger-rgbd-bf16": (115_183, None),  # 3 runs of 60 min
+        "dagger-rgbd-bf16-dr": (181_222, None),  # 1 run of 60 min
+        "sac-state": (49_726, None),  # 3 runs of 20 min
+        "ppo-state": (381_611, None),  # 3 runs of 27 min
+        "ppo-rgbd-dense": (1_282_048, None),  # 1 run of 150 min
+        "ppo-rgbd": (967_680, None),  # 1 run of 150 min
+        "ppo-finetune-state": (297_099, 69_433),  # 3 runs of 25 min, both stages
+        "teacher-student-rgbd": (2_022_863, 1_818_624),  # 3 runs of 150 min, both stages
+        "teacher-student-rgbd-sel": (2_043_141, 1_951_915),  # 3 runs of 150 min, both stages
+    },
+    "GraspLift-IRB120-v1": {
+        "ppo-state": (824_960, None),  # 4 runs of 36 min
+        "sac-scratch-state": (225_751, None),  # 2 runs of 90 min
+        "teacher-student-rgbd": (1_684_889, 1_347_755),  # 3 runs of 120 min, both stages
+        "teacher-student-rgbd-sel": (805_187, 614_741),  # 3 runs of 120 min, both stages
+    },
+    "StackCube-IRB120-v1": {"ppo-state": (678_400, None)},  # 1 run of 50 min
+}
 
 
 def recipe_flags(recipe: str, env_id: str) -> list[str]:
@@ -173,6 +201,12 @@ def base_share(recipe: str, env_id: str) -> float:
 def seeded(flags: list[str], seed) -> list[str]:
     """A recipe's flags for one seed (a flag may name a file per seed, e.g. the policy it starts from)."""
     return [f.replace("{seed}", str(seed)) for f in flags]
+
+
+def env_step_budget(recipe: str, env_id: str) -> Optional[tuple[int, Optional[int]]]:
+    """(env steps per run, its first stage's for a two-stage recipe) of ``recipe`` on ``env_id`` (ENV_STEP_BUDGETS),
+    or None where no committed run says how many (a recipe never run on that task keeps its minutes)."""
+    return ENV_STEP_BUDGETS.get(env_id, {}).get(recipe)
 
 
 def budget_min(recipe: str, env_id: str) -> float:

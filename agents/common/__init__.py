@@ -6,7 +6,7 @@ and the frame of a run: its folder, resume, budget clock, checkpoint and final e
 the library ``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
 ``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
 
-from agents.common.args import RunArgs, cli, recipe_argv
+from agents.common.args import RunArgs, check_budget, cli, entry, recipe_argv
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset
 from agents.common.checkpoints import args_json, atomic_save, load_for_evaluation, load_torch, rng_state, set_rng_state
 from agents.common.envs import (
@@ -42,10 +42,12 @@ from agents.common.run import (
     check_resume_signature,
     checkpoint,
     close_and_save,
+    env_step_budget,
     evaluate_and_finish,
     held_out_evaluation,
     open_run,
     restore,
+    wall_guard_s,
 )
 
 __all__ = [
@@ -68,9 +70,12 @@ __all__ = [
     "autocast",
     "budget_bar",
     "check_resume_signature",
+    "check_budget",
     "checkpoint",
     "cli",
     "close_and_save",
+    "entry",
+    "env_step_budget",
     "evaluate_and_finish",
     "evaluate_checkpoint",
     "evaluate_on_seeds",
@@ -97,4 +102,5 @@ __all__ = [
     "torch_threads",
     "train_seed",
     "vec_envs",
+    "wall_guard_s",
 ]

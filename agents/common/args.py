@@ -1,11 +1,14 @@
-"""The flags every trainer shares (``RunArgs``): the task, the seed, the wall-clock budget, the held-out
+"""The flags every trainer shares (``RunArgs``): the task, the seed, the budget, the held-out
 evaluation, the device and env backend, where runs go, resuming and evaluating a checkpoint, and the loggers.
 
 ``--backend``: ``gpu`` is ManiSkill's GPU-batched physx_cuda env (``--num-envs`` in one process); ``cpu`` is
 ``--num-envs`` worker processes (1: one env in this process); ``auto`` picks gpu when CUDA is available.
-``--resume`` continues a run: networks, optimisers, data, counters and RNG, the budget counting the time
-already spent. Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs
-another one.
+``--resume`` continues a run: networks, optimisers, data, counters and RNG, the budget counting the env steps
+(and the guard the time) already spent. ``--total-env-steps`` is the budget, since a host's speed moves several-fold
+and a minute budget measures the machine; ``--max-minutes`` (``--budget-min``, its old name) only guards the wall
+clock. A zero or negative budget is refused (:func:`check_budget`); from the command line in one line, exit status 2
+(:func:`entry`).
+Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs another one.
 
 ``--recipe NAME`` (:func:`cli`) runs a named recipe of ``maniskill_irb120/recipes.py``, the one place recipes are
 written: its flags for the task of ``--env-id`` (the task's own additions included) go first and the command
@@ -14,7 +17,11 @@ line's after them, so an explicit flag overrides the recipe's (the last of a rep
 from __future__ import annotations
 
 import ast
+import contextlib
+import io
+import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import UnionType
@@ -33,8 +40,14 @@ class RunArgs:
     """the task (a registered ManiSkill env id)"""
     seed: int = 1
     """seeds torch/numpy and the training episodes (always below the held-out evaluation seeds)"""
+    total_env_steps: Optional[int] = None
+    """the budget: a step of training (a PPO iteration, a SAC env step and its updates, a DAgger round) starts only
+    while fewer env steps than this are done, counting the run's before a --resume (None: the trainer's own)"""
+    max_minutes: Optional[float] = None
+    """a wall-clock guard: training stops once its next step would end past this many minutes (counting the run's
+    before a --resume); a run it stops before --total-env-steps says so ("stopped_early")"""
     budget_min: Optional[float] = None
-    """wall-clock minutes of training (the final evaluation is extra)"""
+    """the old name of --max-minutes (kept for the committed runs and recipes that pass it; --max-minutes wins)"""
     eval_episodes: int = 100
     """final evaluation episodes on held-out seeds (agents.common.EVAL_SEED onwards)"""
     device: str = "auto"
@@ -123,17 +136,97 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
     return [*seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed), *argv]
 
 
-def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None) -> A:
+BUDGET_FLAGS = {
+    "total_env_steps": "env steps",
+    "total_timesteps": "env steps",
+    "timesteps": "env steps",
+    "max_minutes": "minutes",
+    "budget_min": "minutes",
+    "max_wall_s": "seconds",
+}
+"""the budget and guard fields a trainer may have, and their units"""
+
+
+def check_budget(args) -> None:
+    """ValueError naming the flag when a budget or guard is zero or negative: such a run would train nothing, write
+    a checkpoint and exit 0, which reads as success to whoever chains runs."""
+    for name, unit in BUDGET_FLAGS.items():
+        value = getattr(args, name, None)
+        if value is not None and not value > 0:
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(f"{flag} must be a positive number of {unit}, got {value}")
+
+
+def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, one_line: bool = False) -> A:
     """A trainer's command line (``sys.argv`` by default) parsed into ``args_type``, ``--recipe`` expanded first.
     With ``--resume CKPT`` every flag the command line leaves out is the resumed run's own, read from the checkpoint
     (:func:`resumed_args`): ``--resume`` alone continues the run as it was started, and a flag given again (a longer
-    ``--budget-min``) overrides it."""
+    ``--total-env-steps``) overrides it. A zero or negative budget is a ValueError (:func:`check_budget`), and so,
+    with ``one_line``, is tyro's own parse error (else its panel and exit 2)."""
     argv = sys.argv[1:] if argv is None else argv
+    parse = _parse if one_line else (lambda t, a, **kw: tyro.cli(t, args=a, **kw))
     resume = _flag(argv, "--resume")
     if resume is None or resume == "None":
-        return tyro.cli(args_type, args=recipe_argv(module, argv, args_type.env_id, args_type.seed))
-    started = resumed_args(args_type, Path(resume))
-    return tyro.cli(args_type, args=recipe_argv(module, argv, started.env_id, started.seed), default=started)
+        args = parse(args_type, recipe_argv(module, argv, args_type.env_id, args_type.seed))
+    else:
+        started = resumed_args(args_type, Path(resume))
+        args = parse(args_type, recipe_argv(module, argv, started.env_id, started.seed), default=started)
+    check_budget(args)
+    return args
+
+
+def entry(
+    args_type: type[A], module: str, main: Callable[[A], object], argv: Optional[list[str]] = None, recipes: bool = True
+):
+    """A trainer's ``python -m``: :func:`cli` (``recipes`` False: tyro alone, for a trainer without ``--recipe`` and
+    with a ``--resume`` of its own), then ``main``. A command line that cannot run ends before any env is built with
+    one line on stderr and exit status 2, not a traceback or tyro's boxed panel, so that a script chaining runs reads
+    one reason (errors of the run itself keep their traceback)."""
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        if recipes:
+            args = cli(args_type, module, argv, one_line=True)
+        else:
+            args = _parse(args_type, argv)
+            check_budget(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"{module}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return main(args)
+
+
+def _parse(args_type: type[A], argv: list[str], **kw) -> A:
+    """tyro's parse, its error (a multi-line panel on stderr, then exit 2) turned into ValueError with the panel's
+    first section on one line; --help and its exit 0 are left alone."""
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return tyro.cli(args_type, args=argv, **kw)
+    except SystemExit as e:
+        if e.code in (0, None):
+            sys.stderr.write(err.getvalue())
+            raise
+        raise ValueError(_one_line(err.getvalue()) or f"bad command line (tyro exit {e.code})") from None
+
+
+def _one_line(panel: str) -> str:
+    """A tyro error panel's first section (the reason) as one line: its title, frame, rules and line breaks removed
+    (a rule is a run of dashes, which rich draws as box lines on a terminal and as ASCII elsewhere)."""
+    sections: list[list[str]] = [[]]
+    for line in panel.splitlines():
+        if _RULE.search(line):
+            sections.append([])
+            continue
+        text = line.strip().strip("│|┃").strip()
+        if text:
+            sections[-1].append(text)
+    found = [s for s in sections if s]
+    if len(found) > 1 and len(found[0]) == 1 and found[0][0].lower().endswith("error"):
+        found = found[1:]  # the panel's title ("Value error") on a line of its own, as rich draws it off a terminal
+    return " ".join(" ".join(found[0] if found else []).split())
+
+
+_RULE = re.compile(r"[─━═-]{10,}")
 
 
 def resumed_args(args_type: type[A], path: Path) -> A:

@@ -1,5 +1,5 @@
 """What a run reports: TensorBoard always (W&B and Comet when asked) under the same metric names, a tqdm bar over
-the wall-clock budget, and the ``summary.json`` + one printed JSON line a run ends with; and :func:`read_scalars`,
+the budget, and the ``summary.json`` + one printed JSON line a run ends with; and :func:`read_scalars`,
 which reads a run's TensorBoard logs back whole, across its resumes."""
 
 from __future__ import annotations
@@ -72,13 +72,13 @@ class Logger:
             self.comet.end()
 
 
-def budget_bar(args: RunArgs, budget_s: float, spent_s: float, desc: str):
-    """A tqdm bar over the wall-clock budget (None with --no-progress)."""
+def budget_bar(args: RunArgs, budget: float, spent: float, desc: str, unit: str = "s"):
+    """A tqdm bar over the budget, seconds or env steps (None with --no-progress)."""
     if not args.progress:
         return None
     from tqdm import tqdm
 
-    return tqdm(total=int(budget_s), initial=int(spent_s), unit="s", desc=desc, dynamic_ncols=True)
+    return tqdm(total=int(budget), initial=int(spent), unit=unit, desc=desc, dynamic_ncols=True)
 
 
 def finish(result: dict, run_dir: Path) -> dict:

@@ -5,9 +5,11 @@ stops training (:class:`Budget`), the checkpoint's common part and its restore (
 (:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`) and the run's last word
 (:func:`evaluate_and_finish`).
 
-``--budget-min`` means one thing across ``--resume``: the clock counts the seconds trained before the resume (the
-checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so one budget spans
-sessions and a resumed run stops where an uninterrupted one would have."""
+The budget is env steps (``--total-env-steps``), the same for every trainer, since the host's speed moves several-fold
+and a minute budget measures the machine; ``--max-minutes`` is a guard on the wall clock. Both span ``--resume``: the
+env steps are the checkpoint's counters, and the clock counts the seconds trained before the resume (the
+checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so a resumed run stops
+where an uninterrupted one would have."""
 
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from agents.common.args import RunArgs
 from agents.common.checkpoints import args_json, rng_state, set_rng_state
 from agents.common.envs import action_wrappers
 from agents.common.evaluation import EVAL_SEED, evaluate_on_seeds
-from agents.common.logging import finish
+from agents.common.logging import budget_bar, finish
 from maniskill_irb120.wrappers import observation_setup
 
 
@@ -86,27 +88,63 @@ def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
         raise ValueError(f"--resume {resume}: checkpoint {saved['signature']} != this run {signature}")
 
 
-class Budget:
-    """When a trainer stops for its ``--budget-min``: a step (a PPO iteration, a DAgger round) starts only while the
-    longest step so far, plus the validation that may follow it, still ends within the budget. A trainer that
-    stopped once the clock had passed its budget ran a step and a validation past it (a stage of a staged recipe,
-    whose minutes count towards a target, would then overrun it). The longest, not the last: when unsure, stop
-    early. The estimates live in ``counters`` (``step_s``, ``validation_s``) and so in every checkpoint: a
-    ``--resume`` stops where the run would have. Every time is read on ``clock``, the budget's own. ``budget_s``
-    None: no budget, every step starts."""
+def env_step_budget(args: RunArgs) -> Optional[int]:
+    """The run's budget in env steps: ``--total-env-steps``, else a trainer's older ``--total-timesteps`` (PPO, SAC),
+    else None (the wall guard alone, as runs were budgeted before env steps)."""
+    return args.total_env_steps if args.total_env_steps is not None else getattr(args, "total_timesteps", None)
 
-    def __init__(self, budget_s: Optional[float], clock: Clock, counters: dict, validates: bool):
+
+def wall_guard_s(args: RunArgs, default_min: Optional[float] = None) -> Optional[float]:
+    """The wall-clock guard in seconds: ``--max-minutes``, else ``--budget-min`` (its old name), else PPO's
+    ``--max-wall-s``, else ``default_min`` for a run with no env-step budget (DAgger's and SAC's, which have no
+    other end), else None: a run given env steps is not stopped by a clock it did not ask for."""
+    minutes = args.max_minutes if args.max_minutes is not None else args.budget_min
+    if minutes is not None:
+        return 60 * minutes
+    if getattr(args, "max_wall_s", None) is not None:
+        return args.max_wall_s
+    return 60 * default_min if default_min is not None and env_step_budget(args) is None else None
+
+
+class Budget:
+    """When a trainer stops: a step (a PPO iteration, a SAC env step with its updates, a DAgger round) starts only
+    while fewer than ``total_env_steps`` env steps are done (``counters[steps_key]``, so a ``--resume`` goes on
+    counting) and the wall guard ``budget_s`` allows it. The guard lets a step start only while the longest step
+    so far, plus the validation that may follow it, still ends within it: a stage of a staged recipe, whose minutes
+    count towards a target, would otherwise overrun. The longest, not the last: when unsure, stop early. The
+    estimates live in ``counters`` (``step_s``, ``validation_s``) and so in every checkpoint. Every time is read on
+    ``clock``, the budget's own. None for either: no limit of that kind."""
+
+    def __init__(
+        self,
+        budget_s: Optional[float],
+        clock: Clock,
+        counters: dict,
+        validates: bool,
+        total_env_steps: Optional[int] = None,
+        steps_key: str = "env_steps",
+    ):
         self.budget_s, self.clock, self.counters, self.validates = budget_s, clock, counters, validates
+        self.total_env_steps, self.steps_key = total_env_steps, steps_key
         self._t0, self._validating = clock(), 0.0
+
+    def env_steps(self) -> int:
+        return self.counters[self.steps_key]
+
+    def steps_left(self) -> bool:
+        return self.total_env_steps is None or self.env_steps() < self.total_env_steps
 
     def reserve_s(self) -> float:
         """Seconds kept for the validation that ends the run (0 for a run that validates nothing)."""
         return self.counters.get("validation_s", 0.0) if self.validates else 0.0
 
-    def next_step_fits(self) -> bool:
+    def time_fits(self) -> bool:
         if self.budget_s is None:
             return True
         return self.clock() + self.counters.get("step_s", 0.0) + self.reserve_s() <= self.budget_s
+
+    def next_step_fits(self) -> bool:
+        return self.steps_left() and self.time_fits()
 
     def out_of_time(self) -> bool:
         """Within a step (DAgger's updates): only the final validation's time is left."""
@@ -129,6 +167,29 @@ class Budget:
             took = self.clock() - t
             self._validating += took
             self.counters["validation_s"] = max(self.counters.get("validation_s", 0.0), took)
+
+    def stopped_early(self) -> bool:
+        """The guard ended training before its env-step budget (False for a run without one)."""
+        return self.total_env_steps is not None and self.env_steps() < self.total_env_steps
+
+    def report(self) -> dict:
+        """What ``summary.json`` records of the budget, and the line a run the guard stopped prints."""
+        guard = None if self.budget_s is None else self.budget_s / 60
+        early = self.stopped_early()
+        if early:
+            print(f"stopped early at {self.env_steps()} env steps (of {self.total_env_steps})", flush=True)
+        return dict(total_env_steps=self.total_env_steps, max_minutes=guard, stopped_early=early)
+
+    def bar(self, args: RunArgs, desc: str):
+        """A tqdm bar over the env-step budget, else over the guard's seconds (None with --no-progress)."""
+        if self.total_env_steps is not None:
+            return budget_bar(args, self.total_env_steps, self.env_steps(), desc, unit="step")
+        return budget_bar(args, self.budget_s, self.clock(), desc) if self.budget_s is not None else None
+
+    def advance(self, bar) -> None:
+        if bar is not None:
+            done = self.env_steps() if self.total_env_steps is not None else self.clock()
+            bar.n = min(int(done), int(bar.total))
 
 
 def close_and_save(bar, envs, counters: dict, clock: Clock, save: Callable[[dict], object]) -> None:

@@ -1,6 +1,5 @@
-import tyro
-
+from agents.common.args import entry
 from agents.rllib.train import Args, main
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry(Args, "agents.rllib", main, recipes=False)

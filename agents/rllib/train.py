@@ -1,7 +1,7 @@
 """Ray RLlib (new API stack) on our tasks: PPO, APPO or SAC, from one process to a Ray cluster.
 
     python -m agents.rllib --iterations 20                                   # PPO, state, this process samples
-    python -m agents.rllib --algo SAC --num-env-runners 2 --budget-min 30   # two env-runner processes
+    python -m agents.rllib --algo SAC --num-env-runners 2 --total-env-steps 100000   # two env-runner processes
     python -m agents.rllib --obs rgbd --num-env-runners 2                   # 84x84 RGB-D, our CNN encoder
     python -m agents.rllib --address auto --num-env-runners 32              # join a running Ray cluster
     python -m agents.rllib --resume runs/NAME/checkpoints/latest --iterations 40
@@ -22,7 +22,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 import torch
 
-from agents.common import EVAL_SEED, Logger, evaluate_on_seeds, finish, new_eval_dir
+from agents.common import EVAL_SEED, Logger, check_budget, evaluate_on_seeds, finish, new_eval_dir
 from agents.rllib.checkpoint import checkpoint_args, load_module, module_policy, save_checkpoint
 from agents.rllib.env import ENV_NAME, register
 
@@ -60,11 +60,16 @@ class Args:
     """CPUs of the local Ray (default: this machine's, at least runners + learners)"""
     iterations: Optional[int] = None
     """stop after this many training iterations in all (counting a resumed run's); default 100 when no
-    --timesteps or --budget-min is given"""
+    --total-env-steps, --timesteps, --max-minutes or --budget-min is given"""
+    total_env_steps: Optional[int] = None
+    """the budget: stop once this many env steps were sampled in all, as every trainer's --total-env-steps"""
     timesteps: Optional[int] = None
-    """stop once this many env steps were sampled in all"""
+    """the older name of --total-env-steps (--total-env-steps wins)"""
+    max_minutes: Optional[float] = None
+    """a wall-clock guard: stop after this many minutes of training in this invocation; a run it stops before
+    --total-env-steps says so ("stopped_early")"""
     budget_min: Optional[float] = None
-    """stop after this many minutes of training in this invocation"""
+    """the older name of --max-minutes (--max-minutes wins)"""
     seed: int = 1
     """seeds RLlib (env runners seed their envs from it) and torch"""
     gamma: float = 0.9
@@ -251,7 +256,10 @@ def env_steps_of(result: dict) -> int:
 def main(args: Args) -> dict:
     if args.evaluate is not None:
         return evaluate(args)
-    if args.iterations is None and args.timesteps is None and args.budget_min is None:
+    check_budget(args)
+    total = args.total_env_steps if args.total_env_steps is not None else args.timesteps
+    guard_min = args.max_minutes if args.max_minutes is not None else args.budget_min
+    if args.iterations is None and total is None and guard_min is None:
         args.iterations = 100
     config = build_config(args)  # argument errors before Ray starts
     if args.resume is not None:
@@ -273,14 +281,15 @@ def main(args: Args) -> dict:
 
         bar = tqdm(total=args.iterations, initial=algo.iteration, unit="iter", desc=f"rllib {args.algo}")
     t0, result, latest, saved_at = time.time(), {}, None, None
-    env_steps = 0
+    env_steps, stopped_early = 0, False
     try:
         while True:
             if args.iterations is not None and algo.iteration >= args.iterations:
                 break
-            if args.timesteps is not None and env_steps >= args.timesteps:
+            if total is not None and env_steps >= total:
                 break
-            if args.budget_min is not None and time.time() - t0 >= 60 * args.budget_min:
+            if guard_min is not None and time.time() - t0 >= 60 * guard_min:
+                stopped_early = total is not None
                 break
             t_iter, steps_before = time.time(), env_steps
             result = algo.train()
@@ -309,7 +318,12 @@ def main(args: Args) -> dict:
         checkpoint=str(latest) if latest else None,
         train_success_rate=scalars_of(result).get("train/success_rate"),
         wall_clock_s=round(time.time() - t0, 1),
+        total_env_steps=total,
+        max_minutes=guard_min,
+        stopped_early=stopped_early,
     )
+    if stopped_early:
+        print(f"stopped early at {env_steps} env steps (of {total})", flush=True)
     summary["success_rate"] = summary["train_success_rate"]
     if args.eval_episodes > 0 and latest is not None:
         final = held_out_eval(args, latest, args.eval_episodes, None)

@@ -516,3 +516,15 @@ def test_a_student_stopped_by_its_budget_validates_its_last_round_once(tmp_path,
     monkeypatch.setattr(dagger, "final_evaluation", scripted)
     res = tiny(tmp_path, select_episodes=2, select_freq=1000)
     assert len(validations) == 1 and res["selected"]["round"] == res["rounds"]
+
+
+def test_an_env_step_budget_ends_the_rounds_and_spans_a_resume(tmp_path, tiny):
+    """--total-env-steps alone (no wall guard): round 0 always runs, and a round starts only while the run, counting
+    its env steps before a --resume, is below the budget."""
+    first = tiny(tmp_path, budget_min=None, total_env_steps=1)  # the expert's round passes it
+    assert first["rounds"] == 1 and first["env_steps"] >= 1 and first["stopped_early"] is False
+    assert first["total_env_steps"] == 1 and first["max_minutes"] is None
+    again = tiny(tmp_path, budget_min=None, total_env_steps=1, resume=Path(first["checkpoint"]))
+    assert again["rounds"] == 1 and again["env_steps"] == first["env_steps"]  # nothing left of the budget
+    more = tiny(tmp_path, budget_min=None, total_env_steps=first["env_steps"] + 1, resume=Path(first["checkpoint"]))
+    assert more["rounds"] == 2 and more["env_steps"] > first["env_steps"]

@@ -467,3 +467,25 @@ def test_periodic_checkpoints_keep_the_newest_and_never_latest_or_best(tmp_path)
     assert sorted(p.name for p in tmp_path.glob("*.pt")) == sorted(set(names) - {"ckpt_9.pt"})
     with pytest.raises(ValueError, match="--keep-checkpoints must be >= 0"):
         run(tmp_path, obs="state", keep_checkpoints=-1)
+
+
+def test_the_env_step_budget_spans_a_resume_and_the_summary_records_it(tmp_path):
+    """--total-env-steps is the run's: a resumed run counts the env steps its checkpoint had done, so it trains only
+    what is left of the budget, and one given again (a larger one) trains on to it."""
+    kw = dict(obs="state", state_net="mlp", eval_episodes=0, num_envs=1, num_steps=8, num_minibatches=2)
+    first = run(tmp_path, total_env_steps=16, **kw)
+    assert first["iterations"] == 2 and first["env_steps"] == 16
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    assert summary["total_env_steps"] == 16 and summary["stopped_early"] is False and summary["wall_clock_s"] > 0
+    again = run(tmp_path, total_env_steps=16, resume=Path(first["checkpoint"]), **kw)
+    assert again["iterations_this_run"] == 0 and again["env_steps"] == 16
+    longer = run(tmp_path, total_env_steps=40, resume=Path(again["checkpoint"]), **kw)
+    # 16 done before: 3 iterations of 8 start below 40, the last one ending on it
+    assert longer["iterations_this_run"] == 3 and longer["env_steps"] == 40 and longer["total_env_steps"] == 40
+
+
+def test_a_run_the_guard_stops_before_its_env_steps_says_so(tmp_path, capsys):
+    kw = dict(obs="state", state_net="mlp", eval_episodes=0, num_envs=1, num_steps=8, num_minibatches=2)
+    res = run(tmp_path, total_env_steps=10**6, max_minutes=0.01, **kw)
+    assert res["stopped_early"] is True and res["total_env_steps"] == 10**6 and 0 < res["env_steps"] < 10**6
+    assert f"stopped early at {res['env_steps']} env steps (of 1000000)" in capsys.readouterr().out.splitlines()

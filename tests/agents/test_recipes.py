@@ -94,3 +94,49 @@ def test_resume_alone_continues_with_the_runs_own_flags_and_a_flag_given_again_o
     atomic_save({"weights": 1}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="other.pt: the file holds no run arguments"):
         parsed(module, ["--resume", str(tmp_path / "other.pt")])
+
+
+@pytest.mark.parametrize("module", ["agents.ppo", "agents.dagger", "agents.sac"])
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["--budget-min", "-5"], "--budget-min must be a positive number of minutes, got -5.0"),
+        (["--total-env-steps", "0"], "--total-env-steps must be a positive number of env steps, got 0"),
+        (["--max-minutes", "0"], "--max-minutes must be a positive number of minutes, got 0.0"),
+        (["--total-env-steps", "abc"], "Error parsing --total-env-steps: "),
+    ],
+)
+def test_a_command_line_with_no_budget_is_refused_in_one_line_with_exit_status_2(module, argv, says, capsys):
+    """A zero or negative budget would train nothing, write a checkpoint and exit 0; it ends before any env with one
+    line naming the flag (no traceback, no tyro panel) and exit status 2."""
+    from agents.common import entry
+
+    ran = []
+    with pytest.raises(SystemExit) as stop:
+        entry(importlib.import_module(module).Args, module, ran.append, argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and not ran and err.count("\n") == 1
+    assert err.startswith(f"{module}: error: {says}")
+
+
+def test_python_m_a_trainer_with_a_negative_budget_exits_2_with_one_line():
+    argv = [sys.executable, "-m", "agents.ppo", "--budget-min", "-5"]
+    out = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr == "agents.ppo: error: --budget-min must be a positive number of minutes, got -5.0\n"
+
+
+def test_the_rllib_trainer_refuses_a_budget_in_one_line_too(capsys):
+    from agents.common import entry
+    from agents.rllib.train import Args
+
+    ran = []
+    for argv, says in [
+        (["--timesteps", "0"], "--timesteps must be a positive number of env steps, got 0"),
+        (["--total-env-steps", "-3"], "--total-env-steps must be a positive number of env steps, got -3"),
+        (["--budget-min", "-5"], "--budget-min must be a positive number of minutes, got -5.0"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            entry(Args, "agents.rllib", ran.append, argv, recipes=False)
+        assert stop.value.code == 2 and capsys.readouterr().err == f"agents.rllib: error: {says}\n"
+    assert not ran

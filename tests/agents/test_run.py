@@ -219,3 +219,52 @@ def test_the_budget_starts_no_step_that_its_longest_step_and_validation_say_woul
     clock.now = 1e9
     assert Budget(None, clock, counters, validates=True).next_step_fits()
     assert not Budget(None, clock, counters, validates=True).out_of_time()
+
+
+def test_the_budget_is_env_steps_counted_on_the_runs_counters_and_the_guard_may_stop_it_early(capsys):
+    clock, counters = FakeClock(), dict(global_step=0)
+    budget = Budget(60.0, clock, counters, validates=False, total_env_steps=100, steps_key="global_step")
+    counters["global_step"] = 99
+    assert budget.next_step_fits()  # a step starts while fewer env steps than the budget are done
+    counters["global_step"] = 100
+    assert not budget.steps_left() and not budget.next_step_fits()
+    assert budget.report() == dict(total_env_steps=100, max_minutes=1.0, stopped_early=False)
+    # a resumed run's counters carry the env steps it had done: the same budget stops it at the same count
+    assert not Budget(None, FakeClock(), dict(counters), False, 100, "global_step").next_step_fits()
+    # the guard stops the run first: the summary and the printed line say so
+    counters["global_step"], clock.now = 40, 61.0
+    assert budget.steps_left() and not budget.next_step_fits() and budget.stopped_early()
+    capsys.readouterr()
+    assert budget.report()["stopped_early"] is True
+    assert capsys.readouterr().out.strip() == "stopped early at 40 env steps (of 100)"
+    # no env-step budget: the guard is the budget, and nothing stopped early
+    assert Budget(60.0, clock, counters, validates=False).report()["stopped_early"] is False
+
+
+def test_the_wall_guard_is_max_minutes_else_its_old_name_else_the_trainers_default_without_env_steps():
+    from agents.common import wall_guard_s
+
+    assert wall_guard_s(Args(max_minutes=2.0, budget_min=5.0)) == 120.0  # the new flag wins
+    assert wall_guard_s(Args(budget_min=5.0)) == 300.0
+    assert wall_guard_s(Args(), 60.0) == 3600.0  # no budget at all: the trainer's default minutes
+    assert wall_guard_s(Args(total_env_steps=1000), 60.0) is None  # env steps asked for: no clock not asked for
+    assert wall_guard_s(Args(total_env_steps=1000, max_minutes=1.0), 60.0) == 60.0
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("total_env_steps", 0, "--total-env-steps must be a positive number of env steps, got 0"),
+        ("total_env_steps", -5, "--total-env-steps must be a positive number of env steps, got -5"),
+        ("max_minutes", 0.0, "--max-minutes must be a positive number of minutes, got 0.0"),
+        ("budget_min", -5.0, "--budget-min must be a positive number of minutes, got -5.0"),
+        ("max_minutes", float("nan"), "--max-minutes must be a positive number of minutes, got nan"),
+    ],
+)
+def test_a_zero_or_negative_budget_is_refused_naming_its_flag(field, value, message):
+    from agents.common import check_budget
+
+    with pytest.raises(ValueError) as refused:
+        check_budget(Args(**{field: value}))
+    assert str(refused.value) == message
+    check_budget(Args(total_env_steps=1, max_minutes=0.5))  # any positive budget runs

@@ -259,3 +259,13 @@ def test_without_demos_the_normaliser_is_fitted_on_the_steps_before_learning(tmp
     std, mean = saved["model"]["critic.norm.std"], saved["model"]["critic.norm.mean"]
     assert torch.isfinite(std).sum() > 10 and not torch.all(mean == 0)  # fitted, not the identity
     assert torch.equal(saved["model"]["target.norm.std"], std)
+
+
+def test_total_env_steps_is_the_budget_with_no_clock_unless_asked_for(tmp_path):
+    """--total-env-steps (over the older --total-timesteps) ends the run, demos counted, with no wall guard of its
+    own; the summary names the budget and that no guard stopped it."""
+    res = tiny(tmp_path, budget_min=None, total_timesteps=10**6, total_env_steps=200)
+    assert 200 <= res["env_steps"] < 200 + 250 and res["total_env_steps"] == 200
+    assert res["max_minutes"] is None and res["stopped_early"] is False
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    assert summary["total_env_steps"] == 200 and summary["env_steps"] == res["env_steps"]

@@ -244,3 +244,52 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
     (tmp_path / "runs" / "project" / "cell" / "stage.json").unlink()  # the student was cut short: only it runs again
     alg.run_project("teacher-student-rgbd", "GraspLift-IRB120-v1", 1, 60.0, "cell", args)
     assert [c[1] for c in calls] == ["cell"]
+
+
+def test_a_cell_budgeted_in_env_steps_trains_them_and_records_its_budget(alg, tmp_path):
+    """SB3 counts the cell's env steps itself (learn's total_timesteps): the cell stops at its budget, not on a clock,
+    and records the budget, no guard, and that nothing stopped it early."""
+    pytest.importorskip("stable_baselines3")
+    cell = "state/GraspLift/sb3-sac/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", num_envs=2, quick=True,
+                    total_env_steps=40, reference_steps=0)  # fmt: skip
+    report = alg.main(args)
+    one = report["cells"][cell]
+    assert one["env_steps"] == 40 and one["total_env_steps"] == 40 and one["stopped_early"] is False
+    assert one["max_minutes"] is None and "budget_min" not in one
+    row = next(r for r in report["rows"] if r["algorithm"] == "sb3-sac" and r["task"] == "GraspLift")
+    assert row["total_env_steps"] == 40
+    pending = next(r for r in report["rows"] if r["algorithm"] == "sb3-td3" and r["task"] == "TableClearing")
+    assert pending["total_env_steps"] == 40 and "(40 env steps budget)" in alg.markdown(report["rows"])
+    # the default budgets are issue 91's, per task and observation
+    default = alg.Args()
+    assert alg.steps_of("state", "GraspLift", default) == 500_000 and alg.steps_of("state", "TableClearing", default)
+    assert alg.steps_of("rgbd", "GraspLift", default) == 1_000_000 and alg.minutes_of(default) is None
+    assert alg.steps_of("state", "GraspLift", alg.Args(budget_min=30.0)) is None  # a cell in minutes, as before
+    with pytest.raises(ValueError, match="--total-env-steps must be positive, got 0"):
+        alg.main(alg.Args(total_env_steps=0, out_dir=tmp_path))
+
+
+def test_the_camera_cell_in_env_steps_gives_its_teacher_the_committed_share(alg, tmp_path, monkeypatch):
+    calls = []
+
+    def fake_trainer(cmd, **kwargs):
+        flags = cmd[3:]
+        name = flags[flags.index("--exp-name") + 1]
+        steps = int(flags[flags.index("--total-env-steps") + 1])
+        calls.append((name, steps, "--budget-min" in flags, flags[flags.index("--max-minutes") + 1]))
+        result = dict(success_rate=0.5, successes=[1, 0], env_steps=steps, wall_clock_s=600.0, checkpoint="/c.pt")
+        line = json.dumps(result)
+        return type("P", (), dict(returncode=0, communicate=lambda self, timeout=None: (line + "\n", "")))()
+
+    monkeypatch.setattr(alg.learning.subprocess, "Popen", fake_trainer)
+    args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs", max_minutes=60.0)
+    for stage in ("cell__base", "cell"):
+        (tmp_path / "runs" / "project" / stage).mkdir(parents=True)
+    r = alg.run_project("teacher-student-rgbd", "GraspLift-IRB120-v1", 1, 60.0, "cell", args, 10**6)
+    from maniskill_irb120.recipes import ENV_STEP_BUDGETS
+
+    total, base = ENV_STEP_BUDGETS["GraspLift-IRB120-v1"]["teacher-student-rgbd"]
+    teacher_steps = round(base / total * 10**6)
+    assert calls == [("cell__base", teacher_steps, False, "60"), ("cell", 10**6 - teacher_steps, False, "50")]
+    assert r["env_steps"] == 10**6
