@@ -20,6 +20,7 @@ import numpy as np
 import tyro
 from stable_baselines3 import PPO
 
+from maniskill_irb120.errors import check_count, usage_errors
 from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
 
@@ -41,6 +42,8 @@ class Args:
 
 
 def main(args: Args) -> PPO:
+    check_count("--num-envs", args.num_envs)
+    check_count("--total-timesteps", args.total_timesteps)
     venv = make_sb3_vec_env(
         args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
     )
@@ -58,4 +61,5 @@ def main(args: Args) -> PPO:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
+        main(tyro.cli(Args))

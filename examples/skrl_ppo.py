@@ -22,6 +22,8 @@ from skrl.memories.torch import RandomMemory
 from skrl.trainers.torch import SequentialTrainer
 from skrl.utils import set_seed
 
+from maniskill_irb120.envs import check_env_id
+from maniskill_irb120.errors import check_count, usage_errors
 from maniskill_irb120.integrations.skrl import make_skrl_env, policy_and_value
 
 
@@ -42,6 +44,9 @@ class Args:
 
 
 def main(args: Args) -> PPO:
+    check_count("--num-envs", args.num_envs)
+    check_count("--total-timesteps", args.total_timesteps)
+    check_env_id(args.env_id)  # before skrl's first log line
     set_seed(args.seed)
     env = make_skrl_env(
         args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
@@ -68,4 +73,5 @@ def main(args: Args) -> PPO:
 
 if __name__ == "__main__":
     torch.set_num_threads(1)
-    main(tyro.cli(Args))
+    with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
+        main(tyro.cli(Args))

@@ -13,6 +13,7 @@ from typing import Literal
 import tyro
 
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
+from maniskill_irb120.errors import UsageError, check_count, say_usage_error
 
 
 def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
@@ -26,6 +27,7 @@ def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, 
     timed afterwards, alone. ``--json``: print the report as JSON; ``--json-path PATH``: also write it there."""
     from maniskill_irb120.diagnostics.doctor import gpu_main, main
 
+    check_count("--jobs", jobs)
     if gpu:
         return gpu_main(json_output=json, json_path=json_path, jobs=jobs)
     return main(json_output=json, json_path=json_path)
@@ -46,6 +48,8 @@ def collect_demos(
     """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json). ``--control-mode
     pd_joint_pos`` records the joint targets the expert's tool actions command, which ManiSkill's replay tool
     converts to its other modes (``-c pd_joint_delta_pos``, ``-c pd_ee_delta_pose``)."""
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.experts.demos import collect_demos as collect
 
     print(
@@ -78,7 +82,8 @@ def expert(
     """Run a task's scripted expert on seeds seed..seed+episodes-1; print one JSON line (success_rate,
     episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode.
     ``--reactive``: the expert reads its phase from the state each step (the one DAgger relabels with)."""
-    import maniskill_irb120  # noqa: F401
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.experts.rollout import run_expert
 
     kwargs = dict(reconfiguration_freq=1) if object_shape == "random" else {}
@@ -269,6 +274,8 @@ def sim2real_eval(
     (arrived: what the sim's settled drives show; command latency then costs time only, and ``--sim-shift`` leaves
     it out of the sim side) or after one fixed 50 ms period (period: the robot still moving when read).
     Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.sim2real.eval import EvalConfig
     from maniskill_irb120.sim2real.eval import main as eval_main
 
@@ -340,6 +347,9 @@ def teleop(
     50 ms period, every step through the safety envelope. Prints one JSON line at the end."""
     from maniskill_irb120.teleop.devices import Merged, open_device
 
+    check_count("--max-episode-steps", max_episode_steps)
+    if robot is None:
+        _check_env_id(env_id)
     try:
         dev = open_device(device)
     except (ValueError, RuntimeError) as e:  # no such device, not plugged in, not a terminal
@@ -395,6 +405,15 @@ def _jog(robot: str, dev, frame: str, step_mm: float, step_deg: float) -> int:
     return 0
 
 
+def _check_env_id(env_id: str) -> None:
+    """A wrong ``--env-id`` refused before anything is built, naming the package's tasks and the nearest one."""
+    from maniskill_irb120.envs import check_env_id
+
+    check_env_id(env_id)
+
+
+PROG = "maniskill-irb120"
+
 COMMANDS = {
     "doctor": doctor,
     "export-policy": export_policy,
@@ -409,7 +428,15 @@ COMMANDS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    return int(tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv) or 0)
+    """Run the subcommand ``argv`` names. A :class:`~maniskill_irb120.errors.UsageError` (a wrong env id, a missing
+    or unreadable file, a count below 1) is printed as one line and exits with status 2, as tyro's own flag errors
+    do; anything else keeps its traceback."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        return int(tyro.extras.subcommand_cli_from_dict(COMMANDS, prog=PROG, args=argv) or 0)
+    except UsageError as e:
+        sub = next((a for a in argv if a in COMMANDS), None)
+        return say_usage_error(f"{PROG} {sub}" if sub else PROG, e)
 
 
 if __name__ == "__main__":
