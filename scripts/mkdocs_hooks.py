@@ -23,14 +23,12 @@ WIDTH = "80"  # the width of the page's code column
 
 
 def _help(argv: list[str]) -> str:
-    """What ``maniskill-irb120 ARGV`` prints (tyro exits after a help)."""
-    import tyro
-
-    from maniskill_irb120.cli import COMMANDS
+    """What ``maniskill-irb120 ARGV`` prints (tyro exits after a subcommand's help)."""
+    from maniskill_irb120.cli import main
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-        tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="maniskill-irb120", args=argv)
+        main(argv)
     return out.getvalue().rstrip()
 
 
