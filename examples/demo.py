@@ -14,11 +14,10 @@ import gymnasium as gym
 import imageio.v2 as imageio
 import numpy as np
 import torch
-import tyro
 
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120.envs import check_env_id
-from maniskill_irb120.errors import check_count, usage_errors
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.experts.rollout import run_episode
 
@@ -111,4 +110,4 @@ def main(args: Args) -> dict:
 
 if __name__ == "__main__":
     with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
-        main(tyro.cli(Args))
+        main(parse_flags(Args, Path(__file__).name))

@@ -20,10 +20,9 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tyro
 from stable_baselines3 import PPO
 
-from maniskill_irb120.errors import check_count, usage_errors
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
 from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
 
@@ -76,4 +75,4 @@ def main(args: Args) -> PPO:
 
 if __name__ == "__main__":
     with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
-        main(tyro.cli(Args))
+        main(parse_flags(Args, Path(__file__).name))

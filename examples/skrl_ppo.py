@@ -19,14 +19,13 @@ from pathlib import Path
 from typing import Optional
 
 import torch
-import tyro
 from skrl.agents.torch.ppo import PPO, PPO_CFG
 from skrl.memories.torch import RandomMemory
 from skrl.trainers.torch import SequentialTrainer
 from skrl.utils import set_seed
 
 from maniskill_irb120.envs import check_env_id
-from maniskill_irb120.errors import check_count, usage_errors
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
 from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value
 
 
@@ -91,4 +90,4 @@ def main(args: Args) -> PPO:
 if __name__ == "__main__":
     torch.set_num_threads(1)
     with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
-        main(tyro.cli(Args))
+        main(parse_flags(Args, Path(__file__).name))

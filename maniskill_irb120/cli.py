@@ -3,7 +3,9 @@ tyro). ``python -m maniskill_irb120`` forwards here."""
 
 from __future__ import annotations
 
+import functools
 import inspect
+import io
 import ipaddress
 import json
 import math
@@ -15,7 +17,7 @@ from typing import Annotated, Any, Literal, Union
 import tyro
 
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
-from maniskill_irb120.errors import UsageError, check_count, nearest, say_usage_error
+from maniskill_irb120.errors import UsageError, check_count, nearest, say_usage_error, tyro_error_line
 
 
 def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
@@ -539,6 +541,19 @@ def _usage() -> str:
     )
 
 
+def _parsed(fn, stderr, held: io.StringIO):
+    """``fn`` for tyro to call once it has parsed the flags: ``stderr`` is given back first, with anything tyro wrote
+    to it meanwhile."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        sys.stderr = stderr
+        stderr.write(held.getvalue())
+        return fn(*args, **kwargs)
+
+    return call
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the subcommand ``argv`` names. A :class:`~maniskill_irb120.errors.UsageError` (a wrong env id, a missing
     or unreadable file, a count below 1) is printed as one line and exits with status 2, as tyro's own flag errors
@@ -551,15 +566,29 @@ def main(argv: list[str] | None = None) -> int:
         hint = nearest(argv[0], COMMANDS)
         print(f"{PROG}: no command {argv[0]!r}{hint}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
         return 2
+    sub = next((a for a in argv if a in COMMANDS), None)
+    prog = f"{PROG} {sub}" if sub else PROG
+    stderr, held = sys.stderr, io.StringIO()
     subcommands = [
-        Annotated[Any, tyro.conf.subcommand(name, constructor=fn, description=_plain(fn.__doc__))]
+        Annotated[
+            Any, tyro.conf.subcommand(name, constructor=_parsed(fn, stderr, held), description=_plain(fn.__doc__))
+        ]
         for name, fn in COMMANDS.items()
     ]
+    sys.stderr = held  # tyro's error box, made one line below; the command gets stderr back once it runs
     try:
         return int(tyro.cli(Union[tuple(subcommands)], prog=PROG, args=argv) or 0)  # noqa: UP007
+    except SystemExit as e:
+        if sys.stderr is not held or e.code in (0, None) or not held.getvalue().strip():
+            raise
+        sys.stderr = stderr
+        print(f"{prog}: {tyro_error_line(held.getvalue(), prog)}", file=stderr)
+        return 2
     except UsageError as e:
-        sub = next((a for a in argv if a in COMMANDS), None)
-        return say_usage_error(f"{PROG} {sub}" if sub else PROG, e)
+        return say_usage_error(prog, e)
+    finally:
+        if sys.stderr is held:  # not given back: tyro printed a help, or the parse failed
+            sys.stderr = stderr
 
 
 if __name__ == "__main__":

@@ -7,9 +7,14 @@ Imports nothing of the package, so every layer (the wire side and ``policies/`` 
 from __future__ import annotations
 
 import difflib
+import io
+import re
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class UsageError(ValueError):
@@ -48,3 +53,41 @@ def usage_errors(prog: str) -> Iterator[None]:
         yield
     except UsageError as e:
         raise SystemExit(say_usage_error(prog, e)) from None
+
+
+def tyro_error_line(box: str, prog: str) -> str:
+    """tyro's error box (a malformed value, an unknown or a missing flag) as one line: its first section (what is
+    wrong), the first flag of its "Perhaps you meant" list, and where the flags are listed."""
+    sections: list[list[str]] = [[]]
+    for line in box.splitlines():
+        text = line.strip().strip("│╭╮╰╯").strip()
+        if text and set(text) <= set("─ "):
+            sections.append([])
+        elif text and not line.strip().startswith(("╭", "╰")):  # not the box's top or bottom edge
+            sections[-1].append(text)
+    what = " ".join(sections[0]).rstrip(".")
+    if what.startswith("Missing from"):  # each missing flag with its metavar and help: the flags say enough
+        what = "missing " + ", ".join(re.findall(r"--[\w-]+", what))
+    meant = next((s for s in sections if s and s[0].startswith("Perhaps you meant")), [])
+    flag = re.search(r"--[\w-]+", " ".join(meant[1:2]))
+    return f"{what}{f' (did you mean {flag.group(0)}?)' if flag else ''}; {prog} --help lists the flags"
+
+
+def parse_flags(args_type: type[T], prog: str, argv: Sequence[str] | None = None) -> T:
+    """``tyro.cli(args_type)`` for a script's flags, with tyro's error box (a malformed value, an unknown flag) said
+    in one line on stderr and exit status 2; ``--help`` as tyro prints it."""
+    import tyro
+
+    stderr, held = sys.stderr, io.StringIO()
+    sys.stderr = held
+    try:
+        return tyro.cli(args_type, prog=prog, args=argv)
+    except SystemExit as e:
+        if e.code in (0, None) or not held.getvalue().strip():
+            raise
+        print(f"{prog}: {tyro_error_line(held.getvalue(), prog)}", file=stderr)
+        raise SystemExit(2) from None
+    finally:
+        sys.stderr = stderr
+        if held.getvalue() and not held.getvalue().lstrip().startswith("╭"):  # a warning, not an error box
+            stderr.write(held.getvalue())

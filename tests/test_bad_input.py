@@ -1,7 +1,8 @@
 """Bad input answered in one line: every command line a newcomer meets first (``maniskill-irb120``'s subcommands,
-``examples/*.py``) is run here as a program, as a user runs it, with a wrong env id, a missing or unreadable file or
-a count below 1, and must exit with status 2 and one stderr line that names the problem and the fix, with no
-traceback. Each is refused before an env is built, so a case takes the interpreter's start and imports only.
+``examples/*.py``) is run here as a program, as a user runs it, with a wrong env id, a missing or unreadable file,
+a count below 1, a misspelt flag or a malformed value, and must exit with status 2 and one stderr line that names
+the problem and the fix, with no traceback. Each is refused before an env is built, so a case takes the
+interpreter's start and imports only.
 
 And a script that follows the ``num_envs > 1`` error's advice (``make_vec_env(..., backend="cpu")``) without an
 ``if __name__ == "__main__":`` guard is told so in one line by the worker that imported it again, instead of
@@ -57,6 +58,11 @@ CASES = {
     "collect-demos, zero episodes": (cli("collect-demos", "--episodes", "0"), ["--episodes 0"]),
     "example, wrong env id": (["examples/sb3_ppo.py", "--env-id", "GraspLift"], ["sb3_ppo.py: unknown env id"]),
     "demo, zero episodes": (["examples/demo.py", "--episodes", "0"], ["demo.py: --episodes 0"]),
+    "misspelt flag": (
+        cli("expert", "--episode", "3"),
+        ["Unrecognized options: --episode, 3", "did you mean --episodes?", "maniskill-irb120 expert --help"],
+    ),
+    "malformed value, example": (["examples/demo.py", "--episodes", "abc"], ["demo.py: Error parsing --episodes"]),
 }
 NEEDS = {"example, wrong env id": "stable_baselines3"}
 
