@@ -150,7 +150,7 @@ class EnvContractMixin:
                 return
         except AssertionError:
             pass
-        raise ValueError(
+        raise UsageError(
             f"obs_mode={obs_mode!r} is not supported; use one of {list(cls.NAMED_OBS_MODES)} or a '+'-joined "
             f"combination of {ALL_VISUAL_TEXTURES} with optional 'state' / 'state_dict', e.g. 'rgb+depth+state'"
         )
