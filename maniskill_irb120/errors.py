@@ -25,11 +25,11 @@ class MissingFile(FileNotFoundError, UsageError):
     """A file the user named is not there. A FileNotFoundError too, so code that catches that still does."""
 
 
-def nearest(given: str, choices: Iterable[str]) -> str:
+def nearest(given: str, choices: Iterable[str], cutoff: float = 0.6) -> str:
     """``" (did you mean 'X'?)"`` for the choice closest to ``given`` (difflib, case ignored), or ``""`` when none is
-    close: the fix for a typo, ready to go inside a message."""
+    as close as ``cutoff`` (difflib's ratio): the fix for a typo, ready to go inside a message."""
     by_lower = {c.lower(): c for c in choices}
-    close = difflib.get_close_matches(given.lower(), list(by_lower), n=1, cutoff=0.6)
+    close = difflib.get_close_matches(given.lower(), list(by_lower), n=1, cutoff=cutoff)
     return f" (did you mean {by_lower[close[0]]!r}?)" if close else ""
 
 

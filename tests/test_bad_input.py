@@ -105,3 +105,24 @@ def test_a_script_without_the_main_guard_is_told_so_in_one_line(tmp_path):
     assert "bootstrapping phase" not in r.stderr and "Connection reset by peer" not in r.stderr, r.stderr[-3000:]
     assert r.stderr.count("Traceback") == 1 and len(lines) < 15, r.stderr[-3000:]
     assert lines[-1].startswith("RuntimeError: a CPU env worker process exited while starting")
+
+
+@pytest.mark.parametrize(
+    "given, meant",
+    [
+        ("grasplift-irb120-v1", "GraspLift-IRB120-v1"),  # case
+        ("TableClearing-v1", "TableClearing-IRB120-v1"),
+        ("PickCube-v2", "PickCube-v1"),  # ManiSkill's own, when near-exact
+        ("PushCube", "PushCube-v1"),
+        ("Foo-v1", None),  # no id is near: none named (not Acrobot-v1 for sharing "-v1")
+    ],
+)
+def test_the_nearest_env_id_is_named_only_when_near(given, meant):
+    import maniskill_irb120  # noqa: F401  (registers the tasks)
+    from maniskill_irb120.envs import check_env_id, task_ids
+    from maniskill_irb120.errors import UsageError
+
+    assert task_ids() == TASKS.split(", ")
+    with pytest.raises(UsageError) as e:
+        check_env_id(given)
+    assert (f"(did you mean {meant!r}?)" in str(e.value)) if meant else "did you mean" not in str(e.value)

@@ -25,5 +25,6 @@ def check_env_id(env_id: str) -> str:
     if env_id in gym.registry:
         return env_id
     ours = task_ids()
-    hint = nearest(env_id, ours) or nearest(env_id, gym.registry)
+    # among every registered id only a near-exact one (PickCube-v2 -> PickCube-v1), not any id that shares "-v1"
+    hint = nearest(env_id, ours) or nearest(env_id, gym.registry, cutoff=0.8)
     raise UsageError(f"unknown env id {env_id!r}{hint}; this package's tasks: {', '.join(ours)}")
