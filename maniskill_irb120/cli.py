@@ -360,11 +360,7 @@ def export_policy(checkpoint: str, out: str, command: str) -> int:
     """
     from maniskill_irb120.policies.section import export_policy as export
 
-    try:
-        print(json.dumps(export(Path(checkpoint), Path(out), command)))
-    except (FileNotFoundError, ValueError) as e:
-        print(f"export-policy: {e}", file=sys.stderr)
-        return 2
+    print(json.dumps(export(Path(checkpoint), Path(out), command)))  # a bad checkpoint or command: UsageError
     return 0
 
 

@@ -152,9 +152,8 @@ def export_policy(src: Path, dst: Path, command: str) -> dict:
     Returns what was written, less the weights."""
     section = read_policy_section(src)
     if not command.strip():
-        raise ValueError(
-            "export-policy: --command must say how the checkpoint was trained (a committed policy is "
-            "reproducible only with it)"
+        raise UsageError(
+            "--command must say how the checkpoint was trained (a committed policy is reproducible only with it)"
         )
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
