@@ -9,6 +9,7 @@ import io
 import ipaddress
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -582,6 +583,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except UsageError as e:
         return say_usage_error(prog, e)
+    except BrokenPipeError:  # `--help | head`: the reader left; nothing more to say, and no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit goes nowhere
+        return 0
     finally:
         if sys.stderr is held:  # not given back: tyro printed a help, or the parse failed
             sys.stderr = stderr

@@ -7,7 +7,11 @@ from __future__ import annotations
 import contextlib
 import inspect
 import io
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -59,3 +63,17 @@ def test_a_misspelt_command_is_one_line_with_the_nearest():
     code, out, err = run(["exper", "--episodes", "3"])
     assert code == 2 and out == "" and len(err.splitlines()) == 1, err
     assert "no command 'exper' (did you mean 'expert'?)" in err and "sim2real-eval" in err
+
+
+def test_help_into_a_closed_pipe_ends_quietly(tmp_path):
+    """``maniskill-irb120 sim2real-eval --help | head -3``: the reader is gone before the help is written."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "maniskill_irb120.cli", "sim2real-eval", "--help"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 0 and err == "", err[-2000:]
