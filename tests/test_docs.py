@@ -151,6 +151,21 @@ def test_every_section_of_a_page_is_in_its_table_of_contents(built):
         h1 = len(re.findall(r"<h1[ >]", body))
         if missing or h1 != 1:
             bad.append(f"{page.relative_to(site)}: {h1} H1, sections not in the table of contents: {missing}")
+    # and each page written by hand has as many sections as its source has ## headings (mkdocstrings' pages add
+    # their own)
+    for src in sorted((REPO / "docs").rglob("*.md")):
+        text = src.read_text()
+        if "\n::: " in text:
+            continue
+        rel = src.relative_to(REPO / "docs").with_suffix("")
+        page = site / (rel.parent if rel.name == "index" else rel) / "index.html"
+        heads, fence = 0, False
+        for line in text.splitlines():
+            fence ^= bool(FENCE.match(line))
+            heads += not fence and line.startswith("## ")
+        built = len(re.findall(r"<h2 id=", page.read_text()))
+        if built != heads:
+            bad.append(f"{src.relative_to(REPO)}: {heads} ## headings, {built} sections on the site")
     assert bad == [], "\n".join(bad)
 
 
