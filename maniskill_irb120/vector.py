@@ -494,7 +494,7 @@ def make_vec_env(
 
     check_env_id(env_id)
     if backend not in ("auto", "gpu", "cpu", "inprocess"):
-        raise ValueError(f"unknown backend {backend!r}; use 'auto', 'gpu', 'cpu' or 'inprocess'")
+        raise UsageError(f"unknown backend {backend!r}; use 'auto', 'gpu', 'cpu' or 'inprocess'")
     if backend == "auto":
         backend = "gpu" if torch.cuda.is_available() else ("inprocess" if num_envs == 1 else "cpu")
     if backend in ("gpu", "inprocess"):
@@ -505,7 +505,7 @@ def make_vec_env(
             raise ValueError(f"backend={backend!r} runs {sim}, got sim_backend={given!r}")
     if backend == "gpu":
         if not torch.cuda.is_available():
-            raise ValueError("backend='gpu' needs CUDA; none is available here (use backend='cpu')")
+            raise UsageError("backend='gpu' needs CUDA; none is available here (use backend='cpu')")
         env = gym.make(env_id, num_envs=num_envs, sim_backend="physx_cuda", **env_kwargs)
     elif backend == "inprocess":
         if num_envs != 1:
