@@ -45,12 +45,17 @@ def resolve_policy(policy: str) -> str:
             entries = json.loads(manifest.read_text())["policies"]
             if policy in entries:
                 return str(manifest.parent / entries[policy]["file"])
-    manifests = list(dict.fromkeys(policy_manifests()))  # from the checkout's root the two are one file
-    names = sorted({n for m in manifests if m.is_file() for n in json.loads(m.read_text())["policies"]})
+    manifests = [m for m in dict.fromkeys(policy_manifests()) if m.is_file()]  # from the checkout's root: one file
+    names = sorted({n for m in manifests for n in json.loads(m.read_text())["policies"]})
+    where = (
+        f"nor a name in {' or '.join(map(str, manifests))}{nearest(policy, names)}"
+        if manifests
+        else f"and no policies MANIFEST.json to read names from (${MANIFEST_ENV} names one)"
+    )
+    listed = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
     raise MissingFile(
-        f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file, nor a name in "
-        + " or ".join(str(m) for m in manifests)
-        + (f"{nearest(policy, names)}; its names: {', '.join(names)}" if names else "")
+        f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file, {where}"
+        + (f"; its names: {listed}" if names else "")
     )
 
 
