@@ -14,9 +14,10 @@ import gymnasium as gym
 import imageio.v2 as imageio
 import numpy as np
 import torch
-import tyro
 
 import maniskill_irb120  # noqa: F401
+from maniskill_irb120.envs import check_env_id
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.experts.rollout import run_episode
 
@@ -57,6 +58,8 @@ class StepTimer(gym.Wrapper):
 
 
 def main(args: Args) -> dict:
+    check_env_id(args.env_id)
+    check_count("--episodes", args.episodes)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     env = StepTimer(
         gym.make(
@@ -106,4 +109,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
+        main(parse_flags(Args, Path(__file__).name))

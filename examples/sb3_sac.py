@@ -8,18 +8,22 @@ SB3's SAC defaults (batch 256, one update per env step, gamma 0.99, tau 0.005, l
 first): ``MlpPolicy`` on the state vector, ``MultiInputPolicy`` on the camera, whose replay buffer holds
 --buffer-size transitions (SB3's 1e6 would be 57 GB of 4x84x84 images; 30 000 are 1.7 GB). SB3 keeps a cut-off
 episode's last transition non-terminal from the adapter's ``TimeLimit.truncated`` and ``terminal_observation``.
+SB3's progress bar shows the env steps, their rate and the time left (on the camera, the first --learning-starts
+steps are quick and the updates slow); the model is saved under --out-dir, after a Ctrl-C too.
 """
 
 from __future__ import annotations
 
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tyro
 from stable_baselines3 import SAC
 
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
 from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
 
@@ -42,6 +46,8 @@ class Args:
 
 
 def main(args: Args) -> SAC:
+    check_count("--num-envs", args.num_envs)
+    check_count("--total-timesteps", args.total_timesteps)
     venv = make_sb3_vec_env(
         args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
     )
@@ -56,13 +62,25 @@ def main(args: Args) -> SAC:
         tensorboard_log=str(args.out_dir),
         verbose=1,
     )
-    model.learn(args.total_timesteps)
+    started, interrupted = time.perf_counter(), False
+    try:
+        model.learn(args.total_timesteps, progress_bar=True)  # env steps, steps/s and the time left
+    except KeyboardInterrupt:  # Ctrl-C: the model learnt so far is saved all the same
+        interrupted = True
     model.save(args.out_dir / "model")
     venv.close()
+    steps, seconds = model.num_timesteps, time.perf_counter() - started
+    if interrupted:
+        print(f"interrupted (Ctrl-C) at {steps} env steps; model so far: {args.out_dir}/model.zip", file=sys.stderr)
+        raise SystemExit(130)
     successes = list(model.ep_success_buffer)
-    print(f"training-episode success, last {len(successes)} episodes: {np.mean(successes or [0]):.2f}")
+    print(
+        f"{steps} env steps in {seconds:.0f} s ({steps / seconds:.1f} env steps/s); training-episode success, last "
+        f"{len(successes)} episodes: {np.mean(successes or [0]):.2f}; model: {args.out_dir / 'model.zip'}"
+    )
     return model
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
+        main(parse_flags(Args, Path(__file__).name))

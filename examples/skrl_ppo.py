@@ -6,23 +6,27 @@
 skrl's PPO configuration as it comes (``PPO_CFG``'s defaults: 16 rollout steps per env, 8 epochs, 2 minibatches,
 gamma 0.99, lambda 0.95) but for ``time_limit_bootstrap``: the tasks cut episodes at a step limit, which is no
 failure, so a cut-off episode's value is bootstrapped. TensorBoard logs under --out-dir: skrl's episode length and
-return, and ``Episode / Success rate (mean)`` from the adapter.
+return, and ``Episode / Success rate (mean)`` from the adapter; the agent is saved to --out-dir/agent.pt, after a
+Ctrl-C too, and a last line sums the run up (env steps, env steps/s).
 """
 
 from __future__ import annotations
 
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import torch
-import tyro
 from skrl.agents.torch.ppo import PPO, PPO_CFG
 from skrl.memories.torch import RandomMemory
 from skrl.trainers.torch import SequentialTrainer
 from skrl.utils import set_seed
 
-from maniskill_irb120.integrations.skrl import make_skrl_env, policy_and_value
+from maniskill_irb120.envs import check_env_id
+from maniskill_irb120.errors import check_count, parse_flags, usage_errors
+from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value
 
 
 @dataclass
@@ -42,6 +46,9 @@ class Args:
 
 
 def main(args: Args) -> PPO:
+    check_count("--num-envs", args.num_envs)
+    check_count("--total-timesteps", args.total_timesteps)
+    check_env_id(args.env_id)  # before skrl's first log line
     set_seed(args.seed)
     env = make_skrl_env(
         args.env_id, args.num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode
@@ -61,11 +68,26 @@ def main(args: Args) -> PPO:
     trainer = SequentialTrainer(
         env=env, agents=agent, cfg={"timesteps": steps, "headless": True, "close_environment_at_exit": False}
     )
-    trainer.train()
+    started, interrupted = time.perf_counter(), False
+    try:
+        trainer.train()  # skrl's progress bar: the batch's steps, steps/s and the time left
+    except KeyboardInterrupt:  # Ctrl-C: the agent learnt so far is saved all the same
+        interrupted = True
     env.close()
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    agent.save(str(args.out_dir / "agent.pt"))
+    if interrupted:
+        print(f"interrupted (Ctrl-C); the agent so far: {args.out_dir / 'agent.pt'}", file=sys.stderr)
+        raise SystemExit(130)
+    seconds = time.perf_counter() - started
+    print(
+        f"{steps * env.num_envs} env steps in {seconds:.0f} s ({steps * env.num_envs / seconds:.1f} env steps/s); "
+        f"agent: {args.out_dir / 'agent.pt'}; TensorBoard ({SUCCESS_KEY!r} among them): {agent.experiment_dir}"
+    )
     return agent
 
 
 if __name__ == "__main__":
     torch.set_num_threads(1)
-    main(tyro.cli(Args))
+    with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
+        main(parse_flags(Args, Path(__file__).name))

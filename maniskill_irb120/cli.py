@@ -3,16 +3,22 @@ tyro). ``python -m maniskill_irb120`` forwards here."""
 
 from __future__ import annotations
 
+import functools
+import inspect
+import io
 import ipaddress
 import json
 import math
+import os
+import re
 import sys
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal, Union
 
 import tyro
 
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
+from maniskill_irb120.errors import UsageError, check_count, nearest, say_usage_error, tyro_error_line
 
 
 def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
@@ -23,9 +29,17 @@ def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, 
     trainers' and the benchmark's tiny GPU runs are programs of a source checkout, not of this package: there,
     ``python benchmarks/gpu_acceptance.py`` (same flags) prints this report with them added. ``--jobs N``: N
     checks side by side, each in its own process (the obs-mode sweep split per task and mode); the steps/s are
-    timed afterwards, alone. ``--json``: print the report as JSON; ``--json-path PATH``: also write it there."""
+    timed afterwards, alone. ``--json``: print the report as JSON; ``--json-path PATH``: also write it there.
+
+    Args:
+        json: print the report as JSON
+        gpu: run the GPU acceptance suite (needs CUDA; a few minutes)
+        json_path: also write the report to this file
+        jobs: with --gpu, how many checks run side by side, each in its own process
+    """
     from maniskill_irb120.diagnostics.doctor import gpu_main, main
 
+    check_count("--jobs", jobs)
     if gpu:
         return gpu_main(json_output=json, json_path=json_path, jobs=jobs)
     return main(json_output=json, json_path=json_path)
@@ -45,7 +59,22 @@ def collect_demos(
 ) -> int:
     """Record scripted-expert episodes of a task in ManiSkill's trajectory format (h5 + json). ``--control-mode
     pd_joint_pos`` records the joint targets the expert's tool actions command, which ManiSkill's replay tool
-    converts to its other modes (``-c pd_joint_delta_pos``, ``-c pd_ee_delta_pose``)."""
+    converts to its other modes (``-c pd_joint_delta_pos``, ``-c pd_ee_delta_pose``).
+
+    Args:
+        env_id: the task (TableClearing-, GraspLift- or StackCube-IRB120-v1)
+        episodes: how many episodes to run, seeds seed..seed+episodes-1
+        seed: the first episode's seed
+        out_dir: where NAME.h5 and NAME.json go
+        name: the trajectory files' name
+        obs_mode: the observations recorded (none: replay them later with ManiSkill's tool)
+        keep_failures: keep the episodes the expert failed too
+        save_video: write an mp4 per episode beside the trajectories
+        object_shape: cube, cylinder or random (redrawn every episode)
+        control_mode: what is recorded: pd_ee_delta_tool (the tool actions) or pd_joint_pos (the joint targets)
+    """
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.experts.demos import collect_demos as collect
 
     print(
@@ -77,8 +106,18 @@ def expert(
 ) -> int:
     """Run a task's scripted expert on seeds seed..seed+episodes-1; print one JSON line (success_rate,
     episodes, mean_steps, failures, ...). ``object_shape="random"`` redraws the shape every episode.
-    ``--reactive``: the expert reads its phase from the state each step (the one DAgger relabels with)."""
-    import maniskill_irb120  # noqa: F401
+    ``--reactive``: the expert reads its phase from the state each step (the one DAgger relabels with).
+
+    Args:
+        env_id: the task (TableClearing-, GraspLift- or StackCube-IRB120-v1)
+        episodes: how many episodes to run
+        seed: the first episode's seed
+        obs_mode: the env's observations (the expert reads the state either way)
+        object_shape: cube, cylinder or random (redrawn every episode)
+        reactive: the expert reads its phase from the state each step
+    """
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.experts.rollout import run_expert
 
     kwargs = dict(reconfiguration_freq=1) if object_shape == "random" else {}
@@ -298,7 +337,26 @@ def sim2real_eval(
     seeded by the episode seed on both sides). ``--step-end``: a real step ends when the robot stands at its target
     (arrived: what the sim's settled drives show; command latency then costs time only, and ``--sim-shift`` leaves
     it out of the sim side) or after one fixed 50 ms period (period: the robot still moving when read).
-    Prints one JSON line; Ctrl-C stops the robot and still writes the report."""
+    Prints one JSON line; Ctrl-C stops the robot and still writes the report.
+
+    Args:
+        robot: emulator, emulator+serial, tcp://HOST:PORT or serial:///dev/ttyUSB0?baudrate=N
+        policy: expert, a checkpoint file, or a policy's name in benchmarks/results/policies/MANIFEST.json
+        actions: a checkpoint's action: as-trained, mean or sample
+        episodes: how many episodes, each on both sides
+        seed: the first episode's seed (episode k runs seed + k on both sides)
+        shift: how the twin's world differs from the sim, e.g. "camera_fov=80,latency=0.02"
+        sim_shift: put the sim side in the --shift's condition too
+        env_id: the task (TableClearing-, GraspLift- or StackCube-IRB120-v1)
+        camera: twin (emulator only), realsense or none
+        camera_mount: the camera's measured mount, e.g. "camera_pos=X;Y;Z,camera_rot=A;B;C"
+        command_mode: tool_delta (RelTool on the controller) or joint_target (sim IK, MoveAbsJ)
+        step_end: arrived (a real step ends at the target) or period (after one 50 ms period)
+        out: where report.json, report.md and logs/ go
+        operator_timeout_s: real robot: seconds to answer 'delivered? [y/n]' after each episode
+    """
+    check_count("--episodes", episodes)
+    _check_env_id(env_id)
     from maniskill_irb120.sim2real.eval import EvalConfig
     from maniskill_irb120.sim2real.eval import main as eval_main
 
@@ -324,21 +382,27 @@ def sim2real_eval(
 def export_policy(checkpoint: str, out: str, command: str) -> int:
     """Write a trainer checkpoint's policy section alone (no optimiser or replay state: small enough to commit)
     to OUT, with the COMMAND that trained it; ``sim2real-eval --policy OUT`` and the benchmarks read it as they
-    read the checkpoint. Prints one JSON line (its size, kind, task)."""
+    read the checkpoint. Prints one JSON line (its size, kind, task).
+
+    Args:
+        checkpoint: the trainer's checkpoint file
+        out: where the policy section goes
+        command: the command that trained the checkpoint (kept in the file)
+    """
     from maniskill_irb120.policies.section import export_policy as export
 
-    try:
-        print(json.dumps(export(Path(checkpoint), Path(out), command)))
-    except (FileNotFoundError, ValueError) as e:
-        print(f"export-policy: {e}", file=sys.stderr)
-        return 2
+    print(json.dumps(export(Path(checkpoint), Path(out), command)))  # a bad checkpoint or command: UsageError
     return 0
 
 
 def sysid(log: str) -> int:
     """Fit the robot's command latency and speed scaling to a sim2real-eval run's logs (LOG/logs/real_*.npz):
     prints one JSON line (latency_s, speed_scale, RMS joint error of the fit and of the nominal robot) and
-    writes LOG/sysid.json."""
+    writes LOG/sysid.json.
+
+    Args:
+        log: a sim2real-eval run's --out folder
+    """
     from maniskill_irb120.sim2real.sysid import main as sysid_main
 
     sysid_main(log)
@@ -367,9 +431,28 @@ def teleop(
     ``--control-mode pd_joint_pos`` records the joint targets, which ManiSkill's replay tool converts to its other
     modes. ``--robot emulator`` (our RAPID server on the controller emulator) or ``tcp://HOST:PORT`` /
     ``serial:///dev/ttyUSB0?baudrate=N`` (an IRC5): hold-to-run jogging at ``--step-mm`` / ``--step-deg`` per
-    50 ms period, every step through the safety envelope. Prints one JSON line at the end."""
+    50 ms period, every step through the safety envelope. Prints one JSON line at the end.
+
+    Args:
+        env_id: the task (TableClearing-, GraspLift- or StackCube-IRB120-v1)
+        device: keyboard, spacemouse or gamepad
+        frame: the axes x/y/z move along: world or tool
+        control_mode: what is recorded: pd_ee_delta_tool or pd_joint_pos
+        out_dir: where NAME.h5 and NAME.json go
+        name: the trajectory files' name
+        seed: the first episode's seed
+        speed: the share of the action's full step a full deflection commands, in (0, 1]
+        max_episode_steps: an episode's time limit in steps
+        view: auto, window or none: the overview and hand camera in a window
+        robot: jog this robot instead: emulator, tcp://HOST:PORT or serial:///dev/ttyUSB0?baudrate=N
+        step_mm: jogging: millimetres a 50 ms period at full deflection
+        step_deg: jogging: degrees a 50 ms period at full deflection
+    """
     from maniskill_irb120.teleop.devices import Merged, open_device
 
+    check_count("--max-episode-steps", max_episode_steps)
+    if robot is None:
+        _check_env_id(env_id)
     try:
         dev = open_device(device)
     except (ValueError, RuntimeError) as e:  # no such device, not plugged in, not a terminal
@@ -425,6 +508,15 @@ def _jog(robot: str, dev, frame: str, step_mm: float, step_deg: float) -> int:
     return 0
 
 
+def _check_env_id(env_id: str) -> None:
+    """A wrong ``--env-id`` refused before anything is built, naming the package's tasks and the nearest one."""
+    from maniskill_irb120.envs import check_env_id
+
+    check_env_id(env_id)
+
+
+PROG = "maniskill-irb120"
+
 COMMANDS = {
     "doctor": doctor,
     "export-policy": export_policy,
@@ -438,8 +530,95 @@ COMMANDS = {
 }
 
 
+SUMMARY = {
+    "doctor": "check rendering, CUDA and versions (--gpu: GPU acceptance)",
+    "export-policy": "write a checkpoint's policy alone, small enough to commit",
+    "collect-demos": "record scripted-expert episodes as ManiSkill trajectories",
+    "expert": "run a task's scripted expert; print its success rate",
+    "emulator": "run the ABB controller emulator with the RAPID server (or RWS)",
+    "deploy": "deploy the RAPID server to an IRC5 over Robot Web Services",
+    "sim2real-eval": "run a policy in the sim and on a robot; measure the gap",
+    "sysid": "fit latency and speed scaling to a sim2real-eval run's logs",
+    "teleop": "drive a task by hand and record episodes, or jog a robot",
+}
+"""one line per subcommand, for the top-level --help (each subcommand's own --help has its docstring); short enough
+that every line of that help fits 80 columns"""
+
+
+def _plain(doc: str | None) -> str:
+    """A docstring as a terminal shows it: its text before the ``Args:`` section (tyro turns those into the flags'
+    help), with RST's ``literal`` marks taken off."""
+    text = inspect.cleandoc(doc or "").split("\nArgs:\n")[0].strip()
+    return re.sub(r"``(.+?)``", r"\1", text, flags=re.S)
+
+
+def _usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = [f"  {name:<{width}}  {SUMMARY[name]}" for name in COMMANDS]
+    return "\n".join(
+        [
+            f"usage: {PROG} COMMAND [FLAGS]",
+            "",
+            "The ABB IRB 120 on ManiSkill 3: experts, demos, sim-to-real and the robot side.",
+            f"{PROG} COMMAND --help: a command's flags.",
+            "",
+            "commands:",
+            *lines,
+        ]
+    )
+
+
+def _parsed(fn, stderr, held: io.StringIO):
+    """``fn`` for tyro to call once it has parsed the flags: ``stderr`` is given back first, with anything tyro wrote
+    to it meanwhile."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        sys.stderr = stderr
+        stderr.write(held.getvalue())
+        return fn(*args, **kwargs)
+
+    return call
+
+
 def main(argv: list[str] | None = None) -> int:
-    return int(tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv) or 0)
+    """Run the subcommand ``argv`` names. A :class:`~maniskill_irb120.errors.UsageError` (a wrong env id, a missing
+    or unreadable file, a count below 1) is printed as one line and exits with status 2, as tyro's own flag errors
+    do; anything else keeps its traceback."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv in ([], ["-h"], ["--help"]):
+        print(_usage(), file=sys.stdout if argv else sys.stderr)
+        return 0 if argv else 2
+    if not argv[0].startswith("-") and argv[0] not in COMMANDS:
+        hint = nearest(argv[0], COMMANDS)
+        print(f"{PROG}: no command {argv[0]!r}{hint}; commands: {', '.join(COMMANDS)}", file=sys.stderr)
+        return 2
+    sub = next((a for a in argv if a in COMMANDS), None)
+    prog = f"{PROG} {sub}" if sub else PROG
+    stderr, held = sys.stderr, io.StringIO()
+    subcommands = [
+        Annotated[
+            Any, tyro.conf.subcommand(name, constructor=_parsed(fn, stderr, held), description=_plain(fn.__doc__))
+        ]
+        for name, fn in COMMANDS.items()
+    ]
+    sys.stderr = held  # tyro's error box, made one line below; the command gets stderr back once it runs
+    try:
+        return int(tyro.cli(Union[tuple(subcommands)], prog=PROG, args=argv) or 0)  # noqa: UP007
+    except SystemExit as e:
+        if sys.stderr is not held or e.code in (0, None) or not held.getvalue().strip():
+            raise
+        sys.stderr = stderr
+        print(f"{prog}: {tyro_error_line(held.getvalue(), prog)}", file=stderr)
+        return 2
+    except UsageError as e:
+        return say_usage_error(prog, e)
+    except BrokenPipeError:  # `--help | head`: the reader left; nothing more to say, and no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit goes nowhere
+        return 0
+    finally:
+        if sys.stderr is held:  # not given back: tyro printed a help, or the parse failed
+            sys.stderr = stderr
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
@@ -23,7 +24,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from maniskill_irb120.envs import check_env_id
 from maniskill_irb120.envs.contract import as_action_array, check_env_idx, check_finite_actions
+from maniskill_irb120.errors import UsageError
 
 TORCH_THREADS = torch.get_num_threads()
 """torch's intra-op threads when the package was imported, before a CPU worker env set this process to one: what a
@@ -199,7 +202,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         **env_kwargs,
     ):
         if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+            raise UsageError(f"num_envs must be >= 1, got {num_envs}")
         if env_kwargs.get("sim_backend", "physx_cpu") not in ("physx_cpu", "cpu", "auto"):
             raise ValueError(f"CPUVectorEnv workers run physx_cpu, got sim_backend={env_kwargs['sim_backend']!r}")
         env_kwargs.pop("sim_backend", None)
@@ -223,6 +226,11 @@ class CPUVectorEnv(gym.vector.VectorEnv):
                     copy=not self.local_first,
                     autoreset_mode=gym.vector.AutoresetMode.SAME_STEP,
                 )
+            except (EOFError, ConnectionError) as e:  # a worker died before it answered: its own stderr says why
+                raise RuntimeError(
+                    f"a CPU env worker process exited while starting ({type(e).__name__}); its message is above. "
+                    'A script that makes the envs outside if __name__ == "__main__": has each worker run it again'
+                ) from None
             finally:
                 torch.set_num_threads(threads)
                 if lp is None:
@@ -445,6 +453,24 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             self._local.close()
 
 
+def _refuse_in_bootstrapping_worker() -> None:
+    """A worker process that is still importing the parent's main script (``spawn``/``forkserver`` import it again)
+    and reached a ``make_vec_env`` there: the script has no ``if __name__ == "__main__":`` guard, and the worker would
+    start workers of its own. Python's RuntimeError says so in a traceback of some 30 lines, followed by the parent's
+    own for the lost pipe; this says it in one line and ends the worker (the parent then reports a worker that
+    exited while starting)."""
+    import multiprocessing
+
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        print(
+            "make_vec_env(backend='cpu') was called while a worker process imported your script: put the code that "
+            'makes the envs under if __name__ == "__main__": (the workers import the script again)',
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(2)
+
+
 def make_vec_env(
     env_id: str,
     num_envs: int,
@@ -466,8 +492,9 @@ def make_vec_env(
     """
     from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
 
+    check_env_id(env_id)
     if backend not in ("auto", "gpu", "cpu", "inprocess"):
-        raise ValueError(f"unknown backend {backend!r}; use 'auto', 'gpu', 'cpu' or 'inprocess'")
+        raise UsageError(f"unknown backend {backend!r}; use 'auto', 'gpu', 'cpu' or 'inprocess'")
     if backend == "auto":
         backend = "gpu" if torch.cuda.is_available() else ("inprocess" if num_envs == 1 else "cpu")
     if backend in ("gpu", "inprocess"):
@@ -478,13 +505,14 @@ def make_vec_env(
             raise ValueError(f"backend={backend!r} runs {sim}, got sim_backend={given!r}")
     if backend == "gpu":
         if not torch.cuda.is_available():
-            raise ValueError("backend='gpu' needs CUDA; none is available here (use backend='cpu')")
+            raise UsageError("backend='gpu' needs CUDA; none is available here (use backend='cpu')")
         env = gym.make(env_id, num_envs=num_envs, sim_backend="physx_cuda", **env_kwargs)
     elif backend == "inprocess":
         if num_envs != 1:
             raise ValueError("backend='inprocess' runs one CPU env; use backend='cpu' for num_envs > 1")
         env = gym.make(env_id, num_envs=1, sim_backend="physx_cpu", **env_kwargs)
     else:
+        _refuse_in_bootstrapping_worker()
         return CPUVectorEnv(
             env_id,
             num_envs,

@@ -2,7 +2,8 @@
 
 * ``cli.md``: ``maniskill-irb120 --help`` and every subcommand's ``--help``, as tyro prints them.
 * ``results.md``: ``benchmarks/RESULTS.md`` with its links made relative to the site, and the plots and JSON it
-  links (``benchmarks/results/``) beside it.
+  links (``benchmarks/results/``) beside it; a link to that folder goes to the page's list of them (``#files``),
+  since a folder of a static site has no page of its own.
 
 Nothing is fetched from the network.
 """
@@ -22,14 +23,12 @@ WIDTH = "80"  # the width of the page's code column
 
 
 def _help(argv: list[str]) -> str:
-    """What ``maniskill-irb120 ARGV`` prints (tyro exits after a help)."""
-    import tyro
-
-    from maniskill_irb120.cli import COMMANDS
+    """What ``maniskill-irb120 ARGV`` prints (tyro exits after a subcommand's help)."""
+    from maniskill_irb120.cli import main
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-        tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="maniskill-irb120", args=argv)
+        main(argv)
     return out.getvalue().rstrip()
 
 
@@ -54,6 +53,16 @@ def cli_page() -> str:
     return "\n".join(parts) + "\n"
 
 
+RESULTS = ROOT / "benchmarks" / "results"
+FILES_ANCHOR = "files"
+"""the results page's list of the files under ``benchmarks/results/`` the site carries"""
+
+
+def site_files() -> list[Path]:
+    """The JSON and plots of ``benchmarks/results/`` the site carries (its checkpoints stay in the repository)."""
+    return [p for p in sorted(RESULTS.rglob("*")) if p.suffix in (".png", ".json") and p.is_file()]
+
+
 LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
 
 
@@ -68,12 +77,14 @@ def site_links(text: str, source_dir: Path, page_uri: str) -> str:
             return m.group(0)
         path, _, anchor = target.partition("#")
         dest = (source_dir / path).resolve()
-        if dest.is_relative_to(ROOT / "docs"):
+        if dest == RESULTS:
+            site, anchor = Path("results.md"), FILES_ANCHOR
+        elif dest.is_relative_to(ROOT / "docs"):
             site = dest.relative_to(ROOT / "docs")
         elif dest == ROOT / "benchmarks" / "RESULTS.md":
             site = Path("results.md")
-        elif dest.is_relative_to(ROOT / "benchmarks" / "results"):
-            site = Path("results") / dest.relative_to(ROOT / "benchmarks" / "results")
+        elif dest.is_relative_to(RESULTS):
+            site = Path("results") / dest.relative_to(RESULTS)
         else:
             return f"{label} (`{dest.relative_to(ROOT).as_posix()}`)" if dest.is_relative_to(ROOT) else m.group(0)
         rel = os.path.relpath(site, page_dir).replace(os.sep, "/")
@@ -83,8 +94,17 @@ def site_links(text: str, source_dir: Path, page_uri: str) -> str:
 
 
 def results_page() -> str:
-    """``benchmarks/RESULTS.md`` as the site's ``results.md``."""
-    return site_links((ROOT / "benchmarks" / "RESULTS.md").read_text(), ROOT / "benchmarks", "results.md")
+    """``benchmarks/RESULTS.md`` as the site's ``results.md``, ending in the list of the files it draws on."""
+    page = site_links((ROOT / "benchmarks" / "RESULTS.md").read_text(), ROOT / "benchmarks", "results.md")
+    listed = [
+        f"- [`{p.relative_to(RESULTS).as_posix()}`](results/{p.relative_to(RESULTS).as_posix()})" for p in site_files()
+    ]
+    return (
+        page.rstrip()
+        + f"\n\n## Files {{#{FILES_ANCHOR}}}\n\nThe JSON and the plots of `benchmarks/results/`:\n\n"
+        + "\n".join(listed)
+        + "\n"
+    )
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
@@ -96,9 +116,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
 def on_files(files: Files, config) -> Files:
     files.append(File.generated(config, "cli.md", content=cli_page()))
     files.append(File.generated(config, "results.md", content=results_page()))
-    results = ROOT / "benchmarks" / "results"
-    for path in sorted(results.rglob("*")):
-        if path.suffix in (".png", ".json") and path.is_file():
-            uri = "results/" + path.relative_to(results).as_posix()
-            files.append(File.generated(config, uri, abs_src_path=str(path)))
+    for path in site_files():
+        uri = "results/" + path.relative_to(RESULTS).as_posix()
+        files.append(File.generated(config, uri, abs_src_path=str(path)))
     return files

@@ -31,6 +31,7 @@ from maniskill_irb120.envs.scene import (
     build_object,
     check_object_params,
 )
+from maniskill_irb120.errors import UsageError
 from maniskill_irb120.maniskill_compat import (
     episode_reset,
     raw_pose,
@@ -99,7 +100,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
         if robot_uids not in self.SUPPORTED_ROBOTS:
             raise ValueError(f"robot_uids={robot_uids!r} is not supported; use one of {self.SUPPORTED_ROBOTS}")
         if reward_mode is not None and reward_mode not in self.SUPPORTED_REWARD_MODES:
-            raise ValueError(f"reward_mode={reward_mode!r} is not supported; use one of {self.SUPPORTED_REWARD_MODES}")
+            raise UsageError(f"reward_mode={reward_mode!r} is not supported; use one of {self.SUPPORTED_REWARD_MODES}")
         self._check_obs_mode(obs_mode)
         self._check_batching(kwargs.get("num_envs", args[0] if args else 1), kwargs.get("sim_backend", "auto"))
         check_object_params(object_shape, object_half_size, object_mass, object_friction)
@@ -144,7 +145,7 @@ class IRB120TableEnv(EnvContractMixin, RandomizationMixin, BaseEnv):
             super()._load_agent(options, sapien.Pose(p=[0.0, 0.0, 0.0]))
         except AssertionError as e:  # BaseAgent asserts on an unknown control mode; say so clearly
             if self._control_mode is not None and "not in supported modes" in str(e):
-                raise ValueError(f"control_mode={self._control_mode!r} is not supported: {e}") from None
+                raise UsageError(f"control_mode={self._control_mode!r} is not supported: {e}") from None
             raise
 
     def _object_shapes(self) -> list[str]:

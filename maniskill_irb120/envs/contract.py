@@ -16,6 +16,8 @@ import torch
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.envs.utils.observations import ALL_VISUAL_TEXTURES, parse_obs_mode_to_struct
 
+from maniskill_irb120.errors import UsageError
+
 _EXPECTED = "an array of real numbers (numpy array, torch tensor, or a list/tuple of floats)"
 
 
@@ -148,7 +150,7 @@ class EnvContractMixin:
                 return
         except AssertionError:
             pass
-        raise ValueError(
+        raise UsageError(
             f"obs_mode={obs_mode!r} is not supported; use one of {list(cls.NAMED_OBS_MODES)} or a '+'-joined "
             f"combination of {ALL_VISUAL_TEXTURES} with optional 'state' / 'state_dict', e.g. 'rgb+depth+state'"
         )
@@ -158,16 +160,17 @@ class EnvContractMixin:
         """Clear errors for ``num_envs``: ManiSkill fails on 0 with a bare IndexError, and on num_envs > 1
         without CUDA with ``failed to find device "cuda"``, which does not say that CPUs need worker processes."""
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+            raise UsageError(f"num_envs must be a positive integer, got {num_envs!r}")
         if num_envs == 1:
             return
         on_gpu = sim_backend == "auto" or "cuda" in str(sim_backend) or sim_backend == "gpu"
         if not on_gpu or not torch.cuda.is_available():
             why = f"sim_backend={sim_backend!r} was given" if not on_gpu else "no CUDA GPU is available here"
-            raise ValueError(
+            raise UsageError(
                 f"num_envs={num_envs}: batched envs (num_envs > 1) need a CUDA GPU (sim_backend='physx_cuda'), and "
                 f'{why}. On CPUs use maniskill_irb120.make_vec_env(env_id, num_envs, backend="cpu"): one worker '
-                "process per env behind the same batched interface."
+                "process per env behind the same batched interface; the workers import your script again, so in a "
+                'script call it under if __name__ == "__main__":'
             )
 
     def _checked_reset_options(self, options: dict | None) -> dict | None:

@@ -21,6 +21,7 @@ from mani_skill.envs.scene import ManiSkillScene
 from mani_skill.utils.structs.actor import Actor
 from mani_skill.utils.structs.link import Link
 
+from maniskill_irb120.errors import UsageError, nearest
 from maniskill_irb120.robot.description import merged_box_mesh
 
 # --------------------------------------------------------------------------- geometry (metres)
@@ -44,7 +45,7 @@ UPRIGHT = sapien.Pose(q=[math.cos(-math.pi / 4), 0.0, math.sin(-math.pi / 4), 0.
 
 def check_object_params(shape: str, half_size: float, mass: float, friction: float) -> None:
     if shape not in OBJECT_SHAPES:
-        raise ValueError(f"object_shape={shape!r} is not one of {OBJECT_SHAPES}")
+        raise UsageError(f"object_shape={shape!r} is not one of {OBJECT_SHAPES}{nearest(shape, OBJECT_SHAPES)}")
     lo, hi = OBJECT_HALF_SIZE_RANGE
     if not lo <= half_size <= hi:
         raise ValueError(

@@ -21,6 +21,7 @@ from mani_skill.utils.wrappers.record import RecordEpisode
 
 import maniskill_irb120  # noqa: F401
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
+from maniskill_irb120.errors import UsageError, nearest
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.experts.pick_place import PickPlaceExpert
 from maniskill_irb120.experts.rollout import run_episode
@@ -101,9 +102,10 @@ def collect_demos(
     Returns the paths and counts; raises if nothing was kept.
     """
     if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
+        raise UsageError(f"--episodes {episodes}: give a whole number >= 1")
     if control_mode not in CONTROL_MODES:
-        raise ValueError(f"control_mode={control_mode!r} is not one of {CONTROL_MODES}")
+        hint = nearest(control_mode, CONTROL_MODES)
+        raise UsageError(f"--control-mode {control_mode!r}{hint}: use one of {', '.join(CONTROL_MODES)}")
     out_dir = Path(out_dir)
     env = gym.make(
         env_id,

@@ -13,6 +13,7 @@ import torch
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 from maniskill_irb120.envs import table_clearing
+from maniskill_irb120.errors import UsageError
 from maniskill_irb120.experts.pick_place import PHASE_NAMES, PickPlaceExpert, expert_for
 
 
@@ -79,7 +80,7 @@ def run_expert(
     Returns success_rate, episodes, mean_steps (over all episodes), failure reason counts, steps/s and,
     with ``record``, per-episode actions and TCP positions (for determinism checks)."""
     if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
+        raise UsageError(f"--episodes {episodes}: give a whole number >= 1")
     env = gym.make(env_id, obs_mode=obs_mode, control_mode="pd_ee_delta_tool", **env_kwargs)
     expert = expert_for(env, reactive=reactive)
     runs, trajs = [], []

@@ -30,6 +30,8 @@ from typing import Any, Optional
 import gymnasium as gym
 import torch
 
+from maniskill_irb120.errors import UsageError
+
 OBS_KINDS = ("state", "rgbd")
 """what an adapter can give a library: the state vector, or the hand camera's image plus a state vector"""
 DEPTH_MM_PER_LEVEL = 2
@@ -42,7 +44,7 @@ CONTROL_MODE = "pd_ee_delta_tool"
 
 def check_obs(obs: str) -> str:
     if obs not in OBS_KINDS:
-        raise ValueError(f"unknown obs {obs!r}; use one of {OBS_KINDS} (the state vector, or image + state)")
+        raise UsageError(f"unknown obs {obs!r}; use one of {OBS_KINDS} (the state vector, or image + state)")
     return obs
 
 
@@ -212,7 +214,7 @@ def wrapped_vector_env(wrap: Callable[[gym.vector.VectorEnv], Any], env_id: str,
     """``wrap`` (a library's adapter) around :func:`make_vector_env`'s envs (``kwargs``: its keywords); the envs are
     closed again, worker processes and all, if the adapter refuses them."""
     if num_envs < 1:
-        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        raise UsageError(f"num_envs must be >= 1, got {num_envs}")
     venv = make_vector_env(env_id, num_envs, obs, **kwargs)
     try:
         return wrap(venv)

@@ -13,6 +13,7 @@ from typing import Any, Optional
 import torch
 import torch.nn as nn
 
+from maniskill_irb120.errors import MissingFile, UsageError
 from maniskill_irb120.policies.nets import DeterministicActor
 from maniskill_irb120.policies.ppo import Agent
 from maniskill_irb120.policies.sac import SAC
@@ -98,7 +99,7 @@ def section_of(ckpt: Any, where: str = "checkpoint") -> dict:
     fmt = ckpt.get("format") if isinstance(ckpt, dict) else None
     if fmt in LEGACY_FORMATS:
         return legacy_section(ckpt)
-    raise ValueError(f"{where}: format {fmt!r} is none of {sorted(LEGACY_FORMATS)} and it has no policy section")
+    raise UsageError(f"{where}: format {fmt!r} is none of {sorted(LEGACY_FORMATS)} and it has no policy section")
 
 
 def read_checkpoint(path: Path, where: Optional[str] = None) -> Any:
@@ -106,11 +107,14 @@ def read_checkpoint(path: Path, where: Optional[str] = None) -> Any:
     The one reader of checkpoint files, for the trainers and for deployment alike."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{where + ': ' if where else ''}checkpoint {path} does not exist")
+        raise MissingFile(f"{where + ': ' if where else ''}checkpoint {path} does not exist")
     try:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:
-        raise ValueError(f"{where or f'checkpoint {path}'} is not a readable torch checkpoint: {e}") from e
+        raise UsageError(
+            f"{where or f'checkpoint {path}'} is not a readable torch checkpoint ({e}): give a trainer's checkpoint "
+            "(RUN_DIR/checkpoints/*.pt) or a file export-policy wrote"
+        ) from e
 
 
 def read_policy_section(path: Path, where: Optional[str] = None) -> dict:
@@ -148,9 +152,8 @@ def export_policy(src: Path, dst: Path, command: str) -> dict:
     Returns what was written, less the weights."""
     section = read_policy_section(src)
     if not command.strip():
-        raise ValueError(
-            "export-policy: --command must say how the checkpoint was trained (a committed policy is "
-            "reproducible only with it)"
+        raise UsageError(
+            "--command must say how the checkpoint was trained (a committed policy is reproducible only with it)"
         )
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)

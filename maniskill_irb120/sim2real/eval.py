@@ -25,6 +25,7 @@ from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the tasks)
 from maniskill_irb120.envs.randomization import Randomization
+from maniskill_irb120.errors import UsageError
 from maniskill_irb120.sim2real.policy import load_policy
 from maniskill_irb120.sim2real.sysid import log_arrays
 
@@ -163,7 +164,7 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
 
         channel = "serial" if cfg.robot == "emulator+serial" else "tcp"
         if cfg.robot not in ("emulator", "emulator+serial"):
-            raise ValueError(f"--robot {cfg.robot!r}: use emulator, emulator+serial or a controller URL")
+            raise UsageError(f"--robot {cfg.robot!r}: use emulator, emulator+serial or a controller URL")
         emulator = ControllerEmulator(channel, latency_ms=1000 * latency)
         url = emulator.start()
         twin = DigitalTwin(cfg.env_id, emulator, obs_mode="rgbd", **({"randomization": shift} if shift else {}))
@@ -171,9 +172,9 @@ def _make_real_side(cfg: EvalConfig, sim_env, shift, latency: float):
     else:
         url = cfg.robot
         if cfg.camera == "twin":
-            raise ValueError("--camera twin needs --robot emulator: a real robot has no twin; use realsense or none")
+            raise UsageError("--camera twin needs --robot emulator: a real robot has no twin; use realsense or none")
         if cfg.policy == "expert":
-            raise ValueError("--policy expert reads the object's pose, which only the emulator's twin knows")
+            raise UsageError("--policy expert reads the object's pose, which only the emulator's twin knows")
         camera = None
         if cfg.camera == "realsense":
             from maniskill_irb120.sim2real.cameras import RealSenseCamera
@@ -205,20 +206,19 @@ def evaluate(cfg: EvalConfig) -> dict:
     from maniskill_irb120.sim2real.report import write_report
 
     if cfg.sim_shift and not cfg.shift:
-        raise ValueError("--sim-shift puts the sim side in the --shift's condition: give a --shift")
+        raise UsageError("--sim-shift puts the sim side in the --shift's condition: give a --shift")
     if cfg.camera_mount:  # refused before anything starts
         from maniskill_irb120.sim2real.cameras import parse_mount
 
         parse_mount(cfg.camera_mount)
         if cfg.camera == "none":
-            raise ValueError("--camera-mount corrects a camera's frames: give --camera twin or realsense")
+            raise UsageError("--camera-mount corrects a camera's frames: give --camera twin or realsense")
     shift, latency = _parse_shift(cfg.shift)
-    cfg.out.mkdir(parents=True, exist_ok=True)
-    (cfg.out / "logs").mkdir(exist_ok=True)
     sim_shift = sim_side_shift(cfg)
     expert_obs = "state" if cfg.camera == "none" else "rgbd"  # no camera on the real side: none in the sim either
     sim_env, make_policy = load_policy(cfg.policy, cfg.env_id, cfg.command_mode, cfg.actions, sim_shift, expert_obs)
-    try:
+    try:  # the output folder made once the policy was read: a wrong --policy leaves nothing behind
+        (cfg.out / "logs").mkdir(parents=True, exist_ok=True)
         real_env, agent, twin, emulator = _make_real_side(cfg, sim_env, shift, latency)
     except BaseException:
         sim_env.close()

@@ -13,6 +13,7 @@ import torch
 
 from maniskill_irb120.action import tcp_rotation, world_to_tool
 from maniskill_irb120.envs.randomization import Randomization
+from maniskill_irb120.errors import MissingFile, UsageError, nearest
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.policies import acting, read_policy_section
 from maniskill_irb120.wrappers import observation_setup
@@ -44,9 +45,17 @@ def resolve_policy(policy: str) -> str:
             entries = json.loads(manifest.read_text())["policies"]
             if policy in entries:
                 return str(manifest.parent / entries[policy]["file"])
-    raise FileNotFoundError(
-        f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file, nor a name in "
-        + " or ".join(str(m) for m in policy_manifests())
+    manifests = [m for m in dict.fromkeys(policy_manifests()) if m.is_file()]  # from the checkout's root: one file
+    names = sorted({n for m in manifests for n in json.loads(m.read_text())["policies"]})
+    where = (
+        f"nor a name in {' or '.join(map(str, manifests))}{nearest(policy, names)}"
+        if manifests
+        else f"and no policies MANIFEST.json to read names from (${MANIFEST_ENV} names one)"
+    )
+    listed = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+    raise MissingFile(
+        f"--policy {policy!r}: neither 'expert' nor an existing checkpoint file, {where}"
+        + (f"; its names: {listed}" if names else "")
     )
 
 
@@ -121,10 +130,10 @@ def load_policy(
     condition the real side is in), else the nominal task. ``expert_obs_mode``: the scripted expert reads the
     simulator, not its observation; ``state`` runs it without a camera on either side."""
     if actions not in ACTIONS:
-        raise ValueError(f"--actions {actions!r}: use one of {', '.join(ACTIONS)}")
+        raise UsageError(f"--actions {actions!r}: use one of {', '.join(ACTIONS)}")
     if policy == "expert":
         if actions == "sample":
-            raise ValueError("--actions sample: the scripted expert has no distribution to sample; use as-trained")
+            raise UsageError("--actions sample: the scripted expert has no distribution to sample; use as-trained")
         shifted = {"randomization": sim_shift} if sim_shift else {}
         sim_env = gym.make(
             env_id, obs_mode=expert_obs_mode, control_mode="pd_ee_delta_tool", sim_backend="physx_cpu", **shifted
@@ -133,9 +142,9 @@ def load_policy(
     path = Path(resolve_policy(policy))
     section = read_policy_section(path, f"--policy {path}")
     if actions == "sample" and not section["stochastic"]:  # refused before a sim env is built
-        raise ValueError(f"--actions sample: {path} is a {section['kind']} policy, deterministic; use as-trained")
+        raise UsageError(f"--actions sample: {path} is a {section['kind']} policy, deterministic; use as-trained")
     if section["env_id"] != env_id:
-        raise ValueError(f"{path} was trained on {section['env_id']}, not {env_id}")
+        raise UsageError(f"{path} was trained on {section['env_id']}, not {env_id}: give --env-id {section['env_id']}")
     control_mode = section["control_mode"]
     if command_mode == "tool_delta" and control_mode != "pd_ee_delta_tool":
         raise ValueError(f"{path} acts in {control_mode}; tool_delta sends pd_ee_delta_tool actions")

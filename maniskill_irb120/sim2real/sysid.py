@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from maniskill_irb120.abb.envelope import Envelope
+from maniskill_irb120.errors import MissingFile
 from maniskill_irb120.robot.kinematics import pose_mm
 
 V_TCP_M_S = 0.250  # the module's vStep: 250 mm/s along the path, 250 deg/s in orientation
@@ -145,7 +146,8 @@ def main(log: str) -> dict:
     root = Path(log)
     files = sorted((root / "logs").glob("real_*.npz")) or sorted(root.glob("real_*.npz"))
     if not files:
-        raise FileNotFoundError(f"no real_*.npz logs under {root} or {root / 'logs'}: run sim2real-eval first")
+        what = "no real_*.npz logs in it or in its logs/" if root.is_dir() else "no such folder"
+        raise MissingFile(f"--log {log}: {what}; give the --out folder of a sim2real-eval run")
     result = fit([load_log(f) for f in files])
     (root / "sysid.json").write_text(json.dumps(result, indent=2))
     print(json.dumps(result))

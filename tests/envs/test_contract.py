@@ -60,8 +60,12 @@ def test_bad_single_env_actions_raise_clear_errors(bad, err, match):
 # --------------------------------------------------------------------------- num_envs, env_idx, obs_mode
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on machines without CUDA")
 def test_batched_env_without_cuda_says_use_make_vec_env():
-    with pytest.raises(ValueError, match=r"CUDA GPU.*physx_cuda.*make_vec_env\(env_id, num_envs, backend=\"cpu\"\)"):
+    with pytest.raises(
+        ValueError, match=r"CUDA GPU.*physx_cuda.*make_vec_env\(env_id, num_envs, backend=\"cpu\"\)"
+    ) as e:
         gym.make(ENV, num_envs=4, obs_mode="state")
+    # the advice works in a script only under the guard: the workers import the script again
+    assert 'if __name__ == "__main__":' in str(e.value)
 
 
 def test_batched_env_on_cpu_backend_and_bad_num_envs():

@@ -1,0 +1,128 @@
+"""Bad input answered in one line: every command line a newcomer meets first (``maniskill-irb120``'s subcommands,
+``examples/*.py``) is run here as a program, as a user runs it, with a wrong env id, a missing or unreadable file,
+a count below 1, a misspelt flag or a malformed value, and must exit with status 2 and one stderr line that names
+the problem and the fix, with no traceback. Each is refused before an env is built, so a case takes the
+interpreter's start and imports only.
+
+And a script that follows the ``num_envs > 1`` error's advice (``make_vec_env(..., backend="cpu")``) without an
+``if __name__ == "__main__":`` guard is told so in one line by the worker that imported it again, instead of
+Python's two chained multiprocessing tracebacks."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TASKS = "GraspLift-IRB120-v1, StackCube-IRB120-v1, TableClearing-IRB120-v1"
+
+
+def run(args: list[str], cwd: Path = REPO, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def own_lines(stderr: str) -> list[str]:
+    """stderr less the log lines libraries print on their own (ManiSkill's render-device warning)."""
+    return [line for line in stderr.splitlines() if line.strip() and " - WARNING - " not in line]
+
+
+def cli(*args: str) -> list[str]:
+    return ["-m", "maniskill_irb120.cli", *args]
+
+
+CASES = {
+    "wrong env id": (
+        cli("expert", "--env-id", "GraspLift-v1"),
+        ["unknown env id 'GraspLift-v1'", "did you mean 'GraspLift-IRB120-v1'", TASKS],
+    ),
+    "wrong env id, sim2real-eval": (
+        cli("sim2real-eval", "--env-id", "stackcube-irb120-v1"),
+        ["did you mean 'StackCube-IRB120-v1'", TASKS],
+    ),
+    "missing policy": (
+        cli("sim2real-eval", "--policy", "{tmp}/missing.pt", "--out", "{tmp}/out"),
+        ["--policy", "missing.pt", "neither 'expert' nor an existing checkpoint file"],
+    ),
+    "not a checkpoint": (
+        cli("sim2real-eval", "--policy", "{tmp}/notes.txt", "--out", "{tmp}/out"),
+        ["notes.txt is not a readable torch checkpoint", "export-policy"],
+    ),
+    "sysid, missing log": (cli("sysid", "--log", "{tmp}/nowhere"), ["--log", "nowhere: no such folder", "--out"]),
+    "expert, negative episodes": (cli("expert", "--episodes", "-1"), ["--episodes -1: give a whole number >= 1"]),
+    "collect-demos, zero episodes": (cli("collect-demos", "--episodes", "0"), ["--episodes 0"]),
+    "example, wrong env id": (["examples/sb3_ppo.py", "--env-id", "GraspLift"], ["sb3_ppo.py: unknown env id"]),
+    "demo, zero episodes": (["examples/demo.py", "--episodes", "0"], ["demo.py: --episodes 0"]),
+    "misspelt flag": (
+        cli("expert", "--episode", "3"),
+        ["Unrecognized options: --episode, 3", "did you mean --episodes?", "maniskill-irb120 expert --help"],
+    ),
+    "malformed value, example": (["examples/demo.py", "--episodes", "abc"], ["demo.py: Error parsing --episodes"]),
+}
+NEEDS = {"example, wrong env id": "stable_baselines3"}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_one_line_and_exit_status_2(case, tmp_path):
+    if case in NEEDS:
+        pytest.importorskip(NEEDS[case])
+    (tmp_path / "notes.txt").write_text("not a checkpoint\n")
+    args, names = CASES[case]
+    r = run([a.replace("{tmp}", str(tmp_path)) for a in args])
+    lines = own_lines(r.stderr)
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert len(lines) == 1, lines
+    for name in names:
+        assert name in lines[0], (name, lines[0])
+
+
+def test_a_script_without_the_main_guard_is_told_so_in_one_line(tmp_path):
+    """The workers of ``backend="cpu"`` import the script again (forkserver); without the guard each would build
+    envs of its own. The worker says so in one line and stops; the parent reports a worker that exited while
+    starting, not a lost pipe."""
+    script = tmp_path / "noguard.py"
+    script.write_text(
+        textwrap.dedent(
+            """
+            from maniskill_irb120 import make_vec_env
+
+            env = make_vec_env("GraspLift-IRB120-v1", 2, backend="cpu")
+            env.close()
+            """
+        )
+    )
+    r = run([str(script)], cwd=tmp_path)
+    assert r.returncode != 0
+    lines = own_lines(r.stderr)
+    told = [line for line in lines if line.startswith("make_vec_env(backend='cpu') was called while a worker")]
+    assert len(told) == 1 and 'if __name__ == "__main__":' in told[0], r.stderr[-3000:]
+    assert "bootstrapping phase" not in r.stderr and "Connection reset by peer" not in r.stderr, r.stderr[-3000:]
+    assert r.stderr.count("Traceback") == 1 and len(lines) < 15, r.stderr[-3000:]
+    assert lines[-1].startswith("RuntimeError: a CPU env worker process exited while starting")
+
+
+@pytest.mark.parametrize(
+    "given, meant",
+    [
+        ("grasplift-irb120-v1", "GraspLift-IRB120-v1"),  # case
+        ("TableClearing-v1", "TableClearing-IRB120-v1"),
+        ("PickCube-v2", "PickCube-v1"),  # ManiSkill's own, when near-exact
+        ("PushCube", "PushCube-v1"),
+        ("Foo-v1", None),  # no id is near: none named (not Acrobot-v1 for sharing "-v1")
+    ],
+)
+def test_the_nearest_env_id_is_named_only_when_near(given, meant):
+    import maniskill_irb120  # noqa: F401  (registers the tasks)
+    from maniskill_irb120.envs import check_env_id, task_ids
+    from maniskill_irb120.errors import UsageError
+
+    assert task_ids() == TASKS.split(", ")
+    with pytest.raises(UsageError) as e:
+        check_env_id(given)
+    assert (f"(did you mean {meant!r}?)" in str(e.value)) if meant else "did you mean" not in str(e.value)
