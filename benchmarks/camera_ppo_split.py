@@ -396,10 +396,8 @@ def markdown(r: dict) -> str:
         rows.append(f"| {label} | {split[key]:.2f} | {100 * split[key] / total:.0f} % | {how} |")
         if key == "collect_env":
             render = r["rendering_ms_per_env_step"]
-            rows.append(
-                f"| … of which rendering (envs alone: rgbd − state) | {render:.2f} | {100 * render / total:.0f} % "
-                "| difference |"
-            )
+            ms, share = (f"{render:.2f}", f"{100 * render / total:.0f} %") if render > 0 else ("not resolved", "")
+            rows.append(f"| … of which rendering (envs alone: rgbd − state) | {ms} | {share} | difference |")
     rows.append(f"| **total** (1000 / training env steps/s) | **{total:.2f}** | 100 % | |")
     return "\n".join(rows)
 
@@ -418,14 +416,15 @@ def reading(r: dict) -> str:
         f"{100 * collect / total:.0f} %, and the env step itself {100 * split['collect_env'] / total:.0f} %."
     )
     rounds = r["rendering_ms_per_env_step_rounds"]
+    slow = sum(x["state_env_steps_per_s"] <= x["rgbd_env_steps_per_s"] for x in r["rounds"])
     if r["rendering_ms_per_env_step"] > 0 and rounds["min"] > 0:
         share = 100 * r["rendering_ms_per_env_step"] / total
         text += f" Rendering (the envs alone, rgbd − state) is about {share:.0f} % of the time."
     else:
         text += (
-            " Rendering's share is not resolved in this run: in some rounds the envs alone ran no faster from "
-            f"state than from rgbd (rgbd − state ranged {rounds['min']:.2f} to {rounds['max']:.2f} ms per env step "
-            f"over the rounds, median {rounds['median']:.2f})."
+            f" Rendering's share is not resolved in this run: in {slow} of {len(r['rounds'])} rounds the envs alone "
+            f"ran no faster from state than from rgbd (rgbd − state ranged {rounds['min']:.2f} to "
+            f"{rounds['max']:.2f} ms per env step over the rounds, median {rounds['median']:.2f})."
         )
     probe = r.get("update_probe")
     if probe:
