@@ -18,7 +18,9 @@ env configuration (the recipe's envs and wrappers, a separate instance) steps al
 from rgbd and once from state; rendering's cost per env step is about the difference. Training, rgbd and state take
 turns, so the drift of a shared machine lands on all three and the ratios come from the same minutes.
 
-    python benchmarks/camera_ppo_split.py                    # 10240 env steps, ~4 min on 2 cores
+    python benchmarks/camera_ppo_split.py                    # 10240 env steps, ~7 min on 2 cores, far more when shared
+    python benchmarks/camera_ppo_split.py --no-probe-threads # without the thread probe below, on a shared machine
+                                                             # the run's slowest part (half its wall clock and more)
     python benchmarks/camera_ppo_split.py --quick --json /tmp/c.json
     python benchmarks/camera_ppo_split.py --update-results   # also rewrites its section of RESULTS.md
     python benchmarks/camera_ppo_split.py --render-only      # rewrites the section from --json, measuring nothing
