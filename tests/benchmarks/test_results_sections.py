@@ -162,6 +162,7 @@ def test_one_line_keeps_what_to_do_and_cuts_the_rest(bench_script):
         ("sysid_recovery", (DATA / "sysid_recovery.json",)),
         ("rllib_speed", (DATA / "rllib_speed.json",)),
         ("learner_speed", (DATA / "learner_speed.json",)),
+        ("camera_ppo_split", (DATA / "camera_ppo_split.json",)),
         ("gpu_acceptance", (DATA / "gpu_acceptance.json",)),
         ("sim_speed", (DATA / "sim_speed.json",)),
         ("sim2real_gap", None),
@@ -189,7 +190,7 @@ def test_results_md_learning_sections_are_what_learning_renders(env_id, tmp_path
 
 def test_no_issue_numbers_in_the_generated_sections(results_md, bench_script):
     names = ("adapter_latency", "sysid_recovery", "sim2real_gap", "rllib_speed", "learner_speed", "gpu_acceptance")
-    names += ("sim_speed",)
+    names += ("sim_speed", "camera_ppo_split")
     heads = [bench_script(n).HEAD for n in names]
     for head in heads:
         assert "issue" not in results_md.read_section(RESULTS, head).lower(), head

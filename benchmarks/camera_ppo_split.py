@@ -1,0 +1,476 @@
+"""Where a PPO training step from the camera goes: the ``ppo-rgbd`` recipe timed phase by phase.
+
+PPO from the hand camera trains at a fraction of the speed its envs step alone, so something besides the simulator
+sets its pace. This runs the recipe's own pieces (``agents.ppo``'s ``make_envs``, ``agent_for``, ``Rollout`` and
+``ppo_update``, with the recipe's envs, rollout length, minibatches and epochs) for a fixed number of env steps after
+one warm-up iteration, and times the phases by wrapping methods of the instances, so the code timed is the
+trainer's own and not a copy of its loop:
+
+- collection: ``envs.step`` (the env, rendering included), the policy's forward passes (``get_action_and_value``
+  and ``get_value`` under ``no_grad``), and the rest of the rollout (copies into the rollout storage, episode
+  bookkeeping, GAE): the collection's total minus those two;
+- the update: the forward passes (``get_action_and_value``), ``loss.backward`` (``torch.Tensor.backward``, wrapped
+  for the update only), the optimiser (``step`` and ``zero_grad``), and the rest (loss arithmetic, the gradient-norm
+  clip, minibatch gathering, the running observation normaliser's update): the update's total minus those three.
+
+Rendering cannot be separated by wrapping (the env's workers render), so after every training iteration the same
+env configuration (the recipe's envs and wrappers, a separate instance) steps alone with seeded random actions, once
+from rgbd and once from state; rendering's cost per env step is about the difference. Training, rgbd and state take
+turns, so the drift of a shared machine lands on all three and the ratios come from the same minutes.
+
+    python benchmarks/camera_ppo_split.py                    # 10240 env steps, ~7 min on 2 cores, far more when shared
+    python benchmarks/camera_ppo_split.py --no-probe-threads # without the thread probe below, on a shared machine
+                                                             # the run's slowest part (half its wall clock and more)
+    python benchmarks/camera_ppo_split.py --quick --json /tmp/c.json
+    python benchmarks/camera_ppo_split.py --update-results   # also rewrites its section of RESULTS.md
+    python benchmarks/camera_ppo_split.py --render-only      # rewrites the section from --json, measuring nothing
+
+A probe beside the training (not counted in its time) reruns each iteration's update on a copy of the agent and
+optimiser with all the machine's torch threads, since the trainer runs its update on the one thread it keeps beside
+its env workers (``agents.common.one_thread_beside_workers``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
+
+HEAD = "## Camera PPO step split — `benchmarks/camera_ppo_split.py`"
+RECIPE = "ppo-rgbd"
+RESULTS_JSON = ROOT / "benchmarks" / "results" / "camera_ppo_split.json"
+# (key, label, how it is measured); the leaves sum to the iteration's time
+PHASES = (
+    ("collect_env", "collection: env step (`envs.step`)", "measured"),
+    ("collect_forward", "collection: policy forward (`get_action_and_value`, `get_value`)", "measured"),
+    ("collect_data", "collection: data movement and bookkeeping (storage, `obs_to`, episodes, GAE)", "remainder"),
+    ("update_forward", "update: forward (`get_action_and_value`)", "measured"),
+    ("update_backward", "update: backward (`Tensor.backward`)", "measured"),
+    ("update_optimizer", "update: optimiser (`step`, `zero_grad`)", "measured"),
+    ("update_rest", "update: loss arithmetic, grad-norm clip, minibatch gathering, obs normaliser", "remainder"),
+    ("loop", "the loop around them", "remainder"),
+)
+
+
+@dataclass
+class Args:
+    env_steps: int = 10240
+    """timed env steps of PPO training, rounded up to whole iterations (the recipe's 4 envs x 128 steps each),
+    after one warm-up iteration"""
+    seed: int = 1
+    """seeds torch, the training envs and the random actions of the env-only measurements"""
+    quick: bool = False
+    """tiny sizes (2 envs x 16 steps, one epoch, one timed iteration): checks the script runs and writes its JSON"""
+    probe_threads: bool = True
+    """rerun each update on a copy with all the machine's torch threads (not counted in training's time)"""
+    json: Path = RESULTS_JSON
+    update_results: bool = False
+    """rewrite this benchmark's section of benchmarks/RESULTS.md"""
+    render_only: bool = False
+    """measure nothing: rewrite the section of benchmarks/RESULTS.md from the JSON at --json"""
+
+
+class Timers:
+    """Seconds spent in wrapped methods, summed per key; ``phase`` prefixes the key, so one method (the agent's
+    forward) counts apart in collection and in the update."""
+
+    def __init__(self) -> None:
+        self.acc: dict[str, float] = {}
+        self.phase = "collect"
+        self.calls: dict[str, int] = {}
+
+    def add(self, key: str, seconds: float) -> None:
+        key = f"{self.phase}_{key}"
+        self.acc[key] = self.acc.get(key, 0.0) + seconds
+        self.calls[key] = self.calls.get(key, 0) + 1
+
+    def wrap(self, obj, name: str, key: str) -> None:
+        """Replace ``obj.name`` by a timed call of the original (an instance attribute: other instances keep
+        theirs)."""
+        original = getattr(obj, name)
+
+        def timed(*a, **k):
+            t = time.perf_counter()
+            try:
+                return original(*a, **k)
+            finally:
+                self.add(key, time.perf_counter() - t)
+
+        setattr(obj, name, timed)
+
+    def reset(self) -> dict[str, float]:
+        out, self.acc, self.calls = self.acc, {}, {}
+        return out
+
+
+class timed_backward:
+    """``torch.Tensor.backward`` timed into ``timers`` while the block runs (the loss is made inside
+    ``ppo_update``, so the class's method is the one place to catch it), restored after."""
+
+    def __init__(self, timers: Timers) -> None:
+        self.timers = timers
+
+    def __enter__(self):
+        self.original = original = torch.Tensor.backward
+        timers = self.timers
+
+        def backward(tensor, *a, **k):
+            t = time.perf_counter()
+            try:
+                return original(tensor, *a, **k)
+            finally:
+                timers.add("backward", time.perf_counter() - t)
+
+        torch.Tensor.backward = backward
+        return self
+
+    def __exit__(self, *exc) -> None:
+        torch.Tensor.backward = self.original
+
+
+def recipe_args(quick: bool, seed: int):
+    """The ``ppo-rgbd`` recipe's ``agents.ppo.Args`` on this machine's CPU (``--quick``: 2 envs x 16 steps, one
+    epoch of 2 minibatches)."""
+    import agents.ppo as ppo
+    from agents.common import cli
+
+    argv = ["--recipe", RECIPE, "--seed", str(seed), "--backend", "cpu", "--device", "cpu", "--no-progress"]
+    if quick:
+        argv += ["--num-envs", "2", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1"]
+    return cli(ppo.Args, "agents.ppo", argv), argv
+
+
+def env_only(envs, steps: int, rng: np.random.Generator) -> float:
+    """Env steps/s of ``steps`` batched steps of uniform random actions (the envs auto-reset finished episodes)."""
+    space = envs.single_action_space
+    acts = rng.uniform(space.low, space.high, size=(steps, envs.num_envs, *space.shape)).astype(np.float32)
+    t = time.perf_counter()
+    for a in acts:
+        envs.step(torch.from_numpy(a))
+    return steps * envs.num_envs / (time.perf_counter() - t)
+
+
+def update_probe(agent, optimizer, batch: dict, args, make_agent: Callable, threads: int) -> tuple[float, int]:
+    """Seconds and optimiser steps of ``ppo_update`` on ``batch`` for a copy of ``agent`` and ``optimizer`` at
+    ``threads`` torch threads; the training's own agent is untouched."""
+    import agents.ppo as ppo
+    from agents.common import torch_threads
+
+    copy = make_agent()
+    copy.load_state_dict(agent.state_dict())
+    opt = torch.optim.Adam(copy.parameters(), lr=args.learning_rate, eps=1e-5)
+    opt.load_state_dict(optimizer.state_dict())
+    steps = [0]
+    step = opt.step
+
+    def counted(*a, **k):
+        steps[0] += 1
+        return step(*a, **k)
+
+    opt.step = counted
+    copy.train()
+    rng = torch.get_rng_state()
+    with torch_threads(threads):
+        t = time.perf_counter()
+        ppo.ppo_update(copy, opt, batch, args)
+        seconds = time.perf_counter() - t
+    torch.set_rng_state(rng)  # the training's minibatch permutations stay what they would have been
+    return seconds, steps[0]
+
+
+def measure(args: Args) -> dict:
+    """Build the recipe's training envs, agent and optimiser and two env-only copies of its envs (rgbd, state),
+    then take turns: one PPO iteration, the rgbd envs alone, the state envs alone, for the iterations asked."""
+    import agents.ppo as ppo
+    from agents.common import flatten_obs, obs_to
+
+    t_start = time.time()
+    load_start = os.getloadavg()
+    cli, argv = recipe_args(args.quick, args.seed)
+    iterations = max(1, math.ceil((1 if args.quick else args.env_steps) / cli.batch_size))
+    torch.manual_seed(cli.seed)
+    device = torch.device("cpu")
+    envs = ppo.make_envs(cli, cli.num_envs)  # training's: this process on one torch thread beside the workers
+    alone = {"rgbd": ppo.make_envs(cli, cli.num_envs), "state": ppo.make_envs(replace(cli, obs="state"), cli.num_envs)}
+    threads = torch.get_num_threads()
+    try:
+        agent = ppo.agent_for(envs, device, cli)
+        optimizer = torch.optim.Adam(agent.parameters(), lr=cli.learning_rate, eps=1e-5)  # as agents.ppo.train
+        next_obs, _ = envs.reset(seed=cli.seed)
+        rollout = ppo.Rollout(envs, obs_to(flatten_obs(next_obs), device), cli, device)
+        rng = np.random.default_rng(args.seed)
+        for e in alone.values():
+            e.reset(seed=cli.seed + 1000)
+            env_only(e, 5, rng)  # warm-up: the first steps fill caches
+        timers = Timers()
+        timers.wrap(envs, "step", "env")
+        timers.wrap(agent, "get_action_and_value", "forward")
+        timers.wrap(agent, "get_value", "forward")
+        timers.wrap(optimizer, "step", "optimizer")
+        timers.wrap(optimizer, "zero_grad", "optimizer")
+        probe = args.probe_threads and (os.cpu_count() or 1) > threads
+        make_agent = lambda: ppo.agent_for(envs, device, cli)  # noqa: E731
+        rounds = []
+        t_loop = time.time()
+        for i in range(iterations + 1):  # iteration 0 warms up, untimed
+            recent: dict[str, list[float]] = defaultdict(list)
+            timers.reset()
+            timers.phase = "collect"
+            t0 = time.perf_counter()
+            batch, _ = rollout.collect(agent, recent)
+            t1 = time.perf_counter()
+            agent.train()
+            timers.phase = "update"
+            t2 = time.perf_counter()
+            with timed_backward(timers):
+                ppo.ppo_update(agent, optimizer, batch, cli)
+            if agent.norm is not None:  # as agents.ppo.train does after each update
+                agent.norm.update(batch["obs"]["state"])
+            t3 = time.perf_counter()
+            acc, calls = timers.acc, timers.calls
+            timers.reset()
+            row = dict(
+                iteration=i,
+                wall_s=t3 - t0,
+                env_steps=cli.batch_size,
+                collect_s=t1 - t0,
+                update_s=t3 - t2,
+                loop_s=t2 - t1,
+                optimizer_steps=calls.get("update_optimizer", 0) // 2,  # step and zero_grad each count once
+                **{f"{k}_s": v for k, v in acc.items()},
+            )
+            for name in list(alone) if i % 2 else list(alone)[::-1]:  # each first in every other round
+                row[f"{name}_env_steps_per_s"] = env_only(alone[name], cli.num_steps, rng)
+            if probe:  # last: its threads are done before the next iteration's training starts
+                seconds, steps = update_probe(agent, optimizer, batch, cli, make_agent, os.cpu_count())
+                row.update(probe_update_s=seconds, probe_optimizer_steps=steps)
+            row["loadavg_1min"] = os.getloadavg()[0]
+            if i > 0:
+                rounds.append(row)
+            done = sum(r["env_steps"] for r in rounds)
+            per_round = (time.time() - t_loop) / (i + 1)
+            print(
+                f"[{'warm-up' if i == 0 else f'{i}/{iterations}'}] {done}/{iterations * cli.batch_size} env steps; "
+                f"training {cli.batch_size / row['wall_s']:.0f} env steps/s (update {row['update_s']:.1f} s of "
+                f"{row['wall_s']:.1f} s), alone rgbd {row['rgbd_env_steps_per_s']:.0f} state "
+                f"{row['state_env_steps_per_s']:.0f}; ETA {per_round * (iterations - i):.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+    finally:
+        envs.close()
+        for e in alone.values():
+            e.close()
+    return summarize(rounds, cli, argv, threads, t_start, load_start)
+
+
+def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: float, load_start) -> dict:
+    """The timed iterations' sums as rates and milliseconds per env step."""
+    steps = sum(r["env_steps"] for r in rounds)
+    total = lambda key: sum(r.get(key, 0.0) for r in rounds)  # noqa: E731
+    wall = total("wall_s")
+    ms = lambda seconds: 1e3 * seconds / steps  # noqa: E731
+    split = dict(
+        collect_env=ms(total("collect_env_s")),
+        collect_forward=ms(total("collect_forward_s")),
+        update_forward=ms(total("update_forward_s")),
+        update_backward=ms(total("update_backward_s")),
+        update_optimizer=ms(total("update_optimizer_s")),
+        loop=ms(total("loop_s")),
+    )
+    split["collect_data"] = ms(total("collect_s")) - split["collect_env"] - split["collect_forward"]
+    split["update_rest"] = (
+        ms(total("update_s")) - split["update_forward"] - split["update_backward"] - split["update_optimizer"]
+    )
+    # env-only speeds: total steps over total time, each block the same number of env steps
+    alone = {m: len(rounds) / sum(1 / r[f"{m}_env_steps_per_s"] for r in rounds) for m in ("rgbd", "state")}
+    training = steps / wall
+    render = [1e3 / r["rgbd_env_steps_per_s"] - 1e3 / r["state_env_steps_per_s"] for r in rounds]
+    report = dict(
+        command=argv_command("benchmarks/camera_ppo_split.py", sys.argv[1:]),
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        wall_min=(time.time() - t_start) / 60,
+        machine=dict(
+            node=platform.node(),
+            arch=platform.machine(),
+            cpus=os.cpu_count(),
+            torch_threads_training=threads,
+            loadavg_start=list(load_start),
+            loadavg_end=list(os.getloadavg()),
+        ),
+        versions=dict(torch=torch.__version__, python=platform.python_version()),
+        recipe=RECIPE,
+        recipe_argv=argv,
+        settings=dict(
+            num_envs=cli.num_envs,
+            num_steps=cli.num_steps,
+            batch_size=cli.batch_size,
+            num_minibatches=cli.num_minibatches,
+            update_epochs=cli.update_epochs,
+            target_kl=cli.target_kl,
+            obs_norm=cli.obs_norm,
+            backend=cli.backend,
+        ),
+        warmup_iterations=1,
+        iterations=len(rounds),
+        env_steps=steps,
+        training_env_steps_per_s=training,
+        env_only_rgbd_env_steps_per_s=alone["rgbd"],
+        env_only_state_env_steps_per_s=alone["state"],
+        env_only_steps_per_round=cli.batch_size,
+        ratio_training_to_env_only_rgbd=training / alone["rgbd"],
+        total_ms_per_env_step=1e3 / training,
+        rendering_ms_per_env_step=1e3 / alone["rgbd"] - 1e3 / alone["state"],
+        rendering_ms_per_env_step_rounds=dict(
+            median=float(np.median(render)), min=float(np.min(render)), max=float(np.max(render))
+        ),
+        env_only_rgbd_ms_per_env_step=1e3 / alone["rgbd"],
+        split_ms_per_env_step=split,
+        optimizer_steps_per_iteration=total("optimizer_steps") / len(rounds),
+        rounds=rounds,
+    )
+    if all("probe_update_s" in r for r in rounds):
+        report["update_probe"] = dict(
+            threads=os.cpu_count(),
+            ms_per_optimizer_step=1e3 * total("probe_update_s") / total("probe_optimizer_steps"),
+            training_ms_per_optimizer_step=1e3 * total("update_s") / total("optimizer_steps"),
+        )
+    return report
+
+
+def check(args: Args) -> None:
+    """Refuse what cannot run, in one line (the caller exits 2)."""
+    if args.env_steps < 1:
+        raise ValueError(f"--env-steps must be >= 1, got {args.env_steps}")
+    if args.render_only and not args.json.is_file():
+        raise ValueError(f"--render-only reads --json {args.json}, which does not exist")
+
+
+def main(args: Args) -> dict:
+    if args.render_only:
+        update_results(args.json)
+        return json.loads(args.json.read_text())
+    report = measure(args)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(report, indent=1))
+    print(markdown(report))
+    if args.update_results:
+        update_results(args.json)
+    return report
+
+
+def markdown(r: dict) -> str:
+    """The two tables: the speeds side by side, then the split of training's time per env step."""
+    rows = [
+        "| measured in turns | env steps/s | ms per env step |",
+        "|---|---|---|",
+        f"| PPO training from the camera | **{r['training_env_steps_per_s']:.0f}** | "
+        f"{r['total_ms_per_env_step']:.2f} |",
+        f"| the same envs alone, rgbd | {r['env_only_rgbd_env_steps_per_s']:.0f} | "
+        f"{r['env_only_rgbd_ms_per_env_step']:.2f} |",
+        f"| the same envs alone, state | {r['env_only_state_env_steps_per_s']:.0f} | "
+        f"{1e3 / r['env_only_state_env_steps_per_s']:.2f} |",
+        f"| training / envs alone rgbd | **{r['ratio_training_to_env_only_rgbd']:.2f}x** | |",
+        "",
+        "| phase of a training iteration | ms per env step | share | how |",
+        "|---|---|---|---|",
+    ]
+    total = r["total_ms_per_env_step"]
+    split = r["split_ms_per_env_step"]
+    for key, label, how in PHASES:
+        rows.append(f"| {label} | {split[key]:.2f} | {100 * split[key] / total:.0f} % | {how} |")
+        if key == "collect_env":
+            render = r["rendering_ms_per_env_step"]
+            ms, share = (f"{render:.2f}", f"{100 * render / total:.0f} %") if render > 0 else ("not resolved", "")
+            rows.append(f"| … of which rendering (envs alone: rgbd − state) | {ms} | {share} | difference |")
+    rows.append(f"| **total** (1000 / training env steps/s) | **{total:.2f}** | 100 % | |")
+    return "\n".join(rows)
+
+
+def reading(r: dict) -> str:
+    """Which phase dominates, in words, from the numbers alone."""
+    split, total = r["split_ms_per_env_step"], r["total_ms_per_env_step"]
+    labels = {k: label for k, label, _ in PHASES}
+    top = max(split, key=split.get)
+    update = sum(v for k, v in split.items() if k.startswith("update_"))
+    collect = sum(v for k, v in split.items() if k.startswith("collect_"))
+    text = (
+        f"The largest phase is {labels[top].replace('`', '')} ({100 * split[top] / total:.0f} % of the time). "
+        f"The update takes {100 * update / total:.0f} % ({update:.2f} ms per env step, "
+        f"{r['optimizer_steps_per_iteration']:.0f} optimiser steps an iteration on average), collection "
+        f"{100 * collect / total:.0f} %, and the env step itself {100 * split['collect_env'] / total:.0f} %."
+    )
+    rounds = r["rendering_ms_per_env_step_rounds"]
+    slow = sum(x["state_env_steps_per_s"] <= x["rgbd_env_steps_per_s"] for x in r["rounds"])
+    if r["rendering_ms_per_env_step"] > 0 and rounds["min"] > 0:
+        share = 100 * r["rendering_ms_per_env_step"] / total
+        text += f" Rendering (the envs alone, rgbd − state) is about {share:.0f} % of the time."
+    else:
+        text += (
+            f" Rendering's share is not resolved in this run: in {slow} of {len(r['rounds'])} rounds the envs alone "
+            f"ran no faster from state than from rgbd (rgbd − state ranged {rounds['min']:.2f} to "
+            f"{rounds['max']:.2f} ms per env step over the rounds, median {rounds['median']:.2f})."
+        )
+    probe = r.get("update_probe")
+    if probe:
+        speedup = probe["training_ms_per_optimizer_step"] / probe["ms_per_optimizer_step"]
+        text += (
+            f" The trainer updates on {r['machine']['torch_threads_training']} torch thread; the same updates on a "
+            f"copy with {probe['threads']} threads took {probe['ms_per_optimizer_step']:.0f} ms per optimiser step "
+            f"against {probe['training_ms_per_optimizer_step']:.0f} ms ({speedup:.2f}x)."
+        )
+    return text
+
+
+def section(report: dict, json_path: Path) -> str:
+    """This benchmark's section of RESULTS.md, from its JSON (at ``json_path``, which it links) alone."""
+    s, m = report["settings"], report["machine"]
+    load = lambda xs: "/".join(f"{x:.1f}" for x in xs)  # noqa: E731
+    return (
+        f"{HEAD}\n\nCommand: `{recorded_command(report['command'])}` ({report['date']}, {m['node']} {m['arch']}, "
+        f"{m['cpus']} CPUs, torch {report['versions']['torch']} on {m['torch_threads_training']} thread in training; "
+        f"{report['wall_min']:.1f} min; load average {load(m['loadavg_start'])} at the start, "
+        f"{load(m['loadavg_end'])} at the end, on a machine shared with other work). The `{report['recipe']}` "
+        f"recipe's PPO (`agents.ppo`'s own envs, rollout and update: {s['num_envs']} envs x {s['num_steps']} steps "
+        f"an iteration, {s['update_epochs']} epochs of {s['num_minibatches']} minibatches, target KL "
+        f"{s['target_kl']}) for {report['env_steps']} env steps ({report['iterations']} iterations after "
+        f"{report['warmup_iterations']} warm-up), each iteration followed by the same envs stepped alone with random "
+        f"actions, from rgbd and from state ({report['env_only_steps_per_round']} env steps each), so the ratios "
+        "come from the same minutes. Phases are timed by wrapping the instances' methods; the rows marked "
+        "remainder are a total minus its measured parts. Raw data: "
+        f"{raw_link(json_path)}.\n\n"
+        f"{markdown(report)}\n\n"
+        f"{reading(report)}\n\n"
+    )
+
+
+def update_results(json_path: Path, results: Path = RESULTS) -> None:
+    """Rewrite this benchmark's section of ``results`` from the JSON at ``json_path``."""
+    replace_section(results, HEAD, section(json.loads(json_path.read_text()), json_path))
+
+
+if __name__ == "__main__":
+    cli_args = tyro.cli(Args)
+    try:
+        check(cli_args)
+    except ValueError as e:
+        print(f"camera_ppo_split.py: {e}", file=sys.stderr)
+        sys.exit(2)
+    main(cli_args)
