@@ -131,7 +131,7 @@ class EmulatedIRB120:
 
     def solve_conf(self, tool_target: np.ndarray, tframe: np.ndarray, conf) -> np.ndarray:
         """CalcJointT: the joint angles in the robtarget's configuration (``confdata.solve_conf``)."""
-        return solve_conf(self, tool_target, tframe, conf)
+        return solve_conf(self, tool_target, self._flange(tool_target, tframe), conf)
 
     # ------------------------------------------------------------------ motion over wall-clock time
     def joints(self) -> np.ndarray:
