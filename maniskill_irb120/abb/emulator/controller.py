@@ -25,17 +25,11 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from maniskill_irb120.abb.emulator.builtins import OP_MODE_NAMES, controller_builtins
+from maniskill_irb120.abb.emulator.builtins import CONTROLLER, OP_MODE_NAMES
 from maniskill_irb120.abb.emulator.channel import Channel, parse_faults
 from maniskill_irb120.abb.emulator.motion import MANUAL_REDUCED_TCP_MM_S
 from maniskill_irb120.abb.emulator.pendant import ControllerStateError, Pendant
-from maniskill_irb120.abb.emulator.rapid import (
-    Builtins,
-    Interpreter,
-    RapidStopped,
-    RapidSyntaxError,
-    parse_options,
-)
+from maniskill_irb120.abb.emulator.rapid import Interpreter, RapidStopped, RapidSyntaxError, parse_options
 from maniskill_irb120.abb.emulator.rapid.execution import PPToMain
 from maniskill_irb120.abb.emulator.robot import EmulatedIRB120
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
@@ -162,7 +156,11 @@ class ControllerEmulator(Pendant):
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         # syntax and load errors (missing options, ambiguous names) surface here, with their module and line
         self.interp = Interpreter(
-            [*sources, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
+            [*sources, *extra_modules],
+            CONTROLLER,
+            options=self.options,
+            statement_cost_s=statement_cost_us / 1e6,
+            host=self,
         )
         self.interp.supervision = self._motion_supervision
         self.start_routines: list[str] = []  # START event routines: run when the program starts from main
@@ -274,8 +272,12 @@ class ControllerEmulator(Pendant):
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def _builtins(self) -> Builtins:
-        return controller_builtins(self)
+    def accept_client(self, timeout: float) -> tuple[socket.socket, tuple]:
+        """A client of the listening socket within ``timeout`` s (TimeoutError if none); :meth:`stop` closes it."""
+        self._server.settimeout(timeout)
+        conn, peer = self._server.accept()
+        self._conns.append(conn)
+        return conn, peer
 
 
 # The pendant's controls as commands (``--pendant``: one or more a line, separated by ``;``), so that a fault and

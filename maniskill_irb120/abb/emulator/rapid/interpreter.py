@@ -48,7 +48,8 @@ class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin)
     refuses (:class:`RapidLoadError`) a global name declared twice, and, when ``options`` is given (installed
     RobotWare option ids such as ``"616-1"``; ``()``: none), any use of a name whose option is missing
     (:mod:`.options`). ``options=None`` skips that check. Stop/start, PP to main and ``statement_cost_s`` (the
-    controller time of one statement): :mod:`.execution`.
+    controller time of one statement): :mod:`.execution`. ``host``: the controller that runs the task; builtins
+    registered ``with_interp`` reach it as ``interp.host``.
     """
 
     def __init__(
@@ -61,7 +62,9 @@ class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin)
         max_statements: int | None = None,
         options: Iterable[str] | None = None,
         statement_cost_s: float = 0.0,
+        host: Any = None,
     ):
+        self.host = host  # the controller running this task: what its builtins act on (None: a bare interpreter)
         self.builtins = Builtins()
         self.builtins.update(STDLIB)
         if builtins is not None:

@@ -12,14 +12,15 @@ Calling convention (the same for procedure calls and function calls; a function'
   aggregates); non-value objects (:class:`RawBytes`, :class:`ClockVar`, :class:`Opaque`) arrive as themselves, so
   ``ReadRawBytes dev, raw`` can fill ``raw`` in place without a ref;
 * raise :class:`RapidError` ``(errno)`` to enter the RAPID ERROR handler; any other exception is fatal;
-* ``with_interp=True`` passes the :class:`Interpreter` first (clock, logs, module data, ``errno``).
+* ``with_interp=True`` passes the :class:`Interpreter` first (clock, logs, module data, ``errno``, and ``host``, the
+  controller running the task); that parameter is no RAPID option.
 """
 
 from __future__ import annotations
 
 import inspect
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 
@@ -56,7 +57,7 @@ class Builtins:
         """Register ``fn`` as RAPID routine ``name`` (replacing any earlier one of that name)."""
         options, var_keyword = {}, True
         try:
-            params = inspect.signature(fn).parameters.values()
+            params = list(inspect.signature(fn).parameters.values())[1 if with_interp else 0 :]  # not the interpreter
             var_keyword = any(p.kind is p.VAR_KEYWORD for p in params)
             options = {p.name.lower(): p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
         except (TypeError, ValueError):  # no signature (C callables): pass options through lower-cased
@@ -78,8 +79,9 @@ class Builtins:
         return deco
 
     def update(self, other: Builtins | Mapping[str, Callable[..., Any]]) -> None:
+        """Add ``other``'s routines; a :class:`Builtins`' entries are copied (a shared registry stays as it is)."""
         if isinstance(other, Builtins):
-            self._table.update(other._table)
+            self._table.update((k, replace(b)) for k, b in other._table.items())
         else:
             for name, fn in other.items():
                 self.add(name, fn)
