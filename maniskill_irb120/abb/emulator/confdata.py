@@ -1,5 +1,6 @@
 """ABB's configuration data (``confdata``: cf1, cf4, cf6, cfx) of the emulated IRB 120: what CRobT and CalcRobT
-return and what CalcJointT honours."""
+return and what CalcJointT honours. See docs/emulator.md, "Motion".
+"""
 
 from __future__ import annotations
 

@@ -1,9 +1,7 @@
-"""Controller emulator: executes our RAPID server (the files users load onto the IRC5) with our RAPID
-interpreter, on an emulated IRB 120, serving a pty (serial) or a loopback TCP socket. The modules are the code
-under test, loaded as an integrator loads them: the core ``IRB120Server.mod``, the channel module for the link
-(``IRB120Serial.mod`` or ``IRB120Socket.mod``) and the world-zone system module ``IRB120Zone.sys``, whose POWER
-ON event routine runs before the server's entry routine ``IRB120Server``. What the IRC5 provides to the program
-is in ``builtins.py`` (kinematics, motion, world zones, I/O) over ``channel.py`` (the link) and ``robot.py``.
+"""The emulated IRC5 (:class:`ControllerEmulator`): one task built from the shipped modules as an integrator loads
+them (the core ``IRB120Server.mod``, the channel module, ``IRB120Zone.sys`` with 608-1), run with the routines of
+``builtins.py`` on ``robot.py``'s IRB 120, serving a pty (serial) or a loopback TCP socket; and the pendant's
+commands out of process (:data:`PENDANT`). See docs/emulator.md.
 
     maniskill-irb120 emulator --listen tcp://127.0.0.1:0      # first line printed: the URL to connect to
     maniskill-irb120 emulator --pendant -                     # and the pendant's buttons from stdin (see PENDANT)

@@ -1,8 +1,7 @@
-"""The :class:`Interpreter`: loads a RAPID module, owns its data, and is the Python-facing API.
-
-Statements and error recovery live in :mod:`.statements`, calls in :mod:`.calls`, expressions in
-:mod:`.expressions`; each types ``self`` as the :class:`~.contract.Runtime` protocol, which this class implements.
-Frames and the control-flow signals (Return, Retry, TryNext, Propagate) are in :mod:`.frames`.
+"""The :class:`Interpreter`: loads a RAPID task's modules, owns its data, and is the Python-facing API.
+Statements and error recovery live in :mod:`.statements`, calls in :mod:`.calls`, expressions in :mod:`.expressions`,
+each typing ``self`` as :class:`~.contract.Runtime`; frames and control-flow signals in :mod:`.frames`.
+See docs/rapid_subset.md.
 """
 
 from __future__ import annotations
