@@ -127,6 +127,96 @@ def test_imports_point_one_way(rule):
     assert offenders(paths, forbidden) == [], rule
 
 
+# --------------------------------------------------------------------------- no import cycles
+def import_time_imports(path: Path, root: Path) -> set[str]:
+    """The modules of ``root``'s package that ``path`` imports while it is being imported: module level and class
+    bodies, ``if TYPE_CHECKING:`` blocks included; not imports inside functions. ``from pkg import name`` is
+    ``pkg.name`` where that is a module, else ``pkg``."""
+    here = ".".join(path.relative_to(root).with_suffix("").parts)
+    package = here.rsplit(".", 1)[0] if path.name != "__init__.py" else here.removesuffix(".__init__")
+
+    def is_module(name: str) -> bool:
+        f = root.joinpath(*name.split("."))
+        return f.with_suffix(".py").is_file() or (f / "__init__.py").is_file()
+
+    out: set[str] = set()
+
+    def visit(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                continue
+            if isinstance(child, ast.Import):
+                out.update(a.name for a in child.names if is_module(a.name))
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:
+                    parts = package.split(".")[: len(package.split(".")) - child.level + 1]
+                    base = ".".join(parts + ([base] if base else []))
+                for a in child.names:
+                    if is_module(f"{base}.{a.name}"):
+                        out.add(f"{base}.{a.name}")
+                    elif is_module(base):
+                        out.add(base)
+            visit(child)
+
+    visit(ast.parse(path.read_text()))
+    return out
+
+
+def import_cycles(root: Path, package: str) -> list[list[str]]:
+    """Each set of ``package``'s modules that import one another round (strongly connected, more than one)."""
+    paths = sorted((root / package).rglob("*.py"))
+    names = [".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__") for p in paths]
+    graph = {n: import_time_imports(p, root) - {n} for n, p in zip(names, paths)}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def connect(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                connect(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in graph:
+        if v not in index:
+            connect(v)
+    return cycles
+
+
+def test_no_import_cycles():
+    """No two modules of the package import each other, directly or round a longer loop. What counts is what runs
+    when a module is imported, and ``if TYPE_CHECKING:`` imports too (a type checker follows them, and an
+    annotation that needs the importer is a dependency all the same: the emulator's two cycles were of that kind).
+    Imports inside functions do not count here: they run once every module is initialised (``open_device``
+    importing the driver it was asked for, ``vector``'s worker importing the package); the layer rules above
+    still see them."""
+    assert import_cycles(PKG.parent, PKG.name) == []
+
+
+def test_the_cycle_scan_counts_type_checking_imports_and_not_those_in_functions(tmp_path):
+    pkg = tmp_path / "p"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from p.b import B\n")
+    (pkg / "b.py").write_text("from . import a\n\nclass B:\n    from p import c\n")
+    (pkg / "c.py").write_text("def load():\n    from p import b\n")
+    assert import_cycles(tmp_path, "p") == [["p.a", "p.b"]]
+    (pkg / "a.py").write_text("def f():\n    from p.b import B\n")
+    assert import_cycles(tmp_path, "p") == []
+
+
 # --------------------------------------------------------------------------- programs the package starts
 STARTERS = {
     "subprocess": {"run", "call", "check_call", "check_output", "Popen", "getoutput", "getstatusoutput"},

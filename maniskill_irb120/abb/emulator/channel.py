@@ -1,5 +1,6 @@
 """The controller's end of the link (a pty master or an accepted TCP connection), with the line speed,
-latency and reply faults the emulator injects (``--fault``)."""
+latency and reply faults the emulator injects (``--fault``). See docs/emulator.md.
+"""
 
 from __future__ import annotations
 

@@ -1,10 +1,11 @@
 """ABB's configuration data (``confdata``: cf1, cf4, cf6, cfx) of the emulated IRB 120: what CRobT and CalcRobT
-return and what CalcJointT honours."""
+return and what CalcJointT honours. See docs/emulator.md, "Motion".
+"""
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -12,8 +13,15 @@ import torch
 from maniskill_irb120.abb.emulator.motion import MotionError
 from maniskill_irb120.robot.kinematics import SphericalWristIK
 
-if TYPE_CHECKING:
-    from maniskill_irb120.abb.emulator.robot import EmulatedIRB120
+
+class Arm(Protocol):
+    """What :func:`solve_conf` reads of the robot (``robot.EmulatedIRB120``, which imports this module)."""
+
+    ik: SphericalWristIK  # within the joint limits
+    ik_unlimited: SphericalWristIK  # tells "out of reach" from "breaks a joint limit"
+    quadrant_tolerance_deg: float | None
+    low: np.ndarray  # joint limits, deg
+    high: np.ndarray
 
 
 def robconf(ik: SphericalWristIK, q_deg) -> tuple[int, int, int, int]:
@@ -31,13 +39,14 @@ def robconf(ik: SphericalWristIK, q_deg) -> tuple[int, int, int, int]:
     return c1, c4, c6, int(cfx)
 
 
-def solve_conf(robot: EmulatedIRB120, tool_target: np.ndarray, tframe: np.ndarray, conf) -> np.ndarray:
+def solve_conf(robot: Arm, tool_target: np.ndarray, flange: np.ndarray, conf) -> np.ndarray:
     """CalcJointT: the joint angles in the robtarget's configuration ``conf`` (cf1, cf4, cf6, cfx). ABB:
     "The calculation always selects the robot configuration according to the specified configuration data
     in the input robtarget data. Instructions ConfL and ConfJ do not affect this calculation principle"
     (RAPID reference, CalcJointT, as we read it). The arm and wrist branch (cfx) is taken as given; of the
     turns of axes 1, 4, 6, the one nearest the programmed quadrant (not verified: ABB does not say what
-    happens to a solution just across a quadrant boundary; ``quadrant_tolerance_deg`` makes it strict)."""
+    happens to a solution just across a quadrant boundary; ``quadrant_tolerance_deg`` makes it strict).
+    ``flange``: the flange pose that puts the tool at ``tool_target``."""
     cf = [int(round(c)) for c in conf]
     cfx = cf[3]
     back, behind, wrist_neg = bool(cfx & 4), bool(cfx & 2), bool(cfx & 1)
@@ -49,8 +58,7 @@ def solve_conf(robot: EmulatedIRB120, tool_target: np.ndarray, tframe: np.ndarra
         if (robot.ik.a2 * math.sin(a) + robot.ik.L * math.cos(a - (phi - q3)) < 0) == back
     )
     seed = np.array([0.0, q2, q3, 0.0, -0.5 if wrist_neg else 0.5, 0.0])
-    flange = torch.as_tensor(robot._flange(tool_target, tframe)[None])
-    q, ok = robot.ik_unlimited.solve(flange, torch.as_tensor(seed)[None])
+    q, ok = robot.ik_unlimited.solve(torch.as_tensor(flange[None]), torch.as_tensor(seed)[None])
     if not bool(ok[0]):
         raise MotionError("reach", f"tool position {np.round(tool_target[:3, 3] * 1000, 1)} mm is out of reach")
     q = np.degrees(q[0].numpy())

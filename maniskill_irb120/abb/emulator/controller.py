@@ -1,9 +1,7 @@
-"""Controller emulator: executes our RAPID server (the files users load onto the IRC5) with our RAPID
-interpreter, on an emulated IRB 120, serving a pty (serial) or a loopback TCP socket. The modules are the code
-under test, loaded as an integrator loads them: the core ``IRB120Server.mod``, the channel module for the link
-(``IRB120Serial.mod`` or ``IRB120Socket.mod``) and the world-zone system module ``IRB120Zone.sys``, whose POWER
-ON event routine runs before the server's entry routine ``IRB120Server``. What the IRC5 provides to the program
-is in ``builtins.py`` (kinematics, motion, world zones, I/O) over ``channel.py`` (the link) and ``robot.py``.
+"""The emulated IRC5 (:class:`ControllerEmulator`): one task built from the shipped modules as an integrator loads
+them (the core ``IRB120Server.mod``, the channel module, ``IRB120Zone.sys`` with 608-1), run with the routines of
+``builtins.py`` on ``robot.py``'s IRB 120, serving a pty (serial) or a loopback TCP socket; and the pendant's
+commands out of process (:data:`PENDANT`). See docs/emulator.md.
 
     maniskill-irb120 emulator --listen tcp://127.0.0.1:0      # first line printed: the URL to connect to
     maniskill-irb120 emulator --pendant -                     # and the pendant's buttons from stdin (see PENDANT)
@@ -25,17 +23,11 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 
-from maniskill_irb120.abb.emulator.builtins import OP_MODE_NAMES, controller_builtins
+from maniskill_irb120.abb.emulator.builtins import CONTROLLER, OP_MODE_NAMES
 from maniskill_irb120.abb.emulator.channel import Channel, parse_faults
 from maniskill_irb120.abb.emulator.motion import MANUAL_REDUCED_TCP_MM_S
 from maniskill_irb120.abb.emulator.pendant import ControllerStateError, Pendant
-from maniskill_irb120.abb.emulator.rapid import (
-    Builtins,
-    Interpreter,
-    RapidStopped,
-    RapidSyntaxError,
-    parse_options,
-)
+from maniskill_irb120.abb.emulator.rapid import Interpreter, RapidStopped, RapidSyntaxError, parse_options
 from maniskill_irb120.abb.emulator.rapid.execution import PPToMain
 from maniskill_irb120.abb.emulator.robot import EmulatedIRB120
 from maniskill_irb120.robot.irb120 import IRB120Metalwork
@@ -162,7 +154,11 @@ class ControllerEmulator(Pendant):
         self.moves = 0  # motion instructions executed (MoveL, MoveAbsJ): "nothing runs twice" is counted here
         # syntax and load errors (missing options, ambiguous names) surface here, with their module and line
         self.interp = Interpreter(
-            [*sources, *extra_modules], self._builtins(), options=self.options, statement_cost_s=statement_cost_us / 1e6
+            [*sources, *extra_modules],
+            CONTROLLER,
+            options=self.options,
+            statement_cost_s=statement_cost_us / 1e6,
+            host=self,
         )
         self.interp.supervision = self._motion_supervision
         self.start_routines: list[str] = []  # START event routines: run when the program starts from main
@@ -274,8 +270,12 @@ class ControllerEmulator(Pendant):
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    def _builtins(self) -> Builtins:
-        return controller_builtins(self)
+    def accept_client(self, timeout: float) -> tuple[socket.socket, tuple]:
+        """A client of the listening socket within ``timeout`` s (TimeoutError if none); :meth:`stop` closes it."""
+        self._server.settimeout(timeout)
+        conn, peer = self._server.accept()
+        self._conns.append(conn)
+        return conn, peer
 
 
 # The pendant's controls as commands (``--pendant``: one or more a line, separated by ``;``), so that a fault and

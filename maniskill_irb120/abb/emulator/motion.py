@@ -1,16 +1,7 @@
 """How the emulated IRB 120 moves a planned path over time: velocity profiles with acceleration limits, fly-by
-corners and the look-ahead rule that decides them, stops on the path, and errors met on the way.
-
-A segment (one move instruction) is a path in joint space parametrised by ``u`` from 0 to 1. Its cruise speed
-``v`` (u/s) is what its speeddata and the axis speeds allow; its acceleration ``a`` (u/s²) what the TCP and the
-axes allow. It accelerates at ``a`` to ``v`` and decelerates at ``a`` to its end speed: zero at a stop point, or
-the speed it carries into its successor at a fly-by point. Whether a fly-by point is flown by is decided by the
-look-ahead rule (:class:`Segment` ``decide``): the next move instruction must have been reached before the robot
-has to begin decelerating to the point; otherwise the point becomes a stop point and event 50024 "Corner path
-failure" is logged, as an IRC5 does (the event is seen on real controllers: ros-industrial/abb issues 134 and 185,
-and public alarm logs list 50024 "Corner path failure" among the most frequent motion events).
-
-Figures that ABB does not publish are estimates, said so where they are defined.
+corners decided by the look-ahead rule (:class:`Segment` ``decide``), stops on the path, and errors met on the
+way. Figures that ABB does not publish are estimates, said so where they are defined.
+See docs/emulator.md, "Motion".
 """
 
 from __future__ import annotations
@@ -36,7 +27,7 @@ QUICK_STOP_DECEL_RATIO = 2.0
 # the programmed speed rather than refusing it.
 MANUAL_REDUCED_TCP_MM_S = 250.0
 
-CORNER_PATH_FAILURE = (50024, "Corner path failure")  # verified: public IRC5 alarm logs
+CORNER_PATH_FAILURE = (50024, "Corner path failure")  # public IRC5 alarm logs; ros-industrial/abb issues 134, 185
 OUTSIDE_REACH = (50050, "Position outside reach")  # verified: public RAPID code comments quoting the event
 NEAR_SINGULARITY = (50026, "Close to singularity")  # NOT verified in public sources: ABB's number from memory
 WORLD_ZONE = (None, "World zone violated")  # ABB's event number for a WZLimSup stop: not found in public sources

@@ -1,17 +1,6 @@
-"""What the operator does at the emulated IRC5, and what the controller does about it: the task model.
-
-On an IRC5 an emergency stop, motors off (a guard stop, or releasing the enabling device in manual mode) and the
-pendant's Stop button all halt the motion task's program where it stands and stop the robot on its path; the
-program sends nothing more (docs/reference.md, "IRC5 / RAPID behaviour": status that must survive a stop needs a
-second task, abb_driver's ROS_stateServer). Start goes on where the program stood, and the robot first finishes
-the path it had queued; "PP to main" instead unwinds the program (UNDO handlers run) and Start then runs the
-entry routine from the top, with the path cleared. Start needs the motors on: in manual mode while the enabling
-device is held, in automatic mode after the Motors On button (ABB Operating manual IRC5).
-
-Event numbers: 10010 Motors OFF state, 10011 Motors ON state, 10013 Emergency stop state, 50024 Corner path
-failure, 80001-80003 the program's own ErrWrite entries (error, \\W warning, \\I information) are the numbers
-an IRC5 event log shows (from integrators' logs and issue threads; the ABB event-log manual is not available
-here: verify). Events without a known number carry ``code=None``.
+"""What the operator does at the emulated IRC5, and what the controller does about it: the task model (Stop,
+Start, PP to main, emergency stop, motors off, the enabling device) and the event log. Mixed into
+:class:`~.controller.ControllerEmulator`. See docs/emulator.md, "The task model".
 """
 
 from __future__ import annotations
@@ -29,7 +18,9 @@ if TYPE_CHECKING:
 class Event:
     """One event-log entry."""
 
-    code: int | None  # the IRC5 event number where known (see the module docstring)
+    # the IRC5 event number where known: 10010 Motors OFF, 10011 Motors ON, 10013 Emergency stop, 50024, 80001-80003
+    # (ErrWrite), from integrators' logs and issue threads (the event-log manual was not at hand: verify)
+    code: int | None
     title: str
     detail: str = ""
     time: float = 0.0  # time.monotonic() when it was logged
@@ -41,7 +32,12 @@ class ControllerStateError(RuntimeError):
 
 class Pendant:
     """The operator's controls and the program's state, mixed into :class:`ControllerEmulator` (which provides
-    ``robot``, ``interp``, ``signals``, ``op_mode`` and calls :meth:`_init_pendant`)."""
+    ``robot``, ``interp``, ``signals``, ``op_mode`` and calls :meth:`_init_pendant`).
+
+    An emergency stop, motors off (a guard stop, or the enabling device released in manual mode) and Stop all halt
+    the program where it stands and stop the robot on its path; the program sends nothing more (docs/reference.md,
+    "IRC5 / RAPID behaviour"). Start needs the motors on: in manual mode while the enabling device is held, in
+    automatic mode after the Motors On button (ABB Operating manual IRC5)."""
 
     robot: EmulatedIRB120
     interp: Interpreter

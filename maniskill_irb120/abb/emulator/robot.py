@@ -1,18 +1,7 @@
-"""The IRB 120 behind the controller emulator: what RAPID's motion and kinematics built-ins act on.
-
-Joint state that moves over wall-clock time (``clock`` is injectable), in RAPID's units (mm, degrees, wxyz
-quaternions) and conventions: ``tool0`` is the flange with its z axis out of the flange (at the zero pose it
-points along base +x), a tool's ``tframe`` is given in ``tool0``. Kinematics are the simulator's own
-(``maniskill_irb120.robot.kinematics``), so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation.
-
-Every move runs at the speed its speeddata, ABB's axis speeds and the operating mode allow, with acceleration
-limits, fly-by corners decided by the look-ahead rule, StopMove decelerating on the path, and errors found where
-the robot meets them (``motion.py``). Configuration data (``robconf``) is ABB's ``confdata``.
-
-Simplifications, said plainly: a MoveL runs through IK waypoints every millimetre / degree of its straight line
-and is joint-interpolated between them, the TCP and every axis following one velocity profile along the path; a
-fly-by corner is passed at the segments' speeds (the 1 mm corner arc itself is not drawn); the world zone is
-checked on ten points between waypoints; acceleration figures are estimates (``motion.py``).
+"""The IRB 120 behind the controller emulator, what RAPID's motion and kinematics routines act on: joint state
+moving over wall-clock time (``clock`` is injectable) in RAPID's units and conventions, with the simulator's own
+kinematics, so the emulated robot lands where ``pd_ee_delta_tool`` lands in simulation. How it moves: ``motion.py``;
+its simplifications: docs/emulator.md, "Motion".
 """
 
 from __future__ import annotations
@@ -131,7 +120,7 @@ class EmulatedIRB120:
 
     def solve_conf(self, tool_target: np.ndarray, tframe: np.ndarray, conf) -> np.ndarray:
         """CalcJointT: the joint angles in the robtarget's configuration (``confdata.solve_conf``)."""
-        return solve_conf(self, tool_target, tframe, conf)
+        return solve_conf(self, tool_target, self._flange(tool_target, tframe), conf)
 
     # ------------------------------------------------------------------ motion over wall-clock time
     def joints(self) -> np.ndarray:

@@ -1,49 +1,9 @@
 """Robot Web Services 1.0 on the controller emulator: the subset a deployment uses, so that ``maniskill-irb120
-deploy`` (``abb-robot-client`` underneath) is tested against the same checks a RobotWare 6 IRC5 makes.
+deploy`` (``abb-robot-client`` underneath) is tested against the checks a RobotWare 6 IRC5 makes (mastership, RMMP,
+sessions, the file service, load-time checks). Binds 127.0.0.1 only. What is served and refused: docs/emulator.md,
+"Robot Web Services"; each resource with its source: docs/real_robot.md, "What was verified on the emulator only".
 
     maniskill-irb120 emulator --rws 127.0.0.1:0 --options 616-1,608-1   # first line printed: the RWS URL
-
-What is served (docs/real_robot.md, "What was verified on the emulator only", has the table with sources):
-
-* HTTP digest authentication (RFC 7616: MD5, ``qop=auth``), realm ``validusers@robapi.abb`` (verify), user
-  ``Default User`` / ``robotics`` (the defaults abb-robot-client and ABB's manuals name); a wrong password gets
-  401. After the first authenticated request the client gets the session cookies ``-http-session-`` and ``ABBCX``
-  (abb-robot-client's subscriptions read ``ABBCX``); mastership and RMMP belong to that session. A session unused
-  for ``session_idle_s`` ends (its mastership and RMMP with it); beyond ``max_sessions`` a new one gets 503
-  (70 and 900 s, verify).
-* ``/fileservice/$HOME/...``: GET (a file's bytes, or a folder's listing), PUT (a file, into an existing folder;
-  Content-Length or chunked), DELETE (a file, or an empty folder; never $HOME itself), POST ``fs-action=create``
-  + ``fs-newname`` (a folder, or a path of them).
-* ``/rw/system`` (RobotWare version and the installed options, ``sys-system-li`` / ``sys-option-li`` as
-  abb_librws reads them), ``/rw/panel/{ctrlstate,opmode,speedratio}``, ``/rw/rapid/execution`` (start, stop,
-  resetpp), ``/rw/rapid/tasks`` (``T_ROB1``: loadmod / unloadmod / activate), ``/rw/rapid/tasks/T_ROB1/modules``
-  and ``/rw/rapid/modules?task=T_ROB1``, ``/rw/rapid/tasks/T_ROB1/pcp`` (the program pointer; ``set-pp-routine``
-  (verify)), ``/rw/rapid/symbol/data/RAPID/T_ROB1/[MODULE/]NAME`` (read; ``action=set`` for PERS and VAR),
-  ``/rw/rapid/symbols?action=search-symbols`` (the PERS data), ``/rw/mastership`` (``request`` / ``release``),
-  ``/users/rmmp`` (state, request, ``action=cancel``; ``action=set`` is the FlexPendant's) and
-  ``/users/rmmp/poll``, ``/rw/elog/0`` (the emulator's events), ``/logout``.
-* Every answer is RWS 1.0's JSON representation (``?json=1``, ``Content-Type: application/json``): an
-  ``_embedded._state`` list of items with ``_type`` and ``_title``; an error is ``_embedded.status`` with
-  ``code`` and ``msg`` (the shape abb-robot-client parses). The numeric error codes are the controller's where
-  ABB's reference names one (a write without mastership: :data:`CODE_NO_MASTERSHIP`), else the emulator's own
-  (``-HTTP status``, verify): a client matches on the HTTP status and the message.
-
-What the controller refuses here, as an IRC5 does (each a rule of the controller, "(verify)" where the exact
-answer is guessed; docs/real_robot.md has the sources): loading, unloading, moving the program pointer and setting
-RAPID data without mastership (400 and the controller's code); mastership in a manual mode without RMMP granted
-by the operator at the pendant (403, verify); loading or unloading while the program runs (409, verify); a module
-that does not parse or names anything of a missing RobotWare option (the emulator's load-time checks,
-``rapid/options.py``): 400, the module is not loaded and the controller's own message goes to the event log; the
-program pointer at a PROC with parameters, a value read from or written to a non-value type (400, verify);
-starting the program remotely in a manual mode (403: in manual the operator starts it on the FlexPendant, holding
-the enabling device; verify) or with the motors off. Turning the key stops a running program and turns the motors
-off; leaving AUTO takes mastership, any turn takes RMMP. Loading or unloading a module keeps the other modules'
-PERS at their current values. A malformed request (a Content-Length that is not a length, a path whose
-%-escapes are not UTF-8) gets a 400 with the error body, never a dropped connection.
-
-The task model underneath is :class:`~.controller.ControllerEmulator`: every successful load builds the task anew
-from the modules as loaded (so what runs is what was uploaded), and Start runs it from where the program pointer
-stands. Binds 127.0.0.1 only.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """Routines and calls (a mixin typed against :class:`~.contract.Runtime`): parameter binding, by-reference
-arguments, builtins."""
+arguments, builtins. See docs/rapid_subset.md.
+"""
 
 from __future__ import annotations
 

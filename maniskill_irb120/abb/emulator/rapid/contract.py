@@ -1,16 +1,6 @@
-"""What the parts of the interpreter need from each other: the :class:`Runtime` protocol.
-
-:class:`~.interpreter.Interpreter` is assembled from three mixins, each of which types ``self`` as a
-:class:`Runtime`, so a part reads against this protocol only:
-
-* :mod:`.expressions` (``eval``, ``condition``, ``resolve``) needs ``lookup``, ``fault``, ``call_function``;
-* :mod:`.statements` (``execute``, ``block``, ``wait_until``) needs expressions, ``call_statement``, ``store``,
-  ``tick``, ``check_stop``, ``clock``, ``max_retries``, ``_errno``, ``connections``;
-* :mod:`.calls` (``call_*``) needs expressions, ``block``, ``wait_until``, ``declare``, ``find_routine``,
-  ``find_routine_py``, ``builtins``, ``_stack``;
-* :mod:`.interpreter` provides the state, names (``lookup``, ``find_routine``, ``store``, ``declare``,
-  ``fault``) and ``tick``. Names resolve as a task does: the frame's variables, then its module's LOCAL
-  names (``Frame.module``), then the task's global names, then system data.
+"""What the parts of the interpreter need from each other: the :class:`Runtime` protocol. The
+:class:`~.interpreter.Interpreter` is assembled from mixins (:mod:`.expressions`, :mod:`.statements`, :mod:`.calls`),
+each typing ``self`` as a :class:`Runtime`, so a part reads against this protocol only. See docs/rapid_subset.md.
 """
 
 from __future__ import annotations
@@ -39,7 +29,16 @@ class Clock(Protocol):
 
 @runtime_checkable
 class Runtime(Protocol):
-    """The interpreter as its parts see it (implemented by :class:`~.interpreter.Interpreter`)."""
+    """The interpreter as its parts see it (implemented by :class:`~.interpreter.Interpreter`).
+
+    * :mod:`.expressions` (``eval``, ``condition``, ``resolve``) needs ``lookup``, ``fault``, ``call_function``;
+    * :mod:`.statements` (``execute``, ``block``, ``wait_until``) needs expressions, ``call_statement``, ``store``,
+      ``tick``, ``check_stop``, ``clock``, ``max_retries``, ``_errno``, ``connections``;
+    * :mod:`.calls` (``call_*``) needs expressions, ``block``, ``wait_until``, ``declare``, ``find_routine``,
+      ``find_routine_py``, ``builtins``, ``_stack``;
+    * :mod:`.interpreter` provides the state, names (``lookup``, ``find_routine``, ``store``, ``declare``,
+      ``fault``) and ``tick``. Names resolve as a task does: the frame's variables, then its module's LOCAL
+      names (``Frame.module``), then the task's global names, then system data."""
 
     # ---- state (interpreter.py) ----
     builtins: Builtins

@@ -1,8 +1,7 @@
-"""RAPID error numbers and the exceptions the interpreter raises.
-
-Two kinds of failure exist, as on the controller: a *recoverable* RAPID error (:class:`RapidError`, carries an
-``errno`` and goes to the routine's ERROR handler) and a *fatal* one (:class:`RapidRuntimeError`: an unhandled
-RAPID error, or a program fault such as an undefined name, which on the IRC5 stops the program).
+"""RAPID error numbers and the exceptions the interpreter raises: a *recoverable* RAPID error
+(:class:`RapidError`, carries an ``errno`` and goes to the routine's ERROR handler) and a *fatal* one
+(:class:`RapidRuntimeError`: an unhandled RAPID error, or a program fault, which on the IRC5 stops the program).
+See docs/rapid_subset.md, "Errors and recovery".
 """
 
 from __future__ import annotations

@@ -1,21 +1,7 @@
-"""Program execution as a controller's task runs it: stopped and started from outside, the program pointer
-moved to main, and every statement costing controller time.
-
-* **Stop and start** (the pendant's Stop/Start, an emergency stop, releasing the enabling device): :meth:`halt`
-  stops the program before its next statement or inside a blocking instruction, where it waits; :meth:`resume`
-  goes on from there, inside the instruction that was running (a read resumes its wait), after the task's
-  RESTART event routines. This is why an IRC5 program that was stopped mid-read does not start over: the
-  controller resumes the program pointer where it stood (ABB Operating manual IRC5, "Starting programs";
-  docs/reference.md "Start without PP to main resumes").
-* **PP to main**: :meth:`pp_to_main` unwinds every active routine, innermost first, running each one's ``UNDO``
-  handler (RAPID's UNDO: "executed when the program pointer is moved out of the routine", used to close what
-  the routine opened); the next start runs the entry routine from its first statement after the START event
-  routines.
-* **Statement cost**: RAPID is interpreted; each statement costs the controller time. ``statement_cost_s``
-  (an estimate, configurable; 0 disables it) paces the program so that it never runs faster than that, on top
-  of whatever time the built-ins take. The emulator's own Python is slower per statement than that on some
-  machines: then the measured time is the emulator's, and :attr:`statements` still counts what an IRC5 would
-  execute.
+"""Program execution as a controller's task runs it: stopped and started from outside (:meth:`halt`,
+:meth:`resume`), the program pointer moved to main (:meth:`pp_to_main`, UNDO handlers run), and every statement
+costing controller time (``statement_cost_s``, an estimate; 0 disables it).
+See docs/rapid_subset.md, "Execution control", and docs/emulator.md, "The task model".
 """
 
 from __future__ import annotations
@@ -71,13 +57,17 @@ class ExecutionMixin:
         self._running.clear()
 
     def resume(self) -> None:
-        """A halted program goes on where it stood, after the RESTART event routines."""
+        """A halted program goes on where it stood, inside the instruction that was running (a read resumes its
+        wait), after the RESTART event routines: the controller resumes the program pointer where it stood (ABB
+        Operating manual IRC5, "Starting programs"; docs/reference.md "Start without PP to main resumes")."""
         if not self._running.is_set():
             self._restart_pending = True
         self._running.set()
 
     def pp_to_main(self) -> None:
-        """Move the program pointer to main: a halted program unwinds (UNDO handlers run) and ends its run()."""
+        """Move the program pointer to main: a halted program unwinds, innermost routine first, running each
+        one's UNDO handler (RAPID's UNDO: "executed when the program pointer is moved out of the routine"), and ends
+        its run()."""
         self._pp_main = True
         self._running.set()
 

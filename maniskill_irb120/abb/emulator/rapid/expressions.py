@@ -1,5 +1,6 @@
 """Expression evaluation and variable resolution (a mixin typed against :class:`~.contract.Runtime`), with RAPID's
-operator rules."""
+operator rules. See docs/rapid_subset.md.
+"""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""Routines, activation frames and the control-flow signals the interpreter's parts pass to each other.
-
-Plain data, no behaviour beyond building a :class:`Routine` from its parse tree: :mod:`.contract` declares what
-the parts (:mod:`.interpreter`, :mod:`.statements`, :mod:`.calls`, :mod:`.expressions`) need from each other.
+"""Routines, activation frames and the control-flow signals the interpreter's parts pass to each other. Plain
+data, no behaviour beyond building a :class:`Routine` from its parse tree. See docs/rapid_subset.md.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
-"""The :class:`Interpreter`: loads a RAPID module, owns its data, and is the Python-facing API.
-
-Statements and error recovery live in :mod:`.statements`, calls in :mod:`.calls`, expressions in
-:mod:`.expressions`; each types ``self`` as the :class:`~.contract.Runtime` protocol, which this class implements.
-Frames and the control-flow signals (Return, Retry, TryNext, Propagate) are in :mod:`.frames`.
+"""The :class:`Interpreter`: loads a RAPID task's modules, owns its data, and is the Python-facing API.
+Statements and error recovery live in :mod:`.statements`, calls in :mod:`.calls`, expressions in :mod:`.expressions`,
+each typing ``self`` as :class:`~.contract.Runtime`; frames and control-flow signals in :mod:`.frames`.
+See docs/rapid_subset.md.
 """
 
 from __future__ import annotations
@@ -48,7 +47,8 @@ class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin)
     refuses (:class:`RapidLoadError`) a global name declared twice, and, when ``options`` is given (installed
     RobotWare option ids such as ``"616-1"``; ``()``: none), any use of a name whose option is missing
     (:mod:`.options`). ``options=None`` skips that check. Stop/start, PP to main and ``statement_cost_s`` (the
-    controller time of one statement): :mod:`.execution`.
+    controller time of one statement): :mod:`.execution`. ``host``: the controller that runs the task; builtins
+    registered ``with_interp`` reach it as ``interp.host``.
     """
 
     def __init__(
@@ -61,7 +61,9 @@ class Interpreter(ExecutionMixin, StatementsMixin, CallsMixin, ExpressionsMixin)
         max_statements: int | None = None,
         options: Iterable[str] | None = None,
         statement_cost_s: float = 0.0,
+        host: Any = None,
     ):
+        self.host = host  # the controller running this task: what its builtins act on (None: a bare interpreter)
         self.builtins = Builtins()
         self.builtins.update(STDLIB)
         if builtins is not None:

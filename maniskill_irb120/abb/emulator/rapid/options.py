@@ -1,22 +1,7 @@
 """RobotWare options and the RAPID names they provide: what a controller without the option refuses at load time.
-
-An IRC5 resolves every name of a module when it loads it, whatever branch would run: a module that merely
-*mentions* ``SocketCreate`` inside ``IF USE_SOCKET THEN ... ENDIF`` is rejected on a controller without a socket
-option. Sources (the ABB manuals were not at hand, see ``docs/reference.md`` "IRC5 / RAPID behaviour an emulator must
-reproduce"):
-
-* socket API -> 616-1 PC Interface or 672-1 Socket Messaging: open_abb issue 6 ("Missing option ... SocketCreate
-  requires the option PC Interface"); ros-industrial/abb issue 147 ("Reference to unknown function
-  SocketGetStatus", answered "you need 672-1 or 616-1"). The routine and type names are those of ABB's socket
-  API as open_abb and abb_driver (``ROS_socket.sys``) use it; the ``SOCKET_*`` status constants and the
-  ``ERR_SOCK_*`` names beyond TIMEOUT/CLOSED/ADDR_INUSE are integrator knowledge (verify).
-* world zones -> 608-1 World Zones (verify): ``WZBoxDef``, ``WZLimSup``, ``wztemporary``, ``wzstationary``,
-  ``shapedata`` per docs/reference.md; the other WZ* routines are integrator knowledge (verify).
-* EGM -> 689-1 Externally Guided Motion (docs/reference.md; names as abb_libegm's RAPID examples use them; verify).
-* multitasking -> 623-1 Multitasking (docs/reference.md: abb_driver's state server needs it; names verify).
-
-Names are case-insensitive, as in RAPID. :func:`check_options` walks a whole parse tree (all branches,
-declarations, types, calls, identifiers); names the task declares itself are its own and never gated.
+An IRC5 resolves every name of a module when it loads it, whatever branch would run; :func:`check_options` walks a
+whole parse tree (names the task declares itself are its own and never gated). Names are case-insensitive.
+See docs/rapid_subset.md, "Loading a task".
 """
 
 from __future__ import annotations
@@ -48,6 +33,16 @@ def _names(text: str) -> frozenset[str]:
     return frozenset(text.split())
 
 
+# Sources (the ABB manuals were not at hand, see docs/reference.md "IRC5 / RAPID behaviour an emulator must reproduce"):
+# * socket API -> 616-1 PC Interface or 672-1 Socket Messaging: open_abb issue 6 ("Missing option ... SocketCreate
+#   requires the option PC Interface"); ros-industrial/abb issue 147 ("Reference to unknown function
+#   SocketGetStatus", answered "you need 672-1 or 616-1"). The routine and type names are those of ABB's socket
+#   API as open_abb and abb_driver (ROS_socket.sys) use it; the SOCKET_* status constants and the ERR_SOCK_* names
+#   beyond TIMEOUT/CLOSED/ADDR_INUSE are integrator knowledge (verify).
+# * world zones -> 608-1 World Zones (verify): WZBoxDef, WZLimSup, wztemporary, wzstationary, shapedata per
+#   docs/reference.md; the other WZ* routines are integrator knowledge (verify).
+# * EGM -> 689-1 Externally Guided Motion (docs/reference.md; names as abb_libegm's RAPID examples use them; verify).
+# * multitasking -> 623-1 Multitasking (docs/reference.md: abb_driver's state server needs it; names verify).
 _SOCKET_TYPES = _names("socketdev socketstatus")
 _SOCKET_ROUTINES = _names(
     "SocketCreate SocketBind SocketListen SocketAccept SocketConnect SocketReceive SocketSend SocketClose "

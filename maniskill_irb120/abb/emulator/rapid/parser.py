@@ -1,4 +1,6 @@
-"""The RAPID parser: lark LALR over grammar.lark, with syntax errors turned into :class:`RapidSyntaxError`."""
+"""The RAPID parser: lark LALR over grammar.lark, with syntax errors turned into :class:`RapidSyntaxError`.
+See docs/rapid_subset.md.
+"""
 
 from __future__ import annotations
 

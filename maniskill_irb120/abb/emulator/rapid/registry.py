@@ -1,25 +1,13 @@
 """The builtin registry: how Python callables (an emulator's MoveL, ReadRawBytes, CRobT ...) become RAPID routines.
-
-Calling convention (the same for procedure calls and function calls; a function's return value is its result):
-
-* required RAPID arguments -> positional Python arguments, in order;
-* ``\\Opt:=value`` -> keyword argument; ``\\Switch`` -> keyword argument ``True``. Option names match the
-  Python parameter names case-insensitively (``\\time`` reaches ``Time=``); with ``**kwargs`` unknown options
-  arrive lower-cased;
-* arguments listed in ``refs`` (0-based positions and/or option names) arrive as a :class:`Ref` (``.value``
-  reads/writes the caller's variable, array element or record component) and must be variables in RAPID;
-* other value arguments arrive as copies (float, bool, str, :class:`Record`, lists for arrays and untyped
-  aggregates); non-value objects (:class:`RawBytes`, :class:`ClockVar`, :class:`Opaque`) arrive as themselves, so
-  ``ReadRawBytes dev, raw`` can fill ``raw`` in place without a ref;
-* raise :class:`RapidError` ``(errno)`` to enter the RAPID ERROR handler; any other exception is fatal;
-* ``with_interp=True`` passes the :class:`Interpreter` first (clock, logs, module data, ``errno``).
+The calling convention (the same for procedure and function calls) is :class:`Builtins`'. See docs/rapid_subset.md,
+"Built-ins from Python".
 """
 
 from __future__ import annotations
 
 import inspect
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 
@@ -43,7 +31,20 @@ class Builtin:
 
 
 class Builtins:
-    """A case-insensitive name -> :class:`Builtin` table; build one per emulator and pass it to the Interpreter."""
+    """A case-insensitive name -> :class:`Builtin` table, passed to the Interpreter (which copies its entries).
+
+    * required RAPID arguments -> positional Python arguments, in order;
+    * ``\\Opt:=value`` -> keyword argument; ``\\Switch`` -> keyword argument ``True``. Option names match the
+      Python parameter names case-insensitively (``\\time`` reaches ``Time=``); with ``**kwargs`` unknown options
+      arrive lower-cased;
+    * arguments listed in ``refs`` (0-based positions and/or option names) arrive as a :class:`Ref` (``.value``
+      reads/writes the caller's variable, array element or record component) and must be variables in RAPID;
+    * other value arguments arrive as copies (float, bool, str, :class:`Record`, lists for arrays and untyped
+      aggregates); non-value objects (:class:`RawBytes`, :class:`ClockVar`, :class:`Opaque`) arrive as themselves,
+      so ``ReadRawBytes dev, raw`` can fill ``raw`` in place without a ref;
+    * raise :class:`RapidError` ``(errno)`` to enter the RAPID ERROR handler; any other exception is fatal;
+    * ``with_interp=True`` passes the :class:`Interpreter` first (clock, logs, module data, ``errno``, and
+      ``host``, the controller running the task); that parameter is no RAPID option."""
 
     def __init__(self, entries: Mapping[str, Callable[..., Any]] | None = None):
         self._table: dict[str, Builtin] = {}
@@ -56,7 +57,7 @@ class Builtins:
         """Register ``fn`` as RAPID routine ``name`` (replacing any earlier one of that name)."""
         options, var_keyword = {}, True
         try:
-            params = inspect.signature(fn).parameters.values()
+            params = list(inspect.signature(fn).parameters.values())[1 if with_interp else 0 :]  # not the interpreter
             var_keyword = any(p.kind is p.VAR_KEYWORD for p in params)
             options = {p.name.lower(): p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
         except (TypeError, ValueError):  # no signature (C callables): pass options through lower-cased
@@ -78,8 +79,9 @@ class Builtins:
         return deco
 
     def update(self, other: Builtins | Mapping[str, Callable[..., Any]]) -> None:
+        """Add ``other``'s routines; a :class:`Builtins`' entries are copied (a shared registry stays as it is)."""
         if isinstance(other, Builtins):
-            self._table.update(other._table)
+            self._table.update((k, replace(b)) for k, b in other._table.items())
         else:
             for name, fn in other.items():
                 self.add(name, fn)

@@ -1,11 +1,7 @@
-"""Statements and ERROR-handler recovery (a mixin typed against :class:`~.contract.Runtime`).
-
-Error recovery follows RAPID: a :class:`RapidError` raised by the innermost statement of a routine (a builtin, a
-called routine without its own handler, RAISE, DIV by zero ...) runs that routine's ERROR handler at the point
-of failure with ERRNO set. There RETRY re-runs the failing statement (at most ``max_retries`` times, then the
-error goes on to the caller), TRYNEXT goes on after it, RETURN leaves the routine, RAISE hands the error (or a
-new errno) to the caller's handler, and reaching the end of the handler is an implicit RAISE. An error that
-leaves the entry routine becomes :class:`RapidRuntimeError` (errno, routine and line of the failing statement).
+"""Statements and ERROR-handler recovery (a mixin typed against :class:`~.contract.Runtime`). A
+:class:`RapidError` raised by a routine's innermost statement runs that routine's ERROR handler at the point of
+failure with ERRNO set (RETRY, TRYNEXT, RETURN, RAISE; the end of the handler is an implicit RAISE); one that leaves
+the entry routine becomes :class:`RapidRuntimeError`. See docs/rapid_subset.md, "Errors and recovery".
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""RAPID's language built-ins (math, strings, bits, rawbytes, clocks, WaitTime, TPWrite ...) and standard data.
-
-Robot built-ins (MoveL, CRobT, Open, SocketReceive ...) are not here: the emulator registers them. Trigonometry
-works in degrees, as in RAPID. Time comes from an injectable clock (:class:`SystemClock`, :class:`ManualClock`).
+"""RAPID's language built-ins (math, strings, bits, rawbytes, clocks, WaitTime, TPWrite ...) and standard data,
+registered on :data:`STDLIB`. The controller's routines (MoveL, CRobT, Open, SocketReceive ...) are the emulator's
+(``builtins.py``). Trigonometry works in degrees, as in RAPID; time comes from an injectable clock
+(:class:`SystemClock`, :class:`ManualClock`). See docs/rapid_subset.md, "Language built-ins".
 """
 
 from __future__ import annotations

@@ -1,16 +1,7 @@
-"""RAPID data in Python: how each data type is represented, its default value, and assignment rules.
-
-* ``num``/``dnum``/``byte``/``errnum``/``intnum`` -> ``float``; ``bool`` -> ``bool``; ``string`` -> ``str``. A ``num``
-  is a 32-bit float on the IRC5 (exact integers up to 2^23; docs/reference.md): every stored value is rounded to the
-  nearest float32 (:func:`num32`), a ``dnum`` (a variable declared so) keeps the double.
-* Record types (``pos``, ``robtarget``, ``tooldata``, user ``RECORD``\\ s ...) -> :class:`Record`, ordered named fields.
-* Arrays -> Python lists (nested for 2-D/3-D); RAPID's 1-based indices are translated by the interpreter.
-* Non-value types (``rawbytes``, ``clock``, ``iodev``, ``socketdev``, signals, world zones and every unknown type)
-  -> objects with identity (:class:`RawBytes`, :class:`ClockVar`, :class:`Opaque`): passing one to a routine or a
-  builtin hands over the object itself, as RAPID does, so a Python builtin can store a device handle in it.
-
-Value types have value semantics: :func:`assign_like` copies into the shape of the existing value, so
-``p2 := p1`` and passing ``p1`` to an IN parameter never alias.
+"""RAPID data in Python: how each data type is represented, its default value, and assignment rules. Value
+types have value semantics (:func:`assign_like` copies into the shape of the existing value, so ``p2 := p1`` never
+aliases); non-value types (``rawbytes``, ``clock``, devices, unknown types) are objects with identity, handed over
+as themselves. A ``num`` is a 32-bit float (:func:`num32`). See docs/rapid_subset.md, "Data types".
 """
 
 from __future__ import annotations
