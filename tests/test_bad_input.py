@@ -63,6 +63,15 @@ CASES = {
         ["Unrecognized options: --episode, 3", "did you mean --episodes?", "maniskill-irb120 expert --help"],
     ),
     "malformed value, example": (["examples/demo.py", "--episodes", "abc"], ["demo.py: Error parsing --episodes"]),
+    "trainer, misspelt recipe": (
+        ["-m", "agents.ppo", "--recipe", "ppo-stat"],
+        ["--recipe 'ppo-stat': no such recipe (did you mean 'ppo-state'?)", "agents.ppo's recipes"],
+    ),
+    "trainer, wrong env id": (
+        ["-m", "agents.dagger", "--env-id", "Foo-v1", "--total-env-steps", "100"],
+        ["agents.dagger: unknown env id 'Foo-v1'", TASKS],
+    ),
+    "trainer, zero budget": (["-m", "agents.sac", "--total-env-steps", "0"], ["--total-env-steps must be a positive"]),
 }
 NEEDS = {"example, wrong env id": "stable_baselines3"}
 

@@ -29,6 +29,7 @@ from typing import Literal, Optional, TypeVar, Union, get_args, get_origin, get_
 
 import tyro
 
+from maniskill_irb120.errors import UsageError, nearest, usage_errors
 from maniskill_irb120.recipes import BASES, RECIPES, recipe_flags, seeded
 
 A = TypeVar("A", bound="RunArgs")
@@ -119,7 +120,9 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
         return list(argv)
     valid = sorted(r for r, recipe in RECIPES.items() if recipe.module == module and r not in BASES)
     if name not in RECIPES:
-        raise ValueError(f"--recipe {name!r}: no such recipe; {module}'s recipes: {', '.join(valid)}")
+        raise UsageError(
+            f"--recipe {name!r}: no such recipe{nearest(name, valid)}; {module}'s recipes: {', '.join(valid)}"
+        )
     if RECIPES[name].module != module:
         raise ValueError(
             f"--recipe {name}: a recipe of {RECIPES[name].module}, not of {module}; {module}'s recipes: "
@@ -190,9 +193,10 @@ def entry(
             args = _parse(args_type, argv)
             check_budget(args)
     except (ValueError, FileNotFoundError) as e:
-        print(f"{module}: error: {e}", file=sys.stderr)
+        print(f"{module}: error: {' '.join(str(e).split())}", file=sys.stderr)
         raise SystemExit(2) from None
-    return main(args)
+    with usage_errors(module):  # what only the run finds (an unknown env id, a missing file): one line too
+        return main(args)
 
 
 def _parse(args_type: type[A], argv: list[str], **kw) -> A:
