@@ -455,7 +455,9 @@ def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evalu
         return {"success_rate": s, "return": r}
 
     monkeypatch.setattr(dagger, "final_evaluation", scripted)
-    res = tiny(tmp_path, budget_min=0.15, select_episodes=3, select_freq=1)
+    # an env-step budget, so that a loaded machine runs as many rounds as a quiet one: round 0 (one expert episode)
+    # and round 1 (one learner episode) take at most 2 x 250 steps, so a 501-step budget starts round 2 at least
+    res = tiny(tmp_path, budget_min=None, total_env_steps=501, select_episodes=3, select_freq=1)
     assert res["rounds"] >= 3 and len(validations) == res["rounds"]  # one a round; none again at the budget's end
     assert {(seed, n) for seed, n, _ in validations} == {(VALIDATION_SEED, 3)}
     assert res["selected"] == dict(round=2, env_steps=res["selected"]["env_steps"], validation_success_rate=0.6,
