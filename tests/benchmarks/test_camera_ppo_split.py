@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "benchmarks" / "camera_ppo_split.py"
 
 
+@pytest.mark.slow  # a benchmark's smoke run (~40-80 s on 2 cores), as the other benchmarks' are
 def test_quick_run_writes_every_field_and_a_split_that_sums_to_the_total(tmp_path, bench_script):
     out = tmp_path / "c.json"
     run = subprocess.run(
