@@ -294,3 +294,125 @@ def test_the_camera_cell_in_env_steps_gives_its_teacher_the_committed_share(alg,
     teacher_steps = round(base / total * 10**6)
     assert calls == [("cell__base", teacher_steps, False, "60"), ("cell", 10**6 - teacher_steps, False, "50")]
     assert r["env_steps"] == 10**6
+
+
+# ----------------------------------------------------------------------------- agents/configs' tuned settings
+CONFIG_EXEMPT = {"policy", "class", "name", "input", "output", "separate", "seed"}
+"""keys every config of its kind carries whatever its values (rl-zoo3's policy, the skrl runner's structure)"""
+
+
+def uncommented_keys(path: Path) -> list[str]:
+    """The ``key: value`` lines of a YAML config without a ``# why`` comment, but for structural keys and a
+    wrapper's keywords (the wrapper's own line says why)."""
+    out, in_wrapper = [], None
+    for line in path.read_text().splitlines():
+        body = line.split("#", 1)[0].rstrip()
+        indent = len(line) - len(line.lstrip())
+        if not body.strip() or line.lstrip().startswith("#"):
+            continue
+        if in_wrapper is not None and indent > in_wrapper:
+            continue
+        in_wrapper = indent if body.strip().startswith("- ") and body.endswith(":") else None
+        key = body.strip().lstrip("- ").split(":", 1)[0]
+        scalar = ":" in body and body.split(":", 1)[1].strip() != ""  # a setting, not a section's head
+        if scalar and indent > 0 and key not in CONFIG_EXEMPT and "#" not in line and in_wrapper is None:
+            out.append(f"{path.name}: {line.strip()}")
+    return out
+
+
+def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differs_from_the_default(alg):
+    import inspect
+
+    pytest.importorskip("sb3_contrib")
+    from skrl.agents.torch.ppo import PPO_CFG
+    from skrl.agents.torch.sac import SAC_CFG
+
+    from agents.configs import loader
+    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess
+
+    for algo in loader.SB3_ALGOS:
+        assert uncommented_keys(loader.sb3_path(algo)) == []
+        params = inspect.signature(loader.sb3_class(algo).__init__).parameters
+        for env_id in alg.TASKS.values():
+            cfg = loader.sb3_config(algo, env_id)
+            assert (
+                cfg.n_envs == 4
+                and cfg.policy == "MlpPolicy"
+                and cfg.normalize == {"norm_obs": True, "norm_reward": False}
+            )
+            assert cfg.n_timesteps == alg.STATE_ENV_STEPS[env_id.split("-")[0]]
+            for key, value in cfg.kwargs.items():  # a model argument, and not its default (which needs no line)
+                assert key in params and params[key].default != value, (algo, key)
+            assert [w.func for w in cfg.wrappers] == [AbsorbingSuccess] and cfg.wrappers[0].keywords[
+                "gamma"
+            ] == cfg.kwargs["gamma"]  # the absorbing value is the learner's discount's
+            assert ("action_noise" in cfg.model_kwargs(5)) == (algo in ("td3", "ddpg"))
+    defaults = {"ppo": PPO_CFG(), "sac": SAC_CFG()}
+    for algo in loader.SKRL_ALGOS:
+        for env_id in alg.TASKS.values():
+            path = loader.skrl_path(algo, env_id)
+            assert uncommented_keys(path) == []
+            cfg = loader.skrl_config(algo, env_id)
+            num_envs, wrappers = loader.skrl_env_settings(cfg)
+            assert num_envs == 4 and wrappers[0].keywords["gamma"] == cfg["agent"]["discount_factor"]
+            assert cfg["trainer"]["timesteps"] * num_envs == alg.STATE_ENV_STEPS[env_id.split("-")[0]]
+            for key, value in cfg["agent"].items():
+                if key != "class":
+                    default = getattr(defaults[algo], "gae_lambda" if key == "lambda" else key)
+                    assert default != value, (path.name, key)
+
+
+def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_only():
+    import gymnasium as gym
+    import torch
+
+    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess
+
+    class Fake(gym.Env):
+        observation_space, action_space = gym.spaces.Box(-1, 1, (1,)), gym.spaces.Box(-1, 1, (1,))
+
+        def step(self, action):
+            info = {"success": torch.tensor([True, True, False])}
+            return 0, torch.tensor([1.0, 0.5, 0.2]), torch.tensor([True, False, True]), torch.tensor([False] * 3), info
+
+    _, reward, *_ = AbsorbingSuccess(Fake(), gamma=0.8).step(None)
+    assert torch.allclose(reward, torch.tensor([1.0 + 0.8 / 0.2, 0.5, 0.2]))  # 1 + γ·1/(1−γ) = 1/(1−γ)
+    with pytest.raises(ValueError):
+        AbsorbingSuccess(Fake(), gamma=1.0)
+
+
+@pytest.mark.slow  # three cells' worker start-ups, ten held-out points each and evaluations (1-3 min on 2 cores)
+def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path):
+    pytest.importorskip("sb3_contrib")
+    pytest.importorskip("skrl")
+    cells = [
+        "state/GraspLift/sb3-ppo-tuned/s1",
+        "state/GraspLift/sb3-tqc-tuned/s1",
+        "state/GraspLift/skrl-sac-tuned/s1",
+    ]
+    args = alg.Args(only=cells, out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=400,
+                    reference_steps=0)  # fmt: skip
+    alg.main(args)
+    data = json.loads((tmp_path / "algorithms.json").read_text())
+    for cell in cells:
+        one = data["cells"][cell]
+        curve = one["held_out_curve"]
+        assert one["env_steps"] >= 400 and len(curve["env_steps"]) == args.curve_points
+        assert curve["env_steps"] == sorted(curve["env_steps"]) and curve["episodes"][:-1] == [1] * 9
+        assert curve["episodes"][-1] == len(one["successes"]) and curve["eval_s"][-1] is None
+        assert all(lo <= s <= hi for (lo, hi), s in zip(curve["ci95"], curve["success"]))
+    model = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1"
+    assert (model / "vecnormalize.pkl").is_file()  # the config's normalize reached the cell
+
+
+@pytest.mark.slow  # one SB3 and one skrl run of a few hundred env steps (~40-80 s on 2 cores)
+def test_the_train_command_runs_a_config_as_rl_zoo3_and_isaac_lab_would(tmp_path):
+    pytest.importorskip("skrl")
+    from agents.configs import train
+
+    out = train.main(["--algo", "ppo", "--env", "GraspLift-IRB120-v1", "-conf", "agents/configs/sb3/ppo.yml",
+                      "-n", "600", "-f", str(tmp_path), "--gym-packages", "maniskill_irb120"])  # fmt: skip
+    assert (out / "GraspLift-IRB120-v1.zip").is_file() and (out / "vecnormalize.pkl").is_file()
+    out = train.main(["--library", "skrl", "--algo", "ppo", "--env", "GraspLift-IRB120-v1", "-n", "600", "-f",
+                      str(tmp_path)])  # fmt: skip
+    assert out.is_dir()
