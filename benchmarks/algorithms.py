@@ -211,8 +211,8 @@ class Args:
     """the seeds added to each group's best cell once its seed-1 cells are all in"""
     eval_episodes: int = 100
     curve_points: int = 10
-    """held-out evaluations during an env-step cell, one every 1/curve_points of its budget (the last is the final
-    evaluation), so the table reads success at 25 %, 50 % and 100 % of the budget"""
+    """held-out evaluations during an env-step cell, one every 1/curve_points of its budget and one at a quarter
+    (the last is the final evaluation), so the table reads success at 25 %, 50 % and 100 % of the budget"""
     curve_episodes: int = 30
     """held-out episodes of each of those evaluations (seeds EVAL_SEED onwards, the final evaluation's first)"""
     total_env_steps: Optional[int] = None
@@ -319,6 +319,18 @@ def library_obs(obs: str, flat: dict) -> object:
 
 
 # ----------------------------------------------------------------------------- library cells
+def curve_fractions(points: int) -> list[float]:
+    """The shares of an env-step budget where a held-out point is taken while training: every ``1/points`` and
+    a quarter (the table reads 25 %, 50 % and 100 %), not the end, which the final evaluation is."""
+    if points < 2:
+        return []
+    return sorted({k / points for k in range(1, points)} | {0.25})
+
+
+READ_AT = (0.25, 0.5, 1.0)
+"""the shares of the budget at which the table reads the held-out curve"""
+
+
 class Budget:
     """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's, against ``total_s`` (a
     minute budget or the guard; None: none); checkpoints due every ``every_s``. ``total_steps``: the cell's env-step
@@ -345,12 +357,11 @@ class Budget:
         return self.total_s is not None and self.spent_s / 60 - curve[-1][1] >= self.total_s / 60 / 100
 
     def eval_due(self, held: list, steps: int, points: int) -> bool:
-        """A held-out curve point due: every ``1/points`` of an env-step budget (``held``'s rows: env steps, ...),
-        the last one left to the final evaluation; never for a minute budget."""
-        if self.total_steps is None or points < 2:
-            return False
-        k = len(held) + 1
-        return k < points and steps >= k * self.total_steps / points
+        """A held-out curve point due: at each of :func:`curve_fractions` of an env-step budget (``held``'s rows: env
+        steps, ...), the budget's end left to the final evaluation; never for a minute budget."""
+        fractions = curve_fractions(points)
+        k = len(held)
+        return self.total_steps is not None and k < len(fractions) and steps >= fractions[k] * self.total_steps
 
     def pause(self, seconds: float) -> None:
         """Leave ``seconds`` (a held-out evaluation's) out of the cell's wall clock: it is not training."""
@@ -788,12 +799,34 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                 env_steps_mean=float(np.mean([r["env_steps"] for r in runs])),
                 wall_clock_min_mean=float(np.mean([r["wall_clock_s"] for r in runs])) / 60,
             )
+            row["held_out_at"] = held_out_at(runs)
             steal = [r["cpu_steal"] for r in runs if "cpu_steal" in r]
             row["cpu_steal_mean"] = float(np.mean(steal)) if steal else None  # None: not measured
             ref = [r["reference_sps"] for r in runs if "reference_sps" in r]
             row["reference_sps_mean"] = np.mean(ref, axis=0).round(1).tolist() if ref else None  # before, after
         rows.append(row)
     return rows
+
+
+def held_out_at(runs: list[dict]) -> dict[str, Optional[float]]:
+    """The seeds' mean held-out success at each of ``READ_AT``'s shares of the budget, from their held-out curves
+    (None where a seed has no point there: a cell in minutes, or one run before the curve had that point)."""
+    out: dict[str, Optional[float]] = {}
+    for share in READ_AT:
+        values = []
+        for r in runs:
+            curve, total = r.get("held_out_curve"), r.get("total_env_steps")
+            if not curve or not total:
+                break
+            if share == 1.0:
+                values.append(curve["success"][-1])
+                continue
+            at = [s for n, s in zip(curve["env_steps"][:-1], curve["success"][:-1]) if abs(n / total - share) < 0.02]
+            if not at:
+                break
+            values.append(at[0])
+        out[f"{share:g}"] = float(np.mean(values)) if values and len(values) == len(runs) else None
+    return out
 
 
 def row_budget(runs: list[dict], obs: str, task: str, args: Args) -> dict:
@@ -809,27 +842,28 @@ def row_budget(runs: list[dict], obs: str, task: str, args: Args) -> dict:
 
 def markdown(rows: list[dict]) -> str:
     lines = [
-        "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
-        "| host steal | reference env steps/s, before / after | settings |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | held out at 25 / 50 / 100 % "
+        "| env steps | wall clock (min) | host steal | reference env steps/s, before / after | settings |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
         head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
         if "success_mean" not in r:
             budget = budget_text(r["budget_min"], r.get("total_env_steps"))
-            lines.append(f"{head} – | pending | | | | ({budget} budget) | | | {r['settings']} |")
+            lines.append(f"{head} – | pending | | | | | ({budget} budget) | | | {r['settings']} |")
             continue
         lo, hi = r["success_ci95"]
         per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
         steal = "–" if r.get("cpu_steal_mean") is None else f"{100 * r['cpu_steal_mean']:.0f} %"
         ref = "–" if r.get("reference_sps_mean") is None else " / ".join(f"{x:.0f}" for x in r["reference_sps_mean"])
+        at = " / ".join("–" if v is None else f"{v:.2f}" for v in (r.get("held_out_at") or {}).values()) or "–"
         lines.append(
             f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
-            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
+            f"{at} | {r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
         )
     for name, why in NOT_RUNNABLE.items():
-        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | {why} |")
+        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | – | {why} |")
     return "\n".join(lines)
 
 

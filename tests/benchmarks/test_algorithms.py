@@ -397,10 +397,12 @@ def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_pa
     for cell in cells:
         one = data["cells"][cell]
         curve = one["held_out_curve"]
-        assert one["env_steps"] >= 400 and len(curve["env_steps"]) == args.curve_points
-        assert curve["env_steps"] == sorted(curve["env_steps"]) and curve["episodes"][:-1] == [1] * 9
+        assert one["env_steps"] >= 400 and len(curve["env_steps"]) == 11  # tenths, a quarter, the final evaluation
+        assert curve["env_steps"] == sorted(curve["env_steps"]) and curve["episodes"][:-1] == [1] * 10
         assert curve["episodes"][-1] == len(one["successes"]) and curve["eval_s"][-1] is None
         assert all(lo <= s <= hi for (lo, hi), s in zip(curve["ci95"], curve["success"]))
+    rows = {r["algorithm"]: r for r in data["rows"] if r["task"] == "GraspLift" and r["obs"] == "state"}
+    assert all(v is not None for v in rows["sb3-ppo-tuned"]["held_out_at"].values())
     model = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1"
     assert (model / "vecnormalize.pkl").is_file()  # the config's normalize reached the cell
 
@@ -416,3 +418,21 @@ def test_the_train_command_runs_a_config_as_rl_zoo3_and_isaac_lab_would(tmp_path
     out = train.main(["--library", "skrl", "--algo", "ppo", "--env", "GraspLift-IRB120-v1", "-n", "600", "-f",
                       str(tmp_path)])  # fmt: skip
     assert out.is_dir()
+
+
+def test_the_held_out_curve_is_read_at_a_quarter_a_half_and_the_end_of_the_budget(alg):
+    assert (
+        alg.curve_fractions(10) == [0.1, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9] and alg.curve_fractions(1) == []
+    )
+    clock = alg.Budget(None, 0.0, 60.0, total_steps=1000)
+    held: list = []
+    due = []
+    for steps in range(0, 1001, 50):
+        if clock.eval_due(held, steps, 10):
+            held.append([steps])
+            due.append(steps)
+    assert due == [100, 200, 250, 300, 400, 500, 600, 700, 800, 900]  # the end is the final evaluation's
+    curve = {"env_steps": [*due, 1000], "success": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]}
+    runs = [{"held_out_curve": curve, "total_env_steps": 1000}, {"held_out_curve": curve, "total_env_steps": 1000}]
+    assert alg.held_out_at(runs) == {"0.25": 0.2, "0.5": 0.5, "1": 1.0}
+    assert alg.held_out_at([*runs, {"total_env_steps": 1000}]) == {"0.25": None, "0.5": None, "1": None}
