@@ -1,7 +1,9 @@
 """The algorithm table: other RL libraries beside this project's trainers, from the reward alone, one budget per cell.
 
-Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, skrl PPO,
-this project's PPO}, ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this
+Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, sb3-contrib
+TQC, skrl PPO, this project's PPO} with each library's defaults, and ``TUNED_ALGOS``, each library algorithm with its
+config from ``agents/configs`` (the settings these tasks need, each with its reason; the defaults rows stay, so the
+tuning shows), ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this
 project's best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
 ``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside
 it, ``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
@@ -14,7 +16,10 @@ adds cells outside the defaults rule, one seed each and never a group's best: SB
 the settings this project's PPO takes from ManiSkill's baseline, which asks how much of the defaults' zeros is
 settings rather than library.
 
-Every cell is scored alike: 100 deterministic episodes on the held-out seeds ``agents.common.EVAL_SEED`` onwards
+An env-step cell also scores its policy on the first ``--curve-episodes`` (30) held-out seeds every tenth of its
+budget and at a quarter (``held_out_curve``, its evaluation time left out of the cell's clock), so the table reads
+success at 25 %, 50 % and 100 % of the budget. Every cell is scored alike: 100 deterministic episodes on the held-out
+seeds ``agents.common.EVAL_SEED`` onwards
 (``agents.common.evaluate_on_seeds``, what every trainer here is scored on; training seeds stay below them), with a
 95 % Wilson interval for one seed and ``benchmarks/learning.py``'s two-level bootstrap over seeds and episodes for
 three. The library cells run through ``maniskill_irb120.integrations`` on ``--num-envs`` CPU worker envs with each
