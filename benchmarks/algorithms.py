@@ -1,14 +1,14 @@
 """The algorithm table: other RL libraries beside this project's trainers, from the reward alone, one budget per cell.
 
 Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, sb3-contrib
-TQC, skrl PPO, this project's PPO} with each library's defaults, and ``TUNED_ALGOS``, each library algorithm with its
-config from ``agents/configs`` (the settings these tasks need, each with its reason; the defaults rows stay, so the
-tuning shows), ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this
-project's best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
-``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside
-it, ``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
-(``--budget-min`` still runs a cell so, for smoke runs), and their rows say so. A run whose cells should all be
-env-step cells takes its own ``--out-dir``: a rerun skips the cells its JSON has.
+TQC, skrl PPO and SAC, this project's PPO} with each library's defaults, and ``TUNED_ALGOS``, each library algorithm
+with its config from ``agents/configs`` (the settings these tasks need, each with its reason; the defaults rows stay, so
+the tuning shows), ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this project's
+best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
+``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside it,
+``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
+(``--budget-min`` still runs a cell so, for smoke runs), and their rows say so. A run whose cells should all be env-step
+cells takes its own ``--out-dir``: a rerun skips the cells its JSON has.
 
 Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
 cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run. ``ABLATIONS``
@@ -94,7 +94,8 @@ class Algorithm:
     ablation: bool = False
     """outside the table's rule of each library's defaults (a question about the others' zeros): never a group's best"""
     config: str = ""
-    """a tuned row's algorithm in agents/configs (sb3/<config>.yml, skrl/<config>_<task>.yaml); empty: defaults"""
+    """a tuned row's algorithm in agents/configs (sb3/<config>.yml, skrl/<config>_<task>.yaml; skrl's defaults rows
+    other than PPO's: skrl/<algo>_defaults.yaml, as <algo>-defaults); empty: the library's defaults in code"""
 
 
 TUNED_OFF_POLICY = (
@@ -165,6 +166,13 @@ ALGORITHMS = {
         )
         for algo in ("ppo", "sac", "tqc", "td3", "ddpg")
     },
+    "skrl-sac": Algorithm(
+        "SAC", f"skrl {SKRL_VERSION}", "skrl",
+        "skrl SAC_CFG defaults (agents/configs/skrl/sac_defaults.yaml): 1 update per vector step, batch 64, lr 1e-3, "
+        "γ 0.99, polyak 0.005, learned entropy from 0.2, no random steps; 2x256 ELU policy and critics (skrl has no "
+        "default network: the PPO defaults row's), replay 1e6",
+        config="sac-defaults",
+    ),
     **{
         f"skrl-{algo}-tuned": Algorithm(
             f"{algo.upper()}, tuned", f"skrl {SKRL_VERSION}", "skrl",
@@ -194,7 +202,8 @@ NOT_RUNNABLE = {
 TUNED_ALGOS = ("sb3-sac-tuned", "sb3-ppo-tuned", "sb3-tqc-tuned", "sb3-td3-tuned", "skrl-ppo-tuned",
                "sb3-ddpg-tuned", "skrl-sac-tuned")  # fmt: skip
 """the rows of agents/configs' tuned settings, one per library algorithm, beside the defaults rows"""
-STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "sb3-tqc", "skrl-ppo", "project-ppo", *TUNED_ALGOS)
+STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "sb3-tqc", "skrl-ppo", "skrl-sac", "project-ppo",
+               *TUNED_ALGOS)  # fmt: skip
 CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera")
 ABLATIONS = (("state", "GraspLift", "sb3-ppo-maniskill"),)
 """(obs, task, algorithm) cells run after the grid's others, one seed each"""

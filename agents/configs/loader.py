@@ -30,6 +30,9 @@ def sb3_path(algo: str) -> Path:
 
 
 def skrl_path(algo: str, env_id: str) -> Path:
+    """``skrl/<algo>_<task>.yaml``; ``<algo>-defaults``: ``skrl/<algo>_defaults.yaml`` (either task)."""
+    if algo.endswith("-defaults"):
+        return CONFIGS / "skrl" / f"{algo.removesuffix('-defaults')}_defaults.yaml"
     return CONFIGS / "skrl" / f"{algo}_{env_id.split('-')[0].lower()}.yaml"
 
 

@@ -41,7 +41,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     lo, hi = row["success_ci95"]
     assert row["seeds"] == [1] and row["interval"] == "Wilson" and 0 <= lo <= row["success_mean"] <= hi <= 1
     assert data["versions"]["stable_baselines3"] == "2.9.2" and "RHPO" in data["not_runnable"]
-    assert len(data["rows"]) == len(alg.grid()) == 32 and sum("success_mean" in r for r in data["rows"]) == 1  # pending
+    assert len(data["rows"]) == len(alg.grid()) == 34 and sum("success_mean" in r for r in data["rows"]) == 1  # pending
     assert (tmp_path / "algorithms.png").stat().st_size > 5000
     text = md.read_text()
     assert text.count(alg.SECTION_HEAD) == 1 and "## Earlier\n\nkept\n" in text and "## Later\n\nkept too" in text
@@ -131,7 +131,7 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     args = alg.Args()
     done: dict[str, dict] = {}
     first = alg.planned(done, args)
-    assert len(first) == len(alg.grid()) == 32 and all(c.endswith("/s1") for c in first)
+    assert len(first) == len(alg.grid()) == 34 and all(c.endswith("/s1") for c in first)
     group = [c for c in first if c.startswith("state/GraspLift/")]
     for i, cell in enumerate(group):
         done[cell] = {"success_rate": {"sb3-sac": 0.4, "project-ppo": 0.3}.get(cell.split("/")[2], 0.1 * i / 10)}
@@ -360,6 +360,11 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
                 if key != "class":
                     default = getattr(defaults[algo], "gae_lambda" if key == "lambda" else key)
                     assert default != value, (path.name, key)
+    # the skrl SAC defaults row's file: skrl's SAC_CFG as it comes, no wrapper, only what the runner needs
+    path = loader.skrl_path("sac-defaults", "GraspLift-IRB120-v1")
+    cfg = loader.skrl_config("sac-defaults", "TableClearing-IRB120-v1")
+    assert uncommented_keys(path) == [] and cfg["agent"] == {"class": "SAC"}
+    assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
 
 
 def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_only():
@@ -381,7 +386,7 @@ def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_onl
         AbsorbingSuccess(Fake(), gamma=1.0)
 
 
-@pytest.mark.slow  # three cells' worker start-ups, ten held-out points each and evaluations (1-3 min on 2 cores)
+@pytest.mark.slow  # four cells' worker start-ups, ten held-out points each and evaluations (2-4 min on 2 cores)
 def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path):
     pytest.importorskip("sb3_contrib")
     pytest.importorskip("skrl")
@@ -389,6 +394,7 @@ def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_pa
         "state/GraspLift/sb3-ppo-tuned/s1",
         "state/GraspLift/sb3-tqc-tuned/s1",
         "state/GraspLift/skrl-sac-tuned/s1",
+        "state/GraspLift/skrl-sac/s1",
     ]
     args = alg.Args(only=cells, out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=400,
                     reference_steps=0)  # fmt: skip
