@@ -1,12 +1,14 @@
 """The algorithm table: other RL libraries beside this project's trainers, from the reward alone, one budget per cell.
 
-Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, skrl PPO,
-this project's PPO}, ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this
-project's best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
-``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside
-it, ``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
-(``--budget-min`` still runs a cell so, for smoke runs), and their rows say so. A run whose cells should all be
-env-step cells takes its own ``--out-dir``: a rerun skips the cells its JSON has.
+Cells (``OBS/TASK/ALGORITHM/sSEED``): from state, GraspLift and TableClearing x {SB3 PPO, SAC, TD3, DDPG, sb3-contrib
+TQC, skrl PPO and SAC, this project's PPO} with each library's defaults, and ``TUNED_ALGOS``, each library algorithm
+with its config from ``agents/configs`` (the settings these tasks need, each with its reason; the defaults rows stay, so
+the tuning shows), ``STATE_ENV_STEPS`` of the task each; from the camera, GraspLift x {SB3 PPO, SB3 SAC, this project's
+best camera recipe}, ``CAMERA_ENV_STEPS`` each. The budget is env steps (SB3's ``total_timesteps``, skrl's
+``timesteps``, the trainers' ``--total-env-steps``), the wall clock and the host's reference speed recorded beside it,
+``--max-minutes`` a guard; the cells run before that were held to ``STATE_BUDGET_MIN`` / ``CAMERA_BUDGET_MIN``
+(``--budget-min`` still runs a cell so, for smoke runs), and their rows say so. A run whose cells should all be env-step
+cells takes its own ``--out-dir``: a rerun skips the cells its JSON has.
 
 Seed 1 everywhere; then, once a group (obs x task) has all its seed-1
 cells, its best cell gets seeds ``--best-seeds`` (2 and 3). RHPO has a row that says why it is not run. ``ABLATIONS``
@@ -14,7 +16,10 @@ adds cells outside the defaults rule, one seed each and never a group's best: SB
 the settings this project's PPO takes from ManiSkill's baseline, which asks how much of the defaults' zeros is
 settings rather than library.
 
-Every cell is scored alike: 100 deterministic episodes on the held-out seeds ``agents.common.EVAL_SEED`` onwards
+An env-step cell also scores its policy on the first ``--curve-episodes`` (30) held-out seeds every tenth of its
+budget and at a quarter (``held_out_curve``, its evaluation time left out of the cell's clock), so the table reads
+success at 25 %, 50 % and 100 % of the budget. Every cell is scored alike: 100 deterministic episodes on the held-out
+seeds ``agents.common.EVAL_SEED`` onwards
 (``agents.common.evaluate_on_seeds``, what every trainer here is scored on; training seeds stay below them), with a
 95 % Wilson interval for one seed and ``benchmarks/learning.py``'s two-level bootstrap over seeds and episodes for
 three. The library cells run through ``maniskill_irb120.integrations`` on ``--num-envs`` CPU worker envs with each
@@ -88,8 +93,29 @@ class Algorithm:
     from_reward: bool = True
     ablation: bool = False
     """outside the table's rule of each library's defaults (a question about the others' zeros): never a group's best"""
+    config: str = ""
+    """a tuned row's algorithm in agents/configs (sb3/<config>.yml, skrl/<config>_<task>.yaml; skrl's defaults rows
+    other than PPO's: skrl/<algo>_defaults.yaml, as <algo>-defaults); empty: the library's defaults in code"""
 
 
+TUNED_OFF_POLICY = (
+    "γ 0.8, τ 0.01, 4000 random env steps first, 2 updates per vector step (update-to-data 0.5), "
+    "3x256, observations normalised (VecNormalize), absorbing success"
+)
+TUNED_SETTINGS = {
+    "ppo": "γ 0.8, λ 0.9, n_steps 128/env, 8 epochs, target KL 0.1, 3x256 tanh, observations normalised "
+    "(VecNormalize), absorbing success (AbsorbingSuccess wrapper); GraspLift: gSDE (use_sde, log std -2.5), "
+    "TableClearing: one log std from -0.5",
+    "sac": TUNED_OFF_POLICY + ", initial temperature 0.1",
+    "tqc": TUNED_OFF_POLICY + ", initial temperature 0.1",
+    "td3": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1",
+    "ddpg": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1",
+    "skrl-ppo": "128 rollout steps/env, 8 minibatches, lr 3e-4, γ 0.8, λ 0.9, value loss 0.5, KL threshold 0.1, "
+    "3x256 tanh, log std -0.5, RunningStandardScaler on observations, absorbing success, time_limit_bootstrap",
+    "skrl-sac": "γ 0.8, polyak 0.01, lr 3e-4, batch 256, 4000 random env steps, 2 updates per vector step, "
+    "initial temperature 0.1, 3x256 ReLU, RunningStandardScaler, absorbing success",
+}
+"""the tuned rows' settings, as the table prints them (the files in agents/configs are what runs)"""
 SB3_OFF_POLICY_NOISE = "Gaussian action noise σ 0.1 (SB3's documented TD3/DDPG example; the class default has none)"
 ALGORITHMS = {
     "sb3-ppo": Algorithm(
@@ -127,6 +153,34 @@ ALGORITHMS = {
         "value loss 2.5; time_limit_bootstrap on (the step limit is no failure); 2x256 ELU actor and critic; the "
         "policy scores its own Gaussian sample and the adapter clips it to the action bounds at the env, as SB3 does",
     ),
+    "sb3-tqc": Algorithm(
+        "TQC", f"sb3-contrib {SB3_VERSION}", "sb3",
+        "sb3-contrib defaults: SAC's (1 update per vector step, batch 256, lr 3e-4, γ 0.99, τ 0.005, auto entropy, "
+        "100 random steps) with 2 critics of 25 quantiles, the top 2 per critic dropped, 2x256 ReLU",
+    ),
+    **{
+        f"sb3-{algo}-tuned": Algorithm(
+            f"{algo.upper()}, tuned", f"{'sb3-contrib' if algo == 'tqc' else 'Stable-Baselines3'} {SB3_VERSION}",
+            "sb3", f"agents/configs/sb3/{algo}.yml (rl-zoo3's format; each setting's why is its comment): "
+            + TUNED_SETTINGS[algo], config=algo,
+        )
+        for algo in ("ppo", "sac", "tqc", "td3", "ddpg")
+    },
+    "skrl-sac": Algorithm(
+        "SAC", f"skrl {SKRL_VERSION}", "skrl",
+        "skrl SAC_CFG defaults (agents/configs/skrl/sac_defaults.yaml): 1 update per vector step, batch 64, lr 1e-3, "
+        "γ 0.99, polyak 0.005, learned entropy from 0.2, no random steps; 2x256 ELU policy and critics (skrl has no "
+        "default network: the PPO defaults row's), replay 1e6",
+        config="sac-defaults",
+    ),
+    **{
+        f"skrl-{algo}-tuned": Algorithm(
+            f"{algo.upper()}, tuned", f"skrl {SKRL_VERSION}", "skrl",
+            f"agents/configs/skrl/{algo}_<task>.yaml (skrl's runner YAML, as Isaac Lab's; each setting's why is its "
+            "comment): " + TUNED_SETTINGS[f"skrl-{algo}"], config=algo,
+        )
+        for algo in ("ppo", "sac")
+    },
     "project-ppo": Algorithm(
         "PPO", "this project (agents.ppo)", "project",
         "learning.py's ppo-state recipe: ManiSkill's state-PPO baseline settings, γ 0.8, observation normaliser, "
@@ -145,7 +199,11 @@ NOT_RUNNABLE = {
     "RHPO": "not run: RHPO (Wulfmeier et al. 2020, the original report's future work) has no maintained "
     "implementation that we know of (none in Stable-Baselines3, skrl, RLlib, CleanRL or Acme)",
 }
-STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "skrl-ppo", "project-ppo")
+TUNED_ALGOS = ("sb3-sac-tuned", "sb3-ppo-tuned", "sb3-tqc-tuned", "sb3-td3-tuned", "skrl-ppo-tuned",
+               "sb3-ddpg-tuned", "skrl-sac-tuned")  # fmt: skip
+"""the rows of agents/configs' tuned settings, one per library algorithm, beside the defaults rows"""
+STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "sb3-tqc", "skrl-ppo", "skrl-sac", "project-ppo",
+               *TUNED_ALGOS)  # fmt: skip
 CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera")
 ABLATIONS = (("state", "GraspLift", "sb3-ppo-maniskill"),)
 """(obs, task, algorithm) cells run after the grid's others, one seed each"""
@@ -166,6 +224,11 @@ class Args:
     best_seeds: list[int] = field(default_factory=lambda: [2, 3])
     """the seeds added to each group's best cell once its seed-1 cells are all in"""
     eval_episodes: int = 100
+    curve_points: int = 10
+    """held-out evaluations during an env-step cell, one every 1/curve_points of its budget and one at a quarter
+    (the last is the final evaluation), so the table reads success at 25 %, 50 % and 100 % of the budget"""
+    curve_episodes: int = 30
+    """held-out episodes of each of those evaluations (seeds EVAL_SEED onwards, the final evaluation's first)"""
     total_env_steps: Optional[int] = None
     """env steps per cell instead of STATE_ENV_STEPS / CAMERA_ENV_STEPS"""
     max_minutes: Optional[float] = None
@@ -255,9 +318,9 @@ def planned(done: dict[str, dict], args: Args) -> list[str]:
 
 
 # ----------------------------------------------------------------------------- evaluation
-def held_out(act: Callable, env_id: str, obs: str, args: Args) -> dict:
-    """``act`` on ``--eval-episodes`` held-out seeds, as every trainer here is scored."""
-    seeds = list(range(EVAL_SEED, EVAL_SEED + args.eval_episodes))
+def held_out(act: Callable, env_id: str, obs: str, args: Args, episodes: Optional[int] = None) -> dict:
+    """``act`` on ``--eval-episodes`` (or ``episodes``) held-out seeds, as every trainer here is scored."""
+    seeds = list(range(EVAL_SEED, EVAL_SEED + (args.eval_episodes if episodes is None else episodes)))
     r = evaluate_on_seeds(act, env_id, obs, seeds)
     return {k: r[k] for k in ("success_rate", "successes", "return", "episode_len") if k in r}
 
@@ -270,6 +333,18 @@ def library_obs(obs: str, flat: dict) -> object:
 
 
 # ----------------------------------------------------------------------------- library cells
+def curve_fractions(points: int) -> list[float]:
+    """The shares of an env-step budget where a held-out point is taken while training: every ``1/points`` and
+    a quarter (the table reads 25 %, 50 % and 100 %), not the end, which the final evaluation is."""
+    if points < 2:
+        return []
+    return sorted({k / points for k in range(1, points)} | {0.25})
+
+
+READ_AT = (0.25, 0.5, 1.0)
+"""the shares of the budget at which the table reads the held-out curve"""
+
+
 class Budget:
     """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's, against ``total_s`` (a
     minute budget or the guard; None: none); checkpoints due every ``every_s``. ``total_steps``: the cell's env-step
@@ -295,6 +370,17 @@ class Budget:
             return steps - curve[-1][0] >= self.total_steps / 100
         return self.total_s is not None and self.spent_s / 60 - curve[-1][1] >= self.total_s / 60 / 100
 
+    def eval_due(self, held: list, steps: int, points: int) -> bool:
+        """A held-out curve point due: at each of :func:`curve_fractions` of an env-step budget (``held``'s rows: env
+        steps, ...), the budget's end left to the final evaluation; never for a minute budget."""
+        fractions = curve_fractions(points)
+        k = len(held)
+        return self.total_steps is not None and k < len(fractions) and steps >= fractions[k] * self.total_steps
+
+    def pause(self, seconds: float) -> None:
+        """Leave ``seconds`` (a held-out evaluation's) out of the cell's wall clock: it is not training."""
+        self.t0 += seconds
+
     def save_due(self) -> bool:
         if time.time() - self.last_save >= self.every_s:
             self.last_save = time.time()
@@ -304,7 +390,22 @@ class Budget:
 
 def read_state(ckpt_dir: Path) -> dict:
     path = ckpt_dir / "state.json"
-    return json.loads(path.read_text()) if path.is_file() else {"spent_s": 0.0, "env_steps": 0, "curve": []}
+    state = json.loads(path.read_text()) if path.is_file() else {"spent_s": 0.0, "env_steps": 0, "curve": []}
+    state.setdefault("held_out", [])
+    return state
+
+
+def held_out_point(act: Callable, env_id: str, obs: str, args: Args, steps: int, clock: Budget, held: list) -> None:
+    """One held-out curve point (``--curve-episodes`` seeds from EVAL_SEED) of the policy as it is now, appended to
+    ``held`` as [env steps, training minutes, success, successes, evaluation seconds]; its time is left out of the
+    cell's clock."""
+    t = time.time()
+    r = held_out(act, env_id, obs, args, args.curve_episodes)
+    took = time.time() - t
+    clock.pause(took)
+    held.append([steps, clock.spent_s / 60, r["success_rate"], r["successes"], took])
+    print(f"[algorithms] held out at {steps:,} env steps ({clock.spent_s / 60:.1f} min): success "
+          f"{r['success_rate']:.2f} of {len(r['successes'])} ({took:.0f} s)", flush=True)  # fmt: skip
 
 
 def write_json(path: Path, data: dict, indent: Optional[int] = None) -> None:
@@ -351,12 +452,18 @@ def run_sb3(
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecNormalize
 
+    from agents.configs import loader
     from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
-    cls = {"sb3-ppo": sb3.PPO, "sb3-ppo-maniskill": sb3.PPO, "sb3-sac": sb3.SAC, "sb3-td3": sb3.TD3,
-           "sb3-ddpg": sb3.DDPG}[algo]  # fmt: skip
+    spec = ALGORITHMS[algo]
+    tuned = loader.sb3_config(spec.config, env_id) if spec.config else None
+    cls = loader.sb3_class(spec.config or algo.split("-")[1])
     policy = "MlpPolicy" if obs == "state" else "MultiInputPolicy"
     kwargs: dict = {}
+    num_envs, wrappers, normalize = args.num_envs, [], None
+    if tuned is not None:  # agents/configs/sb3/<algo>.yml, as rl-zoo3 would build it
+        policy, num_envs, wrappers, normalize = tuned.policy, tuned.n_envs, tuned.wrappers, tuned.normalize
+        kwargs.update(tuned.model_kwargs(n_actions=5))
     if algo == "sb3-ppo-maniskill":  # ALGORITHMS' settings text, as SB3 arguments
         kwargs.update(n_steps=128, batch_size=64, n_epochs=8, learning_rate=3e-4, gamma=0.8, gae_lambda=0.9,
                       target_kl=0.1, policy_kwargs=dict(net_arch=dict(pi=[256] * 3, vf=[256] * 3),
@@ -366,12 +473,14 @@ def run_sb3(
     if cls is not sb3.PPO and obs != "state":
         kwargs["buffer_size"] = 30_000
     state = read_state(ckpt_dir)
-    venv = make_sb3_vec_env(env_id, args.num_envs, obs, backend=args.backend, seed=train_seed(seed, 0))
+    venv = make_sb3_vec_env(env_id, num_envs, obs, backend=args.backend, seed=train_seed(seed, 0), wrappers=wrappers)
     model_path, replay_path = ckpt_dir / "model.zip", ckpt_dir / "replay.pkl"
     norm_path = ckpt_dir / "vecnormalize.pkl"  # the running observation statistics, which the policy is trained on
     resumed = model_path.is_file()
     if algo == "sb3-ppo-maniskill":
-        venv = VecNormalize.load(str(norm_path), venv) if resumed else VecNormalize(venv, norm_reward=False)
+        normalize = dict(norm_reward=False)
+    if normalize is not None:
+        venv = VecNormalize.load(str(norm_path), venv) if resumed else VecNormalize(venv, **normalize)
     if resumed:
         model = cls.load(model_path, env=venv)  # with its action noise, optimisers and counters
         if replay_path.is_file():
@@ -380,7 +489,14 @@ def run_sb3(
     else:
         model = cls(policy, venv, seed=seed, verbose=0, tensorboard_log=str(ckpt_dir / "tb"), **kwargs)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
-    curve = state["curve"]
+    curve, held = state["curve"], state["held_out"]
+
+    def act(flat):
+        o = library_obs(obs, flat)
+        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
+        if isinstance(venv, VecNormalize):  # the statistics as training left them (normalize_obs updates nothing)
+            o = venv.normalize_obs(o)
+        return torch.as_tensor(model.predict(o, deterministic=True)[0])
 
     def save() -> None:
         model.save(model_path)
@@ -388,13 +504,20 @@ def run_sb3(
             venv.save(str(norm_path))
         if hasattr(model, "replay_buffer") and obs == "state":  # camera buffers are GBs: a resumed cell refills
             model.save_replay_buffer(replay_path)
-        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": int(model.num_timesteps), "curve": curve})
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": int(model.num_timesteps), "curve": curve,
+                               "held_out": held})  # fmt: skip
 
     class Stop(BaseCallback):
         def _on_step(self) -> bool:
             buf = self.model.ep_success_buffer
-            if buf and clock.point_due(curve, int(self.num_timesteps)):
-                curve.append([int(self.num_timesteps), clock.spent_s / 60, float(np.mean(buf))])
+            steps = int(self.num_timesteps)
+            if buf and clock.point_due(curve, steps):
+                curve.append([steps, clock.spent_s / 60, float(np.mean(buf))])
+                if len(curve) % 10 == 1:
+                    print(f"[algorithms] {steps:,} env steps, {clock.spent_s / 60:.1f} min: training episodes' "
+                          f"success {np.mean(buf):.2f}", flush=True)  # fmt: skip
+            if clock.eval_due(held, steps, args.curve_points):
+                held_out_point(act, env_id, obs, args, steps, clock, held)
             if clock.save_due():
                 save()
             return not clock.over()
@@ -412,15 +535,9 @@ def run_sb3(
     finally:
         venv.close()
     env_steps, spent = int(model.num_timesteps), clock.spent_s
-
-    def act(flat):
-        o = library_obs(obs, flat)
-        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
-        if isinstance(venv, VecNormalize):  # the statistics as training left them (normalize_obs updates nothing)
-            o = venv.normalize_obs(o)
-        return torch.as_tensor(model.predict(o, deterministic=True)[0])
-
-    return dict(held_out(act, env_id, obs, args), env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve))
+    final = held_out(act, env_id, obs, args)
+    return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),
+                held_out_curve=held_out_curve(held, final, env_steps, spent))  # fmt: skip
 
 
 def run_skrl(
@@ -439,35 +556,59 @@ def run_skrl(
     from skrl.utils import set_seed
     from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space
 
+    from agents.configs import loader
     from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value
 
     set_seed(seed)
     state = read_state(ckpt_dir)
-    env = make_skrl_env(env_id, args.num_envs, obs, backend=args.backend, seed=train_seed(seed, 0))
-    cfg = PPO_CFG(time_limit_bootstrap=True)
-    cfg.experiment.directory, cfg.experiment.experiment_name = str(ckpt_dir), "tb"
-    cfg.experiment.write_interval, cfg.experiment.checkpoint_interval = 1000, 0
-    models = policy_and_value(env)
-    memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
-    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
-                action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
+    spec = ALGORITHMS[algo]
+    tuned = loader.skrl_config(spec.config, env_id) if spec.config else None
+    num_envs, wrappers = loader.skrl_env_settings(tuned) if tuned is not None else (args.num_envs, [])
+    env = make_skrl_env(env_id, num_envs, obs, backend=args.backend, seed=train_seed(seed, 0), wrappers=wrappers)
+    experiment = dict(directory=str(ckpt_dir), experiment_name="tb", write_interval=1000, checkpoint_interval=0)
     # skrl's timesteps are vector steps of num_envs env steps each, counted from 0 in every session: the rest of the
     # cell's env steps (at least one vector step's worth, so a finished budget trains nothing more than that)
     left = 10**10 if env_steps is None else max(1, -(-(env_steps - state["env_steps"]) // env.num_envs))
-    trainer = SequentialTrainer(env=env, agents=agent, cfg={"timesteps": left, "headless": True,
-                                                            "disable_progressbar": True,
-                                                            "close_environment_at_exit": False})  # fmt: skip
+    trainer_cfg = {"timesteps": left, "headless": True, "disable_progressbar": True, "close_environment_at_exit": False}
+    if tuned is not None:  # agents/configs/skrl/<algo>_<task>.yaml through skrl's own runner, as Isaac Lab runs it
+        from skrl.utils.runner.torch import Runner
+
+        tuned = {k: v for k, v in tuned.items() if k != "env"}
+        tuned.update(seed=seed)
+        tuned["agent"] = dict(tuned["agent"], experiment=experiment)
+        tuned["trainer"] = dict(tuned["trainer"], **trainer_cfg)
+        runner = Runner(env, tuned)
+        agent, trainer = runner.agent, runner.trainer
+        models = {"policy": agent.policy}
+    else:
+        cfg = PPO_CFG(time_limit_bootstrap=True)
+        for k, v in experiment.items():
+            setattr(cfg.experiment, k, v)
+        models = policy_and_value(env)
+        memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
+        agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
+                    action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
+        trainer = SequentialTrainer(env=env, agents=agent, cfg=trainer_cfg)
     agent_path = ckpt_dir / "agent.pt"
     if agent_path.is_file():
         agent.load(str(agent_path))
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
-    steps0, curve, recent = state["env_steps"], state["curve"], []
+    steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
     counted = {"steps": steps0}
+    policy = models["policy"]
+    preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
+
+    def act(flat):
+        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
+        with torch.no_grad():
+            _, out = policy.act({"observations": preprocess(o.float())}, role="policy")
+        return out["mean_actions"].clamp(-1, 1)
 
     def save() -> None:
         agent.save(str(agent_path))
-        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": counted["steps"], "curve": curve})
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": counted["steps"], "curve": curve,
+                               "held_out": held})  # fmt: skip
 
     class BudgetSpent(Exception):
         pass
@@ -486,6 +627,11 @@ def run_skrl(
         post(timestep=timestep, timesteps=timesteps)  # skrl's update, when a rollout is full
         if recent and clock.point_due(curve, counted["steps"]):
             curve.append([counted["steps"], clock.spent_s / 60, float(np.mean(recent))])
+            if len(curve) % 10 == 1:
+                print(f"[algorithms] {counted['steps']:,} env steps, {clock.spent_s / 60:.1f} min: training "
+                      f"episodes' success {np.mean(recent):.2f}", flush=True)  # fmt: skip
+        if clock.eval_due(held, counted["steps"], args.curve_points):
+            held_out_point(act, env_id, obs, args, counted["steps"], clock, held)
         if clock.save_due():
             save()
         if clock.over():
@@ -505,15 +651,23 @@ def run_skrl(
         train_and_save(train, save)
     finally:
         env.close()
-    policy = models["policy"]
-
-    def act(flat):
-        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
-        _, out = policy.act({"observations": o.float()}, role="policy")
-        return out["mean_actions"].clamp(-1, 1)
-
     result = held_out(act, env_id, obs, args)
-    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, curve=curve_of(curve))
+    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, curve=curve_of(curve),
+                held_out_curve=held_out_curve(held, result, counted["steps"], clock.spent_s))  # fmt: skip
+
+
+def held_out_curve(held: list, final: dict, env_steps: int, spent_s: float) -> dict:
+    """The held-out curve: the points taken while training, then the final evaluation (its first
+    ``--curve-episodes`` seeds are the points' seeds), each with its episodes' 95 % Wilson interval."""
+    rows = [*held, [env_steps, spent_s / 60, final["success_rate"], final["successes"], None]]
+    return dict(
+        env_steps=[r[0] for r in rows],
+        wall_min=[r[1] for r in rows],
+        success=[r[2] for r in rows],
+        episodes=[len(r[3]) for r in rows],
+        ci95=[list(wilson(int(sum(r[3])), len(r[3]))) for r in rows],
+        eval_s=[r[4] for r in rows],
+    )
 
 
 def curve_of(points: list) -> dict:
@@ -659,12 +813,34 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                 env_steps_mean=float(np.mean([r["env_steps"] for r in runs])),
                 wall_clock_min_mean=float(np.mean([r["wall_clock_s"] for r in runs])) / 60,
             )
+            row["held_out_at"] = held_out_at(runs)
             steal = [r["cpu_steal"] for r in runs if "cpu_steal" in r]
             row["cpu_steal_mean"] = float(np.mean(steal)) if steal else None  # None: not measured
             ref = [r["reference_sps"] for r in runs if "reference_sps" in r]
             row["reference_sps_mean"] = np.mean(ref, axis=0).round(1).tolist() if ref else None  # before, after
         rows.append(row)
     return rows
+
+
+def held_out_at(runs: list[dict]) -> dict[str, Optional[float]]:
+    """The seeds' mean held-out success at each of ``READ_AT``'s shares of the budget, from their held-out curves
+    (None where a seed has no point there: a cell in minutes, or one run before the curve had that point)."""
+    out: dict[str, Optional[float]] = {}
+    for share in READ_AT:
+        values = []
+        for r in runs:
+            curve, total = r.get("held_out_curve"), r.get("total_env_steps")
+            if not curve or not total:
+                break
+            if share == 1.0:
+                values.append(curve["success"][-1])
+                continue
+            at = [s for n, s in zip(curve["env_steps"][:-1], curve["success"][:-1]) if abs(n / total - share) < 0.02]
+            if not at:
+                break
+            values.append(at[0])
+        out[f"{share:g}"] = float(np.mean(values)) if values and len(values) == len(runs) else None
+    return out
 
 
 def row_budget(runs: list[dict], obs: str, task: str, args: Args) -> dict:
@@ -680,27 +856,28 @@ def row_budget(runs: list[dict], obs: str, task: str, args: Args) -> dict:
 
 def markdown(rows: list[dict]) -> str:
     lines = [
-        "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | env steps | wall clock (min) "
-        "| host steal | reference env steps/s, before / after | settings |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| obs | task | algorithm | library | seeds | success | 95 % CI | per seed | held out at 25 / 50 / 100 % "
+        "| env steps | wall clock (min) | host steal | reference env steps/s, before / after | settings |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         name = r["name"] + ("" if r["from_reward"] else " (imitates the expert: reference)")
         head = f"| {r['obs']} | {r['task']} | {name} | {r['library']} |"
         if "success_mean" not in r:
             budget = budget_text(r["budget_min"], r.get("total_env_steps"))
-            lines.append(f"{head} – | pending | | | | ({budget} budget) | | | {r['settings']} |")
+            lines.append(f"{head} – | pending | | | | | ({budget} budget) | | | {r['settings']} |")
             continue
         lo, hi = r["success_ci95"]
         per = ", ".join(f"{x:.2f}" for x in r["per_seed"])
         steal = "–" if r.get("cpu_steal_mean") is None else f"{100 * r['cpu_steal_mean']:.0f} %"
         ref = "–" if r.get("reference_sps_mean") is None else " / ".join(f"{x:.0f}" for x in r["reference_sps_mean"])
+        at = " / ".join("–" if v is None else f"{v:.2f}" for v in (r.get("held_out_at") or {}).values()) or "–"
         lines.append(
             f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
-            f"{r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
+            f"{at} | {r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
         )
     for name, why in NOT_RUNNABLE.items():
-        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | {why} |")
+        lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | – | {why} |")
     return "\n".join(lines)
 
 
@@ -842,6 +1019,7 @@ def main(args: Args) -> dict:
         if args.budget_min is None and args.total_env_steps is None:  # toy minutes, unless toy env steps are given
             args.budget_min = 0.05
         args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
+        args.curve_episodes = 1
     for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
                         ("--budget-min", args.budget_min)):  # fmt: skip
         if value is not None and not value > 0:

@@ -41,7 +41,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     lo, hi = row["success_ci95"]
     assert row["seeds"] == [1] and row["interval"] == "Wilson" and 0 <= lo <= row["success_mean"] <= hi <= 1
     assert data["versions"]["stable_baselines3"] == "2.9.2" and "RHPO" in data["not_runnable"]
-    assert len(data["rows"]) == 16 and sum("success_mean" in r for r in data["rows"]) == 1  # the rest pending
+    assert len(data["rows"]) == len(alg.grid()) == 34 and sum("success_mean" in r for r in data["rows"]) == 1  # pending
     assert (tmp_path / "algorithms.png").stat().st_size > 5000
     text = md.read_text()
     assert text.count(alg.SECTION_HEAD) == 1 and "## Earlier\n\nkept\n" in text and "## Later\n\nkept too" in text
@@ -120,7 +120,8 @@ def test_render_only_derives_the_rows_again_from_the_committed_cells(alg, tmp_pa
     assert again == report and again["cells"] == committed["cells"]
     assert [r["settings"] for r in again["rows"]] == [alg.ALGORITHMS[r["algorithm"]].settings for r in again["rows"]]
     measured = ("success_mean", "success_ci95", "per_seed", "env_steps_mean", "reference_sps_mean", "seeds")
-    assert [{k: r.get(k) for k in measured} for r in again["rows"]] == [
+    rows = {(r["obs"], r["task"], r["algorithm"]): r for r in again["rows"]}  # rows added since stay pending
+    assert [{k: rows[r["obs"], r["task"], r["algorithm"]].get(k) for k in measured} for r in committed["rows"]] == [
         {k: r.get(k) for k in measured} for r in committed["rows"]
     ]
     assert "an old text" not in md.read_text() and alg.ALGORITHMS["skrl-ppo"].settings in md.read_text()
@@ -130,7 +131,7 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     args = alg.Args()
     done: dict[str, dict] = {}
     first = alg.planned(done, args)
-    assert len(first) == 16 and all(c.endswith("/s1") for c in first)
+    assert len(first) == len(alg.grid()) == 34 and all(c.endswith("/s1") for c in first)
     group = [c for c in first if c.startswith("state/GraspLift/")]
     for i, cell in enumerate(group):
         done[cell] = {"success_rate": {"sb3-sac": 0.4, "project-ppo": 0.3}.get(cell.split("/")[2], 0.1 * i / 10)}
@@ -293,3 +294,151 @@ def test_the_camera_cell_in_env_steps_gives_its_teacher_the_committed_share(alg,
     teacher_steps = round(base / total * 10**6)
     assert calls == [("cell__base", teacher_steps, False, "60"), ("cell", 10**6 - teacher_steps, False, "50")]
     assert r["env_steps"] == 10**6
+
+
+# ----------------------------------------------------------------------------- agents/configs' tuned settings
+CONFIG_EXEMPT = {"policy", "class", "name", "input", "output", "separate", "seed"}
+"""keys every config of its kind carries whatever its values (rl-zoo3's policy, the skrl runner's structure)"""
+
+
+def uncommented_keys(path: Path) -> list[str]:
+    """The ``key: value`` lines of a YAML config without a ``# why`` comment, but for structural keys and a
+    wrapper's keywords (the wrapper's own line says why)."""
+    out, in_wrapper = [], None
+    for line in path.read_text().splitlines():
+        body = line.split("#", 1)[0].rstrip()
+        indent = len(line) - len(line.lstrip())
+        if not body.strip() or line.lstrip().startswith("#"):
+            continue
+        if in_wrapper is not None and indent > in_wrapper:
+            continue
+        in_wrapper = indent if body.strip().startswith("- ") and body.endswith(":") else None
+        key = body.strip().lstrip("- ").split(":", 1)[0]
+        scalar = ":" in body and body.split(":", 1)[1].strip() != ""  # a setting, not a section's head
+        if scalar and indent > 0 and key not in CONFIG_EXEMPT and "#" not in line and in_wrapper is None:
+            out.append(f"{path.name}: {line.strip()}")
+    return out
+
+
+def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differs_from_the_default(alg):
+    import inspect
+
+    pytest.importorskip("sb3_contrib")
+    from skrl.agents.torch.ppo import PPO_CFG
+    from skrl.agents.torch.sac import SAC_CFG
+
+    from agents.configs import loader
+    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess
+
+    for algo in loader.SB3_ALGOS:
+        assert uncommented_keys(loader.sb3_path(algo)) == []
+        params = inspect.signature(loader.sb3_class(algo).__init__).parameters
+        for env_id in alg.TASKS.values():
+            cfg = loader.sb3_config(algo, env_id)
+            assert (
+                cfg.n_envs == 4
+                and cfg.policy == "MlpPolicy"
+                and cfg.normalize == {"norm_obs": True, "norm_reward": False}
+            )
+            assert cfg.n_timesteps == alg.STATE_ENV_STEPS[env_id.split("-")[0]]
+            for key, value in cfg.kwargs.items():  # a model argument, and not its default (which needs no line)
+                assert key in params and params[key].default != value, (algo, key)
+            assert [w.func for w in cfg.wrappers] == [AbsorbingSuccess] and cfg.wrappers[0].keywords[
+                "gamma"
+            ] == cfg.kwargs["gamma"]  # the absorbing value is the learner's discount's
+            assert ("action_noise" in cfg.model_kwargs(5)) == (algo in ("td3", "ddpg"))
+    defaults = {"ppo": PPO_CFG(), "sac": SAC_CFG()}
+    for algo in loader.SKRL_ALGOS:
+        for env_id in alg.TASKS.values():
+            path = loader.skrl_path(algo, env_id)
+            assert uncommented_keys(path) == []
+            cfg = loader.skrl_config(algo, env_id)
+            num_envs, wrappers = loader.skrl_env_settings(cfg)
+            assert num_envs == 4 and wrappers[0].keywords["gamma"] == cfg["agent"]["discount_factor"]
+            assert cfg["trainer"]["timesteps"] * num_envs == alg.STATE_ENV_STEPS[env_id.split("-")[0]]
+            for key, value in cfg["agent"].items():
+                if key != "class":
+                    default = getattr(defaults[algo], "gae_lambda" if key == "lambda" else key)
+                    assert default != value, (path.name, key)
+    # the skrl SAC defaults row's file: skrl's SAC_CFG as it comes, no wrapper, only what the runner needs
+    path = loader.skrl_path("sac-defaults", "GraspLift-IRB120-v1")
+    cfg = loader.skrl_config("sac-defaults", "TableClearing-IRB120-v1")
+    assert uncommented_keys(path) == [] and cfg["agent"] == {"class": "SAC"}
+    assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
+
+
+def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_only():
+    import gymnasium as gym
+    import torch
+
+    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess
+
+    class Fake(gym.Env):
+        observation_space, action_space = gym.spaces.Box(-1, 1, (1,)), gym.spaces.Box(-1, 1, (1,))
+
+        def step(self, action):
+            info = {"success": torch.tensor([True, True, False])}
+            return 0, torch.tensor([1.0, 0.5, 0.2]), torch.tensor([True, False, True]), torch.tensor([False] * 3), info
+
+    _, reward, *_ = AbsorbingSuccess(Fake(), gamma=0.8).step(None)
+    assert torch.allclose(reward, torch.tensor([1.0 + 0.8 / 0.2, 0.5, 0.2]))  # 1 + γ·1/(1−γ) = 1/(1−γ)
+    with pytest.raises(ValueError):
+        AbsorbingSuccess(Fake(), gamma=1.0)
+
+
+@pytest.mark.slow  # four cells' worker start-ups, ten held-out points each and evaluations (2-4 min on 2 cores)
+def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path):
+    pytest.importorskip("sb3_contrib")
+    pytest.importorskip("skrl")
+    cells = [
+        "state/GraspLift/sb3-ppo-tuned/s1",
+        "state/GraspLift/sb3-tqc-tuned/s1",
+        "state/GraspLift/skrl-sac-tuned/s1",
+        "state/GraspLift/skrl-sac/s1",
+    ]
+    args = alg.Args(only=cells, out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=400,
+                    reference_steps=0)  # fmt: skip
+    alg.main(args)
+    data = json.loads((tmp_path / "algorithms.json").read_text())
+    for cell in cells:
+        one = data["cells"][cell]
+        curve = one["held_out_curve"]
+        assert one["env_steps"] >= 400 and len(curve["env_steps"]) == 11  # tenths, a quarter, the final evaluation
+        assert curve["env_steps"] == sorted(curve["env_steps"]) and curve["episodes"][:-1] == [1] * 10
+        assert curve["episodes"][-1] == len(one["successes"]) and curve["eval_s"][-1] is None
+        assert all(lo <= s <= hi for (lo, hi), s in zip(curve["ci95"], curve["success"]))
+    rows = {r["algorithm"]: r for r in data["rows"] if r["task"] == "GraspLift" and r["obs"] == "state"}
+    assert all(v is not None for v in rows["sb3-ppo-tuned"]["held_out_at"].values())
+    model = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1"
+    assert (model / "vecnormalize.pkl").is_file()  # the config's normalize reached the cell
+
+
+@pytest.mark.slow  # one SB3 and one skrl run of a few hundred env steps (~40-80 s on 2 cores)
+def test_the_train_command_runs_a_config_as_rl_zoo3_and_isaac_lab_would(tmp_path):
+    pytest.importorskip("skrl")
+    from agents.configs import train
+
+    out = train.main(["--algo", "ppo", "--env", "GraspLift-IRB120-v1", "-conf", "agents/configs/sb3/ppo.yml",
+                      "-n", "600", "-f", str(tmp_path), "--gym-packages", "maniskill_irb120"])  # fmt: skip
+    assert (out / "GraspLift-IRB120-v1.zip").is_file() and (out / "vecnormalize.pkl").is_file()
+    out = train.main(["--library", "skrl", "--algo", "ppo", "--env", "GraspLift-IRB120-v1", "-n", "600", "-f",
+                      str(tmp_path)])  # fmt: skip
+    assert out.is_dir()
+
+
+def test_the_held_out_curve_is_read_at_a_quarter_a_half_and_the_end_of_the_budget(alg):
+    assert (
+        alg.curve_fractions(10) == [0.1, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9] and alg.curve_fractions(1) == []
+    )
+    clock = alg.Budget(None, 0.0, 60.0, total_steps=1000)
+    held: list = []
+    due = []
+    for steps in range(0, 1001, 50):
+        if clock.eval_due(held, steps, 10):
+            held.append([steps])
+            due.append(steps)
+    assert due == [100, 200, 250, 300, 400, 500, 600, 700, 800, 900]  # the end is the final evaluation's
+    curve = {"env_steps": [*due, 1000], "success": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]}
+    runs = [{"held_out_curve": curve, "total_env_steps": 1000}, {"held_out_curve": curve, "total_env_steps": 1000}]
+    assert alg.held_out_at(runs) == {"0.25": 0.2, "0.5": 0.5, "1": 1.0}
+    assert alg.held_out_at([*runs, {"total_env_steps": 1000}]) == {"0.25": None, "0.5": None, "1": None}

@@ -1,0 +1,128 @@
+"""Read ``agents/configs``' files into what each library constructs: SB3 model keywords and env settings from
+rl-zoo3's hyperparams format, skrl runner configs from Isaac Lab's YAML form.
+
+Only the rl-zoo3 keys the configs use are understood (``policy``, ``n_timesteps``, ``n_envs``, ``normalize``,
+``env_wrapper``, ``noise_type``/``noise_std``, ``policy_kwargs`` as a string); an unknown special key would reach the
+model's constructor and fail there, so a config cannot silently mean less here than in rl-zoo3.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+
+CONFIGS = Path(__file__).resolve().parent
+SB3_ALGOS = ("ppo", "sac", "td3", "ddpg", "tqc")
+SKRL_ALGOS = ("ppo", "sac")
+ZOO_KEYS = ("policy", "n_timesteps", "n_envs", "normalize", "env_wrapper", "noise_type", "noise_std")
+"""rl-zoo3's keys that are not the model's keyword arguments"""
+
+
+def sb3_path(algo: str) -> Path:
+    return CONFIGS / "sb3" / f"{algo}.yml"
+
+
+def skrl_path(algo: str, env_id: str) -> Path:
+    """``skrl/<algo>_<task>.yaml``; ``<algo>-defaults``: ``skrl/<algo>_defaults.yaml`` (either task)."""
+    if algo.endswith("-defaults"):
+        return CONFIGS / "skrl" / f"{algo.removesuffix('-defaults')}_defaults.yaml"
+    return CONFIGS / "skrl" / f"{algo}_{env_id.split('-')[0].lower()}.yaml"
+
+
+def sb3_class(algo: str) -> type:
+    """The SB3 (or sb3-contrib) class of ``algo``."""
+    if algo == "tqc":
+        from sb3_contrib import TQC
+
+        return TQC
+    import stable_baselines3 as sb3
+
+    return {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3, "ddpg": sb3.DDPG}[algo]
+
+
+def wrappers_of(entries: Optional[list]) -> list[Callable]:
+    """rl-zoo3's ``env_wrapper`` list (``[{"module.Class": {kwargs}}]`` or ``["module.Class"]``) as picklable
+    constructors, innermost first."""
+    out = []
+    for entry in entries or []:
+        name, kwargs = (entry, {}) if isinstance(entry, str) else next(iter(entry.items()))
+        module, _, cls = name.rpartition(".")
+        out.append(functools.partial(getattr(importlib.import_module(module), cls), **(kwargs or {})))
+    return out
+
+
+@dataclass
+class SB3Config:
+    """One env id's entry of an ``sb3/<algo>.yml``, taken apart."""
+
+    algo: str
+    policy: str
+    n_envs: int
+    n_timesteps: int
+    normalize: Optional[dict]
+    """VecNormalize's keywords (None: no VecNormalize)"""
+    wrappers: list[Callable] = field(default_factory=list)
+    kwargs: dict = field(default_factory=dict)
+    """the model's keyword arguments (action noise still a spec: :meth:`model_kwargs` builds it)"""
+    noise: Optional[tuple[str, float]] = None
+
+    def model_kwargs(self, n_actions: int) -> dict:
+        import numpy as np
+
+        kwargs = dict(self.kwargs)
+        if self.noise is not None:
+            from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+
+            kind, std = self.noise
+            cls = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}[kind]
+            kwargs["action_noise"] = cls(np.zeros(n_actions), std * np.ones(n_actions))
+        return kwargs
+
+
+def policy_kwargs_of(text: str) -> dict:
+    """rl-zoo3's ``policy_kwargs`` string (``"dict(net_arch=[...], activation_fn=nn.Tanh)"``), evaluated with
+    ``dict`` and ``nn`` (torch.nn) only, as rl-zoo3 evaluates it."""
+    import torch.nn as nn
+
+    ast.parse(text, mode="eval")  # a syntax error names the config's text
+    return eval(text, {"__builtins__": {}}, {"dict": dict, "nn": nn})  # noqa: S307 - a file of this repository
+
+
+def sb3_config(algo: str, env_id: str, path: Optional[Path] = None) -> SB3Config:
+    hp = dict(yaml.safe_load((path or sb3_path(algo)).read_text())[env_id])
+    normalize = hp.pop("normalize", False)
+    if isinstance(normalize, str):
+        normalize = ast.literal_eval(normalize)
+    normalize = (dict(normalize) if isinstance(normalize, dict) else {}) if normalize else None
+    noise_type, noise_std = hp.pop("noise_type", None), hp.pop("noise_std", None)
+    if "policy_kwargs" in hp:
+        hp["policy_kwargs"] = policy_kwargs_of(hp["policy_kwargs"])
+    return SB3Config(
+        algo=algo,
+        policy=hp.pop("policy"),
+        n_envs=int(hp.pop("n_envs", 1)),
+        n_timesteps=int(float(hp.pop("n_timesteps"))),
+        normalize=normalize,
+        wrappers=wrappers_of(hp.pop("env_wrapper", None)),
+        kwargs=hp,
+        noise=None if noise_type is None else (noise_type, float(noise_std)),
+    )
+
+
+def skrl_config(algo: str, env_id: str, path: Optional[Path] = None) -> dict[str, Any]:
+    """An ``skrl/<algo>_<task>.yaml`` as skrl's ``Runner`` takes it, with its ``env`` section (this project's: the
+    runner ignores it) left in for :func:`skrl_env_settings`."""
+    return yaml.safe_load((path or skrl_path(algo, env_id)).read_text())
+
+
+def skrl_env_settings(cfg: dict) -> tuple[int, list[Callable]]:
+    """The ``env`` section: the number of envs and the env wrappers (rl-zoo3's ``env_wrapper`` form)."""
+    env = cfg.get("env", {})
+    return int(env.get("num_envs", 4)), wrappers_of(env.get("wrappers"))

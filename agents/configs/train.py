@@ -1,0 +1,89 @@
+"""Train one of ``agents/configs``' configs as its library's users would: rl-zoo3's flags for SB3, the runner for skrl.
+
+rl-zoo3 (``python -m rl_zoo3.train --algo sac --env ID --gym-packages maniskill_irb120 -conf FILE``) does not install
+beside this stack (its moviepy pins pillow < 12), and its env builder would hand SB3 ``gym.make`` envs where these
+tasks need the CPU worker vector env; so this takes rl-zoo3's flags and file format and builds the env with
+``make_sb3_vec_env``. ``--library skrl`` runs an ``skrl/<algo>_<task>.yaml`` through skrl's ``Runner``, as Isaac Lab's
+skrl train script does.
+
+    python -m agents.configs.train --algo sac --env GraspLift-IRB120-v1 -conf agents/configs/sb3/sac.yml
+    python -m agents.configs.train --library skrl --algo ppo --env GraspLift-IRB120-v1
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Optional
+
+from agents.configs import loader
+
+
+def parse(argv: Optional[list[str]] = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--library", choices=("sb3", "skrl"), default="sb3")
+    p.add_argument("--algo", required=True, help="sb3: ppo, sac, td3, ddpg, tqc; skrl: ppo, sac")
+    p.add_argument("--env", required=True, help="GraspLift-IRB120-v1 or TableClearing-IRB120-v1")
+    p.add_argument("-conf", "--conf-file", type=Path, default=None, help="default: agents/configs/<library>/...")
+    p.add_argument("-n", "--n-timesteps", type=int, default=-1, help="env steps (default: the config's)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("-f", "--log-folder", type=Path, default=Path("runs/configs"))
+    p.add_argument("--backend", default="cpu", help="cpu, gpu or auto (make_vec_env's)")
+    p.add_argument("--gym-packages", nargs="*", default=[], help="accepted for rl-zoo3's command line; unused")
+    return p.parse_args(argv)
+
+
+def train_sb3(a: argparse.Namespace) -> Path:
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
+
+    cfg = loader.sb3_config(a.algo, a.env, a.conf_file)
+    venv = make_sb3_vec_env(a.env, cfg.n_envs, "state", backend=a.backend, seed=a.seed, wrappers=cfg.wrappers)
+    if cfg.normalize is not None:
+        venv = VecNormalize(venv, **cfg.normalize)
+    out = a.log_folder / a.algo / f"{a.env}_{a.seed}"
+    try:
+        model = loader.sb3_class(a.algo)(cfg.policy, venv, seed=a.seed, verbose=1, tensorboard_log=str(out),
+                                         **cfg.model_kwargs(venv.action_space.shape[0]))  # fmt: skip
+        model.learn(total_timesteps=cfg.n_timesteps if a.n_timesteps < 0 else a.n_timesteps)
+        out.mkdir(parents=True, exist_ok=True)
+        model.save(out / f"{a.env}.zip")  # rl-zoo3's layout: the model and, beside it, the normaliser
+        if isinstance(venv, VecNormalize):
+            venv.save(str(out / "vecnormalize.pkl"))
+    finally:
+        venv.close()
+    return out
+
+
+def train_skrl(a: argparse.Namespace) -> Path:
+    from skrl.utils.runner.torch import Runner
+
+    from maniskill_irb120.integrations.skrl import make_skrl_env
+
+    cfg = loader.skrl_config(a.algo, a.env, a.conf_file)
+    num_envs, wrappers = loader.skrl_env_settings(cfg)
+    env = make_skrl_env(a.env, num_envs, "state", backend=a.backend, seed=a.seed, wrappers=wrappers)
+    out = a.log_folder / f"skrl_{a.algo}"
+    cfg = {k: v for k, v in cfg.items() if k != "env"}
+    cfg["seed"] = a.seed
+    cfg["agent"] = dict(cfg["agent"], experiment=dict(directory=str(out), experiment_name=f"{a.env}_{a.seed}"))
+    cfg["trainer"] = dict(cfg["trainer"], headless=True, close_environment_at_exit=False)  # closed below, once
+    if a.n_timesteps > 0:  # skrl counts vector steps
+        cfg["trainer"]["timesteps"] = max(1, a.n_timesteps // num_envs)
+    try:
+        Runner(env, cfg).run("train")
+    finally:
+        env.close()
+    return out
+
+
+def main(argv: Optional[list[str]] = None) -> Path:
+    a = parse(argv)
+    out = train_sb3(a) if a.library == "sb3" else train_skrl(a)
+    print(f"[configs] {a.library} {a.algo} on {a.env}: saved under {out}", flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()
