@@ -424,10 +424,9 @@ def _sha(data: bytes) -> str:
 
 
 def _home_has(c, path: str, name: str) -> bool:
-    try:
-        return name in c.list_files(path)
-    except Exception:
-        return False
+    """Whether folder ``path`` (one that exists) lists ``name``; a failed listing raises, never reads as "absent",
+    which would start a fresh manifest and forget the deployments the old one records."""
+    return name in c.list_files(path)
 
 
 def read_manifest(c, folder: str = FOLDER) -> dict | None:
