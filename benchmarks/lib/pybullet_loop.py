@@ -40,11 +40,8 @@ Choices where the description leaves room (documented, none makes PyBullet slowe
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -83,7 +80,7 @@ MODES = {  # name -> (render, realtime), the original report's Table 5.1
 
 def _require_pybullet():
     if p is None:
-        raise ImportError("benchmarks/pybullet_original.py needs pybullet (pip install pybullet)")
+        raise ImportError("the PyBullet loop (benchmarks/lib/pybullet_loop.py) needs pybullet (pip install pybullet)")
 
 
 class SeedPyBulletEnv:
@@ -367,7 +364,7 @@ class SeedPyBulletEnv:
 
 # --------------------------------------------------------------------------- measurement
 def random_actions(n: int, seed: int, dim: int = 5) -> np.ndarray:
-    """The benchmark policy for every simulator (sim_speed.py uses it too): uniform in [-1, 1]^dim;
+    """The benchmark policy for every simulator (sim_speed and pybullet_original): uniform in [-1, 1]^dim;
     for this robot's 5 values the last is the gripper flag (> 0 open)."""
     return np.random.default_rng(seed).uniform(-1.0, 1.0, size=(n, dim))
 
@@ -437,46 +434,3 @@ def markdown_table(results: list[dict]) -> str:
         for r in results
     ]
     return "\n".join([head, *rows])
-
-
-@dataclass
-class Args:
-    """Time the original report's PyBullet action loop in the three modes of the original report's Table 5.1."""
-
-    n_actions: int = 200
-    """actions per mode"""
-    realtime_n_actions: int | None = None
-    """cap for the (wall-clock paced, slow by design) render_realtime mode; default n_actions"""
-    seed: int = 0
-    modes: tuple[str, ...] = tuple(MODES)
-    json: Path | None = None
-    """also write all results (per-action times included) to this JSON file"""
-    quick: bool = False
-    """a few actions per mode (< 30 s in all), for smoke tests"""
-
-
-def main(args: Args) -> list[dict]:
-    n, n_rt = args.n_actions, args.realtime_n_actions
-    if args.quick:
-        n, n_rt = 10, 5
-    results = []
-    for mode in args.modes:
-        k = n if (mode != "render_realtime" or n_rt is None) else min(n, n_rt)
-        results.append(measure(mode, k, args.seed))
-    print("\n" + markdown_table(results))  # (a newline: PyBullet's URDF warnings do not end with one)
-    for r in results:
-        print(
-            f"{r['mode']}: converged {r['n_converged']}/{r['n']}, timeouts {r['n_timeouts']}, "
-            f"skipped (IK) {r['n_skipped']}, collisions/resets {r['n_collisions']}, "
-            f"sim time/action {r['sim_time_per_action']:.3f} s"
-        )
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"pybullet": p.getAPIVersion(), "results": results}, indent=1))
-    return results
-
-
-if __name__ == "__main__":
-    import tyro
-
-    main(tyro.cli(Args))
