@@ -6,9 +6,9 @@ counted, and the controller time they cost is reported beside the measured round
 JSON; ``--update-results`` rewrites its section of benchmarks/RESULTS.md from that JSON, and ``--render-only``
 rewrites it from the committed JSON without measuring (the page shows what the JSON says, nothing kept by hand).
 
-    .venv/bin/python benchmarks/adapter_latency.py --steps 200 --json benchmarks/results/adapter_latency.json
-    .venv/bin/python benchmarks/adapter_latency.py --steps 200 --update-results   # writes results/adapter_latency.json
-    .venv/bin/python benchmarks/adapter_latency.py --render-only
+    .venv/bin/python -m benchmarks.adapter_latency --steps 200 --json benchmarks/results/adapter_latency.json
+    .venv/bin/python -m benchmarks.adapter_latency --steps 200 --update-results   # writes results/adapter_latency.json
+    .venv/bin/python -m benchmarks.adapter_latency --render-only
 """
 
 from __future__ import annotations
@@ -23,14 +23,12 @@ from typing import Optional
 
 import numpy as np
 
+from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
+from maniskill_irb120.abb.client import ABBRobot
+from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, ControllerEmulator
+from maniskill_irb120.abb.protocol import OVERHEAD, GetState, ToolStep, command_frame
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
-
-from maniskill_irb120.abb.client import ABBRobot  # noqa: E402
-from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, ControllerEmulator  # noqa: E402
-from maniskill_irb120.abb.protocol import OVERHEAD, GetState, ToolStep, command_frame  # noqa: E402
 
 REPLY_BYTES = OVERHEAD + 26
 HEAD = "## ABB adapter round trip — `benchmarks/adapter_latency.py`"
@@ -139,7 +137,7 @@ def main(args: Args) -> dict:
     rows += [measure("serial", args.steps, args.statement_cost_us, baud) for baud in (115200, 9600)]
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=argv_command("benchmarks/adapter_latency.py", sys.argv[1:]),
+        command=argv_command("benchmarks.adapter_latency", sys.argv[1:]),
         machine=platform.platform(),
         steps=args.steps,
         step_frame_bytes=step_bytes,

@@ -36,17 +36,16 @@ spent, and a rerun continues it with the rest of its budget; a project cell cont
 ``--resume``.
 ``--only`` picks cells by glob, ``--stop-after-min`` starts no cell that would end after it.
 
-    python benchmarks/algorithms.py --update-results                          # every cell (resumes)
-    python benchmarks/algorithms.py --only 'state/GraspLift/*' --stop-after-min 170 --update-results
-    python benchmarks/algorithms.py --quick --out-dir /tmp/alg --only state/GraspLift/sb3-ppo/s1   # smoke run
-    python benchmarks/algorithms.py --render-only   # the rows and section again from algorithms.json, no cell run
+    python -m benchmarks.algorithms --update-results                          # every cell (resumes)
+    python -m benchmarks.algorithms --only 'state/GraspLift/*' --stop-after-min 170 --update-results
+    python -m benchmarks.algorithms --quick --out-dir /tmp/alg --only state/GraspLift/sb3-ppo/s1   # smoke run
+    python -m benchmarks.algorithms --render-only   # the rows and section again from algorithms.json, no cell run
 """
 
 from __future__ import annotations
 
 import fnmatch
 import json
-import math
 import platform
 import signal
 import sys
@@ -60,14 +59,14 @@ import numpy as np
 import torch
 import tyro
 
+from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed
+from agents.recipes import RECIPES
+from benchmarks.lib import budget, machine, runner
+from benchmarks.lib.budget import rest_of
+from benchmarks.lib.report import replace_section
+from benchmarks.lib.stats import bootstrap_ci, wilson
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import learning  # noqa: E402
-from results_md import replace_section  # noqa: E402
-
-from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed  # noqa: E402
 
 TASKS = {"GraspLift": "GraspLift-IRB120-v1", "TableClearing": "TableClearing-IRB120-v1"}
 STATE_ENV_STEPS = {"GraspLift": 500_000, "TableClearing": 1_000_000}
@@ -249,8 +248,8 @@ class Args:
     """toy sizes: 3 s per cell (or --total-env-steps), 2 evaluation episodes, learning.py's --quick trainer flags,
     200 bootstrap resamples, a toy reference workload"""
     bootstrap: int = 10_000
-    reference_steps: int = learning.REFERENCE_STEPS
-    """steps of learning.reference_speed's fixed workload timed before and after each cell (0: none)"""
+    reference_steps: int = machine.REFERENCE_STEPS
+    """steps of machine.reference_speed's fixed workload timed before and after each cell (0: none)"""
 
 
 # ----------------------------------------------------------------------------- cells
@@ -686,29 +685,26 @@ def run_project(
     env_steps: Optional[int] = None,
 ) -> dict:
     """learning.py's ``recipe`` in ``env_steps`` with ``budget_min`` as its guard, or without them in ``budget_min``:
-    one trainer, or for a two-stage recipe (``learning.BASES``) its base in its share of the budget (of env steps, the
-    share its committed runs did: ``learning.steps_for``) and then the recipe's trainer, handed the base's checkpoint,
-    in the rest; the cell's env steps, wall clock and curve are both stages' (``learning.joined``), as in learning.py's
+    one trainer, or for a two-stage recipe (its ``base``) its base in its share of the budget (of env steps, the
+    share its committed runs did: ``budget.base_steps``) and then the recipe's trainer, handed the base's checkpoint,
+    in the rest; the cell's env steps, wall clock and curve are both stages' (``runner.joined``), as in learning.py's
     rows."""
-    module, _, _, _ = learning.RECIPES[recipe]
-    flags = learning.recipe_flags(recipe, env_id)  # learning.run_trainer fills in the seed
-    if recipe not in learning.BASES:
+    r = RECIPES[recipe].for_task(env_id)
+    module, flags = r.trainer, r.argv()  # runner.run_trainer fills in the seed
+    if r.base is None:
         return run_stage(module, flags, env_id, seed, budget_min, run_name, args, env_steps)
-    base_recipe, _, hand_on = learning.BASES[recipe]
-    base_flags = learning.recipe_flags(base_recipe, env_id)
-    base_module = learning.RECIPES[base_recipe][0]
+    hand_on = f"--{r.base.hand_on}"
+    base_recipe = RECIPES[r.base.recipe].for_task(env_id)
+    base_flags, base_module = base_recipe.argv(), base_recipe.trainer
     if env_steps is None:
-        base_min, base_steps = learning.base_share(recipe, env_id) * budget_min, None
+        base_min, base_steps = r.base.share * budget_min, None
     else:
-        base_min, base_steps = (
-            budget_min,
-            learning.steps_for(recipe, learning.Args(env_id=env_id, total_env_steps=env_steps))[1],
-        )
+        base_min, base_steps = budget_min, budget.base_steps(recipe, env_id, env_steps)
     base = run_stage(base_module, base_flags, env_id, seed, base_min, f"{run_name}__base", args, base_steps)
-    rest = learning.rest_of(budget_min, base["wall_clock_s"] / 60)  # an overrun shows in the cell's time
-    rest_steps = None if env_steps is None else round(learning.rest_of(env_steps, base["env_steps"]))
+    rest = rest_of(budget_min, base["wall_clock_s"] / 60)  # an overrun shows in the cell's time
+    rest_steps = None if env_steps is None else round(rest_of(env_steps, base["env_steps"]))
     tuned = run_stage(module, [*flags, hand_on, base["checkpoint"]], env_id, seed, rest, run_name, args, rest_steps)
-    return learning.joined(base, tuned)
+    return runner.joined(base, tuned)
 
 
 def run_stage(
@@ -721,7 +717,7 @@ def run_stage(
     args: Args,
     env_steps: Optional[int] = None,
 ) -> dict:
-    """One trainer as a subprocess (``learning.run_trainer``), continued with its own ``--resume`` when an earlier
+    """One trainer as a subprocess (``runner.run_trainer``), continued with its own ``--resume`` when an earlier
     session left a checkpoint and no result; a stage that finished in an earlier session (a two-stage cell stopped
     in its second) is read from the ``stage.json`` it left, not trained again."""
     runs = args.runs_dir / "project"
@@ -729,7 +725,7 @@ def run_stage(
     if done.is_file():
         print(f"[algorithms] {run_name}: finished earlier, read from {done}", flush=True)
         return json.loads(done.read_text())
-    out = learning.run_trainer(
+    out = runner.run_trainer(
         run_name,
         module,
         flags,
@@ -754,13 +750,13 @@ def run_cell(cell: str, args: Args) -> dict:
     print(f"[algorithms] {cell}: {budget_text(minutes, steps)}", flush=True)
     if spec.runner == "project":
         r = run_project(spec.recipe, env_id, seed, minutes, name, args, steps)
-    else:  # the share of CPU time the host stole while it trained (a project cell's: learning.run_trainer's)
+    else:  # the share of CPU time the host stole while it trained (a project cell's: runner.run_trainer's)
         runner = run_sb3 if spec.runner == "sb3" else run_skrl
-        before = learning.cpu_times()
+        before = machine.cpu_times()
         r = runner(
             algo, env_id, obs, seed, None if minutes is None else minutes * 60, args.runs_dir / name, args, steps
         )
-        steal = learning.steal_fraction(before, learning.cpu_times())
+        steal = machine.steal_fraction(before, machine.cpu_times())
         if steal is not None:
             r["cpu_steal"] = steal
     if steps is None:
@@ -775,16 +771,6 @@ def run_cell(cell: str, args: Args) -> dict:
 
 
 # ----------------------------------------------------------------------------- statistics and report
-def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95 % Wilson score interval of a success rate k/n."""
-    if n == 0:
-        return float("nan"), float("nan")
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
 def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
     """One row per (obs, task, algorithm): its seeds' mean success and interval, env steps and wall clock, or
     ``pending`` while its seed-1 cell is not in."""
@@ -803,7 +789,7 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                 lo, hi = wilson(int(sum(successes[0])), len(successes[0]))
                 interval = "Wilson"
             else:
-                lo, hi = learning.bootstrap_ci(successes, args.bootstrap, rng)
+                lo, hi = bootstrap_ci(successes, args.bootstrap, rng)
                 interval = "bootstrap over seeds and episodes"
             row.update(
                 success_mean=float(np.mean([r["success_rate"] for r in runs])),
@@ -935,11 +921,11 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         "Host steal: the share of the machine's CPU time the hypervisor gave to other guests while the cell trained "
         "(its seeds' mean; a budgeted cell gets fewer env steps for it). Reference env steps/s: the machine's speed "
         "just before and after the cell, on one fixed workload (seeded random actions in 4 TableClearing state envs, "
-        "`learning.reference_speed`); this host's speed has moved several-fold between days while its steal read low, "
-        "so compare env steps between cells as ratios to it. The library cells' learner runs on one torch thread "
-        "while the envs step and, between steps, on the adapters' default (one from state, all of torch's from the "
-        "camera: docs/rl_libraries.md). "
-        "`python benchmarks/algorithms.py --update-results` runs every planned cell not yet in the raw data (split it "
+        "`benchmarks.lib.machine.reference_speed`); this host's speed has moved several-fold between days while its "
+        "steal read low, so compare env steps between cells as ratios to it. The library cells' learner runs on one "
+        "torch thread while the envs step and, between steps, on the adapters' default (one from state, all of "
+        "torch's from the camera: docs/rl_libraries.md). "
+        "`python -m benchmarks.algorithms --update-results` runs every planned cell not yet in the raw data (split it "
         "over sessions with `--stop-after-min N`; an interrupted cell continues from its checkpoint), so the table "
         f"grew over several runs ({when}); each cell's date and trainer command are in the raw data. Last run: "
         f"`{report['command']}` ({report['machine']}); raw data: "
@@ -951,7 +937,7 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
 def write_report(cells: dict[str, dict], args: Args) -> dict:
     rows = rows_of(cells, args)
     report = dict(
-        command="python benchmarks/algorithms.py " + " ".join(sys.argv[1:]),
+        command="python -m benchmarks.algorithms " + " ".join(sys.argv[1:]),
         machine=f"{platform.node()} {platform.machine()}",
         num_envs=args.num_envs,
         eval_episodes=args.eval_episodes,
@@ -988,16 +974,16 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
             if ends > args.stop_after_min:
                 print(f"[algorithms] stopping: {cell} would end at {ends:.0f} min > --stop-after-min", flush=True)
                 break
-        try:  # the machine's speed on learning.reference_speed's workload just before and after the cell
-            before = learning.reference_speed(args.reference_steps, quick=args.quick)
+        try:  # the machine's speed on machine.reference_speed's workload just before and after the cell
+            before = machine.reference_speed(args.reference_steps, quick=args.quick)
             cells[cell] = run_cell(cell, args)
-        except (learning.Interrupted, KeyboardInterrupt):  # a cell's checkpoint is what a rerun continues from
+        except (runner.Interrupted, KeyboardInterrupt):  # a cell's checkpoint is what a rerun continues from
             print(f"[algorithms] {cell}: interrupted; the same command continues it", flush=True)
             raise SystemExit(130) from None
         print(f"[algorithms] {cell}: success {cells[cell]['success_rate']:.2f}", flush=True)
         write_report(cells, args)  # after every cell: a session that ends keeps what it finished
         try:
-            after = learning.reference_speed(args.reference_steps, quick=args.quick)
+            after = machine.reference_speed(args.reference_steps, quick=args.quick)
         except KeyboardInterrupt:
             print(f"[algorithms] {cell}: interrupted while timing the reference after it; kept without it", flush=True)
             raise SystemExit(130) from None

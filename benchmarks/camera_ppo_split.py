@@ -18,12 +18,12 @@ env configuration (the recipe's envs and wrappers, a separate instance) steps al
 from rgbd and once from state; rendering's cost per env step is about the difference. Training, rgbd and state take
 turns, so the drift of a shared machine lands on all three and the ratios come from the same minutes.
 
-    python benchmarks/camera_ppo_split.py                    # 10240 env steps, ~7 min on 2 cores, far more when shared
-    python benchmarks/camera_ppo_split.py --no-probe-threads # without the thread probe below, on a shared machine
+    python -m benchmarks.camera_ppo_split                    # 10240 env steps, ~7 min on 2 cores, far more when shared
+    python -m benchmarks.camera_ppo_split --no-probe-threads # without the thread probe below, on a shared machine
                                                              # the run's slowest part (half its wall clock and more)
-    python benchmarks/camera_ppo_split.py --quick --json /tmp/c.json
-    python benchmarks/camera_ppo_split.py --update-results   # also rewrites its section of RESULTS.md
-    python benchmarks/camera_ppo_split.py --render-only      # rewrites the section from --json, measuring nothing
+    python -m benchmarks.camera_ppo_split --quick --json /tmp/c.json
+    python -m benchmarks.camera_ppo_split --update-results   # also rewrites its section of RESULTS.md
+    python -m benchmarks.camera_ppo_split --render-only      # rewrites the section from --json, measuring nothing
 
 A probe beside the training (not counted in its time) reruns each iteration's update on a copy of the agent and
 optimiser with all the machine's torch threads, since the trainer runs its update on the one thread it keeps beside
@@ -47,11 +47,9 @@ import numpy as np
 import torch
 import tyro
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 
-from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 HEAD = "## Camera PPO step split — `benchmarks/camera_ppo_split.py`"
 RECIPE = "ppo-rgbd"
@@ -304,7 +302,7 @@ def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: f
     training = steps / wall
     render = [1e3 / r["rgbd_env_steps_per_s"] - 1e3 / r["state_env_steps_per_s"] for r in rounds]
     report = dict(
-        command=argv_command("benchmarks/camera_ppo_split.py", sys.argv[1:]),
+        command=argv_command("benchmarks.camera_ppo_split", sys.argv[1:]),
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         wall_min=(time.time() - t_start) / 60,
         machine=dict(

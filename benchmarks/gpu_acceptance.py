@@ -5,16 +5,16 @@ only a checkout can make, the trainers' tiny ``--backend gpu`` runs and the benc
 The trainers (``agents/``) and the benchmarks ship with the repository, not with the package, so the package's
 doctor does not start them; this script does, as a user would (``python -m agents.ppo --backend gpu ...``), and
 hands them to the doctor's report as its ``programs``. Each runs in its own process, so a GPU-side crash is its
-FAIL and not the end of the report. The flags a run shares with a recipe come from ``maniskill_irb120/recipes.py``.
+FAIL and not the end of the report. The flags a run shares with a recipe come from ``agents/recipes.py``.
 
 The results page's GPU section is this script's: rendered from that JSON and from the GPU machine's learner-speed
 JSONs (``benchmarks/learner_speed.py --device cuda`` and ``--device cpu`` on the same machine), never typed, so
 the page says what the JSON says, a failed check included. ``--render-only`` needs no GPU: a page is re-rendered
 wherever the JSON is, and the GPU machines are lent for minutes.
 
-    python benchmarks/gpu_acceptance.py --jobs 8 --json-path benchmarks/results/gpu_acceptance.json
-    python benchmarks/gpu_acceptance.py --jobs 8 --update-results   # also rewrites its section of RESULTS.md
-    python benchmarks/gpu_acceptance.py --render-only                # the section again, from the committed JSON
+    python -m benchmarks.gpu_acceptance --jobs 8 --json-path benchmarks/results/gpu_acceptance.json
+    python -m benchmarks.gpu_acceptance --jobs 8 --update-results   # also rewrites its section of RESULTS.md
+    python -m benchmarks.gpu_acceptance --render-only                # the section again, from the committed JSON
 """
 
 from __future__ import annotations
@@ -29,13 +29,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from agents.recipes import RECIPES, STATE_PPO_NET, render
+from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
+from maniskill_irb120.diagnostics.acceptance_runs import PHYSX_GPU
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "benchmarks"))
-
-from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
-
-from maniskill_irb120.diagnostics.acceptance_runs import PHYSX_GPU  # noqa: E402
-from maniskill_irb120.recipes import RECIPES, STATE_PPO_NET  # noqa: E402
 
 HEAD = "## GPU — `benchmarks/gpu_acceptance.py`"
 RESULTS_JSON = REPO / "benchmarks" / "results" / "gpu_acceptance.json"
@@ -77,7 +75,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
         args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
         if obs == "state":  # the RL-from-the-reward network (recipes.py): its normaliser on the GPU's tensors
-            args += STATE_PPO_NET
+            args += render(STATE_PPO_NET)
     elif name == "sac":
         args = ["--budget-min", "0.05", "--demo-episodes", "1", "--bc-pretrain-updates", "5"]
         args += ["--critic-warmup-updates", "5", "--batch-size", "16", "--log-freq", "20", "--save-freq", "40"]
@@ -85,7 +83,7 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
     else:
         # the camera recipe (dagger-rgbd-bf16; --precision auto: bf16 on a CPU that has it) at toy sizes: its flags,
         # then this run's over them (round 0 as many updates as the other rounds)
-        args = [*RECIPES[CAMERA_RECIPE].flags, "--initial-updates", "0"] if obs == "rgbd" else []
+        args = [*RECIPES[CAMERA_RECIPE].argv(), "--initial-updates", "0"] if obs == "rgbd" else []
         args += ["--budget-min", "0.01", "--expert-episodes", str(num_envs), "--episodes-per-round", "1"]
         args += ["--updates-per-round", "5", "--batch-size", "16", "--eval-episodes", "1", "--no-capture-video"]
     return [sys.executable, "-m", f"agents.{name}", *common, *args]
@@ -145,7 +143,7 @@ def check_camera_dagger(sim_backend: str, num_envs: int) -> tuple[bool, str]:
 
 
 def benchmark_command(json_path: Path, steps: int = 5) -> list[str]:
-    cmd = [sys.executable, "benchmarks/sim_speed.py", "--gpu-only", "--gpu-num-envs", *map(str, BENCH_ENVS)]
+    cmd = [sys.executable, "-m", "benchmarks.sim_speed", "--gpu-only", "--gpu-num-envs", *map(str, BENCH_ENVS)]
     return cmd + ["--gpu-steps", str(steps), "--json", str(json_path)]
 
 
@@ -289,7 +287,7 @@ def command_text(report: dict, json_path: Path) -> str:
         argv += ["--trainer-envs", str(report["trainer_envs"])]
     path = Path(json_path).resolve()
     shown = path.relative_to(REPO).as_posix() if path.is_relative_to(REPO) else path.as_posix()
-    command = argv_command("benchmarks/gpu_acceptance.py", [*argv, "--json-path", shown])
+    command = argv_command("benchmarks.gpu_acceptance", [*argv, "--json-path", shown])
     return f"The JSON records no command; `{command}` writes a report like it now."
 
 
@@ -388,7 +386,7 @@ def main(args: Args) -> int:
         commit=git_commit(),
     )
     if args.json_path is not None and rc in (0, 1):  # 2: no CUDA, nothing ran and nothing was written
-        record_command(args.json_path, argv_command("benchmarks/gpu_acceptance.py", sys.argv[1:]))
+        record_command(args.json_path, argv_command("benchmarks.gpu_acceptance", sys.argv[1:]))
         if args.update_results:
             update_results(args.json_path)
     return rc

@@ -1,7 +1,7 @@
 """The README's headline-results table, generated from the benchmarks' JSON under ``benchmarks/results/``.
 
-    python benchmarks/headline.py            # print the table
-    python benchmarks/headline.py --write    # rewrite the README's marked block with it
+    python -m benchmarks.headline            # print the table
+    python -m benchmarks.headline --write    # rewrite the README's marked block with it
 
 A learning row's budget is its runs' env steps (the JSON has them); the minutes they ran, which measure the machine
 as much as the recipe (this host's speed moved several-fold between days), are a footnote under the table.
@@ -67,7 +67,7 @@ def learning_rows(minutes: list[float] = None) -> list[str]:
                 f"× {report['eval_episodes']} held-out episodes, {r['env_steps_mean']:,.0f} env steps [{len(minutes)}]"
             )
             flag = "" if task == "TableClearing-IRB120-v1" else f" --env-id {task}"
-            command = f"benchmarks/learning.py{flag} --recipes {r['recipe']} --env-step-budgets"
+            command = f"python -m benchmarks.learning{flag} --recipes {r['recipe']} --env-step-budgets"
             rows.append(f"| {what} | {result} | `{command}` |")
     return rows
 

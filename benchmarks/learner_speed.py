@@ -9,11 +9,11 @@ recorded, in three configurations run in interleaved rounds so the ratios come f
 2. ``fp32``: the trainer's default;
 3. ``bf16 encoder``: ``--precision bf16`` (only where the CPU has native bf16; otherwise left out).
 
-    python benchmarks/learner_speed.py                     # ~2 min on 2 cores
-    python benchmarks/learner_speed.py --quick --json /tmp/l.json
-    python benchmarks/learner_speed.py --update-results    # also rewrites its section of RESULTS.md
-    python benchmarks/learner_speed.py --render-only       # rewrites the section from --json, measuring nothing
-    python benchmarks/learner_speed.py --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md's GPU section)
+    python -m benchmarks.learner_speed                     # ~2 min on 2 cores
+    python -m benchmarks.learner_speed --quick --json /tmp/l.json
+    python -m benchmarks.learner_speed --update-results    # also rewrites its section of RESULTS.md
+    python -m benchmarks.learner_speed --render-only       # rewrites the section from --json, measuring nothing
+    python -m benchmarks.learner_speed --device cuda --json /tmp/g.json   # on a GPU (RESULTS.md's GPU section)
 
 A GPU run's table, beside the same machine's ``--device cpu`` run, is RESULTS.md's GPU section, which
 ``benchmarks/gpu_acceptance.py --render-only`` renders (its ``LEARNER_JSONS``); this script's section holds CPU
@@ -35,11 +35,9 @@ import torch
 import torch.nn.functional as F
 import tyro
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
-from results_md import RESULTS, raw_link, replace_section  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 HEAD = "## Camera learner update — `benchmarks/learner_speed.py`"
 RECIPE = (
@@ -150,7 +148,7 @@ def main(args: Args) -> dict:
         med = statistics.median(times)
         rows.append(dict(config=name, ms=1e3 * med, rounds_ms=[1e3 * x for x in times], speedup=ref / med))
     report = dict(
-        command="python benchmarks/learner_speed.py " + " ".join(sys.argv[1:]),
+        command="python -m benchmarks.learner_speed " + " ".join(sys.argv[1:]),
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         machine=f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} threads",
         device=torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",

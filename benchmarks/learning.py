@@ -15,43 +15,40 @@ mean of the seeds' success rates
 (rliable's aggregate over runs; over single episodes, each 0 or 1, it would only say whether success is above
 75 % or below 25 %).
 
-    python benchmarks/learning.py                                  # every recipe x 3 seeds (hours: see below)
-    python benchmarks/learning.py --recipes dagger-state --seeds 1 2 3
-    python benchmarks/learning.py --recipes ppo-state --env-step-budgets --max-minutes 60   # the committed env steps
-    python benchmarks/learning.py --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
-    python benchmarks/learning.py --recipes dagger-rgbd-bf16 --seeds --adopt runs/s1 runs/s2 --merge
+    python -m benchmarks.learning                                  # every recipe x 3 seeds (hours: see below)
+    python -m benchmarks.learning --recipes dagger-state --seeds 1 2 3
+    python -m benchmarks.learning --recipes ppo-state --env-step-budgets --max-minutes 60   # the committed env steps
+    python -m benchmarks.learning --quick --out-dir /tmp/lq        # CI smoke run (~3 min, no targets)
+    python -m benchmarks.learning --recipes dagger-rgbd-bf16 --seeds --adopt runs/s1 runs/s2 --merge
                                  # runs trained by the trainer's own command join the row, once checked
-    python benchmarks/learning.py --env-id TableClearing-IRB120-v1 --recipes teacher-student-rgbd-sel --merge \
+    python -m benchmarks.learning --env-id TableClearing-IRB120-v1 --recipes teacher-student-rgbd-sel --merge \
         --stop-after-min 140     # runs longer than a session: run the same command again until none is unfinished
 
 Budgets in env steps (``--total-env-steps`` for every run, or ``--env-step-budgets``: each recipe's committed runs'
-env steps on the task, ``recipes.ENV_STEP_BUDGETS``), with ``--max-minutes`` as a guard, hold a row to the same
+env steps on the task, ``agents.recipes.ENV_STEP_BUDGETS``), with ``--max-minutes`` as a guard, hold a row to the same
 training whatever the host's speed, which moved several-fold between days; the reference speed before and after each
 run is recorded beside it (``reference_sps``). Without them, the minutes the committed rows were held to, as then
 (the issue's targets): dagger-state, dagger-rgbd-bf16 and ppo-finetune-state ``--budget-min`` (60; the
 last trains its DAgger base for half of it, then fine-tunes with PPO for the rest), ppo-state and
 sac-scratch-state ``--rl-budget-min`` (RL_BUDGET_MIN of the task), dagger-rgbd and sac-state
 ``--long-budget-min`` (120); the final evaluation is extra. A recipe's flags are the same on every task but for
-TASK_FLAGS (GraspLift's ppo-state adds ``--logstd state``), and a two-stage recipe's base gets its share of the
-budget from BASES but where TASK_BASE_SHARES gives a task its own. The recipes, their budgets and these tables live
-in ``maniskill_irb120/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer
+its task changes (GraspLift's ppo-state adds ``--logstd state``), and a two-stage recipe's base gets its share of the
+budget from its ``Base`` but where a task gives its own. The recipes and their budgets live
+in ``agents/recipes.py``, which the trainers' ``--recipe NAME`` reads too: a run here and a trainer
 started by hand with the same recipe get the same flags. With ``--stop-after-min`` the run in progress is
 interrupted at its checkpoint when the minutes are up, and the same command continues it; Ctrl-C or SIGTERM does the
-same at once (``run_until``), and the exit status is then 130. ``--update-results``
+same at once (``benchmarks.lib.runner.run_until``), and the exit status is then 130. ``--update-results``
 rewrites the Learning section of benchmarks/RESULTS.md; ``--render-only`` redraws it and the plot from the task's
 committed learning.json, training nothing.
 """
 
 from __future__ import annotations
 
-import ctypes
 import json
 import platform
-import signal
-import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -59,72 +56,24 @@ import numpy as np
 import torch
 import tyro
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from results_md import replace_section  # noqa: E402
-
-from agents.common import EVAL_SEED, evaluate_on_seeds  # noqa: E402
-from agents.common.logging import event_files, read_scalars  # noqa: E402
-from maniskill_irb120.recipes import (  # noqa: E402  (the recipes: their one home, which the trainers' --recipe reads)
-    BASES,
+from agents.common import EVAL_SEED, evaluate_on_seeds
+from agents.recipes import (
     DEFAULT_ENV,
     LONG_BUDGET_MIN,
     RECIPES,
     RL_BUDGET_MIN,
     SHORT_BUDGET_MIN,
     VISION_BUDGET_MIN,
-    base_share,
-    env_step_budget,
-    recipe_flags,
-    seeded,
 )
+from benchmarks.lib.adopt import adopted_pair, adopted_run
+from benchmarks.lib.budget import steps_for
+from benchmarks.lib.machine import REFERENCE_STEPS, reference_speed
+from benchmarks.lib.report import replace_section, smoothed
+from benchmarks.lib.runner import ROOT, Interrupted, finished_summary, run_name, train_run
+from benchmarks.lib.stats import bootstrap_ci, iqm
 
 REFERENCES = ("random", "expert")
-# what a trainer's result (its last printed line, or its summary.json) must carry, and what a row keeps of it
-RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
-# selected: agents.ppo's or agents.dagger's --select-episodes choice (the checkpoint the held-out episodes scored)
-RESULT_KEPT = (
-    *sorted(RESULT_NEEDS),
-    *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
-    *("total_env_steps", "stopped_early"),
-)
-# --quick: the same code paths at toy sizes
-QUICK_FLAGS = {
-    "agents.dagger": [
-        "--num-envs",
-        "1",
-        "--expert-episodes",
-        "1",
-        "--episodes-per-round",
-        "1",
-        "--updates-per-round",
-        "5",
-        "--batch-size",
-        "16",
-    ],  # fmt: skip
-    "agents.ppo": [
-        "--num-envs",
-        "1",
-        "--num-steps",
-        "8",
-        "--num-minibatches",
-        "2",
-        "--total-timesteps",
-        "16",
-        "--eval-freq",
-        "0",
-        "--select-episodes",
-        "1",
-    ],
-    "agents.sac": ["--num-envs", "1", "--learning-starts", "8", "--batch-size", "8"],
-}
 QUICK_RECIPES = ("dagger-state", "ppo-state", "ppo-finetune-state", "sac-scratch-state")
-
-
-REFERENCE_ENV, REFERENCE_ENVS, REFERENCE_STEPS = "TableClearing-IRB120-v1", 4, 200
-"""reference_speed's fixed workload: its task, CPU envs and batched steps"""
 
 
 @dataclass
@@ -190,26 +139,6 @@ class Args:
 
 
 # ----------------------------------------------------------------------------- statistics
-def bootstrap_ci(per_seed: list[list[int]], n: int, rng: np.random.Generator) -> tuple[float, float]:
-    """95 % interval of the mean success: resample seeds, then episodes within each resampled seed."""
-    runs = [np.asarray(s, dtype=float) for s in per_seed if len(s)]
-    if not runs:
-        return float("nan"), float("nan")
-    means = np.empty(n)
-    for i in range(n):
-        pick = rng.integers(0, len(runs), len(runs))
-        means[i] = np.mean([runs[j][rng.integers(0, len(runs[j]), len(runs[j]))].mean() for j in pick])
-    lo, hi = np.percentile(means, [2.5, 97.5])
-    return float(lo), float(hi)
-
-
-def iqm(values: list[float]) -> float:
-    """Interquartile mean (rliable's aggregate): the mean of the middle 50 % of the sorted values."""
-    v = np.sort(np.asarray(values, dtype=float))
-    if len(v) == 0:
-        return float("nan")
-    k = int(np.floor(0.25 * len(v)))
-    return float(v[k : len(v) - k].mean())
 
 
 def summarise(name: str, obs: str, runs: list[dict], args: Args, rng: np.random.Generator) -> dict:
@@ -245,521 +174,7 @@ def reference(name: str, args: Args) -> dict:
     return dict(r, seed=None, env_steps=0, wall_clock_s=0.0)
 
 
-CURVE_POINTS = 300
-"""points kept of each stage's curve in the JSON: PPO logs a point per iteration (~4,000 in a 90-minute run), and
-the figure draws a trailing mean over ~1/60 of a curve, which 300 bin means still give"""
-CLOCKS = ("env_steps", "wall_min")
-"""a curve's x-axes: a bin of points is placed at its last one's"""
-
-
-def thinned(columns: dict[str, list], points: int = CURVE_POINTS) -> dict[str, list]:
-    """``columns`` (equal-length lists) in at most ``points`` consecutive bins of equal length: the clocks
-    (``CLOCKS``) at each bin's last point, every other column the bin's mean; returned unchanged if short enough."""
-    n = len(next(iter(columns.values()), []))
-    if n <= points:
-        return columns
-    bins = np.array_split(np.arange(n), points)
-    return {
-        k: [v[b[-1]] for b in bins] if k in CLOCKS else [float(np.mean(np.asarray(v, dtype=float)[b])) for b in bins]
-        for k, v in columns.items()
-    }
-
-
-def curve(run_dir: Path) -> dict:
-    """Training-episode success (as logged) against env steps and minutes of training, over every session of a
-    resumed run (``agents.common.logging.read_scalars``: the minutes are the trainer's budget clock), ``thinned``."""
-    points = read_scalars(run_dir).get("train/success_rate", [])
-    return thinned(
-        dict(
-            env_steps=[step for step, _, _ in points],
-            wall_min=[minutes for _, minutes, _ in points],
-            success=[value for _, _, value in points],
-        ),
-        CURVE_POINTS,
-    )
-
-
-def make_room(run_dir: Path) -> Path:
-    """``run_dir``, empty: an earlier run of the same recipe and seed is kept, renamed after its last change (its
-    event files would otherwise mix into this run's curve)."""
-    if run_dir.exists():
-        stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(run_dir.stat().st_mtime))
-        old = run_dir.with_name(f"{run_dir.name}.before-{stamp}")
-        run_dir.rename(old)
-        print(f"[learning] the earlier {run_dir.name} run was moved to {old}", flush=True)
-    return run_dir
-
-
-def budget_for(kind: str, args: Args) -> float:
-    """Minutes per run of a recipe whose budget is ``kind`` (RECIPES: "short", "long" or "rl")."""
-    if kind == "vision":
-        return args.vision_budget_min or VISION_BUDGET_MIN[args.env_id]
-    if kind == "rl":
-        return args.rl_budget_min or RL_BUDGET_MIN[args.env_id]
-    return dict(long=args.long_budget_min).get(kind) or args.budget_min
-
-
-def steps_for(recipe: str, args: Args) -> Optional[tuple[int, Optional[int]]]:
-    """(env steps per run of ``recipe``, its first stage's for a two-stage one), or None for a run budgeted in minutes
-    (:func:`budget_for`): ``--total-env-steps``, else with ``--env-step-budgets`` the committed runs' env steps on the
-    task (``recipes.ENV_STEP_BUDGETS``; a recipe without them is refused by name, before any run)."""
-    committed = env_step_budget(recipe, args.env_id)
-    if args.total_env_steps is not None:
-        if recipe not in BASES:
-            return args.total_env_steps, None
-        share = committed[1] / committed[0] if committed else base_share(recipe, args.env_id)
-        return args.total_env_steps, max(1, round(share * args.total_env_steps))
-    if not args.env_step_budgets:
-        return None
-    if committed is None:
-        raise ValueError(
-            f"--env-step-budgets: {recipe} has no committed runs on {args.env_id} to take its env steps from "
-            "(recipes.ENV_STEP_BUDGETS); give --total-env-steps"
-        )
-    return committed
-
-
-def budget_flags(minutes: Optional[float], env_steps: Optional[int]) -> list[str]:
-    """A trainer's budget flags: ``--total-env-steps`` with ``minutes`` as its ``--max-minutes`` guard (if any), or,
-    for a run budgeted in minutes, ``--budget-min`` as the committed runs were started."""
-    if env_steps is None:
-        return ["--budget-min", f"{minutes:.4g}"]
-    return ["--total-env-steps", str(env_steps)] + ([] if minutes is None else ["--max-minutes", f"{minutes:.4g}"])
-
-
-def rest_of(total: Optional[float], spent: float) -> Optional[float]:
-    """What a two-stage run's second stage gets of ``total`` (minutes or env steps) after its first spent ``spent``:
-    at least 2 % of it, so that an overrun of the first shows in the row and the second still runs."""
-    return None if total is None else max(total - spent, 0.02 * total)
-
-
-def run_name(recipe: str, seed: int, *, base: bool = False) -> str:
-    """The folder name, under ``--out-dir``/runs, of ``recipe``'s run of ``seed`` (``base``: a two-stage recipe's
-    first stage; without it, its last)."""
-    return f"{recipe}__s{seed}" + ("__base" if base else "")
-
-
-def finished_summary(run_dir: Path) -> Optional[Path]:
-    """The summary.json a finished run leaves in its folder (a trainer writes it last); None while it has none."""
-    summary = run_dir / "summary.json"
-    return summary if summary.is_file() else None
-
-
-def train_run(recipe: str, seed: int, args: Args, deadline: Optional[float] = None) -> Optional[dict]:
-    """One run of ``recipe`` (both stages of a two-stage one); None when ``deadline`` (``--stop-after-min``) cut it
-    short, to be continued by the same command."""
-    module, _, obs, kind = RECIPES[recipe]
-    flags = recipe_flags(recipe, args.env_id)
-    steps = steps_for(recipe, args)
-    budget = budget_for(kind, args) if steps is None else args.max_minutes
-    total, base_steps = steps or (None, None)
-    resume = args.stop_after_min is not None
-    if recipe not in BASES:
-        return run_trainer(
-            run_name(recipe, seed), module, flags, seed, budget, args, env_steps=total, resume=resume, deadline=deadline
-        )
-    base_recipe, _, hand_on = BASES[recipe]
-    share = base_share(recipe, args.env_id)
-    base_module, base_flags = RECIPES[base_recipe][0], recipe_flags(base_recipe, args.env_id)
-    base = run_trainer(
-        run_name(recipe, seed, base=True),
-        base_module,
-        base_flags,
-        seed,
-        share * budget if steps is None else budget,
-        args,
-        env_steps=base_steps,
-        resume=resume,
-        deadline=deadline,
-    )
-    if base is None:
-        return None
-    flags = [*flags, hand_on, base["checkpoint"]]
-    rest = rest_of(budget, base["wall_clock_s"] / 60)  # an overrun of the base shows in the row's time
-    rest_steps = None if total is None else round(rest_of(total, base["env_steps"]))
-    tuned = run_trainer(
-        run_name(recipe, seed), module, flags, seed, rest, args, env_steps=rest_steps, resume=resume, deadline=deadline
-    )
-    if tuned is None:
-        return None
-    out = joined(base, tuned)
-    if total is not None:  # the row's budget is both stages'
-        out.update(total_env_steps=total, stopped_early=bool(base.get("stopped_early") or tuned.get("stopped_early")))
-    return out
-
-
-def joined(base: dict, tuned: dict) -> dict:
-    """One run of a two-stage recipe: the fine-tuned policy's evaluation, both stages' steps, time and curve."""
-    shift_steps, shift_min = base["env_steps"], base["wall_clock_s"] / 60
-    curve = {
-        "env_steps": base["curve"]["env_steps"] + [x + shift_steps for x in tuned["curve"]["env_steps"]],
-        "wall_min": base["curve"]["wall_min"] + [x + shift_min for x in tuned["curve"]["wall_min"]],
-        "success": base["curve"]["success"] + tuned["curve"]["success"],
-    }
-    out = dict(tuned, env_steps=base["env_steps"] + tuned["env_steps"], curve=curve)
-    out.update(
-        wall_clock_s=base["wall_clock_s"] + tuned["wall_clock_s"], command=f"{base['command']} && {tuned['command']}"
-    )
-    if "cpu_steal" in base and "cpu_steal" in tuned:  # both stages, weighted by their minutes
-        w_base, w_tuned = base["wall_clock_s"], tuned["wall_clock_s"]
-        both = (base["cpu_steal"] * w_base + tuned["cpu_steal"] * w_tuned) / max(w_base + w_tuned, 1e-9)
-        out["cpu_steal"] = round(both, 3)
-    else:
-        out.pop("cpu_steal", None)
-    out["base"] = {
-        k: base[k] for k in ("success_rate", "env_steps", "wall_clock_s", "checkpoint", "cpu_steal") if k in base
-    }
-    return out
-
-
-def run_trainer(
-    name: str,
-    module: str,
-    flags: list[str],
-    seed: int,
-    budget: Optional[float],
-    args: Args,
-    *,
-    env_steps: Optional[int] = None,
-    env_id: Optional[str] = None,
-    runs_dir: Optional[Path] = None,
-    logs_dir: Optional[Path] = None,
-    resume: bool = False,
-    deadline: Optional[float] = None,
-) -> Optional[dict]:
-    """``module`` as a subprocess for ``env_steps`` env steps with a ``budget`` minutes guard (None: none), or,
-    without ``env_steps``, for ``budget`` minutes (:func:`budget_flags`), as the run ``name`` in ``runs_dir`` (default
-    ``args.out_dir / "runs"``) on ``env_id`` (default ``args.env_id``), its output kept in ``logs_dir / name.log``
-    (default ``args.out_dir / "logs"``); returns its checked result line with its curve. benchmarks/algorithms.py
-    passes its own args (``eval_episodes`` and ``quick`` are read from them) with the other three given.
-
-    ``resume``: the run folder is kept, not moved aside (:func:`make_room`); a run there that finished is read from
-    its summary.json, not trained again, and one that left a checkpoint and no result continues with the trainer's
-    own ``--resume``. ``deadline`` (a ``time.time()``): the trainer is interrupted then (it saves its checkpoint on
-    the way out) and None returned, as it is when the deadline has passed before the run starts."""
-    env_id = args.env_id if env_id is None else env_id
-    runs_dir = args.out_dir / "runs" if runs_dir is None else runs_dir
-    logs_dir = args.out_dir / "logs" if logs_dir is None else logs_dir
-    cmd = [sys.executable, "-m", module, *seeded(flags, seed), "--env-id", env_id, "--seed", str(seed)]
-    cmd += [*budget_flags(budget, env_steps), "--eval-episodes", str(args.eval_episodes)]
-    cmd += ["--runs-dir", str(runs_dir), "--exp-name", name, "--no-progress", "--no-capture-video"]
-    if args.quick:
-        cmd += QUICK_FLAGS[module]
-    run_dir = runs_dir / name
-    latest, summary = run_dir / "checkpoints" / "latest.pt", finished_summary(run_dir)
-    shown = " ".join(cmd[1:])  # the command that trains the run from the start, without a --resume
-    log = logs_dir / f"{name}.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    steal = None
-    if resume and summary is not None:
-        print(f"[learning] {name}: finished earlier, read from {summary}", flush=True)
-        result = json.loads(summary.read_text())
-    elif deadline is not None and time.time() >= deadline:
-        print(f"[learning] {name}: not started, --stop-after-min has run out", flush=True)
-        return None
-    else:
-        if not resume:
-            make_room(run_dir)
-        elif latest.is_file():
-            cmd += ["--resume", str(latest)]
-        print(f"[learning] {name}: {' '.join(cmd[1:])}", flush=True)
-        # a resumed run's log keeps each session's output
-        before = cpu_times()
-        stdout, returncode = run_logged(cmd, deadline, log, append=resume, who=f"[learning] {name}")
-        steal = steal_fraction(before, cpu_times())
-        if steal is not None:
-            print(
-                f"[learning] {name}: the host took {100 * steal:.0f} % of this machine's CPU time (steal)", flush=True
-            )
-        if returncode is None:
-            print(f"[learning] {name}: stopped at --stop-after-min; the same command continues it", flush=True)
-            return None
-        if returncode != 0:
-            raise RuntimeError(f"{name} exited with {returncode}; its output is in {log}")
-        result = json.loads(stdout.strip().splitlines()[-1])
-    missing = RESULT_NEEDS - set(result)
-    if missing:
-        raise RuntimeError(f"{name}: its result lacks {sorted(missing)}; output in {log}")
-    out = {k: result[k] for k in RESULT_KEPT if k in result}
-    out.update(seed=seed, command=shown, curve=curve(run_dir))
-    if steal is not None:  # a run read from its summary was timed in an earlier session: unknown here
-        out["cpu_steal"] = steal
-    return out
-
-
-def reference_speed(steps: int = REFERENCE_STEPS, *, quick: bool = False, seed: int = 0) -> Optional[float]:
-    """Env steps/s of one fixed workload on this machine now: ``steps`` batched steps of seeded uniform random actions
-    in ``REFERENCE_ENVS`` CPU envs of ``REFERENCE_ENV`` from state (env 0 in this process, the others in workers, as
-    the trainers run theirs); None for ``steps`` 0. ``quick``: a toy version for smoke runs (5 steps of one env).
-
-    Why: a budgeted run's env steps measure the machine as much as the method, and a shared host's speed can move
-    several-fold from one day to the next while its steal (:func:`cpu_times`) stays low (docs/benchmarks.md). The
-    same workload timed just before and after each run and each algorithm cell lets runs days apart be compared as
-    ratios."""
-    if steps < 0:
-        raise ValueError(f"reference steps must be >= 0 (0: no reference), got {steps}")
-    if steps == 0:
-        return None
-    from maniskill_irb120.vector import make_vec_env
-
-    steps, num_envs = (min(steps, 5), 1) if quick else (steps, REFERENCE_ENVS)
-    envs = make_vec_env(REFERENCE_ENV, num_envs, obs_mode="state", render_backend="none", record_metrics=False,
-                        backend="cpu" if num_envs > 1 else "inprocess")  # fmt: skip
-    try:
-        space = envs.single_action_space
-        rng = np.random.default_rng(seed)
-        acts = rng.uniform(space.low, space.high, size=(steps + 5, num_envs, *space.shape)).astype(np.float32)
-        envs.reset(seed=seed)
-        for a in acts[:5]:  # warm-up: the first steps fill caches
-            envs.step(torch.from_numpy(a))
-        t0 = time.perf_counter()
-        for a in acts[5:]:
-            envs.step(torch.from_numpy(a))
-        elapsed = time.perf_counter() - t0
-    finally:
-        envs.close()
-    return round(steps * num_envs / elapsed, 1)
-
-
-def cpu_times() -> Optional[tuple[int, int]]:
-    """(steal, total) CPU time of every CPU since boot, in ticks, from Linux's ``/proc/stat``; None elsewhere.
-    Steal is the time the hypervisor gave this VM's CPUs to other guests: a budgeted run gets fewer env steps in its
-    minutes, and nothing on the machine itself (ps, top's process list) shows why."""
-    try:
-        fields = Path("/proc/stat").read_text().splitlines()[0].split()
-    except (OSError, IndexError):
-        return None
-    if fields[:1] != ["cpu"] or len(fields) < 9:
-        return None
-    ticks = [int(x) for x in fields[1:9]]  # user nice system idle iowait irq softirq steal
-    return ticks[7], sum(ticks)
-
-
-def steal_fraction(before: Optional[tuple[int, int]], after: Optional[tuple[int, int]]) -> Optional[float]:
-    """The share of the CPU time between two :func:`cpu_times` that the host stole (0 on a machine of its own)."""
-    if before is None or after is None or after[1] <= before[1]:
-        return None
-    return round((after[0] - before[0]) / (after[1] - before[1]), 3)
-
-
-class Interrupted(Exception):
-    """Ctrl-C (SIGINT) or SIGTERM reached this process while a trainer ran: the trainer was interrupted at its
-    checkpoint, as at ``--stop-after-min``; ``args`` are its (stdout, stderr)."""
-
-
-SAVE_WAIT_S = 600
-"""how long an interrupted trainer may take to save its checkpoint and close its envs before it is killed"""
-
-
-PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
-"""libc's prctl, looked up here: between fork and exec the child should not load anything"""
-
-
-def stop_with_parent() -> None:
-    """In the trainer, before it starts: SIGINT, its Ctrl-C, when the process that started it dies, even by SIGKILL
-    (Linux's ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing), so no trainer trains on unwatched. SIGINT is also set
-    back to its default: a benchmark started in the background (``cmd &`` from a script) inherits SIGINT ignored, and
-    a trainer that inherited that would never see its Ctrl-C, and would be killed unsaved after ``SAVE_WAIT_S``."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)  # the trainer's Python then turns it into KeyboardInterrupt
-    if PRCTL is not None:
-        PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
-
-
-def run_logged(
-    cmd: list[str], deadline: Optional[float], log: Path, *, append: bool, who: str
-) -> tuple[str, Optional[int]]:
-    """:func:`run_until` with the trainer's output (its stdout, then its stderr) written to ``log``, or added to it
-    with ``append``, however the run ends: on :class:`Interrupted` the output is kept, ``who`` (e.g. ``"[learning]
-    name"``) says so, and it is raised on. Returns (stdout, returncode)."""
-
-    def keep(stdout: str, stderr: str) -> None:
-        with open(log, "a" if append else "w") as f:
-            f.write(stdout + "\n--- stderr ---\n" + stderr)
-
-    try:
-        stdout, stderr, returncode = run_until(cmd, deadline)
-    except Interrupted as stop:
-        keep(*stop.args)
-        print(f"{who}: interrupted at its checkpoint; the same command continues it", flush=True)
-        raise
-    keep(stdout, stderr)
-    return stdout, returncode
-
-
-def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Optional[int]]:
-    """``cmd``'s stdout, stderr and exit code; at ``deadline`` it gets SIGINT (a trainer's Ctrl-C: it saves its
-    checkpoint and exits) and the code is None.
-
-    The trainer runs in its own session, so a Ctrl-C at the terminal reaches this process alone, which then sends
-    the trainer one SIGINT and waits while it saves (a second Ctrl-C is ignored meanwhile: one during the trainer's
-    save would lose it) before raising :class:`Interrupted`. SIGTERM is taken the same way."""
-    proc = subprocess.Popen(
-        cmd,
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=stop_with_parent,
-    )
-    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        stdout, stderr = proc.communicate(timeout=None if deadline is None else max(deadline - time.time(), 0.0))
-        return stdout, stderr, proc.returncode
-    except subprocess.TimeoutExpired:
-        return (*stopped(proc), None)
-    except KeyboardInterrupt:
-        print(f"[learning] interrupted: the trainer saves its checkpoint (up to {SAVE_WAIT_S} s)", flush=True)
-        raise Interrupted(*stopped(proc)) from None
-    finally:
-        signal.signal(signal.SIGTERM, on_term)
-
-
-def stopped(proc: subprocess.Popen) -> tuple[str, str]:
-    """``proc``'s stdout and stderr after one SIGINT, its checkpoint written (killed if it takes over
-    ``SAVE_WAIT_S``), with this process's SIGINT and SIGTERM ignored meanwhile."""
-    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        proc.send_signal(signal.SIGINT)
-        try:
-            return proc.communicate(timeout=SAVE_WAIT_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            return proc.communicate()
-    finally:
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-
-
-# where and how a run logged and kept its files, not what it learned: the only arguments an adopted run may differ
-# in (``recipe``: the name a run was started with, whose flags are compared one by one like those given by hand)
-ADOPT_FREE = ("seed", "exp_name", "runs_dir", "progress", "capture_video", "recipe", "keep_checkpoints")
-BUDGET_ROUNDING = 0.01
-"""minutes any adopted run's --budget-min may differ from the recipe's: the rounding of a budget typed to two
-decimals, as the policies MANIFEST's commands give a second stage's (the total less the first stage's wall clock)"""
-# what a --resume may change of a run's logged arguments besides those (the checkpoint it continued from)
-RESUME_FREE = ("resume", "progress", "capture_video", "keep_checkpoints")
-
-
-def logged_args(events: Path) -> tuple[dict, float]:
-    """The arguments a trainer logged (agents.common.logging.Logger) and when its log was opened."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    acc = EventAccumulator(str(events), size_guidance={"tensors": 0, "scalars": 1})
-    acc.Reload()
-    if "args/text_summary" not in acc.Tags()["tensors"]:
-        raise ValueError(f"--adopt: {events} has no logged arguments")
-    (text,) = acc.Tensors("args/text_summary")
-    return json.loads(text.tensor_proto.string_val[0].decode()), text.wall_time
-
-
-def adopted_pair(recipe: str, base_dir: Path, run_dir: Path, args: Args) -> dict:
-    """A two-stage run trained outside this script: the base stage checked against the base recipe at its share of
-    the budget, the second against ``recipe`` with the rest of it and the base's checkpoint handed on, as
-    ``train_run`` would have run them."""
-    base_recipe, _, hand_on = BASES[recipe]
-    share = base_share(recipe, args.env_id)
-    steps = steps_for(recipe, args)
-    if steps is not None:
-        total, base_steps = steps
-        base = adopted_run(base_recipe, base_dir, args, stage_budget=args.max_minutes, stage_steps=base_steps)
-        rest, rest_steps = (
-            rest_of(args.max_minutes, base["wall_clock_s"] / 60),
-            round(rest_of(total, base["env_steps"])),
-        )
-    else:
-        budget = budget_for(RECIPES[recipe][3], args)
-        base = adopted_run(base_recipe, base_dir, args, stage_budget=share * budget)
-        rest, rest_steps = rest_of(budget, base["wall_clock_s"] / 60), None
-    extra = [hand_on, base["checkpoint"]]
-    tuned = adopted_run(recipe, run_dir, args, stage_budget=rest, extra=extra, stage_steps=rest_steps)
-    return dict(joined(base, tuned), adopted_from=f"{base_dir} + {run_dir}")
-
-
-def adopted_run(
-    recipe: str,
-    run_dir: Path,
-    args: Args,
-    stage_budget: Optional[float] = None,
-    extra: list[str] = (),
-    stage_steps: Optional[int] = None,
-) -> dict:
-    """A finished run of ``recipe`` trained outside this script, checked against the recipe and read as
-    ``run_trainer`` reads its own (its summary.json is the result line; its curve's clock starts when its log was
-    opened, seconds after the process). ``stage_budget``, ``stage_steps`` and ``extra``: one stage of a two-stage
-    recipe (:func:`adopted_pair`)."""
-    import importlib
-
-    module, _, _, kind = RECIPES[recipe]
-    flags = [*recipe_flags(recipe, args.env_id), *extra]
-    if recipe in BASES and not extra:
-        raise ValueError(f"--adopt: {recipe} trains in two stages; name each run's first stage with --adopt-base")
-    summary, events = finished_summary(run_dir), event_files(run_dir)
-    if summary is None:
-        raise FileNotFoundError(f"--adopt: {run_dir} has no summary.json (the run did not finish)")
-    if not events:
-        raise ValueError(f"--adopt: {run_dir} has no TensorBoard log")
-    trainer = importlib.import_module(module)
-    # a field a run's log predates was the field's default then (as --resume reads an older checkpoint)
-    defaults = json.loads(json.dumps(asdict(trainer.Args()), default=str))
-    logged, opened = logged_args(events[0])
-    logged = {**defaults, **logged}
-    for later in events[1:]:  # a resumed run: each session logged the arguments it continued with
-        theirs = {**defaults, **logged_args(later)[0]}
-        differ = sorted(k for k in set(logged) | set(theirs) if k not in RESUME_FREE and logged.get(k) != theirs.get(k))
-        if differ:
-            shown = ", ".join(f"{k}={theirs.get(k)!r} (first: {logged.get(k)!r})" for k in differ)
-            raise ValueError(f"--adopt: {later} continued {run_dir} with other arguments: {shown}")
-    if stage_budget is None and stage_steps is None:  # a single-stage run: the recipe's budget
-        steps = steps_for(recipe, args)
-        stage_steps = None if steps is None else steps[0]
-        stage_budget = budget_for(kind, args) if steps is None else args.max_minutes
-    seed = logged.get("seed")
-    argv = [
-        *seeded(flags, seed),
-        "--env-id",
-        args.env_id,
-        "--seed",
-        str(seed),
-        *budget_flags(stage_budget, stage_steps),
-    ]
-    argv += ["--eval-episodes", str(args.eval_episodes)]
-    trainer_args = tyro.cli(trainer.Args, args=argv)
-    if hasattr(trainer, "resolved"):  # defaults a trainer fills in from other flags, logged filled in
-        trainer_args = trainer.resolved(trainer_args)
-    expected = json.loads(json.dumps(asdict(trainer_args), default=str))
-    differ = {k: (logged.get(k), v) for k, v in expected.items() if k not in ADOPT_FREE and logged.get(k) != v}
-    typed = differ.get("budget_min")
-    if typed and None not in typed and abs(float(typed[0]) - float(typed[1])) <= BUDGET_ROUNDING + 1e-9:
-        del differ["budget_min"]  # a second stage's budget typed to two decimals: its rounding, not another budget
-    if differ:
-        shown = ", ".join(f"{k}={a!r} (the recipe's: {b!r})" for k, (a, b) in sorted(differ.items()))
-        raise ValueError(f"--adopt: {run_dir} was not trained by the {recipe} recipe: {shown}")
-    result = json.loads(summary.read_text())
-    missing = RESULT_NEEDS - set(result)
-    if missing:
-        raise ValueError(f"--adopt: {summary} lacks {sorted(missing)}")
-    out = {k: result[k] for k in RESULT_KEPT if k in result}
-    out.update(
-        seed=logged["seed"],
-        command=" ".join(["-m", module, *argv]),
-        adopted_from=str(run_dir),
-        benchmark_command=f"python -m {module} {' '.join(argv)}",
-        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(opened)),
-        curve=curve(run_dir),
-    )
-    return out
-
-
 # ----------------------------------------------------------------------------- report
-def smoothed(values: list[float], points: int = 60) -> np.ndarray:
-    """A trailing mean over ~1/``points`` of the curve: PPO logs a point per handful of episodes (each 0 or 1),
-    which drawn raw fills the plot with a solid band."""
-    v = np.asarray(values, dtype=float)
-    w = max(1, len(v) // points)
-    return np.array([v[max(0, i - w + 1) : i + 1].mean() for i in range(len(v))])
-
-
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -828,7 +243,7 @@ def stage_lines(rows: list[dict]) -> str:
         runs = [run for run in r.get("runs", []) if "base" in run]
         if not runs:
             continue
-        first = BASES[r["recipe"]][0]
+        first = RECIPES[r["recipe"]].base.recipe
         lines = [f"{r['recipe']}, stage by stage (held-out success, env steps, minutes):", ""]
         for run in runs:
             base = run["base"]
@@ -894,7 +309,7 @@ def reported_and_not_here(recipe: str, seed: int, args: Args) -> Optional[str]:
     if not args.merge or args.stop_after_min is None:
         return None
     runs_dir = args.out_dir / "runs"
-    names = [run_name(recipe, seed)] + ([run_name(recipe, seed, base=True)] if recipe in BASES else [])
+    names = [run_name(recipe, seed)] + ([run_name(recipe, seed, base=True)] if RECIPES[recipe].base else [])
     if any((runs_dir / name).exists() for name in names):
         return None
     path = args.out_dir / "learning.json"
@@ -1000,7 +415,7 @@ def main(args: Args) -> dict:
     deadline = None if args.stop_after_min is None else t0 + 60 * args.stop_after_min
     if args.merge and not (args.out_dir / "learning.json").is_file():  # refused before hours of training
         raise FileNotFoundError(f"--merge: no earlier report at {args.out_dir / 'learning.json'}")
-    command = "python benchmarks/learning.py " + " ".join(sys.argv[1:])
+    command = "python -m benchmarks.learning " + " ".join(sys.argv[1:])
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     trained, unfinished, interrupted = {}, [], False
     for recipe in args.recipes:
@@ -1049,7 +464,7 @@ def main(args: Args) -> dict:
             runs += earlier_runs(args.out_dir / "learning.json", recipe, [r["seed"] for r in runs])
         if runs:
             runs.sort(key=lambda r: r["seed"])
-            rows.append(dict(summarise(recipe, RECIPES[recipe][2], runs, args, rng), command=command, date=date))
+            rows.append(dict(summarise(recipe, RECIPES[recipe].obs, runs, args, rng), command=command, date=date))
     if args.merge:
         rows += carried_rows(args.out_dir / "learning.json", [r["recipe"] for r in rows])
     report = dict(
@@ -1063,7 +478,7 @@ def main(args: Args) -> dict:
         budget_min=args.budget_min,
         long_budget_min=args.long_budget_min,
         rl_budget_min=args.rl_budget_min,
-        vision_budget_min=budget_for("vision", args),
+        vision_budget_min=args.vision_budget_min or VISION_BUDGET_MIN[args.env_id],
         total_env_steps=args.total_env_steps,
         env_step_budgets=args.env_step_budgets,
         max_minutes=args.max_minutes,

@@ -10,9 +10,9 @@ trainer is stopped and continues from its checkpoint next time, losing at most i
 stops it the same way, as in ``benchmarks/learning.py``, and exits 130 after writing the report. Once a run
 has finished, its row joins the learning table with ``learning.py --recipes RECIPE --adopt RUN --merge``.
 
-    python benchmarks/original_experiment.py --stop-after-min 160            # what fits; run again to continue
-    python benchmarks/original_experiment.py --update-results                # plot and write the RESULTS section
-    python benchmarks/original_experiment.py --quick --out-dir /tmp/oe       # smoke run (~1 min)
+    python -m benchmarks.original_experiment --stop-after-min 160            # what fits; run again to continue
+    python -m benchmarks.original_experiment --update-results                # plot and write the RESULTS section
+    python -m benchmarks.original_experiment --quick --out-dir /tmp/oe       # smoke run (~1 min)
 """
 
 from __future__ import annotations
@@ -27,22 +27,13 @@ from typing import Optional
 import numpy as np
 import tyro
 
+from agents.common.logging import read_scalars
+from agents.recipes import RECIPES
+from benchmarks.lib.budget import budget_flags
+from benchmarks.lib.report import replace_section, smoothed
+from benchmarks.lib.runner import QUICK_FLAGS, Interrupted, run_logged, thinned
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from learning import (  # noqa: E402
-    QUICK_FLAGS,
-    RECIPES,
-    Interrupted,
-    budget_flags,
-    env_step_budget,
-    recipe_flags,
-    run_logged,
-    thinned,
-)
-from results_md import replace_section  # noqa: E402
-
-from agents.common.logging import read_scalars  # noqa: E402  (learning put the repository on the path)
 
 ENV_ID = "TableClearing-IRB120-v1"
 EXPERIMENT = ("ppo-rgbd-dense", "ppo-rgbd")
@@ -78,7 +69,8 @@ class Args:
     total_env_steps: Optional[int] = None
     """the budget of each run in env steps instead of minutes, over every session it spans"""
     env_step_budgets: bool = False
-    """each run's budget in env steps: its committed run's (recipes.ENV_STEP_BUDGETS), whatever this machine's speed"""
+    """each run's budget in env steps: its committed run's (agents.recipes.ENV_STEP_BUDGETS), whatever this
+    machine's speed"""
     max_minutes: Optional[float] = None
     """with an env-step budget: a wall-clock guard per run; a run it stops first says so ("stopped_early")"""
     eval_episodes: int = 100
@@ -104,10 +96,11 @@ def run_dir(recipe: str, args: Args) -> Path:
 def command(recipe: str, args: Args, resume: bool = True) -> list[str]:
     """The trainer's command for ``recipe``: a new run, or ``--resume`` of its last checkpoint (``resume=False``:
     the command that trains it from the start, as the report shows it)."""
-    flags = [*recipe_flags(recipe, ENV_ID), "--env-id", ENV_ID, "--seed", str(args.seed)]
+    r = RECIPES[recipe].for_task(ENV_ID)
+    flags = [*r.argv(args.seed), "--env-id", ENV_ID, "--seed", str(args.seed)]
     steps = args.total_env_steps
     if steps is None and args.env_step_budgets:
-        steps = env_step_budget(recipe, ENV_ID)[0]
+        steps = r.env_steps[0]
     minutes = args.budget_min if steps is None else args.max_minutes
     flags += [*budget_flags(minutes, steps), "--eval-episodes", str(args.eval_episodes)]
     flags += ["--runs-dir", str(args.runs_dir), "--exp-name", run_dir(recipe, args).name, "--no-progress"]
@@ -117,14 +110,15 @@ def command(recipe: str, args: Args, resume: bool = True) -> list[str]:
     latest = run_dir(recipe, args) / "checkpoints" / "latest.pt"
     if resume and latest.is_file():
         flags += ["--resume", str(latest)]
-    return [sys.executable, "-m", RECIPES[recipe][0], *flags]
+    return [sys.executable, "-m", r.trainer, *flags]
 
 
 def train(recipe: str, args: Args, deadline: Optional[float]) -> str:
     """Train or resume ``recipe`` until it finishes ("done") or the deadline passes ("stopped"); nothing is started
-    once the deadline has passed ("not started"). The trainer runs as ``learning.run_until`` runs it: at the deadline,
-    on Ctrl-C or SIGTERM it gets one SIGINT and is waited for while it saves its checkpoint (``learning.Interrupted``
-    is raised on, after its output is kept), and if this process is killed it still gets its SIGINT."""
+    once the deadline has passed ("not started"). The trainer runs as ``benchmarks.lib.runner.run_until`` runs it:
+    at the deadline, on Ctrl-C or SIGTERM it gets one SIGINT and is waited for while it saves its checkpoint
+    (``runner.Interrupted`` is raised on, after its output is kept), and if this process is killed it still gets its
+    SIGINT."""
     if (run_dir(recipe, args) / "summary.json").is_file():
         return "done"
     if deadline is not None and time.time() >= deadline:  # the run before took this session's share
@@ -163,14 +157,6 @@ def figures(logged: dict[str, list[tuple[int, float]]], points: int = CURVE_POIN
         else:
             out[name] = [value.get(f"train/return_{name}", {}).get(s, 0.0) for s in steps]
     return thinned(out, points)
-
-
-def smoothed(values: list[float], points: int = 60) -> np.ndarray:
-    v = np.asarray(values, dtype=float)
-    if len(v) == 0:
-        return v
-    k = max(1, len(v) // points)
-    return np.convolve(v, np.ones(k) / k, mode="full")[: len(v)] * (k / np.minimum(np.arange(1, len(v) + 1), k))
 
 
 def plot(report: dict, path: Path) -> None:
@@ -244,7 +230,7 @@ def section(report: dict, args: Args) -> str:
         )
     return (
         "## The original report's experiment: PPO from the hand camera\n\n"
-        f"The original report: {REPORT}. Here: `python benchmarks/original_experiment.py` (2-core CPU, "
+        f"The original report: {REPORT}. Here: `python -m benchmarks.original_experiment` (2-core CPU, "
         f"{budget_text(args)} per run; commands in [the JSON](results/original_experiment.json)).\n\n"
         + "\n".join(lines)
         + "\n\n![Figures 5.2-5.5](results/original_experiment.png)\n\n"

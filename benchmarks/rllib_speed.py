@@ -9,10 +9,10 @@ own timers). Reference in the same run: our CPU vector env (``make_vec_env``, W 
 Target (issue 13): RLlib sampling with 2 env runners >= 0.8x our vector env with 2 workers, measured in alternating
 turns with both kept running (the grid above runs minutes apart; these machines drift by up to 1.7x over minutes).
 
-    python benchmarks/rllib_speed.py                      # ~6 min on 2 cores
-    python benchmarks/rllib_speed.py --quick --json /tmp/r.json
-    python benchmarks/rllib_speed.py --update-results     # also rewrites its section of RESULTS.md
-    python benchmarks/rllib_speed.py --render-only        # rewrites the section from --json, measuring nothing
+    python -m benchmarks.rllib_speed                      # ~6 min on 2 cores
+    python -m benchmarks.rllib_speed --quick --json /tmp/r.json
+    python -m benchmarks.rllib_speed --update-results     # also rewrites its section of RESULTS.md
+    python -m benchmarks.rllib_speed --render-only        # rewrites the section from --json, measuring nothing
 """
 
 from __future__ import annotations
@@ -31,11 +31,9 @@ import numpy as np
 import torch
 import tyro
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
-from results_md import RESULTS, raw_link, replace_section  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 ENV_ID = "TableClearing-IRB120-v1"
 HEAD = "## Ray RLlib against our trainer — `benchmarks/rllib_speed.py`"
@@ -290,7 +288,7 @@ def main(args: Args) -> dict:
     ray.shutdown()
     ratio = pair["ratio"]
     report = dict(
-        command="python benchmarks/rllib_speed.py " + " ".join(sys.argv[1:]),
+        command="python -m benchmarks.rllib_speed " + " ".join(sys.argv[1:]),
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         machine=f"{platform.node()} {platform.machine()}, {os.cpu_count()} CPUs",
         versions={m: __import__(m).__version__ for m in ("ray", "gymnasium", "torch", "mani_skill")},

@@ -9,13 +9,13 @@ sim row. The camera-mount rows are run again with the frames corrected to the tr
 rows in MOUNT_ERRORS (the mount's offset scaled, or its position or rotation alone) run only when named: how far
 from the trained mount a camera may sit before the policy fails.
 
-    .venv/bin/python benchmarks/sim2real_gap.py --episodes 10 --json benchmarks/results/sim2real_gap.json
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera none --shifts none "all together"
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT_A CKPT_B --camera twin --episodes 30
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera twin --episodes 30 --workers 2
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --shifts "lighting & colours/textures"   # combined
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --camera twin --episodes 30 --reuse   # goes on
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --shifts none "camera mount x0.1" "camera mount x0.25"
+    .venv/bin/python -m benchmarks.sim2real_gap --episodes 10 --json benchmarks/results/sim2real_gap.json
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --camera none --shifts none "all together"
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT_A CKPT_B --camera twin --episodes 30
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --camera twin --episodes 30 --workers 2
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --shifts "lighting & colours/textures"   # combined
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --camera twin --episodes 30 --reuse   # goes on
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --shifts none "camera mount x0.1" "camera mount x0.25"
 
 ``--workers N`` runs N cells at once, each in its own process with its own emulator (one torch thread each on a
 2-core machine). A real step ends when the robot stands at its target, so a busy machine makes the cells
@@ -26,9 +26,9 @@ current figures: the expert's table and the committed policies' runs), so severa
 stand side by side with their own commands: ``--update-results`` adds this run's ``--json`` to them and
 rewrites the section, ``--render-only`` rewrites it without running anything.
 
-    .venv/bin/python benchmarks/sim2real_gap.py --policy CKPT --json benchmarks/results/X.json --update-results \\
+    .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --json benchmarks/results/X.json --update-results \\
         --section-json benchmarks/results/sim2real_gap.json
-    .venv/bin/python benchmarks/sim2real_gap.py --render-only
+    .venv/bin/python -m benchmarks.sim2real_gap --render-only
 """
 
 from __future__ import annotations
@@ -47,16 +47,14 @@ from typing import Optional
 
 import tyro
 
+from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
+from maniskill_irb120.envs.randomization import Randomization
+from maniskill_irb120.policies import read_policy_section
+from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift
+from maniskill_irb120.sim2real.policy import resolve_policy
+from maniskill_irb120.sim2real.report import agreement, paired_gap
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
-
-from maniskill_irb120.envs.randomization import Randomization  # noqa: E402
-from maniskill_irb120.policies import read_policy_section  # noqa: E402
-from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift  # noqa: E402
-from maniskill_irb120.sim2real.policy import resolve_policy  # noqa: E402
-from maniskill_irb120.sim2real.report import agreement, paired_gap  # noqa: E402
 
 HEAD = "## Sim vs real on the emulator's digital twin — `benchmarks/sim2real_gap.py`"
 RESULTS_DIR = ROOT / "benchmarks" / "results"
@@ -302,7 +300,7 @@ def main(args: Args) -> dict:
     agree = agreement(*pairs) if len(scored) > 1 else None
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=argv_command("benchmarks/sim2real_gap.py", sys.argv[1:]),
+        command=argv_command("benchmarks.sim2real_gap", sys.argv[1:]),
         machine=platform.platform(),
         policy=list(args.policy),
         episodes=args.episodes,

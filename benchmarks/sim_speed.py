@@ -5,14 +5,14 @@ Modes (the original report's): ``render_realtime`` (84x84 RGB-D hand camera ever
 References measured in the same run, so results are ratios on one machine:
 
 1. ManiSkill's ``PickCube-v1`` with its camera at 84x84 RGB-D (the peer a user would pick instead);
-2. the original report's own action loop re-implemented in PyBullet (``benchmarks/pybullet_original.py``).
+2. the original report's own action loop re-implemented in PyBullet (``benchmarks/lib/pybullet_loop.py``).
 
 Each configuration runs in a fresh process (clean peak memory, no shared renderer state). Actions are
 the same seeded uniform random actions for every simulator; episodes that end are reset, untimed.
 
-    python benchmarks/sim_speed.py                       # full run (~5 min on 2 cores)
-    python benchmarks/sim_speed.py --quick --json out.json
-    python benchmarks/sim_speed.py --baseline HEAD~3      # also an earlier commit's code, in the same rounds
+    python -m benchmarks.sim_speed                       # full run (~5 min on 2 cores)
+    python -m benchmarks.sim_speed --quick --json out.json
+    python -m benchmarks.sim_speed --baseline HEAD~3      # also an earlier commit's code, in the same rounds
 
 ``--baseline REF`` measures the task at another commit of this repository beside this checkout's, configuration by
 configuration in the same rounds, so that a change's speed-up is a ratio from one run rather than two runs minutes
@@ -21,6 +21,7 @@ apart on a machine that drifts (the other commit's Python code; the robot assets
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import multiprocessing as mp
 import os
@@ -35,11 +36,10 @@ from typing import Optional
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+from benchmarks.lib.pybullet_loop import random_actions
+from benchmarks.lib.report import argv_command, linked_path, raw_link, recorded_command, replace_section
 
-from pybullet_original import random_actions  # noqa: E402  (one action policy for every simulator)
-from results_md import argv_command, linked_path, raw_link, recorded_command, replace_section  # noqa: E402
+HERE = Path(__file__).resolve().parent
 
 ENV_ID = "TableClearing-IRB120-v1"
 MODES = ("render_realtime", "render", "no_render")
@@ -264,17 +264,27 @@ def measure_batched(
 
 
 def measure_pybullet(mode: str, steps: int, seed: int) -> dict:
-    import pybullet_original
+    from benchmarks.lib import pybullet_loop
 
-    r = pybullet_original.measure(mode, steps, seed)
+    r = pybullet_loop.measure(mode, steps, seed)
     return dict(
         times=r["times"], resets=r.get("collided", 0), peak_rss_mb=peak_rss_mb(), mean_substeps=r.get("mean_substeps")
     )
 
 
+def import_package_from(tree: str, name: str = "maniskill_irb120") -> None:
+    """Import ``name`` from the source tree ``tree`` (another commit's): its submodules, which the measurement imports
+    later, then resolve through the package's own ``__path__`` in that tree, with ``sys.path`` left alone."""
+    init = Path(tree) / name / "__init__.py"
+    spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(init.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+
+
 def _run(conn, fn: str, kwargs: dict, tree: Optional[str] = None) -> None:
-    if tree is not None:  # another commit's package first on the path (imported inside the measurement)
-        sys.path.insert(0, tree)
+    if tree is not None:  # another commit's package in place of this checkout's (imported inside the measurement)
+        import_package_from(tree)
     try:
         conn.send(("ok", globals()[fn](**kwargs)))
     except BaseException as e:  # noqa: BLE001 - reported to the parent, which re-raises
@@ -474,7 +484,7 @@ def main(args: Args) -> dict:
             processor=platform.processor(),
         ),
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=argv_command("benchmarks/sim_speed.py", sys.argv[1:]),
+        command=argv_command("benchmarks.sim_speed", sys.argv[1:]),
         note=args.note,
         steps=steps,
         rounds=rounds,

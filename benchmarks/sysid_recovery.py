@@ -3,9 +3,9 @@ tool steps, fit, and compare with the emulator run without injection (its own la
 interpreter's). Prints a table, writes JSON; ``--update-results`` rewrites its section of benchmarks/RESULTS.md
 from that JSON, and ``--render-only`` rewrites it from the committed JSON without measuring.
 
-    .venv/bin/python benchmarks/sysid_recovery.py --json benchmarks/results/sysid_recovery.json
-    .venv/bin/python benchmarks/sysid_recovery.py --update-results   # writes results/sysid_recovery.json
-    .venv/bin/python benchmarks/sysid_recovery.py --render-only
+    .venv/bin/python -m benchmarks.sysid_recovery --json benchmarks/results/sysid_recovery.json
+    .venv/bin/python -m benchmarks.sysid_recovery --update-results   # writes results/sysid_recovery.json
+    .venv/bin/python -m benchmarks.sysid_recovery --render-only
 """
 
 from __future__ import annotations
@@ -22,14 +22,12 @@ from typing import Optional
 import numpy as np
 import tyro
 
+from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
+from maniskill_irb120.abb.emulator.controller import ControllerEmulator
+from maniskill_irb120.sim2real.agent import IRB120RealAgent
+from maniskill_irb120.sim2real.sysid import excite, fit, load_log, log_arrays
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from results_md import RESULTS, argv_command, raw_link, recorded_command, replace_section  # noqa: E402
-
-from maniskill_irb120.abb.emulator.controller import ControllerEmulator  # noqa: E402
-from maniskill_irb120.sim2real.agent import IRB120RealAgent  # noqa: E402
-from maniskill_irb120.sim2real.sysid import excite, fit, load_log, log_arrays  # noqa: E402
 
 HEAD = "## System identification on the emulator — `benchmarks/sysid_recovery.py`"
 RESULTS_JSON = ROOT / "benchmarks" / "results" / "sysid_recovery.json"
@@ -142,7 +140,7 @@ def main(args: Args) -> dict:
     base = np.mean([f["latency_s"] for f in rows[0]["fits"]])
     out = dict(
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
-        command=argv_command("benchmarks/sysid_recovery.py", sys.argv[1:]),
+        command=argv_command("benchmarks.sysid_recovery", sys.argv[1:]),
         machine=platform.platform(),
         steps=args.steps,
         repeats=args.repeats,

@@ -27,7 +27,7 @@ def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, 
     resets, controller targets, contacts against the CPU, batched RGB-D, steps/s at 512/1024/4096 envs) and print
     one report to paste into an issue (exit 1 if a check fails, 2 without CUDA; takes a few minutes). The
     trainers' and the benchmark's tiny GPU runs are programs of a source checkout, not of this package: there,
-    ``python benchmarks/gpu_acceptance.py`` (same flags) prints this report with them added. ``--jobs N``: N
+    ``python -m benchmarks.gpu_acceptance`` (same flags) prints this report with them added. ``--jobs N``: N
     checks side by side, each in its own process (the obs-mode sweep split per task and mode); the steps/s are
     timed afterwards, alone. ``--json``: print the report as JSON; ``--json-path PATH``: also write it there.
 

@@ -1,7 +1,7 @@
 """The docs site builds offline with ``mkdocs build --strict`` (every link resolves, the CLI page comes from
 ``--help``, the API page from the docstrings); the README stays a front page, and its headline table is what
 ``benchmarks/headline.py`` generates from the committed JSON now; the training page's recipe table and every
-``--recipe`` command of the pages agree with ``maniskill_irb120/recipes.py``. (The pages' python blocks run in
+``--recipe`` command of the pages agree with ``agents/recipes.py``. (The pages' python blocks run in
 ``tests/test_readme.py``.)
 
 What ``--strict`` does not catch is checked here too: a line that Python-Markdown makes a heading though it was
@@ -27,10 +27,7 @@ MKDOCS = shutil.which("mkdocs", path=str(Path(sys.executable).parent))
 
 
 def headline():
-    spec = importlib.util.spec_from_file_location("headline", REPO / "benchmarks" / "headline.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module("benchmarks.headline")
 
 
 def test_readme_is_a_front_page():
@@ -170,18 +167,18 @@ def test_every_section_of_a_page_is_in_its_table_of_contents(built):
 
 
 def test_the_training_pages_recipe_table_is_the_recipes_module():
-    """docs/training.md's table names every recipe of maniskill_irb120/recipes.py once, with its trainer (a
+    """docs/training.md's table names every recipe of agents/recipes.py once, with its trainer (a
     two-stage recipe: its base's, then its own) and observation."""
     import re
 
-    from maniskill_irb120.recipes import BASES, RECIPES
+    from agents.recipes import RECIPES
 
     page = (REPO / "docs" / "training.md").read_text()
     rows = re.findall(r"^\| `([\w-]+)` \| (.+?) \| (\w+) \|", page, re.M)
     assert sorted(name for name, _, _ in rows) == sorted(RECIPES)
     for name, trainer, obs in rows:
-        module = f"`{RECIPES[name].module}`"
-        expected = f"`{RECIPES[BASES[name][0]].module}` then {module}" if name in BASES else module
+        module, base = f"`{RECIPES[name].trainer}`", RECIPES[name].base
+        expected = f"`{RECIPES[base.recipe].trainer}` then {module}" if base else module
         assert (trainer, obs) == (expected, RECIPES[name].obs), name
 
 

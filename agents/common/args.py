@@ -10,7 +10,7 @@ clock. A zero or negative budget is refused (:func:`check_budget`); from the com
 (:func:`entry`).
 Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs another one.
 
-``--recipe NAME`` (:func:`cli`) runs a named recipe of ``maniskill_irb120/recipes.py``, the one place recipes are
+``--recipe NAME`` (:func:`cli`) runs a named recipe of ``agents/recipes.py``, the one place recipes are
 written: its flags for the task of ``--env-id`` (the task's own additions included) go first and the command
 line's after them, so an explicit flag overrides the recipe's (the last of a repeated flag wins)."""
 
@@ -29,8 +29,8 @@ from typing import Literal, Optional, TypeVar, Union, get_args, get_origin, get_
 
 import tyro
 
+from agents.recipes import RECIPES
 from maniskill_irb120.errors import UsageError, nearest, usage_errors
-from maniskill_irb120.recipes import BASES, RECIPES, recipe_flags, seeded
 
 A = TypeVar("A", bound="RunArgs")
 
@@ -79,7 +79,7 @@ class RunArgs:
     comet_project: str = "maniskill_irb120"
     """the Comet project"""
     recipe: Optional[str] = None
-    """a named recipe of maniskill_irb120/recipes.py: its flags for --env-id first, this command line's after them
+    """a named recipe of agents/recipes.py: its flags for --env-id first, this command line's after them
     (so they override); only this trainer's single-stage recipes"""
     env_kwargs: dict = field(default_factory=dict)
     """extra gym.make keyword arguments, e.g. domain randomisation ranges; a value that reads as a Python
@@ -118,25 +118,25 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
     name = _flag(argv, "--recipe")
     if name is None:
         return list(argv)
-    valid = sorted(r for r, recipe in RECIPES.items() if recipe.module == module and r not in BASES)
+    valid = sorted(r for r, recipe in RECIPES.items() if recipe.trainer == module and recipe.base is None)
     if name not in RECIPES:
         raise UsageError(
             f"--recipe {name!r}: no such recipe{nearest(name, valid)}; {module}'s recipes: {', '.join(valid)}"
         )
-    if RECIPES[name].module != module:
+    if RECIPES[name].trainer != module:
         raise ValueError(
-            f"--recipe {name}: a recipe of {RECIPES[name].module}, not of {module}; {module}'s recipes: "
+            f"--recipe {name}: a recipe of {RECIPES[name].trainer}, not of {module}; {module}'s recipes: "
             f"{', '.join(valid)}"
         )
-    if name in BASES:
-        base, _, hand_on = BASES[name]
+    base = RECIPES[name].base
+    if base is not None:
         raise ValueError(
-            f"--recipe {name}: a two-stage recipe (a {base} run first, its checkpoint handed on by {hand_on}); "
-            f"run it with benchmarks/learning.py --recipes {name}, or the two runs by hand; {module}'s recipes: "
-            f"{', '.join(valid)}"
+            f"--recipe {name}: a two-stage recipe (a {base.recipe} run first, its checkpoint handed on by "
+            f"--{base.hand_on}); run it with python -m benchmarks.learning --recipes {name}, or the two runs by "
+            f"hand; {module}'s recipes: {', '.join(valid)}"
         )
     env = _flag(argv, "--env-id") or env_id
-    return [*seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed), *argv]
+    return [*RECIPES[name].for_task(env).argv(_flag(argv, "--seed") or seed), *argv]
 
 
 BUDGET_FLAGS = {

@@ -162,7 +162,7 @@ PROGRAM = "program"
 """a report unit that is one of ``gpu_report``'s ``programs`` (not a function of acceptance_runs)"""
 CHECKOUT_PROGRAMS = (
     "the trainers' tiny --backend gpu runs and the benchmark's GPU sweep are a source checkout's programs; "
-    "there, python benchmarks/gpu_acceptance.py runs this report with them added"
+    "there, python -m benchmarks.gpu_acceptance runs this report with them added"
 )
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from agents.common import cli, recipe_argv
-from maniskill_irb120.recipes import BASES, RECIPES, TASK_FLAGS, recipe_flags, seeded
+from agents.recipes import RECIPES
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -20,11 +20,11 @@ def parsed(module: str, argv: list[str]):
     return cli(importlib.import_module(module).Args, module, argv)
 
 
-@pytest.mark.parametrize("name", [r for r in RECIPES if r not in BASES])
+@pytest.mark.parametrize("name", [r for r in RECIPES if RECIPES[r].base is None])
 def test_every_single_stage_recipe_parses_on_its_trainer_as_its_flags_do(name):
-    module = RECIPES[name].module
+    module = RECIPES[name].trainer
     by_name = parsed(module, ["--recipe", name, "--seed", "2"])
-    by_hand = parsed(module, [*seeded(recipe_flags(name, "TableClearing-IRB120-v1"), 2), "--seed", "2"])
+    by_hand = parsed(module, [*RECIPES[name].for_task("TableClearing-IRB120-v1").argv(2), "--seed", "2"])
     assert by_name.recipe == name and by_name.obs == RECIPES[name].obs
     assert {**vars(by_name), "recipe": None} == {**vars(by_hand), "recipe": None}
 
@@ -32,7 +32,7 @@ def test_every_single_stage_recipe_parses_on_its_trainer_as_its_flags_do(name):
 def test_a_recipe_takes_its_tasks_own_flags_and_the_runs_seed():
     grasp = parsed("agents.ppo", ["--recipe", "ppo-state", "--env-id", "GraspLift-IRB120-v1"])
     clear = parsed("agents.ppo", ["--recipe=ppo-state"])
-    assert TASK_FLAGS["GraspLift-IRB120-v1"]["ppo-state"] == ["--logstd", "state"]
+    assert RECIPES["ppo-state"].tasks["GraspLift-IRB120-v1"].flags == {"logstd": "state"}
     assert (grasp.logstd, clear.logstd) == ("state", "param")
     assert (grasp.state_net, grasp.obs_norm, grasp.num_steps, grasp.select_episodes) == ("mlp", True, 128, 30)
     dr = parsed("agents.dagger", ["--recipe", "dagger-rgbd-bf16-dr", "--seed", "3"])
@@ -57,7 +57,7 @@ def test_a_name_the_trainer_cannot_run_is_refused_with_the_valid_names():
         parsed("agents.sac", ["--recipe", "nope"])
     with pytest.raises(ValueError, match=r"ppo-finetune-state: a two-stage recipe \(a dagger-state run first, its "):
         parsed("agents.ppo", ["--recipe", "ppo-finetune-state"])
-    with pytest.raises(ValueError, match="benchmarks/learning.py --recipes teacher-student-rgbd"):
+    with pytest.raises(ValueError, match="python -m benchmarks.learning --recipes teacher-student-rgbd"):
         parsed("agents.dagger", ["--recipe", "teacher-student-rgbd"])
 
 

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[2]
 def test_adapter_latency_runs(tmp_path):
     out = tmp_path / "lat.json"
     run = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "adapter_latency.py"), "--steps", "5", "--json", str(out)],
+        [sys.executable, "-m", "benchmarks.adapter_latency", "--steps", "5", "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=300,

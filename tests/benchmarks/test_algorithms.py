@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.lib import runner
+
 
 @pytest.fixture(scope="module")
 def alg(bench_script):
@@ -225,7 +227,7 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
         line = json.dumps(result)
         return type("P", (), dict(returncode=0, communicate=lambda self, timeout=None: (line + "\n", "")))()
 
-    monkeypatch.setattr(alg.learning.subprocess, "Popen", fake_trainer)  # learning.run_trainer runs it
+    monkeypatch.setattr(runner.subprocess, "Popen", fake_trainer)  # runner.run_trainer runs it
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs")
     assert (
         alg.ALGORITHMS["project-camera"].from_reward
@@ -283,12 +285,12 @@ def test_the_camera_cell_in_env_steps_gives_its_teacher_the_committed_share(alg,
         line = json.dumps(result)
         return type("P", (), dict(returncode=0, communicate=lambda self, timeout=None: (line + "\n", "")))()
 
-    monkeypatch.setattr(alg.learning.subprocess, "Popen", fake_trainer)
+    monkeypatch.setattr(runner.subprocess, "Popen", fake_trainer)
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs", max_minutes=60.0)
     for stage in ("cell__base", "cell"):
         (tmp_path / "runs" / "project" / stage).mkdir(parents=True)
     r = alg.run_project("teacher-student-rgbd", "GraspLift-IRB120-v1", 1, 60.0, "cell", args, 10**6)
-    from maniskill_irb120.recipes import ENV_STEP_BUDGETS
+    from agents.recipes import ENV_STEP_BUDGETS
 
     total, base = ENV_STEP_BUDGETS["GraspLift-IRB120-v1"]["teacher-student-rgbd"]
     teacher_steps = round(base / total * 10**6)

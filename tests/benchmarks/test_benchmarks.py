@@ -15,6 +15,10 @@ import numpy as np
 import pytest
 import torch
 
+from agents.recipes import RECIPES
+from agents.recipes import recipe as recipe_on
+from benchmarks.lib import adopt, runner
+
 REPO = Path(__file__).resolve().parents[2]
 IN_GIT = (REPO / ".git").exists()  # a source checkout: --baseline can name its commits
 
@@ -25,7 +29,8 @@ def test_sim_speed_quick_writes_json(tmp_path, bench_script):
     run = subprocess.run(
         [
             sys.executable,
-            str(REPO / "benchmarks" / "sim_speed.py"),
+            "-m",
+            "benchmarks.sim_speed",
             "--quick",
             "--json",
             str(out),
@@ -65,7 +70,7 @@ def test_sim_speed_quick_writes_json(tmp_path, bench_script):
 def test_learning_quick_writes_json(tmp_path):
     """The recipe runner end to end at toy sizes: trainers as subprocesses, references, intervals, plot."""
     run = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "learning.py"), "--quick", "--out-dir", str(tmp_path)],
+        [sys.executable, "-m", "benchmarks.learning", "--quick", "--out-dir", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=900,
@@ -105,7 +110,7 @@ def test_learner_speed_quick_times_every_configuration(tmp_path):
 
     out = tmp_path / "l.json"
     run = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "learner_speed.py"), "--quick", "--json", str(out)],
+        [sys.executable, "-m", "benchmarks.learner_speed", "--quick", "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=600,
@@ -124,7 +129,7 @@ def test_rllib_speed_quick_writes_json(tmp_path):
     pytest.importorskip("ray", reason="needs the ray extra")
     out = tmp_path / "r.json"
     run = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "rllib_speed.py"), "--quick", "--json", str(out)],
+        [sys.executable, "-m", "benchmarks.rllib_speed", "--quick", "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=600,
@@ -145,7 +150,7 @@ def test_rllib_speed_quick_writes_json(tmp_path):
 
 def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
     out = tmp_path / "gap.json"
-    cmd = [sys.executable, str(REPO / "benchmarks" / "sim2real_gap.py"), "--episodes", "1", "--out", str(tmp_path)]
+    cmd = [sys.executable, "-m", "benchmarks.sim2real_gap", "--episodes", "1", "--out", str(tmp_path)]
     run = subprocess.run(
         [*cmd, "--shifts", "lighting", "none", "--workers", "2", "--json", str(out)],
         capture_output=True,
@@ -248,53 +253,48 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
 
 
 def test_learning_recipe_flags_add_a_tasks_own_flags_there_only():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
+    from benchmarks import learning
 
-    grasp, clear = (learning.recipe_flags("ppo-state", env) for env in ("GraspLift-IRB120-v1", learning.DEFAULT_ENV))
-    assert grasp == [*learning.RECIPES["ppo-state"][1], "--logstd", "state"]
-    assert clear == learning.RECIPES["ppo-state"][1] and "--logstd" not in clear
-    assert learning.recipe_flags("sac-scratch-state", "GraspLift-IRB120-v1") == learning.RECIPES["sac-scratch-state"][1]
+    grasp, clear = (recipe_on("ppo-state", env).argv() for env in ("GraspLift-IRB120-v1", learning.DEFAULT_ENV))
+    assert grasp == [*RECIPES["ppo-state"].argv(), "--logstd", "state"]
+    assert clear == RECIPES["ppo-state"].argv() and "--logstd" not in clear
+    assert recipe_on("sac-scratch-state", "GraspLift-IRB120-v1").argv() == RECIPES["sac-scratch-state"].argv()
 
 
 def test_learning_rerun_keeps_the_earlier_run_and_reads_its_own_curve(tmp_path):
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     from torch.utils.tensorboard import SummaryWriter
 
     run = tmp_path / "runs" / "dagger-rgbd__s1"
     with SummaryWriter(run) as w:
         w.add_scalar("train/success_rate", 0.0, 100)
-    assert learning.make_room(run) == run and not run.exists()
+    assert runner.make_room(run) == run and not run.exists()
     (old,) = (tmp_path / "runs").glob("dagger-rgbd__s1.before-*")
     assert list(old.glob("events.out.tfevents.*"))  # nothing of the earlier run is lost
     for value in (0.25, 0.75):  # a resume appends a second event file, and trains step 200 again
         with SummaryWriter(run) as w:
             w.add_scalar("train/success_rate", value, 200)
         time.sleep(0.05)
-    assert learning.curve(run)["success"] == [0.75]
+    assert runner.curve(run)["success"] == [0.75]
 
 
 def test_learning_keeps_a_long_curve_as_bin_means_and_a_two_stage_runs_stages_apart(tmp_path, monkeypatch):
     """A run's curve is thinned to ``CURVE_POINTS`` bin means, each at its bin's last env step and minute, so the
     committed JSON stays small; a two-stage run joins two thinned curves, so no bin mixes teacher and student."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     from torch.utils.tensorboard import SummaryWriter
 
-    monkeypatch.setattr(learning, "CURVE_POINTS", 4)
+    monkeypatch.setattr(runner, "CURVE_POINTS", 4)
     run = tmp_path / "run"
     with SummaryWriter(run) as w:
         for i in range(10):
             w.add_scalar("train/success_rate", i / 10, 100 * (i + 1))
-    c = learning.curve(run)
+    c = runner.curve(run)
     assert c["env_steps"] == [300, 600, 800, 1000]  # bins of 3, 3, 2 and 2 points
     assert c["success"] == pytest.approx([0.1, 0.4, 0.65, 0.85]) and len(c["wall_min"]) == 4
     short = dict(env_steps=[1, 2], wall_min=[0.1, 0.2], success=[0.0, 1.0])
-    assert learning.thinned(short, points=4) == short
+    assert runner.thinned(short, points=4) == short
     base = dict(env_steps=1000, wall_clock_s=60.0, success_rate=1.0, checkpoint="b.pt", command="teach", curve=c)
     tuned = dict(base, env_steps=50, wall_clock_s=30.0, command="learn", curve=short)
-    joined = learning.joined(base, tuned)["curve"]
+    joined = runner.joined(base, tuned)["curve"]
     assert joined["env_steps"] == [300, 600, 800, 1000, 1001, 1002] and joined["success"][4:] == [0.0, 1.0]
 
 
@@ -302,9 +302,9 @@ def test_learning_plot_marks_each_runs_held_out_success_where_it_ended_and_a_tea
     """A teacher-student run's training curve sits near 0 while its student learns (the noisy learner collects),
     so the plot also puts a dot at each run's held-out success: filled at the run's end, hollow at its first
     stage's."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     from matplotlib import pyplot
+
+    from benchmarks import learning
 
     curve = dict(env_steps=[1000, 2000, 3000], wall_min=[10.0, 50.0, 120.0], success=[0.5, 0.0, 0.0])
     base = dict(success_rate=0.9, env_steps=1500, wall_clock_s=2700.0, checkpoint="teacher.pt")
@@ -335,9 +335,9 @@ def test_learning_plot_marks_each_runs_held_out_success_where_it_ended_and_a_tea
 
 
 def test_learning_iqm_is_over_seeds_not_single_episodes():
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import numpy as np
+
+    from benchmarks import learning
 
     runs = [dict(successes=[1] * 76 + [0] * 24, success_rate=0.76, seed=1)]
     row = learning.summarise("x", "rgbd", runs, learning.Args(bootstrap=100), np.random.default_rng(0))
@@ -346,8 +346,7 @@ def test_learning_iqm_is_over_seeds_not_single_episodes():
 
 
 def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
+    from benchmarks import learning
 
     row = dict(success_ci95=[0.9, 1.0], seeds=[1], per_seed=[0.97], success_mean=0.97, success_iqm=1.0)
     row.update(obs="state", env_steps_mean=1000, wall_clock_min_mean=60.0)
@@ -372,9 +371,9 @@ def test_learning_merge_keeps_other_recipes_with_their_provenance(tmp_path):
 
 
 def test_learning_merge_gathers_a_recipes_seeds_from_several_runs(tmp_path):
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import numpy as np
+
+    from benchmarks import learning
 
     first = "python benchmarks/learning.py --recipes dagger-state --seeds 2"
     runs = [dict(seed=2, success_rate=0.97, successes=[1] * 97 + [0] * 3, env_steps=10, wall_clock_s=3600.0)]
@@ -427,8 +426,7 @@ def test_batched_benchmark_loop_runs_with_auto_reset(bench_script):
 
 
 def test_learning_keeps_one_section_per_task(tmp_path):
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
+    from benchmarks import learning
 
     results = tmp_path / "RESULTS.md"
     results.write_text("# R\n\n## Learning — `benchmarks/learning.py`\n\ntable clearing\n\n## Next\n")
@@ -450,15 +448,14 @@ def test_learning_keeps_one_section_per_task(tmp_path):
 def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
     """A run trained by the trainer's own command in an earlier session joins the row; one with any other learning
     argument (here the batch size) is refused by name, as is a run that never finished."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import tyro
 
     from agents import dagger
     from agents.common.logging import Logger, finish
+    from benchmarks import learning
 
     def trained(name: str, extra: list[str], seed: int) -> Path:
-        flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", str(seed), *extra]
+        flags = [*RECIPES["dagger-rgbd-bf16"].argv(), "--budget-min", "60", "--seed", str(seed), *extra]
         args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", name, "--no-progress"])
         run_dir = tmp_path / name
         log = Logger(run_dir, args)
@@ -488,14 +485,13 @@ def test_learning_adopts_a_finished_run_only_if_the_recipe_trained_it(tmp_path):
 def test_learning_adopts_a_run_resumed_across_sessions_whole_and_only_with_its_own_arguments(tmp_path):
     """A run the session's end cut short and ``--resume`` continued: both sessions' points make its curve; a session
     that continued it with another learning argument is refused by name."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import tyro
 
     from agents import dagger
     from agents.common.logging import Logger, finish
+    from benchmarks import learning
 
-    flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", "2", "--no-progress"]
+    flags = [*RECIPES["dagger-rgbd-bf16"].argv(), "--budget-min", "60", "--seed", "2", "--no-progress"]
     args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", "cut"])
     run_dir = tmp_path / "cut"
     for session, (step, value) in enumerate(((1000, 0.5), (2000, 0.7))):
@@ -518,14 +514,13 @@ def test_learning_adopts_a_ppo_run_that_kept_other_periodic_checkpoints(tmp_path
     """--keep-checkpoints decides which files stay on disk, not what the run learns: a run started keeping every
     checkpoint and resumed keeping the default is the recipe's run (the camera run of the original report's
     experiment was started before the flag existed)."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import tyro
 
     from agents import ppo
     from agents.common.logging import Logger, finish
+    from benchmarks import learning
 
-    flags = [*learning.RECIPES["ppo-state"][1], "--budget-min", "30", "--eval-episodes", "100", "--seed", "2"]
+    flags = [*RECIPES["ppo-state"].argv(), "--budget-min", "30", "--eval-episodes", "100", "--seed", "2"]
     flags += ["--runs-dir", str(tmp_path), "--exp-name", "kept", "--no-progress", "--keep-checkpoints", "0"]
     args = tyro.cli(ppo.Args, args=flags)
     run_dir = tmp_path / "kept"
@@ -545,14 +540,13 @@ def test_learning_reads_a_field_a_runs_log_predates_as_its_default(tmp_path, mon
     """A run trained before a trainer gained a flag logged no value for it: it ran with what is now the default, so
     the recipe's run is adopted, whether the flag is missing from every session's log or only from the first's; a
     logged value other than the recipe's is still refused."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import tyro
 
     from agents import dagger
     from agents.common.logging import Logger, finish
+    from benchmarks import learning
 
-    flags = [*learning.RECIPES["dagger-rgbd-bf16"][1], "--budget-min", "60", "--seed", "2", "--eval-episodes", "100"]
+    flags = [*RECIPES["dagger-rgbd-bf16"].argv(), "--budget-min", "60", "--seed", "2", "--eval-episodes", "100"]
     args = tyro.cli(dagger.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", "old", "--no-progress"])
     run_dir = tmp_path / "old"
     for session, step in enumerate((1000, 2000)):
@@ -562,8 +556,8 @@ def test_learning_reads_a_field_a_runs_log_predates_as_its_default(tmp_path, mon
         log.close()
         time.sleep(0.05)
     finish(dict(success_rate=0.9, successes=[1] * 9 + [0], env_steps=2000, wall_clock_s=3600.0), run_dir)
-    read = learning.logged_args
-    first = learning.event_files(run_dir)[0]
+    read = adopt.logged_args
+    first = adopt.event_files(run_dir)[0]
 
     def predating(events, keep_first=False):
         logged, opened = read(events)
@@ -573,9 +567,9 @@ def test_learning_reads_a_field_a_runs_log_predates_as_its_default(tmp_path, mon
 
     largs = learning.Args(recipes=["dagger-rgbd-bf16"], seeds=[], out_dir=tmp_path)
     for keep_first in (False, True):  # the flag missing from both sessions' logs, or from the first's only
-        monkeypatch.setattr(learning, "logged_args", lambda e, k=keep_first: predating(e, k))
+        monkeypatch.setattr(adopt, "logged_args", lambda e, k=keep_first: predating(e, k))
         assert learning.adopted_run("dagger-rgbd-bf16", run_dir, largs)["seed"] == 2
-    monkeypatch.setattr(learning, "logged_args", read)
+    monkeypatch.setattr(adopt, "logged_args", read)
     log = Logger(run_dir, replace(args, select_episodes=30, resume=run_dir / "checkpoints" / "latest.pt"))
     log.close()
     with pytest.raises(ValueError, match=r"continued .*old with other arguments: select_episodes=30 \(first: 0\)"):
@@ -585,15 +579,14 @@ def test_learning_reads_a_field_a_runs_log_predates_as_its_default(tmp_path, mon
 def test_learning_adopts_a_sac_run_whose_log_holds_its_resolved_buffer_size(tmp_path):
     """agents.sac logs --buffer-size filled in (300,000 from state), the recipe leaves it to the trainer: the
     run is the recipe's; one that kept another buffer is not."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import learning
     import tyro
 
     from agents import sac
     from agents.common.logging import Logger, finish
+    from benchmarks import learning
 
     def trained(name: str, extra: list[str]) -> Path:
-        flags = [*learning.RECIPES["sac-scratch-state"][1], "--env-id", "GraspLift-IRB120-v1", "--budget-min", "90"]
+        flags = [*RECIPES["sac-scratch-state"].argv(), "--env-id", "GraspLift-IRB120-v1", "--budget-min", "90"]
         args = tyro.cli(sac.Args, args=[*flags, *extra, "--runs-dir", str(tmp_path), "--exp-name", name])
         run_dir = tmp_path / name
         log = Logger(run_dir, sac.resolved(args))  # as agents.sac's train() logs it

@@ -12,14 +12,17 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-SCRIPT = REPO / "benchmarks" / "camera_ppo_split.py"
+SCRIPT = [sys.executable, "-m", "benchmarks.camera_ppo_split"]
 
 
 @pytest.mark.slow  # a benchmark's smoke run (~40-80 s on 2 cores), as the other benchmarks' are
 def test_quick_run_writes_every_field_and_a_split_that_sums_to_the_total(tmp_path, bench_script):
     out = tmp_path / "c.json"
     run = subprocess.run(
-        [sys.executable, str(SCRIPT), "--quick", "--json", str(out)], capture_output=True, text=True, timeout=600
+        [*SCRIPT, "--quick", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(out.read_text())
@@ -57,7 +60,7 @@ BAD = [
 
 @pytest.mark.parametrize("argv, message", BAD)
 def test_bad_input_is_one_line_and_exit_code_2(argv, message):
-    run = subprocess.run([sys.executable, str(SCRIPT), *argv], capture_output=True, text=True, timeout=120)
+    run = subprocess.run([*SCRIPT, *argv], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and message in run.stderr, run.stderr
     assert "Traceback" not in run.stderr and len(run.stderr.strip().splitlines()) == 1
 

@@ -4,20 +4,19 @@ run its env steps (with the minutes only as a guard) and checks an adopted run a
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
+import tyro
+
+from agents import ppo
+from agents.common.logging import Logger, finish
+from agents.recipes import ENV_STEP_BUDGETS, RECIPES
+from agents.recipes import recipe as recipe_on
+from benchmarks import learning
+from benchmarks.lib import budget, runner
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "benchmarks"))
-
-import learning  # noqa: E402
-import tyro  # noqa: E402
-
-from agents import ppo  # noqa: E402
-from agents.common.logging import Logger, finish  # noqa: E402
-from maniskill_irb120.recipes import ENV_STEP_BUDGETS, env_step_budget  # noqa: E402
 
 GL = "GraspLift-IRB120-v1"
 
@@ -25,7 +24,7 @@ GL = "GraspLift-IRB120-v1"
 def trained(tmp_path: Path, module, recipe: str, name: str, extra: list[str], wall_s: float, steps: int) -> Path:
     """A finished run of ``recipe``'s flags plus ``extra``, as the trainer logs and summarises it (as
     test_learning_stages.py writes one)."""
-    flags = [*learning.recipe_flags(recipe, GL), "--env-id", GL, "--eval-episodes", "100", *extra]
+    flags = [*recipe_on(recipe, GL).argv(), "--env-id", GL, "--eval-episodes", "100", *extra]
     args = tyro.cli(module.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", name, "--no-progress"])
     run_dir = tmp_path / name
     log = Logger(run_dir, args)
@@ -54,21 +53,21 @@ def test_each_env_step_budget_is_its_committed_runs_mean_env_steps_and_every_com
             assert total == round(sum(r["env_steps"] for r in runs) / len(runs)), (env_id, recipe)
             bases = [r["base"]["env_steps"] for r in runs if "base" in r]
             assert base == (round(sum(bases) / len(bases)) if bases else None), (env_id, recipe)
-            assert (base is not None) == (recipe in learning.BASES)
+            assert (base is not None) == (RECIPES[recipe].base is not None)
 
 
 def test_a_run_gets_its_env_steps_and_the_minutes_only_as_a_guard():
     args = learning.Args(env_id=GL, env_step_budgets=True)
-    assert learning.steps_for("ppo-state", args) == (824_960, None) == env_step_budget("ppo-state", GL)
+    assert learning.steps_for("ppo-state", args) == (824_960, None) == recipe_on("ppo-state", GL).env_steps
     assert learning.steps_for("ppo-state", learning.Args(env_id=GL)) is None  # minutes, as the committed rows
     with pytest.raises(ValueError, match="--env-step-budgets: dagger-state has no committed runs on GraspLift"):
         learning.steps_for("dagger-state", args)
     # an explicit budget: a two-stage recipe's first stage gets the share its committed runs did
     total, base = learning.steps_for("teacher-student-rgbd", learning.Args(env_id=GL, total_env_steps=10**6))
     assert total == 10**6 and base == round(1_347_755 / 1_684_889 * 10**6)
-    assert learning.budget_flags(None, 500) == ["--total-env-steps", "500"]
-    assert learning.budget_flags(30.0, 500) == ["--total-env-steps", "500", "--max-minutes", "30"]
-    assert learning.budget_flags(60.0, None) == ["--budget-min", "60"]
+    assert budget.budget_flags(None, 500) == ["--total-env-steps", "500"]
+    assert budget.budget_flags(30.0, 500) == ["--total-env-steps", "500", "--max-minutes", "30"]
+    assert budget.budget_flags(60.0, None) == ["--budget-min", "60"]
 
 
 def test_a_two_stage_run_in_env_steps_gives_its_second_stage_what_the_first_left(tmp_path, monkeypatch):
@@ -80,7 +79,7 @@ def test_a_two_stage_run_in_env_steps_gives_its_second_stage_what_the_first_left
         return dict(env_steps=done, wall_clock_s=60.0, curve=dict(env_steps=[], wall_min=[], success=[]),
                     checkpoint="b.pt", command="x", success_rate=0.5, stopped_early=False)  # fmt: skip
 
-    monkeypatch.setattr(learning, "run_trainer", fake)
+    monkeypatch.setattr(runner, "run_trainer", fake)
     args = learning.Args(env_id=GL, env_step_budgets=True, max_minutes=100.0, out_dir=tmp_path)
     run = learning.train_run("teacher-student-rgbd", 1, args)
     total, base = ENV_STEP_BUDGETS[GL]["teacher-student-rgbd"]
@@ -104,7 +103,7 @@ def test_an_adopted_run_is_checked_against_its_env_step_budget(tmp_path):
 
 
 def test_the_original_experiment_runs_its_committed_env_steps_when_asked():
-    import original_experiment as oe
+    from benchmarks import original_experiment as oe
 
     flags = oe.command("ppo-rgbd", oe.Args(env_step_budgets=True, max_minutes=160.0), resume=False)
     at = flags.index("--total-env-steps")

@@ -47,9 +47,9 @@ def test_the_camera_recipe_is_a_check_of_its_own(G, tmp_path):
 
 def test_benchmark_command_parses_with_the_benchmarks_args(G, tmp_path, bench_script):
     cmd = G.benchmark_command(tmp_path / "g.json")
-    assert cmd[1] == "benchmarks/sim_speed.py" and (REPO / cmd[1]).is_file()
+    assert cmd[1:3] == ["-m", "benchmarks.sim_speed"] and (REPO / "benchmarks" / "sim_speed.py").is_file()
     sim_speed = bench_script("sim_speed")
-    args = tyro.cli(sim_speed.Args, args=cmd[2:])
+    args = tyro.cli(sim_speed.Args, args=cmd[3:])
     assert args.gpu_only and args.gpu_num_envs == G.BENCH_ENVS and args.json == tmp_path / "g.json"
 
 

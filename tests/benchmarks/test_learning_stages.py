@@ -12,13 +12,14 @@ from pathlib import Path
 import pytest
 import tyro
 
+from agents import dagger, ppo
+from agents.common.logging import Logger, finish
+from agents.recipes import RECIPES
+from agents.recipes import recipe as recipe_on
+from benchmarks import learning
+from benchmarks.lib import machine, runner
+
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "benchmarks"))
-
-import learning  # noqa: E402
-
-from agents import dagger, ppo  # noqa: E402
-from agents.common.logging import Logger, finish  # noqa: E402
 
 ENV = "GraspLift-IRB120-v1"
 
@@ -27,7 +28,7 @@ def trained(
     tmp_path: Path, module, recipe: str, name: str, extra: list[str], wall_s: float, steps: int, env: str = ENV
 ) -> Path:
     """A finished run of ``recipe``'s flags plus ``extra``, as the trainer logs and summarises it."""
-    flags = [*learning.recipe_flags(recipe, env), "--env-id", env, "--eval-episodes", "100", *extra]
+    flags = [*recipe_on(recipe, env).argv(), "--env-id", env, "--eval-episodes", "100", *extra]
     args = tyro.cli(module.Args, args=[*flags, "--runs-dir", str(tmp_path), "--exp-name", name, "--no-progress"])
     run_dir = tmp_path / name
     log = Logger(run_dir, module.resolved(args) if hasattr(module, "resolved") else args)
@@ -43,7 +44,7 @@ def trained(
 def test_a_teacher_and_its_student_join_the_row_as_one_run(tmp_path):
     args = learning.Args(recipes=["teacher-student-rgbd"], seeds=[], out_dir=tmp_path, env_id=ENV)
     budget = learning.VISION_BUDGET_MIN[ENV]
-    share = learning.BASES["teacher-student-rgbd"][1]
+    share = RECIPES["teacher-student-rgbd"].base.share
     teacher = trained(tmp_path, ppo, "ppo-state", "teacher", ["--budget-min", f"{share * budget:.4g}"], 2700.0, 10**6)
     ckpt = str(teacher / "checkpoints" / "best.pt")
     rest = f"{budget - 45:.4g}"
@@ -79,12 +80,14 @@ def test_the_selecting_teacher_student_gives_its_teacher_a_tasks_own_share(tmp_p
     """teacher-student-rgbd-sel: on TableClearing the teacher gets 0.6 of the 150 min (90) and the student, which
     selects on 30 validation seeds, the rest; GraspLift keeps the 0.375 of BASES. A TableClearing teacher trained
     for the old share is not this recipe's."""
-    from maniskill_irb120.recipes import base_share
 
     tc = "TableClearing-IRB120-v1"
-    assert base_share("teacher-student-rgbd-sel", tc) == 0.6 and base_share("teacher-student-rgbd", tc) == 0.375
-    assert base_share("teacher-student-rgbd-sel", ENV) == 0.375
-    student_flags = learning.recipe_flags("teacher-student-rgbd-sel", tc)
+    assert (
+        recipe_on("teacher-student-rgbd-sel", tc).base.share == 0.6
+        and recipe_on("teacher-student-rgbd", tc).base.share == 0.375
+    )
+    assert recipe_on("teacher-student-rgbd-sel", ENV).base.share == 0.375
+    student_flags = recipe_on("teacher-student-rgbd-sel", tc).argv()
     assert student_flags[student_flags.index("--select-episodes") + 1] == "30"
     args = learning.Args(recipes=["teacher-student-rgbd-sel"], seeds=[], out_dir=tmp_path, env_id=tc)
     teacher = trained(tmp_path, ppo, "ppo-state", "teacher", ["--budget-min", "90"], 5400.0, 10**6, env=tc)
@@ -103,7 +106,7 @@ def test_the_selecting_teacher_student_gives_its_teacher_a_tasks_own_share(tmp_p
 def test_the_original_experiment_resumes_and_reads_the_report_figures_from_the_logs(tmp_path):
     """A run with a checkpoint is resumed, a finished one skipped; the figures are the runs' per-episode reward terms,
     and the episode reward is the report's (the sum of its terms) whatever reward the run trained on."""
-    import original_experiment as oe
+    from benchmarks import original_experiment as oe
 
     args = oe.Args(runs_dir=tmp_path, out_dir=tmp_path)
     assert "--resume" not in oe.command("ppo-rgbd-dense", args)
@@ -144,7 +147,7 @@ def test_the_original_experiment_trains_resumes_and_plots(tmp_path):
     import json
     import subprocess
 
-    cmd = [sys.executable, str(REPO / "benchmarks" / "original_experiment.py"), "--quick"]
+    cmd = [sys.executable, "-m", "benchmarks.original_experiment", "--quick"]
     cmd += ["--runs-dir", str(tmp_path / "runs"), "--out-dir", str(tmp_path)]
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -160,7 +163,7 @@ def test_the_original_experiment_trains_resumes_and_plots(tmp_path):
 
 @pytest.mark.parametrize("parent_sigint", ["default", "ignored"])
 def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path, parent_sigint):
-    """learning.run_until: at the deadline the trainer gets SIGINT, its Ctrl-C (which saves its checkpoint), and the
+    """runner.run_until: at the deadline the trainer gets SIGINT, its Ctrl-C (which saves its checkpoint), and the
     run counts as unfinished; before it, the trainer's own exit code comes back. "ignored": a script's ``cmd &``
     starts the benchmark with SIGINT ignored, which the trainer would inherit and so never save at the deadline;
     run_until gives the trainer SIGINT's default back."""
@@ -175,12 +178,12 @@ def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path,
     before = signal.signal(signal.SIGINT, signal.SIG_IGN) if parent_sigint == "ignored" else None
     try:
         t0 = time.time()
-        out, err, rc = learning.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
+        out, err, rc = runner.run_until([sys.executable, "-c", code], deadline=time.time() + 1.0)
     finally:
         if before is not None:
             signal.signal(signal.SIGINT, before)
     assert rc is None and out.split() == ["True", "checkpoint", "saved"] and time.time() - t0 < 20, (out, err)
-    out, err, rc = learning.run_until([sys.executable, "-c", "print(7)"], deadline=time.time() + 30)
+    out, err, rc = runner.run_until([sys.executable, "-c", "print(7)"], deadline=time.time() + 30)
     assert (out.strip(), rc) == ("7", 0)
 
 
@@ -204,11 +207,11 @@ DRIVER = """
 import signal, sys
 signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as at a terminal, even if pytest runs in a job
 sys.path.insert(0, sys.argv[1])
-import learning
+from benchmarks.lib import runner
 try:
-    learning.run_until([sys.executable, "-c", sys.argv[2], sys.argv[3]], deadline=None)
+    runner.run_until([sys.executable, "-c", sys.argv[2], sys.argv[3]], deadline=None)
     print("not interrupted")
-except learning.Interrupted as stop:
+except runner.Interrupted as stop:
     print("interrupted:", stop.args[0].strip())
 """
 
@@ -230,7 +233,7 @@ def test_a_ctrl_c_reaches_the_trainer_once_and_waits_for_its_checkpoint(tmp_path
     import subprocess
 
     driver = subprocess.Popen(
-        [sys.executable, "-c", DRIVER, str(REPO / "benchmarks"), FAKE_TRAINER, str(tmp_path)],
+        [sys.executable, "-c", DRIVER, str(REPO), FAKE_TRAINER, str(tmp_path)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -252,7 +255,7 @@ def test_a_killed_benchmark_leaves_no_trainer_training(tmp_path):
     import subprocess
 
     driver = subprocess.Popen(
-        [sys.executable, "-c", DRIVER, str(REPO / "benchmarks"), FAKE_TRAINER, str(tmp_path)],
+        [sys.executable, "-c", DRIVER, str(REPO), FAKE_TRAINER, str(tmp_path)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -310,11 +313,11 @@ def test_a_ctrl_c_keeps_the_finished_seeds_and_starts_no_other(tmp_path, monkeyp
 
 
 def test_the_original_experiment_on_ctrl_c_keeps_the_trainers_output_and_starts_no_other_run(tmp_path, monkeypatch):
-    """original_experiment.py runs its trainers as learning.run_until does: a Ctrl-C during the first run keeps that
+    """original_experiment.py runs its trainers as runner.run_until does: a Ctrl-C during the first run keeps that
     trainer's output in its log, starts no second run, writes the report with where each run stands, and exits 130."""
     import json
 
-    import original_experiment as oe
+    from benchmarks import original_experiment as oe
 
     # the learning module that original_experiment imported: another test's bench_script("learning") may have put a
     # fresh one in sys.modules since this file imported its own, and each has its own Interrupted class
@@ -454,7 +457,7 @@ def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
     import json
     import subprocess
 
-    cmd = [sys.executable, str(REPO / "benchmarks" / "learning.py"), "--env-id", ENV, "--recipes", "ppo-state"]
+    cmd = [sys.executable, "-m", "benchmarks.learning", "--env-id", ENV, "--recipes", "ppo-state"]
     cmd += ["--seeds", "1", "--rl-budget-min", "1", "--eval-episodes", "2", "--bootstrap", "100"]
     cmd += ["--out-dir", str(tmp_path)]
     first = subprocess.run([*cmd, "--stop-after-min", "0.6"], capture_output=True, text=True, timeout=600)
@@ -482,7 +485,7 @@ def test_the_original_experiment_keeps_a_reported_run_whose_folder_is_not_here(t
     import json
     import shutil
 
-    import original_experiment as oe
+    from benchmarks import original_experiment as oe
 
     shutil.copy(REPO / "benchmarks" / "results" / "original_experiment.json", tmp_path)
     before = json.loads((tmp_path / "original_experiment.json").read_text())["runs"]
@@ -504,32 +507,32 @@ def test_a_run_records_the_cpu_time_the_host_stole_while_it_trained(tmp_path, mo
     """On a shared host the hypervisor can take a VM's CPUs (steal): a budgeted run then gets fewer env steps in its
     minutes with nothing on the machine to show why, so each run keeps the share stolen while it trained."""
     snapshots = iter([(100, 1000), (400, 2000)])  # (steal, total) ticks before and after: 300 of 1000 stolen
-    monkeypatch.setattr(learning, "cpu_times", lambda: next(snapshots))
+    monkeypatch.setattr(machine, "cpu_times", lambda: next(snapshots))
     result = dict(success_rate=1.0, successes=[1], env_steps=10, wall_clock_s=1.0)
-    monkeypatch.setattr(learning, "run_logged", lambda *a, **k: (json.dumps(result), 0))
-    monkeypatch.setattr(learning, "curve", lambda run_dir: {})
+    monkeypatch.setattr(runner, "run_logged", lambda *a, **k: (json.dumps(result), 0))
+    monkeypatch.setattr(runner, "curve", lambda run_dir: {})
     args = learning.Args(recipes=["ppo-state"], seeds=[], out_dir=tmp_path, env_id=ENV)
-    run = learning.run_trainer("r", "agents.ppo", [], 1, 1.0, args)
+    run = runner.run_trainer("r", "agents.ppo", [], 1, 1.0, args)
     assert run["cpu_steal"] == 0.3 and run["env_steps"] == 10
     # a two-stage run: each stage's share, and both stages' weighted by their minutes
     stage = dict(
         success_rate=1.0, env_steps=10, checkpoint="c", command="x", curve=dict(env_steps=[], wall_min=[], success=[])
     )
-    both = learning.joined(dict(stage, wall_clock_s=60.0, cpu_steal=0.4), dict(stage, wall_clock_s=30.0, cpu_steal=0.1))
+    both = runner.joined(dict(stage, wall_clock_s=60.0, cpu_steal=0.4), dict(stage, wall_clock_s=30.0, cpu_steal=0.1))
     assert both["cpu_steal"] == 0.3 and both["base"]["cpu_steal"] == 0.4
-    assert "cpu_steal" not in learning.joined(
+    assert "cpu_steal" not in runner.joined(
         dict(stage, wall_clock_s=60.0), dict(stage, wall_clock_s=30.0, cpu_steal=0.1)
     )
     # what Linux's /proc/stat gives: every field counted, steal the eighth
     stat = tmp_path / "stat"
     stat.write_text("cpu  10 0 5 80 1 0 0 4 0 0\ncpu0 5 0 2 40 0 0 0 2 0 0\n")
     monkeypatch.undo()
-    real = learning.Path
-    monkeypatch.setattr(learning, "Path", lambda p: stat if p == "/proc/stat" else real(p))
-    assert learning.cpu_times() == (4, 100)
-    assert learning.steal_fraction((4, 100), (4, 100)) is None and learning.steal_fraction(None, (4, 100)) is None
+    real = machine.Path
+    monkeypatch.setattr(machine, "Path", lambda p: stat if p == "/proc/stat" else real(p))
+    assert machine.cpu_times() == (4, 100)
+    assert machine.steal_fraction((4, 100), (4, 100)) is None and machine.steal_fraction(None, (4, 100)) is None
     stat.write_text("intr 1 2\n")
-    assert learning.cpu_times() is None  # not Linux's format: unknown, not 0
+    assert machine.cpu_times() is None  # not Linux's format: unknown, not 0
 
 
 def test_the_reference_workload_times_this_machine_and_refuses_a_negative_count(tmp_path):

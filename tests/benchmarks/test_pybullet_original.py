@@ -1,30 +1,17 @@
 """Quick checks of the PyBullet re-implementation of the original report's action loop
-(benchmarks/pybullet_original.py)."""
+(benchmarks/lib/pybullet_loop.py)."""
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 pb = pytest.importorskip("pybullet")
 
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "pybullet_original.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("pybullet_original", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("pybullet_original", mod)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-seed_mod = _load()
+seed_mod = importlib.import_module("benchmarks.lib.pybullet_loop")
 
 
 @pytest.fixture(scope="module")

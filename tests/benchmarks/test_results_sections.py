@@ -19,7 +19,7 @@ DATA = BENCH / "results"
 
 @pytest.fixture(scope="module")
 def results_md(bench_script):
-    return bench_script("results_md")
+    return bench_script("lib.report")
 
 
 def rendered(tmp_path: Path, update, *args) -> str:
@@ -113,7 +113,7 @@ def test_gpu_section_has_the_machine_the_checks_and_the_learner_table(results_md
     assert "`physx_cuda` did not start there: `physx gpu library` failed, so the other 11 checks" in text
     assert "No steps/s were timed: at 512, 1024, 4096 envs" in text
     # the JSON predates recorded commands: the page says so instead of inventing one
-    assert "The JSON records no command; `python benchmarks/gpu_acceptance.py --jobs 8 --json-path " in text
+    assert "The JSON records no command; `python -m benchmarks.gpu_acceptance --jobs 8 --json-path " in text
     for path in (DATA / "gpu_acceptance.json", *mod.LEARNER_JSONS):
         assert results_md.raw_link(path) in text
         if path.name.startswith("learner"):
@@ -246,9 +246,9 @@ def test_a_run_with_update_results_renders_its_own_json(monkeypatch, tmp_path, b
         monkeypatch.setattr(mod, "update_results", lambda path, real_update=real_update: real_update(path, copy))
         out = tmp_path / f"{mod.__name__}.json"
         mod.main(mod.Args(steps=3, json=out, update_results=True))
-        section = bench_script("results_md").read_section(copy, mod.HEAD)
+        section = bench_script("lib.report").read_section(copy, mod.HEAD)
         assert section == mod.section(json.loads(out.read_text()), out)
-        assert f"Command: `python benchmarks/{mod.__name__}.py --steps 3 --note 'two words'`" in section
+        assert f"Command: `python -m {mod.__name__} --steps 3 --note 'two words'`" in section
     assert "| TCP loopback (emulator) | 600 | 6.00 | 12.35 |" in copy.read_text()
     assert "| 40 | 40.0 ± 0.0 | 0.60 | 0.600 ± 0.000 | 1.00 / 5.00 |" in copy.read_text()
 
@@ -295,8 +295,8 @@ def test_gpu_run_with_update_results_records_its_command_and_renders_its_json(mo
     monkeypatch.setattr(mod, "update_results", lambda path: real_update(path, copy))
     assert mod.main(mod.Args(jobs=8, json_path=out, update_results=True)) == 1
     saved = json.loads(out.read_text())
-    assert saved["command"] == f"python benchmarks/gpu_acceptance.py --jobs 8 --json-path '{out}'"
-    section = bench_script("results_md").read_section(copy, mod.HEAD)
+    assert saved["command"] == f"python -m benchmarks.gpu_acceptance --jobs 8 --json-path '{out}'"
+    section = bench_script("lib.report").read_section(copy, mod.HEAD)
     assert section == mod.section(saved, out, [mod.LEARNER_JSONS])
     assert (
         f"Command: `{saved['command']}`." in section and "| obs modes | **FAILED** | exit status 1: boom |" in section

@@ -145,7 +145,7 @@ def test_report_on_cpu_lists_each_check_and_the_steps():
     assert "  PASS  controller targets " in text and "num_envs=1" in text and "env steps/s" in text
     # the package's report runs no program of a checkout, and says where they are
     assert r["trainer_envs"] is None and "trainers num_envs" not in text
-    assert "benchmarks/gpu_acceptance.py runs this report with them added" in text
+    assert "python -m benchmarks.gpu_acceptance runs this report with them added" in text
     for field in ("device ", "driver ", "CUDA (torch build)", "torch ", "sapien ", "mani-skill ", "commit "):
         assert f"  {field}" in text, field
     assert text.splitlines()[-1] == "VERDICT: PASS - every check passed on physx_cpu"

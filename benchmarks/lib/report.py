@@ -2,7 +2,7 @@
 
 A benchmark renders its section from its JSON alone, so the page shows exactly what the JSON says: after a run
 (``--update-results``) and again from the committed JSON without measuring anything (``--render-only``), and a
-test renders it once more and compares it with the page.
+test renders it once more and compares it with the page. The plots' smoothing is here too.
 """
 
 from __future__ import annotations
@@ -10,7 +10,9 @@ from __future__ import annotations
 import shlex
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "benchmarks" / "RESULTS.md"
 
 
@@ -57,6 +59,15 @@ def recorded_command(command: str) -> str:
     return command if command.split(" ", 1)[0].endswith(("python", "python3")) else f"python {command}"
 
 
-def argv_command(script: str, argv: list[str]) -> str:
-    """The command to store in a benchmark's JSON: quoted as a shell reads it, so the page's copy runs as shown."""
-    return "python " + shlex.join([script, *argv])
+def argv_command(module: str, argv: list[str]) -> str:
+    """The command to store in a benchmark's JSON (``module`` run with ``-m`` from the repository root): quoted as a
+    shell reads it, so the page's copy runs as shown."""
+    return "python -m " + shlex.join([module, *argv])
+
+
+def smoothed(values: list[float], points: int = 60) -> np.ndarray:
+    """A trailing mean over ~1/``points`` of the curve: PPO logs a point per handful of episodes (each 0 or 1),
+    which drawn raw fills the plot with a solid band."""
+    v = np.asarray(values, dtype=float)
+    w = max(1, len(v) // points)
+    return np.array([v[max(0, i - w + 1) : i + 1].mean() for i in range(len(v))])
