@@ -72,6 +72,7 @@ from agents.common import (
     one_thread_beside_workers,
     open_run,
     resolve_device,
+    resolve_precision,
     restore,
     shapes_of,
     torch_threads,
@@ -171,6 +172,10 @@ class Args(RunArgs):
     """iterations that update only the value function (keeps a warm-started policy while its critic learns)"""
     max_wall_s: Optional[float] = None
     """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
+    precision: Literal["fp32", "bf16", "auto"] = "fp32"
+    """the camera encoder in the update: bf16 autocast (its convolutions about twice as fast on a CPU with native
+    bf16), fp32, or auto (bf16 where native on a CPU, else fp32; agents/common/precision.py). The rollout's
+    forward passes, the heads, log-probabilities, advantages, losses, weights and checkpoints stay float32"""
 
     @property
     def batch_size(self) -> int:
@@ -269,8 +274,11 @@ def ppo_update(
     agent: Agent, optimizer: optim.Optimizer, batch: dict, args: Args, critic_only: bool = False
 ) -> dict[str, float]:
     """Clipped-surrogate epochs over minibatches of one rollout; returns the last epoch's stats.
-    ``critic_only``: value loss alone (the policy, its encoder included, stays as it is)."""
+    ``critic_only``: value loss alone (the policy, its encoder included, stays as it is). ``args.precision``: the
+    encoder's forward (and so its backward) under bf16 autocast, where a camera update spends its time; the
+    ratio, advantages and losses are float32 (the heads read float32 features)."""
     n = batch["actions"].shape[0]
+    precision = resolve_precision(args.precision, batch["actions"].device)
     mb = max(1, n // args.num_minibatches)
     clipfracs, stats = [], {}
     for _ in range(args.update_epochs):
@@ -279,7 +287,9 @@ def ppo_update(
         for start in range(0, n, mb):
             idx = perm[start : start + mb]
             obs = {k: v[idx] for k, v in batch["obs"].items()}
-            _, logp, entropy, value, mean = agent.get_action_and_value(obs, batch["actions"][idx], with_mean=True)
+            _, logp, entropy, value, mean = agent.get_action_and_value(
+                obs, batch["actions"][idx], with_mean=True, precision=precision
+            )
             logratio = logp - batch["logprobs"][idx]
             ratio = logratio.exp()
             with torch.no_grad():
@@ -301,7 +311,7 @@ def ppo_update(
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
             ent = entropy.mean()
             if critic_only:
-                value = agent.critic(agent.features(obs).detach()).view(-1)
+                value = agent.critic(agent.features(obs, precision).detach()).view(-1)
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
                 loss = args.vf_coef * v_loss
             else:
@@ -748,6 +758,7 @@ def select_checkpoint(agent: Agent, optimizer, counters: dict, args: Args, devic
 
 def main(args: Args) -> dict:
     check_budget(args)
+    resolve_precision(args.precision, resolve_device(args.device))  # bf16 without native support: refused here
     if not args.evaluate and args.norm_adv and args.minibatch_size < 2:
         raise ValueError(
             f"--num-envs {args.num_envs} x --num-steps {args.num_steps} / --num-minibatches {args.num_minibatches} "

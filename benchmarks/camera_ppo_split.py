@@ -13,12 +13,21 @@ trainer's own and not a copy of its loop:
   for the update only), the optimiser (``step`` and ``zero_grad``), and the rest (loss arithmetic, the gradient-norm
   clip, minibatch gathering, the running observation normaliser's update): the update's total minus those three.
 
+Configurations of the recipe (CONFIGS: ``today``, the recipe as it is; ``fast`` and ``fastest``, the update's
+levers that measured to pay) train side by side in the same run, each its own envs, agent and optimiser from the
+same seed, one iteration each in a rotating order per round, so each one's ratio to the envs alone comes from the
+same minutes as the others'. Each also gets an overlap bound: the speed if collection and the update ran side by
+side with nothing shared, the slower of the two setting the pace; what overlapping them (workers rendering the
+next rollout while the learner updates) could pay at most, before the two contend for the same cores.
+
 Rendering cannot be separated by wrapping (the env's workers render), so after every training iteration the same
 env configuration (the recipe's envs and wrappers, a separate instance) steps alone with seeded random actions, once
 from rgbd and once from state; rendering's cost per env step is about the difference. Training, rgbd and state take
 turns, so the drift of a shared machine lands on all three and the ratios come from the same minutes.
 
-    python -m benchmarks.camera_ppo_split                    # 10240 env steps, ~7 min on 2 cores, far more when shared
+    python -m benchmarks.camera_ppo_split                    # 10240 env steps a configuration, ~15 min on 2 cores,
+                                                             # far more when shared
+    python -m benchmarks.camera_ppo_split --configs today fast
     python -m benchmarks.camera_ppo_split --no-probe-threads # without the thread probe below, on a shared machine
                                                              # the run's slowest part (half its wall clock and more)
     python -m benchmarks.camera_ppo_split --quick --json /tmp/c.json
@@ -67,6 +76,21 @@ PHASES = (
 )
 
 
+CONFIGS: dict[str, tuple[tuple[str, ...], str]] = {
+    "today": ((), "the recipe as it is"),
+    "fast": (
+        ("--precision", "auto", "--update-epochs", "4", "--num-minibatches", "4"),
+        "bf16 encoder in the update, 4 epochs of 4 minibatches (128 rows)",
+    ),
+    "fastest": (
+        ("--precision", "auto", "--update-epochs", "2", "--num-minibatches", "4"),
+        "bf16 encoder in the update, 2 epochs of 4 minibatches (128 rows)",
+    ),
+}
+"""training configurations compared in one run: the ``ppo-rgbd`` recipe's flags, then these (``--precision auto``
+is bf16 on a CPU with native bf16, fp32 elsewhere; the JSON records which)"""
+
+
 @dataclass
 class Args:
     env_steps: int = 10240
@@ -78,6 +102,9 @@ class Args:
     """tiny sizes (2 envs x 16 steps, one epoch, one timed iteration): checks the script runs and writes its JSON"""
     probe_threads: bool = True
     """rerun each update on a copy with all the machine's torch threads (not counted in training's time)"""
+    configs: tuple[str, ...] = tuple(CONFIGS)
+    """the training configurations to compare (CONFIGS), each its own envs, agent and optimiser, iterations in
+    turns; the first is the one whose split the section details"""
     json: Path = RESULTS_JSON
     update_results: bool = False
     """rewrite this benchmark's section of benchmarks/RESULTS.md"""
@@ -143,13 +170,14 @@ class timed_backward:
         torch.Tensor.backward = self.original
 
 
-def recipe_args(quick: bool, seed: int):
-    """The ``ppo-rgbd`` recipe's ``agents.ppo.Args`` on this machine's CPU (``--quick``: 2 envs x 16 steps, one
-    epoch of 2 minibatches)."""
+def recipe_args(quick: bool, seed: int, config: str = "today"):
+    """The ``ppo-rgbd`` recipe's ``agents.ppo.Args`` on this machine's CPU with ``config``'s flags (``--quick``:
+    2 envs x 16 steps, one epoch of 2 minibatches, whatever the configuration says)."""
     import agents.ppo as ppo
     from agents.common import cli
 
     argv = ["--recipe", RECIPE, "--seed", str(seed), "--backend", "cpu", "--device", "cpu", "--no-progress"]
+    argv += list(CONFIGS[config][0])
     if quick:
         argv += ["--num-envs", "2", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1"]
     return cli(ppo.Args, "agents.ppo", argv), argv
@@ -193,97 +221,141 @@ def update_probe(agent, optimizer, batch: dict, args, make_agent: Callable, thre
     return seconds, steps[0]
 
 
+class Trainer:
+    """One configuration's training: its own envs, agent, optimiser and rollout (``agents.ppo``'s own pieces),
+    its methods wrapped into its own timers."""
+
+    def __init__(self, config: str, args: Args) -> None:
+        import agents.ppo as ppo
+        from agents.common import flatten_obs, obs_to
+        from agents.common.precision import resolve_precision
+
+        self.config = config
+        self.cli, self.argv = recipe_args(args.quick, args.seed, config)
+        cli, device = self.cli, torch.device("cpu")
+        self.precision = resolve_precision(cli.precision, device)
+        torch.manual_seed(cli.seed)  # every configuration starts from the same weights
+        self.envs = ppo.make_envs(cli, cli.num_envs)  # training's: this process on one torch thread beside workers
+        self.agent = ppo.agent_for(self.envs, device, cli)
+        self.optimizer = torch.optim.Adam(self.agent.parameters(), lr=cli.learning_rate, eps=1e-5)  # as train()
+        next_obs, _ = self.envs.reset(seed=cli.seed)
+        self.rollout = ppo.Rollout(self.envs, obs_to(flatten_obs(next_obs), device), cli, device)
+        self.timers = timers = Timers()
+        timers.wrap(self.envs, "step", "env")
+        timers.wrap(self.agent, "get_action_and_value", "forward")
+        timers.wrap(self.agent, "get_value", "forward")
+        timers.wrap(self.optimizer, "step", "optimizer")
+        timers.wrap(self.optimizer, "zero_grad", "optimizer")
+        self.rounds: list[dict] = []
+
+    def iteration(self) -> tuple[dict, dict]:
+        """One PPO iteration as ``agents.ppo.train`` runs it, timed: (the row, the rollout's batch)."""
+        import agents.ppo as ppo
+
+        cli, agent, timers = self.cli, self.agent, self.timers
+        recent: dict[str, list[float]] = defaultdict(list)
+        timers.reset()
+        timers.phase = "collect"
+        t0 = time.perf_counter()
+        batch, _ = self.rollout.collect(agent, recent)
+        t1 = time.perf_counter()
+        agent.train()
+        timers.phase = "update"
+        t2 = time.perf_counter()
+        with timed_backward(timers):
+            ppo.ppo_update(agent, self.optimizer, batch, cli)
+        if agent.norm is not None:  # as agents.ppo.train does after each update
+            agent.norm.update(batch["obs"]["state"])
+        t3 = time.perf_counter()
+        acc, calls = timers.acc, timers.calls
+        timers.reset()
+        row = dict(
+            wall_s=t3 - t0,
+            env_steps=cli.batch_size,
+            collect_s=t1 - t0,
+            update_s=t3 - t2,
+            loop_s=t2 - t1,
+            optimizer_steps=calls.get("update_optimizer", 0) // 2,  # step and zero_grad each count once
+            **{f"{k}_s": v for k, v in acc.items()},
+        )
+        return row, batch
+
+    def close(self) -> None:
+        self.envs.close()
+
+
 def measure(args: Args) -> dict:
-    """Build the recipe's training envs, agent and optimiser and two env-only copies of its envs (rgbd, state),
-    then take turns: one PPO iteration, the rgbd envs alone, the state envs alone, for the iterations asked."""
+    """Build each configuration's training (:class:`Trainer`) and two env-only copies of the recipe's envs (rgbd,
+    state), then take turns: one PPO iteration of each configuration, the rgbd envs alone, the state envs alone,
+    for the iterations asked; the order within a round rotates, so no configuration always runs first."""
     import agents.ppo as ppo
-    from agents.common import flatten_obs, obs_to
 
     t_start = time.time()
     load_start = os.getloadavg()
-    cli, argv = recipe_args(args.quick, args.seed)
-    iterations = max(1, math.ceil((1 if args.quick else args.env_steps) / cli.batch_size))
-    torch.manual_seed(cli.seed)
-    device = torch.device("cpu")
-    envs = ppo.make_envs(cli, cli.num_envs)  # training's: this process on one torch thread beside the workers
-    alone = {"rgbd": ppo.make_envs(cli, cli.num_envs), "state": ppo.make_envs(replace(cli, obs="state"), cli.num_envs)}
-    threads = torch.get_num_threads()
+    trainers: list[Trainer] = []
+    alone: dict = {}
     try:
-        agent = ppo.agent_for(envs, device, cli)
-        optimizer = torch.optim.Adam(agent.parameters(), lr=cli.learning_rate, eps=1e-5)  # as agents.ppo.train
-        next_obs, _ = envs.reset(seed=cli.seed)
-        rollout = ppo.Rollout(envs, obs_to(flatten_obs(next_obs), device), cli, device)
+        for config in args.configs:
+            trainers.append(Trainer(config, args))
+        cli = trainers[0].cli
+        iterations = max(1, math.ceil((1 if args.quick else args.env_steps) / cli.batch_size))
+        alone = {
+            "rgbd": ppo.make_envs(cli, cli.num_envs),
+            "state": ppo.make_envs(replace(cli, obs="state"), cli.num_envs),
+        }
+        threads = torch.get_num_threads()
         rng = np.random.default_rng(args.seed)
         for e in alone.values():
             e.reset(seed=cli.seed + 1000)
             env_only(e, 5, rng)  # warm-up: the first steps fill caches
-        timers = Timers()
-        timers.wrap(envs, "step", "env")
-        timers.wrap(agent, "get_action_and_value", "forward")
-        timers.wrap(agent, "get_value", "forward")
-        timers.wrap(optimizer, "step", "optimizer")
-        timers.wrap(optimizer, "zero_grad", "optimizer")
+        first = trainers[0]
         probe = args.probe_threads and (os.cpu_count() or 1) > threads
-        make_agent = lambda: ppo.agent_for(envs, device, cli)  # noqa: E731
-        rounds = []
+        make_agent = lambda: ppo.agent_for(first.envs, torch.device("cpu"), first.cli)  # noqa: E731
+        env_rounds = []
         t_loop = time.time()
         for i in range(iterations + 1):  # iteration 0 warms up, untimed
-            recent: dict[str, list[float]] = defaultdict(list)
-            timers.reset()
-            timers.phase = "collect"
-            t0 = time.perf_counter()
-            batch, _ = rollout.collect(agent, recent)
-            t1 = time.perf_counter()
-            agent.train()
-            timers.phase = "update"
-            t2 = time.perf_counter()
-            with timed_backward(timers):
-                ppo.ppo_update(agent, optimizer, batch, cli)
-            if agent.norm is not None:  # as agents.ppo.train does after each update
-                agent.norm.update(batch["obs"]["state"])
-            t3 = time.perf_counter()
-            acc, calls = timers.acc, timers.calls
-            timers.reset()
-            row = dict(
-                iteration=i,
-                wall_s=t3 - t0,
-                env_steps=cli.batch_size,
-                collect_s=t1 - t0,
-                update_s=t3 - t2,
-                loop_s=t2 - t1,
-                optimizer_steps=calls.get("update_optimizer", 0) // 2,  # step and zero_grad each count once
-                **{f"{k}_s": v for k, v in acc.items()},
-            )
+            k = i % len(trainers)
+            rows = {}
+            for trainer in trainers[k:] + trainers[:k]:
+                row, batch = trainer.iteration()
+                row["iteration"] = i
+                if probe and trainer is first:  # not counted in its time; its threads end before the next phase
+                    seconds, steps = update_probe(first.agent, first.optimizer, batch, first.cli, make_agent,
+                                                  os.cpu_count())  # fmt: skip
+                    row.update(probe_update_s=seconds, probe_optimizer_steps=steps)
+                rows[trainer.config] = row
+            env_row = dict(iteration=i)
             for name in list(alone) if i % 2 else list(alone)[::-1]:  # each first in every other round
-                row[f"{name}_env_steps_per_s"] = env_only(alone[name], cli.num_steps, rng)
-            if probe:  # last: its threads are done before the next iteration's training starts
-                seconds, steps = update_probe(agent, optimizer, batch, cli, make_agent, os.cpu_count())
-                row.update(probe_update_s=seconds, probe_optimizer_steps=steps)
-            row["loadavg_1min"] = os.getloadavg()[0]
+                env_row[f"{name}_env_steps_per_s"] = env_only(alone[name], cli.num_steps, rng)
+            env_row["loadavg_1min"] = os.getloadavg()[0]
             if i > 0:
-                rounds.append(row)
-            done = sum(r["env_steps"] for r in rounds)
+                env_rounds.append(env_row)
+                for trainer in trainers:
+                    trainer.rounds.append({**rows[trainer.config], **env_row})
             per_round = (time.time() - t_loop) / (i + 1)
+            done = sum(r["env_steps"] for r in first.rounds)
+            speeds = ", ".join(f"{c} {r['env_steps'] / r['wall_s']:.0f}" for c, r in rows.items())
             print(
-                f"[{'warm-up' if i == 0 else f'{i}/{iterations}'}] {done}/{iterations * cli.batch_size} env steps; "
-                f"training {cli.batch_size / row['wall_s']:.0f} env steps/s (update {row['update_s']:.1f} s of "
-                f"{row['wall_s']:.1f} s), alone rgbd {row['rgbd_env_steps_per_s']:.0f} state "
-                f"{row['state_env_steps_per_s']:.0f}; ETA {per_round * (iterations - i):.0f} s",
+                f"[{'warm-up' if i == 0 else f'{i}/{iterations}'}] {done}/{iterations * cli.batch_size} env steps "
+                f"each; training env steps/s: {speeds}; alone rgbd {env_row['rgbd_env_steps_per_s']:.0f} state "
+                f"{env_row['state_env_steps_per_s']:.0f}; ETA {per_round * (iterations - i):.0f} s",
                 file=sys.stderr,
                 flush=True,
             )
     finally:
-        envs.close()
+        for t in trainers:
+            t.close()
         for e in alone.values():
             e.close()
-    return summarize(rounds, cli, argv, threads, t_start, load_start)
+    return summarize(trainers, threads, t_start, load_start)
 
 
-def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: float, load_start) -> dict:
-    """The timed iterations' sums as rates and milliseconds per env step."""
+def config_summary(rounds: list[dict], alone_rgbd: float) -> dict:
+    """One configuration's timed iterations as rates and milliseconds per env step; the overlap bound is the
+    speed if collection and the update ran side by side with nothing shared (the slower of the two sets the
+    pace), an upper bound on what overlapping them could pay."""
     steps = sum(r["env_steps"] for r in rounds)
     total = lambda key: sum(r.get(key, 0.0) for r in rounds)  # noqa: E731
-    wall = total("wall_s")
     ms = lambda seconds: 1e3 * seconds / steps  # noqa: E731
     split = dict(
         collect_env=ms(total("collect_env_s")),
@@ -297,9 +369,43 @@ def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: f
     split["update_rest"] = (
         ms(total("update_s")) - split["update_forward"] - split["update_backward"] - split["update_optimizer"]
     )
+    training = steps / total("wall_s")
+    per_round = sorted(r["env_steps"] / r["wall_s"] / r["rgbd_env_steps_per_s"] for r in rounds)
+    bound = 1e3 / max(ms(total("collect_s")), ms(total("update_s") + total("loop_s")))
+    return dict(
+        env_steps=steps,
+        training_env_steps_per_s=training,
+        ratio_training_to_env_only_rgbd=training / alone_rgbd,
+        ratio_rounds=dict(median=float(np.median(per_round)), min=per_round[0], max=per_round[-1]),
+        total_ms_per_env_step=1e3 / training,
+        collect_ms_per_env_step=ms(total("collect_s")),
+        update_ms_per_env_step=ms(total("update_s")),
+        overlap_bound_env_steps_per_s=bound,
+        overlap_bound_ratio_to_env_only_rgbd=bound / alone_rgbd,
+        split_ms_per_env_step=split,
+        optimizer_steps_per_iteration=total("optimizer_steps") / len(rounds),
+    )
+
+
+def summarize(trainers: list, threads: int, t_start: float, load_start) -> dict:
+    """The timed iterations' sums as rates and milliseconds per env step: the first configuration's at the top
+    level (with its rounds), every configuration's under ``configs``."""
+    first = trainers[0]
+    rounds, cli = first.rounds, first.cli
     # env-only speeds: total steps over total time, each block the same number of env steps
     alone = {m: len(rounds) / sum(1 / r[f"{m}_env_steps_per_s"] for r in rounds) for m in ("rgbd", "state")}
-    training = steps / wall
+    configs = {}
+    for t in trainers:
+        c = t.cli
+        configs[t.config] = dict(
+            description=CONFIGS[t.config][1],
+            flags=list(CONFIGS[t.config][0]),
+            precision=t.precision,
+            num_minibatches=c.num_minibatches,
+            update_epochs=c.update_epochs,
+            **config_summary(t.rounds, alone["rgbd"]),
+        )
+    top = configs[first.config]
     render = [1e3 / r["rgbd_env_steps_per_s"] - 1e3 / r["state_env_steps_per_s"] for r in rounds]
     report = dict(
         command=argv_command("benchmarks.camera_ppo_split", sys.argv[1:]),
@@ -315,7 +421,7 @@ def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: f
         ),
         versions=dict(torch=torch.__version__, python=platform.python_version()),
         recipe=RECIPE,
-        recipe_argv=argv,
+        recipe_argv=first.argv,
         settings=dict(
             num_envs=cli.num_envs,
             num_steps=cli.num_steps,
@@ -328,23 +434,26 @@ def summarize(rounds: list[dict], cli, argv: list[str], threads: int, t_start: f
         ),
         warmup_iterations=1,
         iterations=len(rounds),
-        env_steps=steps,
-        training_env_steps_per_s=training,
+        env_steps=top["env_steps"],
+        training_env_steps_per_s=top["training_env_steps_per_s"],
         env_only_rgbd_env_steps_per_s=alone["rgbd"],
         env_only_state_env_steps_per_s=alone["state"],
         env_only_steps_per_round=cli.batch_size,
-        ratio_training_to_env_only_rgbd=training / alone["rgbd"],
-        total_ms_per_env_step=1e3 / training,
+        ratio_training_to_env_only_rgbd=top["ratio_training_to_env_only_rgbd"],
+        total_ms_per_env_step=top["total_ms_per_env_step"],
         rendering_ms_per_env_step=1e3 / alone["rgbd"] - 1e3 / alone["state"],
         rendering_ms_per_env_step_rounds=dict(
             median=float(np.median(render)), min=float(np.min(render)), max=float(np.max(render))
         ),
         env_only_rgbd_ms_per_env_step=1e3 / alone["rgbd"],
-        split_ms_per_env_step=split,
-        optimizer_steps_per_iteration=total("optimizer_steps") / len(rounds),
+        split_ms_per_env_step=top["split_ms_per_env_step"],
+        optimizer_steps_per_iteration=top["optimizer_steps_per_iteration"],
+        configs=configs,
         rounds=rounds,
+        config_rounds={t.config: t.rounds for t in trainers[1:]},
     )
     if all("probe_update_s" in r for r in rounds):
+        total = lambda key: sum(r.get(key, 0.0) for r in rounds)  # noqa: E731
         report["update_probe"] = dict(
             threads=os.cpu_count(),
             ms_per_optimizer_step=1e3 * total("probe_update_s") / total("probe_optimizer_steps"),
@@ -357,6 +466,9 @@ def check(args: Args) -> None:
     """Refuse what cannot run, in one line (the caller exits 2)."""
     if args.env_steps < 1:
         raise ValueError(f"--env-steps must be >= 1, got {args.env_steps}")
+    unknown = [c for c in args.configs if c not in CONFIGS]
+    if unknown or not args.configs or len(set(args.configs)) != len(args.configs):
+        raise ValueError(f"--configs must name distinct configurations of {tuple(CONFIGS)}, got {args.configs}")
     if args.render_only and not args.json.is_file():
         raise ValueError(f"--render-only reads --json {args.json}, which does not exist")
 
@@ -375,30 +487,57 @@ def main(args: Args) -> dict:
 
 
 def markdown(r: dict) -> str:
-    """The two tables: the speeds side by side, then the split of training's time per env step."""
+    """The tables: each configuration's speed beside the envs alone, then the split of its time per env step
+    (a column per configuration)."""
+    configs = r.get("configs") or {"today": dict(r, flags=[], description="the recipe as it is")}
     rows = [
-        "| measured in turns | env steps/s | ms per env step |",
-        "|---|---|---|",
-        f"| PPO training from the camera | **{r['training_env_steps_per_s']:.0f}** | "
-        f"{r['total_ms_per_env_step']:.2f} |",
-        f"| the same envs alone, rgbd | {r['env_only_rgbd_env_steps_per_s']:.0f} | "
-        f"{r['env_only_rgbd_ms_per_env_step']:.2f} |",
-        f"| the same envs alone, state | {r['env_only_state_env_steps_per_s']:.0f} | "
-        f"{1e3 / r['env_only_state_env_steps_per_s']:.2f} |",
-        f"| training / envs alone rgbd | **{r['ratio_training_to_env_only_rgbd']:.2f}x** | |",
-        "",
-        "| phase of a training iteration | ms per env step | share | how |",
-        "|---|---|---|---|",
+        "| measured in turns | flags after the recipe's | optimiser steps an iteration | env steps/s | "
+        "ms per env step | / envs alone rgbd (rounds: median, range) | overlap bound |",
+        "|---|---|---|---|---|---|---|",
     ]
-    total = r["total_ms_per_env_step"]
-    split = r["split_ms_per_env_step"]
+    for name, c in configs.items():
+        rounds = c.get("ratio_rounds")
+        spread = f" ({rounds['median']:.2f}, {rounds['min']:.2f}–{rounds['max']:.2f})" if rounds else ""
+        flags = f"`{' '.join(c['flags'])}`" if c["flags"] else "—"
+        if c.get("precision") and "--precision" in c["flags"]:
+            flags += f" (= {c['precision']})"
+        bound = c.get("overlap_bound_ratio_to_env_only_rgbd")
+        rows.append(
+            f"| PPO training from the camera, **{name}** | {flags} | {c['optimizer_steps_per_iteration']:.0f} | "
+            f"**{c['training_env_steps_per_s']:.0f}** | {c['total_ms_per_env_step']:.2f} | "
+            f"**{c['ratio_training_to_env_only_rgbd']:.2f}x**{spread} | "
+            + (f"{c['overlap_bound_env_steps_per_s']:.0f} ({bound:.2f}x) |" if bound else "|")
+        )
+    rows += [
+        f"| the same envs alone, rgbd | | | {r['env_only_rgbd_env_steps_per_s']:.0f} | "
+        f"{r['env_only_rgbd_ms_per_env_step']:.2f} | 1 | |",
+        f"| the same envs alone, state | | | {r['env_only_state_env_steps_per_s']:.0f} | "
+        f"{1e3 / r['env_only_state_env_steps_per_s']:.2f} | | |",
+        "",
+        "| phase of a training iteration, ms per env step (share) | "
+        + " | ".join(f"{name}" for name in configs)
+        + " | how |",
+        "|---|" + "---|" * len(configs) + "---|",
+    ]
+    share = lambda ms, c: f"{ms:.2f} ({100 * ms / c['total_ms_per_env_step']:.0f} %)"  # noqa: E731
     for key, label, how in PHASES:
-        rows.append(f"| {label} | {split[key]:.2f} | {100 * split[key] / total:.0f} % | {how} |")
+        cells = [share(c["split_ms_per_env_step"][key], c) for c in configs.values()]
+        rows.append(f"| {label} | " + " | ".join(cells) + f" | {how} |")
         if key == "collect_env":
             render = r["rendering_ms_per_env_step"]
-            ms, share = (f"{render:.2f}", f"{100 * render / total:.0f} %") if render > 0 else ("not resolved", "")
-            rows.append(f"| … of which rendering (envs alone: rgbd − state) | {ms} | {share} | difference |")
-    rows.append(f"| **total** (1000 / training env steps/s) | **{total:.2f}** | 100 % | |")
+            first = next(iter(configs.values()))
+            cell = (
+                f"{render:.2f} ({100 * render / first['total_ms_per_env_step']:.0f} %)"
+                if render > 0
+                else "not resolved"
+            )
+            rows.append(
+                f"| … of which rendering (envs alone: rgbd − state) | {cell} |"
+                + " |" * (len(configs) - 1)
+                + " difference |"
+            )
+    cells = [f"**{c['total_ms_per_env_step']:.2f}**" for c in configs.values()]
+    rows.append("| **total** (1000 / training env steps/s) | " + " | ".join(cells) + " | |")
     return "\n".join(rows)
 
 
@@ -426,6 +565,26 @@ def reading(r: dict) -> str:
             f"ran no faster from state than from rgbd (rgbd − state ranged {rounds['min']:.2f} to "
             f"{rounds['max']:.2f} ms per env step over the rounds, median {rounds['median']:.2f})."
         )
+    configs = r.get("configs") or {}
+    names = list(configs)
+    if len(names) > 1:
+        base = configs[names[0]]
+        faster = [
+            f"{name} {c['training_env_steps_per_s'] / base['training_env_steps_per_s']:.2f}x as fast "
+            f"({c['ratio_training_to_env_only_rgbd']:.2f} of the envs alone; update "
+            f"{c['update_ms_per_env_step']:.2f} ms per env step against {base['update_ms_per_env_step']:.2f})"
+            for name, c in configs.items()
+            if name != names[0]
+        ]
+        text += f" Against {names[0]} in the same rounds: " + "; ".join(faster) + "."
+        best = max(configs, key=lambda n: configs[n]["training_env_steps_per_s"])
+        c = configs[best]
+        text += (
+            f" Collection (env, forward, storage) takes {c['collect_ms_per_env_step']:.2f} ms per env step in "
+            f"{best}, so with the update overlapped with it (workers render the next rollout while the learner "
+            f"updates) and nothing shared, {best} would run at most at {c['overlap_bound_env_steps_per_s']:.0f} env "
+            f"steps/s ({c['overlap_bound_ratio_to_env_only_rgbd']:.2f} of the envs alone): the column overlap bound."
+        )
     probe = r.get("update_probe")
     if probe:
         speedup = probe["training_ms_per_optimizer_step"] / probe["ms_per_optimizer_step"]
@@ -441,6 +600,16 @@ def section(report: dict, json_path: Path) -> str:
     """This benchmark's section of RESULTS.md, from its JSON (at ``json_path``, which it links) alone."""
     s, m = report["settings"], report["machine"]
     load = lambda xs: "/".join(f"{x:.1f}" for x in xs)  # noqa: E731
+    configs = report.get("configs") or {}
+    side = ""
+    if len(configs) > 1:
+        side = (
+            " Its configurations train side by side ("
+            + "; ".join(f"{name}: {c['description']}" for name, c in configs.items())
+            + "), each with its own envs, agent and optimiser from the same seed, one iteration of each per round in "
+            "a rotating order, the same env steps each. The overlap bound is a configuration's speed if collection "
+            "and the update ran side by side with nothing shared (the slower of the two setting the pace)."
+        )
     return (
         f"{HEAD}\n\nCommand: `{recorded_command(report['command'])}` ({report['date']}, {m['node']} {m['arch']}, "
         f"{m['cpus']} CPUs, torch {report['versions']['torch']} on {m['torch_threads_training']} thread in training; "
@@ -452,7 +621,7 @@ def section(report: dict, json_path: Path) -> str:
         f"{report['warmup_iterations']} warm-up), each iteration followed by the same envs stepped alone with random "
         f"actions, from rgbd and from state ({report['env_only_steps_per_round']} env steps each), so the ratios "
         "come from the same minutes. Phases are timed by wrapping the instances' methods; the rows marked "
-        "remainder are a total minus its measured parts. Raw data: "
+        f"remainder are a total minus its measured parts.{side} Raw data: "
         f"{raw_link(json_path)}.\n\n"
         f"{markdown(report)}\n\n"
         f"{reading(report)}\n\n"

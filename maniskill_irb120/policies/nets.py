@@ -51,7 +51,10 @@ class NatureCNN(nn.Module):
         self.out_dim += 256
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        feats = [self.mlp(obs["state"].float())]
+        # the proprioception float32 even under a learner's bf16 autocast, as in KeypointCNN: the convolutions
+        # are what autocast is for, and bf16 would round the normalised joint state to 3 significant digits
+        with torch.autocast(device_type=obs["state"].device.type, enabled=False):
+            feats = [self.mlp(obs["state"].float())]
         if self.cnn is not None:
             feats.insert(0, self.cnn(image_tensor(obs)))
         return torch.cat(feats, dim=1)

@@ -83,11 +83,23 @@ class Agent(nn.Module):
         else:
             self.actor_logstd = nn.Parameter(torch.full((1, action_dim), float(init_logstd)))
 
-    def features(self, obs) -> torch.Tensor:
-        """What the heads read: the encoder's features, or (``state_net='mlp'``) the normalised state."""
+    def features(self, obs, precision: str = "fp32") -> torch.Tensor:
+        """What the heads read: the encoder's features, or (``state_net='mlp'``) the normalised state.
+        ``precision="bf16"`` runs the encoder (its convolutions, the cost of a camera update) under bf16 autocast
+        and hands the heads float32 features, so the log-probabilities, values and everything after them stay
+        float32 (the trainer's ``--precision``; agents/common/precision.py says where it pays)."""
         if self.norm is not None:
             obs = self.norm(obs)
-        return self.encoder(obs["state"].float()) if self.state_net == "mlp" else self.encoder(obs)
+        if self.state_net == "mlp":
+            return self.encoder(obs["state"].float())
+        if precision == "fp32":
+            return self.encoder(obs)
+        if precision != "bf16":
+            raise ValueError(f"precision {precision!r} is not resolved (fp32 or bf16)")
+        device = obs["state"].device.type
+        with torch.autocast(device_type=device, dtype=torch.bfloat16):
+            x = self.encoder(obs)
+        return x.float()
 
     def signature(self) -> dict:
         return dict(
@@ -132,8 +144,10 @@ class Agent(nn.Module):
             return mean
         return Normal(mean, self.log_std(x, mean).exp()).sample()
 
-    def get_action_and_value(self, obs, action=None, with_mean: bool = False):
-        x = self.features(obs)
+    def get_action_and_value(self, obs, action=None, with_mean: bool = False, precision: str = "fp32"):
+        """An action (sampled unless given), its log-probability, the entropy and the value; ``precision``: the
+        encoder's (:meth:`features`), the heads are float32 either way."""
+        x = self.features(obs, precision)
         mean = self.mean(obs, x)
         dist = Normal(mean, self.log_std(x, mean).exp())
         if action is None:

@@ -5,11 +5,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import torch.optim as optim
 
+from agents.common.precision import native_bf16
 from agents.ppo import Agent, Args, bootstrap_mask, main, ppo_update, succeeded_mask
+
+REPO = Path(__file__).resolve().parents[2]
+NATIVE_BF16 = native_bf16(torch.device("cpu"))
 
 
 def run(tmp_path: Path, **kw):
@@ -489,3 +494,78 @@ def test_a_run_the_guard_stops_before_its_env_steps_says_so(tmp_path, capsys):
     res = run(tmp_path, total_env_steps=10**6, max_minutes=0.01, **kw)
     assert res["stopped_early"] is True and res["total_env_steps"] == 10**6 and 0 < res["env_steps"] < 10**6
     assert f"stopped early at {res['env_steps']} env steps (of 1000000)" in capsys.readouterr().out.splitlines()
+
+
+def camera_batch(n: int = 32, seed: int = 0) -> tuple[Agent, dict]:
+    """A camera agent (the ppo-rgbd recipe's network at 84x84) and a batch of its own samples on random images."""
+    torch.manual_seed(seed)
+    agent = Agent((84, 84, 4), 29, 7, obs_norm=True)
+    obs = {
+        "rgb": torch.randint(0, 256, (n, 84, 84, 3), dtype=torch.uint8),
+        "depth": torch.randint(0, 2000, (n, 84, 84, 1), dtype=torch.int16),
+        "state": torch.randn(n, 29),
+    }
+    with torch.no_grad():
+        actions, logp, _, values = agent.get_action_and_value(obs)
+    returns = values.view(-1) + torch.randn(n)
+    batch = dict(obs=obs, actions=actions, logprobs=logp, values=values.view(-1), returns=returns,
+                 advantages=returns - values.view(-1))  # fmt: skip
+    return agent, batch
+
+
+@pytest.mark.skipif(not NATIVE_BF16, reason="this CPU has no native bf16")
+def test_a_bf16_update_trains_the_encoder_finitely_with_float32_heads_and_losses():
+    agent, batch = camera_batch()
+    before = {k: v.clone() for k, v in agent.state_dict().items()}
+    # the heads read float32 features: log-probabilities and values are float32, and near the fp32 ones
+    _, logp, _, value = agent.get_action_and_value(batch["obs"], batch["actions"], precision="bf16")
+    assert logp.dtype == value.dtype == torch.float32
+    assert (logp - batch["logprobs"]).abs().max() < 1e-2  # the ratio starts near 1, as in fp32
+    opt = optim.Adam(agent.parameters(), lr=1e-3)
+    stats = ppo_update(agent, opt, batch, Args(update_epochs=2, num_minibatches=2, target_kl=None, precision="bf16"))
+    assert all(np.isfinite(v) for v in stats.values()), stats
+    after = agent.state_dict()
+    assert all(after[k].dtype == v.dtype for k, v in before.items())  # weights stay float32
+    assert all(torch.isfinite(after[k]).all() for k in before if after[k].is_floating_point())
+    conv = "encoder.cnn.0.weight"
+    assert not torch.equal(before[conv], after[conv])  # the encoder learned under autocast
+    assert not torch.equal(before["critic.2.weight"], after["critic.2.weight"])
+
+
+@pytest.mark.skipif(not NATIVE_BF16, reason="this CPU has no native bf16")
+def test_bf16_and_fp32_features_agree_to_bf16_rounding():
+    agent, batch = camera_batch(8)
+    with torch.no_grad():
+        fp32, bf16 = agent.features(batch["obs"]), agent.features(batch["obs"], "bf16")
+    assert bf16.dtype == torch.float32 and not torch.equal(fp32, bf16)  # autocast ran: bf16 rounding is visible
+    assert torch.allclose(fp32, bf16, rtol=0.05, atol=0.05)
+
+
+def test_an_unresolved_precision_is_refused():
+    agent, batch = camera_batch(4)
+    with pytest.raises(ValueError, match="precision 'auto' is not resolved"):
+        agent.features(batch["obs"], "auto")
+
+
+def test_bf16_without_native_support_is_refused_before_anything_runs(monkeypatch):
+    import agents.common.precision as precision
+
+    monkeypatch.setattr(precision, "native_bf16", lambda device: False)
+    with pytest.raises(ValueError, match="--precision bf16: cpu has no native bfloat16"):
+        main(Args(precision="bf16", device="cpu"))
+    assert precision.resolve_precision("auto", torch.device("cpu")) == "fp32"  # auto falls back
+
+
+def test_an_unknown_precision_is_one_line_and_exit_code_2():
+    import subprocess
+    import sys
+
+    run = subprocess.run(
+        [sys.executable, "-m", "agents.ppo", "--precision", "fp16"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
+    assert run.returncode == 2 and "invalid choice 'fp16' for argument '--precision'" in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr and len(run.stderr.strip().splitlines()) == 1

@@ -1,5 +1,6 @@
-"""``benchmarks/camera_ppo_split.py`` runs the camera PPO recipe's pieces at toy sizes and writes a split that adds up
-(smoke only: no timing is asserted), refuses bad input in one line, and renders its section from JSON alone."""
+"""``benchmarks/camera_ppo_split.py`` runs the camera PPO recipe's pieces at toy sizes, in two configurations side by
+side, and writes splits that add up (smoke only: no timing is asserted), refuses bad input in one line, and renders its
+section from JSON alone."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = [sys.executable, "-m", "benchmarks.camera_ppo_split"]
@@ -19,7 +21,7 @@ SCRIPT = [sys.executable, "-m", "benchmarks.camera_ppo_split"]
 def test_quick_run_writes_every_field_and_a_split_that_sums_to_the_total(tmp_path, bench_script):
     out = tmp_path / "c.json"
     run = subprocess.run(
-        [*SCRIPT, "--quick", "--json", str(out)],
+        [*SCRIPT, "--quick", "--configs", "today", "fast", "--json", str(out)],
         capture_output=True,
         text=True,
         timeout=600,
@@ -42,7 +44,22 @@ def test_quick_run_writes_every_field_and_a_split_that_sums_to_the_total(tmp_pat
         r["training_env_steps_per_s"] / r["env_only_rgbd_env_steps_per_s"]
     )
     assert r["optimizer_steps_per_iteration"] >= 1
-    assert "ETA" in run.stderr and "1/1] 32/32 env steps" in run.stderr  # progress, with the env steps done
+    # both configurations, each with its own split and its ratio to the same envs alone
+    assert list(r["configs"]) == ["today", "fast"] and list(r["config_rounds"]) == ["fast"]
+    from agents.common.precision import native_bf16
+
+    assert r["configs"]["fast"]["precision"] == ("bf16" if native_bf16(torch.device("cpu")) else "fp32")
+    assert r["configs"]["today"]["precision"] == "fp32"
+    for c in r["configs"].values():
+        assert c["env_steps"] == r["env_steps"] and set(c["split_ms_per_env_step"]) == set(split)
+        assert sum(c["split_ms_per_env_step"].values()) == pytest.approx(c["total_ms_per_env_step"], rel=0.02)
+        assert c["ratio_training_to_env_only_rgbd"] == pytest.approx(
+            c["training_env_steps_per_s"] / r["env_only_rgbd_env_steps_per_s"]
+        )
+        # overlapped, the slower of collection and update sets the pace: never slower than in sequence
+        assert c["overlap_bound_env_steps_per_s"] >= c["training_env_steps_per_s"]
+    assert r["configs"]["today"]["training_env_steps_per_s"] == r["training_env_steps_per_s"]
+    assert "ETA" in run.stderr and "1/1] 32/32 env steps each" in run.stderr  # progress, with the env steps done
     assert "| **total** (1000 / training env steps/s) |" in run.stdout
     # the section renders from this JSON alone, into a copy of the page
     copy = tmp_path / "RESULTS.md"
@@ -55,6 +72,8 @@ def test_quick_run_writes_every_field_and_a_split_that_sums_to_the_total(tmp_pat
 BAD = [
     (["--env-steps", "0"], "--env-steps must be >= 1, got 0"),
     (["--render-only", "--json", "/nonexistent/c.json"], "does not exist"),
+    (["--configs", "today", "turbo"], "--configs must name distinct configurations of"),
+    (["--configs", "fast", "fast"], "--configs must name distinct configurations of"),
 ]
 
 
