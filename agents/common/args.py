@@ -50,7 +50,14 @@ class RunArgs:
     budget_min: Optional[float] = None
     """the old name of --max-minutes (kept for the committed runs and recipes that pass it; --max-minutes wins)"""
     eval_episodes: int = 100
-    """final evaluation episodes on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    """the held-out evaluation after training and of --evaluate: deterministic episodes on held-out seeds
+    (agents.common.EVAL_SEED onwards; 0: none after training)"""
+    select_episodes: int = 0
+    """checkpoint selection: every --select-freq steps of training and after the last, the policy on this many
+    validation seeds (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out
+    evaluation scores it instead of the last weights (0: no selection). Its episodes count in --max-minutes"""
+    select_freq: int = 25
+    """steps of training (PPO iterations, DAgger rounds, SAC env steps) between two selection evaluations"""
     device: str = "auto"
     """torch device of the learner (auto: CUDA when available)"""
     backend: Literal["auto", "cpu", "gpu"] = "auto"
@@ -139,25 +146,41 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
     return [*seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed), *argv]
 
 
-BUDGET_FLAGS = {
-    "total_env_steps": "env steps",
-    "total_timesteps": "env steps",
-    "timesteps": "env steps",
-    "max_minutes": "minutes",
-    "budget_min": "minutes",
-    "max_wall_s": "seconds",
+BUDGET_FLAGS = {"total_env_steps": "env steps", "max_minutes": "minutes", "budget_min": "minutes"}
+"""the budget and guard fields, and their units"""
+
+RENAMED = {
+    "--total-timesteps": "--total-env-steps",
+    "--timesteps": "--total-env-steps",
+    "--out-dir": "--runs-dir",
+    "--max-wall-s": "--max-minutes (in minutes)",
+    "--num-eval-episodes": "--eval-freq-episodes (for --evaluate: --eval-episodes)",
+    "--partial-reset": "nothing: training always auto-resets finished envs",
+    "--no-partial-reset": "nothing: training always auto-resets finished envs",
 }
-"""the budget and guard fields a trainer may have, and their units"""
+"""flags that are gone, and what takes their place: given, they end the command line with one line naming it"""
+
+
+def check_renamed(argv: list[str]) -> None:
+    """A :class:`UsageError` naming the flag that replaced a removed one in ``argv``."""
+    for a in argv:
+        name = a.split("=", 1)[0]
+        if name in RENAMED:
+            raise UsageError(f"{name} was removed; use {RENAMED[name]}")
 
 
 def check_budget(args) -> None:
     """ValueError naming the flag when a budget or guard is zero or negative: such a run would train nothing, write
-    a checkpoint and exit 0, which reads as success to whoever chains runs."""
+    a checkpoint and exit 0, which reads as success to whoever chains runs; so too for a selection that cannot
+    run (its episodes are budgeted time)."""
     for name, unit in BUDGET_FLAGS.items():
         value = getattr(args, name, None)
         if value is not None and not value > 0:
             flag = "--" + name.replace("_", "-")
             raise ValueError(f"{flag} must be a positive number of {unit}, got {value}")
+    episodes, freq = getattr(args, "select_episodes", 0), getattr(args, "select_freq", 1)
+    if episodes < 0 or freq < 1:
+        raise ValueError(f"--select-episodes must be >= 0 and --select-freq >= 1, got {episodes} and {freq}")
 
 
 def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, one_line: bool = False) -> A:
@@ -167,6 +190,7 @@ def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, on
     ``--total-env-steps``) overrides it. A zero or negative budget is a ValueError (:func:`check_budget`), and so,
     with ``one_line``, is tyro's own parse error (else its panel and exit 2)."""
     argv = sys.argv[1:] if argv is None else argv
+    check_renamed(argv)
     parse = _parse if one_line else (lambda t, a, **kw: tyro.cli(t, args=a, **kw))
     resume = _flag(argv, "--resume")
     if resume is None or resume == "None":
@@ -190,6 +214,7 @@ def entry(
         if recipes:
             args = cli(args_type, module, argv, one_line=True)
         else:
+            check_renamed(argv)
             args = _parse(args_type, argv)
             check_budget(args)
     except (ValueError, FileNotFoundError) as e:

@@ -245,6 +245,26 @@ def make_envs(
     return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
 
 
+def labelled_envs(args, num_envs: int):
+    """:func:`make_envs` for a run's arguments: its task, observation (less ``obs_without``), action frame,
+    backend and ``env_kwargs``, with its ``reward_mode``, auxiliary targets (``aux_weight`` > 0) and ``teacher``
+    where its trainer has those flags."""
+    env_kwargs = dict(args.env_kwargs)
+    if hasattr(args, "reward_mode"):
+        env_kwargs["reward_mode"] = args.reward_mode
+    return make_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=args.backend,
+        action_frame=args.action_frame,
+        obs_without=args.obs_without,
+        aux=getattr(args, "aux_weight", 0) > 0,
+        env_kwargs=env_kwargs,
+        teacher=getattr(args, "teacher", None),
+    )
+
+
 def one_thread_beside_workers(envs):
     """``envs``, with this process on one torch thread when they are CPU workers: the learner's small per-step
     ops run beside the stepping workers, and more threads only spin against them (a phase the workers sit out,
