@@ -1,18 +1,8 @@
-"""The flags every trainer shares (``RunArgs``): the task, the seed, the budget, the held-out
-evaluation, the device and env backend, where runs go, resuming and evaluating a checkpoint, and the loggers.
-
-``--backend``: ``gpu`` is ManiSkill's GPU-batched physx_cuda env (``--num-envs`` in one process); ``cpu`` is
-``--num-envs`` worker processes (1: one env in this process); ``auto`` picks gpu when CUDA is available.
-``--resume`` continues a run: networks, optimisers, data, counters and RNG, the budget counting the env steps
-(and the guard the time) already spent. ``--total-env-steps`` is the budget, since a host's speed moves several-fold
-and a minute budget measures the machine; ``--max-minutes`` (``--budget-min``, its old name) only guards the wall
-clock. A zero or negative budget is refused (:func:`check_budget`); from the command line in one line, exit status 2
-(:func:`entry`).
+"""The flags every trainer shares (``RunArgs``: task, seed, the env-step budget and its wall guard, evaluation,
+selection, backend, run folder, resume, loggers), ``--recipe`` expansion, and the command line's end: a flag that
+cannot run, or one that was removed (:data:`RENAMED`), is one line on stderr and exit status 2 (:func:`entry`).
 Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs another one.
-
-``--recipe NAME`` (:func:`cli`) runs a named recipe of ``maniskill_irb120/recipes.py``, the one place recipes are
-written: its flags for the task of ``--env-id`` (the task's own additions included) go first and the command
-line's after them, so an explicit flag overrides the recipe's (the last of a repeated flag wins)."""
+See docs/training.md."""
 
 from __future__ import annotations
 
@@ -143,30 +133,43 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
             f"{', '.join(valid)}"
         )
     env = _flag(argv, "--env-id") or env_id
-    return [*seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed), *argv]
+    return [*map(current_name, seeded(recipe_flags(name, env), _flag(argv, "--seed") or seed)), *argv]
+
+
+RENAMED_TO = {"--total-timesteps": "--total-env-steps", "--timesteps": "--total-env-steps", "--out-dir": "--runs-dir"}
+"""the removed flags whose successor takes the same value"""
+
+
+def current_name(token: str) -> str:
+    """A recipe's flag under its current name: recipes are data read by the trainers and the benchmarks alike, so a
+    plain rename (:data:`RENAMED_TO`) is applied to them, while a person's command line gets the removal error."""
+    name, eq, value = token.partition("=")
+    return RENAMED_TO.get(name, name) + eq + value if name.startswith("--") else token
 
 
 BUDGET_FLAGS = {"total_env_steps": "env steps", "max_minutes": "minutes", "budget_min": "minutes"}
 """the budget and guard fields, and their units"""
 
 RENAMED = {
-    "--total-timesteps": "--total-env-steps",
-    "--timesteps": "--total-env-steps",
-    "--out-dir": "--runs-dir",
-    "--max-wall-s": "--max-minutes (in minutes)",
-    "--num-eval-episodes": "--eval-freq-episodes (for --evaluate: --eval-episodes)",
-    "--partial-reset": "nothing: training always auto-resets finished envs",
-    "--no-partial-reset": "nothing: training always auto-resets finished envs",
+    "--total-timesteps": "use --total-env-steps",
+    "--timesteps": "use --total-env-steps",
+    "--out-dir": "use --runs-dir",
+    "--max-wall-s": "use --max-minutes (in minutes)",
+    "--num-eval-episodes": "use --eval-freq-episodes (for --evaluate: --eval-episodes)",
+    "--partial-reset": "training always auto-resets finished envs",
+    "--no-partial-reset": "training always auto-resets finished envs",
 }
 """flags that are gone, and what takes their place: given, they end the command line with one line naming it"""
 
 
 def check_renamed(argv: list[str]) -> None:
     """A :class:`UsageError` naming the flag that replaced a removed one in ``argv``."""
-    for a in argv:
+    for i, a in enumerate(argv):
         name = a.split("=", 1)[0]
         if name in RENAMED:
-            raise UsageError(f"{name} was removed; use {RENAMED[name]}")
+            raise UsageError(f"{name} was removed; {RENAMED[name]}")
+        if a.startswith("--evaluate=") or (a == "--evaluate" and i + 1 < len(argv) and not argv[i + 1].startswith("-")):
+            raise UsageError("--evaluate takes no value; name the checkpoint with --checkpoint PATH")
 
 
 def check_budget(args) -> None:
