@@ -1,39 +1,11 @@
-"""DAgger with DART noise: imitation that recovers from its own mistakes, from state or from the RGB-D camera.
+"""DAgger with DART noise, from state or from the RGB-D camera: round 0 records the noisy scripted expert, every
+later round the learner (mixed with the expert by a decaying beta), the reactive expert (or ``--teacher``, a trained
+state policy) labelling each state it reached; the policy trains on the aggregated dataset. This file is DAgger's
+part only (:class:`DAgger`); the run around it is agents.common.loop's. See docs/training.md.
 
-Round 0 rolls the scripted expert out with Gaussian noise on the executed arm actions (DART, Laskey et al.
-2017) and records the expert's *clean* action for every visited state. Every later round rolls the learner out
-(mixed with the expert with probability beta, decaying), and the reactive expert (its phase read from the
-state, ``maniskill_irb120.experts.pick_place``) labels each state the learner reached; the labels join one aggregated
-dataset and the policy is trained further on all of it. The labels come from a wrapper inside each env
-worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
-proprioception, no privileged state) while the expert reads the simulator.
-
-``--teacher CKPT`` puts a trained state policy in the expert's place (:class:`agents.common.envs.TeacherLabels`):
-it acts on the privileged state while the learner reads its own observation, so a camera policy can be distilled
-from a state policy that learned from the reward alone, with no scripted expert anywhere (teacher–student).
-
-The action frame: ``world`` rotates the policy's translation from world axes into the tool action
-(``maniskill_irb120.wrappers.WorldFrameToolAction``), learnable from state; ``tool`` is the raw tool-frame action,
-the hand camera's axes, where an image offset is a tool-frame offset: learnable from rgbd. ``--obs-without
-agent/qvel`` hides the joint speeds a real IRB 120 does not report (sim2real-eval hides the same). The camera
-encoder ``keypoints`` (``maniskill_irb120.policies.nets.KeypointCNN``) gives image coordinates of learned
-features, for the cube's precise position. ``--initial-updates`` sizes round 0's fit: the first learner's
-rollouts are only as informative as it. ``--aux-weight``: the policy's features also predict the object's
-position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
-policy never sees it); from the camera it makes the encoder find the cube.
-
-    python -m agents.dagger --recipe dagger-state --total-env-steps 205835       # the committed runs' env steps
-    python -m agents.dagger --recipe dagger-rgbd --total-env-steps 158615        # the camera recipe, CPU
-    python -m agents.dagger --recipe dagger-rgbd-bf16 --total-env-steps 115183   # bf16 encoder: the hour's env steps
-    python -m agents.dagger --recipe dagger-rgbd --backend gpu --num-envs 32 --device cuda   # GPU-batched envs
-    python -m agents.dagger --recipe dagger-rgbd-bf16 --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
-    python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
+    python -m agents.dagger --recipe dagger-state --total-env-steps 205835
+    python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
-
-The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
-With ``--select-episodes N`` the held-out episodes score ``checkpoints/best.pt``, the policy that did best on N
-validation seeds every ``--select-freq`` rounds and at the end (the JSON's ``checkpoint``; ``last_checkpoint`` is
-what ``--resume`` continues), as ``agents.ppo``'s selection does: a student can end below the best it reached.
 """
 
 from __future__ import annotations

@@ -302,10 +302,9 @@ def bootstrap_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
 def succeeded_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
     """Envs whose episode just ended in success: with ``--absorbing-success`` their final observation is worth
     the absorbing state's ``reward_scale / (1 - gamma)``. Nothing follows a success in training, so the critic's
-    estimate there is a guess; on TableClearing it valued the delivered state below holding the object at its
-    place, and letting go looked worse than holding on (benchmarks/RESULTS.md, "RL from the reward alone").
-    A delivery in the step that collides is a failure (the reward pays 0 and :func:`bootstrap_mask` gives it no
-    future), so it is not absorbing either."""
+    estimate there is a guess, and a guess below holding the object makes letting go look worse than holding on
+    (docs/notes/rl-from-the-reward.md). A delivery in the step that collides is a failure (the reward pays 0 and
+    :func:`bootstrap_mask` gives it no future), so it is not absorbing either."""
     return terminated_with(info, term, "success") & bootstrap_mask(info, term)
 
 

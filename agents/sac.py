@@ -1,36 +1,11 @@
-"""SAC with demonstrations in the RLPD style (Ball et al. 2023), from state or from the RGB-D camera.
+"""SAC with demonstrations in the RLPD style (Ball et al. 2023), from state or from the RGB-D camera: expert demos
+in a buffer every minibatch draws ``--demo-ratio`` from, LayerNorm critics, an actor cloned from DART-noise demos and
+kept near a frozen reference (IBRL, arXiv 2311.02198), a delivery absorbing at the maximum reward. This file is
+SAC's part only (:class:`SACRun`); the run around it is agents.common.loop's. See docs/training.md.
 
-RLPD's recipe, sized for a 2-core CPU: the reactive expert's episodes seed a demo buffer; every minibatch
-draws ``--demo-ratio`` of its samples from it ("symmetric sampling"); LayerNorm critics (clipped double Q)
-keep the Q-values bounded when updates outrun data (``--updates-per-step``). Against the wash-out IBRL
-(arXiv 2311.02198) describes — a fresh critic drags a cloned actor away from the demos before it knows better
-— the actor is first cloned from DART-noise demos, the critic then warms up alone on them and on the clone's
-own rollouts (``--actor-delay``), the frozen clone acts and bootstraps wherever the critic values its action
-above the actor's (IBRL's reference policy, ``--reference``), and the actor loss keeps cloning terms toward
-the demo labels and the clone (``--bc-weight``, ``--reference-weight``, TD3+BC-style). A delivery is absorbing
-at the maximum reward. The policy acts in world axes (``WorldFrameToolAction``, like agents.dagger) on the
-staged ``normalized_dense`` reward. ``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0
---bc-weight 0`` is plain SAC.
-
-Why the pieces are there: the demos carry DART noise on their executed arm actions, so the clone also learns to
-recover from the states noise leads to (clean demos cloned to a policy that collided). The cloning fits the
-policy's std to ``--init-std`` too: the untrained std head gives about unit noise, which turns a cloned actor
-into a colliding one in its first online episodes. Without the reference (``--reference``) the actor leaves the
-clone as soon as it learns and its training success collapses; ``--reference-weight`` keeps it near the clone on
-online states too, where the demo term does not reach. ``--actor-delay``: a critic warmed up on the demos alone
-has never seen another action, and an actor that follows it at once collides. ``--init-alpha`` starts small:
-a larger entropy bonus widens the cloned policy's std faster than the temperature falls. ``--buffer-size``
-defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would
-ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
-policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
-
-    python -m agents.sac --recipe sac-state --total-env-steps 49726   # the committed runs' env steps (recipes.py)
-    python -m agents.sac --obs state --total-env-steps 49726 --max-minutes 30   # with a wall-clock guard
-    python -m agents.sac --obs rgbd --max-minutes 120 --buffer-size 100000      # no env-step budget: the clock's
+    python -m agents.sac --recipe sac-state --total-env-steps 49726
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
     python -m agents.sac --obs state --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
-
-The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
-"""What every trainer in ``agents/`` shares besides the policy networks (those live in the library,
-``maniskill_irb120.policies``): the common flags and ``--recipe`` (``args``), the envs and observation layout
-(``envs``), the replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
-evaluation every recipe is scored on (``evaluation``), the loggers (``logging``), mixed precision (``precision``)
-and the frame of a run: its folder, resume, budget clock, checkpoint and final evaluation (``run``). It may import
-the library ``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
-``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
+"""What every trainer in ``agents/`` shares besides the policy networks (those live in ``maniskill_irb120.policies``):
+flags, envs, replay storage, checkpoints, evaluation, loggers, precision and the one training loop (``loop``). It may
+import the library and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``, ``agents.dagger``,
+``agents.rllib``): trainers import it and the library, never each other. See docs/training.md."""
 
 from agents.common.args import RunArgs, check_budget, cli, entry, recipe_argv
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset

@@ -1,6 +1,6 @@
 """The envs trainers collect from and the observations they read: every trainer's vector envs (:func:`vec_envs`),
 batched torch obs as a dict, devices, the policy's action-frame wrappers, and the labelled vector envs of the
-imitation and demo-seeded trainers (:func:`make_envs`)."""
+imitation and demo-seeded trainers (:func:`make_envs`). See docs/training.md."""
 
 from __future__ import annotations
 

@@ -1,15 +1,7 @@
-"""The frame of a training run, the same for every trainer, so that a trainer file keeps only its algorithm: where
-the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`) and when the budget
-stops training (:class:`Budget`), the checkpoint's common part and its restore (:func:`checkpoint`,
-:func:`restore`, :func:`check_resume_signature`), the last checkpoint however training ends
-(:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`) and the run's last word
-(:func:`evaluate_and_finish`).
-
-The budget is env steps (``--total-env-steps``), the same for every trainer, since the host's speed moves several-fold
-and a minute budget measures the machine; ``--max-minutes`` is a guard on the wall clock. Both span ``--resume``: the
-env steps are the checkpoint's counters, and the clock counts the seconds trained before the resume (the
-checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so a resumed run stops
-where an uninterrupted one would have."""
+"""The pieces of a run every trainer's loop (agents.common.loop) is made of: its folder and resume
+(:func:`open_run`), the budget clock (:class:`Clock`) and when the budget stops training (:class:`Budget`: env steps,
+``--total-env-steps``, with ``--max-minutes`` a guard; both span a ``--resume``), the checkpoint's common part and its
+restore, the last save however training ends, and the held-out evaluation that ends the run. See docs/training.md."""
 
 from __future__ import annotations
 
