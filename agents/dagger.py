@@ -24,6 +24,7 @@ import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents.common import (
     AUX_DIM,
     EVAL_SEED,
+    Clock,
     Dataset,
     EpisodeTracker,
     RunArgs,
@@ -406,7 +407,7 @@ class DAgger(Algorithm):
 
 def train(args: Args) -> dict:
     check_args(args)
-    return loop.run(DAgger(args), args)
+    return loop.run(DAgger(args), Clock)
 
 
 def main(args: Args) -> dict:

@@ -549,7 +549,8 @@ class PPO(Algorithm):
 
     def start(self) -> None:
         self.first_iteration = self.counters["iteration"]
-        self.iterations = -(-env_step_budget(self.args) // self.args.batch_size)  # the last starts below the budget
+        total = env_step_budget(self.args)
+        self.iterations = -(-total // self.args.batch_size) if total else None  # the last starts below the budget
         next_obs, _ = self.envs.reset(seed=self.args.seed + self.counters["iteration"])
         self.rollout = Rollout(self.envs, obs_to(flatten_obs(next_obs), self.device), self.args, self.device)
         self.t_start = time.perf_counter()
@@ -638,7 +639,7 @@ class PPO(Algorithm):
 def train(args: Args) -> dict:
     """A PPO run; its result also carries every iteration's scalars (``history``, not in summary.json)."""
     ppo = PPO(args)
-    result = loop.run(ppo, args, Clock)
+    result = loop.run(ppo, Clock)
     result["history"] = ppo.history
     return result
 
@@ -676,6 +677,8 @@ def main(args: Args) -> dict:
         )
     if not args.evaluate and args.checkpoint is not None:
         raise ValueError("--checkpoint is what --evaluate reads; a new run starts from a checkpoint with --init-policy")
+    if args.anneal_lr and args.total_env_steps is None:
+        raise ValueError("--anneal-lr anneals the learning rate over --total-env-steps: give it")
     if args.absorbing_success and args.reward_mode != "normalized_dense":
         raise ValueError(
             f"--absorbing-success values success at 1 a step, the normalized_dense reward's; --reward-mode is "

@@ -22,6 +22,7 @@ from mani_skill.utils.registration import REGISTERED_ENVS
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents.common import (
     EVAL_SEED,
+    Clock,
     Dataset,
     EpisodeTracker,
     RunArgs,
@@ -486,7 +487,7 @@ class SACRun(Algorithm):
 
 
 def train(args: Args) -> dict:
-    return loop.run(SACRun(args), args)
+    return loop.run(SACRun(args), Clock)
 
 
 def main(args: Args) -> dict:

@@ -98,9 +98,10 @@ class Algorithm:
         """Anything besides the training envs (PPO's periodic evaluation envs)."""
 
 
-def run(algo: Algorithm, args: RunArgs, clock_type: type[Clock] = Clock) -> dict:
-    """Trains ``algo`` under ``args`` and returns the run's last word (also ``summary.json``). The budget's clock
+def run(algo: Algorithm, clock_type: type[Clock] = Clock) -> dict:
+    """Trains ``algo`` under its ``args`` and returns the run's last word (also ``summary.json``). The budget's clock
     (a ``clock_type``) starts once the envs are built and counts the seconds trained before a ``--resume``."""
+    args = algo.args
     saved, run_dir = open_run(args, algo.prefix, algo.read)
     algo.run_dir = run_dir
     envs = algo.build(saved)
@@ -149,18 +150,21 @@ def run(algo: Algorithm, args: RunArgs, clock_type: type[Clock] = Clock) -> dict
             close_and_save(bar, envs, counters, clock, lambda c: algo.save(ckpt_dir / "latest.pt", c))
         finally:
             algo.close()
-    extra = dict(algo.summary(), checkpoint=str(ckpt_dir / "latest.pt"))
-    if args.select_episodes and counters.get("best") is not None:
-        # the held-out episodes score the selected weights; --resume continues from the last ones
-        algo.load_selected(ckpt_dir / "best.pt")
-        extra.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
-        extra["selected"] = dict(
-            algo.selected(counters["best"]),
-            validation_success_rate=counters["best"]["score"][0],
-            validation_episodes=args.select_episodes,
-        )
+    extra = dict(algo.summary(), **scored_checkpoint(algo, ckpt_dir))
     evaluate = (lambda: algo.evaluate(args)) if args.eval_episodes > 0 else dict  # 0: no held-out evaluation
     return evaluate_and_finish(evaluate, logger, counters, run_dir, **extra, **budget.report())
+
+
+def scored_checkpoint(algo: Algorithm, ckpt_dir: Path) -> dict:
+    """What the held-out episodes score, loaded into ``algo``: with selection, the selected weights (``best.pt``;
+    ``--resume`` continues from the last ones, ``latest.pt``), else the last; the summary's keys saying so."""
+    best = algo.counters.get("best")
+    if not (algo.args.select_episodes and best is not None):
+        return dict(checkpoint=str(ckpt_dir / "latest.pt"))
+    algo.load_selected(ckpt_dir / "best.pt")
+    selected = dict(algo.selected(best), validation_success_rate=best["score"][0])
+    selected["validation_episodes"] = algo.args.select_episodes
+    return dict(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"), selected=selected)
 
 
 def select(algo: Algorithm, counters: dict, clock: Clock, budget: Budget, ckpt_dir: Path) -> None:

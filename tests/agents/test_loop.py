@@ -75,7 +75,7 @@ def args(tmp_path: Path, **kw) -> Args:
 
 def test_the_budget_in_env_steps_ends_training_and_the_summary_says_so(tmp_path):
     toy = Toy(args(tmp_path, total_env_steps=35), {})
-    result = loop.run(toy, toy.args)
+    result = loop.run(toy)
     assert result["env_steps"] == 40 and result["weight"] == 4  # a step starts while fewer than 35 are done
     assert result["total_env_steps"] == 35 and result["stopped_early"] is False
     assert toy.envs.closed and toy.evaluated == [(4, 3)]  # the held-out episodes score the last weights
@@ -86,7 +86,7 @@ def test_the_budget_in_env_steps_ends_training_and_the_summary_says_so(tmp_path)
 
 def test_selection_keeps_the_best_validation_and_the_held_out_episodes_score_it(tmp_path):
     toy = Toy(args(tmp_path, total_env_steps=40, select_episodes=2, select_freq=1), {1: 0.2, 2: 0.9, 3: 0.5})
-    result = loop.run(toy, toy.args)
+    result = loop.run(toy)
     assert [w for w, n in toy.evaluated if n == 2] == [1, 2, 3, 4]  # validated after every step
     assert toy.evaluated[-1] == (2, 3)  # the selected weights, not the last (4)
     assert result["selected"] == dict(
@@ -97,10 +97,10 @@ def test_selection_keeps_the_best_validation_and_the_held_out_episodes_score_it(
 
 def test_resume_continues_the_counters_and_the_weights(tmp_path):
     first = Toy(args(tmp_path, total_env_steps=20), {})
-    loop.run(first, first.args)
+    loop.run(first)
     latest = tmp_path / "t" / "checkpoints" / "latest.pt"
     again = Toy(args(tmp_path, total_env_steps=50, resume=latest), {})
-    result = loop.run(again, again.args)
+    result = loop.run(again)
     assert result["env_steps"] == 50 and result["weight"] == 5
 
 

@@ -366,7 +366,8 @@ def test_a_run_stopped_by_its_budget_validates_its_last_weights_once(tmp_path, m
         return {"success_rate": 0.0, "return": 0.0}
 
     monkeypatch.setattr(ppo, "final_evaluation", scripted)
-    kw = dict(obs="state", state_net="mlp", select_episodes=1, total_env_steps=10**6, max_minutes=2.0 / 60, eval_episodes=0)
+    kw = dict(obs="state", state_net="mlp", select_episodes=1, total_env_steps=10**6, max_minutes=2 / 60)
+    kw["eval_episodes"] = 0
     every = run(tmp_path / "every", select_freq=1, **kw)  # each iteration validated: the stop adds none
     assert every["iterations"] >= 1 and validated.count(VALIDATION_SEED) == every["iterations"]
     validated.clear()
