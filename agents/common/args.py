@@ -265,11 +265,13 @@ def resumed_args(args_type: type[A], path: Path) -> A:
     """The arguments the run whose checkpoint is ``path`` was started with (every trainer's checkpoint keeps them,
     as JSON: ``agents.common.run.checkpoint``), as ``args_type``; a field the checkpoint predates keeps its default.
     A missing file, or one without arguments, is refused by name."""
-    from agents.common.checkpoints import read_checkpoint
+    from agents.common.checkpoints import migrate, read_checkpoint
 
     if not path.is_file():
         raise FileNotFoundError(f"--resume: checkpoint {path} does not exist")
     saved = read_checkpoint(path)
+    if isinstance(saved, dict) and "format" in saved:
+        migrate(saved)
     saved = saved.get("args") if isinstance(saved, dict) else None
     if not isinstance(saved, dict):
         raise ValueError(f"--resume {path}: the file holds no run arguments (not a trainer's latest.pt?)")

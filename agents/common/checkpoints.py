@@ -42,16 +42,25 @@ PPO_SIGNATURE_V1 = dict(residual=False, state_net="shared", obs_norm=False, logs
 
 def migrate(ckpt: dict) -> dict:
     """``ckpt`` (a trainer's checkpoint, any version) in the current layout, changed in place and returned.
-    Version 1 to 2: the run's ``args`` always present; PPO's step counter is ``env_steps`` as every trainer's
-    (its ``global_step`` renamed, in the selected checkpoint's record too), its signature lists every option
-    and its args name the action frame (``tool``, the only one then)."""
+    Version 1 to 2: the run's ``args`` always present, under the flags' current names (``--resume`` reads them);
+    PPO's step counter is ``env_steps`` as every trainer's (its ``global_step`` renamed, in the selected
+    checkpoint's record too), its signature lists every option and its args name the action frame (``tool``, the
+    only one then)."""
     version = ckpt.get("format_version", 1)
     if version > FORMAT_VERSION:
         raise ValueError(f"checkpoint format_version {version} is newer than this code's {FORMAT_VERSION}")
     if version < 2:
-        ckpt.setdefault("args", {})
+        args = ckpt.setdefault("args", {})
+        if args.get("total_env_steps") is None and args.get("total_timesteps") is not None:
+            args["total_env_steps"] = args["total_timesteps"]
+        if args.get("max_minutes") is None and args.get("budget_min") is None and args.get("max_wall_s") is not None:
+            args["max_minutes"] = args["max_wall_s"] / 60
+        if "num_eval_episodes" in args:
+            args["eval_freq_episodes"] = args["num_eval_episodes"]
+        for gone in ("total_timesteps", "max_wall_s", "num_eval_episodes", "partial_reset"):
+            args.pop(gone, None)
         if ckpt.get("format") == PPO_FORMAT:
-            ckpt["signature"] = dict(PPO_SIGNATURE_V1, **ckpt["signature"])
+            ckpt["signature"] = dict(PPO_SIGNATURE_V1, **ckpt.get("signature", {}))
             ckpt["args"].setdefault("action_frame", "tool")
             counters = ckpt.get("counters", {})
             if "global_step" in counters:

@@ -109,8 +109,11 @@ def test_migrate_brings_a_version_1_ppo_checkpoint_up_to_date():
         format="maniskill_irb120.ppo/1",
         signature=dict(image_shape=None, state_dim=3, action_dim=5),
         counters=dict(global_step=16, iteration=1, best=dict(score=[1.0, 2.0], iteration=1, global_step=16)),
+        args=dict(total_env_steps=None, total_timesteps=20_000, max_wall_s=90.0, budget_min=None, partial_reset=True),
     )
     new = migrate(old)
+    assert new["args"]["total_env_steps"] == 20_000 and new["args"]["max_minutes"] == 1.5
+    assert "total_timesteps" not in new["args"] and "partial_reset" not in new["args"]
     assert new["format_version"] == FORMAT_VERSION and new["args"]["action_frame"] == "tool"
     assert new["counters"]["env_steps"] == 16 and "global_step" not in new["counters"]
     assert new["counters"]["best"]["env_steps"] == 16

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from agents.common import cli, recipe_argv
+from agents.common.args import current_name
 from maniskill_irb120.recipes import BASES, RECIPES, TASK_FLAGS, recipe_flags, seeded
 
 REPO = Path(__file__).resolve().parents[2]
@@ -24,7 +25,8 @@ def parsed(module: str, argv: list[str]):
 def test_every_single_stage_recipe_parses_on_its_trainer_as_its_flags_do(name):
     module = RECIPES[name].module
     by_name = parsed(module, ["--recipe", name, "--seed", "2"])
-    by_hand = parsed(module, [*seeded(recipe_flags(name, "TableClearing-IRB120-v1"), 2), "--seed", "2"])
+    flags = map(current_name, seeded(recipe_flags(name, "TableClearing-IRB120-v1"), 2))
+    by_hand = parsed(module, [*flags, "--seed", "2"])
     assert by_name.recipe == name and by_name.obs == RECIPES[name].obs
     assert {**vars(by_name), "recipe": None} == {**vars(by_hand), "recipe": None}
 
