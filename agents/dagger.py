@@ -1,46 +1,18 @@
-"""DAgger with DART noise: imitation that recovers from its own mistakes, from state or from the RGB-D camera.
+"""DAgger with DART noise, from state or from the RGB-D camera: round 0 records the noisy scripted expert, every
+later round the learner (mixed with the expert by a decaying beta), the reactive expert (or ``--teacher``, a trained
+state policy) labelling each state it reached; the policy trains on the aggregated dataset. This file is DAgger's
+part only (:class:`DAgger`); the run around it is agents.common.loop's. See docs/training.md.
 
-Round 0 rolls the scripted expert out with Gaussian noise on the executed arm actions (DART, Laskey et al.
-2017) and records the expert's *clean* action for every visited state. Every later round rolls the learner out
-(mixed with the expert with probability beta, decaying), and the reactive expert (its phase read from the
-state, ``maniskill_irb120.experts.pick_place``) labels each state the learner reached; the labels join one aggregated
-dataset and the policy is trained further on all of it. The labels come from a wrapper inside each env
-worker (:class:`ExpertLabels`), so the learner acts on the observation it is given (``rgbd``: camera and
-proprioception, no privileged state) while the expert reads the simulator.
-
-``--teacher CKPT`` puts a trained state policy in the expert's place (:class:`agents.common.envs.TeacherLabels`):
-it acts on the privileged state while the learner reads its own observation, so a camera policy can be distilled
-from a state policy that learned from the reward alone, with no scripted expert anywhere (teacher–student).
-
-The action frame: ``world`` rotates the policy's translation from world axes into the tool action
-(``maniskill_irb120.wrappers.WorldFrameToolAction``), learnable from state; ``tool`` is the raw tool-frame action,
-the hand camera's axes, where an image offset is a tool-frame offset: learnable from rgbd. ``--obs-without
-agent/qvel`` hides the joint speeds a real IRB 120 does not report (sim2real-eval hides the same). The camera
-encoder ``keypoints`` (``maniskill_irb120.policies.nets.KeypointCNN``) gives image coordinates of learned
-features, for the cube's precise position. ``--initial-updates`` sizes round 0's fit: the first learner's
-rollouts are only as informative as it. ``--aux-weight``: the policy's features also predict the object's
-position relative to the TCP and the grasp yaw error (privileged state, read in the workers, training only; the
-policy never sees it); from the camera it makes the encoder find the cube.
-
-    python -m agents.dagger --recipe dagger-state --total-env-steps 205835       # the committed runs' env steps
-    python -m agents.dagger --recipe dagger-rgbd --total-env-steps 158615        # the camera recipe, CPU
-    python -m agents.dagger --recipe dagger-rgbd-bf16 --total-env-steps 115183   # bf16 encoder: the hour's env steps
-    python -m agents.dagger --recipe dagger-rgbd --backend gpu --num-envs 32 --device cuda   # GPU-batched envs
-    python -m agents.dagger --recipe dagger-rgbd-bf16 --teacher runs/PPO_RUN/checkpoints/best.pt  # teacher–student
-    python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt    # continue where it stopped
+    python -m agents.dagger --recipe dagger-state --total-env-steps 205835
+    python -m agents.dagger --resume runs/NAME/checkpoints/latest.pt
     python -m agents.dagger --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
-
-The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
-With ``--select-episodes N`` the held-out episodes score ``checkpoints/best.pt``, the policy that did best on N
-validation seeds every ``--select-freq`` rounds and at the end (the JSON's ``checkpoint``; ``last_checkpoint`` is
-what ``--resume`` continues), as ``agents.ppo``'s selection does: a student can end below the best it reached.
 """
 
 from __future__ import annotations
 
 import time
 from collections import defaultdict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -49,43 +21,36 @@ import torch
 import torch.nn.functional as F
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
-from agents import common
 from agents.common import (
     AUX_DIM,
     EVAL_SEED,
-    VALIDATION_SEED,
-    Budget,
     Clock,
     Dataset,
     EpisodeTracker,
-    Logger,
     RunArgs,
     atomic_save,
     autocast,
     check_budget,
     check_resume_signature,
     checkpoint,
-    close_and_save,
     entry,
-    env_step_budget,
-    evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
     held_out_evaluation,
+    labelled_envs,
     load_for_evaluation,
     load_torch,
+    loop,
     obs_to,
-    open_run,
     prune_row_files,
     resolve_device,
     resolve_precision,
-    restore,
     restore_dataset,
     shapes_of,
     torch_threads,
     train_seed,
-    wall_guard_s,
 )
+from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
 from maniskill_irb120.policies.nets import DeterministicActor, random_shift
 
@@ -143,31 +108,14 @@ class Args(RunArgs):
     """a trained state policy (an agents.ppo, agents.sac or agents.dagger checkpoint, or an exported policy, of this
     task and control mode, obs state) labels the states in place of the scripted expert: teacher–student, the camera
     student imitating a teacher that learned from the reward alone"""
-    select_episodes: int = 0
-    """checkpoint selection: every --select-freq rounds and at the end, the policy on this many validation seeds
-    (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out evaluation scores it
-    instead of the last weights (0: no selection). Its episodes count in the wall guard (--max-minutes)"""
-    select_freq: int = 25
-    """rounds between two checkpoint-selection evaluations"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the encoder in the updates: bf16 autocast (its convolutions about twice as fast on a CPU with native bf16;
     weights, heads, losses and checkpoints stay fp32; agents/common/precision.py), fp32, or auto (bf16 on a
     CPU with native bf16, else fp32)"""
 
 
-def make_envs(args: Args, num_envs: int):
-    """The labelled envs of this run (its obs, frame, hidden keys and, with --aux-weight, auxiliary targets)."""
-    return common.make_envs(
-        args.env_id,
-        args.obs,
-        num_envs,
-        backend=args.backend,
-        action_frame=args.action_frame,
-        obs_without=args.obs_without,
-        aux=args.aux_weight > 0,
-        env_kwargs=args.env_kwargs,
-        teacher=args.teacher,
-    )
+make_envs = labelled_envs
+"""this run's envs, each state labelled (agents.common.envs.labelled_envs)"""
 
 
 def collect(envs, state: dict, policy, data: Dataset, episodes: int, beta: float, noise: float, device) -> dict:
@@ -293,20 +241,6 @@ def write(path: Path, policy, counters: dict, args: Args, **state) -> None:
     atomic_save(checkpoint(FORMAT, args, counters, model=model, signature=signature, policy=section, **state), path)
 
 
-def select_checkpoint(policy, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
-    """Scores the policy on the validation seeds and keeps it as ``best.pt`` when it beats the best so far (success
-    rate, then mean return). A camera student tracks its teacher's labels with a few millimetres of error, and which
-    round's weights turn that into the fewest contacts is measured here, not assumed to be the last."""
-    v = final_evaluation(policy, replace(args, eval_episodes=args.select_episodes, progress=False), device, None,
-                         first_seed=VALIDATION_SEED)  # fmt: skip
-    logger.scalars({f"select/{k}": v[k] for k in ("success_rate", "return") if k in v}, counters["env_steps"])
-    score = [v.get("success_rate", 0.0), v["return"]]
-    best = counters.get("best")
-    if best is None or score > best["score"]:
-        counters["best"] = dict(score=score, round=counters["round"], env_steps=counters["env_steps"])
-        save_selected(ckpt_dir / "best.pt", policy, counters, args)
-
-
 def load_policy(path: Path, device) -> tuple[DeterministicActor, dict]:
     """A trained DAgger policy (eval mode) and its checkpoint dict."""
     ckpt = load_for_evaluation(path, FORMAT, "agents.dagger", "dagger")
@@ -356,138 +290,124 @@ def check_args(args: Args) -> None:
         raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
-    if args.select_episodes < 0 or args.select_freq < 1:
-        raise ValueError(
-            f"--select-episodes must be >= 0 and --select-freq >= 1, got {args.select_episodes} and {args.select_freq}"
-        )
+
+
+class DAgger(Algorithm):
+    """DAgger's part of a run (agents.common.loop): a step is a round, its episodes labelled and the policy trained
+    further on the aggregated dataset. Round 0 (the noisy expert's episodes) runs whatever the budget: no learner
+    exists before it, and its time is no estimate of a learner's round."""
+
+    name, prefix, default_minutes, step_key = "dagger", "dagger__", 60.0, "round"
+
+    def __init__(self, args: Args):
+        super().__init__(args)
+        self.counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
+        self.device = resolve_device(args.device)
+        self.precision = resolve_precision(args.precision, self.device)
+        self.rows = None  # the manifest of the dataset's row files on disk
+
+    def read(self, path: Path) -> dict:
+        saved = load_torch(path, FORMAT, "agents.dagger")
+        if "optimizer" not in saved:  # refused before any env worker starts
+            raise ValueError(
+                f"--resume {path} holds a selected policy (best.pt), not a run to continue: resume from the run's "
+                "checkpoints/latest.pt"
+            )
+        return saved
+
+    def build(self, saved: Optional[dict]):
+        args, device = self.args, self.device
+        self.learner_threads = torch.get_num_threads()  # before CPU workers claim the cores (make_envs: one thread)
+        self.envs = envs = make_envs(args, args.num_envs)
+        action_dim = int(np.prod(envs.single_action_space.shape))
+        self.policy = policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
+        if args.init_policy is not None:
+            try:
+                policy.load_state_dict(initial_weights(args, policy))
+            except BaseException:
+                envs.close()
+                raise
+        self.aux_head = aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
+        params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
+        self.optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
+        self.data = Dataset(args.capacity)
+        if saved is not None:
+            check_resume_signature(saved, policy.signature(), args.resume)
+            if (saved.get("aux_head") is None) != (aux_head is None):
+                raise ValueError(
+                    f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0"
+                )
+            policy.load_state_dict(saved["model"])
+            if aux_head is not None:
+                aux_head.load_state_dict(saved["aux_head"])
+            self.optimizer.load_state_dict(saved["optimizer"])
+            self.rows = saved.get("data_rows")
+            restore_dataset(self.data, saved, Path(args.resume).parent / "data")
+        return envs
+
+    def start(self) -> None:
+        o, info = self.envs.reset(seed=train_seed(self.args.seed, self.counters["round"] * 1000))
+        self.state = labels(o, info)
+
+    def must_step(self) -> bool:
+        return self.counters["round"] == 0
+
+    def estimates(self) -> bool:
+        return self.counters["round"] > 1
+
+    def step(self, budget) -> dict:
+        args, counters, device, data, policy = self.args, self.counters, self.device, self.data, self.policy
+        r = counters["round"]
+        t0 = time.perf_counter()
+        if r == 0:
+            stats = collect(self.envs, self.state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
+            policy.norm.fit(data.obs["state"][: data.size])
+        else:
+            beta = args.beta * args.beta_decay ** (r - 1)
+            stats = collect(
+                self.envs, self.state, policy, data, args.episodes_per_round, beta, args.learner_noise, device
+            )
+        updates = (args.initial_updates or None) if r == 0 else None
+        with torch_threads(self.learner_threads):  # the workers wait through the updates: every core for them
+            losses = train_round(
+                policy, self.optimizer, data, args, device, budget.out_of_time, self.aux_head, updates, self.precision
+            )
+        counters["round"] = r + 1
+        counters["env_steps"] += stats.pop("steps")
+        counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
+        scalars = {f"train/{k}": v for k, v in stats.items()}
+        scalars.update({f"losses/{k}": v for k, v in losses.items()})
+        scalars.update({"charts/dataset": data.size, "charts/round_s": time.perf_counter() - t0})
+        return scalars
+
+    def postfix(self, scalars: dict) -> dict:
+        loss, success = scalars.get("losses/bc", 0), scalars.get("train/success_rate", 0)
+        return dict(round=self.counters["round"] - 1, data=self.data.size, loss=f"{loss:.4f}", success=f"{success:.2f}")
+
+    def save(self, path: Path, counters: dict) -> None:
+        self.rows = save(path, self.policy, self.optimizer, self.data, counters, self.args, self.aux_head, self.rows)
+
+    def save_periodic(self, ckpt_dir: Path, counters: dict, last: bool) -> None:
+        if counters["round"] % self.args.save_freq == 0:
+            self.save(ckpt_dir / "latest.pt", counters)
+
+    def save_selected(self, path: Path, counters: dict) -> None:
+        save_selected(path, self.policy, counters, self.args)
+
+    def load_selected(self, path: Path) -> None:
+        self.policy.load_state_dict(load_torch(path, FORMAT, "agents.dagger")["model"])
+
+    def evaluate(self, args: Args, video_dir: Optional[Path] = None, first_seed: int = EVAL_SEED) -> dict:
+        return final_evaluation(self.policy, args, self.device, video_dir, first_seed)
+
+    def summary(self) -> dict:
+        c = self.counters
+        return dict(rounds=c["round"], train_episodes=c["episodes"], dataset=self.data.size, precision=self.precision)
 
 
 def train(args: Args) -> dict:
     check_args(args)
-    clock = Clock()
-    saved, run_dir = open_run(args, "dagger__", lambda path: load_torch(path, FORMAT, "agents.dagger"))
-    if saved is not None and "optimizer" not in saved:  # refused before any env worker starts
-        raise ValueError(
-            f"--resume {args.resume} holds a selected policy (best.pt), not a run to continue: resume from the "
-            "run's checkpoints/latest.pt"
-        )
-    device = resolve_device(args.device)
-    precision = resolve_precision(args.precision, device)
-    learner_threads = torch.get_num_threads()  # before CPU workers claim the cores (make_envs: one thread)
-    envs = make_envs(args, args.num_envs)
-    action_dim = int(np.prod(envs.single_action_space.shape))
-    policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
-    if args.init_policy is not None:
-        try:
-            policy.load_state_dict(initial_weights(args, policy))
-        except BaseException:
-            envs.close()
-            raise
-    aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
-    params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
-    optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
-    data = Dataset(args.capacity)
-    rows = None  # the manifest of the dataset's row files on disk
-    counters = dict(round=0, env_steps=0, episodes=0, wall_s=0.0)
-    if saved is not None:
-        check_resume_signature(saved, policy.signature(), args.resume)
-        if (saved.get("aux_head") is None) != (aux_head is None):
-            raise ValueError(f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0")
-        policy.load_state_dict(saved["model"])
-        if aux_head is not None:
-            aux_head.load_state_dict(saved["aux_head"])
-        optimizer.load_state_dict(saved["optimizer"])
-        rows = saved.get("data_rows")
-        restore_dataset(data, saved, Path(args.resume).parent / "data")
-        counters = restore(saved, clock)
-    logger = Logger(run_dir, args, clock)
-    ckpt_dir = run_dir / "checkpoints"
-    elapsed = clock
-    o, info = envs.reset(seed=train_seed(args.seed, counters["round"] * 1000))
-    state = labels(o, info)
-    # without --total-env-steps the run is held to --max-minutes, by default 60 (collection and training together)
-    budget = Budget(
-        wall_guard_s(args, 60.0), elapsed, counters, args.select_episodes > 0, total_env_steps=env_step_budget(args)
-    )
-    bar = budget.bar(args, "dagger")
-    stats = {}
-    try:
-        while True:
-            r = counters["round"]
-            if r > 0 and not budget.next_step_fits():
-                if args.select_episodes and r % args.select_freq:  # else validated already
-                    with budget.validation():
-                        select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
-                break
-            budget.start_step()
-            t0 = time.perf_counter()
-            if r == 0:
-                stats = collect(envs, state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
-                policy.norm.fit(data.obs["state"][: data.size])
-            else:
-                beta = args.beta * args.beta_decay ** (r - 1)
-                stats = collect(envs, state, policy, data, args.episodes_per_round, beta, args.learner_noise, device)
-            updates = (args.initial_updates or None) if r == 0 else None
-            with torch_threads(learner_threads):  # the workers wait through the updates: every core for them
-                losses = train_round(
-                    policy, optimizer, data, args, device, budget.out_of_time, aux_head, updates, precision
-                )
-            counters["round"] = r + 1
-            counters["env_steps"] += stats.pop("steps")
-            counters["episodes"] += args.expert_episodes if r == 0 else args.episodes_per_round
-            round_s = time.perf_counter() - t0
-            scalars = {f"train/{k}": v for k, v in stats.items()}
-            scalars.update({f"losses/{k}": v for k, v in losses.items()})
-            scalars.update({"charts/dataset": data.size, "charts/round_s": round_s})
-            logger.scalars(scalars, counters["env_steps"])
-            if bar is not None:
-                budget.advance(bar)
-                bar.set_postfix(
-                    round=r,
-                    data=data.size,
-                    loss=f"{losses.get('bc', 0):.4f}",
-                    success=f"{stats.get('success_rate', 0):.2f}",
-                )
-            if args.select_episodes and counters["round"] % args.select_freq == 0:
-                with budget.validation():
-                    select_checkpoint(policy, counters, args, device, ckpt_dir, logger)
-            if counters["round"] % args.save_freq == 0:
-                counted = dict(counters, wall_s=elapsed())
-                rows = save(ckpt_dir / "latest.pt", policy, optimizer, data, counted, args, aux_head, rows)
-            if r > 0:  # round 0 (the expert's episodes, --initial-updates) is no estimate of the rounds after it
-                budget.end_step()
-    finally:
-        close_and_save(
-            bar,
-            envs,
-            counters,
-            elapsed,
-            lambda c: save(ckpt_dir / "latest.pt", policy, optimizer, data, c, args, aux_head, rows),
-        )
-    extra = dict(checkpoint=str(ckpt_dir / "latest.pt"))
-    if args.select_episodes and counters.get("best") is not None:
-        selected = counters["best"]
-        # the policy the held-out episodes score is the run's checkpoint; --resume continues from the last weights
-        policy.load_state_dict(load_torch(ckpt_dir / "best.pt", FORMAT, "agents.dagger")["model"])
-        extra.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
-        extra["selected"] = dict(
-            round=selected["round"],
-            env_steps=selected["env_steps"],
-            validation_success_rate=selected["score"][0],
-            validation_episodes=args.select_episodes,
-        )
-    return evaluate_and_finish(
-        lambda: final_evaluation(policy, args, device, None),
-        logger,
-        counters,
-        run_dir,
-        rounds=counters["round"],
-        train_episodes=counters["episodes"],
-        dataset=data.size,
-        precision=precision,
-        **extra,
-        **budget.report(),
-    )
+    return loop.run(DAgger(args), Clock)
 
 
 def main(args: Args) -> dict:

@@ -1,37 +1,12 @@
-"""PPO from pixels (or state) for TableClearing-IRB120-v1, ManiSkill-baseline style.
+"""PPO from pixels (or state), ManiSkill-baseline style (``ppo_rgb.py``: GAE, clipped surrogate, advantage
+normalisation, the ``normalized_dense`` reward, auto-resetting envs, separate eval envs), one code path for the
+GPU-batched env and the CPU process-vector env. This file is PPO's part only (:class:`PPO`: a rollout and its update);
+the run around it is agents.common.loop's. ``--base-checkpoint`` learns a residual on a frozen cloned policy
+(``--kl-coef`` keeps it near it). See docs/training.md.
 
-One code path for the GPU-batched env (``physx_cuda``, e.g. ``--num-envs 512``) and the CPU
-process-vector env: both come from ``maniskill_irb120.make_vec_env`` with the same batched torch
-interface. Conventions follow ManiSkill's ``ppo_rgb.py``: GAE, clipped surrogate, advantage
-normalisation, ``normalized_dense`` reward, partial resets, separate eval envs.
-
-    python -m agents.ppo --num-envs 2 --total-timesteps 20000              # CPU workers, rgbd
-    python -m agents.ppo --obs state --num-envs 512 --backend gpu           # GPU, state
-    python -m agents.ppo --recipe ppo-state --env-id GraspLift-IRB120-v1   # a named recipe, its task's flags too
-    python -m agents.ppo --resume runs/NAME/checkpoints/latest.pt           # continue exactly
-    python -m agents.ppo --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
-    python -m agents.ppo --obs state --action-frame world --base-checkpoint DAGGER.pt --kl-coef 1 --init-logstd -2
-
-Fine-tuning a cloned policy: ``--base-checkpoint`` (an agents.dagger checkpoint) makes PPO learn a residual on
-its frozen policy, zero at the start, so the first rollouts are the cloned policy's; ``--kl-coef`` keeps the
-policy near it (KL to a Gaussian at the base's action with the initial std); ``--init-logstd`` shrinks the
-exploration noise and ``--critic-warmup-iters`` fits the value function before the policy moves. Without
-them a cloned policy washes out: the first updates follow a random critic away from the demonstrations (IBRL,
-arXiv 2311.02198).
-
-``--total-env-steps`` (the budget every trainer shares; ``--total-timesteps`` is its older name here) counts the env
-steps of the run before a ``--resume`` too; ``--max-minutes`` (or ``--budget-min``, or ``--max-wall-s``) guards the
-wall clock, started after the envs are built, and no iteration starts that its predecessors say would end after it
-(``agents.common.run.Budget``); a run it stops before its env steps says so (``stopped_early``).
-``--checkpoint`` is what ``--evaluate`` reads, or else the weights a new run starts from; ``--eval-episodes N``
-ends training with N deterministic episodes on held-out seeds (``agents.common.EVAL_SEED`` onwards), scored like
-every other trainer, whose success_rate, env_steps and wall_clock_s end the printed JSON and ``summary.json``
-(written with or without them). With ``--select-episodes N`` those episodes score ``checkpoints/best.pt``, the
-weights that did best on N validation seeds during training (the JSON's ``checkpoint``; ``last_checkpoint`` is
-what ``--resume`` continues). However training ends (its budget, its last iteration, an exception, Ctrl-C),
-``checkpoints/latest.pt`` holds where it stopped, with the iterations done and the clock
-(``agents.common.run.close_and_save``). Every ``--save-freq`` iterations a ``checkpoints/ckpt_N.pt`` is written
-too; the newest ``--keep-checkpoints`` of them stay (0 keeps every one).
+    python -m agents.ppo --obs state --num-envs 2 --total-env-steps 20000
+    python -m agents.ppo --resume runs/NAME/checkpoints/latest.pt
+    python -m agents.ppo --evaluate --eval-episodes 10 --checkpoint runs/NAME/checkpoints/latest.pt
 """
 
 from __future__ import annotations
@@ -50,35 +25,30 @@ import torch.optim as optim
 import maniskill_irb120  # noqa: F401  (registers the env)
 from agents.common import (
     EVAL_SEED,
-    VALIDATION_SEED,
     Budget,
     Clock,
     EpisodeTracker,
-    Logger,
     RunArgs,
     atomic_save,
     check_budget,
     check_resume_signature,
     checkpoint,
-    close_and_save,
     entry,
     env_step_budget,
-    evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
     held_out_evaluation,
     load_torch,
+    loop,
     obs_to,
     one_thread_beside_workers,
-    open_run,
     resolve_device,
     resolve_precision,
-    restore,
     shapes_of,
     torch_threads,
     vec_envs,
-    wall_guard_s,
 )
+from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
 from maniskill_irb120.policies.ppo import Agent
 
@@ -86,7 +56,11 @@ from maniskill_irb120.policies.ppo import Agent
 @dataclass
 class Args(RunArgs):
     eval_episodes: int = 0
-    """after training (and for --evaluate): deterministic episodes on held-out seeds, one env (0: skip)"""
+    """after training (and for --evaluate): deterministic episodes on held-out seeds, one env (0: none after
+    training)"""
+    total_env_steps: Optional[int] = 100_000
+    """the budget in env steps: an iteration starts only while fewer are done (counting the run's before a
+    --resume)"""
     obs: Literal["rgbd", "state"] = "rgbd"
     """rgbd: 84x84 RGB-D hand camera + proprioception; state: privileged state vector"""
     control_mode: str = "pd_ee_delta_tool"
@@ -95,6 +69,8 @@ class Args(RunArgs):
     """tool: the original report's tool-frame action; world: translation in world axes (WorldFrameToolAction)"""
     base_checkpoint: Optional[Path] = None
     """an agents.dagger checkpoint: the policy is its frozen action plus a learned residual (zero at the start)"""
+    init_policy: Optional[Path] = None
+    """an agents.ppo checkpoint whose weights a new run starts from (optimiser and counters start fresh)"""
     kl_coef: float = 0.0
     """weight of KL(policy || N(base action, exp(init_logstd))) in the loss; needs --base-checkpoint"""
     init_logstd: float = -0.5
@@ -113,8 +89,6 @@ class Args(RunArgs):
     """envs of the periodic evaluation"""
     num_steps: int = 50
     """rollout length per env per iteration"""
-    total_timesteps: int = 100_000
-    """env steps of training"""
     learning_rate: float = 3e-4
     """Adam learning rate"""
     anneal_lr: bool = False
@@ -148,20 +122,12 @@ class Args(RunArgs):
     absorbing_success: bool = False
     """bootstrap a delivered episode's end with the absorbing value reward_scale / (1 - gamma) (normalized_dense pays
     1 a step at success) instead of the critic's estimate of a state it never trains on; normalized_dense only"""
-    partial_reset: bool = True
-    """auto-reset finished envs (training needs it)"""
     eval_freq: int = 25
     """evaluate every N iterations (0: only at the end)"""
-    num_eval_episodes: int = 4
-    """episodes of each periodic evaluation (and of --evaluate when --eval-episodes is 0)"""
+    eval_freq_episodes: int = 4
+    """episodes of each --eval-freq evaluation"""
     eval_reconfiguration_freq: Optional[int] = None
     """rebuild the eval scene every N resets (None: never; the task samples nothing at scene load)"""
-    select_episodes: int = 0
-    """checkpoint selection: every --select-freq iterations and at the end, the deterministic policy on this many
-    validation seeds (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out
-    evaluation scores it instead of the last weights (0: no selection)"""
-    select_freq: int = 25
-    """iterations between two checkpoint-selection evaluations"""
     save_freq: int = 10
     """checkpoint every N iterations (and always at the end)"""
     keep_checkpoints: int = 5
@@ -170,8 +136,6 @@ class Args(RunArgs):
     """cudnn.deterministic"""
     critic_warmup_iters: int = 0
     """iterations that update only the value function (keeps a warm-started policy while its critic learns)"""
-    max_wall_s: Optional[float] = None
-    """stop (with a checkpoint) after this many seconds of training, whatever total_timesteps says"""
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     """the camera encoder in the update: bf16 autocast (its convolutions about twice as fast on a CPU with native
     bf16), fp32, or auto (bf16 where native on a CPU, else fp32; agents/common/precision.py). The rollout's
@@ -193,10 +157,6 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     env_kwargs = dict(reward_mode=args.reward_mode, **args.env_kwargs)
     setup = dict(action_frame=args.action_frame, control_mode=args.control_mode, env_kwargs=env_kwargs)
     if not evaluate:
-        if not args.partial_reset:
-            raise ValueError(
-                "training needs partial resets (auto-reset of finished envs); --partial-reset must stay on"
-            )
         return one_thread_beside_workers(vec_envs(args.env_id, args.obs, num_envs, backend=args.backend, **setup))
     from mani_skill.utils.wrappers.record import RecordEpisode
 
@@ -352,10 +312,9 @@ def bootstrap_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
 def succeeded_mask(info: dict, term: torch.Tensor) -> torch.Tensor:
     """Envs whose episode just ended in success: with ``--absorbing-success`` their final observation is worth
     the absorbing state's ``reward_scale / (1 - gamma)``. Nothing follows a success in training, so the critic's
-    estimate there is a guess; on TableClearing it valued the delivered state below holding the object at its
-    place, and letting go looked worse than holding on (benchmarks/RESULTS.md, "RL from the reward alone").
-    A delivery in the step that collides is a failure (the reward pays 0 and :func:`bootstrap_mask` gives it no
-    future), so it is not absorbing either."""
+    estimate there is a guess, and a guess below holding the object makes letting go look worse than holding on
+    (docs/notes/rl-from-the-reward.md). A delivery in the step that collides is a failure (the reward pays 0 and
+    :func:`bootstrap_mask` gives it no future), so it is not absorbing either."""
     return terminated_with(info, term, "success") & bootstrap_mask(info, term)
 
 
@@ -497,13 +456,10 @@ def prune_checkpoints(ckpt_dir: Path, keep: int) -> list[Path]:
 
 def read_checkpoint(path: Path, args: Args) -> dict:
     """A PPO checkpoint, refused when it acted in another frame than ``--action-frame``."""
-    ckpt = load_torch(path, FORMAT, "agents.ppo")
-    frame = ckpt.get("args", {}).get("action_frame", "tool")
+    ckpt = load_torch(path, FORMAT, "agents.ppo")  # migrated: its args name its frame
+    frame = ckpt["args"]["action_frame"]
     if frame != args.action_frame:
         raise ValueError(f"checkpoint {path} acts in the {frame!r} frame; pass --action-frame {frame}")
-    # written before residual policies, the state MLP and the running normaliser, or the state-dependent log std
-    defaults = dict(residual=False, state_net="shared", obs_norm=False, logstd="param")
-    ckpt["signature"] = dict(defaults, **ckpt["signature"])
     return ckpt
 
 
@@ -540,13 +496,12 @@ def evaluate(agent: Agent, envs, num_episodes: int, device) -> dict:
 
 # ----------------------------------------------------------------------------- main loop
 def run_evaluation_only(args: Args) -> dict:
-    """``--evaluate``: the deterministic policy on the held-out seeds (``--eval-episodes``, else
-    ``--num-eval-episodes``), scored as the benchmark and the other trainers score a run (agents.common)."""
+    """``--evaluate``: the deterministic policy on ``--eval-episodes`` held-out seeds, scored as the benchmark and
+    the other trainers score a run (agents.common)."""
     device = resolve_device(args.device)
 
     def load(path: Path) -> tuple[Agent, dict]:
         ckpt = read_checkpoint(path, args)
-        ckpt["args"].setdefault("action_frame", "tool")  # written before the world frame existed
         envs = make_envs(args, 1, evaluate=True)  # its spaces size the agent
         try:
             agent = agent_for(envs, device, replace(args, base_checkpoint=None), residual=ckpt["signature"]["residual"])
@@ -555,9 +510,8 @@ def run_evaluation_only(args: Args) -> dict:
         load_checkpoint(path, agent, args, ckpt)
         return agent, ckpt
 
-    held_out = replace(args, eval_episodes=args.eval_episodes or args.num_eval_episodes)
     return evaluate_checkpoint(
-        args, load, lambda agent, videos: final_evaluation(agent, held_out, device, videos), adopt=()
+        args, load, lambda agent, videos: final_evaluation(agent, args, device, videos), adopt=()
     )
 
 
@@ -568,160 +522,135 @@ def read_resume(path: Path, args: Args) -> dict:
     return read_checkpoint(path, args)
 
 
+class PPO(Algorithm):
+    """PPO's part of a run (agents.common.loop): a step is one iteration, a rollout of ``--num-steps`` per env and
+    its update; the envs reset once, then every rollout continues where the last stopped."""
+
+    name, step_key = "ppo", "iteration"
+
+    def __init__(self, args: Args):
+        super().__init__(args)
+        self.counters = dict(env_steps=0, iteration=0)
+        self.device = resolve_device(args.device)
+        self.eval_envs, self.last_eval, self.history, self.recent = None, {}, [], defaultdict(list)
+
+    def read(self, path: Path) -> dict:
+        return read_resume(path, self.args)
+
+    def build(self, saved: Optional[dict]):
+        args = self.args
+        torch.backends.cudnn.deterministic = args.torch_deterministic
+        self.envs = make_envs(args, args.num_envs)
+        init = saved if saved is not None else (read_checkpoint(args.init_policy, args) if args.init_policy else None)
+        # resuming (or starting from a PPO checkpoint): the base's weights come with the checkpoint
+        base = args.base_checkpoint if init is None else None
+        residual = init is not None and init["signature"]["residual"]
+        self.agent = agent_for(self.envs, self.device, replace(args, base_checkpoint=base), residual=residual)
+        if args.kl_coef > 0 and self.agent.base is None:
+            raise ValueError(f"--kl-coef {args.kl_coef}: this run has no base policy (a --base-checkpoint run has one)")
+        self.optimizer = optim.Adam(self.agent.parameters(), lr=args.learning_rate, eps=1e-5)
+        if saved is not None:
+            check_resume_signature(saved, self.agent.signature(), args.resume)
+            self.agent.load_state_dict(saved["model"])
+            self.optimizer.load_state_dict(saved["optimizer"])
+        elif args.init_policy is not None:
+            load_checkpoint(args.init_policy, self.agent, args, init)
+        return self.envs
+
+    def start(self) -> None:
+        self.first_iteration = self.counters["iteration"]
+        total = env_step_budget(self.args)
+        self.iterations = -(-total // self.args.batch_size) if total else None  # the last starts below the budget
+        next_obs, _ = self.envs.reset(seed=self.args.seed + self.counters["iteration"])
+        self.rollout = Rollout(self.envs, obs_to(flatten_obs(next_obs), self.device), self.args, self.device)
+        self.t_start = time.perf_counter()
+
+    def step(self, budget: Budget) -> dict:
+        args, agent, optimizer, counters = self.args, self.agent, self.optimizer, self.counters
+        it = counters["iteration"] + 1
+        t0 = time.perf_counter()
+        if args.anneal_lr:
+            optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / self.iterations) * args.learning_rate
+        batch, sim_time = self.rollout.collect(agent, self.recent)
+        agent.train()
+        tu = time.perf_counter()
+        stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
+        if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
+            agent.norm.update(batch["obs"]["state"])
+        update_time = time.perf_counter() - tu
+        counters["iteration"] = it
+        counters["env_steps"] += args.batch_size
+        dt = time.perf_counter() - t0
+        y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
+        var_y = np.var(y_true)
+        scalars = {f"losses/{k}": v for k, v in stats.items()}
+        scalars.update(
+            {
+                "charts/SPS": args.batch_size / dt,
+                "charts/learning_rate": optimizer.param_groups[0]["lr"],
+                "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
+                "time/rollout_s": dt - update_time,
+                "time/sim_s": sim_time,
+                "time/update_s": update_time,
+            }
+        )
+        scalars.update({f"train/{k}": float(np.mean(v)) for k, v in self.recent.items()})
+        self.history.append(
+            dict(iteration=it, global_step=counters["env_steps"], wall_s=time.perf_counter() - self.t_start, **scalars)
+        )
+        self.recent.clear()
+        if args.eval_freq and it % args.eval_freq == 0:
+            self.periodic_evaluation()
+        return scalars
+
+    def periodic_evaluation(self) -> None:
+        """``--eval-freq-episodes`` episodes on the periodic evaluation's envs, logged as ``eval/``."""
+        args = self.args
+        if self.eval_envs is None:
+            videos = self.run_dir / "videos" if args.capture_video else None
+            self.eval_envs = make_envs(args, args.num_eval_envs, evaluate=True, video_dir=videos)
+        self.agent.eval()
+        self.last_eval = evaluate(self.agent, self.eval_envs, args.eval_freq_episodes, self.device)
+        self.logger.scalars({f"eval/{k}": v for k, v in self.last_eval.items()}, self.counters["env_steps"])
+
+    def postfix(self, scalars: dict) -> dict:
+        success = scalars.get("train/success_rate")
+        return dict(SPS=f"{scalars['charts/SPS']:.0f}", success="-" if success is None else f"{success:.2f}")
+
+    def save(self, path: Path, counters: dict) -> None:
+        save_checkpoint(path, self.agent, self.optimizer, counters, self.args)
+
+    def save_periodic(self, ckpt_dir: Path, counters: dict, last: bool) -> None:
+        it = counters["iteration"]
+        if it % self.args.save_freq == 0 or last:
+            self.save(ckpt_dir / f"ckpt_{it}.pt", counters)
+            self.save(ckpt_dir / "latest.pt", counters)
+            prune_checkpoints(ckpt_dir, self.args.keep_checkpoints)
+
+    def load_selected(self, path: Path) -> None:
+        load_checkpoint(path, self.agent, self.args)
+
+    def evaluate(self, args: Args, video_dir: Optional[Path] = None, first_seed: int = EVAL_SEED) -> dict:
+        return final_evaluation(self.agent, args, self.device, video_dir, first_seed)
+
+    def selected(self, best: dict) -> dict:
+        return dict(iteration=best["iteration"], global_step=best["env_steps"])
+
+    def summary(self) -> dict:
+        c = self.counters
+        its = dict(iterations=c["iteration"], iterations_this_run=c["iteration"] - self.first_iteration)
+        return dict(global_step=c["env_steps"], **its, last_eval=self.last_eval)
+
+    def close(self) -> None:
+        if self.eval_envs is not None:
+            self.eval_envs.close()
+
+
 def train(args: Args) -> dict:
-    saved, run_dir = open_run(args, "", lambda path: read_resume(path, args))
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    device = resolve_device(args.device)
-
-    envs = make_envs(args, args.num_envs)
-    eval_envs = None
-    init = saved if saved is not None else (read_checkpoint(args.checkpoint, args) if args.checkpoint else None)
-    # resuming (or starting from a PPO checkpoint): the base's weights come with the checkpoint
-    fresh_base = args.base_checkpoint if init is None else None
-    residual = init is not None and init["signature"]["residual"]
-    agent = agent_for(envs, device, replace(args, base_checkpoint=fresh_base), residual=residual)
-    if args.kl_coef > 0 and agent.base is None:
-        raise ValueError(f"--kl-coef {args.kl_coef}: this run has no base policy (a --base-checkpoint run has one)")
-    optimizer = optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
-    counters = dict(global_step=0, iteration=0)
-    if saved is not None:
-        check_resume_signature(saved, agent.signature(), args.resume)
-        agent.load_state_dict(saved["model"])
-        optimizer.load_state_dict(saved["optimizer"])
-        counters = restore(saved)
-    elif args.checkpoint is not None:
-        load_checkpoint(args.checkpoint, agent, args, init)
-    ckpt_dir = run_dir / "checkpoints"
-
-    total = env_step_budget(args)  # --total-env-steps, else --total-timesteps
-    num_iterations = -(-total // args.batch_size)  # the last starts below the budget
-    next_obs, _ = envs.reset(seed=args.seed + counters["iteration"])
-    rollout = Rollout(envs, obs_to(flatten_obs(next_obs), device), args, device)
-    recent: dict[str, list[float]] = defaultdict(list)
-    bar = None
-    if args.progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=num_iterations * args.batch_size, initial=counters["global_step"], unit="step", dynamic_ncols=True
-        )
-    last_eval: dict = {}
-    history: list[dict] = []
-    start_iteration = counters["iteration"]
-    # started here, after the envs are built, as PPO's budget always has been; with the time trained before this
-    # --resume (a checkpoint written before the clock was saved has none): the budget is the run's
-    elapsed = Clock(counters.get("wall_s", 0.0))
-    logger = Logger(run_dir, args, elapsed)
-    budget = Budget(
-        wall_guard_s(args), elapsed, counters, args.select_episodes > 0, total_env_steps=total, steps_key="global_step"
-    )
-    try:
-        while budget.steps_left():
-            counters["wall_s"] = elapsed()  # saved with every checkpoint
-            if not budget.time_fits():
-                if args.select_episodes and counters["iteration"] % args.select_freq:  # else validated already
-                    with budget.validation():
-                        select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
-                break  # latest.pt is written on the way out
-            it = counters["iteration"] + 1
-            budget.start_step()
-            t0 = time.perf_counter()
-            if args.anneal_lr:
-                optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / num_iterations) * args.learning_rate
-            batch, sim_time = rollout.collect(agent, recent)
-            agent.train()
-            tu = time.perf_counter()
-            stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
-            if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
-                agent.norm.update(batch["obs"]["state"])
-            update_time = time.perf_counter() - tu
-            counters["iteration"] = it
-            counters["global_step"] += args.batch_size
-            dt = time.perf_counter() - t0
-            y_pred, y_true = batch["values"].cpu().numpy(), batch["returns"].cpu().numpy()
-            var_y = np.var(y_true)
-            scalars = {f"losses/{k}": v for k, v in stats.items()}
-            scalars.update(
-                {
-                    "charts/SPS": args.batch_size / dt,
-                    "charts/learning_rate": optimizer.param_groups[0]["lr"],
-                    "losses/explained_variance": float("nan") if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y,
-                    "time/rollout_s": dt - update_time,
-                    "time/sim_s": sim_time,
-                    "time/update_s": update_time,
-                }
-            )
-            if recent:
-                scalars.update({f"train/{k}": float(np.mean(v)) for k, v in recent.items()})
-            logger.scalars(scalars, counters["global_step"])
-            history.append(dict(iteration=it, global_step=counters["global_step"], wall_s=elapsed.session(), **scalars))
-            if bar is not None:
-                bar.update(args.batch_size)
-                bar.set_postfix(
-                    SPS=f"{args.batch_size / dt:.0f}",
-                    success=f"{np.mean(recent['success_rate']):.2f}" if recent.get("success_rate") else "-",
-                )
-            recent.clear()
-            if args.eval_freq and it % args.eval_freq == 0:
-                if eval_envs is None:
-                    eval_envs = make_envs(
-                        args,
-                        args.num_eval_envs,
-                        evaluate=True,
-                        video_dir=run_dir / "videos" if args.capture_video else None,
-                    )
-                agent.eval()
-                last_eval = evaluate(agent, eval_envs, args.num_eval_episodes, device)
-                logger.scalars({f"eval/{k}": v for k, v in last_eval.items()}, counters["global_step"])
-            last = not budget.steps_left()
-            if args.select_episodes and (it % args.select_freq == 0 or last):
-                with budget.validation():
-                    select_checkpoint(agent, optimizer, counters, args, device, ckpt_dir, logger)
-            if it % args.save_freq == 0 or last:
-                counters["wall_s"] = elapsed()
-                save_checkpoint(ckpt_dir / f"ckpt_{it}.pt", agent, optimizer, counters, args)
-                save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, counters, args)
-                prune_checkpoints(ckpt_dir, args.keep_checkpoints)
-            budget.end_step()
-    finally:  # the budget, the last iteration, an exception or Ctrl-C: latest.pt is what --resume continues
-        try:
-            close_and_save(
-                bar,
-                envs,
-                counters,
-                elapsed,
-                lambda c: save_checkpoint(ckpt_dir / "latest.pt", agent, optimizer, c, args),
-            )
-        finally:
-            if eval_envs is not None:
-                eval_envs.close()
-    extra = dict(
-        global_step=counters["global_step"],
-        iterations=counters["iteration"],
-        iterations_this_run=counters["iteration"] - start_iteration,
-        last_eval=last_eval,
-        checkpoint=str(ckpt_dir / "latest.pt"),
-        **budget.report(),
-    )
-    if args.select_episodes and counters.get("best") is not None:
-        selected = counters["best"]
-        load_checkpoint(ckpt_dir / "best.pt", agent, args)
-        # the policy the held-out episodes score is the run's checkpoint; --resume continues from the last weights
-        extra.update(checkpoint=str(ckpt_dir / "best.pt"), last_checkpoint=str(ckpt_dir / "latest.pt"))
-        extra["selected"] = dict(
-            iteration=selected["iteration"],
-            global_step=selected["global_step"],
-            validation_success_rate=selected["score"][0],
-            validation_episodes=args.select_episodes,
-        )
-    result = evaluate_and_finish(
-        (lambda: final_evaluation(agent, args, device)) if args.eval_episodes > 0 else dict,  # 0: no evaluation
-        logger,
-        dict(counters, env_steps=counters["global_step"]),  # PPO's counters call its env steps global_step
-        run_dir,
-        **extra,
-    )
-    result["history"] = history  # every iteration's scalars, for the caller: not in summary.json
+    """A PPO run; its result also carries every iteration's scalars (``history``, not in summary.json)."""
+    ppo = PPO(args)
+    result = loop.run(ppo, Clock)
+    result["history"] = ppo.history
     return result
 
 
@@ -741,21 +670,6 @@ def final_evaluation(
     )
 
 
-def select_checkpoint(agent: Agent, optimizer, counters: dict, args: Args, device, ckpt_dir: Path, logger) -> None:
-    """Scores the current policy on the validation seeds and keeps it as ``best.pt`` when it beats the best so far
-    (success rate, then mean return). PPO from the reward can peak and then unlearn as its policy narrows; the
-    held-out score of the best validated weights is what a user of the run would deploy."""
-    v = final_evaluation(
-        agent, replace(args, eval_episodes=args.select_episodes, progress=False), device, first_seed=VALIDATION_SEED
-    )
-    logger.scalars({f"select/{k}": v[k] for k in ("success_rate", "return") if k in v}, counters["global_step"])
-    score = [v.get("success_rate", 0.0), v["return"]]
-    best = counters.get("best")
-    if best is None or score > best["score"]:
-        counters["best"] = dict(score=score, iteration=counters["iteration"], global_step=counters["global_step"])
-        save_checkpoint(ckpt_dir / "best.pt", agent, optimizer, counters, args)
-
-
 def main(args: Args) -> dict:
     check_budget(args)
     resolve_precision(args.precision, resolve_device(args.device))  # bf16 without native support: refused here
@@ -768,16 +682,20 @@ def main(args: Args) -> dict:
         raise ValueError(f"--kl-coef must be >= 0, got {args.kl_coef}")
     if args.keep_checkpoints < 0:
         raise ValueError(f"--keep-checkpoints must be >= 0 (0 keeps every one), got {args.keep_checkpoints}")
-    if args.select_episodes < 0 or args.select_freq < 1:
+    if args.evaluate and args.eval_episodes < 1:
         raise ValueError(
-            f"--select-episodes must be >= 0 and --select-freq >= 1, got {args.select_episodes} and {args.select_freq}"
+            f"--evaluate scores --eval-episodes N held-out episodes; give N >= 1, got {args.eval_episodes}"
         )
+    if not args.evaluate and args.checkpoint is not None:
+        raise ValueError("--checkpoint is what --evaluate reads; a new run starts from a checkpoint with --init-policy")
+    if args.anneal_lr and args.total_env_steps is None:
+        raise ValueError("--anneal-lr anneals the learning rate over --total-env-steps: give it")
     if args.absorbing_success and args.reward_mode != "normalized_dense":
         raise ValueError(
             f"--absorbing-success values success at 1 a step, the normalized_dense reward's; --reward-mode is "
             f"{args.reward_mode!r}"
         )
-    if args.kl_coef > 0 and args.base_checkpoint is None and args.resume is None and args.checkpoint is None:
+    if args.kl_coef > 0 and args.base_checkpoint is None and args.resume is None and args.init_policy is None:
         raise ValueError("--kl-coef keeps the policy near a base policy: give --base-checkpoint DAGGER.pt")
     with torch_threads(torch.get_num_threads()):  # the CPU workers' one learner thread ends with the run
         return run_evaluation_only(args) if args.evaluate else train(args)

@@ -1,36 +1,11 @@
-"""SAC with demonstrations in the RLPD style (Ball et al. 2023), from state or from the RGB-D camera.
+"""SAC with demonstrations in the RLPD style (Ball et al. 2023), from state or from the RGB-D camera: expert demos
+in a buffer every minibatch draws ``--demo-ratio`` from, LayerNorm critics, an actor cloned from DART-noise demos and
+kept near a frozen reference (IBRL, arXiv 2311.02198), a delivery absorbing at the maximum reward. This file is
+SAC's part only (:class:`SACRun`); the run around it is agents.common.loop's. See docs/training.md.
 
-RLPD's recipe, sized for a 2-core CPU: the reactive expert's episodes seed a demo buffer; every minibatch
-draws ``--demo-ratio`` of its samples from it ("symmetric sampling"); LayerNorm critics (clipped double Q)
-keep the Q-values bounded when updates outrun data (``--updates-per-step``). Against the wash-out IBRL
-(arXiv 2311.02198) describes — a fresh critic drags a cloned actor away from the demos before it knows better
-— the actor is first cloned from DART-noise demos, the critic then warms up alone on them and on the clone's
-own rollouts (``--actor-delay``), the frozen clone acts and bootstraps wherever the critic values its action
-above the actor's (IBRL's reference policy, ``--reference``), and the actor loss keeps cloning terms toward
-the demo labels and the clone (``--bc-weight``, ``--reference-weight``, TD3+BC-style). A delivery is absorbing
-at the maximum reward. The policy acts in world axes (``WorldFrameToolAction``, like agents.dagger) on the
-staged ``normalized_dense`` reward. ``--demo-episodes 0 --bc-pretrain-updates 0 --critic-warmup-updates 0
---bc-weight 0`` is plain SAC.
-
-Why the pieces are there: the demos carry DART noise on their executed arm actions, so the clone also learns to
-recover from the states noise leads to (clean demos cloned to a policy that collided). The cloning fits the
-policy's std to ``--init-std`` too: the untrained std head gives about unit noise, which turns a cloned actor
-into a colliding one in its first online episodes. Without the reference (``--reference``) the actor leaves the
-clone as soon as it learns and its training success collapses; ``--reference-weight`` keeps it near the clone on
-online states too, where the demo term does not reach. ``--actor-delay``: a critic warmed up on the demos alone
-has never seen another action, and an actor that follows it at once collides. ``--init-alpha`` starts small:
-a larger entropy bonus widens the cloned policy's std faster than the temperature falls. ``--buffer-size``
-defaults to 50,000 from rgbd: a camera transition (two 84x84 RGB-D frames) takes ~70 kB, so 300k of them would
-ask for 21 GB (the demo buffer holds exactly the demo episodes). ``--no-eval-deterministic`` evaluates the
-policy as it acts in training: its sample, or the clone's action with ``--init-std`` noise.
-
-    python -m agents.sac --recipe sac-state --total-env-steps 49726   # the committed runs' env steps (recipes.py)
-    python -m agents.sac --obs state --total-env-steps 49726 --max-minutes 30   # with a wall-clock guard
-    python -m agents.sac --obs rgbd --max-minutes 120 --buffer-size 100000      # no env-step budget: the clock's
+    python -m agents.sac --recipe sac-state --total-env-steps 49726
     python -m agents.sac --resume runs/NAME/checkpoints/latest.pt
     python -m agents.sac --obs state --evaluate --checkpoint runs/NAME/checkpoints/latest.pt
-
-The last line printed is one JSON object: ``success_rate`` (held-out seeds), ``env_steps``, ``wall_clock_s``.
 """
 
 from __future__ import annotations
@@ -45,38 +20,32 @@ import torch.nn.functional as F
 from mani_skill.utils.registration import REGISTERED_ENVS
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
-from agents import common
 from agents.common import (
     EVAL_SEED,
-    Budget,
     Clock,
     Dataset,
     EpisodeTracker,
-    Logger,
     RunArgs,
     atomic_save,
     check_budget,
     check_resume_signature,
     checkpoint,
-    close_and_save,
     entry,
-    env_step_budget,
-    evaluate_and_finish,
     evaluate_checkpoint,
     flatten_obs,
     held_out_evaluation,
+    labelled_envs,
     load_for_evaluation,
     load_torch,
+    loop,
     obs_to,
-    open_run,
     prune_row_files,
     resolve_device,
-    restore,
     restore_dataset,
     shapes_of,
     train_seed,
-    wall_guard_s,
 )
+from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, section_of
 from maniskill_irb120.policies.nets import random_shift
 from maniskill_irb120.policies.sac import SAC
@@ -86,9 +55,6 @@ FORMAT = "maniskill_irb120.sac/1"
 
 @dataclass
 class Args(RunArgs):
-    total_timesteps: Optional[int] = None
-    """the older name of --total-env-steps (env steps, demos included; --total-env-steps wins). With neither, the
-    run is held to --max-minutes, by default 120 (everything before the final evaluation)"""
     obs: Literal["state", "rgbd"] = "state"
     """state: privileged state vector; rgbd: 84x84 RGB-D hand camera + proprioception"""
     action_frame: Literal["world", "tool"] = "world"
@@ -151,17 +117,8 @@ class Args(RunArgs):
 ROW_FIELDS = ("rew", "term", "succ", "label")
 
 
-def make_envs(args: Args, num_envs: int):
-    """The envs of this run, each step labelled with the reactive expert's action (the demos' labels)."""
-    return common.make_envs(
-        args.env_id,
-        args.obs,
-        num_envs,
-        backend=args.backend,
-        action_frame=args.action_frame,
-        obs_without=args.obs_without,
-        env_kwargs=args.env_kwargs,
-    )
+make_envs = labelled_envs
+"""this run's envs, each state labelled (agents.common.envs.labelled_envs)"""
 
 
 def split(batch: dict) -> tuple[dict, torch.Tensor, torch.Tensor, dict, torch.Tensor]:
@@ -299,15 +256,24 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
     writing only the rows new since the last (``rows``: the last save's manifests): returns the new manifests."""
     data = dict(online=online, demos=demos)
     rows = {k: d.save_new_rows(path.parent / "data" / k, (rows or {}).get(k)) for k, d in data.items()}
+    opts = {k: o.state_dict() for k, o in opts.items()}
+    save_policy(path, model, counters, args, opts=opts, data_rows=rows)
+    for k, manifest in rows.items():
+        prune_row_files(path.parent / "data" / k, manifest)
+    return rows
+
+
+def save_policy(path: Path, model: SAC, counters: dict, args: Args, **state) -> None:
+    """A checkpoint of ``model`` and its policy section, with ``state`` beside it (none: ``best.pt``, a policy to
+    deploy, not a run to continue)."""
     atomic_save(
         checkpoint(
             FORMAT,
             args,
             counters,
             model=model.state_dict(),
-            opts={k: o.state_dict() for k, o in opts.items()},
-            data_rows=rows,
             signature=model.signature(),
+            **state,
             policy=policy_section(
                 "sac",
                 model,
@@ -324,9 +290,6 @@ def save(path: Path, model: SAC, opts: dict, online: Dataset, demos: Dataset, co
         ),
         path,
     )
-    for k, manifest in rows.items():
-        prune_row_files(path.parent / "data" / k, manifest)
-    return rows
 
 
 def load_model(path: Path, device) -> tuple[SAC, dict]:
@@ -334,12 +297,13 @@ def load_model(path: Path, device) -> tuple[SAC, dict]:
     return policy_module(section_of(ckpt, str(path)), device), ckpt
 
 
-def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path]) -> dict:
-    torch.manual_seed(EVAL_SEED)  # a stochastic evaluation's noise is seeded too
+def final_evaluation(model: SAC, args: Args, device, video_dir: Optional[Path], first_seed: int = EVAL_SEED) -> dict:
+    torch.manual_seed(first_seed)  # a stochastic evaluation's noise is seeded too
     return held_out_evaluation(
         lambda o: model.act(obs_to(o, device), deterministic=args.eval_deterministic, noise=args.init_std).cpu(),
         args,
         video_dir,
+        first_seed,
         reward_mode=args.reward_mode,
     )
 
@@ -393,114 +357,137 @@ def demo_rows(args: Args) -> int:
     return max(1, (args.demo_episodes + args.num_envs) * REGISTERED_ENVS[args.env_id].max_episode_steps)
 
 
-def train(args: Args) -> dict:
-    clock = Clock()
-    args = resolved(args)
-    saved, run_dir = open_run(args, "sac__", lambda path: load_torch(path, FORMAT, "agents.sac"))
-    device = resolve_device(args.device)
-    envs = make_envs(replace(args, env_kwargs={**args.env_kwargs, "reward_mode": args.reward_mode}), args.num_envs)
-    image_shape, state_dim = shapes_of(envs.single_observation_space)
-    reference = saved is not None and saved["signature"].get("reference", False)
-    action_dim = int(np.prod(envs.single_action_space.shape))
-    model = SAC(image_shape, state_dim, action_dim, args.init_alpha, reference).to(device)
-    opts = dict(
-        q=torch.optim.Adam(model.critic.parameters(), lr=args.q_lr),
-        pi=torch.optim.Adam(model.actor.parameters(), lr=args.policy_lr),
-        alpha=torch.optim.Adam([model.log_alpha], lr=args.q_lr),
-    )
-    online, demos = Dataset(args.buffer_size), Dataset(demo_rows(args))
-    rows = None  # the manifests of the datasets' row files on disk
-    counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
-    if saved is not None:
-        check_resume_signature(saved, model.signature(), args.resume)
-        model.load_state_dict(saved["model"])
-        for k, o in opts.items():
-            o.load_state_dict(saved["opts"][k])
-        rows = saved.get("data_rows")
-        restore_dataset(online, saved, Path(args.resume).parent / "data", "online")
-        restore_dataset(demos, saved, Path(args.resume).parent / "data", "demos")
-        counters = restore(saved, clock)
-    logger = Logger(run_dir, args, clock)
-    ckpt_path = run_dir / "checkpoints" / "latest.pt"
-    elapsed = clock
-    guard_s = wall_guard_s(args, 120.0)
-    budget = Budget(guard_s, elapsed, counters, validates=False, total_env_steps=env_step_budget(args))
-    o, info = envs.reset(seed=train_seed(args.seed, counters["episodes"]))
-    state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
-    if not counters["pretrained"]:
+class SACRun(Algorithm):
+    """SAC's part of a run (agents.common.loop): the demos and the cloning before the first step (:meth:`start`),
+    then a step is one vector env step and the updates it pays for (``--updates-per-step``)."""
+
+    name, prefix, default_minutes = "sac", "sac__", 120.0
+
+    def __init__(self, args: Args):
+        super().__init__(resolved(args))
+        self.counters = dict(env_steps=0, updates=0, episodes=0, wall_s=0.0, pretrained=False)
+        self.device = resolve_device(args.device)
+        self.rows = None  # the manifests of the datasets' row files on disk
+        self.recent: dict[str, list[float]] = {}
+        self.losses: dict[str, float] = {}
+        self.owed = 0.0
+
+    def read(self, path: Path) -> dict:
+        return load_torch(path, FORMAT, "agents.sac")
+
+    def build(self, saved: Optional[dict]):
+        args = self.args
+        self.envs = make_envs(args, args.num_envs)
+        image_shape, state_dim = shapes_of(self.envs.single_observation_space)
+        reference = saved is not None and saved["signature"].get("reference", False)
+        action_dim = int(np.prod(self.envs.single_action_space.shape))
+        self.model = model = SAC(image_shape, state_dim, action_dim, args.init_alpha, reference).to(self.device)
+        self.opts = dict(
+            q=torch.optim.Adam(model.critic.parameters(), lr=args.q_lr),
+            pi=torch.optim.Adam(model.actor.parameters(), lr=args.policy_lr),
+            alpha=torch.optim.Adam([model.log_alpha], lr=args.q_lr),
+        )
+        self.online, self.demos = Dataset(args.buffer_size), Dataset(demo_rows(args))
+        if saved is not None:
+            check_resume_signature(saved, model.signature(), args.resume)
+            model.load_state_dict(saved["model"])
+            for k, o in self.opts.items():
+                o.load_state_dict(saved["opts"][k])
+            self.rows = saved.get("data_rows")
+            restore_dataset(self.online, saved, Path(args.resume).parent / "data", "online")
+            restore_dataset(self.demos, saved, Path(args.resume).parent / "data", "demos")
+        return self.envs
+
+    def start(self) -> None:
+        args, model, counters = self.args, self.model, self.counters
+        self.next_save = counters["env_steps"] + args.save_freq
+        self.next_log = counters["env_steps"] + args.log_freq
+        o, info = self.envs.reset(seed=train_seed(args.seed, counters["episodes"]))
+        self.state = dict(obs=flatten_obs(o), label=info["expert_action"].float())
+        self.tracker = EpisodeTracker(self.envs.num_envs, torch.device("cpu"))
+        if counters["pretrained"]:
+            return
         if args.demo_episodes > 0:
-            counters["env_steps"] += collect_demos(envs, state, demos, args.demo_episodes, args.dart_noise)
-            model.critic.norm.fit(demos.obs["state"][: demos.size])
+            steps = collect_demos(self.envs, self.state, self.demos, args.demo_episodes, args.dart_noise)
+            counters["env_steps"] += steps
+            model.critic.norm.fit(self.demos.obs["state"][: self.demos.size])
             model.target.norm.load_state_dict(model.critic.norm.state_dict())
-            bc = pretrain(model, opts, online, demos, args, device)
-            logger.scalars({"losses/bc_pretrain": bc}, counters["env_steps"])
+            bc = pretrain(model, self.opts, self.online, self.demos, args, self.device)
+            self.logger.scalars({"losses/bc_pretrain": bc}, counters["env_steps"])
             if args.reference:
                 model.freeze_reference()
         counters["pretrained"] = True
-    tracker = EpisodeTracker(envs.num_envs, torch.device("cpu"))
-    recent: dict[str, list[float]] = {}
-    losses: dict[str, float] = {}
-    owed, next_log, next_save = 0.0, counters["env_steps"] + args.log_freq, counters["env_steps"] + args.save_freq
-    bar = budget.bar(args, "sac")
-    try:
-        while budget.next_step_fits():
-            obs = state["obs"]
-            if online.size < args.learning_starts and demos.size == 0:
-                action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
-            else:
-                action = model.act(obs_to(obs, device), deterministic=False, noise=args.init_std).cpu()
-            o, rew, term, trunc, info = envs.step(action)
-            row, act = transitions(obs, action, rew, term, o, info)
-            online.add(row, act)
-            state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
-            done = (term | trunc).bool()
-            counters["env_steps"] += envs.num_envs
-            counters["episodes"] += int(done.sum())
-            for k, v in tracker.update(info.get("final_info", info), done).items():
-                recent.setdefault(k, []).extend(v)
-            if not demos.size and not counters.get("norm_fitted") and online.size >= args.learning_starts:
-                # without demos the state normaliser is fitted on the random-action steps before learning
-                # starts: identity scales would hide the grasp's millimetres next to the joints' radians
-                model.critic.norm.fit(online.obs["state"][: online.size])
-                model.target.norm.load_state_dict(model.critic.norm.state_dict())
-                counters["norm_fitted"] = True
-            if online.size >= args.learning_starts or demos.size:
-                owed += args.updates_per_step * envs.num_envs
-                while owed >= 1:
-                    batch, act, n_demo = sample(online, demos, args, device)
-                    losses = update(
-                        model, opts, batch, act, n_demo, args, actor=online.size >= args.actor_delay or not demos.size
-                    )
-                    counters["updates"] += 1
-                    owed -= 1
-            if counters["env_steps"] >= next_log:
-                next_log += args.log_freq
-                scalars = {f"train/{k}": float(np.mean(v)) for k, v in recent.items()}
-                scalars.update({f"losses/{k}": v for k, v in losses.items()})
-                scalars["charts/updates"] = counters["updates"]
-                logger.scalars(scalars, counters["env_steps"])
-                if bar is not None:
-                    budget.advance(bar)
-                    bar.set_postfix(steps=counters["env_steps"], success=f"{scalars.get('train/success_rate', 0):.2f}")
-                recent = {}
-            if counters["env_steps"] >= next_save:
-                next_save += args.save_freq
-                rows = save(ckpt_path, model, opts, online, demos, dict(counters, wall_s=elapsed()), args, rows)
-    finally:
-        close_and_save(
-            bar, envs, counters, elapsed, lambda c: save(ckpt_path, model, opts, online, demos, c, args, rows)
-        )
-    model.eval()
-    return evaluate_and_finish(
-        lambda: final_evaluation(model, args, device, None),
-        logger,
-        counters,
-        run_dir,
-        updates=counters["updates"],
-        train_episodes=counters["episodes"],
-        checkpoint=str(ckpt_path),
-        **budget.report(),
-    )
+
+    def step(self, budget) -> dict:
+        args, model, counters, envs = self.args, self.model, self.counters, self.envs
+        online, demos, obs = self.online, self.demos, self.state["obs"]
+        if online.size < args.learning_starts and demos.size == 0:
+            action = torch.rand(envs.num_envs, model.action_dim) * 2 - 1
+        else:
+            action = model.act(obs_to(obs, self.device), deterministic=False, noise=args.init_std).cpu()
+        o, rew, term, trunc, info = envs.step(action)
+        row, act = transitions(obs, action, rew, term, o, info)
+        online.add(row, act)
+        self.state["obs"], self.state["label"] = flatten_obs(o), info["expert_action"].float()
+        done = (term | trunc).bool()
+        counters["env_steps"] += envs.num_envs
+        counters["episodes"] += int(done.sum())
+        for k, v in self.tracker.update(info.get("final_info", info), done).items():
+            self.recent.setdefault(k, []).extend(v)
+        if not demos.size and not counters.get("norm_fitted") and online.size >= args.learning_starts:
+            # without demos the state normaliser is fitted on the random-action steps before learning starts:
+            # identity scales would hide the grasp's millimetres next to the joints' radians
+            model.critic.norm.fit(online.obs["state"][: online.size])
+            model.target.norm.load_state_dict(model.critic.norm.state_dict())
+            counters["norm_fitted"] = True
+        if online.size >= args.learning_starts or demos.size:
+            self.owed += args.updates_per_step * envs.num_envs
+            while self.owed >= 1:
+                batch, act, n_demo = sample(online, demos, args, self.device)
+                actor = online.size >= args.actor_delay or not demos.size
+                self.losses = update(model, self.opts, batch, act, n_demo, args, actor=actor)
+                counters["updates"] += 1
+                self.owed -= 1
+        if counters["env_steps"] < self.next_log:
+            return {}
+        self.next_log += args.log_freq
+        scalars = {f"train/{k}": float(np.mean(v)) for k, v in self.recent.items()}
+        scalars.update({f"losses/{k}": v for k, v in self.losses.items()})
+        scalars["charts/updates"] = counters["updates"]
+        self.recent = {}
+        return scalars
+
+    def postfix(self, scalars: dict) -> dict:
+        return dict(steps=self.counters["env_steps"], success=f"{scalars.get('train/success_rate', 0):.2f}")
+
+    def save(self, path: Path, counters: dict) -> None:
+        self.rows = save(path, self.model, self.opts, self.online, self.demos, counters, self.args, self.rows)
+
+    def save_periodic(self, ckpt_dir: Path, counters: dict, last: bool) -> None:
+        if counters["env_steps"] >= self.next_save:
+            self.next_save += self.args.save_freq
+            self.save(ckpt_dir / "latest.pt", counters)
+
+    def save_selected(self, path: Path, counters: dict) -> None:
+        save_policy(path, self.model, counters, self.args)
+
+    def load_selected(self, path: Path) -> None:
+        self.model.load_state_dict(load_torch(path, FORMAT, "agents.sac")["model"])
+
+    def evaluate(self, args: Args, video_dir: Optional[Path] = None, first_seed: int = EVAL_SEED) -> dict:
+        training = self.model.training
+        self.model.eval()
+        try:
+            return final_evaluation(self.model, args, self.device, video_dir, first_seed)
+        finally:
+            self.model.train(training)
+
+    def summary(self) -> dict:
+        return dict(updates=self.counters["updates"], train_episodes=self.counters["episodes"])
+
+
+def train(args: Args) -> dict:
+    return loop.run(SACRun(args), Clock)
 
 
 def main(args: Args) -> dict:
@@ -508,8 +495,6 @@ def main(args: Args) -> dict:
         raise ValueError(f"--demo-ratio must be in [0, 1], got {args.demo_ratio}")
     if not args.init_std > 0:
         raise ValueError(f"--init-std must be > 0, got {args.init_std}")
-    if args.total_timesteps is not None and args.total_timesteps < 1:
-        raise ValueError(f"--total-timesteps must be >= 1 env step, got {args.total_timesteps}")
     check_budget(args)
     return run_evaluation_only(args) if args.evaluate else train(args)
 

@@ -72,8 +72,8 @@ def trainer_command(name: str, sim_backend: str, num_envs: int, runs_dir: Path, 
         common += ["--obs", obs]
     if name == "ppo":
         steps = 8
-        args = ["--num-steps", str(steps), "--total-timesteps", str(2 * steps * num_envs), "--num-minibatches", "2"]
-        args += ["--eval-freq", "0", "--num-eval-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
+        args = ["--num-steps", str(steps), "--total-env-steps", str(2 * steps * num_envs), "--num-minibatches", "2"]
+        args += ["--eval-freq", "0", "--eval-freq-episodes", "1", "--save-freq", "1", "--eval-episodes", "0"]
         if obs == "state":  # the RL-from-the-reward network (recipes.py): its normaliser on the GPU's tensors
             args += render(STATE_PPO_NET)
     elif name == "sac":

@@ -1,10 +1,7 @@
-"""What every trainer in ``agents/`` shares besides the policy networks (those live in the library,
-``maniskill_irb120.policies``): the common flags and ``--recipe`` (``args``), the envs and observation layout
-(``envs``), the replay storage (``buffers``), checkpoint writes, reads and RNG state (``checkpoints``), the held-out
-evaluation every recipe is scored on (``evaluation``), the loggers (``logging``), mixed precision (``precision``)
-and the frame of a run: its folder, resume, budget clock, checkpoint and final evaluation (``run``). It may import
-the library ``maniskill_irb120`` and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``,
-``agents.dagger``, ``agents.rllib``): trainers import it and the library, never each other."""
+"""What every trainer in ``agents/`` shares besides the policy networks (those live in ``maniskill_irb120.policies``):
+flags, envs, replay storage, checkpoints, evaluation, loggers, precision and the one training loop (``loop``). It may
+import the library and third-party packages, never a trainer (``agents.ppo``, ``agents.sac``, ``agents.dagger``,
+``agents.rllib``): trainers import it and the library, never each other. See docs/training.md."""
 
 from agents.common.args import RunArgs, check_budget, cli, entry, recipe_argv
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset
@@ -14,6 +11,7 @@ from agents.common.envs import (
     ExpertLabels,
     action_wrappers,
     flatten_obs,
+    labelled_envs,
     make_envs,
     obs_to,
     one_thread_beside_workers,
@@ -84,6 +82,7 @@ __all__ = [
     "held_out_evaluation",
     "load_for_evaluation",
     "load_torch",
+    "labelled_envs",
     "make_envs",
     "new_eval_dir",
     "obs_to",

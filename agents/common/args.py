@@ -1,18 +1,9 @@
-"""The flags every trainer shares (``RunArgs``): the task, the seed, the budget, the held-out
-evaluation, the device and env backend, where runs go, resuming and evaluating a checkpoint, and the loggers.
-
-``--backend``: ``gpu`` is ManiSkill's GPU-batched physx_cuda env (``--num-envs`` in one process); ``cpu`` is
-``--num-envs`` worker processes (1: one env in this process); ``auto`` picks gpu when CUDA is available.
-``--resume`` continues a run: networks, optimisers, data, counters and RNG, the budget counting the env steps
-(and the guard the time) already spent. ``--total-env-steps`` is the budget, since a host's speed moves several-fold
-and a minute budget measures the machine; ``--max-minutes`` (``--budget-min``, its old name) only guards the wall
-clock. A zero or negative budget is refused (:func:`check_budget`); from the command line in one line, exit status 2
-(:func:`entry`).
+"""The flags every trainer shares (``RunArgs``: task, seed, the env-step budget and its wall guard, evaluation,
+selection, backend, run folder, resume, loggers), ``--recipe`` expansion, and the command line's end: a flag that
+cannot run, or one that was removed (:data:`RENAMED`), is one line on stderr and exit status 2 (:func:`entry`).
 Each trainer's ``Args`` extends RunArgs and only overrides a default where its recipe needs another one.
-
-``--recipe NAME`` (:func:`cli`) runs a named recipe of ``agents/recipes.py``, the one place recipes are
-written: its flags for the task of ``--env-id`` (the task's own additions included) go first and the command
-line's after them, so an explicit flag overrides the recipe's (the last of a repeated flag wins)."""
+``--recipe NAME`` runs a named recipe of ``agents/recipes.py`` (its flags first, the command line's after them,
+so an explicit flag wins). See docs/training.md."""
 
 from __future__ import annotations
 
@@ -50,7 +41,14 @@ class RunArgs:
     budget_min: Optional[float] = None
     """the old name of --max-minutes (kept for the committed runs and recipes that pass it; --max-minutes wins)"""
     eval_episodes: int = 100
-    """final evaluation episodes on held-out seeds (agents.common.EVAL_SEED onwards)"""
+    """the held-out evaluation after training and of --evaluate: deterministic episodes on held-out seeds
+    (agents.common.EVAL_SEED onwards; 0: none after training)"""
+    select_episodes: int = 0
+    """checkpoint selection: every --select-freq steps of training and after the last, the policy on this many
+    validation seeds (agents.common.VALIDATION_SEED onwards); the best is checkpoints/best.pt, and the held-out
+    evaluation scores it instead of the last weights (0: no selection). Its episodes count in --max-minutes"""
+    select_freq: int = 25
+    """steps of training (PPO iterations, DAgger rounds, SAC env steps) between two selection evaluations"""
     device: str = "auto"
     """torch device of the learner (auto: CUDA when available)"""
     backend: Literal["auto", "cpu", "gpu"] = "auto"
@@ -139,25 +137,43 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
     return [*RECIPES[name].for_task(env).argv(_flag(argv, "--seed") or seed), *argv]
 
 
-BUDGET_FLAGS = {
-    "total_env_steps": "env steps",
-    "total_timesteps": "env steps",
-    "timesteps": "env steps",
-    "max_minutes": "minutes",
-    "budget_min": "minutes",
-    "max_wall_s": "seconds",
+BUDGET_FLAGS = {"total_env_steps": "env steps", "max_minutes": "minutes", "budget_min": "minutes"}
+"""the budget and guard fields, and their units"""
+
+RENAMED = {
+    "--total-timesteps": "use --total-env-steps",
+    "--timesteps": "use --total-env-steps",
+    "--out-dir": "use --runs-dir",
+    "--max-wall-s": "use --max-minutes (in minutes)",
+    "--num-eval-episodes": "use --eval-freq-episodes (for --evaluate: --eval-episodes)",
+    "--partial-reset": "training always auto-resets finished envs",
+    "--no-partial-reset": "training always auto-resets finished envs",
 }
-"""the budget and guard fields a trainer may have, and their units"""
+"""flags that are gone, and what takes their place: given, they end the command line with one line naming it"""
+
+
+def check_renamed(argv: list[str]) -> None:
+    """A :class:`UsageError` naming the flag that replaced a removed one in ``argv``."""
+    for i, a in enumerate(argv):
+        name = a.split("=", 1)[0]
+        if name in RENAMED:
+            raise UsageError(f"{name} was removed; {RENAMED[name]}")
+        if a.startswith("--evaluate=") or (a == "--evaluate" and i + 1 < len(argv) and not argv[i + 1].startswith("-")):
+            raise UsageError("--evaluate takes no value; name the checkpoint with --checkpoint PATH")
 
 
 def check_budget(args) -> None:
     """ValueError naming the flag when a budget or guard is zero or negative: such a run would train nothing, write
-    a checkpoint and exit 0, which reads as success to whoever chains runs."""
+    a checkpoint and exit 0, which reads as success to whoever chains runs; so too for a selection that cannot
+    run (its episodes are budgeted time)."""
     for name, unit in BUDGET_FLAGS.items():
         value = getattr(args, name, None)
         if value is not None and not value > 0:
             flag = "--" + name.replace("_", "-")
             raise ValueError(f"{flag} must be a positive number of {unit}, got {value}")
+    episodes, freq = getattr(args, "select_episodes", 0), getattr(args, "select_freq", 1)
+    if episodes < 0 or freq < 1:
+        raise ValueError(f"--select-episodes must be >= 0 and --select-freq >= 1, got {episodes} and {freq}")
 
 
 def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, one_line: bool = False) -> A:
@@ -167,6 +183,7 @@ def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, on
     ``--total-env-steps``) overrides it. A zero or negative budget is a ValueError (:func:`check_budget`), and so,
     with ``one_line``, is tyro's own parse error (else its panel and exit 2)."""
     argv = sys.argv[1:] if argv is None else argv
+    check_renamed(argv)
     parse = _parse if one_line else (lambda t, a, **kw: tyro.cli(t, args=a, **kw))
     resume = _flag(argv, "--resume")
     if resume is None or resume == "None":
@@ -190,6 +207,7 @@ def entry(
         if recipes:
             args = cli(args_type, module, argv, one_line=True)
         else:
+            check_renamed(argv)
             args = _parse(args_type, argv)
             check_budget(args)
     except (ValueError, FileNotFoundError) as e:
@@ -237,11 +255,13 @@ def resumed_args(args_type: type[A], path: Path) -> A:
     """The arguments the run whose checkpoint is ``path`` was started with (every trainer's checkpoint keeps them,
     as JSON: ``agents.common.run.checkpoint``), as ``args_type``; a field the checkpoint predates keeps its default.
     A missing file, or one without arguments, is refused by name."""
-    from agents.common.checkpoints import read_checkpoint
+    from agents.common.checkpoints import migrate, read_checkpoint
 
     if not path.is_file():
         raise FileNotFoundError(f"--resume: checkpoint {path} does not exist")
     saved = read_checkpoint(path)
+    if isinstance(saved, dict) and "format" in saved:
+        migrate(saved)
     saved = saved.get("args") if isinstance(saved, dict) else None
     if not isinstance(saved, dict):
         raise ValueError(f"--resume {path}: the file holds no run arguments (not a trainer's latest.pt?)")

@@ -1,5 +1,5 @@
 """Replay storage trainers share: :class:`Dataset`, preallocated CPU rows in a ring, is DAgger's aggregated
-dataset and SAC's demo and online replay."""
+dataset and SAC's demo and online replay. See docs/training.md."""
 
 from __future__ import annotations
 
@@ -111,9 +111,10 @@ class Dataset:
 
 
 def restore_dataset(data: Dataset, saved: dict, data_dir: Path, part: Optional[str] = None) -> None:
-    """Refill ``data`` for a resumed run: from the row files in ``data_dir`` (``/ part``) that the checkpoint
-    ``saved`` lists, or, for a checkpoint written before the row files, from the rows inside it (under ``part``,
-    or ``"data"``). ``part`` names one of several datasets a trainer keeps (SAC's ``online`` and ``demos``)."""
+    """Refill ``data`` for a resumed run from where the checkpoint ``saved`` keeps its rows: the row files in
+    ``data_dir`` (``/ part``) its ``data_rows`` manifest lists, or, with no manifest, the rows inside the checkpoint
+    (under ``part``, or ``"data"``). ``part`` names one of several datasets a trainer keeps (SAC's ``online`` and
+    ``demos``)."""
     manifest = saved.get("data_rows")
     if manifest is None:
         data.load_state_dict(saved[part or "data"])

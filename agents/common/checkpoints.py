@@ -1,5 +1,7 @@
-"""Checkpoint plumbing every trainer shares: the run's flags as JSON, atomic writes, format-checked reads and
-the RNG state a resumed run continues from."""
+"""Checkpoint plumbing every trainer shares: the run's flags as JSON, atomic writes, format-checked reads that bring
+an older checkpoint up to date (:func:`migrate`, the one place that knows the older layouts) and the RNG state a
+resumed run continues from. Every checkpoint written carries ``format_version`` (:data:`FORMAT_VERSION`).
+See docs/training.md."""
 
 from __future__ import annotations
 
@@ -29,13 +31,54 @@ def atomic_save(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
+FORMAT_VERSION = 2
+"""the layout of a trainer's checkpoint; a checkpoint without ``format_version`` is version 1"""
+
+PPO_FORMAT = "maniskill_irb120.ppo/1"
+
+PPO_SIGNATURE_V1 = dict(residual=False, state_net="shared", obs_norm=False, logstd="param")
+"""what a version-1 PPO checkpoint's signature may lack: the options added since, at the value it was trained with"""
+
+
+def migrate(ckpt: dict) -> dict:
+    """``ckpt`` (a trainer's checkpoint, any version) in the current layout, changed in place and returned.
+    Version 1 to 2: the run's ``args`` always present, under the flags' current names (``--resume`` reads them);
+    PPO's step counter is ``env_steps`` as every trainer's (its ``global_step`` renamed, in the selected
+    checkpoint's record too), its signature lists every option and its args name the action frame (``tool``, the
+    only one then)."""
+    version = ckpt.get("format_version", 1)
+    if version > FORMAT_VERSION:
+        raise ValueError(f"checkpoint format_version {version} is newer than this code's {FORMAT_VERSION}")
+    if version < 2:
+        args = ckpt.setdefault("args", {})
+        if args.get("total_env_steps") is None and args.get("total_timesteps") is not None:
+            args["total_env_steps"] = args["total_timesteps"]
+        if args.get("max_minutes") is None and args.get("budget_min") is None and args.get("max_wall_s") is not None:
+            args["max_minutes"] = args["max_wall_s"] / 60
+        if "num_eval_episodes" in args:
+            args["eval_freq_episodes"] = args["num_eval_episodes"]
+        for gone in ("total_timesteps", "max_wall_s", "num_eval_episodes", "partial_reset"):
+            args.pop(gone, None)
+        if ckpt.get("format") == PPO_FORMAT:
+            ckpt["signature"] = dict(PPO_SIGNATURE_V1, **ckpt.get("signature", {}))
+            ckpt["args"].setdefault("action_frame", "tool")
+            counters = ckpt.get("counters", {})
+            if "global_step" in counters:
+                counters["env_steps"] = counters.pop("global_step")
+            if isinstance(counters.get("best"), dict) and "global_step" in counters["best"]:
+                counters["best"]["env_steps"] = counters["best"].pop("global_step")
+    ckpt["format_version"] = FORMAT_VERSION
+    return ckpt
+
+
 def load_torch(path: Path, fmt: str, what: str) -> dict:
-    """A checkpoint written by ``what`` in format ``fmt``, or an error that says why not."""
+    """A checkpoint written by ``what`` in format ``fmt``, migrated to the current layout, or an error that says
+    why not."""
     ckpt = read_checkpoint(path)
     if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
         found = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt)
         raise ValueError(f"checkpoint {path} was not written by {what} (format {found})")
-    return ckpt
+    return migrate(ckpt)
 
 
 def load_for_evaluation(path: Path, fmt: str, what: str, kind: str) -> dict:

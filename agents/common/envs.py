@@ -1,6 +1,6 @@
 """The envs trainers collect from and the observations they read: every trainer's vector envs (:func:`vec_envs`),
 batched torch obs as a dict, devices, the policy's action-frame wrappers, and the labelled vector envs of the
-imitation and demo-seeded trainers (:func:`make_envs`)."""
+imitation and demo-seeded trainers (:func:`make_envs`). See docs/training.md."""
 
 from __future__ import annotations
 
@@ -243,6 +243,26 @@ def make_envs(
     )
     # the dataset and the replay live in host memory: a batched env's tensors come back to the CPU each step
     return envs if isinstance(envs, CPUVectorEnv) else OnHost(envs)
+
+
+def labelled_envs(args, num_envs: int):
+    """:func:`make_envs` for a run's arguments: its task, observation (less ``obs_without``), action frame,
+    backend and ``env_kwargs``, with its ``reward_mode``, auxiliary targets (``aux_weight`` > 0) and ``teacher``
+    where its trainer has those flags."""
+    env_kwargs = dict(args.env_kwargs)
+    if hasattr(args, "reward_mode"):
+        env_kwargs["reward_mode"] = args.reward_mode
+    return make_envs(
+        args.env_id,
+        args.obs,
+        num_envs,
+        backend=args.backend,
+        action_frame=args.action_frame,
+        obs_without=args.obs_without,
+        aux=getattr(args, "aux_weight", 0) > 0,
+        env_kwargs=env_kwargs,
+        teacher=getattr(args, "teacher", None),
+    )
 
 
 def one_thread_beside_workers(envs):

@@ -1,5 +1,5 @@
 """The held-out evaluation every recipe is scored on (so the learning benchmark compares like with like): the
-seeds, per-episode task metrics, the one-env episode loop and a trainer's ``--evaluate``."""
+seeds, per-episode task metrics, the one-env episode loop and a trainer's ``--evaluate``. See docs/training.md."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """What a run reports: TensorBoard always (W&B and Comet when asked) under the same metric names, a tqdm bar over
 the budget, and the ``summary.json`` + one printed JSON line a run ends with; and :func:`read_scalars`,
-which reads a run's TensorBoard logs back whole, across its resumes."""
+which reads a run's TensorBoard logs back whole, across its resumes. See docs/training.md."""
 
 from __future__ import annotations
 

@@ -1,15 +1,8 @@
-"""Mixed precision for the learner's camera encoder (``--precision``).
-
-On a CPU with native bfloat16 (AVX512-BF16 or AMX: AMD Zen 4, Intel Cooper Lake and Sapphire Rapids on),
-oneDNN runs the camera encoder's convolutions about twice as fast under bf16 autocast as in float32, and those
-convolutions are most of a camera update; trainers run only the encoder under it. Weights, optimiser state, the
-heads, the losses, the keypoints' spatial softmax and the proprioception MLP stay float32 (the last two opt out
-of autocast in ``maniskill_irb120.policies.nets``), so a checkpoint is the same float32 policy either way and
-evaluation, export and the real robot never run in bf16. Without native support bf16 is emulated and slower
-than float32: ``bf16`` is then refused and ``auto`` means float32. On a GPU ``auto`` means float32 too: this
-small encoder at the recipe's batch of 64 is bound by kernel launches there, not arithmetic, and bf16 autocast
-only adds casts (``benchmarks/learner_speed.py --device cuda``, RESULTS.md's GPU section); ``bf16`` stays
-available to try on bigger batches."""
+"""Mixed precision for the learner's camera encoder (``--precision``): bf16 autocast over the encoder's
+convolutions where the CPU has native bfloat16 (about twice as fast there), everything else and every checkpoint
+float32, so evaluation, export and the robot never run in bf16. Without native support ``bf16`` is refused and
+``auto`` means float32; on a GPU ``auto`` means float32 too (the small encoder is launch-bound there).
+See docs/training.md."""
 
 from __future__ import annotations
 

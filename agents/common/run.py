@@ -1,15 +1,7 @@
-"""The frame of a training run, the same for every trainer, so that a trainer file keeps only its algorithm: where
-the run lives and what it resumes from (:func:`open_run`), the budget clock (:class:`Clock`) and when the budget
-stops training (:class:`Budget`), the checkpoint's common part and its restore (:func:`checkpoint`,
-:func:`restore`, :func:`check_resume_signature`), the last checkpoint however training ends
-(:func:`close_and_save`), the held-out evaluation (:func:`held_out_evaluation`) and the run's last word
-(:func:`evaluate_and_finish`).
-
-The budget is env steps (``--total-env-steps``), the same for every trainer, since the host's speed moves several-fold
-and a minute budget measures the machine; ``--max-minutes`` is a guard on the wall clock. Both span ``--resume``: the
-env steps are the checkpoint's counters, and the clock counts the seconds trained before the resume (the
-checkpoint's ``counters["wall_s"]``, written with every checkpoint) plus this process's, so a resumed run stops
-where an uninterrupted one would have."""
+"""The pieces of a run every trainer's loop (agents.common.loop) is made of: its folder and resume
+(:func:`open_run`), the budget clock (:class:`Clock`) and when the budget stops training (:class:`Budget`: env steps,
+``--total-env-steps``, with ``--max-minutes`` a guard; both span a ``--resume``), the checkpoint's common part and its
+restore, the last save however training ends, and the held-out evaluation that ends the run. See docs/training.md."""
 
 from __future__ import annotations
 
@@ -24,7 +16,7 @@ import numpy as np
 import torch
 
 from agents.common.args import RunArgs
-from agents.common.checkpoints import args_json, rng_state, set_rng_state
+from agents.common.checkpoints import FORMAT_VERSION, args_json, rng_state, set_rng_state
 from agents.common.envs import action_wrappers
 from agents.common.evaluation import EVAL_SEED, evaluate_on_seeds
 from agents.common.logging import budget_bar, finish
@@ -65,9 +57,12 @@ class Clock:
 
 
 def checkpoint(fmt: str, args: RunArgs, counters: dict, **state) -> dict:
-    """A checkpoint's contents: the trainer's format tag, counters (with ``wall_s``, the budget clock), the RNG and
-    the run's flags, around ``state`` (networks, optimisers, data manifests, the policy section)."""
-    return dict(format=fmt, counters=counters, rng=rng_state(), args=args_json(args), **state)
+    """A checkpoint's contents: the trainer's format tag and the layout's ``format_version``, counters (with
+    ``wall_s``, the budget clock), the RNG and the run's flags, around ``state`` (networks, optimisers, data
+    manifests, the policy section)."""
+    return dict(
+        format=fmt, format_version=FORMAT_VERSION, counters=counters, rng=rng_state(), args=args_json(args), **state
+    )
 
 
 def restore(saved: dict, clock: Optional[Clock] = None) -> dict:
@@ -89,20 +84,17 @@ def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
 
 
 def env_step_budget(args: RunArgs) -> Optional[int]:
-    """The run's budget in env steps: ``--total-env-steps``, else a trainer's older ``--total-timesteps`` (PPO, SAC),
-    else None (the wall guard alone, as runs were budgeted before env steps)."""
-    return args.total_env_steps if args.total_env_steps is not None else getattr(args, "total_timesteps", None)
+    """The run's budget in env steps: ``--total-env-steps``, or None (the wall guard alone)."""
+    return args.total_env_steps
 
 
 def wall_guard_s(args: RunArgs, default_min: Optional[float] = None) -> Optional[float]:
-    """The wall-clock guard in seconds: ``--max-minutes``, else ``--budget-min`` (its old name), else PPO's
-    ``--max-wall-s``, else ``default_min`` for a run with no env-step budget (DAgger's and SAC's, which have no
-    other end), else None: a run given env steps is not stopped by a clock it did not ask for."""
+    """The wall-clock guard in seconds: ``--max-minutes``, else ``--budget-min`` (its old name), else
+    ``default_min`` for a run with no env-step budget (DAgger's and SAC's, which have no other end), else None: a
+    run given env steps is not stopped by a clock it did not ask for."""
     minutes = args.max_minutes if args.max_minutes is not None else args.budget_min
     if minutes is not None:
         return 60 * minutes
-    if getattr(args, "max_wall_s", None) is not None:
-        return args.max_wall_s
     return 60 * default_min if default_min is not None and env_step_budget(args) is None else None
 
 

@@ -1,28 +1,26 @@
-"""Ray RLlib (new API stack) on our tasks: PPO, APPO or SAC, from one process to a Ray cluster.
+"""Ray RLlib (new API stack) on our tasks: PPO, APPO or SAC, from one process to a Ray cluster. Its ``Args``
+extend the shared ``RunArgs`` (the same task, budget, run folder, resume and ``--evaluate`` flags as every
+trainer); it runs ``Algorithm.train()`` in this process (no Tune), logs under agents.ppo's metric names and keeps
+RLlib's own checkpoints (``save_to_path``). See docs/rl_libraries.md and docs/training.md.
 
     python -m agents.rllib --iterations 20                                   # PPO, state, this process samples
     python -m agents.rllib --algo SAC --num-env-runners 2 --total-env-steps 100000   # two env-runner processes
-    python -m agents.rllib --obs rgbd --num-env-runners 2                   # 84x84 RGB-D, our CNN encoder
-    python -m agents.rllib --address auto --num-env-runners 32              # join a running Ray cluster
     python -m agents.rllib --resume runs/NAME/checkpoints/latest --iterations 40
-    python -m agents.rllib --evaluate runs/NAME/checkpoints/latest --eval-episodes 20
-
-Training runs Algorithm.train() in this process (no Tune), so runs land in --out-dir, metrics go to our
-TensorBoard logger with the names agents.ppo uses, and checkpoints are RLlib's own (save_to_path).
+    python -m agents.rllib --evaluate --checkpoint runs/NAME/checkpoints/latest --eval-episodes 20
 """
 
 from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Union
 
 import numpy as np
 import torch
 
-from agents.common import EVAL_SEED, Logger, check_budget, evaluate_on_seeds, finish, new_eval_dir
+from agents.common import EVAL_SEED, Logger, RunArgs, check_budget, evaluate_on_seeds, finish, new_eval_dir
 from agents.rllib.checkpoint import checkpoint_args, load_module, module_policy, save_checkpoint
 from agents.rllib.env import ENV_NAME, register
 
@@ -31,15 +29,11 @@ CKPT_EXCLUDES = ["runs/", ".venv/", ".git/", "videos/", "*.mp4", "*.h5", "__pyca
 
 
 @dataclass
-class Args:
+class Args(RunArgs):
     algo: Literal["PPO", "APPO", "SAC"] = "PPO"
     """RLlib algorithm; each runs on both --obs modes"""
-    env_id: str = "TableClearing-IRB120-v1"
-    """any task registered by maniskill_irb120 (or ManiSkill)"""
     obs: Literal["state", "rgbd"] = "state"
     """state: RLlib's default MLP; rgbd: 84x84 RGB-D + proprioception through the shared NatureCNN"""
-    env_kwargs: dict = field(default_factory=dict)
-    """extra gym.make keyword arguments for every env (e.g. domain randomisation ranges)"""
     num_env_runners: int = 0
     """env-runner processes (0: sample in this process); each takes one CPU of the Ray cluster"""
     num_envs_per_env_runner: int = 1
@@ -60,18 +54,7 @@ class Args:
     """CPUs of the local Ray (default: this machine's, at least runners + learners)"""
     iterations: Optional[int] = None
     """stop after this many training iterations in all (counting a resumed run's); default 100 when no
-    --total-env-steps, --timesteps, --max-minutes or --budget-min is given"""
-    total_env_steps: Optional[int] = None
-    """the budget: stop once this many env steps were sampled in all, as every trainer's --total-env-steps"""
-    timesteps: Optional[int] = None
-    """the older name of --total-env-steps (--total-env-steps wins)"""
-    max_minutes: Optional[float] = None
-    """a wall-clock guard: stop after this many minutes of training in this invocation; a run it stops before
-    --total-env-steps says so ("stopped_early")"""
-    budget_min: Optional[float] = None
-    """the older name of --max-minutes (--max-minutes wins)"""
-    seed: int = 1
-    """seeds RLlib (env runners seed their envs from it) and torch"""
+    --total-env-steps, --max-minutes or --budget-min is given"""
     gamma: float = 0.9
     """discount; our episodes are ~75 steps (ManiSkill's PPO default 0.8 is for shorter horizons)"""
     lr: float = 3e-4
@@ -93,27 +76,14 @@ class Args:
     """save a checkpoint every N iterations (and always at the end)"""
     max_env_runner_restarts: int = 100
     """fault tolerance: a crashed env runner is restarted (up to this many times) and training goes on"""
-    resume: Optional[Path] = None
-    """continue from a checkpoint folder: weights, optimiser, connector state, counters"""
-    evaluate: Optional[Path] = None
-    """only evaluate this checkpoint folder on held-out seeds (videos + summary.json) and exit"""
     eval_episodes: int = 0
     """after training (or with --evaluate; default 10 there): deterministic episodes on held-out seeds
     (agents.common.EVAL_SEED onwards); their success_rate ends the printed JSON"""
-    capture_video: bool = True
-    """--evaluate: record an mp4 per episode"""
-    out_dir: Path = Path("runs")
-    """runs go to out_dir/exp_name (TensorBoard logs, checkpoints, summary.json), not ~/ray_results"""
-    exp_name: Optional[str] = None
-    """run folder name (default: rllib_ALGO__env__obs__seed__time)"""
-    progress: bool = True
-    """a tqdm bar over iterations"""
-    wandb: bool = False
-    """also log to Weights & Biases (imported only when set)"""
-    comet: bool = False
-    """also log to Comet, as the original report did (imported only when set)"""
-    wandb_project: str = "maniskill_irb120"
-    comet_project: str = "maniskill_irb120"
+
+
+NOT_HERE = dict(select_episodes=0, device="auto", backend="auto", recipe=None)
+"""RunArgs flags RLlib sizes its own way (--num-gpus-per-learner, --vector-backend) or has no part for (selection,
+recipes): anything but their default is refused"""
 
 
 def env_config(args: Args) -> dict:
@@ -219,8 +189,11 @@ def held_out_eval(args: Args, path: Path, episodes: int, video_dir: Optional[Pat
 
 
 def evaluate(args: Args) -> dict:
-    """``--evaluate PATH``: held-out episodes with videos; ``summary.json`` beside the run, like agents.ppo."""
-    path = Path(args.evaluate)
+    """``--evaluate --checkpoint PATH``: held-out episodes with videos; ``summary.json`` beside the run, like
+    agents.ppo."""
+    if args.checkpoint is None:
+        raise ValueError("--evaluate needs --checkpoint PATH (an agents.rllib checkpoint folder)")
+    path = Path(args.checkpoint)
     out_dir = new_eval_dir(path.resolve().parent.parent)
     result = held_out_eval(args, path, args.eval_episodes or 10, out_dir / "videos" if args.capture_video else None)
     result["checkpoint"] = str(path)
@@ -254,10 +227,14 @@ def env_steps_of(result: dict) -> int:
 
 
 def main(args: Args) -> dict:
-    if args.evaluate is not None:
+    for name, default in NOT_HERE.items():
+        if getattr(args, name) != default:
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(f"{flag} is not an agents.rllib flag (RLlib's runs leave it at {default})")
+    if args.evaluate:
         return evaluate(args)
     check_budget(args)
-    total = args.total_env_steps if args.total_env_steps is not None else args.timesteps
+    total = args.total_env_steps
     guard_min = args.max_minutes if args.max_minutes is not None else args.budget_min
     if args.iterations is None and total is None and guard_min is None:
         args.iterations = 100
@@ -265,7 +242,7 @@ def main(args: Args) -> dict:
     if args.resume is not None:
         checkpoint_args(args.resume, args, ("algo", "obs", "env_id"))
     name = args.exp_name or f"rllib_{args.algo}__{args.env_id}__{args.obs}__{args.seed}__{int(time.time())}"
-    run_dir = Path(args.out_dir) / name
+    run_dir = Path(args.runs_dir) / name
     ckpt_dir = run_dir / "checkpoints"
     torch.manual_seed(args.seed)
     init_ray(args)

@@ -62,7 +62,7 @@ QUICK_FLAGS = {
         "8",
         "--num-minibatches",
         "2",
-        "--total-timesteps",
+        "--total-env-steps",
         "16",
         "--eval-freq",
         "0",

@@ -21,14 +21,16 @@ def run(tmp_path: Path, **kw):
     base = dict(
         num_envs=2,
         num_steps=8,
-        total_timesteps=16,
+        total_env_steps=16,
         eval_freq=0,
         save_freq=1,
         runs_dir=tmp_path,
         exp_name="t",
         progress=False,
-        num_eval_episodes=1,
+        eval_freq_episodes=1,
     )
+    if kw.get("evaluate"):
+        base["eval_episodes"] = 1  # --evaluate's episodes
     base.update(kw)
     return main(Args(**base))
 
@@ -45,7 +47,7 @@ def test_one_rgbd_iteration_writes_events_and_checkpoint(trained):
     assert result["global_step"] == 16 and result["iterations"] == 1
     assert list(run_dir.glob("events.out.tfevents.*"))
     ckpt = torch.load(run_dir / "checkpoints" / "latest.pt", weights_only=False)
-    assert ckpt["counters"]["global_step"] == 16
+    assert ckpt["counters"]["env_steps"] == 16
     # the run's last word is written without a held-out evaluation too (--eval-episodes 0)
     assert json.loads((run_dir / "summary.json").read_text()) == {k: v for k, v in result.items() if k != "history"}
     assert ckpt["signature"]["image_shape"] == [84, 84, 4]
@@ -63,7 +65,7 @@ def test_resume_continues_step_counter(trained):
     threads = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        again = run(tmp, obs="rgbd", total_timesteps=32, resume=Path(result["checkpoint"]))
+        again = run(tmp, obs="rgbd", total_env_steps=32, resume=Path(result["checkpoint"]))
         assert torch.get_num_threads() == 2  # the run's one learner thread beside its workers ends with it
     finally:
         torch.set_num_threads(threads)
@@ -196,7 +198,7 @@ def test_fine_tuning_a_dagger_policy_with_kl_resume_and_evaluate(tmp_path):
     assert "losses/kl_to_base" in res["history"][-1]
     # the base travels in the checkpoint: resuming and evaluating need no --base-checkpoint
     again = run(tmp_path, obs="state", action_frame="world", kl_coef=1.0, resume=Path(res["checkpoint"]),
-                total_timesteps=32)  # fmt: skip
+                total_env_steps=32)  # fmt: skip
     assert again["global_step"] > res["global_step"]
     ev = run(tmp_path, obs="state", action_frame="world", evaluate=True, checkpoint=Path(res["checkpoint"]),
              capture_video=False)  # fmt: skip
@@ -341,7 +343,7 @@ def test_checkpoint_selection_keeps_the_best_validation_and_the_held_out_evaluat
         state_net="mlp",
         select_episodes=3,
         select_freq=1,
-        total_timesteps=80,
+        total_env_steps=80,
         eval_episodes=1,
         learning_rate=0.05,
     )
@@ -369,7 +371,8 @@ def test_a_run_stopped_by_its_budget_validates_its_last_weights_once(tmp_path, m
         return {"success_rate": 0.0, "return": 0.0}
 
     monkeypatch.setattr(ppo, "final_evaluation", scripted)
-    kw = dict(obs="state", state_net="mlp", select_episodes=1, total_timesteps=10**6, max_wall_s=2.0, eval_episodes=0)
+    kw = dict(obs="state", state_net="mlp", select_episodes=1, total_env_steps=10**6, max_minutes=2 / 60)
+    kw["eval_episodes"] = 0
     every = run(tmp_path / "every", select_freq=1, **kw)  # each iteration validated: the stop adds none
     assert every["iterations"] >= 1 and validated.count(VALIDATION_SEED) == every["iterations"]
     validated.clear()
@@ -400,8 +403,8 @@ def test_no_iteration_starts_that_would_end_after_the_budget(tmp_path, monkeypat
 
     monkeypatch.setattr(ppo, "Clock", JumpingClock)
     monkeypatch.setattr(ppo, "final_evaluation", scripted)
-    kw = dict(obs="state", state_net="mlp", select_episodes=1, select_freq=1, total_timesteps=10**6, eval_episodes=0)
-    res = run(tmp_path, max_wall_s=250.0, **kw)
+    kw = dict(obs="state", state_net="mlp", select_episodes=1, select_freq=1, total_env_steps=10**6, eval_episodes=0)
+    res = run(tmp_path, max_minutes=250.0 / 60, **kw)
     assert res["iterations"] == 2 and 200.0 < res["wall_clock_s"] <= 250.0
 
 
@@ -412,7 +415,7 @@ def test_minibatches_of_one_row_are_refused_before_training(tmp_path):
 
 def test_the_budget_spans_a_resume(tmp_path):
     """--budget-min is the run's, as in DAgger and SAC: a resumed run trains only what its checkpoint left of it."""
-    kw = dict(obs="state", state_net="mlp", total_timesteps=10**6, eval_episodes=0, num_envs=1, num_steps=8)
+    kw = dict(obs="state", state_net="mlp", total_env_steps=10**6, eval_episodes=0, num_envs=1, num_steps=8)
     first = run(tmp_path, budget_min=0.02, **kw)
     assert first["iterations"] >= 1
     again = run(tmp_path, budget_min=0.02, resume=Path(first["checkpoint"]), **kw)
@@ -438,13 +441,13 @@ def test_an_exception_mid_training_keeps_the_iterations_done_and_resume_carries_
         return update(*a, **kw)
 
     monkeypatch.setattr(ppo, "ppo_update", fails_second)
-    kw = dict(obs="state", state_net="mlp", num_envs=1, num_steps=8, num_minibatches=2, total_timesteps=32)
+    kw = dict(obs="state", state_net="mlp", num_envs=1, num_steps=8, num_minibatches=2, total_env_steps=32)
     with pytest.raises(RuntimeError, match="second update"):
         run(tmp_path, save_freq=100, **kw)
     ckpts = tmp_path / "t" / "checkpoints"
     assert sorted(p.name for p in ckpts.iterdir()) == ["latest.pt"]
     saved = torch.load(ckpts / "latest.pt", weights_only=False)["counters"]
-    assert saved["iteration"] == 1 and saved["global_step"] == 8 and saved["wall_s"] > 0  # not iteration 2's rollout
+    assert saved["iteration"] == 1 and saved["env_steps"] == 8 and saved["wall_s"] > 0  # not iteration 2's rollout
     assert not (tmp_path / "t" / "summary.json").exists()
     monkeypatch.undo()
     again = run(tmp_path, resume=ckpts / "latest.pt", save_freq=100, **kw)
@@ -459,7 +462,7 @@ def test_periodic_checkpoints_keep_the_newest_and_never_latest_or_best(tmp_path)
     --keep-checkpoints stay, ordered by N (not by name: ckpt_10 is newer than ckpt_9), and 0 keeps every one."""
     from agents.ppo import prune_checkpoints
 
-    result = run(tmp_path, obs="state", total_timesteps=64, keep_checkpoints=2)  # 4 iterations, one each
+    result = run(tmp_path, obs="state", total_env_steps=64, keep_checkpoints=2)  # 4 iterations, one each
     ckpt_dir = Path(result["run_dir"]) / "checkpoints"
     assert sorted(p.name for p in ckpt_dir.glob("*.pt")) == ["ckpt_3.pt", "ckpt_4.pt", "latest.pt"]
     assert torch.load(ckpt_dir / "ckpt_4.pt", weights_only=False)["counters"]["iteration"] == 4

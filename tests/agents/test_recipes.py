@@ -132,7 +132,7 @@ def test_the_rllib_trainer_refuses_a_budget_in_one_line_too(capsys):
 
     ran = []
     for argv, says in [
-        (["--timesteps", "0"], "--timesteps must be a positive number of env steps, got 0"),
+        (["--timesteps", "0"], "--timesteps was removed; use --total-env-steps"),
         (["--total-env-steps", "-3"], "--total-env-steps must be a positive number of env steps, got -3"),
         (["--budget-min", "-5"], "--budget-min must be a positive number of minutes, got -5.0"),
     ]:

@@ -101,7 +101,9 @@ def test_one_training_iteration(ray_local, tmp_path, algo, obs):
     runners = 1 if algo == "APPO" or obs == "rgbd" else 0
     iterations = 3 if algo == "APPO" else 1  # APPO's first iterations may only start the async sampling
     summary = main(
-        Args(algo=algo, obs=obs, iterations=iterations, num_env_runners=runners, out_dir=tmp_path, exp_name="r", **TINY)
+        Args(
+            algo=algo, obs=obs, iterations=iterations, num_env_runners=runners, runs_dir=tmp_path, exp_name="r", **TINY
+        )
     )
     assert summary["iterations"] == iterations and summary["env_steps"] > 0
     assert (tmp_path / "r" / "checkpoints" / "latest" / "agents_rllib_args.json").is_file()
@@ -112,7 +114,7 @@ def test_task_metrics_use_agents_ppo_names(ray_local, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     # 40-step episodes: a few end within 200 steps whatever the random policy does
-    main(Args(iterations=2, out_dir=tmp_path, exp_name="m", env_kwargs=dict(max_episode_steps=40), **TINY))
+    main(Args(iterations=2, runs_dir=tmp_path, exp_name="m", env_kwargs=dict(max_episode_steps=40), **TINY))
     ea = EventAccumulator(str(tmp_path / "m"))
     ea.Reload()
     tags = set(ea.Tags()["scalars"])
@@ -124,12 +126,12 @@ def test_task_metrics_use_agents_ppo_names(ray_local, tmp_path):
 
 
 def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path, monkeypatch):
-    first = main(Args(iterations=2, out_dir=tmp_path, exp_name="a", **TINY))
+    first = main(Args(iterations=2, runs_dir=tmp_path, exp_name="a", **TINY))
     ckpt = tmp_path / "a" / "checkpoints" / "latest"
     from agents.rllib.checkpoint import load_module
 
     saved = {k: v.clone() for k, v in load_module(ckpt).state_dict().items()}
-    again = main(Args(iterations=3, resume=ckpt, out_dir=tmp_path, exp_name="b", **TINY))
+    again = main(Args(iterations=3, resume=ckpt, runs_dir=tmp_path, exp_name="b", **TINY))
     assert again["iterations"] == 3  # counted from the checkpoint's 2
     assert again["env_steps"] == first["env_steps"] + 100
     # what was restored is what was saved (checked before the third iteration changed it: from "a" again)
@@ -137,15 +139,16 @@ def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path, mon
     assert all(torch.equal(saved[k], restored[k]) for k in saved)
 
     monkeypatch.chdir(tmp_path)  # a relative checkpoint path, as a user types it
-    result = main(Args(evaluate=Path("a/checkpoints/latest"), eval_episodes=1, capture_video=False, progress=False))
+    latest = Path("a/checkpoints/latest")
+    result = main(Args(evaluate=True, checkpoint=latest, eval_episodes=1, capture_video=False, progress=False))
     assert 0.0 <= result["success_rate"] <= 1.0 and result["episodes"] == 1
     assert json.loads((tmp_path / "a" / "eval" / "summary.json").read_text())["checkpoint"] == "a/checkpoints/latest"
     with pytest.raises(ValueError, match="trained with --obs state"):
-        main(Args(evaluate=ckpt, obs="rgbd", eval_episodes=1, progress=False))
+        main(Args(evaluate=True, checkpoint=ckpt, obs="rgbd", eval_episodes=1, progress=False))
     with pytest.raises(FileNotFoundError, match="not an agents.rllib checkpoint"):
-        main(Args(evaluate=tmp_path, eval_episodes=1, progress=False))
+        main(Args(evaluate=True, checkpoint=tmp_path, eval_episodes=1, progress=False))
     with pytest.raises(ValueError, match="trained with --algo PPO"):
-        main(Args(algo="SAC", resume=ckpt, iterations=4, out_dir=tmp_path, **TINY))
+        main(Args(algo="SAC", resume=ckpt, iterations=4, runs_dir=tmp_path, **TINY))
 
 
 def test_a_killed_env_runner_is_restarted_and_training_goes_on(ray_local, tmp_path):
@@ -217,7 +220,7 @@ def test_a_batched_env_trains_through_the_vector_entry_point(ray_local, tmp_path
             vector_backend="cpu",
             num_envs_per_env_runner=2,
             env_kwargs=dict(max_episode_steps=30),
-            out_dir=tmp_path,
+            runs_dir=tmp_path,
             exp_name="v",
             **TINY,
         )

@@ -32,7 +32,7 @@ def tiny(tmp_path: Path, **kw) -> dict:
     it: the same run on a quiet machine and on a loaded CI box."""
     base = dict(
         budget_min=5.0,
-        total_timesteps=310,
+        total_env_steps=310,
         num_envs=1,
         demo_episodes=1,
         bc_pretrain_updates=5,
@@ -164,9 +164,9 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     assert rows["online"]["capacity"] == 300_000 and rows["demos"]["capacity"] == 500
     assert saved["args"]["buffer_size"] == 300_000
     # the budget counts the first run's wall clock too: one it has already used up stops the resumed run at once
-    spent = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.001, total_timesteps=None)
+    spent = tiny(tmp_path, resume=Path(res["checkpoint"]), budget_min=0.001, total_env_steps=None)
     assert spent["env_steps"] == res["env_steps"] and spent["updates"] == res["updates"]
-    again = tiny(tmp_path, resume=Path(res["checkpoint"]), total_timesteps=res["env_steps"] + 40)
+    again = tiny(tmp_path, resume=Path(res["checkpoint"]), total_env_steps=res["env_steps"] + 40)
     assert again["env_steps"] > res["env_steps"] and again["updates"] > res["updates"]
     assert again["wall_clock_s"] > res["wall_clock_s"]
     ev = tiny(tmp_path, evaluate=True, checkpoint=Path(res["checkpoint"]), capture_video=True)
@@ -216,7 +216,7 @@ def test_rgbd_run_learns_from_camera_and_proprioception(tmp_path):
     res = tiny(
         tmp_path,
         obs="rgbd",
-        total_timesteps=140,
+        total_env_steps=140,
         batch_size=8,
         bc_pretrain_updates=2,
         critic_warmup_updates=2,
@@ -234,8 +234,8 @@ def test_bad_input_is_named(tmp_path):
         main(Args(evaluate=True))
     with pytest.raises(ValueError, match="--buffer-size 0"):
         main(Args(buffer_size=0))
-    with pytest.raises(ValueError, match="--total-timesteps must be >= 1"):
-        main(Args(total_timesteps=0))
+    with pytest.raises(ValueError, match="--total-env-steps must be a positive number"):
+        main(Args(total_env_steps=0))
     wrong = tmp_path / "dagger.pt"
     torch.save(dict(format="maniskill_irb120.dagger/1"), wrong)
     with pytest.raises(ValueError, match="not written by agents.sac"):
@@ -262,9 +262,9 @@ def test_without_demos_the_normaliser_is_fitted_on_the_steps_before_learning(tmp
 
 
 def test_total_env_steps_is_the_budget_with_no_clock_unless_asked_for(tmp_path):
-    """--total-env-steps (over the older --total-timesteps) ends the run, demos counted, with no wall guard of its
+    """--total-env-steps ends the run, demos counted, with no wall guard of its
     own; the summary names the budget and that no guard stopped it."""
-    res = tiny(tmp_path, budget_min=None, total_timesteps=10**6, total_env_steps=200)
+    res = tiny(tmp_path, budget_min=None, total_env_steps=200)
     assert 200 <= res["env_steps"] < 200 + 250 and res["total_env_steps"] == 200
     assert res["max_minutes"] is None and res["stopped_early"] is False
     summary = json.loads((tmp_path / "t" / "summary.json").read_text())

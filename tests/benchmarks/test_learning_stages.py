@@ -467,7 +467,7 @@ def test_a_run_stopped_by_the_session_continues_where_it_stopped(tmp_path):
     latest = tmp_path / "runs" / "ppo-state__s1" / "checkpoints" / "latest.pt"
     import torch
 
-    steps_then = torch.load(latest, weights_only=False)["counters"]["global_step"]
+    steps_then = torch.load(latest, weights_only=False)["counters"]["env_steps"]
     assert steps_then > 0
     again = subprocess.run([*cmd, "--stop-after-min", "60"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]

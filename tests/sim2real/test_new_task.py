@@ -232,7 +232,7 @@ def test_from_the_reward_to_a_camera_policy_with_no_expert(tmp_path, monkeypatch
     teacher = ppo.main(
         ppo.Args(
             **toy, exp_name="teacher", obs="state", state_net="mlp", obs_norm=True, num_envs=1, num_steps=8,
-            num_minibatches=2, total_timesteps=16, eval_freq=0,
+            num_minibatches=2, total_env_steps=16, eval_freq=0,
         )
     )  # fmt: skip
     student = dagger.main(

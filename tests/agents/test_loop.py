@@ -1,0 +1,148 @@
+"""The one training loop (agents/common/loop.py) on a toy algorithm with no envs: the env-step budget, checkpoint
+selection and the held-out evaluation of the selected weights, resume, the checkpoint's format_version and
+migrate(), and a removed flag's one-line error."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.common import RunArgs, atomic_save, checkpoint, load_torch, loop
+from agents.common.checkpoints import FORMAT_VERSION, migrate
+
+FMT = "toy/1"
+
+
+@dataclass
+class Args(RunArgs):
+    steps_per_step: int = 10
+
+
+class Closed:
+    def __init__(self):
+        self.closed = False
+
+    def close(self):
+        self.closed = True
+
+
+class Toy(loop.Algorithm):
+    """A step adds ``steps_per_step`` env steps and one to ``weight``; a validation scores ``scores[weight]``."""
+
+    name, prefix, step_key = "toy", "toy__", "iteration"
+
+    def __init__(self, args: Args, scores: dict[int, float]):
+        super().__init__(args)
+        self.counters = dict(env_steps=0, iteration=0)
+        self.weight, self.scores, self.evaluated = 0, scores, []
+
+    def read(self, path: Path) -> dict:
+        return load_torch(path, FMT, "the toy")
+
+    def build(self, saved):
+        self.envs = Closed()
+        if saved is not None:
+            self.weight = saved["weight"]
+        return self.envs
+
+    def step(self, budget) -> dict:
+        self.weight += 1
+        self.counters["iteration"] += 1
+        self.counters["env_steps"] += self.args.steps_per_step
+        return {"train/weight": float(self.weight)}
+
+    def save(self, path: Path, counters: dict) -> None:
+        atomic_save(checkpoint(FMT, self.args, counters, weight=self.weight), path)
+
+    def load_selected(self, path: Path) -> None:
+        self.weight = self.read(path)["weight"]
+
+    def evaluate(self, args, video_dir=None, first_seed=0) -> dict:
+        self.evaluated.append((self.weight, args.eval_episodes))
+        return {"success_rate": self.scores.get(self.weight, 0.0), "return": float(self.weight)}
+
+    def summary(self) -> dict:
+        return dict(weight=self.weight)
+
+
+def args(tmp_path: Path, **kw) -> Args:
+    return Args(runs_dir=tmp_path, exp_name="t", progress=False, eval_episodes=3, **kw)
+
+
+def test_the_budget_in_env_steps_ends_training_and_the_summary_says_so(tmp_path):
+    toy = Toy(args(tmp_path, total_env_steps=35), {})
+    result = loop.run(toy)
+    assert result["env_steps"] == 40 and result["weight"] == 4  # a step starts while fewer than 35 are done
+    assert result["total_env_steps"] == 35 and result["stopped_early"] is False
+    assert toy.envs.closed and toy.evaluated == [(4, 3)]  # the held-out episodes score the last weights
+    saved = torch.load(tmp_path / "t" / "checkpoints" / "latest.pt", weights_only=False)
+    assert saved["format_version"] == FORMAT_VERSION and saved["counters"]["env_steps"] == 40
+    assert json.loads((tmp_path / "t" / "summary.json").read_text())["checkpoint"].endswith("latest.pt")
+
+
+def test_selection_keeps_the_best_validation_and_the_held_out_episodes_score_it(tmp_path):
+    toy = Toy(args(tmp_path, total_env_steps=40, select_episodes=2, select_freq=1), {1: 0.2, 2: 0.9, 3: 0.5})
+    result = loop.run(toy)
+    assert [w for w, n in toy.evaluated if n == 2] == [1, 2, 3, 4]  # validated after every step
+    assert toy.evaluated[-1] == (2, 3)  # the selected weights, not the last (4)
+    assert result["selected"] == dict(
+        iteration=2, env_steps=20, validation_success_rate=0.9, validation_episodes=2
+    ) and result["checkpoint"].endswith("best.pt")
+    assert result["last_checkpoint"].endswith("latest.pt")
+
+
+def test_resume_continues_the_counters_and_the_weights(tmp_path):
+    first = Toy(args(tmp_path, total_env_steps=20), {})
+    loop.run(first)
+    latest = tmp_path / "t" / "checkpoints" / "latest.pt"
+    again = Toy(args(tmp_path, total_env_steps=50, resume=latest), {})
+    result = loop.run(again)
+    assert result["env_steps"] == 50 and result["weight"] == 5
+
+
+def test_migrate_brings_a_version_1_ppo_checkpoint_up_to_date():
+    old = dict(
+        format="maniskill_irb120.ppo/1",
+        signature=dict(image_shape=None, state_dim=3, action_dim=5),
+        counters=dict(global_step=16, iteration=1, best=dict(score=[1.0, 2.0], iteration=1, global_step=16)),
+        args=dict(total_env_steps=None, total_timesteps=20_000, max_wall_s=90.0, budget_min=None, partial_reset=True),
+    )
+    new = migrate(old)
+    assert new["args"]["total_env_steps"] == 20_000 and new["args"]["max_minutes"] == 1.5
+    assert "total_timesteps" not in new["args"] and "partial_reset" not in new["args"]
+    assert new["format_version"] == FORMAT_VERSION and new["args"]["action_frame"] == "tool"
+    assert new["counters"]["env_steps"] == 16 and "global_step" not in new["counters"]
+    assert new["counters"]["best"]["env_steps"] == 16
+    assert new["signature"]["residual"] is False and new["signature"]["logstd"] == "param"
+    with pytest.raises(ValueError, match="newer than this code's"):
+        migrate(dict(format="x", format_version=FORMAT_VERSION + 1))
+
+
+@pytest.mark.parametrize(
+    "module, argv, says",
+    [
+        ("agents.ppo", ["--total-timesteps", "5"], "--total-timesteps was removed; use --total-env-steps"),
+        ("agents.ppo", ["--max-wall-s=60"], "--max-wall-s was removed; use --max-minutes (in minutes)"),
+        (
+            "agents.sac",
+            ["--no-partial-reset"],
+            "--no-partial-reset was removed; training always auto-resets",
+        ),
+        ("agents.dagger", ["--evaluate", "runs/x/latest.pt"], "--evaluate takes no value; name the checkpoint with"),
+    ],
+)
+def test_a_removed_flag_is_one_line_naming_its_successor_and_exit_status_2(module, argv, says, capsys):
+    import importlib
+
+    from agents.common import entry
+
+    ran = []
+    with pytest.raises(SystemExit) as stop:
+        entry(importlib.import_module(module).Args, module, ran.append, argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and not ran and err.count("\n") == 1
+    assert err.startswith(f"{module}: error: {says}")
