@@ -106,5 +106,8 @@ def test_skrl_logs_the_envs_own_success():
         ends = iter(truth)
         want = [(next(ends) if d[0] else 0.0) / int(d.sum()) for d, _ in outputs if d.any()]
         assert tracked == pytest.approx(want) and max(tracked) > 0
+        ends = iter(truth)
+        episodes = [next(ends) if i == 0 else False for d, _ in outputs for i in np.flatnonzero(d)]
+        assert list(env.recent_success) == episodes  # the wrapper's per-episode record, what a progress line reads
     finally:
         env.close()
