@@ -189,11 +189,25 @@ class WorkerError(UsageError, RuntimeError):
     """An env raised an exception inside its worker process. gymnasium shuts that worker down for good and prints
     the worker's traceback (and the others', and one more line each); this says in one line which env raised what,
     and that the vector env must be made again. The worker's traceback stays in ``worker_traceback`` for whoever
-    debugs the env. A UsageError, so a command line prints it as one line with exit status 2."""
+    debugs the env. A UsageError, so a command line prints it as one line with exit status 2; raised as a subclass
+    that is also the worker's exception type (an AttributeError from ``call`` is still caught as one)."""
 
     def __init__(self, message: str, env_index: int, worker_traceback: str):
         super().__init__(message)
         self.env_index, self.worker_traceback = env_index, worker_traceback
+
+    def __str__(self) -> str:  # the message as given (KeyError's own str would quote it)
+        return str(self.args[0])
+
+    @classmethod
+    def like(cls, exctype: type[BaseException]) -> type[WorkerError]:
+        """A WorkerError that is an ``exctype`` too, so code catching the worker's exception type still does."""
+        if issubclass(cls, exctype):
+            return cls
+        try:
+            return type(cls.__name__, (cls, exctype), {"__module__": cls.__module__, "__doc__": cls.__doc__})
+        except TypeError:  # an exception type that cannot be combined (a C layout): the WorkerError alone
+            return cls
 
 
 CLOSE_TIMEOUT_S = 30.0  # how long close() waits for a step in flight before it terminates the workers
@@ -461,8 +475,8 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         dead = [i + first for i, pipe in enumerate(pipes) if pipe is None]
         if dead:
             raise RuntimeError(
-                f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
-                "earlier traceback); close() it and make a new one with make_vec_env(...)"
+                f"worker(s) {dead} of this vector env were shut down after raising an error (the "
+                "WorkerError raised then); close() it and make a new one with make_vec_env(...)"
             )
 
     def close_extras(self, **kwargs):
@@ -491,7 +505,7 @@ def _raise_worker_errors(venv: gym.vector.AsyncVectorEnv, first: int, successes)
     venv._state = gym.vector.async_vector_env.AsyncState.DEFAULT
     index, exctype, value, trace = errors[-1]
     others = f" (and env(s) {[i + first for i, *_ in errors[:-1]]})" if len(errors) > 1 else ""
-    raise WorkerError(
+    raise WorkerError.like(exctype)(
         f"env {index + first}{others} raised {exctype.__name__} in its worker process: {value}; that worker is shut "
         "down, so close() this vector env and make a new one with make_vec_env(...) (the worker's traceback: the "
         "exception's worker_traceback)",
