@@ -12,6 +12,7 @@ drew (``HELD_OUT_SEED`` onwards, the trainers' own held-out seeds).
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any, Optional, TextIO
@@ -73,6 +74,31 @@ class Progress:
             return False
         self.report(steps, note())
         return True
+
+
+class Heartbeat:
+    """While a phase runs that steps no env (a PPO update over its rollout: on the camera, a minute on 2 cores), a
+    line every ``progress.every_s`` seconds saying so, from a daemon thread; the training loop's own lines need the
+    loop to come round. ``with Heartbeat(progress, steps, "updating the policy"):``."""
+
+    def __init__(self, progress: Progress, steps: int, what: str):
+        self.progress, self.steps, self.what = progress, steps, what
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        started = time.perf_counter()
+        while not self._stop.wait(max(self.progress.every_s - (time.perf_counter() - self.progress.last), 0.05)):
+            if time.perf_counter() - self.progress.last >= self.progress.every_s:
+                self.progress.report(self.steps, f"{self.what} ({clock(time.perf_counter() - started)} so far)")
+
+    def __enter__(self) -> Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def held_out_success(

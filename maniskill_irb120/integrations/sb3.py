@@ -46,8 +46,7 @@ from maniskill_irb120.integrations.observations import (
     make_single_env,
     wrapped_vector_env,
 )
-
-from maniskill_irb120.integrations.progress import EVERY_S, HELD_OUT_SEED, Progress, held_out_success
+from maniskill_irb120.integrations.progress import EVERY_S, HELD_OUT_SEED, Heartbeat, Progress, held_out_success
 
 try:
     from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
@@ -227,6 +226,8 @@ class ProgressCallback(BaseCallback):
     ``ep_success_buffer``, the adapter's ``is_success``), with the random warm-up named while an off-policy learner is
     still before ``learning_starts``; every ``eval_every`` env steps (0: never) the deterministic policy on
     ``eval_episodes`` held-out seeds, logged as ``eval/held_out_success`` beside SB3's ``rollout/success_rate``.
+    Between a rollout's end and the next one's start (the update, when no env steps) a :class:`Heartbeat` keeps
+    the lines coming.
     ``held`` keeps each check as ``(env steps, successes, episodes)``; :meth:`check` runs one more (the end's)."""
 
     def __init__(
@@ -246,10 +247,27 @@ class ProgressCallback(BaseCallback):
         self.held: list[tuple[int, int, int]] = []
         self.progress: Optional[Progress] = None
         self._next_eval = self.eval_every
+        self._update: Optional[Heartbeat] = None
 
     def _on_training_start(self) -> None:
         self.progress = Progress(self.label, self.total, self.every_s)
         self.progress.report(self.model.num_timesteps, "started")
+
+    def _on_rollout_end(self) -> None:
+        # SB3 trains between a rollout's end and the next one's start: no _on_step comes in between
+        if self.progress is not None and self._update is None:
+            self._update = Heartbeat(self.progress, self.model.num_timesteps, "updating the policy").__enter__()
+
+    def _on_rollout_start(self) -> None:
+        self._end_update()
+
+    def _on_training_end(self) -> None:
+        self._end_update()
+
+    def _end_update(self) -> None:
+        if self._update is not None:
+            self._update.__exit__(None, None, None)
+            self._update = None
 
     def _on_step(self) -> bool:
         steps = self.model.num_timesteps

@@ -42,3 +42,18 @@ def test_clock_reads_like_a_duration():
 def test_the_held_out_seeds_are_the_trainers():
     common = pytest.importorskip("agents.common")
     assert HELD_OUT_SEED == common.EVAL_SEED
+
+
+def test_a_heartbeat_keeps_lines_coming_while_nothing_steps():
+    import time
+
+    from maniskill_irb120.integrations.progress import Heartbeat
+
+    out = io.StringIO()
+    p = Progress("sb3 ppo", 100, every_s=0.05, stream=out)
+    with Heartbeat(p, 40, "updating the policy"):
+        time.sleep(0.3)
+    lines = out.getvalue().splitlines()
+    assert len(lines) >= 3 and all("40/100 env steps" in x and "| updating the policy (" in x for x in lines), lines
+    time.sleep(0.1)
+    assert out.getvalue().splitlines() == lines  # stopped with the phase
