@@ -2,7 +2,7 @@
 sb3 extra).
 
     .venv/bin/python examples/sb3_ppo.py --env-id GraspLift-IRB120-v1 --obs state --total-timesteps 200000
-    .venv/bin/python examples/sb3_ppo.py --obs rgbd --n-steps 64 --total-timesteps 256   # a quick look
+    .venv/bin/python examples/sb3_ppo.py --obs rgbd --n-steps 64 --total-timesteps 256 --eval-episodes 2   # a look
 
 From state it trains with ``agents/configs/sb3/ppo.yml`` (rl-zoo3's format, read by ``agents/configs/loader.py``):
 the project's tuned settings, 4 envs, ``VecNormalize`` on the observations and the absorbing value on success, each

@@ -1,8 +1,8 @@
 """Stable-Baselines3's SAC on a task, from the reward alone, through maniskill_irb120.integrations.sb3 (needs the
 sb3 extra).
 
-    .venv/bin/python examples/sb3_sac.py --env-id GraspLift-IRB120-v1 --obs state --total-timesteps 60000
-    .venv/bin/python examples/sb3_sac.py --obs rgbd --learning-starts 64 --total-timesteps 256   # a quick look
+    .venv/bin/python examples/sb3_sac.py --env-id GraspLift-IRB120-v1 --obs state --total-timesteps 62500
+    .venv/bin/python examples/sb3_sac.py --obs rgbd --learning-starts 64 --total-timesteps 256 --eval-episodes 2
 
 From state it trains with ``agents/configs/sb3/sac.yml`` (rl-zoo3's format, read by ``agents/configs/loader.py``):
 the project's tuned settings, 4 envs, ``VecNormalize`` on the observations, the absorbing value on success, gamma 0.8,

@@ -1,7 +1,7 @@
 """skrl's PPO on a task, from the reward alone, through maniskill_irb120.integrations.skrl (needs the skrl extra).
 
     .venv/bin/python examples/skrl_ppo.py --env-id GraspLift-IRB120-v1 --obs state --total-timesteps 200000
-    .venv/bin/python examples/skrl_ppo.py --obs rgbd --num-envs 2 --total-timesteps 512   # a quick look
+    .venv/bin/python examples/skrl_ppo.py --obs rgbd --num-envs 2 --total-timesteps 512 --eval-episodes 2
 
 From state it trains with ``agents/configs/skrl/ppo_<task>.yaml`` through skrl's ``Runner`` (as Isaac Lab's skrl
 train script does): the project's tuned settings, 4 envs, a running observation scaler, the absorbing value on
@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # agents/configs, 
 from agents.configs import loader  # noqa: E402
 from maniskill_irb120.envs import check_env_id  # noqa: E402
 from maniskill_irb120.errors import check_count, parse_flags, usage_errors  # noqa: E402
-from maniskill_irb120.integrations.progress import Progress, held_out_success  # noqa: E402
+from maniskill_irb120.integrations.progress import Heartbeat, Progress, held_out_success  # noqa: E402
 from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value  # noqa: E402
 
 LIBRARY_DEFAULT_ENVS = 2
@@ -159,8 +159,9 @@ def main(args: Args) -> PPO:
     def post_interaction_with_progress(*, timestep: int, timesteps: int) -> None:
         """skrl's own, then our line: the one per-step hook a trainer calls on its agents."""
         nonlocal next_eval
-        post_interaction(timestep=timestep, timesteps=timesteps)
         steps = (timestep + 1) * env.num_envs
+        with Heartbeat(progress, steps, "updating the policy"):  # skrl's update runs in here, every rollout
+            post_interaction(timestep=timestep, timesteps=timesteps)
         if args.eval_every and args.eval_episodes and next_eval <= steps < total:
             next_eval += args.eval_every * (1 + (steps - next_eval) // args.eval_every)
             check(steps)

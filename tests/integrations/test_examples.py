@@ -62,7 +62,9 @@ def test_skrl_ppo_example_runs(tmp_path, capsys):
     pytest.importorskip("skrl")
     ex = load("skrl_ppo")
     agent = ex.main(
-        ex.Args(obs="state", backend="cpu", total_timesteps=400, out_dir=tmp_path, library_defaults=True, eval_episodes=0)
+        ex.Args(
+            obs="state", backend="cpu", total_timesteps=400, out_dir=tmp_path, library_defaults=True, eval_episodes=0
+        )
     )
     assert agent.cfg.time_limit_bootstrap and agent.cfg.rollouts == 16
     assert list(tmp_path.rglob("events.out.tfevents.*"))  # skrl writes every 1 % of the steps: 2 of 200 here
@@ -84,9 +86,7 @@ def test_an_example_stopped_by_ctrl_c_saves_its_model_and_says_so_in_one_line(tm
 
     monkeypatch.setattr(ex.PPO, "learn", interrupted)
     with pytest.raises(SystemExit) as stop:
-        ex.main(
-            ex.Args(obs="state", backend="cpu", n_steps=32, total_timesteps=10_000, out_dir=tmp_path, num_envs=2)
-        )
+        ex.main(ex.Args(obs="state", backend="cpu", n_steps=32, total_timesteps=10_000, out_dir=tmp_path, num_envs=2))
     assert stop.value.code == 130 and (tmp_path / "model.zip").is_file()
     err = [line for line in capsys.readouterr().err.splitlines() if " - WARNING - " not in line and line.strip()]
     assert err[-1] == f"interrupted (Ctrl-C) at 64 env steps; model so far: {tmp_path}/model.zip", err
@@ -126,3 +126,30 @@ def test_skrl_ppo_example_trains_on_its_config_from_state(tmp_path, capsys):
     assert "4 envs, agents/configs/skrl/ppo_grasplift.yaml; 64 env steps" in out, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("64 env steps in ") and "held-out success" in last and "agent.pt" in last, last
+
+
+def test_the_documented_state_commands_say_what_the_screening_measured():
+    """docs/rl_libraries.md's minutes and held-out counts for the state commands are the screening cells' (same
+    configs, 4 CPU worker envs), not written from memory: SAC's at the command's env steps on its held-out curve,
+    PPO's extrapolated from its cell's env steps per wall-clock second."""
+    import json
+
+    cells = json.loads((REPO / "benchmarks/results/screening/algorithms.json").read_text())["cells"]
+    doc = (REPO / "docs/rl_libraries.md").read_text()
+    block = doc[doc.index("## Examples") :].split("```bash")[1].split("```")[0].splitlines()
+    said = {}
+    for comment, command in zip(block, block[1:]):
+        m = re.search(r"examples/sb3_(sac|ppo)\.py .*--obs state --total-timesteps (\d+)$", command)
+        if comment.startswith("#") and m:
+            said[m.group(1)] = (int(m.group(2)), comment)
+    assert set(said) == {"sac", "ppo"}, block
+    steps, comment = said["sac"]
+    curve = cells["state/GraspLift/sb3-sac-tuned/s1"]["held_out_curve"]
+    k = curve["env_steps"].index(steps)
+    wins = round(curve["success"][k] * curve["episodes"][k])
+    assert f"{wins}/{curve['episodes'][k]} held out at {steps:,} env steps" in comment, comment
+    assert f"about {round(curve['wall_min'][k])} min" in comment, comment
+    steps, comment = said["ppo"]
+    cell = cells["state/GraspLift/sb3-ppo-tuned/s1"]
+    assert f"about {round(steps * cell['wall_clock_s'] / cell['env_steps'] / 60)} min" in comment, comment
+    assert max(cell["held_out_curve"]["success"]) == 0 and "0/30 held out" in comment, comment
