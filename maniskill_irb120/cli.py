@@ -150,20 +150,23 @@ def emulator(
     """Run the ABB controller emulator: the RAPID server module on an emulated IRB 120, served on TCP or a serial
     pty, or (``--rws``) a controller serving Robot Web Services, what ``deploy`` talks to. Prints the URL to connect
     to as its first line; Ctrl-C stops it. A module that names anything of a missing RobotWare option is refused as
-    the IRC5 refuses it: the load error is printed and the exit status is 1.
+    the IRC5 refuses it: the load error is printed and the exit status is 1. Faults (``--fault``): drop, corrupt,
+    dup, delay@N:MS, disconnect, motors_off, estop. Pendant controls (``--pendant``), one or more a line separated by
+    ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state, quit; each prints a
+    ``pendant: ...`` line with the program's state, so a fault and the operator's restart can be scripted.
 
     Args:
         listen: where to serve: tcp://127.0.0.1:PORT (0: a free port), serial://pty or serial://pty?baudrate=9600
         rapid: another copy of the RAPID server module to run (None: the package's)
-        fault: faults injected into the N-th reply, e.g. "drop@2,delay@3:300" (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop)
+        fault: faults in the N-th reply, e.g. "drop@2,delay@3:300": drop, corrupt, dup, delay@N:MS, disconnect, ...
         latency_ms: hold every command back this many ms before the controller sees it
         speed_scale: 0.8 makes every motion take 1/0.8 of its time
         options: the RobotWare options the controller has, e.g. "616-1,608-1" ("" for none)
-        op_mode: the key switch OpMode() reads: manual_reduced, auto or manual_full (motion outside manual_reduced needs ALLOW_AUTO)
+        op_mode: the key switch OpMode() reads: manual_reduced, auto or manual_full (auto moves only if ALLOW_AUTO)
         statement_cost_us: controller time one RAPID statement costs, in us (an estimate; 0: no pacing)
         pc_address: the TCP build's PC_ADDRESS, the one client address served (None: 127.0.0.1)
         rws: serve Robot Web Services 1.0 on 127.0.0.1:PORT instead, the stock MainModule loaded
-        pendant: read FlexPendant controls from stdin (-) or a file: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait S, state, quit (not with --rws)
+        pendant: FlexPendant controls from stdin (-) or a file, e.g. "stop; wait 2; start" (not with --rws)
         operator: with --rws, the person at the pendant answering a remote RMMP request: grant, deny or absent
         max_sessions: with --rws, how many RWS sessions the controller keeps (RobotWare 6: 70 assumed)
         session_idle_s: with --rws, how long an unused RWS session lasts, in s (RobotWare 6: 900 assumed)
@@ -243,10 +246,12 @@ def deploy(
     option; TCP: 616-1 or 672-1; the world zone: 608-1) and says why, then as one transaction takes remote access
     and mastership, uploads to a new folder under $HOME/IRB120, loads into T_ROB1, reads the modules back and,
     after you confirm, sets PP at IRB120Server with the program stopped; on any failure or Ctrl-C the earlier
-    deployment is put back. Needs the ``real`` extra (abb-robot-client). Exit status 1 when refused, 2 on bad flags.
+    deployment is put back. ``status``: the execution state, operating mode, controller state, speed ratio and the
+    last ``--events`` events; ``unload``: our modules and the files deploy wrote (PP to main if ours held it). Needs
+    the ``real`` extra (abb-robot-client). Exit status 1 when refused, 2 on bad flags.
 
     Args:
-        action: load (the transaction above), status (execution state, mode, speed, last events), start (AUTO only, if ALLOW_AUTO), stop or unload
+        action: load (the transaction above), status, start (AUTO only, if ALLOW_AUTO), stop or unload
         controller: the IRC5's address, e.g. http://192.168.125.1 (needed)
         user: the RWS user (RWS's default)
         password: the RWS password (RWS's default)

@@ -17,6 +17,7 @@ import pytest
 
 from maniskill_irb120.cli import COMMANDS, main
 
+
 def run(argv: list[str]) -> tuple[int, str, str]:
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

@@ -38,7 +38,7 @@ class FailsInWorker(gym.Wrapper):
         return self.env.step(action)
 '''
 
-SCRIPT = '''
+SCRIPT = """
 import sys
 
 import torch
@@ -71,7 +71,7 @@ if __name__ == "__main__":
             raise SystemExit(130)
         finally:
             env.close()
-'''
+"""
 
 
 def start(tmp_path: Path, mode: str) -> subprocess.Popen:
