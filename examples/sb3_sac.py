@@ -74,8 +74,9 @@ def build(args: Args) -> tuple[SAC, str, int]:
     config = None
     if not args.library_defaults and args.obs == "state":
         config = loader.sb3_config("sac", args.env_id)
-    num_envs = args.num_envs or (config.n_envs if config else LIBRARY_DEFAULT_ENVS)
-    total = args.total_timesteps or (config.n_timesteps if config else LIBRARY_DEFAULT_STEPS)
+    envs, steps = (config.n_envs, config.n_timesteps) if config else (LIBRARY_DEFAULT_ENVS, LIBRARY_DEFAULT_STEPS)
+    num_envs = envs if args.num_envs is None else args.num_envs  # a 0 given is refused below, not defaulted
+    total = steps if args.total_timesteps is None else args.total_timesteps
     check_count("--num-envs", num_envs)
     check_count("--total-timesteps", total)
     if args.learning_starts is not None:

@@ -75,9 +75,10 @@ def build(args: Args) -> tuple[Any, PPO, SequentialTrainer, str, int]:
     if not args.library_defaults and args.obs == "state":
         config = loader.skrl_config("ppo", args.env_id)
     config_envs, wrappers = loader.skrl_env_settings(config) if config else (LIBRARY_DEFAULT_ENVS, [])
-    num_envs = args.num_envs or config_envs
+    num_envs = config_envs if args.num_envs is None else args.num_envs  # a 0 given is refused, not defaulted
     check_count("--num-envs", num_envs)
-    total = args.total_timesteps or (config["trainer"]["timesteps"] * num_envs if config else LIBRARY_DEFAULT_STEPS)
+    steps = config["trainer"]["timesteps"] * num_envs if config else LIBRARY_DEFAULT_STEPS
+    total = steps if args.total_timesteps is None else args.total_timesteps  # a 0 given is refused, not defaulted
     check_count("--total-timesteps", total)
     set_seed(args.seed)
     env = make_skrl_env(
