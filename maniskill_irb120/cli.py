@@ -147,29 +147,30 @@ def emulator(
     max_sessions: int = 70,
     session_idle_s: float = 900.0,
 ) -> int:
-    """Run the ABB controller emulator: executes the RAPID server module (``--rapid``: another copy of it) on an
-    emulated IRB 120 and serves it on ``tcp://127.0.0.1:PORT`` (0: a free port) or ``serial://pty`` (a pty pair;
-    ``serial://pty?baudrate=9600`` paces its bytes at that line speed). ``--latency-ms X`` holds every command
-    back X ms before the controller sees it; ``--speed-scale 0.8`` makes every motion take 1/0.8 of its time.
-    Prints the URL to connect to as its first line; Ctrl-C stops it. ``--fault "drop@2,delay@3:300"`` injects
-    faults into the N-th reply (drop, corrupt, dup, delay@N:MS, disconnect, motors_off, estop). ``--options
-    616-1,608-1``: the RobotWare options the emulated controller has (``""``: none); a module that names anything
-    of a missing option is refused as the IRC5 refuses it: the load error is printed and the exit status is 1.
-    ``--op-mode auto``: the key switch (``manual_reduced``, the default; ``auto``; ``manual_full``), what the
-    program's OpMode() reads: the server refuses motion outside manual reduced speed unless ALLOW_AUTO.
-    ``--statement-cost-us``: the controller time one RAPID statement costs (an estimate; 0: no pacing).
-    ``--pc-address``: the TCP build's PC_ADDRESS, the one client address it serves (default 127.0.0.1, where a
-    local client connects from; any other address makes the server refuse local clients, as a cell would).
-    ``--rws 127.0.0.1:PORT``: serve Robot Web Services 1.0 instead (what ``deploy`` talks to): a controller with
-    ``--options`` and ``--op-mode`` and the stock MainModule, nothing of ours loaded; prints the RWS URL first and
-    each program URL as the program starts. With ``--rws``: ``--operator grant|deny|absent``, the person at the
-    FlexPendant who answers a remote client's RMMP request in the manual modes (grants, denies, or is not there);
-    ``--max-sessions`` and ``--session-idle-s``, how many RWS sessions the controller keeps and how long an unused
-    one lasts (RobotWare 6: 70 and 900 s assumed, verify).
-    ``--pendant -`` reads the pendant's controls from stdin (``--pendant FILE``: from a file), one or more a line
-    separated by ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state,
-    quit; each prints a ``pendant: ...`` line with the program's state after it, so a fault and the operator's
-    restart can be scripted out of process (not with ``--rws``, whose program is started over RWS)."""
+    """Run the ABB controller emulator: the RAPID server module on an emulated IRB 120, served on TCP or a serial
+    pty, or (``--rws``) a controller serving Robot Web Services, what ``deploy`` talks to. Prints the URL to connect
+    to as its first line; Ctrl-C stops it. A module that names anything of a missing RobotWare option is refused as
+    the IRC5 refuses it: the load error is printed and the exit status is 1. Faults (``--fault``): drop, corrupt,
+    dup, delay@N:MS, disconnect, motors_off, estop. Pendant controls (``--pendant``), one or more a line separated by
+    ``;``: stop, start, pp-to-main, estop, reset-estop, motors-off, motors-on, wait SECONDS, state, quit; each prints a
+    ``pendant: ...`` line with the program's state, so a fault and the operator's restart can be scripted.
+
+    Args:
+        listen: where to serve: tcp://127.0.0.1:PORT (0: a free port), serial://pty or serial://pty?baudrate=9600
+        rapid: another copy of the RAPID server module to run (None: the package's)
+        fault: faults in the N-th reply, e.g. "drop@2,delay@3:300": drop, corrupt, dup, delay@N:MS, disconnect, ...
+        latency_ms: hold every command back this many ms before the controller sees it
+        speed_scale: 0.8 makes every motion take 1/0.8 of its time
+        options: the RobotWare options the controller has, e.g. "616-1,608-1" ("" for none)
+        op_mode: the key switch OpMode() reads: manual_reduced, auto or manual_full (auto moves only if ALLOW_AUTO)
+        statement_cost_us: controller time one RAPID statement costs, in us (an estimate; 0: no pacing)
+        pc_address: the TCP build's PC_ADDRESS, the one client address served (None: 127.0.0.1)
+        rws: serve Robot Web Services 1.0 on 127.0.0.1:PORT instead, the stock MainModule loaded
+        pendant: FlexPendant controls from stdin (-) or a file, e.g. "stop; wait 2; start" (not with --rws)
+        operator: with --rws, the person at the pendant answering a remote RMMP request: grant, deny or absent
+        max_sessions: with --rws, how many RWS sessions the controller keeps (RobotWare 6: 70 assumed)
+        session_idle_s: with --rws, how long an unused RWS session lasts, in s (RobotWare 6: 900 assumed)
+    """
     from maniskill_irb120.abb.emulator.controller import OP_MODE_NAMES
     from maniskill_irb120.abb.emulator.controller import main as emulator_main
     from maniskill_irb120.abb.emulator.rapid import parse_options
@@ -240,21 +241,28 @@ def deploy(
     rmmp_wait: float = 60.0,
     mastership_wait: float = 60.0,
 ) -> int:
-    """Deploy the RAPID server to an IRC5 (RobotWare 6) over Robot Web Services: ``deploy --controller
-    http://HOST`` reads the RobotWare version, the options, the operating mode and the controller state, picks the
-    files the option matrix allows (serial: no option; TCP: 616-1 or 672-1; the world zone: 608-1) and says why,
-    then as one transaction: remote access (in the manual modes the operator grants it on the FlexPendant within
-    ``--rmmp-wait`` s) and mastership (waiting ``--mastership-wait`` s while another client holds it), an upload to
-    a new folder under $HOME/IRB120, the load into T_ROB1 (the controller's own event-log messages on a load
-    error), a read-back of the modules and settings, and, after you confirm (``--yes`` for scripts), PP at
-    IRB120Server with the program stopped; on any failure or Ctrl-C the earlier deployment is put back.
-    ``--channel serial|tcp`` and ``--zone on|off`` ask for a build (refused naming the missing option);
-    ``--rapid-dir DIR``: your edited copies of the files (SER_CHANNEL, PC_ADDRESS, ...). ``deploy status``: the
-    execution state, operating mode, controller state, speed ratio and the last ``--events`` events; ``deploy
-    start``: start remotely, in AUTO only and only if the loaded server's ALLOW_AUTO is TRUE; ``deploy stop``;
-    ``deploy unload``: our modules and the files deploy wrote out (PP to main if ours held it).
-    ``--user``/``--password``: RWS's defaults. Needs the ``real`` extra (abb-robot-client). Exit status 1 when
-    refused, 2 on bad flags."""
+    """Deploy the RAPID server to an IRC5 (RobotWare 6) over Robot Web Services. ``load`` reads the RobotWare
+    version, options, operating mode and controller state, picks the files the option matrix allows (serial: no
+    option; TCP: 616-1 or 672-1; the world zone: 608-1) and says why, then as one transaction takes remote access
+    and mastership, uploads to a new folder under $HOME/IRB120, loads into T_ROB1, reads the modules back and,
+    after you confirm, sets PP at IRB120Server with the program stopped; on any failure or Ctrl-C the earlier
+    deployment is put back. ``status``: the execution state, operating mode, controller state, speed ratio and the
+    last ``--events`` events; ``unload``: our modules and the files deploy wrote (PP to main if ours held it). Needs
+    the ``real`` extra (abb-robot-client). Exit status 1 when refused, 2 on bad flags.
+
+    Args:
+        action: load (the transaction above), status, start (AUTO only, if ALLOW_AUTO), stop or unload
+        controller: the IRC5's address, e.g. http://192.168.125.1 (needed)
+        user: the RWS user (RWS's default)
+        password: the RWS password (RWS's default)
+        yes: confirm without asking (for scripts)
+        channel: which build to load: auto, serial or tcp (refused naming a missing option)
+        zone: the world-zone build: auto, on or off (on needs option 608-1)
+        rapid_dir: a folder with your edited copies of the RAPID files (SER_CHANNEL, PC_ADDRESS, ...)
+        events: how many of the controller's last events status prints
+        rmmp_wait: seconds the operator has to grant remote access on the FlexPendant (manual modes)
+        mastership_wait: seconds to wait while another client holds mastership
+    """
     from maniskill_irb120.abb import deploy as dep
 
     if controller is None:

@@ -15,7 +15,9 @@ wake-up (docs/notes/sim-speed.md).
 from __future__ import annotations
 
 import functools
+import multiprocessing
 import os
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from typing import Any, Optional
@@ -104,6 +106,12 @@ def _make_worker_env(
     ignore_terminations: bool,
     lp_num_threads: Optional[int],
 ) -> gym.Env:
+    if multiprocessing.parent_process() is not None:
+        # a worker: Ctrl-C in the terminal reaches the whole process group, and each worker would print its
+        # KeyboardInterrupt's traceback (gymnasium's workers catch it and send it back, to be printed once more);
+        # the parent, which got the same Ctrl-C, closes them. Not in the parent, where gymnasium calls this once to
+        # read the spaces.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     # lavapipe reads this when the render device is created, i.e. inside gym.make below
     if lp_num_threads:
         os.environ.setdefault("LP_NUM_THREADS", str(lp_num_threads))
@@ -177,6 +185,31 @@ def _strip_masks(info: dict) -> dict:
     return {k: (_strip_masks(v) if isinstance(v, dict) else v) for k, v in info.items() if not k.startswith("_")}
 
 
+class WorkerError(UsageError, RuntimeError):
+    """An env raised an exception inside its worker process. gymnasium shuts that worker down for good and prints
+    the worker's traceback (and the others', and one more line each); this says in one line which env raised what,
+    and that the vector env must be made again. The worker's traceback stays in ``worker_traceback`` for whoever
+    debugs the env. A UsageError, so a command line prints it as one line with exit status 2; raised as a subclass
+    that is also the worker's exception type (an AttributeError from ``call`` is still caught as one)."""
+
+    def __init__(self, message: str, env_index: int, worker_traceback: str):
+        super().__init__(message)
+        self.env_index, self.worker_traceback = env_index, worker_traceback
+
+    def __str__(self) -> str:  # the message as given (KeyError's own str would quote it)
+        return str(self.args[0])
+
+    @classmethod
+    def like(cls, exctype: type[BaseException]) -> type[WorkerError]:
+        """A WorkerError that is an ``exctype`` too, so code catching the worker's exception type still does."""
+        if issubclass(cls, exctype):
+            return cls
+        try:
+            return type(cls.__name__, (cls, exctype), {"__module__": cls.__module__, "__doc__": cls.__doc__})
+        except TypeError:  # an exception type that cannot be combined (a C layout): the WorkerError alone
+            return cls
+
+
 CLOSE_TIMEOUT_S = 30.0  # how long close() waits for a step in flight before it terminates the workers
 
 
@@ -237,6 +270,9 @@ class CPUVectorEnv(gym.vector.VectorEnv):
                     os.environ.pop("LP_NUM_THREADS", None)
                 else:
                     os.environ["LP_NUM_THREADS"] = lp
+        if self._venv is not None:
+            # gymnasium's own error report, replaced for this env's workers (see WorkerError)
+            self._venv._raise_if_errors = functools.partial(_raise_worker_errors, self._venv, int(self.local_first))
         if self.local_first:
             try:
                 self._local = _make_single_env(env_id, env_kwargs, tuple(wrappers), ignore_terminations)
@@ -423,7 +459,10 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             actions = actions.detach().cpu().numpy()
         actions = np.asarray(actions, dtype=np.float32)
         if actions.shape != self.action_space.shape:
-            raise ValueError(f"actions have shape {actions.shape}, expected {self.action_space.shape}")
+            raise UsageError(
+                f"actions have shape {actions.shape}, expected {self.action_space.shape} (one action per env); "
+                "nothing was stepped"
+            )
         check_finite_actions(actions)
         return actions
 
@@ -436,8 +475,8 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         dead = [i + first for i, pipe in enumerate(pipes) if pipe is None]
         if dead:
             raise RuntimeError(
-                f"worker(s) {dead} of this vector env were shut down after raising an error (see the "
-                "earlier traceback); close() it and make a new one with make_vec_env(...)"
+                f"worker(s) {dead} of this vector env were shut down after raising an error (the "
+                "WorkerError raised then); close() it and make a new one with make_vec_env(...)"
             )
 
     def close_extras(self, **kwargs):
@@ -451,6 +490,28 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             self._venv.close(**kwargs)
         if getattr(self, "_local", None) is not None:
             self._local.close()
+
+
+def _raise_worker_errors(venv: gym.vector.AsyncVectorEnv, first: int, successes) -> None:
+    """gymnasium's ``AsyncVectorEnv._raise_if_errors`` without its printing: each failed worker's pipe is closed
+    (it is shut down, as gymnasium does) and the last error is raised as one :class:`WorkerError` naming the env
+    (``first``: the env index of worker 0, 1 when env 0 runs in this process)."""
+    if all(successes):
+        return
+    errors = [venv.error_queue.get() for _ in range(len(successes) - sum(successes))]
+    for index, *_ in errors:
+        venv.parent_pipes[index].close()
+        venv.parent_pipes[index] = None
+    venv._state = gym.vector.async_vector_env.AsyncState.DEFAULT
+    index, exctype, value, trace = errors[-1]
+    others = f" (and env(s) {[i + first for i, *_ in errors[:-1]]})" if len(errors) > 1 else ""
+    raise WorkerError.like(exctype)(
+        f"env {index + first}{others} raised {exctype.__name__} in its worker process: {value}; that worker is shut "
+        "down, so close() this vector env and make a new one with make_vec_env(...) (the worker's traceback: the "
+        "exception's worker_traceback)",
+        index + first,
+        trace,
+    )
 
 
 def _refuse_in_bootstrapping_worker() -> None:

@@ -58,6 +58,9 @@ CASES = {
     "collect-demos, zero episodes": (cli("collect-demos", "--episodes", "0"), ["--episodes 0"]),
     "example, wrong env id": (["examples/sb3_ppo.py", "--env-id", "GraspLift"], ["sb3_ppo.py: unknown env id"]),
     "demo, zero episodes": (["examples/demo.py", "--episodes", "0"], ["demo.py: --episodes 0"]),
+    "example, zero envs": (["examples/sb3_ppo.py", "--num-envs", "0"], ["sb3_ppo.py: --num-envs 0: give a whole"]),
+    "example, zero steps": (["examples/skrl_ppo.py", "--total-timesteps", "0"], ["--total-timesteps 0: give a whole"]),
+    "example, negative held-out episodes": (["examples/sb3_sac.py", "--eval-episodes", "-1"], ["--eval-episodes -1"]),
     "misspelt flag": (
         cli("expert", "--episode", "3"),
         ["Unrecognized options: --episode, 3", "did you mean --episodes?", "maniskill-irb120 expert --help"],

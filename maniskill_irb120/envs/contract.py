@@ -48,11 +48,11 @@ def as_action_array(action: Any, what: str = "action") -> np.ndarray | torch.Ten
 
 
 def check_finite_actions(actions: np.ndarray, what: str = "actions") -> None:
-    """ValueError naming the env indices (rows) whose action has a NaN or inf."""
+    """UsageError (a ValueError) naming the env indices (rows) whose action has a NaN or inf."""
     bad = ~np.isfinite(actions).reshape(len(actions), -1).all(axis=1)
     if bad.any():
         idx = np.flatnonzero(bad).tolist()
-        raise ValueError(f"{what} contain NaN or inf for env index {idx}: {actions[bad].tolist()}")
+        raise UsageError(f"{what} contain NaN or inf for env index {idx}: {actions[bad].tolist()}")
 
 
 def check_env_idx(env_idx: Any, num_envs: int) -> np.ndarray:

@@ -46,9 +46,11 @@ from maniskill_irb120.integrations.observations import (
     make_single_env,
     wrapped_vector_env,
 )
+from maniskill_irb120.integrations.progress import EVERY_S, HELD_OUT_SEED, Heartbeat, Progress, held_out_success
 
 try:
     from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
+    from stable_baselines3.common.callbacks import BaseCallback
 except ModuleNotFoundError as e:  # pragma: no cover - the extra is missing
     if e.name != "stable_baselines3":
         raise
@@ -216,3 +218,98 @@ def make_sb3_env(
     """One CPU env with the same observation as :func:`make_sb3_vec_env`'s: what SB3's ``check_env`` checks, and
     what a trained model's ``predict`` is evaluated on."""
     return make_single_env(env_id, obs, reward_mode=reward_mode, control_mode=control_mode, env_kwargs=env_kwargs)
+
+
+class ProgressCallback(BaseCallback):
+    """SB3's ``learn(callback=...)`` showing the run while it happens (``integrations.progress`` says why lines):
+    every ``every_s`` seconds the env steps, their rate, the time left and the training episodes' success (SB3's
+    ``ep_success_buffer``, the adapter's ``is_success``), with the random warm-up named while an off-policy learner is
+    still before ``learning_starts``; every ``eval_every`` env steps (0: never) the deterministic policy on
+    ``eval_episodes`` held-out seeds, logged as ``eval/held_out_success`` beside SB3's ``rollout/success_rate``.
+    Between a rollout's end and the next one's start (the update, when no env steps) a :class:`Heartbeat` keeps
+    the lines coming.
+    ``held`` keeps each check as ``(env steps, successes, episodes)``; :meth:`check` runs one more (the end's)."""
+
+    def __init__(
+        self,
+        total: int,
+        env_id: str,
+        obs: str,
+        *,
+        label: str = "sb3",
+        eval_every: int = 0,
+        eval_episodes: int = 10,
+        every_s: float = EVERY_S,
+    ):
+        super().__init__()
+        self.total, self.env_id, self.obs, self.label = int(total), env_id, obs, label
+        self.eval_every, self.eval_episodes, self.every_s = int(eval_every), int(eval_episodes), float(every_s)
+        self.held: list[tuple[int, int, int]] = []
+        self.progress: Optional[Progress] = None
+        self._next_eval = self.eval_every
+        self._update: Optional[Heartbeat] = None
+
+    def _on_training_start(self) -> None:
+        self.progress = Progress(self.label, self.total, self.every_s)
+        self.progress.report(self.model.num_timesteps, "started")
+
+    def _on_rollout_end(self) -> None:
+        # SB3 trains between a rollout's end and the next one's start: no _on_step comes in between
+        if self.progress is not None and self._update is None:
+            self._update = Heartbeat(self.progress, self.model.num_timesteps, "updating the policy").__enter__()
+
+    def _on_rollout_start(self) -> None:
+        self._end_update()
+
+    def _on_training_end(self) -> None:
+        self._end_update()
+
+    def _end_update(self) -> None:
+        if self._update is not None:
+            self._update.__exit__(None, None, None)
+            self._update = None
+
+    def _on_step(self) -> bool:
+        steps = self.model.num_timesteps
+        # none at the budget's end: the caller's last check (check()) is the end's
+        if self.eval_every and self.eval_episodes and self._next_eval <= steps < self.total:
+            self._next_eval += self.eval_every * (1 + (steps - self._next_eval) // self.eval_every)
+            self.check()
+        self.progress.tick(steps, self.note)
+        return True
+
+    def note(self) -> str:
+        """The state of learning in a few words: warm-up, training success, the last held-out check."""
+        parts = []
+        starts = getattr(self.model, "learning_starts", 0)
+        if self.model.num_timesteps < starts:
+            parts.append(f"random actions until learning_starts={starts:,}")
+        buf = self.model.ep_success_buffer
+        if buf:
+            parts.append(f"training success {np.mean(buf):.2f} (last {len(buf)} episodes)")
+        if self.held:
+            steps, wins, n = self.held[-1]
+            parts.append(f"held out {wins}/{n} at {steps:,}")
+        return "; ".join(parts)
+
+    def act(self, obs: Any) -> np.ndarray:
+        """The deterministic action for one observation, normalised as training normalises it (``VecNormalize``)."""
+        norm = self.model.get_vec_normalize_env()
+        if norm is not None:  # the statistics as training left them: normalize_obs updates nothing
+            obs = norm.normalize_obs(obs)
+        return self.model.predict(obs, deterministic=True)[0]
+
+    def check(self) -> tuple[int, int, int]:
+        """The deterministic policy on ``eval_episodes`` held-out seeds now: printed, logged and kept in ``held``."""
+        steps, n = self.model.num_timesteps, self.eval_episodes
+        started = time.perf_counter()
+        wins = held_out_success(self.act, self.env_id, self.obs, n)
+        self.held.append((steps, wins, n))
+        self.model.logger.record("eval/held_out_success", wins / n)
+        took = time.perf_counter() - started
+        line = f"held-out success {wins}/{n} (deterministic, seeds {HELD_OUT_SEED}..; {took:.0f} s)"
+        if self.progress is not None:
+            self.progress.report(steps, line)
+        else:
+            print(f"[{self.label}] {steps:,} env steps | {line}", flush=True)
+        return self.held[-1]

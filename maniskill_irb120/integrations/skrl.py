@@ -21,7 +21,9 @@
   each step, and its agents log ``Episode / Total timesteps`` and ``Reward / Total reward`` from the flags
   themselves. So on a step where episodes end, ``info["episode"]`` holds ``"Episode / Success rate (mean)"`` of
   those episodes (the task's ``success`` on their last step); otherwise it is empty (the vector env's per-env
-  metrics would be logged as numbers only with one env).
+  metrics would be logged as numbers only with one env). skrl averages those per-step means over its write interval,
+  which weighs a step where two episodes ended like one where one did; ``recent_success`` keeps each ended
+  episode's own success (the last 100), what a progress line reads.
 
 skrl flattens a Dict observation into one float vector (sorted keys); :func:`policy_and_value`'s models undo it
 with skrl's ``unflatten_tensorized_space`` and read the image through a CNN.
@@ -29,6 +31,7 @@ with skrl's ``unflatten_tensorized_space`` and read the image through a CNN.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Optional
 
@@ -71,6 +74,7 @@ class IRB120SkrlWrapper(ManiSkillWrapper):
         space = self.action_space
         box = isinstance(space, gym.spaces.Box)
         self._bounds = tuple(torch.as_tensor(b, device=self.device) for b in (space.low, space.high)) if box else None
+        self.recent_success: deque[bool] = deque(maxlen=100)  # each ended episode's own success, latest last
 
     def reset(self) -> tuple[torch.Tensor, Any]:
         with self._threads.stepping():
@@ -93,6 +97,7 @@ class IRB120SkrlWrapper(ManiSkillWrapper):
             success = info["final_info"].get("success")
             if isinstance(success, torch.Tensor):
                 episode[SUCCESS_KEY] = success[dones].float().mean()
+                self.recent_success.extend(success[dones].cpu().tolist())
             info["final_observation"] = self._flat(info["final_observation"])
         info["episode"] = episode
         self._info = info

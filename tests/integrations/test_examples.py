@@ -1,5 +1,7 @@
 """The RL-library examples run as written, at toy sizes: examples/sb3_ppo.py from the README's command line (the
-camera), sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves."""
+camera), sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves; from state
+they train with agents/configs' tuned settings unless told --library-defaults, and show progress and held-out success
+while they run."""
 
 from __future__ import annotations
 
@@ -46,7 +48,12 @@ def test_sb3_ppo_example_runs_as_the_readme_writes_it(tmp_path):
 def test_sb3_sac_example_runs(tmp_path):
     pytest.importorskip("stable_baselines3")
     ex = load("sb3_sac")
-    model = ex.main(ex.Args(obs="state", backend="cpu", total_timesteps=80, learning_starts=40, out_dir=tmp_path))
+    model = ex.main(
+        ex.Args(
+            obs="state", backend="cpu", total_timesteps=80, learning_starts=40, out_dir=tmp_path,
+            library_defaults=True, eval_episodes=0,
+        )
+    )  # fmt: skip
     assert model.num_timesteps == 80 and model.replay_buffer.size() == 40
     assert (tmp_path / "model.zip").is_file()
 
@@ -54,7 +61,11 @@ def test_sb3_sac_example_runs(tmp_path):
 def test_skrl_ppo_example_runs(tmp_path, capsys):
     pytest.importorskip("skrl")
     ex = load("skrl_ppo")
-    agent = ex.main(ex.Args(obs="state", backend="cpu", total_timesteps=400, out_dir=tmp_path))
+    agent = ex.main(
+        ex.Args(
+            obs="state", backend="cpu", total_timesteps=400, out_dir=tmp_path, library_defaults=True, eval_episodes=0
+        )
+    )
     assert agent.cfg.time_limit_bootstrap and agent.cfg.rollouts == 16
     assert list(tmp_path.rglob("events.out.tfevents.*"))  # skrl writes every 1 % of the steps: 2 of 200 here
     assert (tmp_path / "agent.pt").is_file()
@@ -75,7 +86,70 @@ def test_an_example_stopped_by_ctrl_c_saves_its_model_and_says_so_in_one_line(tm
 
     monkeypatch.setattr(ex.PPO, "learn", interrupted)
     with pytest.raises(SystemExit) as stop:
-        ex.main(ex.Args(obs="state", backend="cpu", n_steps=32, total_timesteps=10_000, out_dir=tmp_path))
+        ex.main(ex.Args(obs="state", backend="cpu", n_steps=32, total_timesteps=10_000, out_dir=tmp_path, num_envs=2))
     assert stop.value.code == 130 and (tmp_path / "model.zip").is_file()
     err = [line for line in capsys.readouterr().err.splitlines() if " - WARNING - " not in line and line.strip()]
     assert err[-1] == f"interrupted (Ctrl-C) at 64 env steps; model so far: {tmp_path}/model.zip", err
+
+
+def test_sb3_sac_example_trains_on_its_config_from_state_and_says_how_it_goes(tmp_path, capsys):
+    """SAC from state without flags: sac.yml's settings (4 envs, VecNormalize, gamma 0.8), the progress line it starts
+    with, a held-out check at the end and the summary naming it."""
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    ex = load("sb3_sac")
+    args = ex.Args(backend="cpu", total_timesteps=48, learning_starts=24, eval_episodes=1, out_dir=tmp_path)
+    model, source, total = ex.build(args)
+    model.get_env().close()
+    assert source == "agents/configs/sb3/sac.yml" and total == 48
+    assert model.gamma == 0.8 and model.tau == 0.01 and model.gradient_steps == 2 and model.learning_starts == 24
+    assert isinstance(model.get_env(), VecNormalize) and model.get_env().num_envs == 4
+    ex.main(args)
+    out = capsys.readouterr().out
+    assert "4 envs, agents/configs/sb3/sac.yml; 48 env steps, the first 24 random" in out, out
+    assert "[sb3 sac] 0/48 env steps (0 %)" in out, out
+    assert re.search(r"held-out success [01]/1 \(deterministic", out), out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("48 env steps in ") and "held-out success" in last and "model.zip" in last, last
+    assert (tmp_path / "vecnormalize.pkl").is_file()
+
+
+def test_skrl_ppo_example_trains_on_its_config_from_state(tmp_path, capsys):
+    pytest.importorskip("skrl")
+    ex = load("skrl_ppo")
+    agent = ex.main(ex.Args(backend="cpu", total_timesteps=64, eval_episodes=1, out_dir=tmp_path))
+    cfg = agent.cfg
+    get = (lambda k: cfg[k]) if isinstance(cfg, dict) else (lambda k: getattr(cfg, k))  # noqa: E731
+    assert get("rollouts") == 128 and get("discount_factor") == 0.8  # ppo_grasplift.yaml's, not PPO_CFG's 16, 0.99
+    out = capsys.readouterr().out
+    assert "4 envs, agents/configs/skrl/ppo_grasplift.yaml; 64 env steps" in out, out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("64 env steps in ") and "held-out success" in last and "agent.pt" in last, last
+
+
+def test_the_documented_state_commands_say_what_the_screening_measured():
+    """docs/rl_libraries.md's minutes and held-out counts for the state commands are the screening cells' (same
+    configs, 4 CPU worker envs), not written from memory: SAC's at the command's env steps on its held-out curve,
+    PPO's extrapolated from its cell's env steps per wall-clock second."""
+    import json
+
+    cells = json.loads((REPO / "benchmarks/results/screening/algorithms.json").read_text())["cells"]
+    doc = (REPO / "docs/rl_libraries.md").read_text()
+    block = doc[doc.index("## Examples") :].split("```bash")[1].split("```")[0].splitlines()
+    said = {}
+    for comment, command in zip(block, block[1:]):
+        m = re.search(r"examples/sb3_(sac|ppo)\.py .*--obs state --total-timesteps (\d+)$", command)
+        if comment.startswith("#") and m:
+            said[m.group(1)] = (int(m.group(2)), comment)
+    assert set(said) == {"sac", "ppo"}, block
+    steps, comment = said["sac"]
+    curve = cells["state/GraspLift/sb3-sac-tuned/s1"]["held_out_curve"]
+    k = curve["env_steps"].index(steps)
+    wins = round(curve["success"][k] * curve["episodes"][k])
+    assert f"{wins}/{curve['episodes'][k]} held out at {steps:,} env steps" in comment, comment
+    assert f"about {round(curve['wall_min'][k])} min" in comment, comment
+    steps, comment = said["ppo"]
+    cell = cells["state/GraspLift/sb3-ppo-tuned/s1"]
+    assert f"about {round(steps * cell['wall_clock_s'] / cell['env_steps'] / 60)} min" in comment, comment
+    assert max(cell["held_out_curve"]["success"]) == 0 and "0/30 held out" in comment, comment
