@@ -9,9 +9,8 @@ pages of :data:`PAGES`; ``tests/test_docs_tables.py`` checks that each page's bl
 now, so a benchmark run that rewrites its JSON also asks for ``--write``.
 
 The first training run is the fastest recipe that *delivers* (:data:`DELIVERS` of held-out episodes or more) on
-TableClearing, by its runs' measured minutes; ``benchmarks/results/first_run/learning.json`` holds the short
-``dagger-state`` runs made for it (``FIRST_RUN_COMMAND``'s budget). A recipe's budget is env steps (its runs' mean,
-which is ``ENV_STEP_BUDGETS``); its minutes are what those runs measured on the 2-core machine.
+TableClearing, by its runs' measured minutes. A recipe's budget is env steps (its runs' mean, which is
+``ENV_STEP_BUDGETS``); its minutes are what those runs measured on the 2-core machine.
 """
 
 from __future__ import annotations
@@ -28,8 +27,6 @@ LEARNING = {  # task -> its learning.json (TableClearing's report predates the p
     "GraspLift-IRB120-v1": RESULTS / "learning" / "GraspLift-IRB120-v1" / "learning.json",
     "StackCube-IRB120-v1": RESULTS / "learning" / "StackCube-IRB120-v1" / "learning.json",
 }
-FIRST_RUN = RESULTS / "first_run" / "learning.json"
-"""short runs of a recipe at a small env-step budget, measured for the start-here path"""
 FIRST_TASK = "TableClearing-IRB120-v1"
 DELIVERS = 0.9
 """held-out success from which a recipe counts as one that delivers"""
@@ -39,20 +36,19 @@ BENCHMARK = "benchmarks/learning.py"
 """how the learning benchmark is run (a script path, after ``PYTHON``)"""
 
 
-def recipe_book() -> tuple[dict, dict]:
-    """(RECIPES, BASES) of the recipes module: the one place this script reads recipe data from."""
-    from maniskill_irb120.recipes import BASES, RECIPES
+def recipe_book():
+    """The recipes module (``RECIPES``, ``BASES``, ``env_step_budget``): the one place this script, and its test, read
+    recipe data from."""
+    from maniskill_irb120 import recipes
 
-    return RECIPES, BASES
+    return recipes
 
 
 def rows() -> list[dict]:
-    """Every trained row of every committed learning report (the first-run report's included), fastest first:
-    task, recipe, obs, seeds, success, ci, env_steps, minutes, first_run (from :data:`FIRST_RUN`)."""
+    """Every trained row of every committed learning report, fastest first: task, recipe, obs, seeds, episodes,
+    success, ci, env_steps, minutes, reference_sps."""
     out = []
-    for path, first in [*((p, False) for p in LEARNING.values()), (FIRST_RUN, True)]:
-        if not path.is_file():
-            continue
+    for path in LEARNING.values():
         report = json.loads(path.read_text())
         for r in report["rows"]:
             if r["recipe"] in REFERENCES:
@@ -68,7 +64,6 @@ def rows() -> list[dict]:
                     ci=tuple(r["success_ci95"]),
                     env_steps=round(r["env_steps_mean"]),
                     minutes=r["wall_clock_min_mean"],
-                    first_run=first,
                     reference_sps=[x for run in r["runs"] for x in run.get("reference_sps", [])],
                 )
             )
@@ -86,7 +81,8 @@ def first_run() -> dict:
 def command(r: dict, exp_name: str = "") -> str:
     """The command that trains ``r``'s recipe at ``r``'s budget: its trainer with ``--recipe``, or the benchmark for a
     two-stage recipe (it chains the two runs)."""
-    recipes, bases = recipe_book()
+    book = recipe_book()
+    recipes, bases = book.RECIPES, book.BASES
     task = "" if r["task"] == FIRST_TASK else f" --env-id {r['task']}"
     if r["recipe"] in bases:
         return (  # its own --out-dir: the report a run writes does not replace the committed one
@@ -152,8 +148,7 @@ def start_block(docs: str) -> str:
 def tutorial_block() -> str:
     """The tutorial's first training run and its evaluation, as commands."""
     r = first_run()
-    recipes, _ = recipe_book()
-    module = recipes[r["recipe"]].module
+    module = recipe_book().RECIPES[r["recipe"]].module
     return "\n".join(
         [
             f"`{r['recipe']}` on `{r['task']}` at {r['env_steps']:,} env steps: its committed runs took "

@@ -39,13 +39,13 @@ def test_a_stale_block_is_caught():
 
 def test_the_training_table_is_every_committed_recipe_fastest_first():
     """Each row of the committed learning reports once, in the order of its measured minutes, its budget the env steps
-    its runs trained (recipes.ENV_STEP_BUDGETS, for the rows it restates) and its command the recipe's trainer or,
+    its runs trained (recipes.ENV_STEP_BUDGETS restates them) and its command the recipe's trainer or,
     for a two-stage recipe, the benchmark."""
     import json
 
     t = tables()
-    recipes, bases = t.recipe_book()
-    from maniskill_irb120.recipes import env_step_budget
+    book = t.recipe_book()
+    recipes, bases, env_step_budget = book.RECIPES, book.BASES, book.env_step_budget
 
     page = (REPO / "docs" / "training.md").read_text()
     block = page.split(t.begin("recipes by measured duration"))[1].split(t.end("recipes by measured duration"))[0]
@@ -56,12 +56,11 @@ def test_the_training_table_is_every_committed_recipe_fastest_first():
     seconds = [int(n) * (60 if unit == "min" else 1) for n, unit, *_ in rows]
     assert seconds == sorted(seconds)
     expected = []
-    for path in [*t.LEARNING.values(), t.FIRST_RUN]:
-        if path.is_file():
-            report = json.loads(path.read_text())
-            expected += [
-                (r["recipe"], report["env_id"].split("-")[0]) for r in report["rows"] if r["recipe"] not in t.REFERENCES
-            ]
+    for path in t.LEARNING.values():
+        report = json.loads(path.read_text())
+        expected += [
+            (r["recipe"], report["env_id"].split("-")[0]) for r in report["rows"] if r["recipe"] not in t.REFERENCES
+        ]
     assert sorted((name, task) for _, _, name, task, *_ in rows) == sorted(expected)
     for _, _, name, task, obs, steps, cmd in rows:
         assert obs == recipes[name].obs
@@ -69,8 +68,7 @@ def test_the_training_table_is_every_committed_recipe_fastest_first():
         budget = env_step_budget(name, env_id)
         steps = int(steps.replace(",", ""))
         assert f"--total-env-steps {steps}" in cmd
-        if budget and budget[0] != steps:  # a row ENV_STEP_BUDGETS does not restate: the short first-run runs
-            assert name == t.first_run()["recipe"] and steps < budget[0], (name, task, steps)
+        assert budget is not None and budget[0] == steps, (name, task, steps)
         if name in bases:
             assert f"{t.BENCHMARK}" in cmd and f"--recipes {name}" in cmd
         else:
