@@ -124,9 +124,9 @@ PPO_UPDATE: dict[str, Value] = {
 }
 """ManiSkill's state baseline on CPU workers: 4 envs x 128 steps a rollout (ManiSkill: 512 x 50 on a GPU), so 8
 epochs of 64-row minibatches, gamma 0.8, lambda 0.9 and target KL 0.1"""
-PPO_SELECTION: dict[str, Value] = {"eval-freq": 0, "select-episodes": 30, "total-env-steps": 100000000}
+PPO_SELECTION: dict[str, Value] = {"eval-freq": 0, "select-episodes": 30}
 """the checkpoint PPO deploys is chosen on 30 validation seeds every 25 iterations, since on GraspLift it peaks and
-then unlearns; the budget is the run's --total-env-steps, not a count of timesteps"""
+then unlearns; the budget is the run's own --total-env-steps (``--recipe`` adds the task's ENV_STEP_BUDGETS one)"""
 PPO_FROM_REWARD: dict[str, Value] = {**PPO_UPDATE, **PPO_SELECTION}
 """PPO from the reward alone: ManiSkill's state baseline and its checkpoint selection"""
 CAMERA_BF16: dict[str, Value] = {**CAMERA_DAGGER, "precision": "auto"}
@@ -232,7 +232,6 @@ _RECIPES = (
             "kl-coef": 1,
             "init-logstd": -2,
             "critic-warmup-iters": 10,
-            "total-env-steps": 100000000,
         },
         base=Base("dagger-state", 0.5, "base-checkpoint"),
     ),

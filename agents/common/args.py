@@ -110,7 +110,8 @@ def _flag(argv: list[str], name: str) -> Optional[str]:
 
 def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[str]:
     """``argv`` with ``--recipe NAME`` expanded: the recipe's flags for the task (``--env-id``, else ``env_id``)
-    and seed (``--seed``, else ``seed``) first, ``argv`` after them. A recipe of another trainer, an unknown name
+    and seed (``--seed``, else ``seed``) first, then its env-step budget on that task where the committed runs give
+    one (``ENV_STEP_BUDGETS``), ``argv`` after them (so ``--total-env-steps`` given overrides it). A recipe of another trainer, an unknown name
     or a two-stage recipe (its base is another run: ``benchmarks/learning.py`` chains the two) is refused, naming
     the problem and this trainer's recipes."""
     name = _flag(argv, "--recipe")
@@ -134,7 +135,9 @@ def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[st
             f"hand; {module}'s recipes: {', '.join(valid)}"
         )
     env = _flag(argv, "--env-id") or env_id
-    return [*RECIPES[name].for_task(env).argv(_flag(argv, "--seed") or seed), *argv]
+    resolved = RECIPES[name].for_task(env)
+    budget = [] if resolved.env_steps is None else ["--total-env-steps", str(resolved.env_steps[0])]
+    return [*resolved.argv(_flag(argv, "--seed") or seed), *budget, *argv]
 
 
 BUDGET_FLAGS = {"total_env_steps": "env steps", "max_minutes": "minutes", "budget_min": "minutes"}

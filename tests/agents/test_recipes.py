@@ -24,7 +24,9 @@ def parsed(module: str, argv: list[str]):
 def test_every_single_stage_recipe_parses_on_its_trainer_as_its_flags_do(name):
     module = RECIPES[name].trainer
     by_name = parsed(module, ["--recipe", name, "--seed", "2"])
-    by_hand = parsed(module, [*RECIPES[name].for_task("TableClearing-IRB120-v1").argv(2), "--seed", "2"])
+    resolved = RECIPES[name].for_task("TableClearing-IRB120-v1")
+    budget = [] if resolved.env_steps is None else ["--total-env-steps", str(resolved.env_steps[0])]
+    by_hand = parsed(module, [*resolved.argv(2), *budget, "--seed", "2"])
     assert by_name.recipe == name and by_name.obs == RECIPES[name].obs
     assert {**vars(by_name), "recipe": None} == {**vars(by_hand), "recipe": None}
 
