@@ -110,10 +110,10 @@ def _flag(argv: list[str], name: str) -> Optional[str]:
 
 def recipe_argv(module: str, argv: list[str], env_id: str, seed: int) -> list[str]:
     """``argv`` with ``--recipe NAME`` expanded: the recipe's flags for the task (``--env-id``, else ``env_id``)
-    and seed (``--seed``, else ``seed``) first, then its env-step budget on that task where the committed runs give
-    one (``ENV_STEP_BUDGETS``), ``argv`` after them (so ``--total-env-steps`` given overrides it). A recipe of another trainer, an unknown name
-    or a two-stage recipe (its base is another run: ``benchmarks/learning.py`` chains the two) is refused, naming
-    the problem and this trainer's recipes."""
+    and seed (``--seed``, else ``seed``) first, then its env-step budget on that task where the committed runs
+    give one (``ENV_STEP_BUDGETS``), ``argv`` after them (a ``--total-env-steps`` given overrides it). A recipe
+    of another trainer, an unknown name or a two-stage recipe (its base is another run: ``benchmarks/learning.py``
+    chains the two) is refused, naming the problem and this trainer's recipes."""
     name = _flag(argv, "--recipe")
     if name is None:
         return list(argv)
