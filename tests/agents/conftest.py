@@ -29,3 +29,22 @@ def tiny_dagger():
         return main(Args(**{**TINY_DAGGER, "runs_dir": runs_dir, **kw}))
 
     return run
+
+
+@pytest.fixture
+def refused(capsys):
+    """``refused(module, argv, says)``: the trainer's command line ``argv`` ends before anything runs, in one line on
+    stderr starting ``MODULE: error: SAYS``, exit status 2."""
+    import importlib
+
+    from agents.common import entry
+
+    def check(module: str, argv: list[str], says: str) -> None:
+        ran = []
+        with pytest.raises(SystemExit) as stop:
+            entry(importlib.import_module(module).Args, module, ran.append, argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and not ran and err.count("\n") == 1
+        assert err.startswith(f"{module}: error: {says}")
+
+    return check

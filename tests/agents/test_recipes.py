@@ -108,17 +108,10 @@ def test_resume_alone_continues_with_the_runs_own_flags_and_a_flag_given_again_o
         (["--total-env-steps", "abc"], "Error parsing --total-env-steps: "),
     ],
 )
-def test_a_command_line_with_no_budget_is_refused_in_one_line_with_exit_status_2(module, argv, says, capsys):
+def test_a_command_line_with_no_budget_is_refused_in_one_line_with_exit_status_2(module, argv, says, refused):
     """A zero or negative budget would train nothing, write a checkpoint and exit 0; it ends before any env with one
     line naming the flag (no traceback, no tyro panel) and exit status 2."""
-    from agents.common import entry
-
-    ran = []
-    with pytest.raises(SystemExit) as stop:
-        entry(importlib.import_module(module).Args, module, ran.append, argv)
-    err = capsys.readouterr().err
-    assert stop.value.code == 2 and not ran and err.count("\n") == 1
-    assert err.startswith(f"{module}: error: {says}")
+    refused(module, argv, says)
 
 
 def test_python_m_a_trainer_with_a_negative_budget_exits_2_with_one_line():
