@@ -216,8 +216,22 @@ def entry(
     except (ValueError, FileNotFoundError) as e:
         print(f"{module}: error: {' '.join(str(e).split())}", file=sys.stderr)
         raise SystemExit(2) from None
-    with usage_errors(module):  # what only the run finds (an unknown env id, a missing file): one line too
-        return main(args)
+    try:
+        with usage_errors(module):  # what only the run finds (an unknown env id, a missing file): one line too
+            return main(args)
+    except KeyboardInterrupt:  # the loop has saved latest.pt on its way out (its finally); the rest is noise
+        print(f"{module}: interrupted; --resume RUN/checkpoints/latest.pt continues the run", file=sys.stderr)
+        raise SystemExit(130) from None
+    except ModuleNotFoundError as e:
+        if e.name not in EXTRAS:
+            raise
+        print(f"{module}: error: {e.name} is not installed; the trainers need the rl extras: bash scripts/setup.sh rl",
+              file=sys.stderr)  # fmt: skip
+        raise SystemExit(2) from None
+
+
+EXTRAS = ("tensorboard", "tqdm")
+"""the modules of the trainers' extras (``pyproject.toml``'s ``rl``), which a plain setup does not install"""
 
 
 def _parse(args_type: type[A], argv: list[str], **kw) -> A:

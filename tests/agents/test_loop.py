@@ -137,3 +137,31 @@ def test_migrate_brings_a_version_1_ppo_checkpoint_up_to_date():
 )
 def test_a_removed_flag_is_one_line_naming_its_successor_and_exit_status_2(module, argv, says, refused):
     refused(module, argv, says)
+
+
+def test_ctrl_c_in_a_run_is_one_line_and_exit_130_and_a_missing_extra_names_its_setup(capsys):
+    """A Ctrl-C reaches the trainer's entry after the loop saved latest.pt (its finally): one line saying how to
+    continue, exit 130, no traceback. A trainer run on the plain setup, without the rl extras, is told the command
+    that installs them, exit 2; a missing module that is no extra keeps its traceback."""
+    from agents import ppo
+    from agents.common import entry
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    def no_tensorboard(args):
+        raise ModuleNotFoundError("No module named 'tensorboard'", name="tensorboard")
+
+    def no_such_module(args):
+        raise ModuleNotFoundError("No module named 'nothing_here'", name="nothing_here")
+
+    with pytest.raises(SystemExit) as stop:
+        entry(ppo.Args, "agents.ppo", interrupted, ["--total-env-steps", "8"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 130 and err.count("\n") == 1 and "--resume" in err
+    with pytest.raises(SystemExit) as stop:
+        entry(ppo.Args, "agents.ppo", no_tensorboard, ["--total-env-steps", "8"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1 and "bash scripts/setup.sh rl" in err
+    with pytest.raises(ModuleNotFoundError):
+        entry(ppo.Args, "agents.ppo", no_such_module, ["--total-env-steps", "8"])
