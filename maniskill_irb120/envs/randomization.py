@@ -17,7 +17,7 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``specular`` | specular strength, 0..1 (off: each material's own) | each episode | env, surface |
 | ``depth_noise`` | std of Gaussian depth noise, mm | each step | per pixel |
 | ``depth_dropout`` | probability a depth pixel reads 0 | each step | per pixel |
-| ``depth_model`` | a RealSense preset, ``d435`` or ``d405`` (envs/depth_model.py) | each step | per pixel |
+| ``depth_model`` | a RealSense preset, ``d435`` or ``d405`` (envs/depth_model.py), or choices | each step | per pixel |
 | ``object_size`` | scale of ``object_half_size`` | scene build | one draw for all envs |
 | ``object_mass`` | scale of ``object_mass`` | scene build | per env |
 | ``object_friction`` | scale of ``object_friction`` | scene build | per env |
@@ -37,7 +37,8 @@ at the period's end. A deployment whose steps wait for the robot to arrive (the 
 
 ``depth_model`` stands before ``depth_noise``/``depth_dropout`` (which then add to it): range limits, disparity
 noise and quantisation, edges, occlusion shadow and dark/specular dropout as a RealSense D435 or D405 measures
-them, with the figures and their sources in envs/depth_model.py.
+them, with the figures and their sources in envs/depth_model.py. ``depth_model=d435|d405|off`` draws one of its
+choices per env each episode, after every other field, so the other draws stay as they were.
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
@@ -69,6 +70,22 @@ UNIT_FIELDS = ("depth_dropout", "texture", "roughness", "specular")  # probabili
 NONE_FIELDS = ("camera_fov", "roughness", "specular")  # None: off (the nominal camera's, each material's own)
 
 
+def _depth_models(v) -> str | tuple[str, ...] | None:
+    """``depth_model``'s value: None (off), one preset's name, or a tuple of two or more choices (each a preset's
+    name or ``"off"``), one drawn per env each episode; ``"d435|d405|off"`` in a spec."""
+    if v is None:
+        return None
+    names = v.split("|") if isinstance(v, str) else v
+    if not isinstance(names, (tuple, list)) or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"depth_model={v!r}: a preset name, e.g. 'd435', or choices 'd435|d405|off'")
+    out = tuple("off" if n.strip().lower() in ("off", "none", "") else preset(n).name for n in names)
+    if len(set(out)) != len(out):
+        raise ValueError(f"depth_model={v!r}: a choice names each model once")
+    if len(out) == 1:
+        return None if out[0] == "off" else out[0]
+    return out
+
+
 @dataclass(frozen=True)
 class Randomization:
     camera_pos: Value = 0.0
@@ -81,7 +98,7 @@ class Randomization:
     texture: Value = 0.0
     roughness: Value = None
     specular: Value = None
-    depth_model: str | None = None  # a preset name (envs/depth_model.py PRESETS)
+    depth_model: str | tuple[str, ...] | None = None  # a preset name (envs/depth_model.py PRESETS), or a choice
     object_size: Value = 1.0
     object_mass: Value = 1.0
     object_friction: Value = 1.0
@@ -91,11 +108,7 @@ class Randomization:
         for f in fields(self):
             v = getattr(self, f.name)
             if f.name == "depth_model":
-                if isinstance(v, str) and v.strip().lower() in ("off", "none", ""):
-                    v = None
-                if v is not None and not isinstance(v, str):
-                    raise ValueError(f"depth_model={v!r}: a preset name, e.g. 'd435'")
-                object.__setattr__(self, f.name, None if v is None else preset(v).name)
+                object.__setattr__(self, f.name, _depth_models(v))
                 continue
             if v is None:
                 if f.name not in NONE_FIELDS:
@@ -225,6 +238,8 @@ class RandomizationMixin:
         self._dr_generator: torch.Generator | None = None
         self._dr_noise = False  # depth_noise or depth_dropout on
         self._dr_depth_model: DepthModel | None = None
+        self._dr_depth_models: list[DepthModel | None] = []  # a choice of models (``d435|d405|off``), by index
+        self._dr_depth_choice: torch.Tensor | None = None  # (num_envs,) each env's index into _dr_depth_models
         self._dr_focal: np.ndarray | None = None  # the sim camera's focal length per env, px
         self._dr_delay: torch.Tensor | None = None
         self._dr_max_delay = 0  # sim steps: the most any env holds its old targets (a Python int, no sync)
@@ -319,9 +334,9 @@ class RandomizationMixin:
                 self.randomization_draws["depth_noise"] = self._dr_depth[:, 0].clone()
                 self.randomization_draws["depth_dropout"] = self._dr_depth[:, 1].clone()
             if "depth_model" in active:
-                self._set_depth_model(idx)
+                self._set_depth_model(idx, rngs)
 
-    def _set_depth_model(self, idx: np.ndarray) -> None:
+    def _set_depth_model(self, idx: np.ndarray, rngs: dict) -> None:
         """The model and the sim camera's focal length per env (the shadow's width in sim pixels depends on
         it, and ``camera_fov`` may have changed it)."""
         base = self.agent.hand_camera_cfg
@@ -331,7 +346,16 @@ class RandomizationMixin:
         for i in idx:
             fov = math.radians(float(fovs[i])) if fovs is not None else base["fov"]
             self._dr_focal[i] = base["width"] / 2 / math.tan(fov / 2)
-        self._dr_depth_model = preset(self.randomization.depth_model)
+        choices = self.randomization.depth_model
+        if isinstance(choices, tuple):  # drawn after every other field, so a single preset's streams are unchanged
+            if self._dr_depth_choice is None:
+                self._dr_depth_choice = torch.zeros(self.num_envs, dtype=torch.long)
+            for i in idx:
+                self._dr_depth_choice[int(i)] = int(rngs[int(i)].integers(len(choices)))
+            self._dr_depth_models = [None if n == "off" else preset(n) for n in choices]
+            self.randomization_draws["depth_model"] = self._dr_depth_choice.float()
+        else:
+            self._dr_depth_model = preset(choices)
         self._dr_focal_t = torch.as_tensor(self._dr_focal, dtype=torch.float32, device=self.device)
 
     def _record_draw(self, key: str, i: int, value) -> None:
@@ -387,6 +411,16 @@ class RandomizationMixin:
         depth, g = cam["depth"], self._dr_generator
         if self._dr_depth_model is not None:
             depth = self._dr_depth_model.apply(depth, cam.get("rgb"), self._dr_focal_t, g, float(self._dr_focal.max()))
+        elif self._dr_depth_choice is not None:  # each model on the envs that drew it, in the models' order
+            rgb, out = cam.get("rgb"), depth.clone()
+            for k, model in enumerate(self._dr_depth_models):
+                envs = (self._dr_depth_choice == k).nonzero().flatten()
+                if model is None or len(envs) == 0:
+                    continue
+                d = envs.to(depth.device)
+                f = self._dr_focal_t[envs.to(self._dr_focal_t.device)]
+                out[d] = model.apply(depth[d], None if rgb is None else rgb[d], f, g, float(self._dr_focal.max()))
+            depth = out
         if self._dr_noise:
             # the frame can live on the render device (CUDA) while the sim and the generator are on the CPU
             dev = depth.device

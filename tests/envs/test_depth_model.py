@@ -155,3 +155,38 @@ def test_cpu_physics_with_cuda_rendering_takes_the_depth_randomisation():
     depth = env.step(torch.tensor([0.2, 0.0, -0.3, 0.0, 1.0]))[0]["sensor_data"]["hand_camera"]["depth"]
     env.close()
     assert depth.shape == (1, 84, 84, 1) and (depth > 0).any()
+
+
+def test_a_choice_of_depth_models_is_parsed_and_checked():
+    assert Randomization.parse("depth_model=d435|D405|off").depth_model == ("d435", "d405", "off")
+    assert Randomization.parse("depth_model=d435|d405").active() == ["depth_model"]
+    with pytest.raises(ValueError, match="each model once"):
+        Randomization.parse("depth_model=d435|d435")
+    with pytest.raises(ValueError, match=r"one of \['d405', 'd435'\]"):
+        Randomization.parse("depth_model=d435|kinect")
+
+
+def test_each_episode_draws_one_model_of_the_choice_and_reads_as_that_model_alone():
+    """``depth_model=d435|off``: an episode that drew ``off`` sees the clean depth, one that drew ``d435`` exactly
+    what ``depth_model=d435`` alone gives on the same seed (the choice is drawn after every other stream)."""
+    act = torch.tensor([0.2, 0.0, -0.3, 0.0, 1.0])
+    envs = {
+        spec: gym.make("TableClearing-IRB120-v1", obs_mode="rgbd", randomization=spec)
+        for spec in ("", "depth_model=d435", "depth_model=d435|off")
+    }
+    drawn_models = set()
+    try:
+        for seed in range(8):
+            seen = {}
+            for spec, env in envs.items():
+                env.reset(seed=seed)
+                seen[spec] = env.step(act)[0]["sensor_data"]["hand_camera"]["depth"].clone()
+            k = int(envs["depth_model=d435|off"].unwrapped.randomization_draws["depth_model"][0])
+            drawn_models.add(k)
+            same_as = "depth_model=d435" if k == 0 else ""
+            assert torch.equal(seen["depth_model=d435|off"], seen[same_as]), (seed, k)
+            assert not torch.equal(seen["depth_model=d435"], seen[""])
+    finally:
+        for env in envs.values():
+            env.close()
+    assert drawn_models == {0, 1}  # both models drawn in 8 episodes
