@@ -39,6 +39,7 @@ from agents.common import (
     load_torch,
     loop,
     obs_to,
+    phase_bar,
     prune_row_files,
     resolve_device,
     restore_dataset,
@@ -236,18 +237,20 @@ def bc_step(model: SAC, opt, demos: Dataset, args: Args, device) -> float:
     return loss.item()
 
 
-def pretrain(model: SAC, opts: dict, online: Dataset, demos: Dataset, args: Args, device) -> float:
+def pretrain(model: SAC, opts: dict, online: Dataset, demos: Dataset, args: Args, device, bar=None) -> float:
     """Clone the actor from the demos, then warm the critic up on them; the cloning continues through the
-    warm-up, since the critic's updates move the encoder the actor reads."""
+    warm-up, since the critic's updates move the encoder the actor reads. ``bar``: ticked once per update."""
     bc_opt = torch.optim.Adam(list(model.actor.parameters()) + list(model.critic.encoder.parameters()), args.policy_lr)
     loss = float("nan")
     for _ in range(args.bc_pretrain_updates):
         loss = bc_step(model, bc_opt, demos, args, device)
+        bar is not None and bar.update(1)
     for _ in range(args.critic_warmup_updates):
         batch, act, _ = sample(online, demos, args, device)
         update(model, opts, batch, act, 0, args, actor=False)
         if args.bc_pretrain_updates:
             loss = bc_step(model, bc_opt, demos, args, device)
+        bar is not None and bar.update(1)
     return loss
 
 
@@ -317,10 +320,10 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
-def collect_demos(envs, state: dict, demos: Dataset, episodes: int, noise: float = 0.0) -> int:
+def collect_demos(envs, state: dict, demos: Dataset, episodes: int, noise: float = 0.0, bar=None) -> int:
     """Reactive-expert episodes into ``demos``, with DART noise on the executed arm actions: each row keeps the
     executed action (the critic's) and the expert's clean ``label`` (the cloning's), so the clone also learns to
-    recover from the states noise leads to. Returns the env steps taken."""
+    recover from the states noise leads to. Returns the env steps taken (``bar``: ticked per finished episode)."""
     finished = steps = 0
     while finished < episodes:
         label = state["label"]
@@ -332,8 +335,10 @@ def collect_demos(envs, state: dict, demos: Dataset, episodes: int, noise: float
         row["label"] = label
         demos.add(row, act)
         state["obs"], state["label"] = flatten_obs(o), info["expert_action"].float()
-        finished += int((term | trunc).sum())
+        done = int((term | trunc).sum())
+        finished += done
         steps += envs.num_envs
+        bar is not None and done and bar.update(done)
     return steps
 
 
@@ -408,11 +413,15 @@ class SACRun(Algorithm):
         if counters["pretrained"]:
             return
         if args.demo_episodes > 0:
-            steps = collect_demos(self.envs, self.state, self.demos, args.demo_episodes, args.dart_noise)
+            # minutes before the first RL step: each phase shows its own bar
+            with phase_bar(args, args.demo_episodes, "expert demos", "episode") as bar:
+                steps = collect_demos(self.envs, self.state, self.demos, args.demo_episodes, args.dart_noise, bar)
             counters["env_steps"] += steps
             model.critic.norm.fit(self.demos.obs["state"][: self.demos.size])
             model.target.norm.load_state_dict(model.critic.norm.state_dict())
-            bc = pretrain(model, self.opts, self.online, self.demos, args, self.device)
+            updates = args.bc_pretrain_updates + args.critic_warmup_updates
+            with phase_bar(args, updates, "cloning + critic warm-up", "update") as bar:
+                bc = pretrain(model, self.opts, self.online, self.demos, args, self.device, bar)
             self.logger.scalars({"losses/bc_pretrain": bc}, counters["env_steps"])
             if args.reference:
                 model.freeze_reference()

@@ -32,7 +32,7 @@ from agents.common.evaluation import (
     new_eval_dir,
     train_seed,
 )
-from agents.common.logging import Logger, budget_bar, finish
+from agents.common.logging import Logger, budget_bar, finish, phase_bar
 from agents.common.precision import PRECISIONS, autocast, resolve_precision
 from agents.common.run import (
     Budget,
@@ -78,6 +78,7 @@ __all__ = [
     "evaluate_checkpoint",
     "evaluate_on_seeds",
     "finish",
+    "phase_bar",
     "flatten_obs",
     "held_out_evaluation",
     "load_for_evaluation",

@@ -4,6 +4,7 @@ which reads a run's TensorBoard logs back whole, across its resumes. See docs/tr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Callable
@@ -79,6 +80,22 @@ def budget_bar(args: RunArgs, budget: float, spent: float, desc: str, unit: str 
     from tqdm import tqdm
 
     return tqdm(total=int(budget), initial=int(spent), unit=unit, desc=desc, dynamic_ncols=True)
+
+
+@contextlib.contextmanager
+def phase_bar(args: RunArgs, total: int, desc: str, unit: str):
+    """A tqdm bar over one phase before training proper (expert demos, pretraining), closed when it ends; None with
+    --no-progress."""
+    bar = None
+    if args.progress and total > 0:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(total), unit=unit, desc=desc, dynamic_ncols=True)
+    try:
+        yield bar
+    finally:
+        if bar is not None:
+            bar.close()
 
 
 def finish(result: dict, run_dir: Path) -> dict:

@@ -88,3 +88,19 @@ def test_comet_offline_archive_holds_the_logged_metrics(run):
     assert [float(v) for v in metrics["eval/success_rate"]] == [pytest.approx(res["success_rate"])]
     params = [m for m in messages if m["type"] == "parameter_msg"]
     assert any(m["payload"]["param"]["paramName"] == "budget_min" for m in params)
+
+
+def test_a_phase_before_training_shows_its_own_bar_and_closes_it(capsys):
+    """SAC's expert demos and pretraining take minutes before the first RL step: each shows a bar (on stderr) that
+    counts its units and is closed when the phase ends; --no-progress shows none."""
+    from agents.common import RunArgs, phase_bar
+
+    with phase_bar(RunArgs(progress=True), 3, "expert demos", "episode") as bar:
+        for _ in range(3):
+            bar.update(1)
+    assert bar.n == 3 and bar.disable is False
+    err = capsys.readouterr().err
+    assert "expert demos" in err and "3/3" in err
+    with phase_bar(RunArgs(progress=False), 3, "expert demos", "episode") as bar:
+        assert bar is None
+    assert capsys.readouterr().err == ""
