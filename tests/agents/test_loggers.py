@@ -98,7 +98,7 @@ def test_a_phase_before_training_shows_its_own_bar_and_closes_it(capsys):
     with phase_bar(RunArgs(progress=True), 3, "expert demos", "episode") as bar:
         for _ in range(3):
             bar.update(1)
-    assert bar.n == 3 and bar.disable is False
+    assert bar.n == 3
     err = capsys.readouterr().err
     assert "expert demos" in err and "3/3" in err
     with phase_bar(RunArgs(progress=False), 3, "expert demos", "episode") as bar:
