@@ -246,7 +246,8 @@ _RECIPES = (
     # teacher-student-rgbd-sel's student stage under the vision randomisation (issue 93), taught by that recipe's
     # committed state teacher of the same seed, which keeps its privileged state: a camera policy from the reward
     # alone meant to survive another lens, light, surfaces and depth sensor. Its own recipe, so the rows trained
-    # without randomisation stay; its env-step budget is the committed students' (ENV_STEP_BUDGETS)
+    # without randomisation stay. Its budget is the committed students' env steps, given as --total-env-steps until
+    # runs of its own are committed: TableClearing 91,226 (2,043,141 - 1,951,915), GraspLift 190,446
     Recipe(
         "teacher-student-rgbd-sel-dr",
         "agents.dagger",
@@ -284,7 +285,6 @@ DEFAULT_ENV = "TableClearing-IRB120-v1"
 # host's speed moved several-fold between days and a minute budget measures the machine. Each is the mean env steps of
 # the recipe's committed runs on that task (benchmarks/results/learning/**/learning.json, rounded to a step), so a run
 # held to it repeats what the committed row trained; the minutes those runs were held to are the note after each
-# (a recipe with no committed run yet says whose budget it takes)
 ENV_STEP_BUDGETS: dict[str, dict[str, tuple[int, Optional[int]]]] = {
     "TableClearing-IRB120-v1": {
         "dagger-state": (205_835, None),  # 3 runs of 60 min
@@ -298,16 +298,12 @@ ENV_STEP_BUDGETS: dict[str, dict[str, tuple[int, Optional[int]]]] = {
         "ppo-finetune-state": (297_099, 69_433),  # 3 runs of 25 min, both stages
         "teacher-student-rgbd": (2_022_863, 1_818_624),  # 3 runs of 150 min, both stages
         "teacher-student-rgbd-sel": (2_043_141, 1_951_915),  # 3 runs of 150 min, both stages
-        # the student stage of teacher-student-rgbd-sel's committed runs (2,043,141 - 1,951,915), from its teacher
-        "teacher-student-rgbd-sel-dr": (91_226, None),
     },
     "GraspLift-IRB120-v1": {
         "ppo-state": (824_960, None),  # 4 runs of 36 min
         "sac-scratch-state": (225_751, None),  # 2 runs of 90 min
         "teacher-student-rgbd": (1_684_889, 1_347_755),  # 3 runs of 120 min, both stages
         "teacher-student-rgbd-sel": (805_187, 614_741),  # 3 runs of 120 min, both stages
-        # the student stage of teacher-student-rgbd-sel's committed runs (805,187 - 614,741), from its teacher
-        "teacher-student-rgbd-sel-dr": (190_446, None),
     },
     "StackCube-IRB120-v1": {"ppo-state": (678_400, None)},  # 1 run of 50 min
 }

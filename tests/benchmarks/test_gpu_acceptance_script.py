@@ -32,7 +32,7 @@ def test_trainer_commands_parse_with_the_trainers_own_args(G, gpu_trainer, tmp_p
     args = tyro.cli(module.Args, args=cmd[3:])
     assert (args.backend, args.num_envs, args.runs_dir, args.progress) == ("gpu", 64, tmp_path, False)
     if trainer == "ppo":
-        assert args.total_timesteps // args.batch_size == 2
+        assert args.total_env_steps // args.batch_size == 2
         assert args.state_net == "mlp" and args.obs_norm  # the from-the-reward recipe's network, on the GPU
     with pytest.raises(ValueError, match="unknown trainer 'td3'"):
         G.trainer_command("td3", "physx_cuda", 1, tmp_path)
