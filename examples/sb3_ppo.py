@@ -74,13 +74,11 @@ def build(args: Args) -> tuple[PPO, str, int]:
     total = steps if args.total_timesteps is None else args.total_timesteps
     check_count("--num-envs", num_envs)
     check_count("--total-timesteps", total)
-    wrappers = config.wrappers if config else ()
-    venv = make_sb3_vec_env(
-        args.env_id, num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode,
-        wrappers=wrappers,
-    )  # fmt: skip
-    if config and config.normalize is not None:
-        venv = VecNormalize(venv, **config.normalize)
+    env_kw = dict(backend=args.backend, seed=args.seed, reward_mode=args.reward_mode)
+    if config:  # its wrappers and VecNormalize
+        venv = config.vec_env(args.env_id, num_envs, args.obs, **env_kw)
+    else:
+        venv = make_sb3_vec_env(args.env_id, num_envs, args.obs, **env_kw)
     kwargs = config.model_kwargs(venv.action_space.shape[0]) if config else {}
     if args.n_steps is not None:  # a rollout smaller than the batch needs a smaller batch
         kwargs["n_steps"] = args.n_steps

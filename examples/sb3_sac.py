@@ -83,13 +83,11 @@ def build(args: Args) -> tuple[SAC, str, int]:
         check_count("--learning-starts", args.learning_starts, least=0)
     if args.buffer_size is not None:
         check_count("--buffer-size", args.buffer_size)
-    wrappers = config.wrappers if config else ()
-    venv = make_sb3_vec_env(
-        args.env_id, num_envs, args.obs, backend=args.backend, seed=args.seed, reward_mode=args.reward_mode,
-        wrappers=wrappers,
-    )  # fmt: skip
-    if config and config.normalize is not None:
-        venv = VecNormalize(venv, **config.normalize)
+    env_kw = dict(backend=args.backend, seed=args.seed, reward_mode=args.reward_mode)
+    if config:  # its wrappers and VecNormalize
+        venv = config.vec_env(args.env_id, num_envs, args.obs, **env_kw)
+    else:
+        venv = make_sb3_vec_env(args.env_id, num_envs, args.obs, **env_kw)
     kwargs = config.model_kwargs(venv.action_space.shape[0]) if config else {"learning_starts": 100}
     if args.learning_starts is not None:
         kwargs["learning_starts"] = args.learning_starts

@@ -73,6 +73,17 @@ class SB3Config:
     """the model's keyword arguments (action noise still a spec: :meth:`model_kwargs` builds it)"""
     noise: Optional[tuple[str, float]] = None
 
+    def vec_env(self, env_id: str, num_envs: Optional[int] = None, obs: str = "state", **kwargs):
+        """The SB3 vector env this entry trains on: ``n_envs`` envs (or ``num_envs``) with its wrappers, under its
+        VecNormalize where it names one; ``kwargs`` go to ``make_sb3_vec_env`` (backend, seed, reward_mode)."""
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
+
+        n = self.n_envs if num_envs is None else num_envs
+        venv = make_sb3_vec_env(env_id, n, obs, wrappers=self.wrappers, **kwargs)
+        return venv if self.normalize is None else VecNormalize(venv, **self.normalize)
+
     def model_kwargs(self, n_actions: int) -> dict:
         import numpy as np
 

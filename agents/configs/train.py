@@ -36,12 +36,8 @@ def parse(argv: Optional[list[str]] = None) -> argparse.Namespace:
 def train_sb3(a: argparse.Namespace) -> Path:
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
-
     cfg = loader.sb3_config(a.algo, a.env, a.conf_file)
-    venv = make_sb3_vec_env(a.env, cfg.n_envs, "state", backend=a.backend, seed=a.seed, wrappers=cfg.wrappers)
-    if cfg.normalize is not None:
-        venv = VecNormalize(venv, **cfg.normalize)
+    venv = cfg.vec_env(a.env, backend=a.backend, seed=a.seed)
     out = a.log_folder / a.algo / f"{a.env}_{a.seed}"
     try:
         model = loader.sb3_class(a.algo)(cfg.policy, venv, seed=a.seed, verbose=1, tensorboard_log=str(out),
