@@ -220,6 +220,9 @@ class Args:
     num_envs: int = 4
     """CPU worker envs of the library cells (learning.py's ppo-state recipe runs 4 too)"""
     backend: str = "cpu"
+    conf_file: Optional[Path] = None
+    """a probe's config read by the tuned library cells instead of agents/configs' own (an rl-zoo3 hyperparams file
+    for sb3-*-tuned, a runner YAML for skrl-*-tuned); give the probe its own --out-dir and --runs-dir"""
     best_seeds: list[int] = field(default_factory=lambda: [2, 3])
     """the seeds added to each group's best cell once its seed-1 cells are all in"""
     eval_episodes: int = 100
@@ -455,7 +458,7 @@ def run_sb3(
     from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
 
     spec = ALGORITHMS[algo]
-    tuned = loader.sb3_config(spec.config, env_id) if spec.config else None
+    tuned = loader.sb3_config(spec.config, env_id, args.conf_file) if spec.config else None
     cls = loader.sb3_class(spec.config or algo.split("-")[1])
     policy = "MlpPolicy" if obs == "state" else "MultiInputPolicy"
     kwargs: dict = {}
@@ -561,7 +564,7 @@ def run_skrl(
     set_seed(seed)
     state = read_state(ckpt_dir)
     spec = ALGORITHMS[algo]
-    tuned = loader.skrl_config(spec.config, env_id) if spec.config else None
+    tuned = loader.skrl_config(spec.config, env_id, args.conf_file) if spec.config else None
     num_envs, wrappers = loader.skrl_env_settings(tuned) if tuned is not None else (args.num_envs, [])
     env = make_skrl_env(env_id, num_envs, obs, backend=args.backend, seed=train_seed(seed, 0), wrappers=wrappers)
     experiment = dict(directory=str(ckpt_dir), experiment_name="tb", write_interval=1000, checkpoint_interval=0)
@@ -946,6 +949,7 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
         state_env_steps=None if args.budget_min is not None else {t: steps_of("state", t, args) for t in TASKS},
         camera_env_steps=steps_of("rgbd", "GraspLift", args),
         max_minutes=args.max_minutes,
+        conf_file=None if args.conf_file is None else str(args.conf_file),
         versions=dict(stable_baselines3=SB3_VERSION, skrl=SKRL_VERSION, torch=torch.__version__),
         not_runnable=NOT_RUNNABLE,
         rows=rows,
@@ -1014,6 +1018,12 @@ def main(args: Args) -> dict:
         raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
     if args.reference_steps < 0:
         raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
+    if args.conf_file is not None:
+        if not args.conf_file.is_file():
+            raise ValueError(f"--conf-file {args.conf_file} is no file")
+        if args.out_dir == Args.out_dir or args.runs_dir == Args.runs_dir:
+            raise ValueError("--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
+                             "do not join (or resume) the table's")
     known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
     for pattern in args.only:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
