@@ -64,7 +64,7 @@ from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
 from benchmarks.lib.report import replace_section
-from benchmarks.lib.stats import bootstrap_ci, wilson
+from benchmarks.lib.stats import bootstrap_ci, iqm_ci, wilson
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -901,6 +901,57 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def curves_of(cells: dict[str, dict], bootstrap: int) -> list[dict]:
+    """Held-out success against env steps per (obs, task, algorithm) with env-step curves: at each share of the
+    budget every seed has a point at (a tenth, the quarter, the end), the IQM over seeds and its two-level bootstrap
+    interval (``stats.iqm_ci``). Cells of other budgets than the row's first seed's are left out."""
+    rng = np.random.default_rng(0)
+    out = []
+    for obs, task, algo in grid():
+        runs = sorted((c for c in cells.values() if parse_cell(c["cell"])[:3] == (obs, task, algo)
+                       and c.get("held_out_curve") and c.get("total_env_steps")), key=lambda c: c["seed"])  # fmt: skip
+        runs = [r for r in runs if runs and r["total_env_steps"] == runs[0]["total_env_steps"]]
+        if not runs:
+            continue
+        total = runs[0]["total_env_steps"]
+        per_run = []
+        for r in runs:
+            c = r["held_out_curve"]
+            per_run.append({round(n / total * 40) / 40: (s, e) for n, s, e in zip(c["env_steps"], c["success"],
+                                                                             c["episodes"])})  # fmt: skip
+        shares = sorted(set.intersection(*(set(points) for points in per_run)))
+        points = [iqm_ci([p[x][0] for p in per_run], [p[x][1] for p in per_run], bootstrap, rng) for x in shares]
+        out.append(dict(obs=obs, task=task, algorithm=algo, name=ALGORITHMS[algo].name, seeds=[r["seed"] for r in runs],
+                        total_env_steps=total, env_steps=[round(x * total) for x in shares],
+                        iqm=[q[0] for q in points], ci95=[[q[1], q[2]] for q in points]))  # fmt: skip
+    return out
+
+
+def plot_curves(curves: list[dict], path: Path) -> None:
+    """The curves of ``curves_of``, one panel per (obs, task): IQM over seeds and its 95 % interval shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = list(dict.fromkeys((c["obs"], c["task"]) for c in curves)) or [("state", "GraspLift")]
+    fig, axes = plt.subplots(1, len(groups), figsize=(max(6.0, 4.2 * len(groups)), 3.6), dpi=80, sharey=True)
+    for ax, (obs, task) in zip(np.atleast_1d(axes), groups):
+        for i, c in enumerate(c for c in curves if (c["obs"], c["task"]) == (obs, task)):
+            x = np.asarray(c["env_steps"]) / 1e3
+            lo, hi = np.asarray(c["ci95"]).T
+            ax.plot(x, c["iqm"], marker=".", color=f"C{i % 10}", label=f"{c['algorithm']} ({len(c['seeds'])} seeds)")
+            ax.fill_between(x, lo, hi, color=f"C{i % 10}", alpha=0.15, lw=0)
+        ax.set(title=f"{obs}, {task}", xlabel="env steps (thousands)", ylim=(-0.02, 1.02))
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=6, loc="upper left")
+    np.atleast_1d(axes)[0].set_ylabel("held-out success, IQM over seeds (95 % CI)")
+    fig.suptitle("held-out success against env steps (30 episodes a point, 100 at the end)", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def update_results(report: dict, table: str, results: Path, json_path: Path, png_path: Path) -> None:
     """Replace (or append) this table's section of RESULTS.md."""
 
@@ -933,6 +984,9 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
         f"grew over several runs ({when}); each cell's date and trainer command are in the raw data. Last run: "
         f"`{report['command']}` ({report['machine']}); raw data: "
         f"[`{rel(json_path)}`]({rel(json_path)}).\n\n{table}\n\n![algorithm table]({rel(png_path)})\n\n"
+        "Held-out success against env steps, the interquartile mean over seeds with a 95 % bootstrap interval "
+        "(seeds, then each seed's episodes; rliable's aggregate, `benchmarks.lib.stats.iqm_ci`):\n\n"
+        f"![success against env steps]({rel(png_path.with_name('algorithms_curves.png'))})\n\n"
     )
     replace_section(results, SECTION_HEAD, section)
 
@@ -953,11 +1007,13 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
         versions=dict(stable_baselines3=SB3_VERSION, skrl=SKRL_VERSION, torch=torch.__version__),
         not_runnable=NOT_RUNNABLE,
         rows=rows,
+        curves=curves_of(cells, args.bootstrap),
         cells=cells,
     )
     json_path, png_path = args.out_dir / "algorithms.json", args.out_dir / "algorithms.png"
     write_json(json_path, report, indent=1)
     plot(rows, png_path)
+    plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
     table = markdown(rows)
     if args.update_results:
         update_results(report, table, args.results_md, json_path, png_path)
@@ -1002,7 +1058,10 @@ def main(args: Args) -> dict:
         json_path = args.out_dir / "algorithms.json"
         report = json.loads(json_path.read_text())
         report["rows"] = rows_of(report["cells"], args)
+        report["curves"] = curves_of(report["cells"], args.bootstrap)
         write_json(json_path, report, indent=1)
+        plot(report["rows"], args.out_dir / "algorithms.png")
+        plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
         update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
         return report
     if args.quick:

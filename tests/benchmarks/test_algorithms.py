@@ -444,3 +444,29 @@ def test_the_held_out_curve_is_read_at_a_quarter_a_half_and_the_end_of_the_budge
     runs = [{"held_out_curve": curve, "total_env_steps": 1000}, {"held_out_curve": curve, "total_env_steps": 1000}]
     assert alg.held_out_at(runs) == {"0.25": 0.2, "0.5": 0.5, "1": 1.0}
     assert alg.held_out_at([*runs, {"total_env_steps": 1000}]) == {"0.25": None, "0.5": None, "1": None}
+
+
+def test_the_curves_are_the_iqm_over_seeds_at_each_share_with_a_two_level_interval(alg):
+    """Three seeds' held-out curves: the IQM of 3 values trims none (as scipy's trim_mean, rliable's IQM), a point
+    all seeds share is kept, and the interval holds the IQM and widens with fewer episodes a point."""
+    import numpy as np
+
+    from benchmarks.lib.stats import iqm_ci
+
+    def cell(seed, success, total=1000):
+        steps = [100, 250, 500, total][: len(success)]
+        return {"cell": f"state/GraspLift/sb3-sac-tuned/s{seed}", "seed": seed, "total_env_steps": total,
+                "held_out_curve": {"env_steps": steps, "success": success, "episodes": [30] * (len(success) - 1) + [100]}}  # fmt: skip
+
+    cells = {c["cell"]: c for c in (cell(1, [0.0, 0.2, 0.9, 1.0]), cell(2, [0.0, 0.4, 0.5, 0.9]), cell(3, [0.1, 0.3, 0.7, 0.8]))}
+    cells["state/GraspLift/sb3-sac-tuned/s4"] = cell(4, [0.0, 1.0], total=2000)  # another budget: left out
+    (curve,) = alg.curves_of(cells, 2000)
+    assert curve["algorithm"] == "sb3-sac-tuned" and curve["seeds"] == [1, 2, 3]
+    assert curve["env_steps"] == [100, 250, 500, 1000]
+    assert curve["iqm"] == pytest.approx([0.1 / 3, 0.3, 0.7, 0.9])  # 3 seeds: floor(0.75) = 0 trimmed each side
+    assert all(lo <= m <= hi for m, (lo, hi) in zip(curve["iqm"], curve["ci95"]))
+    rng = np.random.default_rng(0)
+    wide, narrow = iqm_ci([0.5, 0.5], [10, 10], 4000, rng), iqm_ci([0.5, 0.5], [1000, 1000], 4000, rng)
+    assert narrow[2] - narrow[1] < (wide[2] - wide[1]) / 4
+    with pytest.raises(ValueError, match="rates"):
+        iqm_ci([1.5], [10], 10, rng)
