@@ -887,8 +887,8 @@ def plot(rows: list[dict], path: Path) -> None:
             lo, hi = r["success_ci95"]
             color = "C0" if r["from_reward"] else "grey"
             ax.bar(i, r["success_mean"], color=color, alpha=0.8)
-            ax.errorbar(i, r["success_mean"], yerr=[[r["success_mean"] - lo], [hi - r["success_mean"]]], color="k",
-                        capsize=3, lw=1)  # fmt: skip
+            err = [[max(0.0, r["success_mean"] - lo)], [max(0.0, hi - r["success_mean"])]]  # Wilson's 1.0 rounds below
+            ax.errorbar(i, r["success_mean"], yerr=err, color="k", capsize=3, lw=1)
         ax.set_xticks(range(len(mine)), [r["algorithm"] for r in mine], rotation=45, ha="right", fontsize=7)
         ax.set_xlim(-0.6, len(mine) - 0.4)
         ax.set(title=f"{obs}, {task} ({budget_text(mine[0]['budget_min'], mine[0].get('total_env_steps'))})",
@@ -992,6 +992,22 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
 
 
 def write_report(cells: dict[str, dict], args: Args) -> dict:
+    """algorithms.json, its plots and (``--update-results``) its RESULTS.md section from ``cells`` and any cell a
+    concurrent run of the same ``--out-dir`` wrote since this one started (read back under a lock, so that two
+    lanes of cells side by side both keep theirs; a cell in ``cells`` wins over the file's)."""
+    import fcntl
+
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    with open(args.out_dir / ".algorithms.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        json_path = args.out_dir / "algorithms.json"
+        if json_path.is_file():
+            for key, cell in json.loads(json_path.read_text())["cells"].items():
+                cells.setdefault(key, cell)
+        return _write_report(cells, args)
+
+
+def _write_report(cells: dict[str, dict], args: Args) -> dict:
     rows = rows_of(cells, args)
     report = dict(
         command="python -m benchmarks.algorithms " + " ".join(sys.argv[1:]),

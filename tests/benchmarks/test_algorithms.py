@@ -470,3 +470,23 @@ def test_the_curves_are_the_iqm_over_seeds_at_each_share_with_a_two_level_interv
     assert narrow[2] - narrow[1] < (wide[2] - wide[1]) / 4
     with pytest.raises(ValueError, match="rates"):
         iqm_ci([1.5], [10], 10, rng)
+
+
+def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
+    """Two lanes of cells side by side write one algorithms.json: each report keeps the cells the other wrote
+    since it started, and a lane's own cell wins over the file's copy."""
+    args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs", results_md=results_md(tmp_path), bootstrap=50)
+
+    def cell(algo, rate):
+        return {"cell": f"state/GraspLift/{algo}/s1", "seed": 1, "success_rate": rate, "successes": [int(rate)] * 4,
+                "env_steps": 100, "wall_clock_s": 1.0, "budget_min": 1.0, "date": "2026-12-05 05:00 UTC"}  # fmt: skip
+
+    lane_a = {"state/GraspLift/sb3-sac-tuned/s1": cell("sb3-sac-tuned", 1.0)}
+    lane_b = {"state/GraspLift/sb3-tqc-tuned/s1": cell("sb3-tqc-tuned", 0.0)}
+    alg.write_report(lane_a, args)
+    alg.write_report(lane_b, args)  # started before lane a's cell was written
+    lane_a["state/GraspLift/sb3-sac-tuned/s1"] = cell("sb3-sac-tuned", 0.0)  # the same cell again, rerun
+    alg.write_report(lane_a, args)
+    cells = json.loads((tmp_path / "algorithms.json").read_text())["cells"]
+    assert sorted(cells) == ["state/GraspLift/sb3-sac-tuned/s1", "state/GraspLift/sb3-tqc-tuned/s1"]
+    assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
