@@ -88,7 +88,8 @@ def table() -> str:
     note = ", ".join(f"[{i}] {m:.0f}" for i, m in enumerate(minutes, 1))
     footnote = (
         "Env steps: the mean per run, both stages of a two-stage recipe. Wall clock per run on 2 CPU cores, the "
-        f"budget those runs were held to (minutes): {note}."
+        f"budget those runs were held to (minutes): {note}. The rgbd rows are scored in the nominal view, the "
+        "camera as trained; under view shifts: [Limits under view shifts](docs/training.md#limits-under-view-shifts)."
     )
     return "\n".join(lines) + "\n\n" + footnote + "\n"
 

@@ -468,7 +468,9 @@ def section(paths: list[Path]) -> str:
         "`TableClearing-IRB120-v1`; the real side is `IRB120Sim2RealEnv` (ManiSkill's `Sim2RealEnv`) → `ABBRobot` "
         "over TCP → the controller emulator running `IRB120Server.mod`, with the digital twin, shifted as the row "
         "names (`SHIFTS` in the script), as the world. TCP dev: the mean distance between the sim's and the twin's "
-        "tool at the same step index; the last column: the seeds won on one side only, and McNemar's exact p.",
+        "tool at the same step index; the last column: the seeds won on one side only, and McNemar's exact p. "
+        "The camera recipes' rows beside what each was trained under, and the recipes no run here shifted: "
+        "[Limits under view shifts](../docs/training.md#limits-under-view-shifts).",
     ]
     for report, path in zip(reports, paths):
         parts += [run_paragraph(report, Path(path)), markdown(report)]

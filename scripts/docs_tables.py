@@ -138,7 +138,8 @@ def start_block(docs: str) -> str:
             f"reward alone), in [training]({docs}training.md), every recipe there fastest first with its measured "
             f"minutes;",
             f"- from the hand camera: `dagger-rgbd-bf16`, and `teacher-student-rgbd-sel` with no expert at all "
-            f"([training]({docs}training.md));",
+            f"([training]({docs}training.md)), both trained in the nominal view only "
+            f"([limits under view shifts]({docs}training.md#limits-under-view-shifts));",
             f"- with your own library, Stable-Baselines3 or skrl, with the configs that learn in `agents/configs/`: "
             f"[RL libraries]({docs}rl_libraries.md).",
         ]
