@@ -1097,8 +1097,10 @@ def main(args: Args) -> dict:
         if not args.conf_file.is_file():
             raise ValueError(f"--conf-file {args.conf_file} is no file")
         if args.out_dir == Args.out_dir or args.runs_dir == Args.runs_dir:
-            raise ValueError("--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
-                             "do not join (or resume) the table's")
+            raise ValueError(
+                "--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
+                "do not join (or resume) the table's"
+            )
     known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
     for pattern in args.only:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):

@@ -465,7 +465,8 @@ def section(paths: list[Path]) -> str:
     parts = [
         HEAD,
         "`sim2real-eval` on the same seeds in the sim and on the twin, a cell per policy and row: the sim side is "
-        "the task the policy was trained on (its checkpoint's env id: TableClearing for the expert); the real side is `IRB120Sim2RealEnv` (ManiSkill's `Sim2RealEnv`) → `ABBRobot` "
+        "the task the policy was trained on (its checkpoint's env id: TableClearing for the expert); the real side "
+        "is `IRB120Sim2RealEnv` (ManiSkill's `Sim2RealEnv`) → `ABBRobot` "
         "over TCP → the controller emulator running `IRB120Server.mod`, with the digital twin, shifted as the row "
         "names (`SHIFTS` in the script), as the world. TCP dev: the mean distance between the sim's and the twin's "
         "tool at the same step index; the last column: the seeds won on one side only, and McNemar's exact p. "

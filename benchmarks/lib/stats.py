@@ -51,7 +51,9 @@ def iqm_ci(rates: list[float], episodes: list[int], n: int, rng: np.random.Gener
     if len(p) == 0:
         return float("nan"), float("nan"), float("nan")
     if len(p) != len(k) or np.any(k <= 0) or np.any((p < 0) | (p > 1)):
-        raise ValueError(f"iqm_ci: rates {rates} and episode counts {episodes} must pair rates in [0, 1] with counts > 0")
+        raise ValueError(
+            f"iqm_ci: rates {rates} and episode counts {episodes} must pair rates in [0, 1] with counts > 0"
+        )
     pick = rng.integers(0, len(p), (n, len(p)))
     draws = rng.binomial(k[pick], p[pick]) / k[pick]
     draws.sort(axis=1)

@@ -455,10 +455,15 @@ def test_the_curves_are_the_iqm_over_seeds_at_each_share_with_a_two_level_interv
 
     def cell(seed, success, total=1000):
         steps = [100, 250, 500, total][: len(success)]
+        episodes = [30] * (len(success) - 1) + [100]
+        curve = {"env_steps": steps, "success": success, "episodes": episodes}
         return {"cell": f"state/GraspLift/sb3-sac-tuned/s{seed}", "seed": seed, "total_env_steps": total,
-                "held_out_curve": {"env_steps": steps, "success": success, "episodes": [30] * (len(success) - 1) + [100]}}  # fmt: skip
+                "held_out_curve": curve}  # fmt: skip
 
-    cells = {c["cell"]: c for c in (cell(1, [0.0, 0.2, 0.9, 1.0]), cell(2, [0.0, 0.4, 0.5, 0.9]), cell(3, [0.1, 0.3, 0.7, 0.8]))}
+    cells = {
+        c["cell"]: c
+        for c in (cell(1, [0.0, 0.2, 0.9, 1.0]), cell(2, [0.0, 0.4, 0.5, 0.9]), cell(3, [0.1, 0.3, 0.7, 0.8]))
+    }
     cells["state/GraspLift/sb3-sac-tuned/s4"] = cell(4, [0.0, 1.0], total=2000)  # another budget: left out
     (curve,) = alg.curves_of(cells, 2000)
     assert curve["algorithm"] == "sb3-sac-tuned" and curve["seeds"] == [1, 2, 3]
