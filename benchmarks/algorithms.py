@@ -59,7 +59,7 @@ import numpy as np
 import torch
 import tyro
 
-from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed
+from agents.common import EVAL_SEED, VALIDATION_SEED, evaluate_on_seeds, train_seed
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
@@ -243,6 +243,10 @@ class Args:
     """start no cell whose budget would end after this many minutes of this run (one session's length)"""
     update_results: bool = False
     """rewrite this table's section of --results-md"""
+    validate: bool = False
+    """train nothing: score each --only cell's saved SB3 model (its --runs-dir checkpoint, as training left it) on
+    --eval-episodes validation seeds (VALIDATION_SEED onwards, never the held-out ones) and add it to the cell as
+    "validation", so that a choice between probes' configs reads no held-out episode"""
     render_only: bool = False
     """run no cell: the rows of algorithms.json in --out-dir again from its cells, and this table's section of
     --results-md"""
@@ -437,6 +441,36 @@ def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
                 signal.signal(sig, handler)
         raise
     save()
+
+
+def validate_sb3(cell: str, args: Args) -> dict:
+    """A trained SB3 cell's saved model and observation statistics, deterministic, on --eval-episodes validation
+    seeds (VALIDATION_SEED onwards: those checkpoint selection reads, never the held-out ones)."""
+    import pickle
+
+    from agents.configs import loader
+
+    obs, task, algo, _ = parse_cell(cell)
+    spec = ALGORITHMS[algo]
+    if spec.runner != "sb3":
+        raise ValueError(f"--validate scores SB3 cells only; {cell} is a {spec.runner} cell")
+    ckpt_dir = args.runs_dir / cell.replace("/", "__")
+    model_path, norm_path = ckpt_dir / "model.zip", ckpt_dir / "vecnormalize.pkl"
+    if not model_path.is_file():
+        raise ValueError(f"--validate: {cell} has no saved model at {model_path} (--runs-dir?)")
+    model = loader.sb3_class(spec.config or algo.split("-")[1]).load(model_path, device="cpu")
+    norm = pickle.loads(norm_path.read_bytes()) if norm_path.is_file() else None  # VecNormalize, without its envs
+
+    def act(flat):
+        o = library_obs(obs, flat)
+        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
+        return torch.as_tensor(model.predict(o if norm is None else norm.normalize_obs(o), deterministic=True)[0])
+
+    seeds = list(range(VALIDATION_SEED, VALIDATION_SEED + args.eval_episodes))
+    r = evaluate_on_seeds(act, TASKS[task], obs, seeds)
+    lo, hi = wilson(int(sum(r["successes"])), len(seeds))
+    return dict(success_rate=r["success_rate"], episodes=len(seeds), first_seed=VALIDATION_SEED, ci95=[lo, hi],
+                env_steps=int(model.num_timesteps))  # fmt: skip
 
 
 def run_sb3(
@@ -1079,6 +1113,19 @@ def main(args: Args) -> dict:
         plot(report["rows"], args.out_dir / "algorithms.png")
         plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
         update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
+        return report
+    if args.validate:
+        json_path = args.out_dir / "algorithms.json"
+        if not json_path.is_file():
+            raise ValueError(f"--validate: no {json_path}; name the probe's --out-dir")
+        report = json.loads(json_path.read_text())
+        cells = [c for c in report["cells"] if any(fnmatch.fnmatchcase(c, p) for p in args.only)]
+        if not cells:
+            raise ValueError(f"--validate: --only {args.only} names no cell of {json_path}")
+        for cell in cells:
+            report["cells"][cell]["validation"] = v = validate_sb3(cell, args)
+            print(f"[algorithms] {cell}: validation success {v['success_rate']:.2f} of {v['episodes']}", flush=True)
+        write_json(json_path, report, indent=1)
         return report
     if args.quick:
         if args.budget_min is None and args.total_env_steps is None:  # toy minutes, unless toy env steps are given

@@ -495,3 +495,26 @@ def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     cells = json.loads((tmp_path / "algorithms.json").read_text())["cells"]
     assert sorted(cells) == ["state/GraspLift/sb3-sac-tuned/s1", "state/GraspLift/sb3-tqc-tuned/s1"]
     assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
+
+
+def test_validate_scores_a_saved_sb3_cell_on_the_validation_seeds_only(alg, tmp_path, monkeypatch):
+    """--validate trains nothing: it loads the cell's saved model and observation statistics and plays them on
+    VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
+    cell = "state/GraspLift/sb3-ppo-tuned/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=300,
+                    reference_steps=0)  # fmt: skip
+    alg.main(args)
+    seen = []
+    real = alg.evaluate_on_seeds
+    monkeypatch.setattr(
+        alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: seen.append(seeds) or real(act, env_id, obs, seeds)
+    )
+    report = alg.main(
+        alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", validate=True, eval_episodes=2)
+    )
+    v = report["cells"][cell]["validation"]
+    assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
+    assert v["episodes"] == 2 and v["env_steps"] >= 300 and 0.0 <= v["success_rate"] <= 1.0
+    assert json.loads((tmp_path / "algorithms.json").read_text())["cells"][cell]["validation"] == v
+    with pytest.raises(ValueError, match="no saved model"):
+        alg.main(alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "elsewhere", validate=True))
