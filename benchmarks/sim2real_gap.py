@@ -216,6 +216,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
         real_grasp=r["real"]["grasped"],
         real_drop=r["real"]["dropped"],
         real_collision=r["real"]["collided"],
+        sim_collision=r["sim"]["collided"],
         tcp_dev_mean_mm=1000 * r["deviation"]["tcp_m"].get("mean", float("nan")),
         latency_p50_ms=r["command_latency_ms"].get("p50"),
         refused=r["refused"]["total"],
@@ -345,18 +346,19 @@ def policies_of(report: dict) -> list[str]:
 def markdown(report: dict) -> str:
     """A run's table, a row per (policy, shift) cell."""
     lines = [
-        "| policy | shift | sim success | real success | real grasp | real drop | real collision | TCP dev (mm) "
+        "| policy | shift | sim success | real success | real grasp | real drop | collision, sim / real | TCP dev (mm) "
         "| round trip p50 (ms) | refused | seeds won in sim only / on the twin only (McNemar p) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in report["rows"]:
         policy = r.get("policy", policies_of(report)[0])
         p = r.get("paired")
+        sim_hit = "–" if r.get("sim_collision") is None else f"{100 * r['sim_collision']:.0f} %"  # older runs: not kept
         paired = f"{p['sim_only']} / {p['real_only']} (p {p['mcnemar_p']:.2f})" if p else "–"
         lines.append(
             f"| {policy_name(policy)} | {r['shift']} | {100 * r['sim_success']:.0f} % | "
             f"{100 * r['real_success']:.0f} % | "
-            f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {100 * r['real_collision']:.0f} % | "
+            f"{100 * r['real_grasp']:.0f} % | {100 * r['real_drop']:.0f} % | {sim_hit} / {100 * r['real_collision']:.0f} % | "
             f"{r['tcp_dev_mean_mm']:.1f} | {r['latency_p50_ms']:.0f} | {r['refused']} | {paired} |"
         )
     return "\n".join(lines)

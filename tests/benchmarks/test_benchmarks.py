@@ -164,6 +164,7 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
     assert [row["shift"] for row in r["rows"]] == ["none", "lighting"] and r["workers"] == 2 and r["sim_shift"]
     assert "the sim side: in each row's condition" in run.stdout
     assert all(row["real_success"] in (0.0, 1.0) and row["late_steps"] == 0 for row in r["rows"])
+    assert all(row["sim_collision"] in (0.0, 1.0) for row in r["rows"])  # both sides' collisions are kept
     # each cell's paired count: its one seed is discordant exactly when the two sides disagree
     for row in r["rows"]:
         p = row["paired"]
