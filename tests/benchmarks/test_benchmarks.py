@@ -247,7 +247,9 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
 
     gap.evaluate = evaluate
     gap.main(gap.Args(camera="twin", out=tmp_path))  # the default table: no calibration-error rows
-    assert {name for name, _, _ in ran} == {gap.folder(n) for n in gap.SHIFTS if n not in gap.MOUNT_ERRORS}
+    assert {name for name, _, _ in ran} == {
+        gap.folder(n) for n in gap.SHIFTS if n not in gap.MOUNT_ERRORS and n not in gap.COMBINED
+    }
     ran.clear()
     gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
     assert ran == [("none", None, None), ("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None)]
