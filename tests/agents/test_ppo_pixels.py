@@ -227,6 +227,20 @@ def test_a_camera_only_flag_with_state_obs_exits_2_from_the_command_line():
     )
 
 
+def test_the_training_pages_command_parses():
+    """docs/training.md's command with both flags is one agents.ppo accepts (the test below runs it, small)."""
+    import re
+    import shlex
+
+    from agents.common import cli
+
+    page = (Path(__file__).resolve().parents[2] / "docs" / "training.md").read_text()
+    found = re.findall(r"-m agents\.ppo ([^`\n]*--augment shift[^`\n]*)", page)
+    assert len(found) == 1, found
+    args = cli(Args, "agents.ppo", shlex.split(found[0]), one_line=True)
+    assert (args.obs, args.augment, args.critic_obs) == ("rgbd", "shift", "privileged")
+
+
 # ----------------------------------------------------------------------------- end to end
 def saved_dim(result: dict) -> int:
     ckpt = torch.load(Path(result["run_dir"]) / "checkpoints" / "latest.pt", weights_only=False)
