@@ -48,8 +48,10 @@ from agents.common import (
     torch_threads,
     vec_envs,
 )
+from agents.common.envs import PRIVILEGED, PrivilegedStateObs
 from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section
+from maniskill_irb120.policies.nets import random_shift
 from maniskill_irb120.policies.ppo import Agent
 
 
@@ -140,6 +142,22 @@ class Args(RunArgs):
     """the camera encoder in the update: bf16 autocast (its convolutions about twice as fast on a CPU with native
     bf16), fp32, or auto (bf16 where native on a CPU, else fp32; agents/common/precision.py). The rollout's
     forward passes, the heads, log-probabilities, advantages, losses, weights and checkpoints stay float32"""
+    augment: Literal["none", "shift"] = "none"
+    """--obs rgbd: shift, DrQ's random shift (replicate-pad 4 px, a random 84x84 crop per sample, RGB and depth
+    alike) of every update minibatch's images; the rollout acts on the images as they are"""
+    critic_obs: Literal["same", "privileged"] = "same"
+    """--obs rgbd: privileged, an asymmetric actor-critic: the value head reads the privileged state (the
+    --obs state vector, recorded per step by the training envs) through its own 3x256 tanh MLP and running
+    normaliser; the policy still reads the camera and proprioception alone, and acts without the privileged state"""
+
+    def check(self) -> None:
+        """ValueError for flags that cannot run together (agents.common.check_budget calls it, before anything runs)."""
+        if self.obs != "rgbd":
+            for flag, value, default in (("augment", self.augment, "none"), ("critic-obs", self.critic_obs, "same")):
+                if value != default:
+                    raise ValueError(
+                        f"--{flag} {value} is for a camera policy (--obs rgbd); this run has --obs {self.obs}"
+                    )
 
     @property
     def batch_size(self) -> int:
@@ -157,7 +175,10 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     env_kwargs = dict(reward_mode=args.reward_mode, **args.env_kwargs)
     setup = dict(action_frame=args.action_frame, control_mode=args.control_mode, env_kwargs=env_kwargs)
     if not evaluate:
-        return one_thread_beside_workers(vec_envs(args.env_id, args.obs, num_envs, backend=args.backend, **setup))
+        extra = [PrivilegedStateObs] if args.critic_obs == "privileged" else []  # the critic's, in training only
+        return one_thread_beside_workers(
+            vec_envs(args.env_id, args.obs, num_envs, backend=args.backend, outer_wrappers=extra, **setup)
+        )
     from mani_skill.utils.wrappers.record import RecordEpisode
 
     if args.eval_reconfiguration_freq is not None:
@@ -192,10 +213,13 @@ def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Opti
     )
 
 
-def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
+def agent_for(envs, device, args: Args, residual: bool = False, privileged_dim: Optional[int] = None) -> Agent:
     """The agent for these envs; with ``args.base_checkpoint`` (a new run) its base is that DAgger policy,
-    checked against the envs' observation and action frame."""
+    checked against the envs' observation and action frame. ``--critic-obs privileged``: its critic's input is the
+    envs' ``privileged`` key, or ``privileged_dim`` wide (envs without the key: an evaluation's)."""
     image_shape, state_dim = shapes_of(envs.single_observation_space)
+    if args.critic_obs == "privileged" and privileged_dim is None:
+        privileged_dim = envs.single_observation_space[PRIVILEGED].shape[0]
     residual = residual or args.base_checkpoint is not None
     agent = Agent(
         image_shape,
@@ -206,6 +230,8 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
         state_net=args.state_net,
         obs_norm=args.obs_norm,
         logstd=args.logstd,
+        critic_obs=args.critic_obs,
+        privileged_dim=privileged_dim or 0,
     )
     if args.base_checkpoint is not None:
         where = f"--base-checkpoint {args.base_checkpoint}"
@@ -213,7 +239,8 @@ def agent_for(envs, device, args: Args, residual: bool = False) -> Agent:
         if section["kind"] != "dagger":
             raise ValueError(f"{where}: a {section['kind']} policy; the base is a deterministic (dagger) policy")
         base = policy_module(section, "cpu")
-        own = ("residual", "state_net", "obs_norm", "logstd")  # the PPO agent's own; the base has its image and state
+        # the PPO agent's own; the base has its image and state
+        own = ("residual", "state_net", "obs_norm", "logstd", "critic_obs", "privileged_dim")
         if base.signature() != {k: v for k, v in agent.signature().items() if k not in own}:
             raise ValueError(
                 f"--base-checkpoint {args.base_checkpoint}: its policy takes {base.signature()}, these envs give "
@@ -247,6 +274,8 @@ def ppo_update(
         for start in range(0, n, mb):
             idx = perm[start : start + mb]
             obs = {k: v[idx] for k, v in batch["obs"].items()}
+            if args.augment == "shift":
+                obs = random_shift(obs)
             _, logp, entropy, value, mean = agent.get_action_and_value(
                 obs, batch["actions"][idx], with_mean=True, precision=precision
             )
@@ -271,7 +300,8 @@ def ppo_update(
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
             ent = entropy.mean()
             if critic_only:
-                value = agent.critic(agent.features(obs, precision).detach()).view(-1)
+                x = None if agent.critic_norm is not None else agent.features(obs, precision).detach()
+                value = agent.value(obs, x).view(-1)
                 v_loss = 0.5 * ((value - batch["returns"][idx]) ** 2).mean()
                 loss = args.vf_coef * v_loss
             else:
@@ -504,7 +534,9 @@ def run_evaluation_only(args: Args) -> dict:
         ckpt = read_checkpoint(path, args)
         envs = make_envs(args, 1, evaluate=True)  # its spaces size the agent
         try:
-            agent = agent_for(envs, device, replace(args, base_checkpoint=None), residual=ckpt["signature"]["residual"])
+            sig = ckpt["signature"]  # its critic as trained (an evaluation acts without it)
+            trained = replace(args, critic_obs=sig.get("critic_obs", "same"), base_checkpoint=None)
+            agent = agent_for(envs, device, trained, residual=sig["residual"], privileged_dim=sig.get("privileged_dim"))
         finally:
             envs.close()
         load_checkpoint(path, agent, args, ckpt)
@@ -572,6 +604,8 @@ class PPO(Algorithm):
         if args.anneal_lr:
             optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / self.iterations) * args.learning_rate
         batch, sim_time = self.rollout.collect(agent, self.recent)
+        if agent.critic_norm is not None:  # the critic's statistics before its update (the actor's never read them)
+            agent.critic_norm.update(batch["obs"][PRIVILEGED])
         agent.train()
         tu = time.perf_counter()
         stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)

@@ -168,7 +168,8 @@ def check_renamed(argv: list[str]) -> None:
 def check_budget(args) -> None:
     """ValueError naming the flag when a budget or guard is zero or negative: such a run would train nothing, write
     a checkpoint and exit 0, which reads as success to whoever chains runs; so too for a selection that cannot
-    run (its episodes are budgeted time)."""
+    run (its episodes are budgeted time), and for whatever the trainer's ``Args.check()`` refuses (flags that
+    cannot run together)."""
     for name, unit in BUDGET_FLAGS.items():
         value = getattr(args, name, None)
         if value is not None and not value > 0:
@@ -177,6 +178,9 @@ def check_budget(args) -> None:
     episodes, freq = getattr(args, "select_episodes", 0), getattr(args, "select_freq", 1)
     if episodes < 0 or freq < 1:
         raise ValueError(f"--select-episodes must be >= 0 and --select-freq >= 1, got {episodes} and {freq}")
+    check = getattr(args, "check", None)
+    if callable(check):  # a trainer's own rules for flags that cannot run together
+        check()
 
 
 def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, one_line: bool = False) -> A:

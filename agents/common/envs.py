@@ -66,6 +66,41 @@ def privileged_state_obs(env: gym.Env, info: dict) -> torch.Tensor:
     return ms_common.flatten_state_dict(dict(agent=u._get_obs_agent(), extra=extra), use_torch=True, device=u.device)
 
 
+PRIVILEGED = "privileged"
+"""the observation key :class:`PrivilegedStateObs` adds"""
+
+
+class PrivilegedStateObs(gym.Wrapper):
+    """Adds ``privileged``, the (N, D) :func:`privileged_state_obs` of the state just reached, to a dict observation
+    (the flattened camera one: rgb/depth/state) and to its observation space, at every reset and step. Training
+    only: what an asymmetric critic reads (agents.ppo ``--critic-obs privileged``); being part of the observation, it
+    travels as the camera does, through the CPU workers' shared memory, an auto-reset's ``final_observation`` and a
+    rollout's storage, while the policy reads only its own keys."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        u = env.unwrapped
+        init = u._init_raw_obs  # the flattened observation the wrapper inside set its space from
+        if not isinstance(init, dict) or PRIVILEGED in init:
+            raise ValueError(
+                f"PrivilegedStateObs adds {PRIVILEGED!r} to a dict observation without it; got {type(init)}"
+            )
+        u.update_obs_space(dict(init, **{PRIVILEGED: privileged_state_obs(env, u.get_info())}))
+
+    def _add(self, obs: dict, info: dict) -> dict:
+        if "grasped" not in info:  # a reset's info carries no evaluation
+            info = {**self.env.unwrapped.get_info(), **info}
+        return dict(obs, **{PRIVILEGED: privileged_state_obs(self.env, info)})
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return self._add(obs, info), info
+
+    def step(self, action):
+        obs, rew, term, trunc, info = self.env.step(action)
+        return self._add(obs, info), rew, term, trunc, info
+
+
 class ActionLabels(gym.Wrapper):
     """Puts a labeller's action for the state just reached into ``info["expert_action"]``, in the learner's action
     frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the auxiliary targets

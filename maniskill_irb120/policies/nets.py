@@ -113,9 +113,12 @@ class KeypointCNN(nn.Module):
 ENCODERS = ("nature", "keypoints")
 
 
-def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.Tensor]:
+def random_shift(
+    obs: dict[str, torch.Tensor], pad: int = 4, generator: Optional[torch.Generator] = None
+) -> dict[str, torch.Tensor]:
     """DrQ's augmentation: replicate-pad each image by ``pad`` pixels and crop it back at a random offset
-    (one offset per sample, shared by RGB and depth so they stay registered).
+    (one offset per sample, shared by RGB and depth so they stay registered; the other keys as they are).
+    ``generator``: the offsets' random stream (on the images' device; default torch's global one).
 
     Replicate padding then cropping at offset d is reading the image at ``clamp(i + d - pad, 0, size - 1)``:
     one ``index_select`` of whole pixels per image in its own dtype (uint8, int16), where padding needs floats.
@@ -124,8 +127,8 @@ def random_shift(obs: dict[str, torch.Tensor], pad: int = 4) -> dict[str, torch.
     rgb, depth = obs["rgb"], obs["depth"]
     n, h, w, _ = rgb.shape
     dev = rgb.device
-    dx = torch.randint(0, 2 * pad + 1, (n,), device=dev)
-    dy = torch.randint(0, 2 * pad + 1, (n,), device=dev)
+    dx = torch.randint(0, 2 * pad + 1, (n,), device=dev, generator=generator)
+    dy = torch.randint(0, 2 * pad + 1, (n,), device=dev, generator=generator)
     rows = (dy[:, None] - pad + torch.arange(h, device=dev)).clamp(0, h - 1)  # (n, h)
     cols = (dx[:, None] - pad + torch.arange(w, device=dev)).clamp(0, w - 1)  # (n, w)
     pixel = (torch.arange(n, device=dev)[:, None, None] * h + rows[:, :, None]) * w + cols[:, None, :]

@@ -3,7 +3,10 @@ state-independent log-std, a value head; optionally a frozen deterministic base 
 From state it can instead be ManiSkill's state PPO network (separate 3x256 tanh actor and critic) behind a
 running observation normaliser, the pair RL from the reward alone uses. ``logstd="state"`` gives the policy a
 log-std that depends on the state (a small head beside the mean): one learned log-std must be small everywhere
-for a sampled episode to hold an object still, which also ends the exploration everywhere else."""
+for a sampled episode to hold an object still, which also ends the exploration everywhere else.
+``critic_obs="privileged"`` makes it an asymmetric actor-critic: the value head reads the privileged state
+(``obs["privileged"]``, training envs only) through its own 3x256 tanh MLP and running normaliser, while the actor
+reads the camera and proprioception alone, so the policy acts (and deploys) without the privileged state."""
 
 from __future__ import annotations
 
@@ -16,6 +19,9 @@ from maniskill_irb120.policies.nets import DeterministicActor, NatureCNN, Runnin
 
 STATE_NETS = ("shared", "mlp")
 LOGSTDS = ("param", "state")
+CRITIC_OBS = ("same", "privileged")
+PRIVILEGED = "privileged"
+"""the observation key of the privileged state an asymmetric critic reads (agents.common.envs.PrivilegedStateObs)"""
 LOGSTD_RANGE = (-5.0, 2.0)
 """bounds of a state-dependent log-std (as SAC's): a head cannot shrink the noise to nothing or blow it up"""
 
@@ -35,6 +41,8 @@ class Agent(nn.Module):
         state_net: str = "shared",
         obs_norm: bool = False,
         logstd: str = "param",
+        critic_obs: str = "same",
+        privileged_dim: int = 0,
     ):
         super().__init__()
         if state_net not in STATE_NETS:
@@ -45,6 +53,14 @@ class Agent(nn.Module):
             raise ValueError("logstd='state' has no residual form: the KL to the base assumes one log-std per action")
         if state_net == "mlp" and (image_shape is not None or residual):
             raise ValueError("state_net='mlp' is ManiSkill's state PPO network: no camera, no residual base")
+        if critic_obs not in CRITIC_OBS:
+            raise ValueError(f"unknown critic_obs {critic_obs!r}; expected one of {CRITIC_OBS}")
+        if critic_obs == "privileged" and (image_shape is None or privileged_dim < 1):
+            raise ValueError(
+                "critic_obs='privileged' gives a camera policy's critic the privileged state: it needs an image and "
+                f"privileged_dim >= 1 (got image_shape={image_shape}, privileged_dim={privileged_dim})"
+            )
+        self.critic_obs, self.privileged_dim = critic_obs, privileged_dim if critic_obs == "privileged" else 0
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
         self.init_logstd, self.state_net, self.logstd = init_logstd, state_net, logstd
         self.norm = RunningNorm(state_dim) if obs_norm else None
@@ -65,6 +81,13 @@ class Agent(nn.Module):
             self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
             self.actor_mean = nn.Sequential(
                 layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, action_dim), std=0.01 * np.sqrt(2))
+            )
+        self.critic_norm = None
+        if critic_obs == "privileged":  # the state PPO's critic (and its normaliser) on the privileged state
+            self.critic_norm = RunningNorm(privileged_dim)
+            width = (privileged_dim, 256, 256)
+            self.critic = nn.Sequential(
+                *(m for w in width for m in (layer_init(nn.Linear(w, 256)), nn.Tanh())), layer_init(nn.Linear(256, 1))
             )
         if residual:
             nn.init.zeros_(self.actor_mean[-1].weight)
@@ -102,7 +125,7 @@ class Agent(nn.Module):
         return x.float()
 
     def signature(self) -> dict:
-        return dict(
+        sig = dict(
             image_shape=list(self.image_shape) if self.image_shape else None,
             state_dim=self.state_dim,
             action_dim=self.action_dim,
@@ -111,6 +134,9 @@ class Agent(nn.Module):
             obs_norm=self.norm is not None,
             logstd=self.logstd,
         )
+        if self.critic_obs != "same":  # the signature predates the choice: older checkpoints load as they are
+            sig.update(critic_obs=self.critic_obs, privileged_dim=self.privileged_dim)
+        return sig
 
     def mean(self, obs, x: torch.Tensor) -> torch.Tensor:
         m = self.actor_mean(x)
@@ -134,8 +160,20 @@ class Agent(nn.Module):
             return self.actor_logstd_head(x).clamp(*LOGSTD_RANGE)
         return self.actor_logstd.expand_as(mean)
 
+    def value(self, obs, x) -> torch.Tensor:
+        """(N, 1) the critic's value: of the features ``x`` (the actor's), or with ``critic_obs="privileged"`` of
+        the normalised privileged state (``x`` unused: None will do)."""
+        if self.critic_norm is None:
+            return self.critic(x)
+        if PRIVILEGED not in obs:
+            raise KeyError(
+                f"critic_obs='privileged': the observation has no {PRIVILEGED!r} key (the training envs add it; the "
+                "policy's actions never need it)"
+            )
+        return self.critic(self.critic_norm({"state": obs[PRIVILEGED]})["state"])
+
     def get_value(self, obs) -> torch.Tensor:
-        return self.critic(self.features(obs))
+        return self.value(obs, None if self.critic_norm is not None else self.features(obs))
 
     def get_action(self, obs, deterministic: bool = False) -> torch.Tensor:
         x = self.features(obs)
@@ -152,5 +190,5 @@ class Agent(nn.Module):
         dist = Normal(mean, self.log_std(x, mean).exp())
         if action is None:
             action = dist.sample()
-        out = (action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.critic(x))
+        out = (action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.value(obs, x))
         return (*out, mean) if with_mean else out
