@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import pickle
 import platform
 import signal
 import sys
@@ -446,8 +447,6 @@ def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
 def validate_sb3(cell: str, args: Args) -> dict:
     """A trained SB3 cell's saved model and observation statistics, deterministic, on --eval-episodes validation
     seeds (VALIDATION_SEED onwards: those checkpoint selection reads, never the held-out ones)."""
-    import pickle
-
     from agents.configs import loader
 
     obs, task, algo, _ = parse_cell(cell)
@@ -562,18 +561,37 @@ def run_sb3(
     # total, which a resumed model counts on from (learn adds num_timesteps to it); the callback is the guard
     left = 10**12 if env_steps is None else env_steps - int(model.num_timesteps)
 
+    # the config's own callbacks (rl-zoo3's ``callback:``), e.g. checkpoint selection on validation seeds, keeping
+    # their files in the cell's folder, where a rerun's find them
+    extra = tuned.make_callbacks(ckpt_dir / "best") if tuned is not None else []
+
     def train() -> None:
         if left > 0:
-            model.learn(total_timesteps=left, callback=Stop(), reset_num_timesteps=not resumed, tb_log_name="run")
+            model.learn(total_timesteps=left, callback=[Stop(), *extra], reset_num_timesteps=not resumed,
+                        tb_log_name="run")  # fmt: skip
 
     try:
         train_and_save(train, save)
     finally:
         venv.close()
     env_steps, spent = int(model.num_timesteps), clock.spent_s
+    selector = next((c for c in extra if getattr(c, "best", None) is not None), None)
+    if selector is None:
+        final = held_out(act, env_id, obs, args)
+        return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),
+                    held_out_curve=held_out_curve(held, final, env_steps, spent))  # fmt: skip
+    # the deployed policy is the selected one (its score is the cell's); the last one's is kept beside it, and the
+    # curve's earlier points are the policy as it trained
+    last = held_out(act, env_id, obs, args)
+    best_dir = Path(selector.save_path)
+    model = cls.load(best_dir / "best_model.zip", device="cpu")  # act reads model and venv as rebound here
+    if (best_dir / "vecnormalize.pkl").is_file():  # the statistics saved with it; act uses only normalize_obs
+        venv = pickle.loads((best_dir / "vecnormalize.pkl").read_bytes())
     final = held_out(act, env_id, obs, args)
     return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),
-                held_out_curve=held_out_curve(held, final, env_steps, spent))  # fmt: skip
+                held_out_curve=held_out_curve(held, final, env_steps, spent),
+                selected=dict(selector.best, checks=selector.checks), last_policy_success=last["success_rate"],
+                last_policy_successes=last["successes"])  # fmt: skip
 
 
 def run_skrl(

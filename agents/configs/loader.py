@@ -2,8 +2,8 @@
 rl-zoo3's hyperparams format, skrl runner configs from Isaac Lab's YAML form.
 
 Only the rl-zoo3 keys the configs use are understood (``policy``, ``n_timesteps``, ``n_envs``, ``normalize``,
-``env_wrapper``, ``noise_type``/``noise_std``, ``policy_kwargs`` as a string); an unknown special key would reach the
-model's constructor and fail there, so a config cannot silently mean less here than in rl-zoo3.
+``env_wrapper``, ``callback``, ``noise_type``/``noise_std``, ``policy_kwargs`` as a string); an unknown special key
+would reach the model's constructor and fail there, so a config cannot silently mean less here than in rl-zoo3.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 import functools
 import importlib
+import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ import yaml
 CONFIGS = Path(__file__).resolve().parent
 SB3_ALGOS = ("ppo", "sac", "td3", "ddpg", "tqc")
 SKRL_ALGOS = ("ppo", "sac")
-ZOO_KEYS = ("policy", "n_timesteps", "n_envs", "normalize", "env_wrapper", "noise_type", "noise_std")
+ZOO_KEYS = ("policy", "n_timesteps", "n_envs", "normalize", "env_wrapper", "callback", "noise_type", "noise_std")
 """rl-zoo3's keys that are not the model's keyword arguments"""
 
 
@@ -48,8 +49,8 @@ def sb3_class(algo: str) -> type:
 
 
 def wrappers_of(entries: Optional[list]) -> list[Callable]:
-    """rl-zoo3's ``env_wrapper`` list (``[{"module.Class": {kwargs}}]`` or ``["module.Class"]``) as picklable
-    constructors, innermost first."""
+    """rl-zoo3's ``env_wrapper`` (or ``callback``) list (``[{"module.Class": {kwargs}}]`` or ``["module.Class"]``)
+    as picklable constructors, innermost first."""
     out = []
     for entry in entries or []:
         name, kwargs = (entry, {}) if isinstance(entry, str) else next(iter(entry.items()))
@@ -72,6 +73,18 @@ class SB3Config:
     kwargs: dict = field(default_factory=dict)
     """the model's keyword arguments (action noise still a spec: :meth:`model_kwargs` builds it)"""
     noise: Optional[tuple[str, float]] = None
+    callbacks: list[Callable] = field(default_factory=list)
+    """rl-zoo3's ``callback`` list as constructors (e.g. ``SelectOnValidation``'s checkpoint selection)"""
+
+    def make_callbacks(self, save_dir: Optional[Path] = None) -> list:
+        """The entry's callbacks, each one that keeps files (a ``save_path``) keeping them in ``save_dir`` where given
+        (a run's own folder, as rl-zoo3 puts its best model in the run's log folder)."""
+        out = []
+        for make in self.callbacks:
+            if save_dir is not None and "save_path" in inspect.signature(make.func).parameters:
+                make = functools.partial(make, save_path=str(save_dir))
+            out.append(make())
+        return out
 
     def vec_env(self, env_id: str, num_envs: Optional[int] = None, obs: str = "state", **kwargs):
         """The SB3 vector env this entry trains on: ``n_envs`` envs (or ``num_envs``) with its wrappers, under its
@@ -122,6 +135,7 @@ def sb3_config(algo: str, env_id: str, path: Optional[Path] = None) -> SB3Config
         n_timesteps=int(float(hp.pop("n_timesteps"))),
         normalize=normalize,
         wrappers=wrappers_of(hp.pop("env_wrapper", None)),
+        callbacks=wrappers_of(hp.pop("callback", None)),
         kwargs=hp,
         noise=None if noise_type is None else (noise_type, float(noise_std)),
     )

@@ -42,7 +42,8 @@ def train_sb3(a: argparse.Namespace) -> Path:
     try:
         model = loader.sb3_class(a.algo)(cfg.policy, venv, seed=a.seed, verbose=1, tensorboard_log=str(out),
                                          **cfg.model_kwargs(venv.action_space.shape[0]))  # fmt: skip
-        model.learn(total_timesteps=cfg.n_timesteps if a.n_timesteps < 0 else a.n_timesteps)
+        callbacks = cfg.make_callbacks(out / "best")  # a selected checkpoint: out/best/best_model.zip
+        model.learn(total_timesteps=cfg.n_timesteps if a.n_timesteps < 0 else a.n_timesteps, callback=callbacks)
         out.mkdir(parents=True, exist_ok=True)
         model.save(out / f"{a.env}.zip")  # rl-zoo3's layout: the model and, beside it, the normaliser
         if isinstance(venv, VecNormalize):

@@ -25,6 +25,10 @@ HELD_OUT_SEED = 10_000_000
 """the first held-out seed, ``agents.common.EVAL_SEED``'s value: the package may not import the trainers, and a test
 holds the two equal"""
 
+VALIDATION_SEED = 20_000_000
+"""the first validation seed, ``agents.common.VALIDATION_SEED``'s value (checkpoint selection's episodes, apart from
+training's and the held-out ones); a test holds the two equal"""
+
 EVERY_S = 10.0
 """seconds between progress lines"""
 

@@ -518,3 +518,38 @@ def test_validate_scores_a_saved_sb3_cell_on_the_validation_seeds_only(alg, tmp_
     assert json.loads((tmp_path / "algorithms.json").read_text())["cells"][cell]["validation"] == v
     with pytest.raises(ValueError, match="no saved model"):
         alg.main(alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "elsewhere", validate=True))
+
+
+def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(alg, tmp_path, capsys):
+    """An rl-zoo3 ``callback:`` entry (SelectOnValidation) reaches the cell: it checks the policy on validation seeds
+    while training, keeps the best in the cell's folder, and the cell's held-out score is the selected policy's, the
+    last policy's kept beside it; the loader builds the same callback for agents.configs.train."""
+    import yaml
+
+    from agents.configs import loader
+    from maniskill_irb120.integrations.sb3 import SelectOnValidation
+
+    hp = yaml.safe_load(loader.sb3_path("ppo").read_text())
+    hp["GraspLift-IRB120-v1"]["callback"] = [
+        {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 512, "episodes": 1}}
+    ]
+    conf = tmp_path / "ppo_select.yml"
+    conf.write_text(yaml.safe_dump(hp))
+    (made,) = loader.sb3_config("ppo", "GraspLift-IRB120-v1", conf).make_callbacks(tmp_path / "elsewhere")
+    assert isinstance(made, SelectOnValidation) and made.save_path == tmp_path / "elsewhere" and made.every == 512
+    cell = "state/GraspLift/sb3-ppo-tuned/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True, conf_file=conf,
+                    total_env_steps=600, reference_steps=0)  # fmt: skip
+    one = alg.main(args)["cells"][cell]
+    best = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1" / "best"
+    assert (best / "best_model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
+    kept = json.loads((best / "best.json").read_text())
+    assert [c[0] for c in kept["checks"]] == [512, 1024]  # 2 rollouts of 4 envs x 128 steps
+    assert one["selected"]["env_steps"] in (512, 1024) and one["selected"]["success"] == max(
+        c[1] for c in kept["checks"]
+    )
+    assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
+    assert "last_policy_success" in one and len(one["last_policy_successes"]) == len(one["successes"])
+    assert "validation success" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="positive"):
+        SelectOnValidation(every=0)

@@ -39,9 +39,11 @@ def test_clock_reads_like_a_duration():
     assert [clock(s) for s in (0, 42.4, 425, 3720, float("inf"))] == ["0s", "42s", "7m05s", "1h02m", "?"]
 
 
-def test_the_held_out_seeds_are_the_trainers():
+def test_the_held_out_and_validation_seeds_are_the_trainers():
+    from maniskill_irb120.integrations.progress import VALIDATION_SEED
+
     common = pytest.importorskip("agents.common")
-    assert HELD_OUT_SEED == common.EVAL_SEED
+    assert HELD_OUT_SEED == common.EVAL_SEED and VALIDATION_SEED == common.VALIDATION_SEED
 
 
 def test_a_heartbeat_keeps_lines_coming_while_nothing_steps():
