@@ -57,12 +57,12 @@ from typing import Optional
 
 import numpy as np
 import torch
-import tyro
 
 from agents.common import EVAL_SEED, evaluate_on_seeds, train_seed
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import replace_section
 from benchmarks.lib.stats import bootstrap_ci, wilson
 
@@ -997,7 +997,41 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
             write_report(cells, args)
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any cell (``benchmarks.lib.cli`` makes it one line
+    and exit status 2): a budget or guard that is not positive, an unknown backend, a negative reference workload, a
+    --conf-file that is no file or shares the table's folders, an --only that matches no cell, a --render-only with
+    no algorithms.json to render."""
+    if args.render_only:
+        if not (args.out_dir / "algorithms.json").is_file():
+            raise FileNotFoundError(f"--render-only reads {args.out_dir / 'algorithms.json'} (--out-dir), which does "
+                                    "not exist")  # fmt: skip
+        return
+    for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
+                        ("--budget-min", args.budget_min)):  # fmt: skip
+        if value is not None and not value > 0:
+            raise ValueError(f"{flag} must be positive, got {value}")
+    if args.backend not in ("cpu", "gpu", "auto"):
+        raise ValueError(f"--backend: unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
+    if args.reference_steps < 0:
+        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
+    if args.conf_file is not None:
+        if not args.conf_file.is_file():
+            raise ValueError(f"--conf-file {args.conf_file} is no file")
+        if args.out_dir == Args.out_dir or args.runs_dir == Args.runs_dir:
+            raise ValueError(
+                "--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
+                "do not join (or resume) the table's"
+            )
+    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
+    for pattern in args.only:
+        if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
+            raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
+                             f"{sorted(known)[0]!r}")  # fmt: skip
+
+
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:  # the rows again from the cells, so a settings text mended since shows in both files
         json_path = args.out_dir / "algorithms.json"
         report = json.loads(json_path.read_text())
@@ -1010,25 +1044,6 @@ def main(args: Args) -> dict:
             args.budget_min = 0.05
         args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
         args.curve_episodes = 1
-    for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
-                        ("--budget-min", args.budget_min)):  # fmt: skip
-        if value is not None and not value > 0:
-            raise ValueError(f"{flag} must be positive, got {value}")
-    if args.backend not in ("cpu", "gpu", "auto"):
-        raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
-    if args.reference_steps < 0:
-        raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
-    if args.conf_file is not None:
-        if not args.conf_file.is_file():
-            raise ValueError(f"--conf-file {args.conf_file} is no file")
-        if args.out_dir == Args.out_dir or args.runs_dir == Args.runs_dir:
-            raise ValueError("--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
-                             "do not join (or resume) the table's")
-    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
-    for pattern in args.only:
-        if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
-            raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
-                             f"{sorted(known)[0]!r}")  # fmt: skip
     json_path = args.out_dir / "algorithms.json"
     cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
     on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops a cell as Ctrl-C does
@@ -1044,4 +1059,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.algorithms", Args, main, check)
