@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.abb.client import ABBRobot
 from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, ControllerEmulator
@@ -125,7 +126,23 @@ def update_results(json_path: Path, results: Path = RESULTS) -> None:
     replace_section(results, HEAD, section(json.loads(json_path.read_text()), json_path))
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before the emulator starts (``benchmarks.lib.cli`` makes it
+    one line and exit status 2): --render-only with a JSON that is not there, --steps below 1, a negative
+    --statement-cost-us."""
+    if args.render_only:
+        path = args.json or RESULTS_JSON
+        if not path.is_file():
+            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        return
+    if args.steps < 1:
+        raise ValueError(f"--steps {args.steps}: time at least one tool step")
+    if args.statement_cost_us < 0:
+        raise ValueError(f"--statement-cost-us {args.statement_cost_us:g}: give 0 (off) or more")
+
+
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:
         update_results(args.json or RESULTS_JSON)
         return json.loads((args.json or RESULTS_JSON).read_text())
@@ -158,6 +175,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    import tyro
-
-    main(tyro.cli(Args))
+    entry("benchmarks.adapter_latency", Args, main, check)

@@ -58,12 +58,12 @@ from typing import Optional
 
 import numpy as np
 import torch
-import tyro
 
 from agents.common import EVAL_SEED, VALIDATION_SEED, evaluate_on_seeds, train_seed
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import replace_section
 from benchmarks.lib.stats import bootstrap_ci, iqm_ci, wilson
 
@@ -1121,41 +1121,29 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
             write_report(cells, args)
 
 
-def main(args: Args) -> dict:
-    if args.render_only:  # the rows again from the cells, so a settings text mended since shows in both files
-        json_path = args.out_dir / "algorithms.json"
-        report = json.loads(json_path.read_text())
-        report["rows"] = rows_of(report["cells"], args)
-        report["curves"] = curves_of(report["cells"], args.bootstrap)
-        write_json(json_path, report, indent=1)
-        plot(report["rows"], args.out_dir / "algorithms.png")
-        plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
-        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
-        return report
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any cell (``benchmarks.lib.cli`` makes it one line
+    and exit status 2): a budget or guard that is not positive, an unknown backend, a negative reference workload, a
+    --conf-file that is no file or shares the table's folders, an --only that matches no cell, a --render-only or
+    --validate with no algorithms.json to read (or, validating, no cell of it named)."""
+    if args.render_only:
+        if not (args.out_dir / "algorithms.json").is_file():
+            raise FileNotFoundError(f"--render-only reads {args.out_dir / 'algorithms.json'} (--out-dir), which does "
+                                    "not exist")  # fmt: skip
+        return
     if args.validate:
         json_path = args.out_dir / "algorithms.json"
         if not json_path.is_file():
-            raise ValueError(f"--validate: no {json_path}; name the probe's --out-dir")
-        report = json.loads(json_path.read_text())
-        cells = [c for c in report["cells"] if any(fnmatch.fnmatchcase(c, p) for p in args.only)]
-        if not cells:
+            raise FileNotFoundError(f"--validate reads {json_path} (--out-dir), which does not exist")
+        cells = json.loads(json_path.read_text())["cells"]
+        if not any(fnmatch.fnmatchcase(c, p) for c in cells for p in args.only):
             raise ValueError(f"--validate: --only {args.only} names no cell of {json_path}")
-        for cell in cells:
-            report["cells"][cell]["validation"] = v = validate_sb3(cell, args)
-            print(f"[algorithms] {cell}: validation success {v['success_rate']:.2f} of {v['episodes']}", flush=True)
-        write_json(json_path, report, indent=1)
-        return report
-    if args.quick:
-        if args.budget_min is None and args.total_env_steps is None:  # toy minutes, unless toy env steps are given
-            args.budget_min = 0.05
-        args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
-        args.curve_episodes = 1
     for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
                         ("--budget-min", args.budget_min)):  # fmt: skip
         if value is not None and not value > 0:
             raise ValueError(f"{flag} must be positive, got {value}")
     if args.backend not in ("cpu", "gpu", "auto"):
-        raise ValueError(f"unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
+        raise ValueError(f"--backend: unknown backend {args.backend!r}; use 'cpu', 'gpu' or 'auto'")
     if args.reference_steps < 0:
         raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
     if args.conf_file is not None:
@@ -1171,6 +1159,34 @@ def main(args: Args) -> dict:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
             raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
                              f"{sorted(known)[0]!r}")  # fmt: skip
+
+
+def main(args: Args) -> dict:
+    check(args)
+    if args.render_only:  # the rows again from the cells, so a settings text mended since shows in both files
+        json_path = args.out_dir / "algorithms.json"
+        report = json.loads(json_path.read_text())
+        report["rows"] = rows_of(report["cells"], args)
+        report["curves"] = curves_of(report["cells"], args.bootstrap)
+        write_json(json_path, report, indent=1)
+        plot(report["rows"], args.out_dir / "algorithms.png")
+        plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
+        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
+        return report
+    if args.validate:
+        json_path = args.out_dir / "algorithms.json"
+        report = json.loads(json_path.read_text())
+        cells = [c for c in report["cells"] if any(fnmatch.fnmatchcase(c, p) for p in args.only)]
+        for cell in cells:
+            report["cells"][cell]["validation"] = v = validate_sb3(cell, args)
+            print(f"[algorithms] {cell}: validation success {v['success_rate']:.2f} of {v['episodes']}", flush=True)
+        write_json(json_path, report, indent=1)
+        return report
+    if args.quick:
+        if args.budget_min is None and args.total_env_steps is None:  # toy minutes, unless toy env steps are given
+            args.budget_min = 0.05
+        args.eval_episodes, args.bootstrap, args.checkpoint_min = 2, 200, min(args.checkpoint_min, 0.02)
+        args.curve_episodes = 1
     json_path = args.out_dir / "algorithms.json"
     cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
     on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops a cell as Ctrl-C does
@@ -1186,4 +1202,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.algorithms", Args, main, check)

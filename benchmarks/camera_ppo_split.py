@@ -54,8 +54,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import tyro
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -463,7 +463,8 @@ def summarize(trainers: list, threads: int, t_start: float, load_start) -> dict:
 
 
 def check(args: Args) -> None:
-    """Refuse what cannot run, in one line (the caller exits 2)."""
+    """Refuse what cannot run, naming the flag, before any env (``benchmarks.lib.cli`` makes it one line and exit
+    status 2)."""
     if args.env_steps < 1:
         raise ValueError(f"--env-steps must be >= 1, got {args.env_steps}")
     unknown = [c for c in args.configs if c not in CONFIGS]
@@ -474,6 +475,7 @@ def check(args: Args) -> None:
 
 
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:
         update_results(args.json)
         return json.loads(args.json.read_text())
@@ -634,10 +636,4 @@ def update_results(json_path: Path, results: Path = RESULTS) -> None:
 
 
 if __name__ == "__main__":
-    cli_args = tyro.cli(Args)
-    try:
-        check(cli_args)
-    except ValueError as e:
-        print(f"camera_ppo_split.py: {e}", file=sys.stderr)
-        sys.exit(2)
-    main(cli_args)
+    entry("benchmarks.camera_ppo_split", Args, main, check)

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Optional
 
 from agents.recipes import RECIPES, STATE_PPO_NET, render
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.diagnostics.acceptance_runs import PHYSX_GPU
 
@@ -363,9 +364,24 @@ class Args:
     """run nothing (no GPU needed): rewrite the GPU section of benchmarks/RESULTS.md from the JSON at --json-path"""
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any check runs (``benchmarks.lib.cli`` makes it one
+    line and exit status 2): --jobs or --trainer-envs below 1, --render-only with a JSON that is not there."""
+    if args.render_only:
+        path = args.json_path or RESULTS_JSON
+        if not path.is_file():
+            raise FileNotFoundError(f"--render-only reads --json-path {path}, which does not exist")
+        return
+    if args.jobs < 1:
+        raise ValueError(f"--jobs {args.jobs}: expected 1 or more")
+    if args.trainer_envs < 1:
+        raise ValueError(f"--trainer-envs {args.trainer_envs}: expected 1 or more")
+
+
 def main(args: Args) -> int:
     """0 when every check passes, 1 when one fails, 2 without a CUDA device (as ``doctor --gpu``); --render-only
     0 once the section is written."""
+    check(args)
     if args.render_only:
         update_results(args.json_path or RESULTS_JSON)
         return 0
@@ -373,10 +389,6 @@ def main(args: Args) -> int:
 
     if args.update_results:
         args.json_path = args.json_path or RESULTS_JSON
-    if args.jobs < 1:
-        raise SystemExit(f"--jobs {args.jobs}: expected 1 or more")
-    if args.trainer_envs < 1:
-        raise SystemExit(f"--trainer-envs {args.trainer_envs}: expected 1 or more")
     rc = gpu_main(
         json_output=args.json,
         json_path=None if args.json_path is None else str(args.json_path),
@@ -393,6 +405,4 @@ def main(args: Args) -> int:
 
 
 if __name__ == "__main__":
-    import tyro
-
-    sys.exit(main(tyro.cli(Args)))
+    entry("benchmarks.gpu_acceptance", Args, main, check, exit_status=True)

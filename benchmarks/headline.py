@@ -3,6 +3,9 @@
     python -m benchmarks.headline            # print the table
     python -m benchmarks.headline --write    # rewrite the README's marked block with it
 
+A misspelt flag is refused in one line and exit status 2 (``benchmarks.lib.cli``), not taken for a plain print of the
+table, which would look as if the README had been rewritten.
+
 A learning row's budget is its runs' env steps (the JSON has them); the minutes they ran, which measure the machine
 as much as the recipe (this host's speed moved several-fold between days), are a footnote under the table.
 
@@ -13,8 +16,10 @@ this script generates from the committed JSON, so a benchmark that rewrites its 
 from __future__ import annotations
 
 import json
-import sys
+from dataclasses import dataclass
 from pathlib import Path
+
+from benchmarks.lib.cli import entry
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -103,12 +108,20 @@ def rewrite(text: str) -> str:
     return text[:start] + block() + text[end:]
 
 
-def main(argv: list[str]) -> None:
-    if "--write" in argv:
+@dataclass
+class Args:
+    """Print the README's headline-results table, or rewrite its marked block with it."""
+
+    write: bool = False
+    """rewrite the README's marked block with the table (default: print it)"""
+
+
+def main(args: Args) -> None:
+    if args.write:
         README.write_text(rewrite(README.read_text()))
     else:
         print(table(), end="")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    entry("benchmarks.headline", Args, main)

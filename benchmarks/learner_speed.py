@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 import tyro
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +99,32 @@ def record(args: Args):
     return cli, policy, data
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any env (``benchmarks.lib.cli`` makes it one line
+    and exit status 2): --render-only with a JSON that is not there, a --device torch does not know or without CUDA
+    here, a GPU run's --update-results (the section holds CPU figures), --updates, --rounds or --episodes below 1."""
+    if args.render_only:
+        if not args.json.is_file():
+            raise FileNotFoundError(f"--render-only reads --json {args.json}, which does not exist")
+        return
+    try:
+        dev = torch.device(args.device)
+    except RuntimeError as e:
+        raise ValueError(f"--device {args.device!r}: {e}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {args.device}: torch.cuda.is_available() is False here")
+    if dev.type != "cpu" and args.update_results:
+        raise ValueError(
+            "--update-results writes the CPU section of RESULTS.md; a GPU run's JSON goes into its GPU section "
+            "(benchmarks/gpu_acceptance.py's LEARNER_JSONS, then gpu_acceptance.py --render-only)"
+        )
+    for flag, value in (("--updates", args.updates), ("--rounds", args.rounds), ("--episodes", args.episodes)):
+        if value < 1:
+            raise ValueError(f"{flag} {value}: expected 1 or more")
+
+
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:
         update_results(args.json)
         return json.loads(args.json.read_text())
@@ -106,13 +132,6 @@ def main(args: Args) -> dict:
     from agents.common.precision import native_bf16
 
     dev = torch.device(args.device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit(f"--device {args.device}: torch.cuda.is_available() is False here")
-    if dev.type != "cpu" and args.update_results:
-        raise SystemExit(
-            "--update-results writes the CPU section of RESULTS.md; a GPU run's JSON goes into its GPU section "
-            "(benchmarks/gpu_acceptance.py's LEARNER_JSONS, then gpu_acceptance.py --render-only)"
-        )
     if args.quick:
         args.updates, args.rounds, args.episodes = 3, 1, 1
     t0 = time.time()
@@ -199,4 +218,4 @@ def update_results(json_path: Path, results: Path = RESULTS) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.learner_speed", Args, main, check)

@@ -54,7 +54,6 @@ from typing import Optional
 
 import numpy as np
 import torch
-import tyro
 
 from agents.common import EVAL_SEED, evaluate_on_seeds
 from agents.recipes import (
@@ -67,6 +66,7 @@ from agents.recipes import (
 )
 from benchmarks.lib.adopt import adopted_pair, adopted_run
 from benchmarks.lib.budget import steps_for
+from benchmarks.lib.cli import entry
 from benchmarks.lib.machine import REFERENCE_STEPS, reference_speed
 from benchmarks.lib.report import replace_section, smoothed
 from benchmarks.lib.runner import ROOT, Interrupted, finished_summary, run_name, train_run
@@ -370,16 +370,25 @@ def update_results(report: dict, table: str, results: Path) -> None:
     replace_section(results, head, section)
 
 
-def main(args: Args) -> dict:
+def quick_recipes(recipes: list[str]) -> list[str]:
+    """The recipes a --quick run trains of ``recipes``: those of QUICK_RECIPES, else dagger-state."""
+    return [r for r in recipes if r in QUICK_RECIPES] or ["dagger-state"]
+
+
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any run or reference (``benchmarks.lib.cli`` makes
+    it one line and exit status 2): an unknown recipe or --env-id, a negative reference workload, a budget that is not
+    positive, --env-step-budgets for a recipe without committed env steps, --adopt with other than one recipe or a run
+    folder that is not there, --adopt-base not one per --adopt, --merge or --render-only without the learning.json
+    they read. Whether an adopted run was trained by the recipe is read from its logs by ``main``, before any run."""
+    out_dir = args.out_dir or default_out_dir(args.env_id)
     if args.render_only:
-        out_dir = args.out_dir or default_out_dir(args.env_id)
-        report = json.loads((out_dir / "learning.json").read_text())
-        plot(report["rows"], out_dir / "learning.png")
-        update_results(report, markdown(report["rows"]), ROOT / "benchmarks" / "RESULTS.md")
-        return report
+        if not (out_dir / "learning.json").is_file():
+            raise FileNotFoundError(f"--render-only reads {out_dir / 'learning.json'} (--out-dir): no such file")
+        return
     unknown = set(args.recipes) - set(RECIPES)
     if unknown:
-        raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
+        raise ValueError(f"--recipes: unknown recipes {sorted(unknown)}; choose from {sorted(RECIPES)}")
     if args.reference_steps < 0:
         raise ValueError(f"--reference-steps must be >= 0 (0: no reference), got {args.reference_steps}")
     for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes)):
@@ -387,19 +396,36 @@ def main(args: Args) -> dict:
             raise ValueError(f"{flag} must be positive, got {value}")
     for recipe in args.recipes:  # a recipe without env steps to take is refused before any run
         steps_for(recipe, args)
-    if args.quick:
-        args.recipes = [r for r in args.recipes if r in QUICK_RECIPES] or ["dagger-state"]
-        args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
-        args.rl_budget_min = args.vision_budget_min = 0.05
     if args.env_id not in RL_BUDGET_MIN:
         raise ValueError(f"unknown --env-id {args.env_id!r}; choose from {sorted(RL_BUDGET_MIN)}")
+    recipes = quick_recipes(args.recipes) if args.quick else args.recipes
+    if args.adopt and len(recipes) != 1:
+        raise ValueError(f"--adopt: name the one recipe the adopted runs belong to in --recipes, not {recipes}")
+    if args.adopt_base and len(args.adopt_base) != len(args.adopt):
+        raise ValueError(f"--adopt-base: one first stage per adopted run: {len(args.adopt_base)} for {len(args.adopt)}")
+    for flag, paths in (("--adopt", args.adopt), ("--adopt-base", args.adopt_base)):
+        for path in paths:
+            if not path.is_dir():
+                raise FileNotFoundError(f"{flag} {path}: no such run folder")
+    if args.merge and not (out_dir / "learning.json").is_file():  # refused before hours of training
+        raise FileNotFoundError(f"--merge: no earlier report at {out_dir / 'learning.json'}")
+
+
+def main(args: Args) -> dict:
+    check(args)
+    if args.render_only:
+        out_dir = args.out_dir or default_out_dir(args.env_id)
+        report = json.loads((out_dir / "learning.json").read_text())
+        plot(report["rows"], out_dir / "learning.png")
+        update_results(report, markdown(report["rows"]), ROOT / "benchmarks" / "RESULTS.md")
+        return report
+    if args.quick:
+        args.recipes = quick_recipes(args.recipes)
+        args.seeds, args.budget_min, args.eval_episodes, args.bootstrap = args.seeds[:1], 0.05, 2, 200
+        args.rl_budget_min = args.vision_budget_min = 0.05
     args.out_dir = args.out_dir or default_out_dir(args.env_id)
     args.rl_budget_min = args.rl_budget_min or RL_BUDGET_MIN[args.env_id]
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    if args.adopt and len(args.recipes) != 1:
-        raise ValueError(f"--adopt: name the one recipe the adopted runs belong to in --recipes, not {args.recipes}")
-    if args.adopt_base and len(args.adopt_base) != len(args.adopt):
-        raise ValueError(f"--adopt-base: one first stage per adopted run: {len(args.adopt_base)} for {len(args.adopt)}")
     if args.adopt_base:  # refused before any run
         adopted = [adopted_pair(args.recipes[0], b, r, args) for b, r in zip(args.adopt_base, args.adopt)]
     else:
@@ -413,8 +439,6 @@ def main(args: Args) -> dict:
     rng = np.random.default_rng(0)
     t0 = time.time()
     deadline = None if args.stop_after_min is None else t0 + 60 * args.stop_after_min
-    if args.merge and not (args.out_dir / "learning.json").is_file():  # refused before hours of training
-        raise FileNotFoundError(f"--merge: no earlier report at {args.out_dir / 'learning.json'}")
     command = "python -m benchmarks.learning " + " ".join(sys.argv[1:])
     date = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     trained, unfinished, interrupted = {}, [], False
@@ -496,4 +520,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.learning", Args, main, check)

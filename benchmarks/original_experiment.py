@@ -25,11 +25,11 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tyro
 
 from agents.common.logging import read_scalars
 from agents.recipes import RECIPES
 from benchmarks.lib.budget import budget_flags
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import replace_section, smoothed
 from benchmarks.lib.runner import QUICK_FLAGS, Interrupted, run_logged, thinned
 
@@ -260,10 +260,30 @@ def reported_and_not_here(args: Args) -> dict[str, dict]:
     return {r: runs[r] for r in args.recipes if r in runs and not run_dir(r, args).exists()}
 
 
-def main(args: Args) -> dict:
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any run starts (``benchmarks.lib.cli`` makes it one
+    line and exit status 2): a recipe not of the experiment, a budget or guard that is not positive,
+    --env-step-budgets for a recipe without a committed run's env steps."""
     unknown = set(args.recipes) - set(EXPERIMENT)
     if unknown:
-        raise ValueError(f"unknown recipes {sorted(unknown)}; choose from {list(EXPERIMENT)}")
+        raise ValueError(f"--recipes: unknown recipes {sorted(unknown)}; choose from {list(EXPERIMENT)}")
+    for flag, value in (
+        ("--budget-min", args.budget_min),
+        ("--total-env-steps", args.total_env_steps),
+        ("--max-minutes", args.max_minutes),
+    ):
+        if value is not None and not value > 0:
+            raise ValueError(f"{flag} must be positive, got {value}")
+    if args.env_step_budgets and args.total_env_steps is None:
+        missing = [r for r in args.recipes if RECIPES[r].for_task(ENV_ID).env_steps is None]
+        if missing:
+            raise ValueError(
+                f"--env-step-budgets: {missing} have no committed runs on {ENV_ID}; give --total-env-steps"
+            )
+
+
+def main(args: Args) -> dict:
+    check(args)
     if args.quick:
         args.budget_min, args.eval_episodes = 0.05, 2
     deadline = None if args.stop_after_min is None else time.time() + 60 * args.stop_after_min
@@ -305,4 +325,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.original_experiment", Args, main, check)

@@ -10,6 +10,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.pybullet_loop import MODES, markdown_table, measure, p
 
 
@@ -29,7 +30,20 @@ class Args:
     """a few actions per mode (< 30 s in all), for smoke tests"""
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before PyBullet starts (``benchmarks.lib.cli`` makes it one
+    line and exit status 2): an unknown --modes, --n-actions or --realtime-n-actions below 1."""
+    unknown = [m for m in args.modes if m not in MODES]
+    if unknown:
+        raise ValueError(f"--modes {unknown}: the modes are {list(MODES)}")
+    if args.n_actions < 1:
+        raise ValueError(f"--n-actions {args.n_actions}: expected 1 or more")
+    if args.realtime_n_actions is not None and args.realtime_n_actions < 1:
+        raise ValueError(f"--realtime-n-actions {args.realtime_n_actions}: expected 1 or more (or leave it out)")
+
+
 def main(args: Args) -> list[dict]:
+    check(args)
     n, n_rt = args.n_actions, args.realtime_n_actions
     if args.quick:
         n, n_rt = 10, 5
@@ -51,6 +65,4 @@ def main(args: Args) -> list[dict]:
 
 
 if __name__ == "__main__":
-    import tyro
-
-    main(tyro.cli(Args))
+    entry("benchmarks.pybullet_original", Args, main, check)

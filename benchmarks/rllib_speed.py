@@ -29,8 +29,8 @@ from typing import Optional
 
 import numpy as np
 import torch
-import tyro
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -257,7 +257,21 @@ def markdown(rows: list[dict], pair: dict) -> str:
     return "\n".join(out)
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before Ray or an env starts (``benchmarks.lib.cli`` makes
+    it one line and exit status 2): --render-only with a JSON that is not there, a size or count below 1."""
+    if args.render_only:
+        if not args.json.is_file():
+            raise FileNotFoundError(f"--render-only reads --json {args.json}, which does not exist")
+        return
+    for flag in ("steps", "iterations", "batch", "rounds", "paired_steps", "paired_rounds"):
+        value = getattr(args, flag)
+        if value < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} {value}: expected 1 or more")
+
+
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:
         update_results(args.json)
         return json.loads(args.json.read_text())
@@ -328,4 +342,4 @@ def update_results(json_path: Path, results: Path = RESULTS) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.rllib_speed", Args, main, check)

@@ -45,8 +45,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
-import tyro
-
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.policies import read_policy_section
@@ -275,23 +274,43 @@ def _set_torch_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def main(args: Args) -> dict:
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any cell (``benchmarks.lib.cli`` makes it one line
+    and exit status 2): a --policy that is neither 'expert', a file nor a committed policy's name, a --camera other
+    than twin or none, an unknown or malformed --shifts row or a camera row without a camera, --episodes or --workers
+    below 1, --update-results without --json, --render-only with a JSON that is not there."""
     if args.render_only:
-        update_results(section_jsons(args))
-        return {}
+        for path in section_jsons(args):
+            if not path.is_file():
+                raise FileNotFoundError(f"--render-only reads {path} (--section-json, --json), which does not exist")
+        return
     if args.update_results and args.json is None:
         raise ValueError("--update-results: name the run's --json, which the section shows and links")
-    args.policy = tuple(resolve_policy(p) for p in args.policy)  # short names (MANIFEST.json) become their files
+    for policy in args.policy:
+        resolve_policy(policy)  # a file that is not there, or a short name no MANIFEST.json has, is refused by name
+    if args.camera not in ("twin", "none"):
+        raise ValueError(f"--camera {args.camera!r}: give twin or none")
     unknown = sorted(n for n in set(args.shifts) - set(SHIFTS) if JOIN not in n)
     if unknown:
         raise ValueError(f"--shifts {unknown}: the rows are {list(SHIFTS)}")
-    combined = [n for n in args.shifts if n not in SHIFTS]
-    for name in combined:
-        spec_of(name)  # refused here, before any cell runs
+    for name in args.shifts:
+        if name not in SHIFTS:
+            spec_of(name)  # a combination of rows: refused here, before any cell runs
+    if args.episodes < 1:
+        raise ValueError(f"--episodes {args.episodes}: run at least one episode a cell")
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: run at least one cell at a time")
     if args.camera == "none" and set(args.shifts) & set(MOUNTS):
         raise ValueError(f"--shifts {sorted(set(args.shifts) & set(MOUNTS))} correct camera frames: --camera twin")
+
+
+def main(args: Args) -> dict:
+    check(args)
+    if args.render_only:
+        update_results(section_jsons(args))
+        return {}
+    args.policy = tuple(resolve_policy(p) for p in args.policy)  # short names (MANIFEST.json) become their files
+    combined = [n for n in args.shifts if n not in SHIFTS]
     default = [
         n for n in SHIFTS if n not in MOUNT_ERRORS and n not in COMBINED and (args.camera != "none" or n not in MOUNTS)
     ]
@@ -515,4 +534,4 @@ def _short(policy: str) -> str:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.sim2real_gap", Args, main, check)

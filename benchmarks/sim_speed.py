@@ -36,6 +36,7 @@ from typing import Optional
 
 import numpy as np
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.pybullet_loop import random_actions
 from benchmarks.lib.report import argv_command, linked_path, raw_link, recorded_command, replace_section
 
@@ -395,22 +396,35 @@ def one_round(args: Args, steps: int, baseline_tree: Optional[str] = None) -> di
     return r
 
 
+def commit_of(ref: str) -> str:
+    """The commit a git ref of this repository names; a ref git does not know is a ValueError naming --baseline."""
+    import subprocess
+
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--verify", f"{ref}^{{commit}}"],
+            cwd=HERE.parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError) as e:
+        raise ValueError(f"--baseline {ref!r}: not a commit of this repository ({e})") from None
+
+
 def baseline_tree(ref: str, into: Path) -> str:
     """The commit ``ref`` names, and its files (``git archive``) unpacked under ``into``; a ref git does not know is a
     SystemExit naming it."""
     import subprocess
     import tarfile
 
-    root = HERE.parent
     try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--verify", f"{ref}^{{commit}}"], cwd=root, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError) as e:
-        raise SystemExit(f"--baseline {ref!r}: not a commit of this repository ({e})") from None
+        commit = commit_of(ref)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     archive = into / "tree.tar"
     with archive.open("wb") as f:
-        subprocess.run(["git", "archive", "--format=tar", commit], cwd=root, stdout=f, check=True)
+        subprocess.run(["git", "archive", "--format=tar", commit], cwd=HERE.parent, stdout=f, check=True)
     with tarfile.open(archive) as tar:
         tar.extractall(into / "tree", filter="data")
     return commit
@@ -449,8 +463,32 @@ def update_results(json_path: Path, results: Path = HERE / "RESULTS.md") -> None
     )
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before any measurement (``benchmarks.lib.cli`` makes it one
+    line and exit status 2): --render-only with a JSON that is not there, --steps, --rounds, --gpu-steps or a
+    --gpu-num-envs below 1, --gpu-only without CUDA, a --baseline that is no commit of this repository."""
+    if args.render_only:
+        path = args.json or RESULTS_JSON
+        if not path.is_file():
+            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        return
+    for flag, value in (("--steps", args.steps), ("--rounds", args.rounds), ("--gpu-steps", args.gpu_steps)):
+        if value < 1:
+            raise ValueError(f"{flag} {value}: expected 1 or more")
+    if not args.gpu_num_envs or min(args.gpu_num_envs) < 1:
+        raise ValueError(f"--gpu-num-envs {list(args.gpu_num_envs)}: give one or more counts, each 1 or more")
+    if args.gpu_only:
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ValueError("--gpu-only needs CUDA; none is available here")
+    if args.baseline is not None:
+        commit_of(args.baseline)
+
+
 def main(args: Args) -> dict:
     global ISOLATE
+    check(args)
     if args.render_only:
         update_results(args.json or RESULTS_JSON)
         return json.loads((args.json or RESULTS_JSON).read_text())
@@ -458,8 +496,6 @@ def main(args: Args) -> dict:
     if args.gpu_only:
         import torch
 
-        if not torch.cuda.is_available():
-            raise SystemExit("--gpu-only needs CUDA; none is available here")
         out = dict(
             date=time.strftime("%Y-%m-%d %H:%M:%S"),
             command=" ".join(sys.argv),
@@ -774,6 +810,4 @@ def plot(r: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    import tyro
-
-    main(tyro.cli(Args))
+    entry("benchmarks.sim_speed", Args, main, check)

@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import tyro
 
+from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.abb.emulator.controller import ControllerEmulator
 from maniskill_irb120.sim2real.agent import IRB120RealAgent
@@ -127,7 +127,21 @@ def update_results(json_path: Path, results: Path = RESULTS) -> None:
     replace_section(results, HEAD, section(json.loads(json_path.read_text()), json_path))
 
 
+def check(args: Args) -> None:
+    """Refuse flags that cannot run, each naming its flag, before the emulator starts (``benchmarks.lib.cli`` makes it
+    one line and exit status 2): --render-only with a JSON that is not there, --steps or --repeats below 1."""
+    if args.render_only:
+        path = args.json or RESULTS_JSON
+        if not path.is_file():
+            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        return
+    for flag, value in (("--steps", args.steps), ("--repeats", args.repeats)):
+        if value < 1:
+            raise ValueError(f"{flag} {value}: expected 1 or more")
+
+
 def main(args: Args) -> dict:
+    check(args)
     if args.render_only:
         update_results(args.json or RESULTS_JSON)
         return json.loads((args.json or RESULTS_JSON).read_text())
@@ -158,4 +172,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    entry("benchmarks.sysid_recovery", Args, main, check)

@@ -96,5 +96,5 @@ def test_its_programs_join_the_doctors_report_after_the_packages_checks(G):
 def test_commit_and_bad_input(G, tmp_path):
     assert G.git_commit() and G.git_commit(tmp_path) is None
     for flags, message in ((dict(jobs=0), "--jobs 0: expected 1 or more"), (dict(trainer_envs=0), "--trainer-envs 0")):
-        with pytest.raises(SystemExit, match=message):
+        with pytest.raises(ValueError, match=message):
             G.main(G.Args(**flags))

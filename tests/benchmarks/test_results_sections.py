@@ -216,6 +216,7 @@ def test_sim2real_render_only_runs_no_cell_and_adds_json(monkeypatch, tmp_path, 
     monkeypatch.setattr(mod, "evaluate", lambda cfg: pytest.fail("--render-only ran a cell"))
     mod.main(mod.Args(render_only=True))
     extra = tmp_path / "new.json"
+    extra.write_text("{}")  # --render-only refuses a --json that is not there (check)
     mod.main(mod.Args(render_only=True, json=extra))
     mod.main(mod.Args(render_only=True, json=mod.SECTION_JSONS[0]))  # already shown: not twice
     assert written == [list(mod.SECTION_JSONS), [*mod.SECTION_JSONS, extra], list(mod.SECTION_JSONS)]
