@@ -552,12 +552,19 @@ def markdown(r: dict) -> str:
         if c.get("precision") and "--precision" in c["flags"]:
             flags += f" (= {c['precision']})"
         bound = c.get("overlap_bound_ratio_to_env_only_rgbd")
+        if "wait_ms_per_env_step" in c:  # overlapped: what it is made of instead of a bound
+            bound = None
+            spread += (
+                f" (overlapped: collection {c['collect_ms_per_env_step']:.2f}, update {c['update_ms_per_env_step']:.2f},"
+                f" waiting for the collection {c['wait_ms_per_env_step']:.2f} ms per env step)"
+            )
         rows.append(
             f"| PPO training from the camera, **{name}** | {flags} | {c['optimizer_steps_per_iteration']:.0f} | "
             f"**{c['training_env_steps_per_s']:.0f}** | {c['total_ms_per_env_step']:.2f} | "
             f"**{c['ratio_training_to_env_only_rgbd']:.2f}x**{spread} | "
             + (f"{c['overlap_bound_env_steps_per_s']:.0f} ({bound:.2f}x) |" if bound else "|")
         )
+    configs = {n: c for n, c in configs.items() if "wait_ms_per_env_step" not in c}  # split: in one thread only
     rows += [
         f"| the same envs alone, rgbd | | | {r['env_only_rgbd_env_steps_per_s']:.0f} | "
         f"{r['env_only_rgbd_ms_per_env_step']:.2f} | 1 | |",
@@ -569,6 +576,8 @@ def markdown(r: dict) -> str:
         + " | how |",
         "|---|" + "---|" * len(configs) + "---|",
     ]
+    if not configs:
+        return "\n".join(rows[:-3])
     share = lambda ms, c: f"{ms:.2f} ({100 * ms / c['total_ms_per_env_step']:.0f} %)"  # noqa: E731
     for key, label, how in PHASES:
         cells = [share(c["split_ms_per_env_step"][key], c) for c in configs.values()]
