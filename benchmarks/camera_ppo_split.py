@@ -16,12 +16,13 @@ trainer's own and not a copy of its loop:
 Configurations of the recipe (CONFIGS: ``today``, the recipe as it is; ``fast`` and ``fastest``, the update's
 levers that measured to pay) train side by side in the same run, each its own envs, agent and optimiser from the
 same seed, one iteration each in a rotating order per round, so each one's ratio to the envs alone comes from the
-same minutes as the others'. The ``--overlap`` configurations run agents.ppo's ``Collector`` as the trainer does: the
-next rollout is collected in a thread while the update runs, and each timed iteration ends once it is in (nothing
-runs on into the next configuration's turn); their phases are not split (the two threads' times overlap), only
-collection (the thread's own seconds), the update and the wait for the collection. Each also gets an overlap bound: the speed if collection and the update ran side by
-side with nothing shared, the slower of the two setting the pace; what overlapping them (workers rendering the
-next rollout while the learner updates) could pay at most, before the two contend for the same cores.
+same minutes as the others'. The ``--overlap`` configurations run agents.ppo's ``Collector`` as the trainer does:
+the next rollout is collected in a thread while the update runs, and each timed iteration ends once it is in
+(nothing runs on into the next configuration's turn); their phases are not split (the two threads' times overlap),
+only collection (the thread's own seconds), the update and the wait for the collection. Each also gets an overlap
+bound: the speed if collection and the update ran side by side with nothing shared, the slower of the two setting
+the pace; what overlapping them (workers rendering the next rollout while the learner updates) could pay at most,
+before the two contend for the same cores.
 
 Rendering cannot be separated by wrapping (the env's workers render), so after every training iteration the same
 env configuration (the recipe's envs and wrappers, a separate instance) steps alone with seeded random actions, once
@@ -555,7 +556,8 @@ def markdown(r: dict) -> str:
         if "wait_ms_per_env_step" in c:  # overlapped: what it is made of instead of a bound
             bound = None
             spread += (
-                f" (overlapped: collection {c['collect_ms_per_env_step']:.2f}, update {c['update_ms_per_env_step']:.2f},"
+                f" (overlapped: collection {c['collect_ms_per_env_step']:.2f},"
+                f" update {c['update_ms_per_env_step']:.2f},"
                 f" waiting for the collection {c['wait_ms_per_env_step']:.2f} ms per env step)"
             )
         rows.append(

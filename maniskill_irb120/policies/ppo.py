@@ -144,9 +144,7 @@ class Agent(nn.Module):
             return mean
         return Normal(mean, self.log_std(x, mean).exp()).sample()
 
-    def get_action_and_value(
-        self, obs, action=None, with_mean: bool = False, precision: str = "fp32", generator=None
-    ):
+    def get_action_and_value(self, obs, action=None, with_mean: bool = False, precision: str = "fp32", generator=None):
         """An action (sampled unless given), its log-probability, the entropy and the value; ``precision``: the
         encoder's (:meth:`features`), the heads are float32 either way. ``generator``: a ``torch.Generator`` the
         sample draws from instead of torch's global one (a collector thread beside the learner's, agents.ppo's
