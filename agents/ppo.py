@@ -11,8 +11,12 @@ the run around it is agents.common.loop's. ``--base-checkpoint`` learns a residu
 
 from __future__ import annotations
 
+import copy
+import threading
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
@@ -149,6 +153,10 @@ class Args(RunArgs):
     """--obs rgbd: privileged, an asymmetric actor-critic: the value head reads the privileged state (the
     --obs state vector, recorded per step by the training envs) through its own 3x256 tanh MLP and running
     normaliser; the policy still reads the camera and proprioception alone, and acts without the privileged state"""
+    overlap: bool = False
+    """collect the next rollout in a thread while the update runs, so the envs render while the learner trains
+    (a camera run's update is most of its time); the collector acts with the weights from before the update (one
+    update behind) and stores its own log-probabilities, so PPO's ratio and clip cover the lag. CPU worker envs"""
 
     def check(self) -> None:
         """ValueError for flags that cannot run together (agents.common.check_budget calls it, before anything runs)."""
@@ -158,6 +166,11 @@ class Args(RunArgs):
                     raise ValueError(
                         f"--{flag} {value} is for a camera policy (--obs rgbd); this run has --obs {self.obs}"
                     )
+        if self.overlap and not self.evaluate and overlap_backend(self) == "gpu":
+            raise ValueError(
+                f"--overlap steps the CPU envs in a thread beside the update; --backend {self.backend} gives the "
+                "GPU-batched env, which steps in the learner's own CUDA stream: use --backend cpu or drop --overlap"
+            )
 
     @property
     def batch_size(self) -> int:
@@ -166,6 +179,11 @@ class Args(RunArgs):
     @property
     def minibatch_size(self) -> int:
         return self.batch_size // self.num_minibatches
+
+
+def overlap_backend(args: Args) -> str:
+    """The backend ``args.backend`` resolves to (``auto``: gpu when CUDA is available, as make_vec_env decides)."""
+    return args.backend if args.backend != "auto" else ("gpu" if torch.cuda.is_available() else "cpu")
 
 
 def make_envs(args: Args, num_envs: int, evaluate: bool = False, video_dir: Optional[Path] = None):
@@ -378,32 +396,49 @@ class Rollout:
     """PPO's on-policy storage: ``--num-steps`` steps of the ``--num-envs`` envs, and the envs' current observation
     carried from one rollout to the next."""
 
-    def __init__(self, envs, next_obs: dict, args: Args, device):
-        T, N = args.num_steps, args.num_envs
-        self.envs, self.args, self.device = envs, args, device
-        self.next_obs, self.next_done = next_obs, torch.zeros(N, device=device)
-        self.obs = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in next_obs.items()}
-        self.actions = torch.zeros((T, N) + envs.single_action_space.shape, device=device)
+    def __init__(self, envs, next_obs: dict, args: Args, device, fresh: bool = False):
+        self.envs, self.args, self.device, self.fresh = envs, args, device, fresh
+        self.next_obs, self.next_done = next_obs, torch.zeros(args.num_envs, device=device)
+        self.allocate()
+        self.tracker = EpisodeTracker(args.num_envs, device)
+
+    def allocate(self) -> None:
+        """The rollout's storage, which the batch :meth:`collect` returns views of."""
+        T, N, device = self.args.num_steps, self.args.num_envs, self.device
+        self.obs = {k: torch.zeros((T,) + v.shape, dtype=v.dtype, device=device) for k, v in self.next_obs.items()}
+        self.actions = torch.zeros((T, N) + self.envs.single_action_space.shape, device=device)
         self.logprobs, self.rewards, self.dones, self.values, self.final_values = (
             torch.zeros((T, N), device=device) for _ in range(5)
         )
-        self.tracker = EpisodeTracker(N, device)
 
-    def collect(self, agent: Agent, recent: dict[str, list[float]]) -> tuple[dict, float]:
+    def collect(
+        self,
+        agent: Agent,
+        recent: dict[str, list[float]],
+        generator: Optional[torch.Generator] = None,
+        stop: Optional[threading.Event] = None,
+    ) -> tuple[dict, float]:
         """One rollout of the sampling policy: the flat batch :func:`ppo_update` trains on, with GAE's advantages
         and returns, and the seconds spent stepping the envs. Finished episodes' metrics go to ``recent``. The
         run's step counter moves when the iteration is done (:func:`train`), not here: a run stopped mid-rollout
-        saves counters that match the iterations its weights have trained."""
+        saves counters that match the iterations its weights have trained. ``fresh`` (the constructor's): new
+        storage for every rollout, so a batch still being trained on is not overwritten by the next (``--overlap``);
+        ``generator``: the actions' random numbers; ``stop``: set, the rollout ends with :class:`CollectionStopped`
+        before its next env step."""
         args, device, envs = self.args, self.device, self.envs
+        if self.fresh:
+            self.allocate()
         agent.eval()
         self.final_values.zero_()
         sim_time = 0.0
         for step in range(args.num_steps):
+            if stop is not None and stop.is_set():
+                raise CollectionStopped()
             for k in self.obs:
                 self.obs[k][step] = self.next_obs[k]
             self.dones[step] = self.next_done
             with torch.no_grad():
-                action, logprob, _, value = agent.get_action_and_value(self.next_obs)
+                action, logprob, _, value = agent.get_action_and_value(self.next_obs, generator=generator)
             self.values[step] = value.flatten()
             self.actions[step], self.logprobs[step] = action, logprob
             ts = time.perf_counter()
@@ -438,6 +473,81 @@ class Rollout:
             values=self.values.reshape(-1),
         )
         return batch, sim_time
+
+
+class CollectionStopped(Exception):
+    """A rollout ended before its last step by :meth:`Collector.abort`."""
+
+
+class Collector:
+    """``--overlap``: rollouts collected in a thread while the learner updates on the last one.
+
+    The thread acts with a snapshot of the learner's weights (``actor``, running normaliser included) taken
+    before the update it overlaps, so the rollout trained on in iteration k+1 was sampled by the weights of
+    iteration k-1, one update behind the ones that train on it; its stored log-probabilities and values are the
+    snapshot's, so PPO's ratio is against the policy that acted. The thread's time is spent waiting on the env
+    workers' pipes and in torch ops, which release the GIL; both threads run torch on this process's one intra-op
+    thread (``one_thread_beside_workers``). The actions draw from a generator of their own, so the update's
+    minibatch permutations do not depend on how the two threads interleave.
+
+    Nothing is in flight between iterations (:meth:`join` ends each), so checkpoints, evaluations and the loop's
+    bookkeeping see a still run; the one rollout collected ahead (``ready``) is not counted until it is trained
+    on, so a run stopped or saved there counts only the env steps it trained, and ``--resume`` collects anew."""
+
+    def __init__(self, rollout: Rollout, agent: Agent, seed: int):
+        self.rollout = rollout
+        self.actor = copy.deepcopy(agent)
+        self.generator = torch.Generator(device=rollout.device).manual_seed(seed)
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ppo-collector")
+        self.stop = threading.Event()
+        self.pending = None
+        self.ready: Optional[tuple] = None
+
+    def _collect(self) -> tuple[dict, float, dict, float]:
+        recent: dict[str, list[float]] = defaultdict(list)
+        t = time.perf_counter()
+        batch, sim_time = self.rollout.collect(self.actor, recent, self.generator, self.stop)
+        return batch, sim_time, recent, time.perf_counter() - t
+
+    def take(self, agent: Agent) -> tuple[dict, float, dict, float]:
+        """(batch, seconds stepping the envs, finished episodes' metrics, seconds collecting) of the rollout the
+        next update trains on: the one collected during the last update, or with none (the first iteration, and
+        the first after a ``--resume``) one collected now by ``agent``'s weights."""
+        if self.ready is None:
+            self.actor.load_state_dict(agent.state_dict())
+            self.ready = self._collect()
+        out, self.ready = self.ready, None
+        return out
+
+    def launch(self, agent: Agent) -> None:
+        """Starts the next rollout in the thread, acting with ``agent``'s weights as they are now."""
+        assert self.pending is None and self.ready is None, "a rollout is already collected or in flight"
+        self.actor.load_state_dict(agent.state_dict())
+        self.pending = self.pool.submit(self._collect)
+
+    def join(self) -> None:
+        """Waits for the rollout in flight, the next :meth:`take`'s (an error of the collection is raised here)."""
+        future, self.pending = self.pending, None
+        if future is None:
+            return
+        try:
+            self.ready = future.result()
+        except KeyboardInterrupt:  # in this thread, while it waited: stop the collection before the envs close
+            self.stop.set()
+            wait_for([future])
+            raise
+
+    def abort(self) -> None:
+        """Stops the rollout in flight at its next env step and waits for it; nothing is kept."""
+        future, self.pending, self.ready = self.pending, None, None
+        if future is not None:
+            self.stop.set()
+            wait_for([future])
+            self.stop.clear()
+
+    def close(self) -> None:
+        self.abort()
+        self.pool.shutdown(wait=True)
 
 
 # ----------------------------------------------------------------------------- checkpoints
@@ -565,6 +675,7 @@ class PPO(Algorithm):
         self.counters = dict(env_steps=0, iteration=0)
         self.device = resolve_device(args.device)
         self.eval_envs, self.last_eval, self.history, self.recent = None, {}, [], defaultdict(list)
+        self.collector: Optional[Collector] = None
 
     def read(self, path: Path) -> dict:
         return read_resume(path, self.args)
@@ -594,7 +705,12 @@ class PPO(Algorithm):
         total = env_step_budget(self.args)
         self.iterations = -(-total // self.args.batch_size) if total else None  # the last starts below the budget
         next_obs, _ = self.envs.reset(seed=self.args.seed + self.counters["iteration"])
-        self.rollout = Rollout(self.envs, obs_to(flatten_obs(next_obs), self.device), self.args, self.device)
+        overlap = self.args.overlap
+        self.rollout = Rollout(self.envs, obs_to(flatten_obs(next_obs), self.device), self.args, self.device, overlap)
+        if overlap:
+            torch.set_num_threads(1)  # the learner and the collector each on one (main restores the count)
+            seed = self.args.seed * 1_000_003 + self.counters["iteration"]
+            self.collector = Collector(self.rollout, self.agent, seed)
         self.t_start = time.perf_counter()
 
     def step(self, budget: Budget) -> dict:
@@ -603,15 +719,30 @@ class PPO(Algorithm):
         t0 = time.perf_counter()
         if args.anneal_lr:
             optimizer.param_groups[0]["lr"] = (1.0 - (it - 1.0) / self.iterations) * args.learning_rate
-        batch, sim_time = self.rollout.collect(agent, self.recent)
+        collector = self.collector
+        if collector is None:
+            batch, sim_time = self.rollout.collect(agent, self.recent)
+        else:  # the rollout collected during the last update; the next one starts now, beside this update
+            batch, sim_time, recent, _ = collector.take(agent)
+            for k, v in recent.items():
+                self.recent[k] += v
+            if self.iterations is None or it < self.iterations:  # the last iteration collects nothing untrained
+                collector.launch(agent)
         if agent.critic_norm is not None:  # the critic's statistics before its update (the actor's never read them)
             agent.critic_norm.update(batch["obs"][PRIVILEGED])
         agent.train()
         tu = time.perf_counter()
-        stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
-        if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
-            agent.norm.update(batch["obs"]["state"])
+        try:
+            stats = ppo_update(agent, optimizer, batch, args, critic_only=it <= args.critic_warmup_iters)
+            if agent.norm is not None:  # after the update: the rollout's log-probabilities used the old statistics
+                agent.norm.update(batch["obs"]["state"])
+        except BaseException:
+            if collector is not None:
+                collector.abort()
+            raise
         update_time = time.perf_counter() - tu
+        if collector is not None:
+            collector.join()  # nothing in flight between iterations: saves and evaluations see still envs
         counters["iteration"] = it
         counters["env_steps"] += args.batch_size
         dt = time.perf_counter() - t0
@@ -676,6 +807,8 @@ class PPO(Algorithm):
         return dict(global_step=c["env_steps"], **its, last_eval=self.last_eval)
 
     def close(self) -> None:
+        if self.collector is not None:
+            self.collector.close()
         if self.eval_envs is not None:
             self.eval_envs.close()
 

@@ -16,9 +16,13 @@ trainer's own and not a copy of its loop:
 Configurations of the recipe (CONFIGS: ``today``, the recipe as it is; ``fast`` and ``fastest``, the update's
 levers that measured to pay) train side by side in the same run, each its own envs, agent and optimiser from the
 same seed, one iteration each in a rotating order per round, so each one's ratio to the envs alone comes from the
-same minutes as the others'. Each also gets an overlap bound: the speed if collection and the update ran side by
-side with nothing shared, the slower of the two setting the pace; what overlapping them (workers rendering the
-next rollout while the learner updates) could pay at most, before the two contend for the same cores.
+same minutes as the others'. The ``--overlap`` configurations run agents.ppo's ``Collector`` as the trainer does:
+the next rollout is collected in a thread while the update runs, and each timed iteration ends once it is in
+(nothing runs on into the next configuration's turn); their phases are not split (the two threads' times overlap),
+only collection (the thread's own seconds), the update and the wait for the collection. Each also gets an overlap
+bound: the speed if collection and the update ran side by side with nothing shared, the slower of the two setting
+the pace; what overlapping them (workers rendering the next rollout while the learner updates) could pay at most,
+before the two contend for the same cores.
 
 Rendering cannot be separated by wrapping (the env's workers render), so after every training iteration the same
 env configuration (the recipe's envs and wrappers, a separate instance) steps alone with seeded random actions, once
@@ -85,6 +89,11 @@ CONFIGS: dict[str, tuple[tuple[str, ...], str]] = {
     "fastest": (
         ("--precision", "auto", "--update-epochs", "2", "--num-minibatches", "4"),
         "bf16 encoder in the update, 2 epochs of 4 minibatches (128 rows)",
+    ),
+    "overlap": (("--overlap",), "the recipe, the next rollout collected in a thread while the update runs"),
+    "fast+overlap": (
+        ("--precision", "auto", "--update-epochs", "4", "--num-minibatches", "4", "--overlap"),
+        "fast, the next rollout collected in a thread while the update runs",
     ),
 }
 """training configurations compared in one run: the ``ppo-rgbd`` recipe's flags, then these (``--precision auto``
@@ -239,11 +248,15 @@ class Trainer:
         self.agent = ppo.agent_for(self.envs, device, cli)
         self.optimizer = torch.optim.Adam(self.agent.parameters(), lr=cli.learning_rate, eps=1e-5)  # as train()
         next_obs, _ = self.envs.reset(seed=cli.seed)
-        self.rollout = ppo.Rollout(self.envs, obs_to(flatten_obs(next_obs), device), cli, device)
+        self.rollout = ppo.Rollout(self.envs, obs_to(flatten_obs(next_obs), device), cli, device, cli.overlap)
         self.timers = timers = Timers()
-        timers.wrap(self.envs, "step", "env")
-        timers.wrap(self.agent, "get_action_and_value", "forward")
-        timers.wrap(self.agent, "get_value", "forward")
+        self.collector = None
+        if cli.overlap:  # the trainer's own Collector, made before any method is wrapped (it copies the agent)
+            self.collector = ppo.Collector(self.rollout, self.agent, cli.seed)
+        else:  # the phases of the collection, timed in the one thread
+            timers.wrap(self.envs, "step", "env")
+            timers.wrap(self.agent, "get_action_and_value", "forward")
+            timers.wrap(self.agent, "get_value", "forward")
         timers.wrap(self.optimizer, "step", "optimizer")
         timers.wrap(self.optimizer, "zero_grad", "optimizer")
         self.rounds: list[dict] = []
@@ -253,6 +266,8 @@ class Trainer:
         import agents.ppo as ppo
 
         cli, agent, timers = self.cli, self.agent, self.timers
+        if self.collector is not None:
+            return self.overlapped_iteration()
         recent: dict[str, list[float]] = defaultdict(list)
         timers.reset()
         timers.phase = "collect"
@@ -280,7 +295,41 @@ class Trainer:
         )
         return row, batch
 
+    def overlapped_iteration(self) -> tuple[dict, dict]:
+        """One ``--overlap`` iteration as ``agents.ppo.PPO.step`` runs it: the rollout collected during the last
+        update (the warm-up's collected now), the next one launched in the thread, the update, the wait for it."""
+        import agents.ppo as ppo
+
+        cli, agent, timers, collector = self.cli, self.agent, self.timers, self.collector
+        timers.reset()
+        timers.phase = "update"  # only the optimiser is wrapped, and only the learner's thread calls it
+        t0 = time.perf_counter()
+        batch, _, _, collect_s = collector.take(agent)
+        collector.launch(agent)
+        t1 = time.perf_counter()
+        agent.train()
+        ppo.ppo_update(agent, self.optimizer, batch, cli)
+        if agent.norm is not None:
+            agent.norm.update(batch["obs"]["state"])
+        t2 = time.perf_counter()
+        collector.join()
+        t3 = time.perf_counter()
+        calls = timers.calls
+        timers.reset()
+        row = dict(
+            wall_s=t3 - t0,
+            env_steps=cli.batch_size,
+            collect_s=collector.ready[3],  # the thread's seconds for the rollout it collected beside this update
+            update_s=t2 - t1,
+            loop_s=0.0,
+            wait_s=(t1 - t0) + (t3 - t2),
+            optimizer_steps=calls.get("update_optimizer", 0) // 2,
+        )
+        return row, batch
+
     def close(self) -> None:
+        if self.collector is not None:
+            self.collector.close()
         self.envs.close()
 
 
@@ -372,6 +421,7 @@ def config_summary(rounds: list[dict], alone_rgbd: float) -> dict:
     training = steps / total("wall_s")
     per_round = sorted(r["env_steps"] / r["wall_s"] / r["rgbd_env_steps_per_s"] for r in rounds)
     bound = 1e3 / max(ms(total("collect_s")), ms(total("update_s") + total("loop_s")))
+    waited = dict(wait_ms_per_env_step=ms(total("wait_s"))) if any("wait_s" in r for r in rounds) else {}
     return dict(
         env_steps=steps,
         training_env_steps_per_s=training,
@@ -384,6 +434,7 @@ def config_summary(rounds: list[dict], alone_rgbd: float) -> dict:
         overlap_bound_ratio_to_env_only_rgbd=bound / alone_rgbd,
         split_ms_per_env_step=split,
         optimizer_steps_per_iteration=total("optimizer_steps") / len(rounds),
+        **waited,
     )
 
 
@@ -504,12 +555,20 @@ def markdown(r: dict) -> str:
         if c.get("precision") and "--precision" in c["flags"]:
             flags += f" (= {c['precision']})"
         bound = c.get("overlap_bound_ratio_to_env_only_rgbd")
+        if "wait_ms_per_env_step" in c:  # overlapped: what it is made of instead of a bound
+            bound = None
+            spread += (
+                f" (overlapped: collection {c['collect_ms_per_env_step']:.2f},"
+                f" update {c['update_ms_per_env_step']:.2f},"
+                f" waiting for the collection {c['wait_ms_per_env_step']:.2f} ms per env step)"
+            )
         rows.append(
             f"| PPO training from the camera, **{name}** | {flags} | {c['optimizer_steps_per_iteration']:.0f} | "
             f"**{c['training_env_steps_per_s']:.0f}** | {c['total_ms_per_env_step']:.2f} | "
             f"**{c['ratio_training_to_env_only_rgbd']:.2f}x**{spread} | "
             + (f"{c['overlap_bound_env_steps_per_s']:.0f} ({bound:.2f}x) |" if bound else "|")
         )
+    configs = {n: c for n, c in configs.items() if "wait_ms_per_env_step" not in c}  # split: in one thread only
     rows += [
         f"| the same envs alone, rgbd | | | {r['env_only_rgbd_env_steps_per_s']:.0f} | "
         f"{r['env_only_rgbd_ms_per_env_step']:.2f} | 1 | |",
@@ -521,6 +580,8 @@ def markdown(r: dict) -> str:
         + " | how |",
         "|---|" + "---|" * len(configs) + "---|",
     ]
+    if not configs:
+        return "\n".join(rows[:-3])
     share = lambda ms, c: f"{ms:.2f} ({100 * ms / c['total_ms_per_env_step']:.0f} %)"  # noqa: E731
     for key, label, how in PHASES:
         cells = [share(c["split_ms_per_env_step"][key], c) for c in configs.values()]

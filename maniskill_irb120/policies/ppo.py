@@ -182,13 +182,15 @@ class Agent(nn.Module):
             return mean
         return Normal(mean, self.log_std(x, mean).exp()).sample()
 
-    def get_action_and_value(self, obs, action=None, with_mean: bool = False, precision: str = "fp32"):
+    def get_action_and_value(self, obs, action=None, with_mean: bool = False, precision: str = "fp32", generator=None):
         """An action (sampled unless given), its log-probability, the entropy and the value; ``precision``: the
-        encoder's (:meth:`features`), the heads are float32 either way."""
+        encoder's (:meth:`features`), the heads are float32 either way. ``generator``: a ``torch.Generator`` the
+        sample draws from instead of torch's global one (a collector thread beside the learner's, agents.ppo's
+        ``--overlap``, so neither moves the other's random numbers)."""
         x = self.features(obs, precision)
         mean = self.mean(obs, x)
         dist = Normal(mean, self.log_std(x, mean).exp())
         if action is None:
-            action = dist.sample()
+            action = dist.sample() if generator is None else torch.normal(mean, dist.stddev, generator=generator)
         out = (action, dist.log_prob(action).sum(1), dist.entropy().sum(1), self.value(obs, x))
         return (*out, mean) if with_mean else out
