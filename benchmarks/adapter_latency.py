@@ -23,7 +23,7 @@ from typing import Optional
 
 import numpy as np
 
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.abb.client import ABBRobot
 from maniskill_irb120.abb.emulator.controller import STATEMENT_COST_US, ControllerEmulator
@@ -131,9 +131,7 @@ def check(args: Args) -> None:
     one line and exit status 2): --render-only with a JSON that is not there, --steps below 1, a negative
     --statement-cost-us."""
     if args.render_only:
-        path = args.json or RESULTS_JSON
-        if not path.is_file():
-            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        rendered_from(args.json or RESULTS_JSON, "--json")
         return
     if args.steps < 1:
         raise ValueError(f"--steps {args.steps}: time at least one tool step")

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Optional
 
 from agents.recipes import RECIPES, STATE_PPO_NET, render
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.diagnostics.acceptance_runs import PHYSX_GPU
 
@@ -368,9 +368,7 @@ def check(args: Args) -> None:
     """Refuse flags that cannot run, each naming its flag, before any check runs (``benchmarks.lib.cli`` makes it one
     line and exit status 2): --jobs or --trainer-envs below 1, --render-only with a JSON that is not there."""
     if args.render_only:
-        path = args.json_path or RESULTS_JSON
-        if not path.is_file():
-            raise FileNotFoundError(f"--render-only reads --json-path {path}, which does not exist")
+        rendered_from(args.json_path or RESULTS_JSON, "--json-path")
         return
     if args.jobs < 1:
         raise ValueError(f"--jobs {args.jobs}: expected 1 or more")

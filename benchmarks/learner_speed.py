@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 import tyro
 
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,8 +104,7 @@ def check(args: Args) -> None:
     and exit status 2): --render-only with a JSON that is not there, a --device torch does not know or without CUDA
     here, a GPU run's --update-results (the section holds CPU figures), --updates, --rounds or --episodes below 1."""
     if args.render_only:
-        if not args.json.is_file():
-            raise FileNotFoundError(f"--render-only reads --json {args.json}, which does not exist")
+        rendered_from(args.json, "--json")
         return
     try:
         dev = torch.device(args.device)

@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.report import RESULTS, raw_link, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -261,8 +261,7 @@ def check(args: Args) -> None:
     """Refuse flags that cannot run, each naming its flag, before Ray or an env starts (``benchmarks.lib.cli`` makes
     it one line and exit status 2): --render-only with a JSON that is not there, a size or count below 1."""
     if args.render_only:
-        if not args.json.is_file():
-            raise FileNotFoundError(f"--render-only reads --json {args.json}, which does not exist")
+        rendered_from(args.json, "--json")
         return
     for flag in ("steps", "iterations", "batch", "rounds", "paired_steps", "paired_rounds"):
         value = getattr(args, flag)

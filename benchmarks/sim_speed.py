@@ -36,7 +36,7 @@ from typing import Optional
 
 import numpy as np
 
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.pybullet_loop import random_actions
 from benchmarks.lib.report import argv_command, linked_path, raw_link, recorded_command, replace_section
 
@@ -468,9 +468,7 @@ def check(args: Args) -> None:
     line and exit status 2): --render-only with a JSON that is not there, --steps, --rounds, --gpu-steps or a
     --gpu-num-envs below 1, --gpu-only without CUDA, a --baseline that is no commit of this repository."""
     if args.render_only:
-        path = args.json or RESULTS_JSON
-        if not path.is_file():
-            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        rendered_from(args.json or RESULTS_JSON, "--json")
         return
     for flag, value in (("--steps", args.steps), ("--rounds", args.rounds), ("--gpu-steps", args.gpu_steps)):
         if value < 1:

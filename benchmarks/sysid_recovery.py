@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from benchmarks.lib.cli import entry
+from benchmarks.lib.cli import entry, rendered_from
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.abb.emulator.controller import ControllerEmulator
 from maniskill_irb120.sim2real.agent import IRB120RealAgent
@@ -131,9 +131,7 @@ def check(args: Args) -> None:
     """Refuse flags that cannot run, each naming its flag, before the emulator starts (``benchmarks.lib.cli`` makes it
     one line and exit status 2): --render-only with a JSON that is not there, --steps or --repeats below 1."""
     if args.render_only:
-        path = args.json or RESULTS_JSON
-        if not path.is_file():
-            raise FileNotFoundError(f"--render-only reads --json {path}, which does not exist")
+        rendered_from(args.json or RESULTS_JSON, "--json")
         return
     for flag, value in (("--steps", args.steps), ("--repeats", args.repeats)):
         if value < 1:

@@ -16,12 +16,19 @@ from __future__ import annotations
 import io
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Optional, TypeVar
 
 A = TypeVar("A")
 
 INPUT_ERRORS = (ValueError, FileNotFoundError)
 """what a ``check`` raises for a flag that cannot run"""
+
+
+def rendered_from(path: Path, flag: str) -> None:
+    """A ``--render-only`` check: FileNotFoundError naming ``flag`` unless ``path``, the JSON it renders, is there."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"--render-only reads {flag} {path}, which does not exist")
 
 
 def say(prog: str, message: str) -> None:
