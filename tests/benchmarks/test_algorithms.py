@@ -553,3 +553,19 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     assert "validation success" in capsys.readouterr().out
     with pytest.raises(ValueError, match="positive"):
         SelectOnValidation(every=0)
+
+
+def test_the_docs_selection_callback_entry_builds_the_callback():
+    """docs/rl_libraries.md's ``callback:`` example is what the loader reads into a SelectOnValidation."""
+    import re
+
+    import yaml
+
+    from agents.configs import loader
+    from maniskill_irb120.integrations.sb3 import SelectOnValidation
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "rl_libraries.md").read_text()
+    (block,) = re.findall(r"```yaml\n(GraspLift-IRB120-v1:\n  callback:.*?)```", doc, re.S)
+    (make,) = loader.wrappers_of(yaml.safe_load(block)["GraspLift-IRB120-v1"]["callback"])
+    made = make()
+    assert isinstance(made, SelectOnValidation) and (made.every, made.episodes) == (12500, 30)
