@@ -153,6 +153,9 @@ class Args(RunArgs):
     """--obs rgbd: privileged, an asymmetric actor-critic: the value head reads the privileged state (the
     --obs state vector, recorded per step by the training envs) through its own 3x256 tanh MLP and running
     normaliser; the policy still reads the camera and proprioception alone, and acts without the privileged state"""
+    encoder: Literal["nature", "keypoints"] = "nature"
+    """--obs rgbd: the camera encoder, nature (NatureCNN) or keypoints (KeypointCNN: conv + spatial softmax, as
+    agents.dagger's --encoder keypoints); checkpoints record it, so --resume, --evaluate and an export rebuild it"""
     overlap: bool = False
     """collect the next rollout in a thread while the update runs, so the envs render while the learner trains
     (a camera run's update is most of its time); the collector acts with the weights from before the update (one
@@ -161,7 +164,12 @@ class Args(RunArgs):
     def check(self) -> None:
         """ValueError for flags that cannot run together (agents.common.check_budget calls it, before anything runs)."""
         if self.obs != "rgbd":
-            for flag, value, default in (("augment", self.augment, "none"), ("critic-obs", self.critic_obs, "same")):
+            camera_only = (
+                ("augment", self.augment, "none"),
+                ("critic-obs", self.critic_obs, "same"),
+                ("encoder", self.encoder, "nature"),
+            )
+            for flag, value, default in camera_only:
                 if value != default:
                     raise ValueError(
                         f"--{flag} {value} is for a camera policy (--obs rgbd); this run has --obs {self.obs}"
@@ -250,6 +258,7 @@ def agent_for(envs, device, args: Args, residual: bool = False, privileged_dim: 
         logstd=args.logstd,
         critic_obs=args.critic_obs,
         privileged_dim=privileged_dim or 0,
+        encoder=args.encoder,
     )
     if args.base_checkpoint is not None:
         where = f"--base-checkpoint {args.base_checkpoint}"
@@ -262,7 +271,8 @@ def agent_for(envs, device, args: Args, residual: bool = False, privileged_dim: 
         if base.signature() != {k: v for k, v in agent.signature().items() if k not in own}:
             raise ValueError(
                 f"--base-checkpoint {args.base_checkpoint}: its policy takes {base.signature()}, these envs give "
-                f"{agent.signature()} (obs={args.obs}; a base trained with --obs-without does not fit)"
+                f"{agent.signature()} (obs={args.obs}; a base trained with --obs-without does not fit; --encoder "
+                "must be the base's)"
             )
         if section["action_frame"] != args.action_frame or section["obs_without"]:
             raise ValueError(
@@ -645,7 +655,12 @@ def run_evaluation_only(args: Args) -> dict:
         envs = make_envs(args, 1, evaluate=True)  # its spaces size the agent
         try:
             sig = ckpt["signature"]  # its critic as trained (an evaluation acts without it)
-            trained = replace(args, critic_obs=sig.get("critic_obs", "same"), base_checkpoint=None)
+            trained = replace(
+                args,
+                critic_obs=sig.get("critic_obs", "same"),
+                encoder=sig.get("encoder", "nature"),
+                base_checkpoint=None,
+            )
             agent = agent_for(envs, device, trained, residual=sig["residual"], privileged_dim=sig.get("privileged_dim"))
         finally:
             envs.close()

@@ -14,7 +14,8 @@ trainer's own and not a copy of its loop:
   clip, minibatch gathering, the running observation normaliser's update): the update's total minus those three.
 
 Configurations of the recipe (CONFIGS: ``today``, the recipe as it is; ``fast`` and ``fastest``, the update's
-levers that measured to pay) train side by side in the same run, each its own envs, agent and optimiser from the
+levers that measured to pay; ``keypoints`` and ``fast+keypoints``, the same with ``--encoder keypoints``, asked
+for by name) train side by side in the same run, each its own envs, agent and optimiser from the
 same seed, one iteration each in a rotating order per round, so each one's ratio to the envs alone comes from the
 same minutes as the others'. The ``--overlap`` configurations run agents.ppo's ``Collector`` as the trainer does:
 the next rollout is collected in a thread while the update runs, and each timed iteration ends once it is in
@@ -90,6 +91,11 @@ CONFIGS: dict[str, tuple[tuple[str, ...], str]] = {
         ("--precision", "auto", "--update-epochs", "2", "--num-minibatches", "4"),
         "bf16 encoder in the update, 2 epochs of 4 minibatches (128 rows)",
     ),
+    "keypoints": (("--encoder", "keypoints"), "the recipe with the keypoint encoder (KeypointCNN) for the Nature CNN"),
+    "fast+keypoints": (
+        ("--precision", "auto", "--update-epochs", "4", "--num-minibatches", "4", "--encoder", "keypoints"),
+        "fast with the keypoint encoder (KeypointCNN) for the Nature CNN",
+    ),
     "overlap": (("--overlap",), "the recipe, the next rollout collected in a thread while the update runs"),
     "fast+overlap": (
         ("--precision", "auto", "--update-epochs", "4", "--num-minibatches", "4", "--overlap"),
@@ -98,6 +104,8 @@ CONFIGS: dict[str, tuple[tuple[str, ...], str]] = {
 }
 """training configurations compared in one run: the ``ppo-rgbd`` recipe's flags, then these (``--precision auto``
 is bf16 on a CPU with native bf16, fp32 elsewhere; the JSON records which)"""
+DEFAULT_CONFIGS = ("today", "fast", "fastest", "overlap", "fast+overlap")
+"""what a run compares unless ``--configs`` says otherwise (the encoder's configurations are asked for by name)"""
 
 
 @dataclass
@@ -111,7 +119,7 @@ class Args:
     """tiny sizes (2 envs x 16 steps, one epoch, one timed iteration): checks the script runs and writes its JSON"""
     probe_threads: bool = True
     """rerun each update on a copy with all the machine's torch threads (not counted in training's time)"""
-    configs: tuple[str, ...] = tuple(CONFIGS)
+    configs: tuple[str, ...] = DEFAULT_CONFIGS
     """the training configurations to compare (CONFIGS), each its own envs, agent and optimiser, iterations in
     turns; the first is the one whose split the section details"""
     json: Path = RESULTS_JSON

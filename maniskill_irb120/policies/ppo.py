@@ -6,7 +6,9 @@ log-std that depends on the state (a small head beside the mean): one learned lo
 for a sampled episode to hold an object still, which also ends the exploration everywhere else.
 ``critic_obs="privileged"`` makes it an asymmetric actor-critic: the value head reads the privileged state
 (``obs["privileged"]``, training envs only) through its own 3x256 tanh MLP and running normaliser, while the actor
-reads the camera and proprioception alone, so the policy acts (and deploys) without the privileged state."""
+reads the camera and proprioception alone, so the policy acts (and deploys) without the privileged state.
+``encoder="keypoints"`` puts :class:`~maniskill_irb120.policies.nets.KeypointCNN` (conv + spatial softmax, DAgger's
+``--encoder keypoints``) under the heads instead of the Nature CNN."""
 
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import torch
 import torch.nn as nn
 from torch.distributions.normal import Normal
 
-from maniskill_irb120.policies.nets import DeterministicActor, NatureCNN, RunningNorm, layer_init
+from maniskill_irb120.policies.nets import ENCODERS, DeterministicActor, KeypointCNN, NatureCNN, RunningNorm, layer_init
 
 STATE_NETS = ("shared", "mlp")
 LOGSTDS = ("param", "state")
@@ -29,7 +31,9 @@ LOGSTD_RANGE = (-5.0, 2.0)
 class Agent(nn.Module):
     """Shared encoder, separate policy and value heads, a state-independent log-std (``logstd="state"``: a head on
     the actor's input); with ``residual`` the mean is a frozen base policy's action plus the actor head's output (a
-    zero-initialised residual)."""
+    zero-initialised residual). ``encoder``: the camera encoder under the heads, ``nature`` (NatureCNN) or
+    ``keypoints`` (KeypointCNN); a residual's frozen base is built with the same one (a DAgger policy of that
+    encoder)."""
 
     def __init__(
         self,
@@ -43,8 +47,16 @@ class Agent(nn.Module):
         logstd: str = "param",
         critic_obs: str = "same",
         privileged_dim: int = 0,
+        encoder: str = "nature",
     ):
         super().__init__()
+        if encoder not in ENCODERS:
+            raise ValueError(f"unknown encoder {encoder!r}; expected one of {ENCODERS}")
+        if encoder != "nature" and (image_shape is None or state_net != "shared"):
+            raise ValueError(
+                f"encoder={encoder!r} reads the camera: it needs an image and state_net='shared' (got "
+                f"image_shape={image_shape}, state_net={state_net!r})"
+            )
         if state_net not in STATE_NETS:
             raise ValueError(f"unknown state_net {state_net!r}; expected one of {STATE_NETS}")
         if logstd not in LOGSTDS:
@@ -62,9 +74,13 @@ class Agent(nn.Module):
             )
         self.critic_obs, self.privileged_dim = critic_obs, privileged_dim if critic_obs == "privileged" else 0
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
-        self.init_logstd, self.state_net, self.logstd = init_logstd, state_net, logstd
+        self.init_logstd, self.state_net, self.logstd, self.encoder_kind = init_logstd, state_net, logstd, encoder
         self.norm = RunningNorm(state_dim) if obs_norm else None
-        self.base = DeterministicActor(image_shape, state_dim, action_dim).requires_grad_(False) if residual else None
+        self.base = (
+            DeterministicActor(image_shape, state_dim, action_dim, encoder=encoder).requires_grad_(False)
+            if residual
+            else None
+        )
         if state_net == "mlp":  # ManiSkill's examples/baselines/ppo/ppo.py Agent, sizes and initialisation
             self.encoder = nn.Identity()
             self.critic = nn.Sequential(
@@ -76,7 +92,10 @@ class Agent(nn.Module):
                 layer_init(nn.Linear(256, action_dim), std=0.01 * np.sqrt(2)),
             )
         else:
-            self.encoder = NatureCNN(image_shape, state_dim)
+            if encoder == "keypoints":
+                self.encoder = KeypointCNN(image_shape, state_dim)
+            else:
+                self.encoder = NatureCNN(image_shape, state_dim)
             d = self.encoder.out_dim
             self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
             self.actor_mean = nn.Sequential(
@@ -136,6 +155,8 @@ class Agent(nn.Module):
         )
         if self.critic_obs != "same":  # the signature predates the choice: older checkpoints load as they are
             sig.update(critic_obs=self.critic_obs, privileged_dim=self.privileged_dim)
+        if self.encoder_kind != "nature":  # likewise: a Nature CNN checkpoint's signature is the one it always had
+            sig["encoder"] = self.encoder_kind
         return sig
 
     def mean(self, obs, x: torch.Tensor) -> torch.Tensor:
