@@ -58,6 +58,14 @@ CASES = {
     "collect-demos, zero episodes": (cli("collect-demos", "--episodes", "0"), ["--episodes 0"]),
     "example, wrong env id": (["examples/sb3_ppo.py", "--env-id", "GraspLift"], ["sb3_ppo.py: unknown env id"]),
     "demo, zero episodes": (["examples/demo.py", "--episodes", "0"], ["demo.py: --episodes 0"]),
+    "collision frames, misspelt shift": (
+        ["scripts/collision_frames.py", "--shift", "camera_fovv=75"],
+        ["collision_frames.py: --shift 'camera_fovv=75'", "camera_fov"],
+    ),
+    "collision frames, missing policy": (
+        ["scripts/collision_frames.py", "--policy", "{tmp}/missing.pt"],
+        ["collision_frames.py: --policy", "missing.pt"],
+    ),
     "example, zero envs": (["examples/sb3_ppo.py", "--num-envs", "0"], ["sb3_ppo.py: --num-envs 0: give a whole"]),
     "example, zero steps": (["examples/skrl_ppo.py", "--total-timesteps", "0"], ["--total-timesteps 0: give a whole"]),
     "example, negative held-out episodes": (["examples/sb3_sac.py", "--eval-episodes", "-1"], ["--eval-episodes -1"]),
