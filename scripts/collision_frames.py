@@ -46,6 +46,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     a = p.parse_args(argv)
     if a.max_episodes < 1 or a.frames < 1 or a.stride < 1:
         p.error("--max-episodes, --frames and --stride must be at least 1")
+    if a.seed < 0:
+        p.error(f"--seed {a.seed}: episode seeds are 0 or more")
     from maniskill_irb120.envs.randomization import Randomization
 
     try:

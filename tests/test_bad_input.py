@@ -62,6 +62,10 @@ CASES = {
         ["scripts/collision_frames.py", "--shift", "camera_fovv=75"],
         ["collision_frames.py: --shift 'camera_fovv=75'", "camera_fov"],
     ),
+    "collision frames, negative seed": (
+        ["scripts/collision_frames.py", "--seed", "-5"],
+        ["collision_frames.py: --seed -5: episode seeds are 0 or more"],
+    ),
     "collision frames, missing policy": (
         ["scripts/collision_frames.py", "--policy", "{tmp}/missing.pt"],
         ["collision_frames.py: --policy", "missing.pt"],

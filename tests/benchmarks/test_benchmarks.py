@@ -620,3 +620,14 @@ def test_sim2real_gap_leaves_an_unreadable_checkpoint_to_the_evaluation(tmp_path
     assert gap.task_of(str(bogus), gap.Args()) == "TableClearing-IRB120-v1"
     with pytest.raises(Exception, match="policy.pt"):  # the cell's evaluation names the file it cannot read
         gap.evaluate(gap.EvalConfig(policy=str(bogus), episodes=1, out=tmp_path / "cell"))
+
+
+def test_the_collision_scripts_default_shift_is_the_benchmarks_combined_row(bench_script):
+    """scripts/collision_frames.py replays sim2real_gap's first COMBINED row without importing the benchmarks."""
+    import importlib.util
+
+    gap = bench_script("sim2real_gap")
+    spec = importlib.util.spec_from_file_location("collision_frames", REPO / "scripts" / "collision_frames.py")
+    frames = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(frames)
+    assert frames.COMBINED == gap.COMBINED["fov 75 + light 0.5 + colours/textures + D435"]
