@@ -31,6 +31,31 @@ def tiny_dagger():
     return run
 
 
+TINY_PPO_RGBD = dict(
+    env_id="GraspLift-IRB120-v1",
+    obs="rgbd",
+    num_envs=2,
+    num_steps=8,
+    num_minibatches=2,
+    update_epochs=1,
+    eval_freq=0,
+    save_freq=1,
+    exp_name="t",
+    progress=False,
+    total_env_steps=16,
+    env_kwargs=dict(max_episode_steps=5),
+)
+
+
+@pytest.fixture(scope="session")
+def tiny_ppo_rgbd():
+    """``args(runs_dir, **overrides)``: the smallest camera PPO run's agents.ppo Args (one 16-step iteration of
+    5-step episodes on 2 CPU envs)."""
+    from agents.ppo import Args
+
+    return lambda runs_dir, **kw: Args(**{**TINY_PPO_RGBD, "runs_dir": runs_dir, **kw})
+
+
 @pytest.fixture
 def refused(capsys):
     """``refused(module, argv, says)``: the trainer's command line ``argv`` ends before anything runs, in one line on

@@ -156,31 +156,15 @@ def test_an_unknown_encoder_exits_2_from_the_command_line():
     assert len(err.splitlines()) == 1 and "--encoder" in err and "resnet" in err, err
 
 
-def test_a_keypoint_camera_run_trains_resumes_and_evaluates(tmp_path):
+def test_a_keypoint_camera_run_trains_resumes_and_evaluates(tmp_path, tiny_ppo_rgbd):
     """--obs rgbd --encoder keypoints on GraspLift: an iteration on two CPU envs, a checkpoint that signs the
     encoder, --resume alone (the flag comes back from the checkpoint), and --evaluate without the flag (the
     checkpoint's signature rebuilds the network)."""
     from agents.common import args as common_args
 
-    base = dict(
-        env_id="GraspLift-IRB120-v1",
-        obs="rgbd",
-        encoder="keypoints",
-        obs_norm=True,
-        num_envs=2,
-        num_steps=8,
-        num_minibatches=2,
-        update_epochs=1,
-        eval_freq=0,
-        save_freq=1,
-        runs_dir=tmp_path,
-        exp_name="t",
-        progress=False,
-        total_env_steps=16,
-        env_kwargs=dict(max_episode_steps=5),
-    )
+    args = tiny_ppo_rgbd(tmp_path, encoder="keypoints", obs_norm=True)
     torch.manual_seed(0)
-    first = main(Args(**base))
+    first = main(args)
     assert first["global_step"] == 16
     latest = Path(first["run_dir"]) / "checkpoints" / "latest.pt"
     saved = torch.load(latest, weights_only=False)

@@ -4,6 +4,7 @@ policy acting from the camera alone."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -247,7 +248,9 @@ def saved_dim(result: dict) -> int:
     return ckpt["signature"]["privileged_dim"]
 
 
-def test_an_augmented_asymmetric_camera_run_trains_resumes_and_its_export_evaluates(tmp_path, monkeypatch):
+def test_an_augmented_asymmetric_camera_run_trains_resumes_and_its_export_evaluates(
+    tmp_path, monkeypatch, tiny_ppo_rgbd
+):
     """--obs rgbd --augment shift --critic-obs privileged on GraspLift: an iteration on two CPU envs (5-step
     episodes: the critic bootstraps their truncated ends from the final observations' privileged states), a
     checkpoint, --resume (the checkpoint's flags rebuild the network), and the exported policy evaluated on envs
@@ -256,27 +259,11 @@ def test_an_augmented_asymmetric_camera_run_trains_resumes_and_its_export_evalua
     from maniskill_irb120.policies import acting, read_policy_section
     from maniskill_irb120.policies.section import export_policy
 
-    base = dict(
-        env_id="GraspLift-IRB120-v1",
-        obs="rgbd",
-        augment="shift",
-        critic_obs="privileged",
-        num_envs=2,
-        num_steps=8,
-        num_minibatches=2,
-        update_epochs=1,
-        eval_freq=0,
-        save_freq=1,
-        runs_dir=tmp_path,
-        exp_name="t",
-        progress=False,
-        total_env_steps=16,
-        env_kwargs=dict(max_episode_steps=5),
-    )
+    args = tiny_ppo_rgbd(tmp_path, augment="shift", critic_obs="privileged")
     valued = []  # the batches the critic valued: the rollout's truncated ends, then its next observation
     get_value = Agent.get_value
     monkeypatch.setattr(Agent, "get_value", lambda self, obs: valued.append(obs["privileged"]) or get_value(self, obs))
-    first = main(Args(**base))
+    first = main(args)
     assert len(valued) == 2 and valued[0].shape == valued[1].shape == (2, saved_dim(first))
     latest = Path(first["run_dir"]) / "checkpoints" / "latest.pt"
     saved = torch.load(latest, weights_only=False)
@@ -295,8 +282,8 @@ def test_an_augmented_asymmetric_camera_run_trains_resumes_and_its_export_evalua
     assert section["config"]["critic_obs"] == "privileged" and section["obs"] == "rgbd"
     from agents.common import held_out_evaluation
 
-    ev_args = Args(**{**base, "eval_episodes": 1})
+    ev_args = replace(args, eval_episodes=1)
     scored = held_out_evaluation(acting(section), ev_args, None, reward_mode="normalized_dense")
     assert scored["episodes"] == 1
-    ev = main(Args(**{**base, "evaluate": True, "checkpoint": latest, "eval_episodes": 1, "capture_video": False}))
+    ev = main(replace(args, evaluate=True, checkpoint=latest, eval_episodes=1, capture_video=False))
     assert ev["episodes"] == 1
