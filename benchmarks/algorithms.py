@@ -575,7 +575,8 @@ def run_sb3(
     finally:
         venv.close()
     env_steps, spent = int(model.num_timesteps), clock.spent_s
-    selector = next((c for c in extra if getattr(c, "best", None) is not None), None)
+    # a selecting callback's best: this run's, or (training already over before this run) the one it kept on disk
+    selector = next((c for c in extra if hasattr(c, "restore") and c.restore() is not None), None)
     if selector is None:
         final = held_out(act, env_id, obs, args)
         return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),

@@ -362,11 +362,17 @@ class SelectOnValidation(BaseCallback):
             self.env_id = self.training_env.get_attr("spec", [0])[0].id.split(":")[-1]
         if self.obs is None:
             self.obs = "rgbd" if isinstance(self.training_env.observation_space, gym.spaces.Dict) else "state"
-        if self.best_file.is_file():  # a resumed run: the best so far and the checks stay
-            kept = json.loads(self.best_file.read_text())
-            self.best, self.checks = kept["best"], kept["checks"]
+        self.restore()
         done = self.checks[-1][0] if self.checks else 0
         self._next = max(self.every, (max(self.model.num_timesteps, done) // self.every + 1) * self.every)
+
+    def restore(self) -> Optional[dict]:
+        """The best so far and the checks from ``save_path`` (a resumed run's, or one whose training had already
+        ended); None where nothing was kept yet."""
+        if self.best_file.is_file():
+            kept = json.loads(self.best_file.read_text())
+            self.best, self.checks = kept["best"], kept["checks"]
+        return self.best
 
     def act(self, obs: Any) -> np.ndarray:
         norm = self.model.get_vec_normalize_env()

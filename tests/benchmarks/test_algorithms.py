@@ -551,6 +551,13 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
     assert "last_policy_success" in one and len(one["last_policy_successes"]) == len(one["successes"])
     assert "validation success" in capsys.readouterr().out
+    # a cell whose training was over when its run stopped (before its final evaluation) still deploys the selected one
+    report_path = tmp_path / "out" / "algorithms.json"
+    report = json.loads(report_path.read_text())
+    del report["cells"][cell]
+    report_path.write_text(json.dumps(report))
+    again = alg.main(args)["cells"][cell]
+    assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
     with pytest.raises(ValueError, match="positive"):
         SelectOnValidation(every=0)
 
