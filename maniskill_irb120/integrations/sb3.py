@@ -229,6 +229,13 @@ def make_sb3_env(
     return make_single_env(env_id, obs, reward_mode=reward_mode, control_mode=control_mode, env_kwargs=env_kwargs)
 
 
+def deterministic_action(model: Any, obs: Any) -> np.ndarray:
+    """``model``'s deterministic action for one observation, normalised as training normalises it (``VecNormalize``:
+    the statistics as training left them, since ``normalize_obs`` updates nothing)."""
+    norm = model.get_vec_normalize_env()
+    return model.predict(obs if norm is None else norm.normalize_obs(obs), deterministic=True)[0]
+
+
 class ProgressCallback(BaseCallback):
     """SB3's ``learn(callback=...)`` showing the run while it happens (``integrations.progress`` says why lines):
     every ``every_s`` seconds the env steps, their rate, the time left and the training episodes' success (SB3's
@@ -302,11 +309,7 @@ class ProgressCallback(BaseCallback):
         return "; ".join(parts)
 
     def act(self, obs: Any) -> np.ndarray:
-        """The deterministic action for one observation, normalised as training normalises it (``VecNormalize``)."""
-        norm = self.model.get_vec_normalize_env()
-        if norm is not None:  # the statistics as training left them: normalize_obs updates nothing
-            obs = norm.normalize_obs(obs)
-        return self.model.predict(obs, deterministic=True)[0]
+        return deterministic_action(self.model, obs)
 
     def check(self) -> tuple[int, int, int]:
         """The deterministic policy on ``eval_episodes`` held-out seeds now: printed, logged and kept in ``held``."""
@@ -375,10 +378,7 @@ class SelectOnValidation(BaseCallback):
         return self.best
 
     def act(self, obs: Any) -> np.ndarray:
-        norm = self.model.get_vec_normalize_env()
-        if norm is not None:  # the statistics as training left them: normalize_obs updates nothing
-            obs = norm.normalize_obs(obs)
-        return self.model.predict(obs, deterministic=True)[0]
+        return deterministic_action(self.model, obs)
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
