@@ -339,6 +339,12 @@ def library_obs(obs: str, flat: dict) -> object:
     return flat["state"] if obs == "state" else image_state(flat)
 
 
+def numpy_library_obs(obs: str, flat: dict) -> object:
+    """:func:`library_obs` as numpy arrays, what SB3's ``predict`` takes."""
+    o = library_obs(obs, flat)
+    return {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
+
+
 # ----------------------------------------------------------------------------- library cells
 def curve_fractions(points: int) -> list[float]:
     """The shares of an env-step budget where a held-out point is taken while training: every ``1/points`` and
@@ -448,6 +454,7 @@ def validate_sb3(cell: str, args: Args) -> dict:
     """A trained SB3 cell's saved model and observation statistics, deterministic, on --eval-episodes validation
     seeds (VALIDATION_SEED onwards: those checkpoint selection reads, never the held-out ones)."""
     from agents.configs import loader
+    from maniskill_irb120.integrations.sb3 import deterministic_action
 
     obs, task, algo, _ = parse_cell(cell)
     spec = ALGORITHMS[algo]
@@ -461,9 +468,7 @@ def validate_sb3(cell: str, args: Args) -> dict:
     norm = pickle.loads(norm_path.read_bytes()) if norm_path.is_file() else None  # VecNormalize, without its envs
 
     def act(flat):
-        o = library_obs(obs, flat)
-        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
-        return torch.as_tensor(model.predict(o if norm is None else norm.normalize_obs(o), deterministic=True)[0])
+        return torch.as_tensor(deterministic_action(model, numpy_library_obs(obs, flat), norm))
 
     seeds = list(range(VALIDATION_SEED, VALIDATION_SEED + args.eval_episodes))
     r = evaluate_on_seeds(act, TASKS[task], obs, seeds)
@@ -488,7 +493,7 @@ def run_sb3(
     from stable_baselines3.common.vec_env import VecNormalize
 
     from agents.configs import loader
-    from maniskill_irb120.integrations.sb3 import make_sb3_vec_env
+    from maniskill_irb120.integrations.sb3 import deterministic_action, make_sb3_vec_env
 
     spec = ALGORITHMS[algo]
     tuned = loader.sb3_config(spec.config, env_id, args.conf_file) if spec.config else None
@@ -527,11 +532,7 @@ def run_sb3(
     curve, held = state["curve"], state["held_out"]
 
     def act(flat):
-        o = library_obs(obs, flat)
-        o = {k: v.numpy() for k, v in o.items()} if isinstance(o, dict) else o.numpy()
-        if isinstance(venv, VecNormalize):  # the statistics as training left them (normalize_obs updates nothing)
-            o = venv.normalize_obs(o)
-        return torch.as_tensor(model.predict(o, deterministic=True)[0])
+        return torch.as_tensor(deterministic_action(model, numpy_library_obs(obs, flat)))
 
     def save() -> None:
         model.save(model_path)

@@ -229,10 +229,11 @@ def make_sb3_env(
     return make_single_env(env_id, obs, reward_mode=reward_mode, control_mode=control_mode, env_kwargs=env_kwargs)
 
 
-def deterministic_action(model: Any, obs: Any) -> np.ndarray:
+def deterministic_action(model: Any, obs: Any, norm: Any = None) -> np.ndarray:
     """``model``'s deterministic action for one observation, normalised as training normalises it (``VecNormalize``:
-    the statistics as training left them, since ``normalize_obs`` updates nothing)."""
-    norm = model.get_vec_normalize_env()
+    the statistics as training left them, since ``normalize_obs`` updates nothing). ``norm`` is for a model loaded
+    without its envs, whose statistics were saved beside it; by default the model's own ``VecNormalize``, if any."""
+    norm = model.get_vec_normalize_env() if norm is None else norm
     return model.predict(obs if norm is None else norm.normalize_obs(obs), deterministic=True)[0]
 
 
