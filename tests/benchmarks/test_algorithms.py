@@ -388,6 +388,31 @@ def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_onl
         AbsorbingSuccess(Fake(), gamma=1.0)
 
 
+def test_action_penalty_charges_the_arms_squared_action_not_the_gripper_and_refuses_a_bad_coef():
+    import gymnasium as gym
+    import torch
+
+    from maniskill_irb120.integrations.wrappers import ActionPenalty
+
+    class Fake(gym.Env):
+        observation_space, action_space = gym.spaces.Box(-1, 1, (1,)), gym.spaces.Box(-1, 1, (5,))
+
+        def step(self, action):
+            return 0, torch.tensor([1.0, 0.5]), torch.tensor([False, True]), torch.tensor([False] * 2), {}
+
+    env = ActionPenalty(Fake(), coef=0.1)
+    action = torch.tensor([[1.0, -1.0, 0.0, 0.0, -1.0], [2.0, 0.0, 0.0, 0.0, 1.0]])  # 2.0: clipped as the controller
+    _, reward, *_ = env.step(action)
+    assert torch.allclose(reward, torch.tensor([1.0 - 0.1 * 2 / 4, 0.5 - 0.1 * 1 / 4]))
+    with pytest.raises(ValueError, match="5 components"):
+        env.step(torch.zeros(2, 4))
+    _, reward, *_ = env.step(torch.zeros(2, 5))  # still usable after the refused call
+    assert torch.equal(reward, torch.tensor([1.0, 0.5]))
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="coef"):
+            ActionPenalty(Fake(), coef=bad)
+
+
 @pytest.mark.slow  # four cells' worker start-ups, ten held-out points each and evaluations (2-4 min on 2 cores)
 def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path):
     pytest.importorskip("sb3_contrib")
