@@ -2,7 +2,11 @@
 ``examples/*.py``) is run here as a program, as a user runs it, with a wrong env id, a missing or unreadable file,
 a count below 1, a misspelt flag or a malformed value, and must exit with status 2 and one stderr line that names
 the problem and the fix, with no traceback. Each is refused before an env is built, so a case takes the
-interpreter's start and imports only.
+interpreter's start and imports only: one case ("wrong env id") runs in a fresh interpreter, and the others in
+a child forked from one interpreter that has imported the libraries every case imports (torch, gymnasium,
+ManiSkill, SAPIEN, tyro, Stable-Baselines3, skrl; ~7 s a case otherwise). The child runs the command line as
+``python`` does (``runpy``, ``__main__``, ``sys.argv``, the exit status from ``SystemExit``, an uncaught
+exception's traceback on stderr); this package's and the script's own modules are imported afresh in it.
 
 And a script that follows the ``num_envs > 1`` error's advice (``make_vec_env(..., backend="cpu")``) without an
 ``if __name__ == "__main__":`` guard is told so in one line by the worker that imported it again, instead of
@@ -25,6 +29,80 @@ TASKS = "GraspLift-IRB120-v1, StackCube-IRB120-v1, TableClearing-IRB120-v1"
 def run(args: list[str], cwd: Path = REPO, timeout: float = 120) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     return subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+PRELOADED = r"""
+import json, os, runpy, sys, tempfile, traceback
+
+import torch, gymnasium, sapien, mani_skill.envs, tyro  # noqa: F401  (what every case imports)
+
+for name in ("stable_baselines3", "skrl.agents.torch.ppo", "skrl.trainers.torch"):
+    try:
+        __import__(name)
+    except ImportError:
+        pass
+base = set(sys.modules)
+ours = ("maniskill_irb120", "agents", "examples", "scripts")
+assert not [m for m in base if m.split(".")[0] in ours], "the cases' own modules must be imported afresh"
+for line in sys.stdin:
+    case = json.loads(line)
+    err = tempfile.TemporaryFile()
+    pid = os.fork()
+    if pid == 0:
+        os.chdir(case["cwd"])
+        out = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(out, 1)
+        os.dup2(err.fileno(), 2)
+        args, code = case["args"], 0
+        try:
+            if args[0] == "-m":
+                sys.argv = [args[1], *args[2:]]
+                sys.path.insert(0, case["cwd"])
+                runpy.run_module(args[1], run_name="__main__", alter_sys=True)
+            else:
+                sys.argv = list(args)
+                sys.path.insert(0, os.path.dirname(os.path.abspath(args[0])))
+                runpy.run_path(args[0], run_name="__main__")
+        except SystemExit as e:
+            if e.code is None or isinstance(e.code, int):
+                code = e.code or 0
+            else:
+                print(e.code, file=sys.stderr)
+                code = 1
+        except BaseException:
+            traceback.print_exc()
+            code = 1
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    err.seek(0)
+    answer = dict(returncode=os.waitstatus_to_exitcode(status), stderr=err.read().decode(errors="replace"))
+    print(json.dumps(answer), flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def preloaded():
+    """``run(args)`` as :func:`run` does, in a child forked from an interpreter with the libraries imported."""
+    import json
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    server = subprocess.Popen(
+        [sys.executable, "-c", PRELOADED], cwd=REPO, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+
+    def run_forked(args: list[str]) -> subprocess.CompletedProcess:
+        server.stdin.write(json.dumps(dict(args=args, cwd=str(REPO))) + "\n")
+        server.stdin.flush()
+        line = server.stdout.readline()
+        assert line, f"the preloaded interpreter ended (status {server.poll()})"
+        answer = json.loads(line)
+        return subprocess.CompletedProcess(args, answer["returncode"], "", answer["stderr"])
+
+    yield run_forked
+    server.stdin.close()
+    server.wait(timeout=60)
 
 
 def own_lines(stderr: str) -> list[str]:
@@ -89,15 +167,17 @@ CASES = {
     "trainer, zero budget": (["-m", "agents.sac", "--total-env-steps", "0"], ["--total-env-steps must be a positive"]),
 }
 NEEDS = {"example, wrong env id": "stable_baselines3"}
+FRESH = "wrong env id"
+"""the case run in a fresh interpreter, as a user runs it (imports and all): the others share the preloaded one"""
 
 
 @pytest.mark.parametrize("case", list(CASES))
-def test_bad_input_is_one_line_and_exit_status_2(case, tmp_path):
+def test_bad_input_is_one_line_and_exit_status_2(case, tmp_path, preloaded):
     if case in NEEDS:
         pytest.importorskip(NEEDS[case])
     (tmp_path / "notes.txt").write_text("not a checkpoint\n")
     args, names = CASES[case]
-    r = run([a.replace("{tmp}", str(tmp_path)) for a in args])
+    r = (run if case == FRESH else preloaded)([a.replace("{tmp}", str(tmp_path)) for a in args])
     lines = own_lines(r.stderr)
     assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
     assert "Traceback" not in r.stderr, r.stderr[-2000:]

@@ -71,22 +71,27 @@ def test_reactive_expert_recovers_from_noisy_execution(env):
     assert all(rollout(env, expert_for(env, reactive=True), seed=s, noise=0.2) for s in (0, 1, 2))
 
 
-def test_expert_labels_come_from_the_workers(env):
-    envs = make_envs(Args(num_envs=2), 2)
-    try:
-        _, info = envs.reset(seed=40)
-        labels = info["expert_action"]
-        assert labels.shape == (2, 5)
-        for i in range(2):  # worker i was seeded 40 + i: the same state in this process gives the same label
-            env.reset(seed=40 + i)
-            tool = expert_for(env, reactive=True).act()
-            assert torch.allclose(
-                labels[i], tool_to_world(tool, tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose))[0], atol=1e-5
-            )
-        _, _, _, _, info = envs.step(labels)
-        assert info["expert_action"].shape == (2, 5) and torch.isfinite(info["expert_action"]).all()
-    finally:
-        envs.close()
+@pytest.fixture(scope="module")
+def labelled():
+    """Two labelled CPU envs (env 1 in a worker process) with the auxiliary targets as well: built once for the
+    label and the target tests (a worker's start is most of either)."""
+    envs = make_envs(Args(num_envs=2, aux_weight=1.0), 2)
+    yield envs
+    envs.close()
+
+
+def test_expert_labels_come_from_the_workers(env, labelled):
+    _, info = labelled.reset(seed=40)
+    labels = info["expert_action"]
+    assert labels.shape == (2, 5)
+    for i in range(2):  # worker i was seeded 40 + i: the same state in this process gives the same label
+        env.reset(seed=40 + i)
+        tool = expert_for(env, reactive=True).act()
+        assert torch.allclose(
+            labels[i], tool_to_world(tool, tcp_rotation(env.unwrapped.agent.tcp_pose.raw_pose))[0], atol=1e-5
+        )
+    _, _, _, _, info = labelled.step(labels)
+    assert info["expert_action"].shape == (2, 5) and torch.isfinite(info["expert_action"]).all()
 
 
 def test_one_batched_env_labels_the_state_an_auto_reset_starts_from():
@@ -227,9 +232,19 @@ def saved_dataset(checkpoint) -> Dataset:
     return data
 
 
+SHORT = dict(max_episode_steps=50)
+"""the tiny runs' episodes: 50 steps, not TableClearing's 250 (every round, evaluation and video a fifth as long;
+round 0's expert episode ends before its delivery, which no test here needs)"""
+
+
 @pytest.fixture
 def tiny(tiny_dagger):
-    return tiny_dagger
+    """tests/agents/conftest.py's tiny DAgger run, in 50-step episodes unless a test gives its own --env-kwargs."""
+
+    def run(runs_dir: Path, **kw) -> dict:
+        return tiny_dagger(runs_dir, **{"env_kwargs": SHORT, **kw})
+
+    return run
 
 
 def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
@@ -288,20 +303,16 @@ def test_rgbd_round_trains_on_camera_and_proprioception(tmp_path, tiny):
     assert set(saved_dataset(res["checkpoint"]).obs) == {"rgb", "depth", "state"}
 
 
-def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, tmp_path, tiny):
+def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(env, labelled, tmp_path, tiny):
     """The workers' auxiliary targets are the privileged geometry of the state just reached; a camera run with
     --aux-weight learns them alongside the actions, keeps its head across --resume, and refuses a mismatch."""
-    envs = make_envs(Args(num_envs=2, aux_weight=1.0), 2)
-    try:
-        _, info = envs.reset(seed=50)
-        for i in range(2):
-            env.reset(seed=50 + i)
-            u = env.unwrapped
-            rel = (u.obj.pose.p - u.agent.tcp_pose.p)[0] * 10
-            assert torch.allclose(info["expert_aux"][i, :3], rel, atol=1e-4)
-            assert torch.allclose(info["expert_aux"][i, 3:].norm(), torch.tensor(1.0), atol=1e-5)  # sin/cos
-    finally:
-        envs.close()
+    _, info = labelled.reset(seed=50)
+    for i in range(2):
+        env.reset(seed=50 + i)
+        u = env.unwrapped
+        rel = (u.obj.pose.p - u.agent.tcp_pose.p)[0] * 10
+        assert torch.allclose(info["expert_aux"][i, :3], rel, atol=1e-4)
+        assert torch.allclose(info["expert_aux"][i, 3:].norm(), torch.tensor(1.0), atol=1e-5)  # sin/cos
     tool = ExpertLabels(env, frame="tool", aux=True)  # the hand camera's axes: the TCP frame
     _, info = tool.reset(seed=50)
     rel = (env.unwrapped.obj.pose.p - env.unwrapped.agent.tcp_pose.p) * 10
@@ -418,8 +429,9 @@ def test_env_kwargs_from_the_command_line_reach_the_env_as_numbers_where_they_ar
 
 
 def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_policy(tmp_path, tiny):
-    a = tiny(tmp_path, exp_name="a")
-    frozen = dict(learning_rate=0.0, weight_decay=0.0)  # the updates leave the weights where they started
+    round0 = dict(budget_min=None, total_env_steps=1)  # round 0 alone: the expert's episode and its 5 updates
+    a = tiny(tmp_path, exp_name="a", **round0)
+    frozen = dict(learning_rate=0.0, weight_decay=0.0, **round0)  # the updates leave the weights where they started
     b = tiny(tmp_path, exp_name="b", init_policy=Path(a["checkpoint"]), **frozen)
     c = tiny(tmp_path, exp_name="c", **frozen)
     wa, wb, wc = (torch.load(r["checkpoint"], weights_only=False)["model"] for r in (a, b, c))
@@ -456,8 +468,8 @@ def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evalu
 
     monkeypatch.setattr(dagger, "final_evaluation", scripted)
     # an env-step budget, so that a loaded machine runs as many rounds as a quiet one: round 0 (one expert episode)
-    # and round 1 (one learner episode) take at most 2 x 250 steps, so a 501-step budget starts round 2 at least
-    res = tiny(tmp_path, budget_min=None, total_env_steps=501, select_episodes=3, select_freq=1)
+    # and round 1 (one learner episode) take at most 2 x 50 steps (SHORT), so a 101-step budget starts round 2 at least
+    res = tiny(tmp_path, budget_min=None, total_env_steps=101, select_episodes=3, select_freq=1)
     assert res["rounds"] >= 3 and len(validations) == res["rounds"]  # one a round; none again at the budget's end
     assert {(seed, n) for seed, n, _ in validations} == {(VALIDATION_SEED, 3)}
     assert res["selected"] == dict(round=2, env_steps=res["selected"]["env_steps"], validation_success_rate=0.6,

@@ -86,19 +86,46 @@ def absorbing_return(env_id: str, rewards: list[float], info: dict) -> float:
     return sum(rewards) + (HORIZON[env_id] - len(rewards)) * float(info["success"][0])
 
 
-@pytest.fixture(scope="module", params=sorted(HORIZON))
-def task(request):
+@pytest.fixture(scope="module")
+def envs():
+    """``envs(env_id)``: this file's one env of that task (state obs, ``pd_ee_delta_tool``), built on first use."""
     import gymnasium as gym
 
-    env = gym.make(request.param, obs_mode="state", control_mode="pd_ee_delta_tool")
-    yield request.param, env
-    env.close()
+    made = {}
+
+    def get(env_id: str):
+        if env_id not in made:
+            made[env_id] = gym.make(env_id, obs_mode="state", control_mode="pd_ee_delta_tool")
+        return made[env_id]
+
+    yield get
+    for env in made.values():
+        env.close()
 
 
 @pytest.fixture(scope="module")
-def expert_runs(task):
-    env_id, env = task
-    return [rollout(env, s) for s in SEEDS]
+def rollouts(envs):
+    """``rollouts(env_id, seed, stall=None, grip=-1.0)``: :func:`rollout` in that task's env, run once per file (an
+    episode is its seed's alone: the expert's runs, the "hold" stalls and "hold at place" serve several tests)."""
+    done = {}
+
+    def get(env_id: str, seed: int, stall: str | None = None, grip: float = -1.0) -> tuple[list[float], dict]:
+        key = (env_id, seed, stall, grip)
+        if key not in done:
+            done[key] = rollout(envs(env_id), seed, stall, grip)
+        return done[key]
+
+    return get
+
+
+@pytest.fixture(scope="module", params=sorted(HORIZON))
+def task(request, envs):
+    return request.param, envs(request.param)
+
+
+@pytest.fixture(scope="module")
+def expert_runs(task, rollouts):
+    return [rollouts(task[0], s) for s in SEEDS]
 
 
 def test_rewards_stay_in_the_unit_interval_and_success_pays_one(expert_runs):
@@ -119,16 +146,16 @@ def test_expert_stages_rise_and_each_enters_above_the_last(expert_runs):
 
 
 @pytest.mark.parametrize("stall", ["hover", "push", "hold", "collide"])
-def test_no_stall_pays_more_than_success(task, expert_runs, stall):
-    env_id, env = task
+def test_no_stall_pays_more_than_success(task, expert_runs, rollouts, stall):
+    env_id, _ = task
     for seed, (rewards, info) in zip(SEEDS, expert_runs):
-        s_rewards, s_info = rollout(env, seed, stall)
+        s_rewards, s_info = rollouts(env_id, seed, stall)
         assert not bool(s_info["success"][0]), (stall, seed)
         assert max(s_rewards) < 1.0  # no stalling state pays per step what the final stage does
         assert sum(s_rewards) < absorbing_return(env_id, rewards, info), (stall, seed)
         if stall == "collide":
             assert bool(s_info["fail"][0]) and s_rewards[-1] == 0.0
-            hold_rewards, _ = rollout(env, seed, "hold")  # an episode that grasps beats colliding
+            hold_rewards, _ = rollouts(env_id, seed, "hold")  # an episode that grasps beats colliding
             assert sum(s_rewards) < sum(hold_rewards)
 
 
@@ -211,78 +238,62 @@ def test_the_grasp_yaw_error_is_computed_once_a_step_and_observed_as_a_copy(monk
         env.close()
 
 
-def test_holding_the_object_at_its_place_pays_clearly_less_than_letting_go():
+def test_holding_the_object_at_its_place_pays_clearly_less_than_letting_go(rollouts):
     """TableClearing's last stage: the expert carried the object into the destination tray and lowered it; held
     there, closed and still, each step pays at most 3.5 of 4 (normalised 0.875), so the one action left,
     opening the fingers, gains >= 0.1 a step. With the full band holding paid 0.99 and PPO held on for good."""
-    import gymnasium as gym
-
-    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
-    try:
-        for seed in SEEDS:
-            rewards, info = rollout(env, seed, "hold at place")
-            assert not bool(info["success"][0]) and bool(info["object_over_dest"][0]) and bool(info["held"][0])
-            assert math.floor(4 * rewards[-1]) == 3  # the last stage before success, reached
-            assert max(rewards) <= 0.875 and 1.0 - rewards[-1] >= 0.1, rewards[-5:]
-    finally:
-        env.close()
+    for seed in SEEDS:
+        rewards, info = rollouts("TableClearing-IRB120-v1", seed, "hold at place")
+        assert not bool(info["success"][0]) and bool(info["object_over_dest"][0]) and bool(info["held"][0])
+        assert math.floor(4 * rewards[-1]) == 3  # the last stage before success, reached
+        assert max(rewards) <= 0.875 and 1.0 - rewards[-1] >= 0.1, rewards[-5:]
 
 
-def test_letting_go_above_the_destination_tray_never_steps_down():
+def test_letting_go_above_the_destination_tray_never_steps_down(envs):
     """TableClearing: the expert carries the object over the destination tray at its carry height (~11 cm above
     the floor) and opens the fingers there instead of lowering it first. The object falls for two control steps;
     when a falling object paid the reach stage (~0.2 against ~0.84 held), PPO (gamma 0.8) learned to hold on."""
-    import gymnasium as gym
-
     from maniskill_irb120.experts.pick_place import LOWER
 
-    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
-    try:
-        for seed in SEEDS:
-            env.reset(seed=seed)
-            expert = expert_for(env)
-            expert.reset()
-            rewards, released, info = [], None, {}
-            for _ in range(HORIZON["TableClearing-IRB120-v1"]):
-                action = expert.act()
-                if released is None and int(expert.phase[0]) == LOWER:
-                    released = len(rewards)  # the carry ended over the tray: open there from now on
-                if released is not None:
-                    action = _world(env, [0, 0, 0], 1.0)
-                _, r, term, trunc, info = env.step(action)
-                rewards.append(float(r[0]))
-                if released is not None and len(rewards) == released + 1:
-                    assert not bool(info["held"][0]) and bool(info["object_over_dest"][0])
-                    assert env.unwrapped.obj.pose.p[0, 2] > 0.08  # let go well above the walls (3 cm)
-                if bool(term[0]) or bool(trunc[0]):
-                    break
-            assert released is not None and bool(info["success"][0]) and rewards[-1] == 1.0
-            held = rewards[released - 1]
-            assert math.floor(4 * held) == 3, held  # held over the tray: the last stage before success
-            falling = rewards[released:]
-            assert len(falling) >= 2 and all(b >= a for a, b in zip([held, *falling], falling)), (held, falling)
-    finally:
-        env.close()
+    env = envs("TableClearing-IRB120-v1")
+    for seed in SEEDS:
+        env.reset(seed=seed)
+        expert = expert_for(env)
+        expert.reset()
+        rewards, released, info = [], None, {}
+        for _ in range(HORIZON["TableClearing-IRB120-v1"]):
+            action = expert.act()
+            if released is None and int(expert.phase[0]) == LOWER:
+                released = len(rewards)  # the carry ended over the tray: open there from now on
+            if released is not None:
+                action = _world(env, [0, 0, 0], 1.0)
+            _, r, term, trunc, info = env.step(action)
+            rewards.append(float(r[0]))
+            if released is not None and len(rewards) == released + 1:
+                assert not bool(info["held"][0]) and bool(info["object_over_dest"][0])
+                assert env.unwrapped.obj.pose.p[0, 2] > 0.08  # let go well above the walls (3 cm)
+            if bool(term[0]) or bool(trunc[0]):
+                break
+        assert released is not None and bool(info["success"][0]) and rewards[-1] == 1.0
+        held = rewards[released - 1]
+        assert math.floor(4 * held) == 3, held  # held over the tray: the last stage before success
+        falling = rewards[released:]
+        assert len(falling) >= 2 and all(b >= a for a, b in zip([held, *falling], falling)), (held, falling)
 
 
-def test_at_its_place_a_gripper_command_nearer_open_pays_more_while_the_fingers_stay_shut():
+def test_at_its_place_a_gripper_command_nearer_open_pays_more_while_the_fingers_stay_shut(rollouts):
     """The release term: the gripper is one thresholded action, so a policy that keeps it shut for the whole carry
     gets no signal from the fingers at the place until it happens to sample "open"; the command's own approach to
     the threshold pays there (ManiSkill's StackCube "ungrasp", for a binary gripper), below letting go."""
-    import gymnasium as gym
-
-    env = gym.make("TableClearing-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
-    try:
-        for seed in SEEDS:
-            shut, _ = rollout(env, seed, "hold at place", grip=-1.0)
-            nearly, info = rollout(env, seed, "hold at place", grip=-0.05)
-            assert bool(info["held"][0]) and not bool(info["success"][0])  # -0.05 is still "close"
-            assert nearly[-1] >= shut[-1] + 0.02, (shut[-1], nearly[-1])  # (1/4 · 0.475 · place) / 4
-            assert max(nearly) <= 0.9375 and 1.0 - nearly[-1] >= 0.05
-            expert, info = rollout(env, seed)  # letting go still pays more than either
-            assert bool(info["success"][0]) and expert[-1] == 1.0
-    finally:
-        env.close()
+    env_id = "TableClearing-IRB120-v1"
+    for seed in SEEDS:
+        shut, _ = rollouts(env_id, seed, "hold at place", grip=-1.0)
+        nearly, info = rollouts(env_id, seed, "hold at place", grip=-0.05)
+        assert bool(info["held"][0]) and not bool(info["success"][0])  # -0.05 is still "close"
+        assert nearly[-1] >= shut[-1] + 0.02, (shut[-1], nearly[-1])  # (1/4 · 0.475 · place) / 4
+        assert max(nearly) <= 0.9375 and 1.0 - nearly[-1] >= 0.05
+        expert, info = rollouts(env_id, seed)  # letting go still pays more than either
+        assert bool(info["success"][0]) and expert[-1] == 1.0
 
 
 def test_the_place_term_resolves_millimetres_over_cube_b():
@@ -307,11 +318,10 @@ def test_the_place_term_resolves_millimetres_over_cube_b():
     assert above - far_side > 0.04  # aligning over cube_b pays before lowering does
 
 
-def test_stacked_and_held_a_gripper_command_nearer_open_pays_more():
+def test_stacked_and_held_a_gripper_command_nearer_open_pays_more(envs, rollouts):
     """StackCube's stage 2: with cube_a held on cube_b the one action left is opening the fingers; the gripper
     command's approach to the threshold pays there (a quarter of a band), still below opening (2.5 of 4). The
     expert lets go 3-5 mm above the stack's height; here it goes on holding, lowered onto cube_b."""
-    import gymnasium as gym
 
     def hold_on_b(env, seed: int, grip: float) -> tuple[list[float], dict]:
         env.reset(seed=seed)
@@ -328,18 +338,15 @@ def test_stacked_and_held_a_gripper_command_nearer_open_pays_more():
             assert not bool(term[0] or trunc[0])
         return rewards, info
 
-    env = gym.make("StackCube-IRB120-v1", obs_mode="state", control_mode="pd_ee_delta_tool")
-    try:
-        for seed in SEEDS:
-            shut, _ = hold_on_b(env, seed, grip=-1.0)
-            nearly, info = hold_on_b(env, seed, grip=-0.05)
-            assert bool(info["stacked"][0]) and bool(info["grasped"][0]) and not bool(info["success"][0])
-            assert shut[-1] == 0.5  # stage 2, commanding "close": 2 of 4
-            assert nearly[-1] >= shut[-1] + 0.02 and max(nearly) < 2.5 / 4, (shut[-1], nearly[-1])
-            expert, info = rollout(env, seed)  # letting go still pays more than either
-            assert bool(info["success"][0]) and expert[-1] == 1.0
-    finally:
-        env.close()
+    env = envs("StackCube-IRB120-v1")
+    for seed in SEEDS:
+        shut, _ = hold_on_b(env, seed, grip=-1.0)
+        nearly, info = hold_on_b(env, seed, grip=-0.05)
+        assert bool(info["stacked"][0]) and bool(info["grasped"][0]) and not bool(info["success"][0])
+        assert shut[-1] == 0.5  # stage 2, commanding "close": 2 of 4
+        assert nearly[-1] >= shut[-1] + 0.02 and max(nearly) < 2.5 / 4, (shut[-1], nearly[-1])
+        expert, info = rollouts("StackCube-IRB120-v1", seed)  # letting go still pays more than either
+        assert bool(info["success"][0]) and expert[-1] == 1.0
 
 
 def test_a_cube_wedged_between_the_open_fingers_is_no_grasp():

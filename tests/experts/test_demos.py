@@ -93,9 +93,9 @@ def test_maniskill_converts_joint_pos_demos_to_joint_delta_pos(joint_demos, tmp_
     assert len(episodes) == 2 and all(e["success"] for e in episodes)
 
 
-def test_maniskill_cannot_convert_tool_demos(tmp_path):
+@pytest.mark.parametrize("demos", ENV_IDS[:1], indirect=True)  # the tool demos recorded above, not new ones
+def test_maniskill_cannot_convert_tool_demos(demos, tmp_path):
     """Why pd_joint_pos exists: ManiSkill converts only from pd_joint_pos and pd_joint_delta_pos."""
-    demos = collect_demos(episodes=1, seed=3, out_dir=tmp_path, env_id=ENV_IDS[0])
     out = replay(demos["h5"], "-c", "pd_joint_delta_pos", cwd=tmp_path)
     assert out.returncode != 0
     assert (

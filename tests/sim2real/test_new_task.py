@@ -229,6 +229,7 @@ def test_from_the_reward_to_a_camera_policy_with_no_expert(tmp_path, monkeypatch
 
     monkeypatch.delitem(EXPERTS, ENV_ID)
     toy = dict(env_id=ENV_ID, budget_min=0.05, eval_episodes=1, runs_dir=tmp_path, progress=False, capture_video=False)
+    toy["env_kwargs"] = dict(max_episode_steps=20)  # a quarter of the task's 80: each episode, labelled or scored
     teacher = ppo.main(
         ppo.Args(
             **toy, exp_name="teacher", obs="state", state_net="mlp", obs_norm=True, num_envs=1, num_steps=8,

@@ -485,11 +485,11 @@ def test_ctrl_c_stops_the_robot_and_still_writes_the_report(tmp_path, monkeypatc
     calls = []
     real_episode = sim2real_eval._episode
 
-    def interrupted_on_the_third(*args, **kwargs):
+    def interrupted_on_the_third(env, policy, seed, real, limit):
         calls.append(1)
         if len(calls) == 3:  # sim 0, real 0, then Ctrl-C in episode 1
             raise KeyboardInterrupt
-        return real_episode(*args, **kwargs)
+        return real_episode(env, policy, seed, real, min(limit, 20))  # episode 0's first 20 steps a side suffice
 
     stopped = []
     monkeypatch.setattr(sim2real_eval, "_episode", interrupted_on_the_third)
@@ -567,21 +567,34 @@ def test_a_refused_step_end_is_named_and_the_emulator_stopped(tmp_path, monkeypa
     assert len(stopped) == 2
 
 
-def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
+def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path, monkeypatch):
     """A learned world-frame policy that sees no joint speeds, through the adapter: what goes over the wire is its
     action rotated into the tool frame by the TCP at that state, the same on both sides."""
     from agents.dagger import Args, main
     from maniskill_irb120.action import tcp_rotation, world_to_tool
+    from maniskill_irb120.sim2real import eval as sim2real_eval
     from maniskill_irb120.sim2real.eval import EvalConfig, evaluate
     from maniskill_irb120.sim2real.policy import load_policy
 
     small = dict(
-        num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=100, batch_size=32, progress=False
+        num_envs=1, expert_episodes=1, episodes_per_round=1, updates_per_round=20, batch_size=32, progress=False
     )
-    # 15 s: round 0's updates stop at the budget, and the frame check below needs a policy that has trained
+    # round 0 alone (the env-step budget ends the rounds there): one expert episode and its 20 updates, as the
+    # frame check below needs a policy that has trained (before: 15 s of updates, cut by the wall budget);
+    # 50-step episodes (its held-out one a fifth as long)
     res = main(
-        Args(obs_without=("agent/qvel",), budget_min=0.25, eval_episodes=1, runs_dir=tmp_path, exp_name="d", **small)
+        Args(
+            obs_without=("agent/qvel",),
+            budget_min=None,
+            total_env_steps=1,
+            env_kwargs=dict(max_episode_steps=50),
+            eval_episodes=1,
+            runs_dir=tmp_path,
+            exp_name="d",
+            **small,
+        )
     )
+    assert res["rounds"] == 1 and res["dataset"] > 0
     sim_env, make_policy = load_policy(res["checkpoint"], ENV_ID, "tool_delta")
     obs, _ = sim_env.reset(seed=3)
     assert obs.shape == (1, 37)  # the policy's own view: no joint speeds, on both sides (the wrapper travels)
@@ -596,6 +609,8 @@ def test_sim2real_eval_runs_a_world_frame_dagger_checkpoint(tmp_path):
     sim_env.close()
     with pytest.raises(ValueError, match="deterministic"):
         load_policy(res["checkpoint"], ENV_ID, "tool_delta", "sample")
+    episode = sim2real_eval._episode  # the wire's first commands are all this test reads: 20 steps a side, not 250
+    monkeypatch.setattr(sim2real_eval, "_episode", lambda *a: episode(*a[:-1], min(a[-1], 20)))
     report = evaluate(EvalConfig(policy=res["checkpoint"], episodes=1, seed=3, camera="none", out=tmp_path / "s2r"))
     assert report["episodes"] == 1 and report["error"] is None
     log = np.load(tmp_path / "s2r" / "logs" / "real_3.npz")
