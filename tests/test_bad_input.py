@@ -32,7 +32,7 @@ def run(args: list[str], cwd: Path = REPO, timeout: float = 120) -> subprocess.C
 
 
 PRELOADED = r"""
-import json, os, runpy, sys, tempfile, traceback
+import json, os, runpy, signal, sys, tempfile, traceback
 
 import torch, gymnasium, sapien, mani_skill.envs, tyro  # noqa: F401  (what every case imports)
 
@@ -49,6 +49,7 @@ for line in sys.stdin:
     err = tempfile.TemporaryFile()
     pid = os.fork()
     if pid == 0:
+        signal.alarm(180)  # a case that hangs (a lock held across the fork, say) ends as a failure, not a stuck suite
         os.chdir(case["cwd"])
         out = os.open(os.devnull, os.O_WRONLY)
         os.dup2(out, 1)

@@ -130,8 +130,9 @@ def test_real_observations_mean_what_the_sim_s_mean_term_by_term(rig):
         actions.append(expert.act()[0])
         sim_obs.append(flat_obs(sim.step(actions[-1])[0]))
     sim_state = {k: v.clone() for k, v in sim.unwrapped.privileged_state().items()}  # before env.reset resets sim
+    late = env.late_steps  # the shared rig's count so far: this test answers for its own steps only
     real_obs = [flat_obs(env.reset(seed=seed)[0])] + [flat_obs(env.step(a)[0]) for a in actions]
-    assert env.late_steps == 0 and not env.refusals
+    assert env.late_steps == late and not env.refusals
     tol = {"agent/qpos": 3e-3, "agent/qvel": 0.06, "agent/gripper_opening": 5e-4, "extra/tcp_pose": 1e-3}
     tol["extra/is_grasped"] = 0.0
     for step, (s, r) in enumerate(zip(sim_obs, real_obs)):
