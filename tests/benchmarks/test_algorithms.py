@@ -522,33 +522,16 @@ def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
 
 
-def test_validate_scores_a_saved_sb3_cell_on_the_validation_seeds_only(alg, tmp_path, monkeypatch):
-    """--validate trains nothing: it loads the cell's saved model and observation statistics and plays them on
-    VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
-    cell = "state/GraspLift/sb3-ppo-tuned/s1"
-    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=300,
-                    reference_steps=0)  # fmt: skip
-    alg.main(args)
-    seen = []
-    real = alg.evaluate_on_seeds
-    monkeypatch.setattr(
-        alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: seen.append(seeds) or real(act, env_id, obs, seeds)
-    )
-    report = alg.main(
-        alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", validate=True, eval_episodes=2)
-    )
-    v = report["cells"][cell]["validation"]
-    assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
-    assert v["episodes"] == 2 and v["env_steps"] >= 300 and 0.0 <= v["success_rate"] <= 1.0
-    assert json.loads((tmp_path / "algorithms.json").read_text())["cells"][cell]["validation"] == v
-    with pytest.raises(ValueError, match="no saved model"):
-        alg.main(alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "elsewhere", validate=True))
-
-
-def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(alg, tmp_path, capsys):
+def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(
+    alg, tmp_path, capsys, monkeypatch
+):
     """An rl-zoo3 ``callback:`` entry (SelectOnValidation) reaches the cell: it checks the policy on validation seeds
     while training, keeps the best in the cell's folder, and the cell's held-out score is the selected policy's, the
-    last policy's kept beside it; the loader builds the same callback for agents.configs.train."""
+    last policy's kept beside it; the loader builds the same callback for agents.configs.train.
+
+    The same trained cell then takes --validate (one SB3 cell trained for both: training one takes a minute on 2
+    cores): it trains nothing, loads the cell's saved model and observation statistics and plays them on
+    VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
     import yaml
 
     from agents.configs import loader
@@ -585,6 +568,21 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
     with pytest.raises(ValueError, match="positive"):
         SelectOnValidation(every=0)
+    # --validate
+    seen = []
+    real = alg.evaluate_on_seeds
+    monkeypatch.setattr(
+        alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: seen.append(seeds) or real(act, env_id, obs, seeds)
+    )
+    report = alg.main(
+        alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", validate=True, eval_episodes=2)
+    )
+    v = report["cells"][cell]["validation"]
+    assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
+    assert v["episodes"] == 2 and v["env_steps"] >= 600 and 0.0 <= v["success_rate"] <= 1.0
+    assert json.loads(report_path.read_text())["cells"][cell]["validation"] == v
+    with pytest.raises(ValueError, match="no saved model"):
+        alg.main(alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "elsewhere", validate=True))
 
 
 def test_the_docs_selection_callback_entry_builds_the_callback():
