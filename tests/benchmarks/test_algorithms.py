@@ -539,21 +539,22 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
 
     hp = yaml.safe_load(loader.sb3_path("ppo").read_text())
     hp["GraspLift-IRB120-v1"]["callback"] = [
-        {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 512, "episodes": 1}}
+        {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 128, "episodes": 1}}
     ]
+    hp["GraspLift-IRB120-v1"]["n_steps"] = 32  # rollouts of 4 x 32 env steps: two of them train in a quarter of 4 x 128
     conf = tmp_path / "ppo_select.yml"
     conf.write_text(yaml.safe_dump(hp))
     (made,) = loader.sb3_config("ppo", "GraspLift-IRB120-v1", conf).make_callbacks(tmp_path / "elsewhere")
-    assert isinstance(made, SelectOnValidation) and made.save_path == tmp_path / "elsewhere" and made.every == 512
+    assert isinstance(made, SelectOnValidation) and made.save_path == tmp_path / "elsewhere" and made.every == 128
     cell = "state/GraspLift/sb3-ppo-tuned/s1"
     args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True, conf_file=conf,
-                    total_env_steps=600, reference_steps=0)  # fmt: skip
+                    total_env_steps=150, reference_steps=0)  # fmt: skip
     one = alg.main(args)["cells"][cell]
     best = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1" / "best"
     assert (best / "best_model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
     kept = json.loads((best / "best.json").read_text())
-    assert [c[0] for c in kept["checks"]] == [512, 1024]  # 2 rollouts of 4 envs x 128 steps
-    assert one["selected"]["env_steps"] in (512, 1024) and one["selected"]["success"] == max(
+    assert [c[0] for c in kept["checks"]] == [128, 256]  # 2 rollouts of 4 envs x 32 steps
+    assert one["selected"]["env_steps"] in (128, 256) and one["selected"]["success"] == max(
         c[1] for c in kept["checks"]
     )
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
@@ -579,7 +580,7 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     )
     v = report["cells"][cell]["validation"]
     assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
-    assert v["episodes"] == 2 and v["env_steps"] >= 600 and 0.0 <= v["success_rate"] <= 1.0
+    assert v["episodes"] == 2 and v["env_steps"] >= 150 and 0.0 <= v["success_rate"] <= 1.0
     assert json.loads(report_path.read_text())["cells"][cell]["validation"] == v
     with pytest.raises(ValueError, match="no saved model"):
         alg.main(alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "elsewhere", validate=True))
