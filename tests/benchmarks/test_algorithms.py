@@ -249,6 +249,9 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
     assert [c[1] for c in calls] == ["cell"]
 
 
+# ~45-90 s: an SB3 SAC cell's worker start-ups and held-out episodes; the selection-callback test trains a cell in env
+# steps and checks the budget it records, test_the_default_budgets_are_env_steps_and_a_zero_one_is_refused the rest
+@pytest.mark.slow
 def test_a_cell_budgeted_in_env_steps_trains_them_and_records_its_budget(alg, tmp_path):
     """SB3 counts the cell's env steps itself (learn's total_timesteps): the cell stops at its budget, not on a clock,
     and records the budget, no guard, and that nothing stopped it early."""
@@ -264,7 +267,10 @@ def test_a_cell_budgeted_in_env_steps_trains_them_and_records_its_budget(alg, tm
     assert row["total_env_steps"] == 40
     pending = next(r for r in report["rows"] if r["algorithm"] == "sb3-td3" and r["task"] == "TableClearing")
     assert pending["total_env_steps"] == 40 and "(40 env steps budget)" in alg.markdown(report["rows"])
-    # the default budgets are issue 91's, per task and observation
+
+
+def test_the_default_budgets_are_env_steps_and_a_zero_one_is_refused(alg, tmp_path):
+    """The default budgets are issue 91's, per task and observation."""
     default = alg.Args()
     assert alg.steps_of("state", "GraspLift", default) == 500_000 and alg.steps_of("state", "TableClearing", default)
     assert alg.steps_of("rgbd", "GraspLift", default) == 1_000_000 and alg.minutes_of(default) is None
@@ -549,7 +555,8 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     cell = "state/GraspLift/sb3-ppo-tuned/s1"
     args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True, conf_file=conf,
                     total_env_steps=150, reference_steps=0)  # fmt: skip
-    one = alg.main(args)["cells"][cell]
+    first = alg.main(args)
+    one = first["cells"][cell]
     best = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1" / "best"
     assert (best / "best_model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
     kept = json.loads((best / "best.json").read_text())
@@ -558,6 +565,11 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
         c[1] for c in kept["checks"]
     )
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
+    # a cell budgeted in env steps records its budget, no guard, and that nothing stopped it early
+    assert one["total_env_steps"] == 150 and one["stopped_early"] is False
+    assert one["max_minutes"] is None and "budget_min" not in one
+    pending = next(r for r in first["rows"] if r["algorithm"] == "sb3-td3" and r["task"] == "TableClearing")
+    assert pending["total_env_steps"] == 150 and "(150 env steps budget)" in alg.markdown(first["rows"])
     assert "last_policy_success" in one and len(one["last_policy_successes"]) == len(one["successes"])
     assert "validation success" in capsys.readouterr().out
     # a cell whose training was over when its run stopped (before its final evaluation) still deploys the selected one
