@@ -63,13 +63,14 @@ def test_a_name_the_trainer_cannot_run_is_refused_with_the_valid_names():
         parsed("agents.dagger", ["--recipe", "teacher-student-rgbd"])
 
 
-def test_the_trainers_command_line_expands_a_recipe():
-    code = "import sys; from agents.common import cli; from agents.sac import Args; a = cli(Args, 'agents.sac'); "
-    code += "print(a.recipe, a.demo_episodes, a.eval_deterministic, a.batch_size)"
-    argv = ["--recipe", "sac-scratch-state", "--batch-size", "64"]
-    out = subprocess.run([sys.executable, "-c", code, *argv], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.split() == ["sac-scratch-state", "0", "False", "64"]
+def test_the_trainers_command_line_expands_a_recipe(monkeypatch):
+    # sys.argv, read in this process (a fresh interpreter's imports took half a minute on a loaded CI box; the
+    # command line of a `python -m` trainer is test_python_m_a_trainer_with_a_negative_budget_exits_2_with_one_line's)
+    from agents.sac import Args
+
+    monkeypatch.setattr(sys, "argv", ["agents.sac", "--recipe", "sac-scratch-state", "--batch-size", "64"])
+    a = cli(Args, "agents.sac")
+    assert (a.recipe, a.demo_episodes, a.eval_deterministic, a.batch_size) == ("sac-scratch-state", 0, False, 64)
 
 
 @pytest.mark.parametrize("module", ["agents.ppo", "agents.dagger", "agents.sac"])

@@ -89,7 +89,8 @@ SLOW = pytest.mark.slow
 @pytest.mark.parametrize(
     "algo,obs",
     [
-        ("PPO", "state"),
+        # ~13 s: test_resume_continues_and_evaluate_writes_a_summary trains PPO from state and checks the same files
+        pytest.param("PPO", "state", marks=SLOW),
         ("PPO", "rgbd"),
         pytest.param("APPO", "state", marks=SLOW),
         pytest.param("APPO", "rgbd", marks=SLOW),
@@ -128,6 +129,9 @@ def test_task_metrics_use_agents_ppo_names(ray_local, tmp_path):
 def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path, monkeypatch):
     first = main(Args(iterations=2, runs_dir=tmp_path, exp_name="a", **TINY))
     ckpt = tmp_path / "a" / "checkpoints" / "latest"
+    assert first["iterations"] == 2 and first["env_steps"] > 0  # test_one_training_iteration's, from state
+    assert (ckpt / "agents_rllib_args.json").is_file()
+    assert json.loads((tmp_path / "a" / "summary.json").read_text()) == first
     from agents.rllib.checkpoint import load_module
 
     saved = {k: v.clone() for k, v in load_module(ckpt).state_dict().items()}

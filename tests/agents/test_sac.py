@@ -28,9 +28,11 @@ from agents.sac import (
 
 
 def tiny(tmp_path: Path, **kw) -> dict:
-    """A toy run sized in env steps (the expert's demo episode, ~110, and the rest online), with a budget far above
-    it: the same run on a quiet machine and on a loaded CI box."""
+    """A toy run sized in env steps (the expert's demo episode and the rest online), with a budget far above it: the
+    same run on a quiet machine and on a loaded CI box. Episodes end at 25 steps, the held-out evaluations' too (the
+    task's 250 steps each, in three evaluations of the state test)."""
     base = dict(
+        env_kwargs=dict(max_episode_steps=25),
         budget_min=5.0,
         total_env_steps=310,
         num_envs=1,
@@ -160,7 +162,8 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys):
     rows = saved["data_rows"]  # the data beside the checkpoint, in data/online and data/demos
     assert rows["demos"]["added"] > 0 and rows["online"]["added"] > 0 and "online" not in saved
     assert saved["signature"]["reference"] and any(k.startswith("reference.") for k in saved["model"])
-    # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, 250 steps each)
+    # state's default replay; the demo buffer holds the demo episodes (1 + 1 env still running, the task's registered
+    # 250 steps each: demo_rows reads the registry, not --env-kwargs)
     assert rows["online"]["capacity"] == 300_000 and rows["demos"]["capacity"] == 500
     assert saved["args"]["buffer_size"] == 300_000
     # the budget counts the first run's wall clock too: one it has already used up stops the resumed run at once

@@ -15,6 +15,7 @@ from maniskill_irb120.experts import expert_for
 from maniskill_irb120.policies import acting, read_policy_section
 
 ENV = "GraspLift-IRB120-v1"
+SHORT = dict(max_episode_steps=10)  # the tiny runs' episodes: labelling and training need no 150-step one
 
 
 @pytest.mark.parametrize("env_id", ["TableClearing-IRB120-v1", ENV, "StackCube-IRB120-v1"])
@@ -40,7 +41,9 @@ def test_the_privileged_state_is_the_state_observation(env_id):
 @pytest.fixture(scope="module")
 def teacher(tmp_path_factory, tiny_dagger):
     """A state policy in the world frame (a tiny agents.dagger run: any trained state policy will do)."""
-    out = tiny_dagger(tmp_path_factory.mktemp("teacher"), env_id=ENV, obs="state", action_frame="world")
+    out = tiny_dagger(
+        tmp_path_factory.mktemp("teacher"), env_id=ENV, obs="state", action_frame="world", env_kwargs=SHORT
+    )
     return out["checkpoint"]
 
 
@@ -65,18 +68,26 @@ def test_labels_are_the_teachers_actions_in_the_learners_frame(teacher):
         ref.close()
 
 
-def test_a_camera_student_trains_from_the_teacher(teacher, tiny_dagger, tmp_path):
-    out = tiny_dagger(tmp_path, env_id=ENV, obs="rgbd", action_frame="tool", encoder="keypoints", teacher=teacher)
-    student = read_policy_section(out["checkpoint"])
-    assert student["obs"] == "rgbd" and out["env_steps"] > 0 and out["dataset"] > 0
-    assert 0.0 <= out["success_rate"] <= 1.0
+@pytest.fixture(scope="module")
+def student(tmp_path_factory, tiny_dagger, teacher):
+    """A camera agents.dagger run labelled by the teacher (a tiny one): its result dict."""
+    return tiny_dagger(
+        tmp_path_factory.mktemp("student"), env_id=ENV, obs="rgbd", action_frame="tool", encoder="keypoints",
+        teacher=teacher, env_kwargs=SHORT,
+    )  # fmt: skip
 
 
-def test_a_teacher_that_cannot_label_the_run_is_named(teacher, tiny_dagger, tmp_path):
+def test_a_camera_student_trains_from_the_teacher(student):
+    section = read_policy_section(student["checkpoint"])
+    assert section["obs"] == "rgbd" and student["env_steps"] > 0 and student["dataset"] > 0
+    assert 0.0 <= student["success_rate"] <= 1.0
+
+
+def test_a_teacher_that_cannot_label_the_run_is_named(teacher, student, tmp_path):
     with pytest.raises(FileNotFoundError, match="--teacher"):
         make_envs(ENV, "rgbd", 1, backend="cpu", teacher=tmp_path / "missing.pt")
     with pytest.raises(ValueError, match=r"--teacher .*env_id='GraspLift-IRB120-v1'"):
         make_envs("TableClearing-IRB120-v1", "state", 1, backend="cpu", teacher=teacher)
-    camera = tiny_dagger(tmp_path, env_id=ENV, obs="rgbd", action_frame="tool")["checkpoint"]
+    camera = student["checkpoint"]  # a camera policy (the module's student: training another takes half a minute)
     with pytest.raises(ValueError, match=r"--teacher .*obs='rgbd' \(needed: 'state'\)"):
         make_envs(ENV, "rgbd", 1, backend="cpu", teacher=camera)

@@ -249,6 +249,9 @@ def test_the_camera_cell_trains_a_state_teacher_then_its_camera_student_within_o
     assert [c[1] for c in calls] == ["cell"]
 
 
+# ~45-90 s: an SB3 SAC cell's worker start-ups and held-out episodes; the selection-callback test trains a cell in env
+# steps and checks the budget it records, test_the_default_budgets_are_env_steps_and_a_zero_one_is_refused the rest
+@pytest.mark.slow
 def test_a_cell_budgeted_in_env_steps_trains_them_and_records_its_budget(alg, tmp_path):
     """SB3 counts the cell's env steps itself (learn's total_timesteps): the cell stops at its budget, not on a clock,
     and records the budget, no guard, and that nothing stopped it early."""
@@ -264,7 +267,10 @@ def test_a_cell_budgeted_in_env_steps_trains_them_and_records_its_budget(alg, tm
     assert row["total_env_steps"] == 40
     pending = next(r for r in report["rows"] if r["algorithm"] == "sb3-td3" and r["task"] == "TableClearing")
     assert pending["total_env_steps"] == 40 and "(40 env steps budget)" in alg.markdown(report["rows"])
-    # the default budgets are issue 91's, per task and observation
+
+
+def test_the_default_budgets_are_env_steps_and_a_zero_one_is_refused(alg, tmp_path):
+    """The default budgets are issue 91's, per task and observation."""
     default = alg.Args()
     assert alg.steps_of("state", "GraspLift", default) == 500_000 and alg.steps_of("state", "TableClearing", default)
     assert alg.steps_of("rgbd", "GraspLift", default) == 1_000_000 and alg.minutes_of(default) is None
@@ -522,33 +528,16 @@ def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
 
 
-def test_validate_scores_a_saved_sb3_cell_on_the_validation_seeds_only(alg, tmp_path, monkeypatch):
-    """--validate trains nothing: it loads the cell's saved model and observation statistics and plays them on
-    VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
-    cell = "state/GraspLift/sb3-ppo-tuned/s1"
-    args = alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=300,
-                    reference_steps=0)  # fmt: skip
-    alg.main(args)
-    seen = []
-    real = alg.evaluate_on_seeds
-    monkeypatch.setattr(
-        alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: seen.append(seeds) or real(act, env_id, obs, seeds)
-    )
-    report = alg.main(
-        alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs", validate=True, eval_episodes=2)
-    )
-    v = report["cells"][cell]["validation"]
-    assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
-    assert v["episodes"] == 2 and v["env_steps"] >= 300 and 0.0 <= v["success_rate"] <= 1.0
-    assert json.loads((tmp_path / "algorithms.json").read_text())["cells"][cell]["validation"] == v
-    with pytest.raises(ValueError, match="no saved model"):
-        alg.main(alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "elsewhere", validate=True))
-
-
-def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(alg, tmp_path, capsys):
+def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(
+    alg, tmp_path, capsys, monkeypatch
+):
     """An rl-zoo3 ``callback:`` entry (SelectOnValidation) reaches the cell: it checks the policy on validation seeds
     while training, keeps the best in the cell's folder, and the cell's held-out score is the selected policy's, the
-    last policy's kept beside it; the loader builds the same callback for agents.configs.train."""
+    last policy's kept beside it; the loader builds the same callback for agents.configs.train.
+
+    The same trained cell then takes --validate (one SB3 cell trained for both: training one takes a minute on 2
+    cores): it trains nothing, loads the cell's saved model and observation statistics and plays them on
+    VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
     import yaml
 
     from agents.configs import loader
@@ -556,24 +545,31 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
 
     hp = yaml.safe_load(loader.sb3_path("ppo").read_text())
     hp["GraspLift-IRB120-v1"]["callback"] = [
-        {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 512, "episodes": 1}}
+        {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 128, "episodes": 1}}
     ]
+    hp["GraspLift-IRB120-v1"]["n_steps"] = 32  # rollouts of 4 x 32 env steps: two of them train in a quarter of 4 x 128
     conf = tmp_path / "ppo_select.yml"
     conf.write_text(yaml.safe_dump(hp))
     (made,) = loader.sb3_config("ppo", "GraspLift-IRB120-v1", conf).make_callbacks(tmp_path / "elsewhere")
-    assert isinstance(made, SelectOnValidation) and made.save_path == tmp_path / "elsewhere" and made.every == 512
+    assert isinstance(made, SelectOnValidation) and made.save_path == tmp_path / "elsewhere" and made.every == 128
     cell = "state/GraspLift/sb3-ppo-tuned/s1"
     args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True, conf_file=conf,
-                    total_env_steps=600, reference_steps=0)  # fmt: skip
-    one = alg.main(args)["cells"][cell]
+                    total_env_steps=150, reference_steps=0)  # fmt: skip
+    first = alg.main(args)
+    one = first["cells"][cell]
     best = tmp_path / "runs" / "state__GraspLift__sb3-ppo-tuned__s1" / "best"
     assert (best / "best_model.zip").is_file() and (best / "vecnormalize.pkl").is_file()
     kept = json.loads((best / "best.json").read_text())
-    assert [c[0] for c in kept["checks"]] == [512, 1024]  # 2 rollouts of 4 envs x 128 steps
-    assert one["selected"]["env_steps"] in (512, 1024) and one["selected"]["success"] == max(
+    assert [c[0] for c in kept["checks"]] == [128, 256]  # 2 rollouts of 4 envs x 32 steps
+    assert one["selected"]["env_steps"] in (128, 256) and one["selected"]["success"] == max(
         c[1] for c in kept["checks"]
     )
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
+    # a cell budgeted in env steps records its budget, no guard, and that nothing stopped it early
+    assert one["total_env_steps"] == 150 and one["stopped_early"] is False
+    assert one["max_minutes"] is None and "budget_min" not in one
+    pending = next(r for r in first["rows"] if r["algorithm"] == "sb3-td3" and r["task"] == "TableClearing")
+    assert pending["total_env_steps"] == 150 and "(150 env steps budget)" in alg.markdown(first["rows"])
     assert "last_policy_success" in one and len(one["last_policy_successes"]) == len(one["successes"])
     assert "validation success" in capsys.readouterr().out
     # a cell whose training was over when its run stopped (before its final evaluation) still deploys the selected one
@@ -585,6 +581,21 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
     with pytest.raises(ValueError, match="positive"):
         SelectOnValidation(every=0)
+    # --validate
+    seen = []
+    real = alg.evaluate_on_seeds
+    monkeypatch.setattr(
+        alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: seen.append(seeds) or real(act, env_id, obs, seeds)
+    )
+    report = alg.main(
+        alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", validate=True, eval_episodes=2)
+    )
+    v = report["cells"][cell]["validation"]
+    assert seen == [[alg.VALIDATION_SEED, alg.VALIDATION_SEED + 1]] and alg.VALIDATION_SEED != alg.EVAL_SEED
+    assert v["episodes"] == 2 and v["env_steps"] >= 150 and 0.0 <= v["success_rate"] <= 1.0
+    assert json.loads(report_path.read_text())["cells"][cell]["validation"] == v
+    with pytest.raises(ValueError, match="no saved model"):
+        alg.main(alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "elsewhere", validate=True))
 
 
 def test_the_docs_selection_callback_entry_builds_the_callback():

@@ -103,6 +103,9 @@ def test_learning_quick_writes_json(tmp_path):
     assert "(reference env steps/s before / after: " in run.stdout
 
 
+# a benchmark's smoke run (~20-40 s), as the other benchmarks' are; test_ppo.py's bf16 and fp32 update tests cover
+# the updates it times, test_cli_errors.py its bad flag and test_results_sections.py its report
+@pytest.mark.slow
 def test_learner_speed_quick_times_every_configuration(tmp_path):
     """The camera update benchmark at toy sizes: the reference shift, fp32 and (where native) bf16 all timed on
     recorded expert frames."""

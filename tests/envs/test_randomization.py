@@ -80,10 +80,10 @@ def _table_rows(rgb: torch.Tensor) -> np.ndarray:
     return rgb[0, :10].float().numpy()
 
 
-def test_textures_colours_and_materials_per_surface_follow_the_seed():
+def test_textures_colours_and_materials_per_surface_follow_the_seed(pair):
     """A procedural texture on the table shows as a pattern where the nominal table is one flat colour; the same
     seed draws the same surfaces, another seed others; the material terms are the drawn ones."""
-    nominal, textured = make(None), make("texture=1,color=0.2,roughness=0.2:0.8,specular=0.3")
+    nominal, textured = pair[0], make("texture=1,color=0.2,roughness=0.2:0.8,specular=0.3")  # the module's nominal
     flat = _table_rows(nominal.reset(seed=0)[0]["sensor_data"]["hand_camera"]["rgb"])
     frames = [textured.reset(seed=s)[0]["sensor_data"]["hand_camera"]["rgb"] for s in (0, 1, 0)]
     u = textured.unwrapped
@@ -98,7 +98,6 @@ def test_textures_colours_and_materials_per_surface_follow_the_seed():
     # each env's surfaces are built with materials of their own (a GPU-batched scene shares a builder's otherwise)
     assert u.own_materials and not nominal.unwrapped.own_materials
     assert len(u.table_scene.table._objs) == u.num_envs
-    nominal.close()
     textured.close()
 
 
@@ -133,8 +132,8 @@ def test_object_size_mass_and_friction(pair):
     assert mu == pytest.approx(0.4)
 
 
-def test_depth_noise_and_dropout_follow_the_request():
-    clean = make(None)
+def test_depth_noise_and_dropout_follow_the_request(pair):
+    clean = pair[0]  # the module's nominal env: building another takes seconds
     noisy = make("depth_noise=4,depth_dropout=0.2")
     d0 = clean.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"].float()
     d1 = noisy.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"].float()
@@ -143,7 +142,6 @@ def test_depth_noise_and_dropout_follow_the_request():
     assert (d1 - d0)[~dropped].std() == pytest.approx(4.0, rel=0.15)
     again = noisy.reset(seed=4)[0]["sensor_data"]["hand_camera"]["depth"]
     assert torch.equal(again, d1.to(again.dtype))  # the same seed, the same noise
-    clean.close()
     noisy.close()
 
 

@@ -25,21 +25,18 @@ def test_expert_succeeds(env_id, shape):
 
 @pytest.mark.parametrize("env_id", TASKS)
 def test_contract_reward_and_obs_modes(make_task, env_id):
-    env = make_task(env_id)
-    assert env.unwrapped.reward_mode == "normalized_dense"  # ManiSkill's convention: the first mode
-    env.close()
-    for mode in ("dense", "normalized_dense", "sparse", "none"):
-        env = make_task(env_id, reward_mode=mode)
-        env.reset(seed=0)
+    # one env per reward mode (building and closing one takes seconds): the camera env is the default mode's
+    for mode in ("normalized_dense", "dense", "sparse", "none"):
+        env = make_task(env_id, obs_mode="rgbd") if mode == "normalized_dense" else make_task(env_id, reward_mode=mode)
+        obs, _ = env.reset(seed=0)
+        if mode == "normalized_dense":
+            assert env.unwrapped.reward_mode == "normalized_dense"  # ManiSkill's convention: the first mode
+            assert obs["sensor_data"]["hand_camera"]["rgb"].shape == (1, 84, 84, 3)
         _, rew, *_ = env.step(torch.zeros(1, 5))
         assert rew.shape == (1,) and bool(torch.isfinite(rew).all())
         if mode == "normalized_dense":
             assert 0.0 <= float(rew[0]) <= 1.0
         env.close()
-    env = make_task(env_id, obs_mode="rgbd")
-    obs, _ = env.reset(seed=0)
-    assert obs["sensor_data"]["hand_camera"]["rgb"].shape == (1, 84, 84, 3)
-    env.close()
 
 
 @pytest.mark.parametrize("env_id", TASKS)
@@ -83,7 +80,7 @@ def test_object_shapes_build_what_they_say(make_task):
         env.close()
     seen = set()
     env = make_task("GraspLift-IRB120-v1", object_shape="random", reconfiguration_freq=1)
-    for seed in range(8):  # drawn per env from the episode RNG when the scene is built
+    for seed in range(4):  # drawn per env from the episode RNG when the scene is built (seeds 0 and 1 differ)
         env.reset(seed=seed)
         seen.add(type(env.unwrapped.obj._bodies[0].get_collision_shapes()[0]).__name__)
     env.close()

@@ -43,6 +43,9 @@ def test_sb3_ppo_example_runs_as_the_readme_writes_it(tmp_path):
     run = tmp_path / "runs" / "sb3_ppo"
     assert (run / "model.zip").is_file() and list(run.glob("PPO_1/events.out.tfevents.*"))
     assert "training-episode success" in out.stdout
+    # the held-out check after training, and the last line saying it (SB3's ProgressCallback, as sb3_sac.py's)
+    last = out.stdout.strip().splitlines()[-1]
+    assert last.startswith("256 env steps in ") and re.search(r"held-out success [0-2]/2;", last), last
 
 
 def test_sb3_sac_example_runs(tmp_path):
@@ -92,9 +95,8 @@ def test_an_example_stopped_by_ctrl_c_saves_its_model_and_says_so_in_one_line(tm
     assert err[-1] == f"interrupted (Ctrl-C) at 64 env steps; model so far: {tmp_path}/model.zip", err
 
 
-def test_sb3_sac_example_trains_on_its_config_from_state_and_says_how_it_goes(tmp_path, capsys):
-    """SAC from state without flags: sac.yml's settings (4 envs, VecNormalize, gamma 0.8), the progress line it starts
-    with, a held-out check at the end and the summary naming it."""
+def test_sb3_sac_example_builds_its_config_from_state(tmp_path):
+    """SAC from state without flags: sac.yml's settings (4 envs, VecNormalize, gamma 0.8)."""
     pytest.importorskip("stable_baselines3")
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -105,6 +107,18 @@ def test_sb3_sac_example_trains_on_its_config_from_state_and_says_how_it_goes(tm
     assert source == "agents/configs/sb3/sac.yml" and total == 48
     assert model.gamma == 0.8 and model.tau == 0.01 and model.gradient_steps == 2 and model.learning_starts == 24
     assert isinstance(model.get_env(), VecNormalize) and model.get_env().num_envs == 4
+
+
+# ~40 s: four worker envs and a held-out episode; test_sb3_sac_example_builds_its_config_from_state covers the config,
+# test_sb3_sac_example_runs a run of the example, test_sb3_ppo_example_runs_as_the_readme_writes_it the held-out
+# check and the last line naming it (SB3's ProgressCallback, the same in both examples)
+@pytest.mark.slow
+def test_sb3_sac_example_trains_on_its_config_from_state_and_says_how_it_goes(tmp_path, capsys):
+    """SAC from state without flags: sac.yml's settings, the progress line it starts with, a held-out check at the
+    end and the summary naming it."""
+    pytest.importorskip("stable_baselines3")
+    ex = load("sb3_sac")
+    args = ex.Args(backend="cpu", total_timesteps=48, learning_starts=24, eval_episodes=1, out_dir=tmp_path)
     ex.main(args)
     out = capsys.readouterr().out
     assert "4 envs, agents/configs/sb3/sac.yml; 48 env steps, the first 24 random" in out, out
