@@ -37,9 +37,9 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(autouse=True)
 def _one_torch_thread_per_xdist_worker():
     """Under pytest-xdist (``-n 2`` on CI's 2 cores) each worker is one of as many processes as cores, and torch's
-    default of a thread per core in each oversubscribes them: its spinning threads made a small update several times slower on
-    2 cores. Each test starts on one torch thread; a test (or trainer) that sets its own count keeps it, and the
-    count is put back after the test. Run alone (``-n 0``), tests keep torch's default."""
+    default of a thread per core in each oversubscribes them: its spinning threads made a small update several
+    times slower on 2 cores. Each test starts on one torch thread; a test (or trainer) that sets its own count
+    keeps it, and the count is put back after the test. Run alone (``-n 0``), tests keep torch's default."""
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         yield
         return
