@@ -66,6 +66,7 @@ from benchmarks.lib.budget import rest_of
 from benchmarks.lib.cli import entry
 from benchmarks.lib.report import replace_section
 from benchmarks.lib.stats import bootstrap_ci, iqm_ci, wilson
+from benchmarks.lib.suspend import Suspensions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -361,15 +362,30 @@ READ_AT = (0.25, 0.5, 1.0)
 class Budget:
     """A cell's wall clock across sessions: ``spent_s`` from earlier sessions plus this one's, against ``total_s`` (a
     minute budget or the guard; None: none); checkpoints due every ``every_s``. ``total_steps``: the cell's env-step
-    budget, which the library's own step count keeps (SB3's ``total_timesteps``, skrl's ``timesteps``)."""
+    budget, which the library's own step count keeps (SB3's ``total_timesteps``, skrl's ``timesteps``). Time the
+    process spent stopped (``kill -STOP``, :mod:`benchmarks.lib.suspend`) is left out of ``spent_s`` and kept in
+    ``stopped_s``, earlier sessions' (``stopped_before_s``) included."""
 
-    def __init__(self, total_s: Optional[float], spent_s: float, every_s: float, total_steps: Optional[int] = None):
+    def __init__(
+        self,
+        total_s: Optional[float],
+        spent_s: float,
+        every_s: float,
+        total_steps: Optional[int] = None,
+        stopped_before_s: float = 0.0,
+    ):
         self.total_s, self.before_s, self.every_s, self.total_steps = total_s, spent_s, every_s, total_steps
+        self.stopped_before_s = stopped_before_s
         self.t0 = self.last_save = time.time()
+        self.suspensions = Suspensions()
+
+    @property
+    def stopped_s(self) -> float:
+        return self.stopped_before_s + self.suspensions.total_s
 
     @property
     def spent_s(self) -> float:
-        return self.before_s + time.time() - self.t0
+        return self.before_s + time.time() - self.t0 - self.suspensions.total_s
 
     def over(self) -> bool:
         return self.total_s is not None and self.spent_s >= self.total_s
@@ -528,11 +544,13 @@ def run_sb3(
         print(f"[algorithms] continuing from {model_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     else:
         model = cls(policy, venv, seed=seed, verbose=0, tensorboard_log=str(ckpt_dir / "tb"), **kwargs)
-    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     curve, held = state["curve"], state["held_out"]
 
-    def act(flat):
-        return torch.as_tensor(deterministic_action(model, numpy_library_obs(obs, flat)))
+    def act(flat):  # model and venv as bound when called: the selected policy is loaded without its envs, and
+        # its statistics are the VecNormalize saved beside it (rebound below), not the model's (it has none)
+        norm = venv if isinstance(venv, VecNormalize) else None
+        return torch.as_tensor(deterministic_action(model, numpy_library_obs(obs, flat), norm))
 
     def save() -> None:
         model.save(model_path)
@@ -540,8 +558,8 @@ def run_sb3(
             venv.save(str(norm_path))
         if hasattr(model, "replay_buffer") and obs == "state":  # camera buffers are GBs: a resumed cell refills
             model.save_replay_buffer(replay_path)
-        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": int(model.num_timesteps), "curve": curve,
-                               "held_out": held})  # fmt: skip
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "stopped_s": clock.stopped_s,
+                               "env_steps": int(model.num_timesteps), "curve": curve, "held_out": held})  # fmt: skip
 
     class Stop(BaseCallback):
         def _on_step(self) -> bool:
@@ -580,7 +598,7 @@ def run_sb3(
     selector = next((c for c in extra if hasattr(c, "restore") and c.restore() is not None), None)
     if selector is None:
         final = held_out(act, env_id, obs, args)
-        return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),
+        return dict(final, env_steps=env_steps, wall_clock_s=spent, stopped_s=clock.stopped_s, curve=curve_of(curve),
                     held_out_curve=held_out_curve(held, final, env_steps, spent))  # fmt: skip
     # the deployed policy is the selected one (its score is the cell's); the last one's is kept beside it, and the
     # curve's earlier points are the policy as it trained
@@ -590,7 +608,7 @@ def run_sb3(
     if (best_dir / "vecnormalize.pkl").is_file():  # the statistics saved with it; act uses only normalize_obs
         venv = pickle.loads((best_dir / "vecnormalize.pkl").read_bytes())
     final = held_out(act, env_id, obs, args)
-    return dict(final, env_steps=env_steps, wall_clock_s=spent, curve=curve_of(curve),
+    return dict(final, env_steps=env_steps, wall_clock_s=spent, stopped_s=clock.stopped_s, curve=curve_of(curve),
                 held_out_curve=held_out_curve(held, final, env_steps, spent),
                 selected=dict(selector.best, checks=selector.checks), last_policy_success=last["success_rate"],
                 last_policy_successes=last["successes"])  # fmt: skip
@@ -649,7 +667,7 @@ def run_skrl(
     if agent_path.is_file():
         agent.load(str(agent_path))
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
-    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps)
+    clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
     counted = {"steps": steps0}
     policy = models["policy"]
@@ -663,8 +681,8 @@ def run_skrl(
 
     def save() -> None:
         agent.save(str(agent_path))
-        write_state(ckpt_dir, {"spent_s": clock.spent_s, "env_steps": counted["steps"], "curve": curve,
-                               "held_out": held})  # fmt: skip
+        write_state(ckpt_dir, {"spent_s": clock.spent_s, "stopped_s": clock.stopped_s, "env_steps": counted["steps"],
+                               "curve": curve, "held_out": held})  # fmt: skip
 
     class BudgetSpent(Exception):
         pass
@@ -708,7 +726,8 @@ def run_skrl(
     finally:
         env.close()
     result = held_out(act, env_id, obs, args)
-    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, curve=curve_of(curve),
+    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, stopped_s=clock.stopped_s,
+                curve=curve_of(curve),
                 held_out_curve=held_out_curve(held, result, counted["steps"], clock.spent_s))  # fmt: skip
 
 

@@ -539,10 +539,16 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     cores): it trains nothing, loads the cell's saved model and observation statistics and plays them on
     VALIDATION_SEED onwards, so a choice between probes reads no held-out episode."""
     import yaml
+    from stable_baselines3.common.vec_env import VecNormalize
 
     from agents.configs import loader
+    from maniskill_irb120.integrations import sb3
     from maniskill_irb120.integrations.sb3 import SelectOnValidation
 
+    norms = []  # every deterministic action of the cell's own evaluations: the selected policy's included, it is
+    real_act = sb3.deterministic_action  # loaded without its envs and must act on the statistics saved beside it
+    monkeypatch.setattr(sb3, "deterministic_action", lambda m, o, norm=None: norms.append(
+        norm if norm is not None else m.get_vec_normalize_env()) or real_act(m, o, norm))  # fmt: skip
     hp = yaml.safe_load(loader.sb3_path("ppo").read_text())
     hp["GraspLift-IRB120-v1"]["callback"] = [
         {"maniskill_irb120.integrations.sb3.SelectOnValidation": {"every": 128, "episodes": 1}}
@@ -565,6 +571,8 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
         c[1] for c in kept["checks"]
     )
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED and one["selected"]["checks"] == kept["checks"]
+    assert norms and all(isinstance(n, VecNormalize) for n in norms)  # the config normalises observations
+    assert one["stopped_s"] == 0.0  # nothing stopped the process
     # a cell budgeted in env steps records its budget, no guard, and that nothing stopped it early
     assert one["total_env_steps"] == 150 and one["stopped_early"] is False
     assert one["max_minutes"] is None and "budget_min" not in one

@@ -1,0 +1,54 @@
+"""A benchmark cell's wall clock leaves out the time its process was stopped (kill -STOP, as for a CI run)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+CHILD = """
+import sys, time
+from benchmarks.lib.suspend import Suspensions
+s = Suspensions(tick_s=0.05, gap_s=0.5)
+print("ready", flush=True)
+time.sleep(0.3)  # running: no gap is counted
+sys.stdin.readline()  # the parent stops and continues this process meanwhile
+time.sleep(0.2)  # the watcher's first tick after the stop
+print(s.total_s, flush=True)
+"""
+
+
+def test_a_stopped_process_counts_its_stop_and_a_running_one_nothing():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    child = subprocess.Popen([sys.executable, "-c", CHILD], env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True)  # fmt: skip
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        time.sleep(0.5)
+        child.send_signal(signal.SIGSTOP)
+        time.sleep(2.0)
+        child.send_signal(signal.SIGCONT)
+        out, _ = child.communicate("go\n", timeout=30)
+    finally:
+        child.kill()
+    stopped = float(out.strip())
+    assert 1.5 < stopped < 2.6, stopped  # the 2 s stop, less a tick, give or take the signals' timing
+
+
+def test_a_running_budget_counts_no_stop_and_bad_ticks_are_refused():
+    from benchmarks.algorithms import Budget
+    from benchmarks.lib.suspend import Suspensions
+
+    clock = Budget(None, spent_s=10.0, every_s=60.0, total_steps=100, stopped_before_s=5.0)
+    time.sleep(0.1)
+    assert clock.stopped_s == 5.0 and 10.0 < clock.spent_s < 12.0  # earlier sessions' counts carry on
+    for tick, gap in ((0.0, 1.0), (2.0, 1.0)):
+        with pytest.raises(ValueError, match="tick_s"):
+            Suspensions(tick_s=tick, gap_s=gap)
