@@ -874,6 +874,7 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                 per_seed=[r["success_rate"] for r in runs],
                 env_steps_mean=float(np.mean([r["env_steps"] for r in runs])),
                 wall_clock_min_mean=float(np.mean([r["wall_clock_s"] for r in runs])) / 60,
+                stopped_min_mean=float(np.mean([r.get("stopped_s", 0.0) for r in runs])) / 60,  # not in the wall clock
             )
             row["held_out_at"] = held_out_at(runs)
             steal = [r["cpu_steal"] for r in runs if "cpu_steal" in r]
@@ -934,9 +935,12 @@ def markdown(rows: list[dict]) -> str:
         steal = "–" if r.get("cpu_steal_mean") is None else f"{100 * r['cpu_steal_mean']:.0f} %"
         ref = "–" if r.get("reference_sps_mean") is None else " / ".join(f"{x:.0f}" for x in r["reference_sps_mean"])
         at = " / ".join("–" if v is None else f"{v:.2f}" for v in (r.get("held_out_at") or {}).values()) or "–"
+        wall = f"{r['wall_clock_min_mean']:.1f}"
+        if r.get("stopped_min_mean"):
+            wall += f" (and {r['stopped_min_mean']:.1f} stopped)"
         lines.append(
             f"{head} {len(r['seeds'])} | {r['success_mean']:.2f} | [{lo:.2f}, {hi:.2f}] ({r['interval']}) | {per} | "
-            f"{at} | {r['env_steps_mean']:,.0f} | {r['wall_clock_min_mean']:.1f} | {steal} | {ref} | {r['settings']} |"
+            f"{at} | {r['env_steps_mean']:,.0f} | {wall} | {steal} | {ref} | {r['settings']} |"
         )
     for name, why in NOT_RUNNABLE.items():
         lines.append(f"| state | – | {name} | – | – | – | – | – | – | – | – | – | – | {why} |")

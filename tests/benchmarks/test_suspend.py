@@ -52,3 +52,14 @@ def test_a_running_budget_counts_no_stop_and_bad_ticks_are_refused():
     for tick, gap in ((0.0, 1.0), (2.0, 1.0)):
         with pytest.raises(ValueError, match="tick_s"):
             Suspensions(tick_s=tick, gap_s=gap)
+
+
+def test_the_table_names_a_cells_stopped_minutes_beside_its_wall_clock():
+    from benchmarks.algorithms import markdown
+
+    row = dict(name="sb3-sac-tuned", from_reward=True, obs="state", task="GraspLift", library="SB3", seeds=[1],
+               success_mean=1.0, success_ci95=[0.96, 1.0], interval="Wilson", per_seed=[1.0], held_out_at={},
+               env_steps_mean=500_000, wall_clock_min_mean=180.0, stopped_min_mean=0.0, cpu_steal_mean=None,
+               reference_sps_mean=None, settings="-")  # fmt: skip
+    assert "| 180.0 |" in markdown([row])
+    assert "| 180.0 (and 43.0 stopped) |" in markdown([dict(row, stopped_min_mean=43.0)])
