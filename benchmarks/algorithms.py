@@ -33,7 +33,8 @@ Resumable, because the table is ~13 h on 2 cores (9 h of seed-1 cells, 4 h of th
 skips them; a library cell checkpoints every ``--checkpoint-min`` and when Ctrl-C or SIGTERM stops it (exit 130)
 (SB3: the model, and for state the replay buffer; skrl: the agent's modules), each time with the wall clock it has
 spent, and a rerun continues it with the rest of its budget; a project cell continues with the trainer's own
-``--resume``.
+``--resume``. A cell may be paused with ``kill -STOP`` (and ``-CONT``) while other work needs the cores: the minutes
+it stood stopped are left out of its wall clock and kept beside it (``stopped_s``; the table's "and N stopped").
 ``--only`` picks cells by glob, ``--stop-after-min`` starts no cell that would end after it.
 
     python -m benchmarks.algorithms --update-results                          # every cell (resumes)
