@@ -13,7 +13,7 @@ import io
 import re
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from types import UnionType
 from typing import Literal, Optional, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -197,9 +197,19 @@ def cli(args_type: type[A], module: str, argv: Optional[list[str]] = None, *, on
         args = parse(args_type, recipe_argv(module, argv, args_type.env_id, args_type.seed))
     else:
         started = resumed_args(args_type, Path(resume))
-        args = parse(args_type, recipe_argv(module, argv, started.env_id, started.seed), default=started)
+        full = recipe_argv(module, argv, started.env_id, started.seed)
+        # tyro reads a dict field whose default has keys as fixed options (--env-kwargs.randomization V), which would
+        # refuse the recipe's own --env-kwargs KEY V: parse against an empty one and keep the run's unless given
+        kept = {f.name: v for f in fields(started) if f.init and isinstance(v := getattr(started, f.name), dict) and v}
+        args = parse(args_type, full, default=replace(started, **{name: {} for name in kept}))
+        given = {name for name in kept if any(a == _dashed(name) or a.startswith(_dashed(name) + "=") for a in full)}
+        args = replace(args, **{name: v for name, v in kept.items() if name not in given})
     check_budget(args)
     return args
+
+
+def _dashed(name: str) -> str:
+    return "--" + name.replace("_", "-")
 
 
 def entry(

@@ -99,6 +99,27 @@ def test_resume_alone_continues_with_the_runs_own_flags_and_a_flag_given_again_o
         parsed(module, ["--resume", str(tmp_path / "other.pt")])
 
 
+def test_resuming_a_recipe_run_with_env_kwargs_takes_the_recipes_again_or_keeps_the_runs(tmp_path):
+    """A run started with --env-kwargs (teacher-student-rgbd-sel-dr's randomisation) resumes with its recipe named
+    again, as the docs' command does; tyro would read the resumed dict as fixed --env-kwargs.KEY options and refuse
+    the recipe's --env-kwargs KEY VALUE. Without the flag the run's own env kwargs are kept; given, they win."""
+    from agents import dagger
+    from agents.common.checkpoints import atomic_save
+    from agents.common.run import checkpoint
+
+    recipe = ["--recipe", "teacher-student-rgbd-sel-dr", "--seed", "1"]
+    started = parsed("agents.dagger", recipe)
+    assert "camera_fov" in started.env_kwargs["randomization"]
+    started.runs_dir, started.exp_name = tmp_path / "runs", "dr"
+    ckpt = tmp_path / "latest.pt"
+    atomic_save(checkpoint(dagger.FORMAT, started, dict(wall_s=60.0)), ckpt)
+    again = parsed("agents.dagger", [*recipe, "--resume", str(ckpt), "--total-env-steps", "91226"])
+    assert again.env_kwargs == started.env_kwargs and again.total_env_steps == 91226 and again.exp_name == "dr"
+    assert parsed("agents.dagger", ["--resume", str(ckpt)]).env_kwargs == started.env_kwargs
+    other = parsed("agents.dagger", ["--resume", str(ckpt), "--env-kwargs", "randomization", "light=0.3:1.6"])
+    assert other.env_kwargs == {"randomization": "light=0.3:1.6"}
+
+
 @pytest.mark.parametrize("module", ["agents.ppo", "agents.dagger", "agents.sac"])
 @pytest.mark.parametrize(
     "argv, says",
