@@ -429,9 +429,9 @@ def held_out_point(act: Callable, env_id: str, obs: str, args: Args, steps: int,
     """One held-out curve point (``--curve-episodes`` seeds from EVAL_SEED) of the policy as it is now, appended to
     ``held`` as [env steps, training minutes, success, successes, evaluation seconds]; its time is left out of the
     cell's clock."""
-    t = time.time()
+    t, stopped = time.time(), clock.suspensions.total_s
     r = held_out(act, env_id, obs, args, args.curve_episodes)
-    took = time.time() - t
+    took = time.time() - t - (clock.suspensions.total_s - stopped)  # a stop meanwhile is already out of spent_s
     clock.pause(took)
     held.append([steps, clock.spent_s / 60, r["success_rate"], r["successes"], took])
     print(f"[algorithms] held out at {steps:,} env steps ({clock.spent_s / 60:.1f} min): success "

@@ -63,3 +63,24 @@ def test_the_table_names_a_cells_stopped_minutes_beside_its_wall_clock():
                reference_sps_mean=None, settings="-")  # fmt: skip
     assert "| 180.0 |" in markdown([row])
     assert "| 180.0 (and 43.0 stopped) |" in markdown([dict(row, stopped_min_mean=43.0)])
+
+
+def test_a_stop_during_a_held_out_point_is_left_out_of_the_wall_clock_once(monkeypatch):
+    """A held-out point's seconds leave the clock (it is not training); a stop within them is already left out."""
+    import benchmarks.algorithms as alg
+
+    now = [1000.0]
+    monkeypatch.setattr(alg.time, "time", lambda: now[0])
+    clock = alg.Budget(None, spent_s=0.0, every_s=60.0, total_steps=100)
+    clock.suspensions.close()
+    clock.suspensions = type("Stops", (), {"total_s": 0.0})()
+
+    def held_out(*_args):
+        now[0] += 8.0  # the evaluation took 8 s of wall clock, 5 of them stopped
+        clock.suspensions.total_s = 5.0
+        return dict(success_rate=0.0, successes=[False])
+
+    monkeypatch.setattr(alg, "held_out", held_out)
+    held = []
+    alg.held_out_point(lambda flat: None, "GraspLift-IRB120-v1", "state", alg.Args(), 10, clock, held)
+    assert clock.spent_s == 0.0 and clock.stopped_s == 5.0 and held[0][4] == 3.0
