@@ -48,8 +48,6 @@ if TYPE_CHECKING:
 STAGES = ("reach", "grasped", "lifted", "holding", "success")
 """the stage a step starts from, in order; the first is every episode's start"""
 SATURATED = 0.99
-STILL_SPEED, SETTLE_SPEED = 0.02, 0.05
-"""GraspLift's stillness and its settle term's scale (m/s; envs/grasp_lift.py), for the replay buffer's counts"""
 EXTRA = ("ik_unreachable", "object_speed", "object_height")
 """the task's per-step ``info`` values averaged per stage as well (nan where a task has none)"""
 ALGOS = ("ppo", "sac", "td3", "ddpg")
@@ -291,6 +289,8 @@ def replay_summary(path: Path) -> dict:
     """What a saved replay buffer holds: transitions by reward stage, the lifted ones as still as a hold, the arm's
     actions there, and those with the absorbing bonus (successes). Stages by ``normalized_dense``'s bands."""
     from stable_baselines3.common.save_util import load_from_pkl
+
+    from maniskill_irb120.envs.grasp_lift import SETTLE_SPEED, STILL_SPEED
 
     buf = load_from_pkl(path)
     n = buf.buffer_size if buf.full else buf.pos
