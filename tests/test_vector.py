@@ -4,6 +4,7 @@ input or after close() it raises clear errors and stays usable where it can."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from gymnasium.vector.async_vector_env import AsyncState
 
 from maniskill_irb120 import vector
 from maniskill_irb120.vector import CPUVectorEnv, make_vec_env
@@ -267,6 +269,44 @@ def test_vector_env_close_after_an_interrupted_step_returns(monkeypatch):
     assert not any(p.is_alive() for p in processes)
     with pytest.raises(RuntimeError, match="the vector env is closed"):
         v.step(torch.zeros(3, 5))
+
+
+class _InterruptAfterSend:
+    """A worker pipe whose ``send`` delivers a Ctrl-C to this process once the command is out: the moment gymnasium
+    has sent "step" and not yet recorded that a reply is due."""
+
+    def __init__(self, pipe):
+        self.pipe = pipe
+
+    def send(self, obj):
+        self.pipe.send(obj)
+        if obj[0] == "step":
+            signal.raise_signal(signal.SIGINT)
+
+    def __getattr__(self, name):
+        return getattr(self.pipe, name)
+
+
+def test_a_ctrl_c_as_a_step_is_sent_leaves_the_workers_to_close_cleanly():
+    """Without the Ctrl-C held over gymnasium's pipe calls, close() read the step's reply as the answer to its
+    "close", shut the pipe, and the worker died on a BrokenPipeError traceback (exit status 1, and the traceback on
+    the user's terminal). Held, the interrupt arrives after the step is recorded as in flight: close() collects it,
+    and every worker exits cleanly."""
+    v = make_vec_env(ENV, 2, backend="cpu", obs_mode="state")
+    inner = v._venv
+    try:
+        v.reset(seed=0)
+        real = inner.parent_pipes[0]
+        inner.parent_pipes[0] = _InterruptAfterSend(real)
+        with pytest.raises(KeyboardInterrupt):
+            v.step(torch.zeros(2, 5))
+        inner.parent_pipes[0] = real
+        assert inner._state is AsyncState.DEFAULT  # the step in flight was collected: nothing left for close() to read
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+    finally:
+        processes = list(inner.processes)
+        v.close()
+    assert [p.exitcode for p in processes] == [0]
 
 
 def test_vector_env_after_a_worker_died_says_so():
