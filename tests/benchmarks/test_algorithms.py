@@ -375,6 +375,41 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
 
 
+def test_every_probe_config_loads_and_its_run_command_names_itself(alg):
+    """A probe's config is read by the tuned cell it names (--conf-file): it must load as that library's config, carry
+    only keys the library knows (skrl's runner would drop an unknown one; SB3's constructor refuses one, checked by
+    building the keywords' names against its signature), and say in its header the command that ran it, with its
+    own path and its own output folders."""
+    import inspect
+
+    pytest.importorskip("sb3_contrib")
+    from skrl.agents.torch.ppo import PPO_CFG
+    from skrl.agents.torch.sac import SAC_CFG
+
+    from agents.configs import loader
+
+    probes = sorted((alg.ROOT / "benchmarks" / "configs" / "probes").iterdir())
+    assert probes
+    for path in probes:
+        head = " ".join(line.lstrip("# ").strip() for line in path.read_text().splitlines() if line.startswith("#"))
+        rel = path.relative_to(alg.ROOT).as_posix()
+        assert f"--conf-file {rel}" in head and f"benchmarks/results/probes/{path.stem}" in head, path.name
+        assert f"runs/probes/{path.stem}" in head, path.name
+        cell = head.split("--only ", 1)[1].split()[0]
+        algo = cell.split("/")[2]
+        assert algo in alg.TUNED_ALGOS, (path.name, algo)
+        if path.suffix == ".yaml":  # skrl's runner YAML
+            cfg = loader.skrl_config(algo, "GraspLift-IRB120-v1", path)
+            defaults = {"PPO": PPO_CFG(), "SAC": SAC_CFG()}[cfg["agent"]["class"]]
+            for key in cfg["agent"]:
+                if key != "class":
+                    getattr(defaults, key)  # an AttributeError names a key skrl does not know
+        else:  # rl-zoo3's hyperparams
+            cfg = loader.sb3_config(algo.split("-")[1], "GraspLift-IRB120-v1", path)
+            params = inspect.signature(loader.sb3_class(cfg.algo).__init__).parameters
+            assert set(cfg.kwargs) <= set(params), (path.name, set(cfg.kwargs) - set(params))
+
+
 def test_absorbing_success_adds_the_absorbing_value_on_a_terminating_success_only():
     import gymnasium as gym
     import torch
