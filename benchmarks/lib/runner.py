@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ctypes
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -295,6 +296,22 @@ def stop_with_parent() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)  # the trainer's Python then turns it into KeyboardInterrupt
     if PRCTL is not None:
         PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
+    keep_priority()
+
+
+def keep_priority() -> None:
+    """In the trainer, after its new session began: the benchmark's niceness for its whole session too. Linux's
+    scheduler shares the CPU between autogroups (one per session) before it reads a process's nice value, and a new
+    session's autogroup starts at nice 0, so a trainer of a benchmark under ``nice -n 19`` would otherwise take a
+    full share beside work at normal priority. Raising it needs no privilege; without autogroups (another kernel or
+    OS) there is no file and the nice value alone applies, as it already does."""
+    nice = os.nice(0)
+    if nice > 0:
+        try:
+            with open("/proc/self/autogroup", "w") as f:
+                f.write(str(nice))
+        except OSError:
+            pass
 
 
 def run_logged(

@@ -187,6 +187,30 @@ def test_a_trainer_is_interrupted_at_the_deadline_and_gives_its_output(tmp_path,
     assert (out.strip(), rc) == ("7", 0)
 
 
+@pytest.mark.skipif(not Path("/proc/self/autogroup").is_file(), reason="no scheduler autogroups on this kernel")
+def test_a_niced_benchmark_keeps_its_trainer_niced_in_the_new_session():
+    """A trainer runs in its own session, and Linux gives a new session its own autogroup at nice 0, which the
+    scheduler weighs before the nice value: a benchmark under ``nice -n 5`` would have run its trainer at a full
+    share. run_until carries the benchmark's niceness into the trainer's autogroup; without it this reads 0."""
+    import os
+    import subprocess
+
+    ours = os.nice(0)  # the suite's own niceness, which `nice -n 5` adds to
+    code = (
+        "import sys, time; from benchmarks.lib import runner\n"
+        "out, err, rc = runner.run_until(['cat', '/proc/self/autogroup'], deadline=time.time() + 60)\n"
+        "print(out.strip())\n"
+    )
+    root = Path(runner.__file__).resolve().parents[2]
+    got = subprocess.run(["nice", "-n", "5", sys.executable, "-c", code], cwd=root, capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert got.returncode == 0, got.stderr[-2000:]
+    assert got.stdout.strip().endswith(f"nice {min(ours + 5, 19)}"), got.stdout
+    # and a benchmark at the suite's priority: the same in the trainer's session (0, its default, when not niced)
+    got = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert got.stdout.strip().endswith(f"nice {ours}"), got.stdout
+
+
 FAKE_TRAINER = """
 import signal, sys, time
 from pathlib import Path
