@@ -110,8 +110,10 @@ TUNED_SETTINGS = {
     "30 validation episodes every fortieth of the budget (SelectOnValidation)",
     "sac": TUNED_OFF_POLICY + ", initial temperature 0.1",
     "tqc": TUNED_OFF_POLICY + ", initial temperature 0.1",
-    "td3": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1",
-    "ddpg": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1",
+    "td3": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1, action cost 0.1 x the arm's mean square "
+    "(ActionPenalty, HER's action_l2)",
+    "ddpg": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1, action cost 0.1 x the arm's mean square "
+    "(ActionPenalty, HER's action_l2)",
     "skrl-ppo": "128 rollout steps/env, 8 minibatches, lr 3e-4, γ 0.8, λ 0.9, value loss 0.5, KL threshold 0.1, "
     "3x256 tanh, log std -0.5, RunningStandardScaler on observations, absorbing success, time_limit_bootstrap",
     "skrl-sac": "γ 0.8, polyak 0.01, lr 3e-4, batch 256, 4000 random env steps, 2 updates per vector step, "

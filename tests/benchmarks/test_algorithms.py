@@ -336,7 +336,7 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     from skrl.agents.torch.sac import SAC_CFG
 
     from agents.configs import loader
-    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess
+    from maniskill_irb120.integrations.wrappers import AbsorbingSuccess, ActionPenalty
 
     for algo in loader.SB3_ALGOS:
         assert uncommented_keys(loader.sb3_path(algo)) == []
@@ -351,9 +351,10 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
             assert cfg.n_timesteps == alg.STATE_ENV_STEPS[env_id.split("-")[0]]
             for key, value in cfg.kwargs.items():  # a model argument, and not its default (which needs no line)
                 assert key in params and params[key].default != value, (algo, key)
-            assert [w.func for w in cfg.wrappers] == [AbsorbingSuccess] and cfg.wrappers[0].keywords[
-                "gamma"
-            ] == cfg.kwargs["gamma"]  # the absorbing value is the learner's discount's
+            # the absorbing value at the learner's discount; the deterministic actors add the action cost
+            expected = [AbsorbingSuccess, ActionPenalty] if algo in ("td3", "ddpg") else [AbsorbingSuccess]
+            assert [w.func for w in cfg.wrappers] == expected, (algo, env_id)
+            assert cfg.wrappers[0].keywords["gamma"] == cfg.kwargs["gamma"]
             assert ("action_noise" in cfg.model_kwargs(5)) == (algo in ("td3", "ddpg"))
     defaults = {"ppo": PPO_CFG(), "sac": SAC_CFG()}
     for algo in loader.SKRL_ALGOS:
