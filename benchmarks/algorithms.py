@@ -230,6 +230,9 @@ class Args:
     for sb3-*-tuned, a runner YAML for skrl-*-tuned); give the probe its own --out-dir and --runs-dir"""
     best_seeds: list[int] = field(default_factory=lambda: [2, 3])
     """the seeds added to each group's best cell once its seed-1 cells are all in"""
+    seeds: list[int] = field(default_factory=list)
+    """more seeds of every --only cell, best or not (e.g. --seeds 2 3: the three seeds a target needs for a cell that
+    is not its group's best)"""
     eval_episodes: int = 100
     curve_points: int = 10
     """held-out evaluations during an env-step cell, one every 1/curve_points of its budget and one at a quarter
@@ -323,6 +326,8 @@ def planned(done: dict[str, dict], args: Args) -> list[str]:
         best = best_algo(done, obs, task)
         if best is not None:
             cells += [cell_id(obs, task, best, s) for s in args.best_seeds]
+    cells += [cell_id(o, t, a, s) for o, t, a in grid() for s in args.seeds]
+    cells = list(dict.fromkeys(cells))
     if args.only:
         cells = [c for c in cells if any(fnmatch.fnmatchcase(c, pattern) for pattern in args.only)]
     return [c for c in cells if c not in done]
@@ -1183,7 +1188,11 @@ def check(args: Args) -> None:
                 "--conf-file is a probe's config: give it its own --out-dir and --runs-dir, so its cells "
                 "do not join (or resume) the table's"
             )
-    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds]}
+    if any(s < 1 for s in [*args.seeds, *args.best_seeds]):
+        raise ValueError(f"seeds are numbered from 1, got --seeds {args.seeds} --best-seeds {args.best_seeds}")
+    if args.seeds and not args.only:
+        raise ValueError("--seeds adds seeds to the --only cells: name them with --only (e.g. 'state/GraspLift/*')")
+    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds, *args.seeds]}
     for pattern in args.only:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
             raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "

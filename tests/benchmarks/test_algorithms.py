@@ -157,6 +157,16 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     assert alg.best_algo(done, "rgbd", "GraspLift") == "project-camera"
     args.only = ["rgbd/*"]
     assert alg.planned(done, args) == ["rgbd/GraspLift/project-camera/s2", "rgbd/GraspLift/project-camera/s3"]
+    # --seeds: more seeds of the --only cells, their group's best or not (the targets want 3 seeds of several)
+    args.only, args.seeds = ["state/GraspLift/project-ppo/*"], [2, 3]
+    done["state/GraspLift/project-ppo/s2"] = {"success_rate": 0.5}
+    assert alg.planned(done, args) == ["state/GraspLift/project-ppo/s3"]
+    args.only = ["state/GraspLift/sb3-sac/*"]  # the best's seeds, named by both rules, run once
+    assert alg.planned(done, args) == ["state/GraspLift/sb3-sac/s2", "state/GraspLift/sb3-sac/s3"]
+    alg.check(alg.Args(only=["*/project-ppo/s4"], seeds=[4]))  # a seed --seeds adds is a known cell
+    for bad, match in ((dict(seeds=[2]), "name them with --only"), (dict(only=["*"], seeds=[0]), "numbered from 1")):
+        with pytest.raises(ValueError, match=match):
+            alg.check(alg.Args(**bad))
 
 
 @pytest.mark.slow  # two runs of one cell: worker start-ups and evaluations (~40 s)
