@@ -55,7 +55,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
@@ -483,7 +483,7 @@ def validate_sb3(cell: str, args: Args) -> dict:
     obs, task, algo, _ = parse_cell(cell)
     spec = ALGORITHMS[algo]
     if spec.runner != "sb3":
-        raise ValueError(f"--validate scores SB3 cells only; {cell} is a {spec.runner} cell")
+        raise ValueError(f"--validate scores SB3 and skrl cells; {cell} is a {spec.runner} cell")
     ckpt_dir = args.runs_dir / cell.replace("/", "__")
     model_path, norm_path = ckpt_dir / "model.zip", ckpt_dir / "vecnormalize.pkl"
     if not model_path.is_file():
@@ -622,6 +622,81 @@ def run_sb3(
                 last_policy_successes=last["successes"])  # fmt: skip
 
 
+def build_skrl(tuned: Optional[dict], env: Any, seed: int, experiment: dict, trainer_cfg: dict) -> tuple:
+    """A cell's skrl agent and trainer on ``env``: a tuned config (``agents/configs/skrl/<algo>_<task>.yaml``)
+    through skrl's own runner, as Isaac Lab runs it, or the PPO defaults row's agent (``tuned`` None)."""
+    if tuned is not None:
+        from skrl.utils.runner.torch import Runner
+
+        tuned = {k: v for k, v in tuned.items() if k != "env"}
+        tuned.update(seed=seed)
+        tuned["agent"] = dict(tuned["agent"], experiment=experiment)
+        tuned["trainer"] = dict(tuned["trainer"], **trainer_cfg)
+        runner = Runner(env, tuned)
+        return runner.agent, runner.trainer
+    from skrl.agents.torch.ppo import PPO, PPO_CFG
+    from skrl.memories.torch import RandomMemory
+    from skrl.trainers.torch import SequentialTrainer
+
+    from maniskill_irb120.integrations.skrl import policy_and_value
+
+    cfg = PPO_CFG(time_limit_bootstrap=True)
+    for k, v in experiment.items():
+        setattr(cfg.experiment, k, v)
+    models = policy_and_value(env)
+    memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
+    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
+                action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
+    return agent, SequentialTrainer(env=env, agents=agent, cfg=trainer_cfg)
+
+
+def skrl_act(agent: Any, env: Any, obs: str) -> Callable:
+    """The agent's deterministic action (its Gaussian's mean, clipped to the bounds as the adapter clips) from the
+    flattened observation evaluate_on_seeds gives, through the agent's own observation scaler."""
+    from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space
+
+    preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
+
+    def act(flat):
+        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
+        with torch.no_grad():
+            _, out = agent.policy.act({"observations": preprocess(o.float())}, role="policy")
+        return out["mean_actions"].clamp(-1, 1)
+
+    return act
+
+
+def validate_skrl(cell: str, args: Args) -> dict:
+    """:func:`validate_sb3` for a skrl cell: its saved agent (models and observation scaler), deterministic, on
+    --eval-episodes validation seeds."""
+    from agents.configs import loader
+    from maniskill_irb120.integrations.skrl import make_skrl_env
+
+    obs, task, algo, seed = parse_cell(cell)
+    spec, env_id = ALGORITHMS[algo], TASKS[task]
+    agent_path = args.runs_dir / cell.replace("/", "__") / "agent.pt"
+    if not agent_path.is_file():
+        raise ValueError(f"--validate: {cell} has no saved agent at {agent_path} (--runs-dir?)")
+    tuned = loader.skrl_config(spec.config, env_id, args.conf_file) if spec.config else None
+    wrappers = loader.skrl_env_settings(tuned)[1] if tuned is not None else []
+    env = make_skrl_env(env_id, 1, obs, backend=args.backend, seed=train_seed(seed, 0), wrappers=wrappers)
+    try:
+        experiment = dict(directory=str(agent_path.parent), experiment_name="validate", write_interval=0,
+                          checkpoint_interval=0)  # fmt: skip
+        trainer_cfg = dict(timesteps=1, headless=True, disable_progressbar=True, close_environment_at_exit=False)
+        agent, _ = build_skrl(tuned, env, seed, experiment, trainer_cfg)
+        agent.load(str(agent_path))
+        agent.enable_models_training_mode(False)
+        act = skrl_act(agent, env, obs)
+    finally:
+        env.close()
+    seeds = list(range(VALIDATION_SEED, VALIDATION_SEED + args.eval_episodes))
+    r = evaluate_on_seeds(act, env_id, obs, seeds)
+    lo, hi = wilson(int(sum(r["successes"])), len(seeds))
+    return dict(success_rate=r["success_rate"], episodes=len(seeds), first_seed=VALIDATION_SEED, ci95=[lo, hi],
+                env_steps=read_state(agent_path.parent)["env_steps"])  # fmt: skip
+
+
 def run_skrl(
     algo: str,
     env_id: str,
@@ -632,14 +707,10 @@ def run_skrl(
     args: Args,
     env_steps: Optional[int] = None,
 ) -> dict:
-    from skrl.agents.torch.ppo import PPO, PPO_CFG
-    from skrl.memories.torch import RandomMemory
-    from skrl.trainers.torch import SequentialTrainer
     from skrl.utils import set_seed
-    from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space
 
     from agents.configs import loader
-    from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value
+    from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env
 
     set_seed(seed)
     state = read_state(ckpt_dir)
@@ -652,25 +723,7 @@ def run_skrl(
     # cell's env steps (at least one vector step's worth, so a finished budget trains nothing more than that)
     left = 10**10 if env_steps is None else max(1, -(-(env_steps - state["env_steps"]) // env.num_envs))
     trainer_cfg = {"timesteps": left, "headless": True, "disable_progressbar": True, "close_environment_at_exit": False}
-    if tuned is not None:  # agents/configs/skrl/<algo>_<task>.yaml through skrl's own runner, as Isaac Lab runs it
-        from skrl.utils.runner.torch import Runner
-
-        tuned = {k: v for k, v in tuned.items() if k != "env"}
-        tuned.update(seed=seed)
-        tuned["agent"] = dict(tuned["agent"], experiment=experiment)
-        tuned["trainer"] = dict(tuned["trainer"], **trainer_cfg)
-        runner = Runner(env, tuned)
-        agent, trainer = runner.agent, runner.trainer
-        models = {"policy": agent.policy}
-    else:
-        cfg = PPO_CFG(time_limit_bootstrap=True)
-        for k, v in experiment.items():
-            setattr(cfg.experiment, k, v)
-        models = policy_and_value(env)
-        memory = RandomMemory(memory_size=cfg.rollouts, num_envs=env.num_envs, device=env.device)
-        agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
-                    action_space=env.action_space, device=env.device, cfg=cfg)  # fmt: skip
-        trainer = SequentialTrainer(env=env, agents=agent, cfg=trainer_cfg)
+    agent, trainer = build_skrl(tuned, env, seed, experiment, trainer_cfg)
     agent_path = ckpt_dir / "agent.pt"
     if agent_path.is_file():
         agent.load(str(agent_path))
@@ -678,14 +731,7 @@ def run_skrl(
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
     counted = {"steps": steps0}
-    policy = models["policy"]
-    preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
-
-    def act(flat):
-        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
-        with torch.no_grad():
-            _, out = policy.act({"observations": preprocess(o.float())}, role="policy")
-        return out["mean_actions"].clamp(-1, 1)
+    act = skrl_act(agent, env, obs)
 
     def save() -> None:
         agent.save(str(agent_path))
@@ -1216,7 +1262,8 @@ def main(args: Args) -> dict:
         report = json.loads(json_path.read_text())
         cells = [c for c in report["cells"] if any(fnmatch.fnmatchcase(c, p) for p in args.only)]
         for cell in cells:
-            report["cells"][cell]["validation"] = v = validate_sb3(cell, args)
+            validate = validate_skrl if ALGORITHMS[parse_cell(cell)[2]].runner == "skrl" else validate_sb3
+            report["cells"][cell]["validation"] = v = validate(cell, args)
             print(f"[algorithms] {cell}: validation success {v['success_rate']:.2f} of {v['episodes']}", flush=True)
         write_json(json_path, report, indent=1)
         return report

@@ -574,6 +574,38 @@ def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
 
 
+def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, tmp_path, monkeypatch):
+    """--validate on a skrl cell rebuilds the agent from its config, loads what training saved (the models and the
+    observation scaler) and plays it on VALIDATION_SEED onwards: it acts as the trained agent did, on other seeds."""
+    pytest.importorskip("skrl")
+    import gymnasium as gym
+    import torch
+
+    import maniskill_irb120  # noqa: F401
+
+    calls = []
+    real = alg.evaluate_on_seeds
+    monkeypatch.setattr(alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: calls.append((act, seeds)) or real(
+        act, env_id, obs, seeds))  # fmt: skip
+    cell = "state/GraspLift/skrl-ppo-tuned/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True,
+                    total_env_steps=520, eval_episodes=1, curve_points=1, reference_steps=0)  # fmt: skip
+    trained = alg.main(args)["cells"][cell]
+    report = alg.main(alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", validate=True,
+                               eval_episodes=1))  # fmt: skip
+    v = report["cells"][cell]["validation"]
+    assert (v["episodes"], v["first_seed"], v["env_steps"]) == (1, alg.VALIDATION_SEED, trained["env_steps"])
+    (trained_act, held_seeds), (validate_act, seeds) = calls[-2], calls[-1]
+    assert held_seeds[0] == alg.EVAL_SEED and seeds == [alg.VALIDATION_SEED]  # --quick scores 2 held-out episodes
+    env = gym.make("GraspLift-IRB120-v1", obs_mode="state", render_backend="none")
+    try:
+        flat, _ = env.reset(seed=3)
+    finally:
+        env.close()
+    flat = {"state": flat}
+    assert torch.equal(trained_act(flat), validate_act(flat))  # the saved scaler and weights, not fresh ones
+
+
 def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(
     alg, tmp_path, capsys, monkeypatch
 ):
