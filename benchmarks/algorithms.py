@@ -114,8 +114,9 @@ TUNED_SETTINGS = {
     "(ActionPenalty, HER's action_l2)",
     "ddpg": TUNED_OFF_POLICY + ", lr 3e-4, Gaussian action noise σ 0.1, action cost 0.1 x the arm's mean square "
     "(ActionPenalty, HER's action_l2)",
-    "skrl-ppo": "128 rollout steps/env, 8 minibatches, lr 3e-4, γ 0.8, λ 0.9, value loss 0.5, KL threshold 0.1, "
-    "3x256 tanh, log std -0.5, RunningStandardScaler on observations, absorbing success, time_limit_bootstrap",
+    "skrl-ppo": "128 rollout steps/env, 8 minibatches, lr 3e-4, γ 0.8, λ 0.9, value loss 0.5, KL threshold 0.15 (SB3's "
+    "target KL 0.1), no value clipping, 3x256 tanh, log std -0.5, RunningStandardScaler on observations, absorbing "
+    "success, time_limit_bootstrap",
     "skrl-sac": "γ 0.8, polyak 0.01, lr 3e-4, batch 256, 4000 random env steps, 2 updates per vector step, "
     "initial temperature 0.1, 3x256 ReLU, RunningStandardScaler, absorbing success",
 }
