@@ -495,11 +495,16 @@ def validate_sb3(cell: str, args: Args) -> dict:
     def act(flat):
         return torch.as_tensor(deterministic_action(model, numpy_library_obs(obs, flat), norm))
 
+    return on_validation(act, TASKS[task], obs, args, int(model.num_timesteps))
+
+
+def on_validation(act: Callable, env_id: str, obs: str, args: Args, env_steps: int) -> dict:
+    """``act`` on --eval-episodes validation seeds (VALIDATION_SEED onwards), as a cell's ``validation`` entry."""
     seeds = list(range(VALIDATION_SEED, VALIDATION_SEED + args.eval_episodes))
-    r = evaluate_on_seeds(act, TASKS[task], obs, seeds)
+    r = evaluate_on_seeds(act, env_id, obs, seeds)
     lo, hi = wilson(int(sum(r["successes"])), len(seeds))
     return dict(success_rate=r["success_rate"], episodes=len(seeds), first_seed=VALIDATION_SEED, ci95=[lo, hi],
-                env_steps=int(model.num_timesteps))  # fmt: skip
+                env_steps=env_steps)  # fmt: skip
 
 
 def run_sb3(
@@ -691,11 +696,7 @@ def validate_skrl(cell: str, args: Args) -> dict:
         act = skrl_act(agent, env, obs)
     finally:
         env.close()
-    seeds = list(range(VALIDATION_SEED, VALIDATION_SEED + args.eval_episodes))
-    r = evaluate_on_seeds(act, env_id, obs, seeds)
-    lo, hi = wilson(int(sum(r["successes"])), len(seeds))
-    return dict(success_rate=r["success_rate"], episodes=len(seeds), first_seed=VALIDATION_SEED, ci95=[lo, hi],
-                env_steps=read_state(agent_path.parent)["env_steps"])  # fmt: skip
+    return on_validation(act, env_id, obs, args, read_state(agent_path.parent)["env_steps"])
 
 
 def run_skrl(
