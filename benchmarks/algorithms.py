@@ -116,7 +116,8 @@ TUNED_SETTINGS = {
     "(ActionPenalty, HER's action_l2)",
     "skrl-ppo": "128 rollout steps/env, 8 minibatches, lr 3e-4, γ 0.8, λ 0.9, value loss 0.5, KL threshold 0.15 (SB3's "
     "target KL 0.1), no value clipping, 3x256 tanh, log std -0.5, RunningStandardScaler on observations, absorbing "
-    "success, time_limit_bootstrap",
+    "success, time_limit_bootstrap, the checkpoint selected on 30 validation episodes every fortieth of the budget "
+    "(SelectOnValidation's skrl hook)",
     "skrl-sac": "γ 0.8, polyak 0.01, lr 3e-4, batch 256, 4000 random env steps, 2 updates per vector step, "
     "initial temperature 0.1, 3x256 ReLU, RunningStandardScaler, absorbing success",
 }
@@ -634,7 +635,9 @@ def build_skrl(tuned: Optional[dict], env: Any, seed: int, experiment: dict, tra
     if tuned is not None:
         from skrl.utils.runner.torch import Runner
 
-        tuned = {k: v for k, v in tuned.items() if k != "env"}
+        from agents.configs import loader
+
+        tuned = loader.skrl_runner_config(tuned)
         tuned.update(seed=seed)
         tuned["agent"] = dict(tuned["agent"], experiment=experiment)
         tuned["trainer"] = dict(tuned["trainer"], **trainer_cfg)
@@ -657,17 +660,12 @@ def build_skrl(tuned: Optional[dict], env: Any, seed: int, experiment: dict, tra
 
 
 def skrl_act(agent: Any, env: Any, obs: str) -> Callable:
-    """The agent's deterministic action (its Gaussian's mean, clipped to the bounds as the adapter clips) from the
-    flattened observation evaluate_on_seeds gives, through the agent's own observation scaler."""
-    from skrl.utils.spaces.torch import flatten_tensorized_space, tensorize_space
-
-    preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
+    """The agent's deterministic action (``integrations.skrl.deterministic_action``, as its checkpoint selection
+    plays it) from the flattened observation evaluate_on_seeds gives."""
+    from maniskill_irb120.integrations.skrl import deterministic_action
 
     def act(flat):
-        o = flatten_tensorized_space(tensorize_space(env.observation_space, library_obs(obs, flat)))
-        with torch.no_grad():
-            _, out = agent.policy.act({"observations": preprocess(o.float())}, role="policy")
-        return out["mean_actions"].clamp(-1, 1)
+        return deterministic_action(agent, env.observation_space, library_obs(obs, flat))
 
     return act
 
@@ -734,6 +732,11 @@ def run_skrl(
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
     counted = {"steps": steps0}
     act = skrl_act(agent, env, obs)
+    # the config's own hooks (its ``callback:``), e.g. checkpoint selection on validation seeds, keeping their files in
+    # the cell's folder, where a rerun finds them; attached first, so they run after the agent's update
+    hooks = loader.skrl_callbacks(tuned, ckpt_dir / "best") if tuned is not None else []
+    for hook in hooks:
+        hook.attach(agent, env, env_id, obs, env_steps=steps0)
 
     def save() -> None:
         agent.save(str(agent_path))
@@ -782,9 +785,20 @@ def run_skrl(
     finally:
         env.close()
     result = held_out(act, env_id, obs, args)
-    return dict(result, env_steps=counted["steps"], wall_clock_s=clock.spent_s, stopped_s=clock.stopped_s,
-                curve=curve_of(curve),
-                held_out_curve=held_out_curve(held, result, counted["steps"], clock.spent_s))  # fmt: skip
+    spent = clock.spent_s
+    steps = counted["steps"]
+    cell = dict(result, env_steps=steps, wall_clock_s=spent, stopped_s=clock.stopped_s, curve=curve_of(curve),
+                held_out_curve=held_out_curve(held, result, steps, spent))  # fmt: skip
+    # a selecting hook's best (this run's, or the one kept on disk when training was over before this run) is the
+    # deployed policy and its score the cell's; the last policy's is kept beside it, as run_sb3 keeps it
+    selector = next((h for h in hooks if h.restore() is not None), None)
+    if selector is None:
+        return cell
+    agent.load(str(Path(selector.save_path) / "best_agent.pt"))  # act plays the agent as loaded
+    final = held_out(act, env_id, obs, args)
+    return dict(cell, **final, held_out_curve=held_out_curve(held, final, steps, spent),
+                selected=dict(selector.best, checks=selector.checks), last_policy_success=result["success_rate"],
+                last_policy_successes=result["successes"])  # fmt: skip
 
 
 def held_out_curve(held: list, final: dict, env_steps: int, spent_s: float) -> dict:

@@ -39,7 +39,12 @@ from agents.configs import loader  # noqa: E402
 from maniskill_irb120.envs import check_env_id  # noqa: E402
 from maniskill_irb120.errors import check_count, parse_flags, usage_errors  # noqa: E402
 from maniskill_irb120.integrations.progress import Heartbeat, Progress, held_out_success  # noqa: E402
-from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env, policy_and_value  # noqa: E402
+from maniskill_irb120.integrations.skrl import (  # noqa: E402
+    SUCCESS_KEY,
+    deterministic_action,
+    make_skrl_env,
+    policy_and_value,
+)
 
 LIBRARY_DEFAULT_ENVS = 2
 LIBRARY_DEFAULT_STEPS = 100_000
@@ -92,11 +97,13 @@ def build(args: Args) -> tuple[Any, PPO, SequentialTrainer, str, int]:
         if config is not None:
             from skrl.utils.runner.torch import Runner
 
-            cfg = {k: v for k, v in config.items() if k != "env"}
+            cfg = loader.skrl_runner_config(config)
             cfg["seed"] = args.seed
             cfg["agent"] = dict(cfg["agent"], experiment=dict(directory=str(args.out_dir), experiment_name=""))
             cfg["trainer"] = dict(cfg["trainer"], **trainer_cfg)
             runner = Runner(env, cfg)
+            for hook in loader.skrl_callbacks(config, args.out_dir / "best"):  # the config's checkpoint selection
+                hook.attach(runner.agent, env, args.env_id, args.obs)
             source = f"agents/configs/skrl/ppo_{args.env_id.split('-')[0].lower()}.yaml"
             return env, runner.agent, runner.trainer, source, total
         cfg = PPO_CFG(time_limit_bootstrap=True)
@@ -120,11 +127,7 @@ def deterministic(env, agent: PPO):
     """The policy's mean action for one unbatched observation, as the trainer's observation preprocessor sees it."""
 
     def act(obs: Any) -> np.ndarray:
-        batch = {k: v[None] for k, v in obs.items()} if isinstance(obs, dict) else obs[None]
-        with torch.no_grad():
-            x = agent._observation_preprocessor(env._flat(batch).float())
-            _, out = agent.policy.act({"observations": x, "states": None}, role="policy")
-        return out["mean_actions"][0].clamp(-1, 1).cpu().numpy()
+        return deterministic_action(agent, env.observation_space, obs)[0].cpu().numpy()
 
     return act
 

@@ -77,14 +77,8 @@ class SB3Config:
     """rl-zoo3's ``callback`` list as constructors (e.g. ``SelectOnValidation``'s checkpoint selection)"""
 
     def make_callbacks(self, save_dir: Optional[Path] = None) -> list:
-        """The entry's callbacks, each one that keeps files (a ``save_path``) keeping them in ``save_dir`` where given
-        (a run's own folder, as rl-zoo3 puts its best model in the run's log folder)."""
-        out = []
-        for make in self.callbacks:
-            if save_dir is not None and "save_path" in inspect.signature(make.func).parameters:
-                make = functools.partial(make, save_path=str(save_dir))
-            out.append(make())
-        return out
+        """The entry's callbacks (:func:`make_callbacks`)."""
+        return make_callbacks(self.callbacks, save_dir)
 
     def vec_env(self, env_id: str, num_envs: Optional[int] = None, obs: str = "state", **kwargs):
         """The SB3 vector env this entry trains on: ``n_envs`` envs (or ``num_envs``) with its wrappers, under its
@@ -142,9 +136,37 @@ def sb3_config(algo: str, env_id: str, path: Optional[Path] = None) -> SB3Config
 
 
 def skrl_config(algo: str, env_id: str, path: Optional[Path] = None) -> dict[str, Any]:
-    """An ``skrl/<algo>_<task>.yaml`` as skrl's ``Runner`` takes it, with its ``env`` section (this project's: the
-    runner ignores it) left in for :func:`skrl_env_settings`."""
+    """An ``skrl/<algo>_<task>.yaml`` as read, with the project's sections (``env``, ``callback``) left in for
+    :func:`skrl_env_settings` and :func:`skrl_callbacks`; :func:`skrl_runner_config` is what skrl's ``Runner``
+    takes."""
     return yaml.safe_load((path or skrl_path(algo, env_id)).read_text())
+
+
+def make_callbacks(constructors: list[Callable], save_dir: Optional[Path] = None) -> list:
+    """``callback`` constructors (:func:`wrappers_of`'s) called, each one that keeps files (a ``save_path``) keeping
+    them in ``save_dir`` where given (a run's own folder, as rl-zoo3 puts its best model in the run's log folder)."""
+    out = []
+    for make in constructors:
+        if save_dir is not None and "save_path" in inspect.signature(make.func).parameters:
+            make = functools.partial(make, save_path=str(save_dir))
+        out.append(make())
+    return out
+
+
+SKRL_PROJECT_KEYS = ("env", "callback")
+"""the sections of the project's skrl YAML that skrl's runner does not read: the env's settings and the hooks"""
+
+
+def skrl_runner_config(cfg: dict) -> dict[str, Any]:
+    """``cfg`` without :data:`SKRL_PROJECT_KEYS`, what ``skrl.utils.runner.torch.Runner`` takes."""
+    return {k: v for k, v in cfg.items() if k not in SKRL_PROJECT_KEYS}
+
+
+def skrl_callbacks(cfg: dict, save_dir: Optional[Path] = None) -> list:
+    """The ``callback`` section (rl-zoo3's ``callback`` form), built: e.g.
+    ``maniskill_irb120.integrations.skrl.SelectOnValidation``, each to be ``attach``-ed to the agent before training,
+    keeping its files in ``save_dir`` where given."""
+    return make_callbacks(wrappers_of(cfg.get("callback")), save_dir)
 
 
 def skrl_env_settings(cfg: dict) -> tuple[int, list[Callable]]:

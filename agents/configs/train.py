@@ -62,14 +62,18 @@ def train_skrl(a: argparse.Namespace) -> Path:
     num_envs, wrappers = loader.skrl_env_settings(cfg)
     env = make_skrl_env(a.env, num_envs, "state", backend=a.backend, seed=a.seed, wrappers=wrappers)
     out = a.log_folder / f"skrl_{a.algo}"
-    cfg = {k: v for k, v in cfg.items() if k != "env"}
-    cfg["seed"] = a.seed
-    cfg["agent"] = dict(cfg["agent"], experiment=dict(directory=str(out), experiment_name=f"{a.env}_{a.seed}"))
-    cfg["trainer"] = dict(cfg["trainer"], headless=True, close_environment_at_exit=False)  # closed below, once
+    run = loader.skrl_runner_config(cfg)
+    run["seed"] = a.seed
+    run["agent"] = dict(run["agent"], experiment=dict(directory=str(out), experiment_name=f"{a.env}_{a.seed}"))
+    run["trainer"] = dict(run["trainer"], headless=True, close_environment_at_exit=False)  # closed below, once
     if a.n_timesteps > 0:  # skrl counts vector steps
-        cfg["trainer"]["timesteps"] = max(1, a.n_timesteps // num_envs)
+        run["trainer"]["timesteps"] = max(1, a.n_timesteps // num_envs)
     try:
-        Runner(env, cfg).run("train")
+        runner = Runner(env, run)
+        # the config's hooks, e.g. a selected checkpoint: out/best/best_agent.pt (as the SB3 side's best_model.zip)
+        for hook in loader.skrl_callbacks(cfg, out / "best"):
+            hook.attach(runner.agent, env, a.env)
+        runner.run("train")
     finally:
         env.close()
     return out

@@ -31,7 +31,6 @@ on the GPU). What it does differently from ManiSkill's wrapper, and why:
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -56,6 +55,7 @@ from maniskill_irb120.integrations.progress import (
     Progress,
     held_out_success,
 )
+from maniskill_irb120.integrations.selection import ValidationSelection
 
 try:
     from mani_skill.vector.wrappers.sb3 import ManiSkillSB3VectorEnv
@@ -328,15 +328,12 @@ class ProgressCallback(BaseCallback):
         return self.held[-1]
 
 
-class SelectOnValidation(BaseCallback):
-    """Checkpoint selection for SB3, from code or from an rl-zoo3 hyperparams file's ``callback:`` list: every
-    ``every`` env steps the deterministic policy plays ``episodes`` validation episodes (seeds ``seed`` onwards,
-    ``VALIDATION_SEED``: apart from training's and the held-out ones, so the selected policy's held-out score is not
-    the score it was chosen by), and the best so far by success is kept in ``save_path`` as ``best_model.zip`` with
-    its ``vecnormalize.pkl`` and ``best.json`` (its env steps, success and every check), which a resumed run reads to
-    go on from. PPO on GraspLift peaks and then unlearns (the project's PPO and SB3's alike), so the last policy is
-    not the one to deploy. Not SB3's ``EvalCallback``: it keeps the best *mean reward*, and on these tasks an episode
-    that holds the object without succeeding out-earns one that succeeds, since a success ends the episode."""
+class SelectOnValidation(ValidationSelection, BaseCallback):
+    """Checkpoint selection for SB3 (``integrations.selection`` says why and how), from code or from an rl-zoo3
+    hyperparams file's ``callback:`` list: every ``every`` env steps the deterministic policy plays ``episodes``
+    validation episodes, and the best so far by success is kept in ``save_path`` as ``best_model.zip`` with its
+    ``vecnormalize.pkl`` and ``best.json``. Not SB3's ``EvalCallback``: it keeps the best mean reward, which on these
+    tasks prefers holding the object to succeeding."""
 
     def __init__(
         self,
@@ -348,65 +345,34 @@ class SelectOnValidation(BaseCallback):
         obs: Optional[str] = None,
         verbose: int = 1,
     ):
-        super().__init__(verbose)
-        if int(every) <= 0 or int(episodes) <= 0:
-            raise ValueError(f"SelectOnValidation: every ({every}) and episodes ({episodes}) must be positive")
-        self.every, self.episodes, self.seed = int(every), int(episodes), int(seed)
-        self.save_path, self.env_id, self.obs = Path(save_path), env_id, obs
-        self.best: Optional[dict] = None
-        self.checks: list[list] = []
-        self._next = self.every
-
-    @property
-    def best_file(self) -> Path:
-        return self.save_path / "best.json"
+        BaseCallback.__init__(self, verbose)
+        ValidationSelection.__init__(self, every, episodes, save_path, seed, verbose)
+        self.env_id, self.obs = env_id, obs
 
     def _on_training_start(self) -> None:
         if self.env_id is None:  # the training env's own task: make_sb3_vec_env's envs carry their spec
             self.env_id = self.training_env.get_attr("spec", [0])[0].id.split(":")[-1]
         if self.obs is None:
             self.obs = "rgbd" if isinstance(self.training_env.observation_space, gym.spaces.Dict) else "state"
-        self.restore()
-        done = self.checks[-1][0] if self.checks else 0
-        self._next = max(self.every, (max(self.model.num_timesteps, done) // self.every + 1) * self.every)
-
-    def restore(self) -> Optional[dict]:
-        """The best so far and the checks from ``save_path`` (a resumed run's, or one whose training had already
-        ended); None where nothing was kept yet."""
-        if self.best_file.is_file():
-            kept = json.loads(self.best_file.read_text())
-            self.best, self.checks = kept["best"], kept["checks"]
-        return self.best
+        self.start(self.model.num_timesteps)
 
     def act(self, obs: Any) -> np.ndarray:
         return deterministic_action(self.model, obs)
 
     def _on_step(self) -> bool:
-        if self.num_timesteps >= self._next:
-            self._next = (self.num_timesteps // self.every + 1) * self.every
+        if self.due(self.num_timesteps):
             self.check()
         return True
 
+    def _save(self, folder: Path) -> None:
+        self.model.save(folder / "best_model.zip")
+        norm = self.model.get_vec_normalize_env()
+        if norm is not None:
+            norm.save(str(folder / "vecnormalize.pkl"))
+
     def check(self) -> dict:
-        """The deterministic policy on the validation episodes now; saved as the best where it beats the best so far
-        (ties go to the earlier, as the project's trainers select)."""
-        steps = int(self.num_timesteps)
-        wins = held_out_success(self.act, self.env_id, self.obs, self.episodes, seed=self.seed)
-        rate = wins / self.episodes
-        self.checks.append([steps, rate])
+        """The deterministic policy on the validation episodes now, logged as ``eval/validation_success`` and kept
+        where it is the best so far; returns the best."""
+        rate, _ = self.validate(self.num_timesteps, self.act, self.env_id, self.obs, self._save)
         self.logger.record("eval/validation_success", rate)
-        if self.best is None or rate > self.best["success"]:
-            self.save_path.mkdir(parents=True, exist_ok=True)
-            self.model.save(self.save_path / "best_model.zip")
-            norm = self.model.get_vec_normalize_env()
-            if norm is not None:
-                norm.save(str(self.save_path / "vecnormalize.pkl"))
-            self.best = dict(env_steps=steps, success=rate, episodes=self.episodes, first_seed=self.seed)
-        self.save_path.mkdir(parents=True, exist_ok=True)
-        tmp = self.best_file.with_name("best.json.tmp")
-        tmp.write_text(json.dumps(dict(best=self.best, checks=self.checks)))
-        tmp.replace(self.best_file)
-        if self.verbose:
-            print(f"[select] {steps:,} env steps: validation success {wins}/{self.episodes} (seeds {self.seed}..); "
-                  f"best {self.best['success']:.2f} at {self.best['env_steps']:,}", flush=True)  # fmt: skip
         return self.best

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, Optional
 
 import gymnasium as gym
@@ -47,6 +48,7 @@ from maniskill_irb120.integrations.observations import (
     learner_threads_for,
     wrapped_vector_env,
 )
+from maniskill_irb120.integrations.selection import ValidationSelection
 
 try:
     from skrl.envs.wrappers.torch.mani_skill_envs import ManiSkillWrapper
@@ -216,3 +218,49 @@ def policy_and_value(env: IRB120SkrlWrapper, device: Optional[torch.device] = No
         "policy": Policy(env.observation_space, env.action_space, device),
         "value": Value(env.observation_space, env.action_space, device),
     }
+
+
+# ---------------------------------------------------------------------------- deploying and selecting
+def deterministic_action(agent: Any, observation_space: gym.Space, obs: Any) -> torch.Tensor:
+    """``agent``'s deterministic action, (n, actions): its Gaussian's mean, clipped to [-1, 1] as the adapter clips
+    what reaches the env, for an adapter observation (``make_single_env``'s, unbatched, or a batch of them; numpy or
+    torch), flattened as skrl flattens it and scaled by the agent's own observation scaler (without updating it)."""
+    preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
+    flat = flatten_tensorized_space(tensorize_space(observation_space, obs, device=agent.device))
+    with torch.no_grad():
+        _, out = agent.policy.act({"observations": preprocess(flat.float())}, role="policy")
+    return out["mean_actions"].clamp(-1, 1)
+
+
+class SelectOnValidation(ValidationSelection):
+    """Checkpoint selection for skrl (``integrations.selection`` says why and how): every ``every`` env steps the
+    deterministic policy plays ``episodes`` validation episodes, and the best so far by success is kept in
+    ``save_path`` as ``best_agent.pt`` (``agent.save``: its models and observation scaler; ``agent.load`` deploys it)
+    with ``best.json``. skrl's runner keeps the best mean training reward instead, which on these tasks prefers
+    holding the object to succeeding. A ``callback:`` entry of the project's skrl YAML (``agents/configs/loader.py``
+    builds it), or from code: ``SelectOnValidation(every=12500).attach(agent, env, "GraspLift-IRB120-v1")`` before
+    ``trainer.train()``."""
+
+    def attach(self, agent: Any, env: IRB120SkrlWrapper, env_id: str, obs: str = "state", env_steps: int = 0) -> None:
+        """Check ``agent`` as it trains on ``env``: around its ``post_interaction``, which skrl's trainers call after
+        every vector step of ``env.num_envs`` env steps. ``env_steps``: those already trained (a resumed run's; skrl
+        counts its timesteps from 0 in every session). ``obs``: what ``env`` gives (``"state"`` or ``"rgbd"``)."""
+        if obs not in ("state", "rgbd"):
+            raise ValueError(f"SelectOnValidation.attach: obs must be 'state' or 'rgbd', not {obs!r}")
+        self.start(env_steps)
+        post, per_step, space = agent.post_interaction, env.num_envs, env.observation_space
+
+        def act(o: Any) -> Any:
+            return deterministic_action(agent, space, o)[0].cpu().numpy()
+
+        def save(folder: Path) -> None:
+            agent.save(str(folder / "best_agent.pt"))
+
+        def post_interaction(*, timestep: int, timesteps: int) -> None:
+            post(timestep=timestep, timesteps=timesteps)  # the agent's own: its update, when a rollout is full
+            steps = env_steps + (timestep + 1) * per_step
+            if self.due(steps):
+                rate, _ = self.validate(steps, act, env_id, obs, save)
+                agent.track_data("Eval / Validation success", rate)
+
+        agent.post_interaction = post_interaction

@@ -346,6 +346,7 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     from skrl.agents.torch.sac import SAC_CFG
 
     from agents.configs import loader
+    from maniskill_irb120.integrations.skrl import SelectOnValidation as SkrlSelect
     from maniskill_irb120.integrations.wrappers import AbsorbingSuccess, ActionPenalty
 
     for algo in loader.SB3_ALGOS:
@@ -379,6 +380,15 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
                 if key != "class":
                     default = getattr(defaults[algo], key)  # a key skrl does not know fails here, not silently
                     assert default != value, (path.name, key)
+            # the project's sections never reach skrl's runner; PPO selects its checkpoint, as the SB3 PPO config
+            assert not set(loader.skrl_runner_config(cfg)) & set(loader.SKRL_PROJECT_KEYS)
+            hooks = loader.skrl_callbacks(cfg, Path("elsewhere"))
+            if algo == "ppo":
+                (hook,) = hooks
+                assert isinstance(hook, SkrlSelect) and hook.save_path == Path("elsewhere")
+                assert (hook.every, hook.episodes) == (alg.STATE_ENV_STEPS[env_id.split("-")[0]] // 40, 30)
+            else:
+                assert hooks == []
     # the skrl SAC defaults row's file: skrl's SAC_CFG as it comes, no wrapper, only what the runner needs
     path = loader.skrl_path("sac-defaults", "GraspLift-IRB120-v1")
     cfg = loader.skrl_config("sac-defaults", "TableClearing-IRB120-v1")
@@ -572,6 +582,67 @@ def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     cells = json.loads((tmp_path / "algorithms.json").read_text())["cells"]
     assert sorted(cells) == ["state/GraspLift/sb3-sac-tuned/s1", "state/GraspLift/sb3-tqc-tuned/s1"]
     assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
+
+
+def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell_deploys_it(alg, tmp_path, monkeypatch):
+    """A ``callback:`` entry of the project's skrl YAML (integrations.skrl.SelectOnValidation) reaches the skrl cell:
+    after the agent's own post_interaction it checks the deterministic policy on validation seeds every ``every``
+    env steps, saves the best agent in the cell's folder, and the cell's held-out score is the saved agent's (it acts
+    exactly as the policy did when it was checked), the last policy's kept beside it."""
+    pytest.importorskip("skrl")
+    import gymnasium as gym
+    import torch
+    import yaml
+
+    import maniskill_irb120  # noqa: F401
+    from agents.configs import loader
+    from maniskill_irb120.integrations import selection
+
+    env = gym.make("GraspLift-IRB120-v1", obs_mode="state", render_backend="none")
+    try:
+        probe, _ = env.reset(seed=3)
+    finally:
+        env.close()
+    acted = {}  # each check's action on one fixed observation, as the policy was when checked
+    real_check = selection.held_out_success
+
+    def check(act, env_id, obs, episodes, *, seed):
+        acted[len(acted)] = torch.as_tensor(act(probe[0].numpy()))
+        return real_check(act, env_id, obs, episodes, seed=seed)
+
+    monkeypatch.setattr(selection, "held_out_success", check)
+    final = []
+    real = alg.evaluate_on_seeds
+    monkeypatch.setattr(alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: final.append(act) or real(
+        act, env_id, obs, seeds))  # fmt: skip
+    cfg = loader.skrl_config("ppo", "GraspLift-IRB120-v1")
+    cfg["callback"] = [{"maniskill_irb120.integrations.skrl.SelectOnValidation": {"every": 128, "episodes": 1}}]
+    conf = tmp_path / "ppo_select.yaml"
+    conf.write_text(yaml.safe_dump(cfg))
+    cell = "state/GraspLift/skrl-ppo-tuned/s1"
+    args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True, conf_file=conf,
+                    total_env_steps=520, eval_episodes=1, curve_points=1, reference_steps=0)  # fmt: skip
+    one = alg.main(args)["cells"][cell]
+    best = tmp_path / "runs" / "state__GraspLift__skrl-ppo-tuned__s1" / "best"
+    kept = json.loads((best / "best.json").read_text())
+    # 4 envs: 128 vector steps fill the rollout, whose update (at 512) comes before that step's check
+    assert [c[0] for c in kept["checks"]] == [128, 256, 384, 512] and (best / "best_agent.pt").is_file()
+    top = max(c[1] for c in kept["checks"])
+    first_top = next(i for i, c in enumerate(kept["checks"]) if c[1] == top)
+    assert one["selected"]["env_steps"] == kept["checks"][first_top][0] and one["selected"]["checks"] == kept["checks"]
+    assert one["selected"]["first_seed"] == alg.VALIDATION_SEED
+    assert len(one["last_policy_successes"]) == len(one["successes"])
+    assert not torch.equal(acted[0], acted[3])  # the update moved the policy, so the two candidates differ
+    flat = {"state": probe}
+    assert torch.equal(final[-1](flat)[0], acted[first_top])  # the cell scores the selected agent, as it was
+    # a rerun of the finished cell trains nothing and deploys the same kept agent
+    report_path = tmp_path / "out" / "algorithms.json"
+    report = json.loads(report_path.read_text())
+    del report["cells"][cell]
+    report_path.write_text(json.dumps(report))
+    again = alg.main(args)["cells"][cell]
+    assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
+    assert torch.equal(final[-1](flat)[0], acted[first_top])
 
 
 def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, tmp_path, monkeypatch):
