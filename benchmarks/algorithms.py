@@ -61,6 +61,7 @@ import numpy as np
 import torch
 
 from agents.common import EVAL_SEED, VALIDATION_SEED, evaluate_on_seeds, train_seed
+from agents.common.evaluation import curve_fractions
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
@@ -357,14 +358,6 @@ def numpy_library_obs(obs: str, flat: dict) -> object:
 
 
 # ----------------------------------------------------------------------------- library cells
-def curve_fractions(points: int) -> list[float]:
-    """The shares of an env-step budget where a held-out point is taken while training: every ``1/points`` and
-    a quarter (the table reads 25 %, 50 % and 100 %), not the end, which the final evaluation is."""
-    if points < 2:
-        return []
-    return sorted({k / points for k in range(1, points)} | {0.25})
-
-
 READ_AT = (0.25, 0.5, 1.0)
 """the shares of the budget at which the table reads the held-out curve"""
 
@@ -838,7 +831,13 @@ def run_project(
     r = RECIPES[recipe].for_task(env_id)
     module, flags = r.trainer, r.argv()  # runner.run_trainer fills in the seed
     if r.base is None:
-        return run_stage(module, flags, env_id, seed, budget_min, run_name, args, env_steps)
+        if env_steps is not None:  # the trainer takes the held-out curve's points itself, as a library cell's
+            flags = [*flags, "--curve-points", str(args.curve_points), "--curve-episodes", str(args.curve_episodes)]
+        out = run_stage(module, flags, env_id, seed, budget_min, run_name, args, env_steps)
+        held = out.pop("held_out_curve", None)
+        if held is not None:
+            out["held_out_curve"] = held_out_curve(held, out, out["env_steps"], out["wall_clock_s"])
+        return out
     hand_on = f"--{r.base.hand_on}"
     base_recipe = RECIPES[r.base.recipe].for_task(env_id)
     base_flags, base_module = base_recipe.argv(), base_recipe.trainer

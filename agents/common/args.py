@@ -49,6 +49,12 @@ class RunArgs:
     evaluation scores it instead of the last weights (0: no selection). Its episodes count in --max-minutes"""
     select_freq: int = 25
     """steps of training (PPO iterations, DAgger rounds, SAC env steps) between two selection evaluations"""
+    curve_points: int = 0
+    """a held-out curve while training: the policy as it is on --curve-episodes held-out seeds (EVAL_SEED onwards)
+    after the step that crosses each tenth (for 10) of --total-env-steps and a quarter, its time left out of the
+    budget clock; kept in summary.json's held_out_curve (0: none; it needs --total-env-steps)"""
+    curve_episodes: int = 30
+    """held-out episodes of each --curve-points evaluation"""
     device: str = "auto"
     """torch device of the learner (auto: CUDA when available)"""
     backend: Literal["auto", "cpu", "gpu"] = "auto"
@@ -178,6 +184,11 @@ def check_budget(args) -> None:
     episodes, freq = getattr(args, "select_episodes", 0), getattr(args, "select_freq", 1)
     if episodes < 0 or freq < 1:
         raise ValueError(f"--select-episodes must be >= 0 and --select-freq >= 1, got {episodes} and {freq}")
+    points, curve_episodes = getattr(args, "curve_points", 0), getattr(args, "curve_episodes", 1)
+    if points < 0 or curve_episodes < 1:
+        raise ValueError(f"--curve-points must be >= 0 and --curve-episodes >= 1, got {points} and {curve_episodes}")
+    if points and getattr(args, "total_env_steps", None) is None and not getattr(args, "evaluate", False):
+        raise ValueError("--curve-points takes its points at shares of --total-env-steps: give --total-env-steps")
     check = getattr(args, "check", None)
     if callable(check):  # a trainer's own rules for flags that cannot run together
         check()

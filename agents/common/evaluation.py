@@ -27,6 +27,14 @@ VALIDATION_SEED = 20_000_000
 the held-out seeds, so the score of the selected checkpoint is not the score it was selected by"""
 
 
+def curve_fractions(points: int) -> list[float]:
+    """The shares of an env-step budget where a held-out curve point is taken while training: every ``1/points`` and
+    a quarter (tables read 25 %, 50 % and 100 %), not the end, which the final evaluation is."""
+    if points < 2:
+        return []
+    return sorted({k / points for k in range(1, points)} | {0.25})
+
+
 def new_eval_dir(run_dir: Path) -> Path:
     """``run_dir/eval`` for a run's first ``--evaluate``, then ``eval-2``, ``eval-3``...: a second evaluation of the
     same run (another checkpoint, more episodes) must not overwrite the first one's summary and videos."""

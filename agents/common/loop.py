@@ -5,11 +5,12 @@ resume, the budget, checkpoint selection on validation seeds, periodic and final
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Optional
 
 from agents.common.args import RunArgs
-from agents.common.evaluation import EVAL_SEED, VALIDATION_SEED
+from agents.common.evaluation import EVAL_SEED, VALIDATION_SEED, curve_fractions
 from agents.common.logging import Logger
 from agents.common.run import (
     Budget,
@@ -141,6 +142,8 @@ def run(algo: Algorithm, clock_type: type[Clock] = Clock) -> dict:
             validated = bool(args.select_episodes) and (now // args.select_freq > before // args.select_freq or last)
             if validated:  # every --select-freq steps and after the last
                 select(algo, counters, clock, budget, ckpt_dir)
+            if curve_point_due(args, counters) and not last:  # the end's point is the final evaluation
+                held_out_point(algo, counters, clock)
             counters["wall_s"] = clock()
             algo.save_periodic(ckpt_dir, counters, last)
             if algo.estimates():
@@ -151,8 +154,45 @@ def run(algo: Algorithm, clock_type: type[Clock] = Clock) -> dict:
         finally:
             algo.close()
     extra = dict(algo.summary(), **scored_checkpoint(algo, ckpt_dir))
+    if args.curve_points:
+        extra["held_out_curve"] = counters.get("held_out_curve", [])
     evaluate = (lambda: algo.evaluate(args)) if args.eval_episodes > 0 else dict  # 0: no held-out evaluation
     return evaluate_and_finish(evaluate, logger, counters, run_dir, **extra, **budget.report())
+
+
+def next_curve_share(args: RunArgs, curve: list) -> Optional[float]:
+    """The next of :func:`curve_fractions` of ``--total-env-steps`` past the last point's env steps (``curve``'s rows
+    start with them); None when none is left. A step that crossed several shares took one point for all of them."""
+    last = curve[-1][0] if curve else -1
+    left = [f for f in curve_fractions(args.curve_points) if f * args.total_env_steps > last]
+    return left[0] if left else None
+
+
+def curve_point_due(args: RunArgs, counters: dict) -> bool:
+    """A held-out curve point is due (``--curve-points``): the env steps have crossed the next share of the budget."""
+    if not args.curve_points or args.total_env_steps is None:
+        return False
+    share = next_curve_share(args, counters.get("held_out_curve", []))
+    return share is not None and counters["env_steps"] >= share * args.total_env_steps
+
+
+def held_out_point(algo: Algorithm, counters: dict, clock: Clock) -> None:
+    """The policy as it is now on ``--curve-episodes`` held-out seeds (EVAL_SEED onwards, the final evaluation's
+    first), kept in ``counters["held_out_curve"]`` as [env steps, training minutes, success rate, per-episode
+    successes, evaluation seconds] and logged as ``eval/held_out_success``; its time is left out of the budget
+    clock (it is not training), as benchmarks/algorithms.py leaves a library cell's out."""
+    from dataclasses import replace
+
+    args = algo.args
+    started = time.perf_counter()
+    r = algo.evaluate(replace(args, eval_episodes=args.curve_episodes, progress=False), None, EVAL_SEED)
+    took = time.perf_counter() - started
+    clock.t0 += took  # the budget clock skips the evaluation
+    steps = counters["env_steps"]
+    counters.setdefault("held_out_curve", []).append([steps, clock() / 60, r["success_rate"], r["successes"], took])
+    algo.logger.scalars({"eval/held_out_success": r["success_rate"]}, steps)
+    print(f"[{algo.name}] held out at {steps:,} env steps: success {r['success_rate']:.2f} of "
+          f"{len(r['successes'])} ({took:.0f} s)", flush=True)  # fmt: skip
 
 
 def scored_checkpoint(algo: Algorithm, ckpt_dir: Path) -> dict:

@@ -38,7 +38,7 @@ RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
 RESULT_KEPT = (
     *sorted(RESULT_NEEDS),
     *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
-    *("total_env_steps", "stopped_early"),
+    *("total_env_steps", "stopped_early", "held_out_curve"),
 )
 
 

@@ -5,6 +5,7 @@ migrate(), and a removed flag's one-line error."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +40,7 @@ class Toy(loop.Algorithm):
         super().__init__(args)
         self.counters = dict(env_steps=0, iteration=0)
         self.weight, self.scores, self.evaluated = 0, scores, []
+        self.eval_s = 0.0  # seconds each evaluation takes
 
     def read(self, path: Path) -> dict:
         return load_torch(path, FMT, "the toy")
@@ -63,7 +65,10 @@ class Toy(loop.Algorithm):
 
     def evaluate(self, args, video_dir=None, first_seed=0) -> dict:
         self.evaluated.append((self.weight, args.eval_episodes))
-        return {"success_rate": self.scores.get(self.weight, 0.0), "return": float(self.weight)}
+        time.sleep(self.eval_s)
+        rate = self.scores.get(self.weight, 0.0)
+        successes = [int(k < rate * args.eval_episodes) for k in range(args.eval_episodes)]
+        return {"success_rate": rate, "return": float(self.weight), "successes": successes}
 
     def summary(self) -> dict:
         return dict(weight=self.weight)
@@ -102,6 +107,46 @@ def test_resume_continues_the_counters_and_the_weights(tmp_path):
     again = Toy(args(tmp_path, total_env_steps=50, resume=latest), {})
     result = loop.run(again)
     assert result["env_steps"] == 50 and result["weight"] == 5
+
+
+def test_held_out_curve_points_come_at_shares_of_the_budget_off_the_clock_and_go_on_after_a_resume(tmp_path):
+    """--curve-points: the policy as it is on --curve-episodes held-out seeds once the env steps cross each share
+    (a quarter, a half, three quarters for 4), the end left to the final evaluation; their time is not training."""
+    toy = Toy(args(tmp_path, total_env_steps=50, curve_points=4, curve_episodes=2), {2: 1.0, 4: 0.5})
+    toy.eval_s = 0.2
+    result = loop.run(toy)
+    rows = result["held_out_curve"]
+    # shares 12.5, 25 and 37.5 of 50, crossed by the steps that end at 20, 30 and 40 env steps
+    assert [r[0] for r in rows] == [20, 30, 40] and [r[2] for r in rows] == [1.0, 0.0, 0.5]
+    assert [r[3] for r in rows] == [[1, 1], [0, 0], [1, 0]] and all(r[4] >= 0.2 for r in rows)
+    assert toy.evaluated == [(2, 2), (3, 2), (4, 2), (5, 3)]  # the points, then the final evaluation's 3 episodes
+    assert result["wall_clock_s"] < 0.2  # three 0.2 s evaluations, none of them on the budget clock
+    latest = tmp_path / "t" / "checkpoints" / "latest.pt"
+    again = Toy(args(tmp_path, total_env_steps=100, curve_points=4, curve_episodes=2, resume=latest), {})
+    rows = loop.run(again)["held_out_curve"]
+    # the points so far are kept; the next share past the last (40) is 50 of 100, crossed at 60, then 75 at 80
+    assert [r[0] for r in rows] == [20, 30, 40, 60, 80]
+
+
+def test_a_step_that_crosses_several_shares_takes_one_point(tmp_path):
+    toy = Toy(args(tmp_path, total_env_steps=100, curve_points=4, curve_episodes=1, steps_per_step=60), {})
+    result = loop.run(toy)
+    assert [r[0] for r in result["held_out_curve"]] == [60]  # 25 and 50 at once; 75 falls in the last step
+
+
+@pytest.mark.parametrize(
+    "kw, says",
+    [
+        (dict(curve_points=-1, total_env_steps=10), "--curve-points must be >= 0"),
+        (dict(curve_points=4, curve_episodes=0, total_env_steps=10), "--curve-episodes >= 1"),
+        (dict(curve_points=4), "give --total-env-steps"),
+    ],
+)
+def test_a_curve_that_cannot_be_taken_is_refused_by_name(kw, says):
+    from agents.common.args import check_budget
+
+    with pytest.raises(ValueError, match=says):
+        check_budget(Args(**kw))
 
 
 def test_migrate_brings_a_version_1_ppo_checkpoint_up_to_date():

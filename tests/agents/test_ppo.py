@@ -454,6 +454,15 @@ def test_an_exception_mid_training_keeps_the_iterations_done_and_resume_carries_
         run(tmp_path, **{**kw, "state_net": "shared"}, resume=ckpts / "latest.pt")
 
 
+def test_the_trainer_takes_a_held_out_curve_at_shares_of_its_budget(tmp_path):
+    """--curve-points in agents.ppo (the loop's, shared by every trainer): the policy as it trains on held-out seeds
+    at a quarter, a half and three quarters of 64 env steps (16 a PPO iteration), kept in summary.json."""
+    result = run(tmp_path, obs="state", total_env_steps=64, curve_points=4, curve_episodes=2, eval_episodes=2)
+    rows = result["held_out_curve"]
+    assert [r[0] for r in rows] == [16, 32, 48] and all(len(r[3]) == 2 and r[2] == sum(r[3]) / 2 for r in rows)
+    assert json.loads((Path(result["run_dir"]) / "summary.json").read_text())["held_out_curve"] == rows
+
+
 def test_periodic_checkpoints_keep_the_newest_and_never_latest_or_best(tmp_path):
     """A long camera run writes a 17 MB ckpt_N.pt every --save-freq iterations: only the newest
     --keep-checkpoints stay, ordered by N (not by name: ckpt_10 is newer than ckpt_9), and 0 keeps every one."""

@@ -289,6 +289,34 @@ def test_the_default_budgets_are_env_steps_and_a_zero_one_is_refused(alg, tmp_pa
         alg.main(alg.Args(total_env_steps=0, out_dir=tmp_path))
 
 
+def test_the_project_cell_in_env_steps_has_its_trainer_take_the_held_out_curve(alg, tmp_path, monkeypatch):
+    """A one-stage project cell (the project's PPO) in env steps asks its trainer for the held-out curve
+    (--curve-points, --curve-episodes: the trainer's own loop takes it), and the cell's held_out_curve is the
+    trainer's points then its final evaluation, as a library cell's."""
+    calls = []
+
+    def fake_trainer(cmd, **kwargs):
+        flags = cmd[3:]
+        calls.append(flags)
+        held = [[100, 1.0, 0.0, [0, 0], 3.0], [250, 2.0, 0.5, [1, 0], 3.0]]
+        result = dict(success_rate=0.75, successes=[1, 1, 1, 0], env_steps=1000, wall_clock_s=600.0,
+                      checkpoint="/c.pt", held_out_curve=held)  # fmt: skip
+        line = json.dumps(result)
+        return type("P", (), dict(returncode=0, communicate=lambda self, timeout=None: (line + "\n", "")))()
+
+    monkeypatch.setattr(runner.subprocess, "Popen", fake_trainer)
+    args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs", curve_points=4, curve_episodes=2)
+    (tmp_path / "runs" / "project" / "cell").mkdir(parents=True)
+    r = alg.run_project("ppo-state", "GraspLift-IRB120-v1", 1, None, "cell", args, 1000)
+    (flags,) = calls
+    assert flags[flags.index("--curve-points") + 1] == "4" and flags[flags.index("--curve-episodes") + 1] == "2"
+    curve = r["held_out_curve"]
+    assert curve["env_steps"] == [100, 250, 1000] and curve["success"] == [0.0, 0.5, 0.75]
+    assert curve["episodes"] == [2, 2, 4] and curve["eval_s"] == [3.0, 3.0, None]
+    # the table reads the trainer's point at a quarter of the budget, and the final evaluation at the end
+    assert alg.held_out_at([dict(r, total_env_steps=1000)]) == {"0.25": 0.5, "0.5": None, "1": 0.75}
+
+
 def test_the_camera_cell_in_env_steps_gives_its_teacher_the_committed_share(alg, tmp_path, monkeypatch):
     calls = []
 
