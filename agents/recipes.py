@@ -137,6 +137,16 @@ PPO_SELECTION: dict[str, Value] = {"eval-freq": 0, "select-episodes": 30}
 then unlearns; the budget is the run's own --total-env-steps (``--recipe`` adds the task's ENV_STEP_BUDGETS one)"""
 PPO_FROM_REWARD: dict[str, Value] = {**PPO_UPDATE, **PPO_SELECTION}
 """PPO from the reward alone: ManiSkill's state baseline and its checkpoint selection"""
+PPO_CAMERA_FAST: dict[str, Value] = {
+    "precision": "auto",
+    "update-epochs": 4,
+    "num-minibatches": 4,
+    "learning-rate": 1e-3,
+}
+"""PPO's update from the camera at about twice the recipe's env steps/s on 2 cores: the encoder under bf16 autocast,
+4 epochs of 4 minibatches (a quarter of the optimiser steps on 128-row minibatches) and the learning rate raised
+from 3e-4 to 1e-3 to take back the trust region fewer steps leave unused (docs/notes/fast-camera-ppo.md: the
+"fastlr" configuration of its benchmark and learning screen)"""
 CAMERA_BF16: dict[str, Value] = {**CAMERA_DAGGER, "precision": "auto"}
 """the camera recipe with its encoder under bf16 autocast where the CPU has native bf16 (agents/common/precision.py;
 fp32 elsewhere), which halves an update"""
@@ -209,6 +219,21 @@ _RECIPES = (
         "rgbd",
         "vision",
         {"obs": "rgbd", "obs-norm": True, **PPO_UPDATE, "absorbing-success": True, **PPO_SELECTION},
+    ),
+    # the same two at issue 92's fast camera update (PPO_CAMERA_FAST), for the report's scale: 4M env steps a run
+    Recipe(
+        "ppo-rgbd-fast",
+        "agents.ppo",
+        "rgbd",
+        "vision",
+        {"obs": "rgbd", "obs-norm": True, **PPO_UPDATE, "absorbing-success": True, **PPO_SELECTION, **PPO_CAMERA_FAST},
+    ),
+    Recipe(
+        "ppo-rgbd-dense-fast",
+        "agents.ppo",
+        "rgbd",
+        "vision",
+        {"obs": "rgbd", "reward-mode": "dense", "obs-norm": True, **PPO_FROM_REWARD, **PPO_CAMERA_FAST},
     ),
     # teacher-student from the reward alone: ppo-state trains a state teacher, then the camera recipe's student
     # imitates it by DAgger (--teacher), with no scripted expert and no demos anywhere; the budget is both stages'

@@ -50,7 +50,7 @@ def test_explicit_flags_override_the_recipes():
 
 
 def test_a_name_the_trainer_cannot_run_is_refused_with_the_valid_names():
-    ppo_names = "ppo-rgbd, ppo-rgbd-dense, ppo-state"
+    ppo_names = "ppo-rgbd, ppo-rgbd-dense, ppo-rgbd-dense-fast, ppo-rgbd-fast, ppo-state"
     with pytest.raises(
         ValueError, match=f"a recipe of agents.dagger, not of agents.ppo; agents.ppo's recipes: {ppo_names}$"
     ):

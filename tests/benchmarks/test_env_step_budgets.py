@@ -112,3 +112,19 @@ def test_the_original_experiment_runs_its_committed_env_steps_when_asked():
     minutes = oe.command("ppo-rgbd", oe.Args(), resume=False)  # as the committed runs were started
     assert minutes[minutes.index("--budget-min") + 1] == "150" and "--total-env-steps" not in minutes
     assert oe.budget_text(oe.Args(total_env_steps=10**6)) == "1,000,000 env steps"
+    assert "--curve-points" not in minutes  # a held-out curve needs an env-step budget to take its shares of
+
+
+def test_the_report_scale_runs_take_the_fast_update_and_a_held_out_curve():
+    """Issue 92's 4M-step runs: ppo-rgbd at the fast camera update, with held-out success every tenth."""
+    from agents.recipes import PPO_CAMERA_FAST
+    from benchmarks import original_experiment as oe
+
+    flags = oe.command("ppo-rgbd-fast", oe.Args(recipes=["ppo-rgbd-fast"], total_env_steps=4_000_000), resume=False)
+    for flag, value in PPO_CAMERA_FAST.items():
+        assert flags[flags.index(f"--{flag}") + 1] == str(value)
+    assert flags[flags.index("--curve-points") + 1] == "10" and "--absorbing-success" in flags
+    dense = oe.command("ppo-rgbd-dense-fast", oe.Args(total_env_steps=10), resume=False)
+    assert dense[dense.index("--reward-mode") + 1] == "dense" and "--absorbing-success" not in dense
+    with pytest.raises(ValueError, match="unknown recipes \\['ppo-state'\\]"):
+        oe.check(oe.Args(recipes=["ppo-state"]))
