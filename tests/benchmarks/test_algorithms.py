@@ -663,13 +663,7 @@ def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell
     assert not torch.equal(acted[0], acted[3])  # the update moved the policy, so the two candidates differ
     flat = {"state": probe}
     assert torch.equal(final[-1](flat)[0], acted[first_top])  # the cell scores the selected agent, as it was
-    # a rerun of the finished cell trains nothing and deploys the same kept agent
-    report_path = tmp_path / "out" / "algorithms.json"
-    report = json.loads(report_path.read_text())
-    del report["cells"][cell]
-    report_path.write_text(json.dumps(report))
-    again = alg.main(args)["cells"][cell]
-    assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
+    rerun_finished_cell(alg, args, cell, one)  # trains nothing and deploys the same kept agent
     assert torch.equal(final[-1](flat)[0], acted[first_top])
 
 
@@ -703,6 +697,18 @@ def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, t
         env.close()
     flat = {"state": flat}
     assert torch.equal(trained_act(flat), validate_act(flat))  # the saved scaler and weights, not fresh ones
+
+
+def rerun_finished_cell(alg, args, cell: str, one: dict) -> dict:
+    """``cell`` run again after its training was over but before its result was written (its entry taken out of
+    ``args.out_dir``'s report): it trains nothing more and reports the checkpoint its selection kept."""
+    report_path = args.out_dir / "algorithms.json"
+    report = json.loads(report_path.read_text())
+    del report["cells"][cell]
+    report_path.write_text(json.dumps(report))
+    again = alg.main(args)["cells"][cell]
+    assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
+    return again
 
 
 def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_scores_it(
@@ -758,12 +764,8 @@ def test_a_configs_selection_callback_keeps_the_best_on_validation_and_the_cell_
     assert "last_policy_success" in one and len(one["last_policy_successes"]) == len(one["successes"])
     assert "validation success" in capsys.readouterr().out
     # a cell whose training was over when its run stopped (before its final evaluation) still deploys the selected one
+    rerun_finished_cell(alg, args, cell, one)
     report_path = tmp_path / "out" / "algorithms.json"
-    report = json.loads(report_path.read_text())
-    del report["cells"][cell]
-    report_path.write_text(json.dumps(report))
-    again = alg.main(args)["cells"][cell]
-    assert again["selected"]["env_steps"] == one["selected"]["env_steps"] and again["env_steps"] == one["env_steps"]
     with pytest.raises(ValueError, match="positive"):
         SelectOnValidation(every=0)
     # --validate
