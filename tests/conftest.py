@@ -51,6 +51,20 @@ def _one_torch_thread_per_xdist_worker():
         torch.set_num_threads(before)
 
 
+@pytest.fixture(autouse=True)
+def _torch_determinism_put_back():
+    """Ray RLlib seeds torch on a CPU-only build with ``torch.use_deterministic_algorithms(True)``
+    (``ray.rllib.utils.torch_utils.set_torch_seed``), for the whole process, and under it ``torch.empty`` fills the
+    memory it returns: a camera DAgger run later in the same pytest worker then made its whole 300,000-row dataset
+    resident, 11.7 GB, and a CI worker was OOM-killed. Each test gets the setting back as it found it."""
+    before = torch.are_deterministic_algorithms_enabled()
+    try:
+        yield
+    finally:
+        if torch.are_deterministic_algorithms_enabled() != before:
+            torch.use_deterministic_algorithms(before)
+
+
 CUBE_HALF = 0.01
 
 if "IRB120CubeBench-test" not in REGISTERED_ENVS:

@@ -8,8 +8,8 @@ import pytest
 
 TINY_DAGGER = dict(
     budget_min=0.05,
-    # a few hundred rows at most: the default ring preallocates 300,000 (8.5 GB of virtual memory from the camera),
-    # and a CI worker once peaked at 11.7 GB resident in a camera student's run, which the OOM killer ended
+    # a few hundred rows at most: the default ring preallocates 300,000 (~10 GB of virtual memory from the camera),
+    # resident in full wherever torch's deterministic mode fills torch.empty's memory (tests/conftest.py says when)
     capacity=2_000,
     num_envs=1,
     expert_episodes=1,
