@@ -17,6 +17,7 @@ turns with both kept running (the grid above runs minutes apart; these machines 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -132,6 +133,19 @@ def ppo_trained(workers: int, args: Args) -> float:
         return statistics.median(s.value for s in ea.Scalars("charts/SPS")[1:])
 
 
+@contextlib.contextmanager
+def own_torch_determinism():
+    """RLlib seeds torch on a CPU build with ``torch.use_deterministic_algorithms(True)`` for the whole process
+    (``ray.rllib.utils.torch_utils.set_torch_seed``), and under it every ``torch.empty`` fills its memory and some ops
+    take slower paths. RLlib keeps that setting while it runs here, as in its own process; on the way out the setting
+    is put back, so this process's ``agents.ppo`` turns (the next round's) run as ``agents.ppo`` runs alone."""
+    before = torch.are_deterministic_algorithms_enabled()
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before)
+
+
 def rllib(runners: int, envs: int, args: Args) -> dict:
     from agents.rllib.train import Args as RArgs
     from agents.rllib.train import build_config
@@ -145,6 +159,12 @@ def rllib(runners: int, envs: int, args: Args) -> dict:
             num_epochs=1,
         )
     )
+    with own_torch_determinism():
+        return rllib_measured(cfg, runners, envs, args)
+
+
+def rllib_measured(cfg, runners: int, envs: int, args: Args) -> dict:
+    """:func:`rllib`'s measurement of the built config."""
     t0 = time.perf_counter()
     algo = cfg.build_algo()
     startup = time.perf_counter() - t0
@@ -198,7 +218,8 @@ def paired(args: Args) -> dict:
     n = args.paired_steps
     venv, step = our_sampler(2)
     cfg = RArgs(num_env_runners=2, train_batch_size=args.batch, minibatch_size=args.batch // 4, num_epochs=1)
-    algo = build_config(cfg).build_algo()
+    with own_torch_determinism():  # its runners are their own processes: this one's setting stays ours
+        algo = build_config(cfg).build_algo()
     group = algo.env_runner_group
     ours, theirs = [], []
     try:

@@ -634,3 +634,20 @@ def test_the_collision_scripts_default_shift_is_the_benchmarks_combined_row(benc
     frames = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(frames)
     assert frames.COMBINED == gap.COMBINED["fov 75 + light 0.5 + colours/textures + D435"]
+
+
+def test_rllib_speed_gives_our_trainer_back_the_torch_setting_rllib_seeding_turned_on():
+    """RLlib's seeding turns on torch's deterministic algorithms for the whole process on a CPU build; the benchmark
+    lets RLlib keep it while RLlib runs and puts it back after, so agents.ppo's turns in the same process run as
+    agents.ppo runs alone."""
+    pytest.importorskip("ray")
+    import torch
+    from ray.rllib.utils.torch_utils import set_torch_seed
+
+    from benchmarks import rllib_speed
+
+    before = torch.are_deterministic_algorithms_enabled()
+    with rllib_speed.own_torch_determinism():
+        set_torch_seed(1)
+        assert torch.are_deterministic_algorithms_enabled() or torch.version.cuda is not None
+    assert torch.are_deterministic_algorithms_enabled() == before
