@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from agents.common import EVAL_SEED, VALIDATION_SEED, evaluate_on_seeds, train_seed
-from agents.common.evaluation import curve_fractions
+from agents.common.evaluation import next_curve_share
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
 from benchmarks.lib.budget import rest_of
@@ -405,9 +405,10 @@ class Budget:
     def eval_due(self, held: list, steps: int, points: int) -> bool:
         """A held-out curve point due: at each of :func:`curve_fractions` of an env-step budget (``held``'s rows: env
         steps, ...), the budget's end left to the final evaluation; never for a minute budget."""
-        fractions = curve_fractions(points)
-        k = len(held)
-        return self.total_steps is not None and k < len(fractions) and steps >= fractions[k] * self.total_steps
+        if self.total_steps is None:
+            return False
+        share = next_curve_share(points, self.total_steps, held[-1][0] if held else -1)
+        return share is not None and steps >= share * self.total_steps
 
     def pause(self, seconds: float) -> None:
         """Leave ``seconds`` (a held-out evaluation's) out of the cell's wall clock: it is not training."""
@@ -784,7 +785,7 @@ def run_skrl(
                 held_out_curve=held_out_curve(held, result, steps, spent))  # fmt: skip
     # a selecting hook's best (this run's, or the one kept on disk when training was over before this run) is the
     # deployed policy and its score the cell's; the last policy's is kept beside it, as run_sb3 keeps it
-    selector = next((h for h in hooks if h.restore() is not None), None)
+    selector = next((h for h in hooks if h.best is not None), None)  # attach restored what earlier sessions kept
     if selector is None:
         return cell
     agent.load(str(Path(selector.save_path) / "best_agent.pt"))  # act plays the agent as loaded

@@ -41,7 +41,7 @@ from maniskill_irb120.errors import check_count, parse_flags, usage_errors  # no
 from maniskill_irb120.integrations.progress import Heartbeat, Progress, held_out_success  # noqa: E402
 from maniskill_irb120.integrations.skrl import (  # noqa: E402
     SUCCESS_KEY,
-    deterministic_action,
+    deterministic_policy,
     make_skrl_env,
     policy_and_value,
 )
@@ -123,15 +123,6 @@ def build(args: Args) -> tuple[Any, PPO, SequentialTrainer, str, int]:
         raise
 
 
-def deterministic(env, agent: PPO):
-    """The policy's mean action for one unbatched observation, as the trainer's observation preprocessor sees it."""
-
-    def act(obs: Any) -> np.ndarray:
-        return deterministic_action(agent, env.observation_space, obs)[0].cpu().numpy()
-
-    return act
-
-
 def main(args: Args) -> PPO:
     check_env_id(args.env_id)  # before skrl's first log line
     check_count("--eval-every", args.eval_every, least=0)
@@ -143,7 +134,8 @@ def main(args: Args) -> PPO:
 
     def check(steps: int) -> None:
         started = time.perf_counter()
-        wins = held_out_success(deterministic(env, agent), args.env_id, args.obs, args.eval_episodes)
+        act = deterministic_policy(agent, env.observation_space)
+        wins = held_out_success(act, args.env_id, args.obs, args.eval_episodes)
         held.append((steps, wins, args.eval_episodes))
         agent.track_data("Episode / Held-out success", wins / args.eval_episodes)
         took = time.perf_counter() - started

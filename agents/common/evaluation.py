@@ -35,6 +35,13 @@ def curve_fractions(points: int) -> list[float]:
     return sorted({k / points for k in range(1, points)} | {0.25})
 
 
+def next_curve_share(points: int, total_env_steps: int, last_steps: int) -> Optional[float]:
+    """The next of :func:`curve_fractions` of ``total_env_steps`` past the last point's env steps (``last_steps``; -1
+    before the first point); None when none is left. A step that crossed several shares took one point for them all."""
+    left = [f for f in curve_fractions(points) if f * total_env_steps > last_steps]
+    return left[0] if left else None
+
+
 def new_eval_dir(run_dir: Path) -> Path:
     """``run_dir/eval`` for a run's first ``--evaluate``, then ``eval-2``, ``eval-3``...: a second evaluation of the
     same run (another checkpoint, more episodes) must not overwrite the first one's summary and videos."""

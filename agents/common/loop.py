@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 from agents.common.args import RunArgs
-from agents.common.evaluation import EVAL_SEED, VALIDATION_SEED, curve_fractions
+from agents.common.evaluation import EVAL_SEED, VALIDATION_SEED, next_curve_share
 from agents.common.logging import Logger
 from agents.common.run import (
     Budget,
@@ -160,19 +160,13 @@ def run(algo: Algorithm, clock_type: type[Clock] = Clock) -> dict:
     return evaluate_and_finish(evaluate, logger, counters, run_dir, **extra, **budget.report())
 
 
-def next_curve_share(args: RunArgs, curve: list) -> Optional[float]:
-    """The next of :func:`curve_fractions` of ``--total-env-steps`` past the last point's env steps (``curve``'s rows
-    start with them); None when none is left. A step that crossed several shares took one point for all of them."""
-    last = curve[-1][0] if curve else -1
-    left = [f for f in curve_fractions(args.curve_points) if f * args.total_env_steps > last]
-    return left[0] if left else None
-
-
 def curve_point_due(args: RunArgs, counters: dict) -> bool:
-    """A held-out curve point is due (``--curve-points``): the env steps have crossed the next share of the budget."""
+    """A held-out curve point is due (``--curve-points``): the env steps have crossed the next share of the budget
+    (:func:`~agents.common.evaluation.next_curve_share`)."""
     if not args.curve_points or args.total_env_steps is None:
         return False
-    share = next_curve_share(args, counters.get("held_out_curve", []))
+    curve = counters.get("held_out_curve", [])
+    share = next_curve_share(args.curve_points, args.total_env_steps, curve[-1][0] if curve else -1)
     return share is not None and counters["env_steps"] >= share * args.total_env_steps
 
 

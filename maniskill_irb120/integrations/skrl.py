@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import gymnasium as gym
+import numpy as np
 import torch
 import torch.nn as nn
 
@@ -232,6 +233,16 @@ def deterministic_action(agent: Any, observation_space: gym.Space, obs: Any) -> 
     return out["mean_actions"].clamp(-1, 1)
 
 
+def deterministic_policy(agent: Any, observation_space: gym.Space) -> Callable[[Any], np.ndarray]:
+    """:func:`deterministic_action` for one unbatched observation, as a numpy action: what ``held_out_success`` and
+    the other one-env episode loops play."""
+
+    def act(obs: Any) -> np.ndarray:
+        return deterministic_action(agent, observation_space, obs)[0].cpu().numpy()
+
+    return act
+
+
 class SelectOnValidation(ValidationSelection):
     """Checkpoint selection for skrl (``integrations.selection`` says why and how): every ``every`` env steps the
     deterministic policy plays ``episodes`` validation episodes, and the best so far by success is kept in
@@ -248,10 +259,7 @@ class SelectOnValidation(ValidationSelection):
         if obs not in ("state", "rgbd"):
             raise ValueError(f"SelectOnValidation.attach: obs must be 'state' or 'rgbd', not {obs!r}")
         self.start(env_steps)
-        post, per_step, space = agent.post_interaction, env.num_envs, env.observation_space
-
-        def act(o: Any) -> Any:
-            return deterministic_action(agent, space, o)[0].cpu().numpy()
+        post, per_step, act = agent.post_interaction, env.num_envs, deterministic_policy(agent, env.observation_space)
 
         def save(folder: Path) -> None:
             agent.save(str(folder / "best_agent.pt"))
