@@ -359,9 +359,14 @@ class DAgger(Algorithm):
         args, counters, device, data, policy = self.args, self.counters, self.device, self.data, self.policy
         r = counters["round"]
         t0 = time.perf_counter()
-        if r == 0:
+        if r == 0:  # minutes before the bar's first move from the camera: say what runs and how fast
+            updates0 = args.initial_updates or args.updates_per_round
+            print(f"[dagger] round 0: {args.expert_episodes} labelled episodes, then {updates0} updates", flush=True)
             stats = collect(self.envs, self.state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
             policy.norm.fit(data.obs["state"][: data.size])
+            took = time.perf_counter() - t0
+            rate = stats["steps"] / took
+            print(f"[dagger] round 0: {stats['steps']:,} env steps in {took:.0f} s ({rate:.0f}/s)", flush=True)
         else:
             beta = args.beta * args.beta_decay ** (r - 1)
             stats = collect(

@@ -249,8 +249,12 @@ def tiny(tiny_dagger):
 
 def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     res = tiny(tmp_path)
-    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    out = capsys.readouterr().out
+    last = json.loads(out.strip().splitlines()[-1])
     assert {"success_rate", "env_steps", "wall_clock_s"} <= set(last) and last["env_steps"] > 0
+    # round 0 (the labelled episodes, then the first updates) says what it runs and how fast, before the bar moves
+    said = [line for line in out.splitlines() if line.startswith("[dagger] round 0: ")]
+    assert len(said) == 2 and "labelled episodes, then" in said[0] and " env steps in " in said[1]
     ckpt = Path(res["checkpoint"])
     saved = torch.load(ckpt, weights_only=False)
     assert "data" not in saved and saved_dataset(ckpt).size == res["dataset"] > 0
@@ -259,6 +263,7 @@ def test_state_run_resume_and_evaluate(tmp_path, capsys, tiny):
     # the budget counts the first run's wall clock too: 3 s more than it used buys one more round
     again = tiny(tmp_path, resume=ckpt, budget_min=res["wall_clock_s"] / 60 + 0.05, expert_episodes=1)
     assert again["rounds"] > res["rounds"] and again["dataset"] > res["dataset"]
+    assert "[dagger] round 0" not in capsys.readouterr().out  # a resumed run has no round 0
     assert again["wall_clock_s"] > res["wall_clock_s"]
     ev = tiny(tmp_path, evaluate=True, checkpoint=ckpt, capture_video=True)
     assert ev["episodes"] == 1 and list((tmp_path / "t" / "eval" / "videos").glob("*.mp4"))
