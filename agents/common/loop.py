@@ -156,6 +156,8 @@ def run(algo: Algorithm, clock_type: type[Clock] = Clock) -> dict:
     extra = dict(algo.summary(), **scored_checkpoint(algo, ckpt_dir))
     if args.curve_points:
         extra["held_out_curve"] = counters.get("held_out_curve", [])
+    if args.select_episodes:
+        extra["selection_checks"] = counters.get("selection_checks", [])
     evaluate = (lambda: algo.evaluate(args)) if args.eval_episodes > 0 else dict  # 0: no held-out evaluation
     return evaluate_and_finish(evaluate, logger, counters, run_dir, **extra, **budget.report())
 
@@ -203,7 +205,8 @@ def scored_checkpoint(algo: Algorithm, ckpt_dir: Path) -> dict:
 
 def select(algo: Algorithm, counters: dict, clock: Clock, budget: Budget, ckpt_dir: Path) -> None:
     """Checkpoint selection: the policy on ``--select-episodes`` validation seeds, kept as ``best.pt`` when it beats
-    the best so far (success rate, then mean return); its time is the budget's validation estimate."""
+    the best so far (success rate, then mean return); its time is the budget's validation estimate. Each check is
+    kept in ``counters["selection_checks"]`` as [env steps, success rate, mean return] (summary.json's)."""
     from dataclasses import replace
 
     args = algo.args
@@ -211,6 +214,8 @@ def select(algo: Algorithm, counters: dict, clock: Clock, budget: Budget, ckpt_d
         v = algo.evaluate(replace(args, eval_episodes=args.select_episodes, progress=False), None, VALIDATION_SEED)
         algo.logger.scalars({f"select/{k}": v[k] for k in ("success_rate", "return") if k in v}, counters["env_steps"])
         score = [v.get("success_rate", 0.0), v["return"]]
+        # every check, kept across --resume, so that two runs of one seed can be compared check by check
+        counters.setdefault("selection_checks", []).append([counters["env_steps"], *score])
         best = counters.get("best")
         if best is None or score > best["score"]:
             counters["best"] = {"score": score, algo.step_key: counters.get(algo.step_key, 0)}

@@ -38,7 +38,7 @@ RESULT_NEEDS = {"success_rate", "successes", "env_steps", "wall_clock_s"}
 RESULT_KEPT = (
     *sorted(RESULT_NEEDS),
     *("grasped_rate", "lifted_rate", "stacked_rate", "collided_rate", "checkpoint", "selected"),
-    *("total_env_steps", "stopped_early", "held_out_curve"),
+    *("total_env_steps", "stopped_early", "held_out_curve", "selection_checks"),
 )
 
 
@@ -185,6 +185,8 @@ def joined(base: dict, tuned: dict) -> dict:
         "success": base["curve"]["success"] + tuned["curve"]["success"],
     }
     out = dict(tuned, env_steps=base["env_steps"] + tuned["env_steps"], curve=curve)
+    if "selection_checks" in tuned:  # the tuned stage's checks, on the row's env-step axis as its curve
+        out["selection_checks"] = [[steps + shift_steps, *rest] for steps, *rest in tuned["selection_checks"]]
     out.update(
         wall_clock_s=base["wall_clock_s"] + tuned["wall_clock_s"], command=f"{base['command']} && {tuned['command']}"
     )

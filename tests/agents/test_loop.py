@@ -98,6 +98,11 @@ def test_selection_keeps_the_best_validation_and_the_held_out_episodes_score_it(
         iteration=2, env_steps=20, validation_success_rate=0.9, validation_episodes=2
     ) and result["checkpoint"].endswith("best.pt")
     assert result["last_checkpoint"].endswith("latest.pt")
+    # every check is in the summary, [env steps, success rate, mean return], and a resume carries them on
+    assert result["selection_checks"] == [[10, 0.2, 1.0], [20, 0.9, 2.0], [30, 0.5, 3.0], [40, 0.0, 4.0]]
+    latest = tmp_path / "t" / "checkpoints" / "latest.pt"
+    again = loop.run(Toy(args(tmp_path, total_env_steps=50, select_episodes=2, select_freq=1, resume=latest), {}))
+    assert again["selection_checks"] == [*result["selection_checks"], [50, 0.0, 5.0]]
 
 
 def test_resume_continues_the_counters_and_the_weights(tmp_path):

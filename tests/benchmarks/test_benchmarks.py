@@ -302,6 +302,9 @@ def test_learning_keeps_a_long_curve_as_bin_means_and_a_two_stage_runs_stages_ap
     tuned = dict(base, env_steps=50, wall_clock_s=30.0, command="learn", curve=short)
     joined = runner.joined(base, tuned)["curve"]
     assert joined["env_steps"] == [300, 600, 800, 1000, 1001, 1002] and joined["success"][4:] == [0.0, 1.0]
+    # the second stage's selection checks move onto the same axis
+    checks = runner.joined(base, dict(tuned, selection_checks=[[25, 0.5, 3.0], [50, 1.0, 4.0]]))["selection_checks"]
+    assert checks == [[1025, 0.5, 3.0], [1050, 1.0, 4.0]]
 
 
 def test_learning_plot_marks_each_runs_held_out_success_where_it_ended_and_a_teachers_too(tmp_path, monkeypatch):
