@@ -111,8 +111,10 @@ def _make_worker_env(
         # a worker: Ctrl-C in the terminal reaches the whole process group, and each worker would print its
         # KeyboardInterrupt's traceback (gymnasium's workers catch it and send it back, to be printed once more);
         # the parent, which got the same Ctrl-C, closes them. Not in the parent, where gymnasium calls this once to
-        # read the spaces.
+        # read the spaces. The same for a SIGTERM to the group (a scheduler's, a session's end): the trainers take
+        # it as a Ctrl-C (agents.common.args.entry). A worker whose parent is gone ends at its pipe's end.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # lavapipe reads this when the render device is created, i.e. inside gym.make below
     if lp_num_threads:
         os.environ.setdefault("LP_NUM_THREADS", str(lp_num_threads))
@@ -307,6 +309,8 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         if self._venv is not None:
             # gymnasium's own error report, replaced for this env's workers (see WorkerError)
             self._venv._raise_if_errors = functools.partial(_raise_worker_errors, self._venv, int(self.local_first))
+            for process in self._venv.processes:  # the workers ignore SIGTERM (_make_worker_env): where gymnasium's
+                process.terminate = process.kill  # close terminates them, SIGKILL stops them
         if self.local_first:
             try:
                 self._local = _make_single_env(env_id, env_kwargs, tuple(wrappers), ignore_terminations)

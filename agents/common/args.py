@@ -11,7 +11,9 @@ import ast
 import contextlib
 import io
 import re
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -241,6 +243,10 @@ def entry(
     except (ValueError, FileNotFoundError) as e:
         print(f"{module}: error: {' '.join(str(e).split())}", file=sys.stderr)
         raise SystemExit(2) from None
+    # a SIGTERM (a scheduler's stop, a session's end) is a Ctrl-C: through Python's SIGINT handler, so the vector
+    # envs' hold over their pipe calls (maniskill_irb120.vector) covers it too, and the loop saves latest.pt
+    main_thread = threading.current_thread() is threading.main_thread()  # (only it may set a handler)
+    previous = signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT)) if main_thread else None
     try:
         with usage_errors(module):  # what only the run finds (an unknown env id, a missing file): one line too
             return main(args)
@@ -253,6 +259,9 @@ def entry(
         print(f"{module}: error: {e.name} is not installed; the trainers need the rl extras: bash scripts/setup.sh rl",
               file=sys.stderr)  # fmt: skip
         raise SystemExit(2) from None
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 EXTRAS = ("tensorboard", "tqdm")
