@@ -1139,10 +1139,11 @@ def update_results(report: dict, table: str, results: Path, json_path: Path, png
     replace_section(results, SECTION_HEAD, section)
 
 
-def write_report(cells: dict[str, dict], args: Args) -> dict:
-    """algorithms.json, its plots and (``--update-results``) its RESULTS.md section from ``cells`` and any cell a
-    concurrent run of the same ``--out-dir`` wrote since this one started (read back under a lock, so that two
-    lanes of cells side by side both keep theirs; a cell in ``cells`` wins over the file's)."""
+def write_report(cells: dict[str, dict], args: Args, own: frozenset[str] = frozenset()) -> dict:
+    """algorithms.json, its plots and (``--update-results``) its RESULTS.md section from ``cells`` and the cells a
+    concurrent run of the same ``--out-dir`` wrote (read back under a lock, so that two lanes of cells side by side
+    both keep theirs). The cells this run ran (``own``) win over the file's; any other is the file's, the newest:
+    another lane adds its reference speed to its cell after the cell itself, and a copy read before that is stale."""
     import fcntl
 
     args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -1151,7 +1152,8 @@ def write_report(cells: dict[str, dict], args: Args) -> dict:
         json_path = args.out_dir / "algorithms.json"
         if json_path.is_file():
             for key, cell in json.loads(json_path.read_text())["cells"].items():
-                cells.setdefault(key, cell)
+                if key not in own:
+                    cells[key] = cell
         return _write_report(cells, args)
 
 
@@ -1184,9 +1186,10 @@ def _write_report(cells: dict[str, dict], args: Args) -> dict:
     return report
 
 
-def run_cells(cells: dict[str, dict], args: Args) -> None:
-    """Run the planned cells in turn, adding each to ``cells`` and the report as it finishes, until none is left or
-    the next would end after ``--stop-after-min``. Ctrl-C or SIGTERM: the cell keeps its checkpoint, exit 130."""
+def run_cells(cells: dict[str, dict], args: Args, own: set[str]) -> None:
+    """Run the planned cells in turn, adding each to ``cells`` (and its name to ``own``) and the report as it
+    finishes, until none is left or the next would end after ``--stop-after-min``. Ctrl-C or SIGTERM: the cell keeps
+    its checkpoint, exit 130."""
     t0 = time.time()
     while True:
         todo = planned(cells, args)
@@ -1201,11 +1204,12 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
         try:  # the machine's speed on machine.reference_speed's workload just before and after the cell
             before = machine.reference_speed(args.reference_steps, quick=args.quick)
             cells[cell] = run_cell(cell, args)
+            own.add(cell)
         except (runner.Interrupted, KeyboardInterrupt):  # a cell's checkpoint is what a rerun continues from
             print(f"[algorithms] {cell}: interrupted; the same command continues it", flush=True)
             raise SystemExit(130) from None
         print(f"[algorithms] {cell}: success {cells[cell]['success_rate']:.2f}", flush=True)
-        write_report(cells, args)  # after every cell: a session that ends keeps what it finished
+        write_report(cells, args, frozenset(own))  # after every cell: a session that ends keeps what it finished
         try:
             after = machine.reference_speed(args.reference_steps, quick=args.quick)
         except KeyboardInterrupt:
@@ -1214,7 +1218,14 @@ def run_cells(cells: dict[str, dict], args: Args) -> None:
         if before is not None:
             cells[cell]["reference_sps"] = [before, after]
             print(f"[algorithms] {cell}: reference env steps/s before and after: {before:g}, {after:g}", flush=True)
-            write_report(cells, args)
+            write_report(cells, args, frozenset(own))
+
+
+def writes_the_section(args: Args) -> bool:
+    """Whether ``args.out_dir``'s table is the one RESULTS.md's section shows: the default folder's, or any folder's
+    when ``--results-md`` is another file (a test's)."""
+    own = args.out_dir == Args.out_dir or args.out_dir.resolve() == (ROOT / Args.out_dir).resolve()
+    return own or args.results_md.resolve() != Args.results_md.resolve()
 
 
 def check(args: Args) -> None:
@@ -1227,6 +1238,11 @@ def check(args: Args) -> None:
             raise FileNotFoundError(f"--render-only reads {args.out_dir / 'algorithms.json'} (--out-dir), which does "
                                     "not exist")  # fmt: skip
         return
+    if args.update_results and not writes_the_section(args):
+        raise ValueError(
+            f"--update-results writes RESULTS.md's {SECTION_HEAD[3:]!r} section, the table of {Args.out_dir}/; "
+            f"--out-dir {args.out_dir} is another table (screening, full budget, a probe): drop --update-results"
+        )
     if args.validate:
         json_path = args.out_dir / "algorithms.json"
         if not json_path.is_file():
@@ -1271,7 +1287,13 @@ def main(args: Args) -> dict:
         write_json(json_path, report, indent=1)
         plot(report["rows"], args.out_dir / "algorithms.png")
         plot_curves(report["curves"], args.out_dir / "algorithms_curves.png")
-        update_results(report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png")
+        if writes_the_section(args):
+            update_results(
+                report, markdown(report["rows"]), args.results_md, json_path, args.out_dir / "algorithms.png"
+            )
+        else:
+            print(f"[algorithms] {json_path} rendered; RESULTS.md's section is the table of {Args.out_dir}/, "
+                  "so it is left as it is", flush=True)  # fmt: skip
         return report
     if args.validate:
         json_path = args.out_dir / "algorithms.json"
@@ -1291,11 +1313,12 @@ def main(args: Args) -> dict:
     json_path = args.out_dir / "algorithms.json"
     cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
     on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops a cell as Ctrl-C does
+    own: set[str] = set()
     try:
-        run_cells(cells, args)
+        run_cells(cells, args, own)
     finally:
         signal.signal(signal.SIGTERM, on_term)
-    report = write_report(cells, args)
+    report = write_report(cells, args, frozenset(own))
     print(markdown(report["rows"]))
     left = planned(cells, args)
     print(f"[algorithms] {len(cells)} cells in {json_path}; {len(left)} planned now still to run", flush=True)

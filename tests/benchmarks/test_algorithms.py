@@ -129,6 +129,22 @@ def test_render_only_derives_the_rows_again_from_the_committed_cells(alg, tmp_pa
     assert "an old text" not in md.read_text() and alg.ALGORITHMS["skrl-ppo"].settings in md.read_text()
 
 
+def test_another_folders_table_leaves_the_results_section_alone(alg, tmp_path, capsys):
+    """RESULTS.md's "RL libraries" section is the table of benchmarks/results/; screening, full-budget and probe
+    folders have sections of their own, so --render-only of one renders its JSON and plots and leaves RESULTS.md as
+    it is, and --update-results with one is refused in one line before anything runs."""
+    committed = (alg.ROOT / "benchmarks" / "results" / "algorithms.json").read_text()
+    (tmp_path / "algorithms.json").write_text(committed)
+    before = alg.Args.results_md.read_text()
+    alg.main(alg.Args(render_only=True, out_dir=tmp_path))
+    assert alg.Args.results_md.read_text() == before and (tmp_path / "algorithms_curves.png").is_file()
+    assert "so it is left as it is" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--update-results writes RESULTS.md's 'RL libraries"):
+        alg.check(alg.Args(update_results=True, out_dir=tmp_path / "probe"))
+    alg.check(alg.Args(update_results=True))  # the table's own folder
+    alg.check(alg.Args(update_results=True, out_dir=tmp_path, results_md=results_md(tmp_path)))  # a test's file
+
+
 def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     args = alg.Args()
     done: dict[str, dict] = {}
@@ -594,22 +610,28 @@ def test_the_curves_are_the_iqm_over_seeds_at_each_share_with_a_two_level_interv
 
 def test_two_runs_of_one_out_dir_keep_each_others_cells(alg, tmp_path):
     """Two lanes of cells side by side write one algorithms.json: each report keeps the cells the other wrote
-    since it started, and a lane's own cell wins over the file's copy."""
+    since it started, a lane's own cell wins over the file's copy, and the other lane's cell is the file's newest
+    (its reference speed, added after the cell, is not lost to a copy read before)."""
     args = alg.Args(out_dir=tmp_path, runs_dir=tmp_path / "runs", results_md=results_md(tmp_path), bootstrap=50)
 
     def cell(algo, rate):
         return {"cell": f"state/GraspLift/{algo}/s1", "seed": 1, "success_rate": rate, "successes": [int(rate)] * 4,
                 "env_steps": 100, "wall_clock_s": 1.0, "budget_min": 1.0, "date": "2026-12-05 05:00 UTC"}  # fmt: skip
 
-    lane_a = {"state/GraspLift/sb3-sac-tuned/s1": cell("sb3-sac-tuned", 1.0)}
-    lane_b = {"state/GraspLift/sb3-tqc-tuned/s1": cell("sb3-tqc-tuned", 0.0)}
-    alg.write_report(lane_a, args)
-    alg.write_report(lane_b, args)  # started before lane a's cell was written
-    lane_a["state/GraspLift/sb3-sac-tuned/s1"] = cell("sb3-sac-tuned", 0.0)  # the same cell again, rerun
-    alg.write_report(lane_a, args)
+    sac, tqc = "state/GraspLift/sb3-sac-tuned/s1", "state/GraspLift/sb3-tqc-tuned/s1"
+    lane_a, lane_b = {sac: cell("sb3-sac-tuned", 1.0)}, {tqc: cell("sb3-tqc-tuned", 0.0)}
+    alg.write_report(lane_a, args, frozenset({sac}))
+    alg.write_report(lane_b, args, frozenset({tqc}))  # started before lane a's cell was written: reads it now
+    lane_a[sac] = cell("sb3-sac-tuned", 0.0)  # the same cell again, rerun
+    alg.write_report(lane_a, args, frozenset({sac}))
     cells = json.loads((tmp_path / "algorithms.json").read_text())["cells"]
-    assert sorted(cells) == ["state/GraspLift/sb3-sac-tuned/s1", "state/GraspLift/sb3-tqc-tuned/s1"]
-    assert cells["state/GraspLift/sb3-sac-tuned/s1"]["success_rate"] == 0.0
+    assert sorted(cells) == [sac, tqc] and cells[sac]["success_rate"] == 0.0
+    lane_a[sac]["reference_sps"] = [300.0, 290.0]  # lane a times the machine after its cell
+    alg.write_report(lane_a, args, frozenset({sac}))
+    lane_b[tqc]["reference_sps"] = [280.0, 270.0]  # lane b, holding lane a's cell from before, does the same
+    alg.write_report(lane_b, args, frozenset({tqc}))
+    cells = json.loads((tmp_path / "algorithms.json").read_text())["cells"]
+    assert cells[sac]["reference_sps"] == [300.0, 290.0] and cells[tqc]["reference_sps"] == [280.0, 270.0]
 
 
 def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell_deploys_it(alg, tmp_path, monkeypatch):
