@@ -1224,8 +1224,8 @@ def run_cells(cells: dict[str, dict], args: Args, own: set[str]) -> None:
 def writes_the_section(args: Args) -> bool:
     """Whether ``args.out_dir``'s table is the one RESULTS.md's section shows: the default folder's, or any folder's
     when ``--results-md`` is another file (a test's)."""
-    own = args.out_dir == Args.out_dir or args.out_dir.resolve() == (ROOT / Args.out_dir).resolve()
-    return own or args.results_md.resolve() != Args.results_md.resolve()
+    default = args.out_dir == Args.out_dir or args.out_dir.resolve() == (ROOT / Args.out_dir).resolve()
+    return default or args.results_md.resolve() != Args.results_md.resolve()
 
 
 def check(args: Args) -> None:
