@@ -407,7 +407,7 @@ class Budget:
         steps, ...), the budget's end left to the final evaluation; never for a minute budget."""
         if self.total_steps is None:
             return False
-        share = next_curve_share(points, self.total_steps, held[-1][0] if held else -1)
+        share = next_curve_share(points, self.total_steps, held)
         return share is not None and steps >= share * self.total_steps
 
     def pause(self, seconds: float) -> None:

@@ -35,9 +35,11 @@ def curve_fractions(points: int) -> list[float]:
     return sorted({k / points for k in range(1, points)} | {0.25})
 
 
-def next_curve_share(points: int, total_env_steps: int, last_steps: int) -> Optional[float]:
-    """The next of :func:`curve_fractions` of ``total_env_steps`` past the last point's env steps (``last_steps``; -1
-    before the first point); None when none is left. A step that crossed several shares took one point for them all."""
+def next_curve_share(points: int, total_env_steps: int, taken: list) -> Optional[float]:
+    """The next of :func:`curve_fractions` of ``total_env_steps`` past the last point taken (``taken``: the points so
+    far, each row starting with its env steps); None when none is left. A step that crossed several shares took one
+    point for them all."""
+    last_steps = taken[-1][0] if taken else -1
     left = [f for f in curve_fractions(points) if f * total_env_steps > last_steps]
     return left[0] if left else None
 

@@ -167,8 +167,7 @@ def curve_point_due(args: RunArgs, counters: dict) -> bool:
     (:func:`~agents.common.evaluation.next_curve_share`)."""
     if not args.curve_points or args.total_env_steps is None:
         return False
-    curve = counters.get("held_out_curve", [])
-    share = next_curve_share(args.curve_points, args.total_env_steps, curve[-1][0] if curve else -1)
+    share = next_curve_share(args.curve_points, args.total_env_steps, counters.get("held_out_curve", []))
     return share is not None and counters["env_steps"] >= share * args.total_env_steps
 
 
