@@ -69,6 +69,7 @@ from benchmarks.lib.cli import entry
 from benchmarks.lib.report import replace_section
 from benchmarks.lib.stats import bootstrap_ci, iqm_ci, wilson
 from benchmarks.lib.suspend import Suspensions
+from maniskill_irb120.errors import terminate_as_interrupt
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -1312,12 +1313,9 @@ def main(args: Args) -> dict:
         args.curve_episodes = 1
     json_path = args.out_dir / "algorithms.json"
     cells: dict[str, dict] = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
-    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops a cell as Ctrl-C does
     own: set[str] = set()
-    try:
+    with terminate_as_interrupt():  # SIGTERM stops a cell as Ctrl-C does
         run_cells(cells, args, own)
-    finally:
-        signal.signal(signal.SIGTERM, on_term)
     report = write_report(cells, args, frozenset(own))
     print(markdown(report["rows"]))
     left = planned(cells, args)

@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # agents/configs, 
 
 from agents.configs import loader  # noqa: E402
 from maniskill_irb120.envs import check_env_id  # noqa: E402
-from maniskill_irb120.errors import check_count, parse_flags, usage_errors  # noqa: E402
+from maniskill_irb120.errors import check_count, parse_flags, terminate_as_interrupt, usage_errors  # noqa: E402
 from maniskill_irb120.integrations.sb3 import ProgressCallback, make_sb3_vec_env  # noqa: E402
 
 LIBRARY_DEFAULT_ENVS = 2
@@ -117,7 +117,7 @@ def main(args: Args) -> SAC:
         model.learn(total, callback=progress)
         if args.eval_episodes:
             progress.check()  # the end's held-out success
-    except KeyboardInterrupt:  # Ctrl-C: the model learnt so far is saved all the same
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the model learnt so far is saved all the same
         interrupted = True
     model.save(args.out_dir / "model")
     if isinstance(venv, VecNormalize):  # the observation statistics the policy needs, beside it
@@ -125,7 +125,8 @@ def main(args: Args) -> SAC:
     venv.close()
     steps, seconds = model.num_timesteps, time.perf_counter() - started
     if interrupted:
-        print(f"interrupted (Ctrl-C) at {steps} env steps; model so far: {args.out_dir}/model.zip", file=sys.stderr)
+        print(f"interrupted (Ctrl-C or SIGTERM) at {steps} env steps; model so far: {args.out_dir}/model.zip",
+              file=sys.stderr)  # fmt: skip
         raise SystemExit(130)
     successes = list(model.ep_success_buffer)
     held = f"{progress.held[-1][1]}/{progress.held[-1][2]}" if progress.held else "not checked"
@@ -140,4 +141,6 @@ def main(args: Args) -> SAC:
 
 if __name__ == "__main__":
     with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
-        main(parse_flags(Args, Path(__file__).name))
+        args = parse_flags(Args, Path(__file__).name)
+        with terminate_as_interrupt():  # a SIGTERM (a session's end) saves what was learnt, as Ctrl-C does
+            main(args)

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # agents/configs, 
 
 from agents.configs import loader  # noqa: E402
 from maniskill_irb120.envs import check_env_id  # noqa: E402
-from maniskill_irb120.errors import check_count, parse_flags, usage_errors  # noqa: E402
+from maniskill_irb120.errors import check_count, parse_flags, terminate_as_interrupt, usage_errors  # noqa: E402
 from maniskill_irb120.integrations.progress import Heartbeat, Progress, held_out_success  # noqa: E402
 from maniskill_irb120.integrations.skrl import (  # noqa: E402
     SUCCESS_KEY,
@@ -171,13 +171,13 @@ def main(args: Args) -> PPO:
         trainer.train()
         if args.eval_episodes:
             check(steps)  # the end's held-out success
-    except KeyboardInterrupt:  # Ctrl-C: the agent learnt so far is saved all the same
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the agent learnt so far is saved all the same
         interrupted = True
     env.close()
     args.out_dir.mkdir(parents=True, exist_ok=True)
     agent.save(str(args.out_dir / "agent.pt"))
     if interrupted:
-        print(f"interrupted (Ctrl-C); the agent so far: {args.out_dir / 'agent.pt'}", file=sys.stderr)
+        print(f"interrupted (Ctrl-C or SIGTERM); the agent so far: {args.out_dir / 'agent.pt'}", file=sys.stderr)
         raise SystemExit(130)
     seconds = time.perf_counter() - started
     held_text = f"{held[-1][1]}/{held[-1][2]}" if held else "not checked"
@@ -192,4 +192,6 @@ def main(args: Args) -> PPO:
 if __name__ == "__main__":
     torch.set_num_threads(1)
     with usage_errors(Path(__file__).name):  # a wrong env id or count: one line, exit status 2
-        main(parse_flags(Args, Path(__file__).name))
+        args = parse_flags(Args, Path(__file__).name)
+        with terminate_as_interrupt():  # a SIGTERM (a session's end) saves what was learnt, as Ctrl-C does
+            main(args)

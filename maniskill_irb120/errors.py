@@ -1,6 +1,7 @@
 """Errors in what a user gave (a flag's value, a file, an env id): a :class:`UsageError` says what is wrong and how
 to fix it in one line, and every command line (``maniskill-irb120``, ``examples/``) prints that line alone and exits
-with status 2. Any other exception keeps its traceback, since it is a bug and the traceback says where.
+with status 2. Any other exception keeps its traceback, since it is a bug and the traceback says where. A SIGTERM to a
+long run (:func:`terminate_as_interrupt`) ends it as a Ctrl-C does: what it trained saved, exit status 130.
 
 Imports nothing of the package, so every layer (the wire side and ``policies/`` included) may raise these."""
 
@@ -9,7 +10,9 @@ from __future__ import annotations
 import difflib
 import io
 import re
+import signal
 import sys
+import threading
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import TypeVar
@@ -53,6 +56,22 @@ def usage_errors(prog: str) -> Iterator[None]:
         yield
     except UsageError as e:
         raise SystemExit(say_usage_error(prog, e)) from None
+
+
+@contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """Inside it, a SIGTERM (a scheduler's stop, a session's end, often sent to the whole process group) is a
+    Ctrl-C: raised through Python's SIGINT handler, so whatever holds SIGINT back during a pipe call
+    (``maniskill_irb120.vector``) holds it back too, and the caller's ``KeyboardInterrupt`` path saves what it
+    trained instead of dying with it. Off the main thread, which alone may set a handler, it changes nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def tyro_error_line(box: str, prog: str) -> str:

@@ -11,9 +11,7 @@ import ast
 import contextlib
 import io
 import re
-import signal
 import sys
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -23,7 +21,7 @@ from typing import Literal, Optional, TypeVar, Union, get_args, get_origin, get_
 import tyro
 
 from agents.recipes import RECIPES
-from maniskill_irb120.errors import UsageError, nearest, usage_errors
+from maniskill_irb120.errors import UsageError, nearest, terminate_as_interrupt, usage_errors
 
 A = TypeVar("A", bound="RunArgs")
 
@@ -243,12 +241,8 @@ def entry(
     except (ValueError, FileNotFoundError) as e:
         print(f"{module}: error: {' '.join(str(e).split())}", file=sys.stderr)
         raise SystemExit(2) from None
-    # a SIGTERM (a scheduler's stop, a session's end) is a Ctrl-C: through Python's SIGINT handler, so the vector
-    # envs' hold over their pipe calls (maniskill_irb120.vector) covers it too, and the loop saves latest.pt
-    main_thread = threading.current_thread() is threading.main_thread()  # (only it may set a handler)
-    previous = signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT)) if main_thread else None
-    try:
-        with usage_errors(module):  # what only the run finds (an unknown env id, a missing file): one line too
+    try:  # a SIGTERM is a Ctrl-C, and the loop saves latest.pt on its way out
+        with usage_errors(module), terminate_as_interrupt():  # what only the run finds: one line too
             return main(args)
     except KeyboardInterrupt:  # the loop has saved latest.pt on its way out (its finally); the rest is noise
         print(f"{module}: interrupted; --resume RUN/checkpoints/latest.pt continues the run", file=sys.stderr)
@@ -259,9 +253,6 @@ def entry(
         print(f"{module}: error: {e.name} is not installed; the trainers need the rl extras: bash scripts/setup.sh rl",
               file=sys.stderr)  # fmt: skip
         raise SystemExit(2) from None
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
 
 
 EXTRAS = ("tensorboard", "tqdm")

@@ -21,6 +21,7 @@ from agents.common.logging import read_scalars
 from agents.recipes import RECIPES
 from benchmarks.lib import machine
 from benchmarks.lib.budget import budget_flags, budget_for, rest_of, steps_for
+from maniskill_irb120.errors import terminate_as_interrupt
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -353,17 +354,15 @@ def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Opti
         start_new_session=True,
         preexec_fn=stop_with_parent,
     )
-    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        stdout, stderr = proc.communicate(timeout=None if deadline is None else max(deadline - time.time(), 0.0))
+        with terminate_as_interrupt():
+            stdout, stderr = proc.communicate(timeout=None if deadline is None else max(deadline - time.time(), 0.0))
         return stdout, stderr, proc.returncode
     except subprocess.TimeoutExpired:
         return (*stopped(proc), None)
     except KeyboardInterrupt:
         print(f"[learning] interrupted: the trainer saves its checkpoint (up to {SAVE_WAIT_S} s)", flush=True)
         raise Interrupted(*stopped(proc)) from None
-    finally:
-        signal.signal(signal.SIGTERM, on_term)
 
 
 def stopped(proc: subprocess.Popen) -> tuple[str, str]:
