@@ -10,12 +10,18 @@ README.md or a docs page (``docs/*.md``), so tests run the pages themselves.
 ``slow_clock``: ``slow_clock(robot, factor=3)`` runs an emulator robot model's clock ``factor`` times slower than
 the wall clock, for tests that read the robot mid-motion; the robot finishes its motion and gets its clock back after
 the test.
+``terminate_group``: ``terminate_group(argv, started)`` runs a command in its own process group, sends the group
+SIGTERM once ``started()`` is true, and returns the exit status and the stderr lines that are not library warnings.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import signal
+import subprocess
+import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -154,6 +160,32 @@ def readme_snippet():
     """``readme_snippet(name)``: the python block marked with that name in the README or the docs, so the tests run
     the pages themselves."""
     return _readme_snippet
+
+
+def _terminate_group(argv: list[str], started: Callable[[], bool], settle_s: float = 0.0) -> tuple[int, list[str]]:
+    p = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not started() and p.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        time.sleep(settle_s)
+        assert p.poll() is None, p.communicate()[1][-3000:]
+        os.killpg(p.pid, signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    return p.returncode, [line for line in err.splitlines() if line.strip() and " - WARNING - " not in line]
+
+
+@pytest.fixture
+def terminate_group():
+    """``terminate_group(argv, started, settle_s=0)``: ``argv`` run from the repository in a session of its own, the
+    whole group sent SIGTERM once ``started()`` holds (and ``settle_s`` more seconds), as a scheduler's stop or a
+    session's end does; returns its exit status and its stderr lines other than the libraries' warnings. It fails if
+    the command ended before the signal, and kills the group if it outlives 120 s after it."""
+    return _terminate_group
 
 
 @pytest.fixture

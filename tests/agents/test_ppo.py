@@ -580,36 +580,18 @@ def test_an_unknown_precision_is_one_line_and_exit_code_2():
     assert "Traceback" not in run.stderr and len(run.stderr.strip().splitlines()) == 1
 
 
-def test_a_sigterm_to_the_group_ends_a_training_run_as_a_ctrl_c_does(tmp_path):
+def test_a_sigterm_to_the_group_ends_a_training_run_as_a_ctrl_c_does(tmp_path, terminate_group):
     """A scheduler's stop or a session's end sends SIGTERM, often to the whole process group: the trainer takes it
     as a Ctrl-C (saves latest.pt, closes its worker envs, one line naming --resume, exit 130), and the workers
     ignore it, so none of them prints a traceback; the run then continues from latest.pt."""
-    import os
-    import signal
-    import subprocess
     import sys
-    import time
 
     argv = [sys.executable, "-m", "agents.ppo", "--obs", "state", "--env-id", "GraspLift-IRB120-v1"]
     argv += ["--num-envs", "2", "--num-steps", "8", "--num-minibatches", "1", "--update-epochs", "1"]
     argv += ["--total-env-steps", "1000000", "--save-freq", "1", "--select-episodes", "0", "--eval-episodes", "0"]
     argv += ["--runs-dir", str(tmp_path), "--exp-name", "t", "--no-progress", "--no-capture-video"]
-    p = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)  # fmt: skip
     ckpts = tmp_path / "t" / "checkpoints"
-    try:
-        deadline = time.monotonic() + 240
-        while not list(ckpts.glob("ckpt_*.pt")) and p.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)  # training: the first iterations are saved
-        assert p.poll() is None, p.communicate()[1][-3000:]
-        os.killpg(p.pid, signal.SIGTERM)
-        out, err = p.communicate(timeout=120)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-    own = [line for line in err.splitlines() if line.strip() and " - WARNING - " not in line]
-    assert p.returncode == 130 and own == [
-        "agents.ppo: interrupted; --resume RUN/checkpoints/latest.pt continues the run"
-    ], err[-3000:]
+    code, own = terminate_group(argv, lambda: any(ckpts.glob("ckpt_*.pt")))  # training: its first iterations saved
+    assert code == 130 and own == ["agents.ppo: interrupted; --resume RUN/checkpoints/latest.pt continues the run"], own
     saved = torch.load(ckpts / "latest.pt", weights_only=False)
     assert saved["counters"]["env_steps"] >= 16

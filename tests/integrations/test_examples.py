@@ -95,31 +95,16 @@ def test_an_example_stopped_by_ctrl_c_saves_its_model_and_says_so_in_one_line(tm
     assert err[-1] == f"interrupted (Ctrl-C or SIGTERM) at 64 env steps; model so far: {tmp_path}/model.zip", err
 
 
-def test_a_sigterm_to_the_group_stops_an_example_as_a_ctrl_c_does(tmp_path):
+def test_a_sigterm_to_the_group_stops_an_example_as_a_ctrl_c_does(tmp_path, terminate_group):
     """A session's end or a scheduler sends SIGTERM, often to the whole process group: the example saves the model
     learnt so far and says so in one line with exit status 130, and its worker envs, which ignore SIGTERM, print no
     BrokenPipe traceback."""
     pytest.importorskip("stable_baselines3")
-    import signal
-    import time
-
     argv = [sys.executable, str(EXAMPLES / "sb3_ppo.py"), "--obs", "state", "--backend", "cpu", "--num-envs", "2"]
     argv += ["--n-steps", "32", "--total-timesteps", "1000000", "--eval-episodes", "0", "--out-dir", str(tmp_path)]
-    p = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)  # fmt: skip
-    try:
-        deadline = time.monotonic() + 240
-        while not list(tmp_path.rglob("events.out.tfevents.*")) and p.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)  # SB3 opens its TensorBoard log as learn() starts
-        time.sleep(2)  # a few rollouts in
-        assert p.poll() is None, p.communicate()[1][-3000:]
-        os.killpg(p.pid, signal.SIGTERM)
-        out, err = p.communicate(timeout=120)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-    own = [line for line in err.splitlines() if line.strip() and " - WARNING - " not in line]
-    assert p.returncode == 130 and len(own) == 1, err[-3000:]
+    # SB3 opens its TensorBoard log as learn() starts; 2 s more is a few rollouts in
+    code, own = terminate_group(argv, lambda: any(tmp_path.rglob("events.out.tfevents.*")), settle_s=2)
+    assert code == 130 and len(own) == 1, own
     assert re.fullmatch(rf"interrupted \(Ctrl-C or SIGTERM\) at \d+ env steps; model so far: {tmp_path}/model.zip",
                         own[0]), own  # fmt: skip
     assert (tmp_path / "model.zip").is_file() and (tmp_path / "vecnormalize.pkl").is_file()
