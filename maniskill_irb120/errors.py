@@ -58,16 +58,25 @@ def usage_errors(prog: str) -> Iterator[None]:
         raise SystemExit(say_usage_error(prog, e)) from None
 
 
+def _terminate(signum, frame) -> None:
+    if callable(signal.getsignal(signal.SIGINT)):
+        signal.raise_signal(signal.SIGINT)  # Python's handler: KeyboardInterrupt, or a hold's
+    else:  # SIGINT ignored (or not Python's): raising it would do nothing
+        raise KeyboardInterrupt
+
+
 @contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
     """Inside it, a SIGTERM (a scheduler's stop, a session's end, often sent to the whole process group) is a
-    Ctrl-C: raised through Python's SIGINT handler, so whatever holds SIGINT back during a pipe call
-    (``maniskill_irb120.vector``) holds it back too, and the caller's ``KeyboardInterrupt`` path saves what it
-    trained instead of dying with it. Off the main thread, which alone may set a handler, it changes nothing."""
+    Ctrl-C, so the caller's ``KeyboardInterrupt`` path saves what it trained instead of dying with it. It goes
+    through Python's SIGINT handler where there is one. Where SIGINT is ignored, as it is for a command started in
+    the background by a script (``cmd &``: the shell ignores SIGINT for it), it is raised as is: a SIGTERM still
+    stops the run. A pipe call of ``maniskill_irb120.vector`` holds either signal until its reply is read. Off the
+    main thread, which alone may set a handler, it changes nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, lambda *_: signal.raise_signal(signal.SIGINT))
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         yield
     finally:

@@ -216,8 +216,9 @@ class WorkerError(UsageError, RuntimeError):
 CLOSE_TIMEOUT_S = 30.0  # how long close() waits for a step in flight before it terminates the workers
 
 
-def _without_sigint(fn: Callable, *args, **kwargs) -> Any:
-    """``fn(*args, **kwargs)`` with a Ctrl-C held until it returns, then delivered as usual.
+def _interrupts_held(fn: Callable, *args, **kwargs) -> Any:
+    """``fn(*args, **kwargs)`` with a Ctrl-C (or a SIGTERM taken as one) held until it returns, then delivered as
+    usual.
 
     gymnasium's ``AsyncVectorEnv`` sends a command to each worker and only then records that replies are due (and
     clears that once it has read them). A KeyboardInterrupt between the two leaves a reply unread with nothing
@@ -228,25 +229,32 @@ def _without_sigint(fn: Callable, *args, **kwargs) -> Any:
     """
     if threading.current_thread() is not threading.main_thread():
         return fn(*args, **kwargs)
-    previous = signal.getsignal(signal.SIGINT)
-    if previous in (signal.SIG_IGN, None):  # ignored, or set outside Python: nothing of ours to hold
+    # a Python handler of SIGINT or SIGTERM (errors.terminate_as_interrupt's) is held; one that is ignored, the
+    # default, or set outside Python has nothing of ours to hold
+    previous = {s: h for s in (signal.SIGINT, signal.SIGTERM) if callable(h := signal.getsignal(s))}
+    if not previous:
         return fn(*args, **kwargs)
     held = []
+
+    def put_back():
+        for s, h in previous.items():
+            if signal.getsignal(s) is hold:
+                signal.signal(s, h)
 
     def hold(signum, frame):
         held.append(signum)
         if len(held) == 2:  # the second press
-            signal.signal(signal.SIGINT, previous)
-            signal.raise_signal(signal.SIGINT)
+            put_back()
+            signal.raise_signal(signum)
 
-    signal.signal(signal.SIGINT, hold)
+    for s in previous:
+        signal.signal(s, hold)
     try:
         return fn(*args, **kwargs)
     finally:
-        if signal.getsignal(signal.SIGINT) is hold:
-            signal.signal(signal.SIGINT, previous)
+        put_back()
         if len(held) == 1:
-            signal.raise_signal(signal.SIGINT)  # through the restored handler: KeyboardInterrupt by default
+            signal.raise_signal(held[0])  # through the restored handler: KeyboardInterrupt by default
 
 
 class CPUVectorEnv(gym.vector.VectorEnv):
@@ -356,7 +364,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         if self._local is None:
             if not mask.all():
                 options["reset_mask"] = mask
-            obs, info = _without_sigint(self._venv.reset, seed=seed, options=options or None)
+            obs, info = _interrupts_held(self._venv.reset, seed=seed, options=options or None)
         else:
             obs, info = self._reset_joined(seeds, mask, options)
         self._last_obs = obs
@@ -384,7 +392,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
         rest_obs, rest_info, rest_mask = None, {}, mask[1:]
         if self._venv is not None and rest_mask.any():
             rest_options = dict(options, reset_mask=rest_mask) if not rest_mask.all() else options
-            rest_obs, rest_info = _without_sigint(self._venv.reset, seed=seeds[1:], options=rest_options or None)
+            rest_obs, rest_info = _interrupts_held(self._venv.reset, seed=seeds[1:], options=rest_options or None)
         elif self._venv is not None:
             rest_obs = _rows(self._last_obs, slice(1, None))
         if mask[0]:
@@ -397,21 +405,21 @@ class CPUVectorEnv(gym.vector.VectorEnv):
     def _step_all(self, actions: np.ndarray) -> tuple:
         """The numpy step of every env: the workers' launched first, env 0's stepped here while they run."""
         if self._local is None:
-            return _without_sigint(self._venv.step, actions)
+            return _interrupts_held(self._venv.step, actions)
         try:
             if self._venv is not None:
-                _without_sigint(self._venv.step_async, actions[1:])
+                _interrupts_held(self._venv.step_async, actions[1:])
             obs, rew, term, trunc, info = _same_step_autoreset(self._local, actions[0])
         except BaseException:
             # collect the workers' step, so the next call (close() included) finds them idle; a Ctrl-C held over
             # step_async arrives as it returns, with the step already in flight
             if self._venv is not None and self._venv._state is gym.vector.async_vector_env.AsyncState.WAITING_STEP:
-                _without_sigint(self._venv.step_wait)
+                _interrupts_held(self._venv.step_wait)
             raise
         infos = self._add_info({}, info, 0)
         if self._venv is None:
             return _join_obs(obs), np.array([rew]), np.array([term]), np.array([trunc]), infos
-        rest_obs, rest_rew, rest_term, rest_trunc, rest_info = _without_sigint(self._venv.step_wait)
+        rest_obs, rest_rew, rest_term, rest_trunc, rest_info = _interrupts_held(self._venv.step_wait)
         return (
             _join_obs(obs, rest_obs),
             np.concatenate([[rew], rest_rew]),
@@ -477,7 +485,7 @@ class CPUVectorEnv(gym.vector.VectorEnv):
             attr = self._local.get_wrapper_attr(name)
             out.append(attr(*args, **kwargs) if callable(attr) else attr)
         if self._venv is not None:
-            out.extend(_without_sigint(self._venv.call, name, *args, **kwargs))
+            out.extend(_interrupts_held(self._venv.call, name, *args, **kwargs))
         return tuple(out)
 
     def render(self):

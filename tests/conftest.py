@@ -11,7 +11,8 @@ README.md or a docs page (``docs/*.md``), so tests run the pages themselves.
 the wall clock, for tests that read the robot mid-motion; the robot finishes its motion and gets its clock back after
 the test.
 ``terminate_group``: ``terminate_group(argv, started)`` runs a command in its own process group, sends the group
-SIGTERM once ``started()`` is true, and returns the exit status and the stderr lines that are not library warnings.
+SIGTERM once ``started()`` is true, and returns the exit status and the stderr lines that are not library warnings
+(``sigint_ignored=True``: started as a script's ``cmd &`` starts it).
 """
 
 from __future__ import annotations
@@ -162,9 +163,12 @@ def readme_snippet():
     return _readme_snippet
 
 
-def _terminate_group(argv: list[str], started: Callable[[], bool], settle_s: float = 0.0) -> tuple[int, list[str]]:
+def _terminate_group(
+    argv: list[str], started: Callable[[], bool], settle_s: float = 0.0, sigint_ignored: bool = False
+) -> tuple[int, list[str]]:
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sigint_ignored else None
     p = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         start_new_session=True)  # fmt: skip
+                         start_new_session=True, preexec_fn=ignore)  # fmt: skip
     try:
         deadline = time.monotonic() + 240
         while not started() and p.poll() is None and time.monotonic() < deadline:
@@ -181,10 +185,11 @@ def _terminate_group(argv: list[str], started: Callable[[], bool], settle_s: flo
 
 @pytest.fixture
 def terminate_group():
-    """``terminate_group(argv, started, settle_s=0)``: ``argv`` run from the repository in a session of its own, the
-    whole group sent SIGTERM once ``started()`` holds (and ``settle_s`` more seconds), as a scheduler's stop or a
-    session's end does; returns its exit status and its stderr lines other than the libraries' warnings. It fails if
-    the command ended before the signal, and kills the group if it outlives 120 s after it."""
+    """``terminate_group(argv, started, settle_s=0, sigint_ignored=False)``: ``argv`` run from the repository in a
+    session of its own, the whole group sent SIGTERM once ``started()`` holds (and ``settle_s`` more seconds), as a
+    scheduler's stop or a session's end does; returns its exit status and its stderr lines other than the libraries'
+    warnings. ``sigint_ignored``: started with SIGINT ignored, as a script's ``cmd &`` starts it. It fails if the
+    command ended before the signal, and kills the group if it outlives 120 s after it."""
     return _terminate_group
 
 

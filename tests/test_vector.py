@@ -272,16 +272,16 @@ def test_vector_env_close_after_an_interrupted_step_returns(monkeypatch):
 
 
 class _InterruptAfterSend:
-    """A worker pipe whose ``send`` delivers a Ctrl-C to this process once the command is out: the moment gymnasium
-    has sent "step" and not yet recorded that a reply is due."""
+    """A worker pipe whose ``send`` delivers a Ctrl-C (or ``signum``) to this process once the command is out: the
+    moment gymnasium has sent "step" and not yet recorded that a reply is due."""
 
-    def __init__(self, pipe):
-        self.pipe = pipe
+    def __init__(self, pipe, signum=signal.SIGINT):
+        self.pipe, self.signum = pipe, signum
 
     def send(self, obj):
         self.pipe.send(obj)
         if obj[0] == "step":
-            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(self.signum)
 
     def __getattr__(self, name):
         return getattr(self.pipe, name)
@@ -304,6 +304,36 @@ def test_a_ctrl_c_as_a_step_is_sent_leaves_the_workers_to_close_cleanly():
         assert inner._state is AsyncState.DEFAULT  # the step in flight was collected: nothing left for close() to read
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
     finally:
+        processes = list(inner.processes)
+        v.close()
+    assert [p.exitcode for p in processes] == [0]
+
+
+def test_a_sigterm_as_a_step_is_sent_is_held_too_where_sigint_is_ignored():
+    """A run started in the background by a script (``cmd &``) inherits SIGINT ignored, so a SIGTERM, which
+    terminate_as_interrupt turns into a Ctrl-C, cannot go through SIGINT's handler: it raises KeyboardInterrupt
+    itself, and the pipe call holds it as it holds a Ctrl-C. Before, such a run ignored SIGTERM altogether."""
+    from maniskill_irb120.errors import terminate_as_interrupt
+
+    v = make_vec_env(ENV, 2, backend="cpu", obs_mode="state")
+    inner = v._venv
+    before, term_before = signal.signal(signal.SIGINT, signal.SIG_IGN), signal.getsignal(signal.SIGTERM)
+    try:
+        v.reset(seed=0)
+        real = inner.parent_pipes[0]
+        inner.parent_pipes[0] = _InterruptAfterSend(real, signal.SIGTERM)
+        with terminate_as_interrupt():
+            held_term = signal.getsignal(signal.SIGTERM)
+            with pytest.raises(KeyboardInterrupt):
+                v.step(torch.zeros(2, 5))
+            assert signal.getsignal(signal.SIGTERM) is held_term  # the pipe call put terminate_as_interrupt's back
+        inner.parent_pipes[0] = real
+        assert inner._state is AsyncState.DEFAULT  # held until the step was recorded in flight, then collected:
+        assert not real.poll(1.0)  # no reply is left unread for close() to take as the answer to its "close"
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) is term_before  # and terminate_as_interrupt's exit its own
+    finally:
+        signal.signal(signal.SIGINT, before)
         processes = list(inner.processes)
         v.close()
     assert [p.exitcode for p in processes] == [0]

@@ -95,15 +95,18 @@ def test_an_example_stopped_by_ctrl_c_saves_its_model_and_says_so_in_one_line(tm
     assert err[-1] == f"interrupted (Ctrl-C or SIGTERM) at 64 env steps; model so far: {tmp_path}/model.zip", err
 
 
-def test_a_sigterm_to_the_group_stops_an_example_as_a_ctrl_c_does(tmp_path, terminate_group):
+@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["foreground", "started-by-a-script-in-background"])
+def test_a_sigterm_to_the_group_stops_an_example_as_a_ctrl_c_does(tmp_path, terminate_group, sigint_ignored):
     """A session's end or a scheduler sends SIGTERM, often to the whole process group: the example saves the model
     learnt so far and says so in one line with exit status 130, and its worker envs, which ignore SIGTERM, print no
-    BrokenPipe traceback."""
+    BrokenPipe traceback. Also when SIGINT is ignored, as for a run a script starts with ``cmd &``: such a run once
+    ignored SIGTERM too, since its Ctrl-C path went through SIGINT's handler."""
     pytest.importorskip("stable_baselines3")
     argv = [sys.executable, str(EXAMPLES / "sb3_ppo.py"), "--obs", "state", "--backend", "cpu", "--num-envs", "2"]
     argv += ["--n-steps", "32", "--total-timesteps", "1000000", "--eval-episodes", "0", "--out-dir", str(tmp_path)]
     # SB3 opens its TensorBoard log as learn() starts; 2 s more is a few rollouts in
-    code, own = terminate_group(argv, lambda: any(tmp_path.rglob("events.out.tfevents.*")), settle_s=2)
+    started = lambda: any(tmp_path.rglob("events.out.tfevents.*"))  # noqa: E731
+    code, own = terminate_group(argv, started, settle_s=2, sigint_ignored=sigint_ignored)
     assert code == 130 and len(own) == 1, own
     assert re.fullmatch(rf"interrupted \(Ctrl-C or SIGTERM\) at \d+ env steps; model so far: {tmp_path}/model.zip",
                         own[0]), own  # fmt: skip
