@@ -332,7 +332,7 @@ class DAgger(Algorithm):
         self.optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
         self.data = Dataset(args.capacity)
         if saved is not None:
-            check_resume_signature(saved, policy.signature(), args.resume)
+            check_resume_signature(saved, policy.signature(), args.resume, args)
             if (saved.get("aux_head") is None) != (aux_head is None):
                 raise ValueError(
                     f"--resume {args.resume}: the checkpoint and this run disagree on --aux-weight being 0"

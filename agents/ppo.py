@@ -49,6 +49,7 @@ from agents.common import (
     resolve_device,
     resolve_precision,
     shapes_of,
+    signature_mismatch,
     torch_threads,
     vec_envs,
 )
@@ -616,9 +617,11 @@ def read_checkpoint(path: Path, args: Args) -> dict:
 def load_checkpoint(path: Path, agent: Agent, args: Args, ckpt: Optional[dict] = None) -> dict:
     ckpt = ckpt if ckpt is not None else read_checkpoint(path, args)
     if ckpt["signature"] != agent.signature():
-        raise ValueError(
-            f"checkpoint {path} does not match this run: it has {ckpt['signature']}, the env gives "
-            f"{agent.signature()} (obs={args.obs}, env={args.env_id}, control_mode={args.control_mode})"
+        raise signature_mismatch(
+            f"checkpoint {path} (obs={args.obs}, env={args.env_id}, control_mode={args.control_mode})",
+            ckpt["signature"],
+            agent.signature(),
+            args,
         )
     agent.load_state_dict(ckpt["model"])
     return ckpt
@@ -708,7 +711,7 @@ class PPO(Algorithm):
             raise ValueError(f"--kl-coef {args.kl_coef}: this run has no base policy (a --base-checkpoint run has one)")
         self.optimizer = optim.Adam(self.agent.parameters(), lr=args.learning_rate, eps=1e-5)
         if saved is not None:
-            check_resume_signature(saved, self.agent.signature(), args.resume)
+            check_resume_signature(saved, self.agent.signature(), args.resume, args)
             self.agent.load_state_dict(saved["model"])
             self.optimizer.load_state_dict(saved["optimizer"])
         elif args.init_policy is not None:

@@ -394,7 +394,7 @@ class SACRun(Algorithm):
         )
         self.online, self.demos = Dataset(args.buffer_size), Dataset(demo_rows(args))
         if saved is not None:
-            check_resume_signature(saved, model.signature(), args.resume)
+            check_resume_signature(saved, model.signature(), args.resume, args)
             model.load_state_dict(saved["model"])
             for k, o in self.opts.items():
                 o.load_state_dict(saved["opts"][k])

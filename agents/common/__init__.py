@@ -5,7 +5,15 @@ import the library and third-party packages, never a trainer (``agents.ppo``, ``
 
 from agents.common.args import RunArgs, check_budget, cli, entry, recipe_argv
 from agents.common.buffers import Dataset, prune_row_files, restore_dataset
-from agents.common.checkpoints import args_json, atomic_save, load_for_evaluation, load_torch, rng_state, set_rng_state
+from agents.common.checkpoints import (
+    args_json,
+    atomic_save,
+    load_for_evaluation,
+    load_torch,
+    rng_state,
+    set_rng_state,
+    signature_mismatch,
+)
 from agents.common.envs import (
     AUX_DIM,
     ExpertLabels,
@@ -98,6 +106,7 @@ __all__ = [
     "restore_dataset",
     "rng_state",
     "set_rng_state",
+    "signature_mismatch",
     "shapes_of",
     "torch_threads",
     "train_seed",

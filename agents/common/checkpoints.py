@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from maniskill_irb120.errors import UsageError
 from maniskill_irb120.policies.section import read_checkpoint
 
 
@@ -94,6 +95,26 @@ def load_for_evaluation(path: Path, fmt: str, what: str, kind: str) -> dict:
         raise ValueError(f"{path} is an exported {section.get('kind')} policy, not one {what} trains")
     keys = ("env_id", "obs", "action_frame", "obs_without", "env_kwargs")
     return dict(ckpt, args={k: section.get(k) for k in keys}, exported=True)
+
+
+def signature_mismatch(what: str, saved: dict, signature: dict, args) -> UsageError:
+    """The error for a checkpoint whose networks (``saved``, its ``signature``) differ from this run's: each
+    differing entry with both values, and where the entry is one of the trainer's flags (a field of ``args``), the
+    flag that builds the checkpoint's network, so the fix is in the one line."""
+    parts = []
+    for key in sorted(saved.keys() | signature.keys()):
+        theirs, ours = saved.get(key), signature.get(key)
+        if theirs == ours:
+            continue
+        flag = "--" + key.replace("_", "-")
+        if hasattr(args, key) and isinstance(theirs, bool):
+            fix = f" (pass {flag if theirs else '--no-' + flag[2:]})"
+        elif hasattr(args, key) and theirs is not None:
+            fix = f" (pass {flag} {theirs})"
+        else:
+            fix = ""
+        parts.append(f"{key} {theirs!r} in the checkpoint, {ours!r} in this run{fix}")
+    return UsageError(f"{what}: its networks differ from this run's: {'; '.join(parts)}")
 
 
 def rng_state() -> dict:

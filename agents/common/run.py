@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from agents.common.args import RunArgs
-from agents.common.checkpoints import FORMAT_VERSION, args_json, rng_state, set_rng_state
+from agents.common.checkpoints import FORMAT_VERSION, args_json, rng_state, set_rng_state, signature_mismatch
 from agents.common.envs import action_wrappers
 from agents.common.evaluation import EVAL_SEED, evaluate_on_seeds
 from agents.common.logging import budget_bar, finish
@@ -75,12 +75,13 @@ def restore(saved: dict, clock: Optional[Clock] = None) -> dict:
     return counters
 
 
-def check_resume_signature(saved: dict, signature: dict, resume: Path) -> None:
+def check_resume_signature(saved: dict, signature: dict, resume: Path, args=None) -> None:
     """The checkpoint ``--resume`` names holds networks of this run's shapes (``signature``: the model's
-    ``signature()``, what its observation and flags make of it), else ValueError naming both: loading the weights
-    would fail deep in torch, or worse, fit and mean something else."""
+    ``signature()``, what its observation and flags make of it), else a UsageError naming what differs and the flag
+    that fixes it (``args``: the run's, whose fields are its flags): loading the weights would fail deep in torch, or
+    worse, fit and mean something else."""
     if saved["signature"] != signature:
-        raise ValueError(f"--resume {resume}: checkpoint {saved['signature']} != this run {signature}")
+        raise signature_mismatch(f"--resume {resume}", saved["signature"], signature, args)
 
 
 def env_step_budget(args: RunArgs) -> Optional[int]:

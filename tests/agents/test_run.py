@@ -75,13 +75,21 @@ def test_a_checkpoint_carries_counters_rng_and_flags_and_restore_continues_the_r
     assert 12.5 <= clock() < 17.5
 
 
-def test_a_resume_of_other_networks_is_refused_naming_both():
-    saved = dict(signature=dict(state_dim=3, image=False))
-    check_resume_signature(saved, dict(state_dim=3, image=False), Path("r/latest.pt"))
-    with pytest.raises(ValueError) as e:
-        check_resume_signature(saved, dict(state_dim=4, image=False), Path("r/latest.pt"))
+def test_a_resume_of_other_networks_is_refused_naming_what_differs_and_the_flag():
+    from types import SimpleNamespace
+
+    from maniskill_irb120.errors import UsageError
+
+    saved = dict(signature=dict(state_dim=3, image=False, logstd="param", obs_norm=True))
+    check_resume_signature(saved, dict(saved["signature"]), Path("r/latest.pt"))
+    args = SimpleNamespace(logstd="state", obs_norm=False)  # the run's flags: logstd and obs_norm are among them
+    ours = dict(state_dim=4, image=False, logstd="state", obs_norm=False)
+    with pytest.raises(UsageError) as e:  # one line and exit status 2 from a trainer's command line
+        check_resume_signature(saved, ours, Path("r/latest.pt"), args)
     assert str(e.value) == (
-        "--resume r/latest.pt: checkpoint {'state_dim': 3, 'image': False} != this run {'state_dim': 4, 'image': False}"
+        "--resume r/latest.pt: its networks differ from this run's: logstd 'param' in the checkpoint, 'state' in this "
+        "run (pass --logstd param); obs_norm True in the checkpoint, False in this run (pass --obs-norm); state_dim 3 "
+        "in the checkpoint, 4 in this run"
     )
 
 
