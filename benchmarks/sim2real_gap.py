@@ -17,9 +17,11 @@ from the trained mount a camera may sit before the policy fails.
     .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --camera twin --episodes 30 --reuse   # goes on
     .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --shifts none "camera mount x0.1" "camera mount x0.25"
 
-``--workers N`` runs N cells at once, each in its own process with its own emulator (one torch thread each on a
-2-core machine). A real step ends when the robot stands at its target, so a busy machine makes the cells
-slower, not different; the round-trip column, a time, is then the loaded machine's.
+The rows run in the order ``--shifts`` names them (the table lists them in its own order), so the rows that matter
+most to a run that may be stopped come first. ``--workers N`` runs N cells at once, each in its own process with
+its own emulator (one torch thread each on a 2-core machine). A real step ends when the robot stands at its target,
+so a busy machine makes the cells slower, not different; the round-trip column, a time, is then the loaded
+machine's.
 
 The section of benchmarks/RESULTS.md is rendered from JSON alone, a table per JSON in ``--section-json`` (the
 current figures: the expert's table and the committed policies' runs), so several runs (policies, seed ranges)
@@ -49,7 +51,7 @@ from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.policies import read_policy_section
-from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, sim_side_shift
+from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, policy_sha256, sim_side_shift
 from maniskill_irb120.sim2real.policy import resolve_policy
 from maniskill_irb120.sim2real.report import agreement, paired_gap
 
@@ -177,7 +179,8 @@ class Args:
     twin's); --no-sim-shift: the nominal sim in every row"""
     reuse: bool = False
     """a cell whose folder under --out already holds a finished report of the same configuration (policy,
-    episodes, seed, shift, camera) is read, not run again: a table that was stopped goes on where it stood"""
+    episodes, seed, shift, camera; the policy by its file's sha256) is read, not run again: a table that was
+    stopped goes on where it stood"""
     section_json: tuple[Path, ...] = SECTION_JSONS
     """the JSONs the section of benchmarks/RESULTS.md shows, a table each (--update-results and --render-only add
     --json where it is not among them)"""
@@ -250,14 +253,18 @@ def task_of(policy: str, args: Args) -> str:
 
 def _finished_report(cfg: EvalConfig) -> dict | None:
     """The report a cell left in its folder, if it ran this very configuration to the end without an error
-    (the folder it was written to may have been moved since: ``out`` is not compared) and the policy file is not
-    newer than it (a checkpoint retrained at the same path is run again)."""
+    (the folder it was written to may have been moved since: ``out`` is not compared) with the same policy, known by
+    its file's sha256: a checkpoint retrained at the same path is run again, an exported copy of the same weights
+    is not."""
     path = cfg.out / "report.json"
     if not path.exists():
         return None
-    if Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
-        return None
     r = json.loads(path.read_text())
+    if "policy_sha256" in r:  # the weights it ran, by content: a copy or an export of them is the same policy
+        if r["policy_sha256"] != policy_sha256(cfg.policy):
+            return None
+    elif Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
+        return None  # a report from before the hash was kept: a policy file newer than it is run again
     ours = {k: str(v) for k, v in asdict(cfg).items() if k != "out"}
     same = {k: v for k, v in r.get("config", {}).items() if k != "out"} == ours
     sim_side = sim_side_shift(cfg)  # the same configuration with an older sim side (its latency) is run again
@@ -317,16 +324,23 @@ def main(args: Args) -> dict:
     ]
     names = [n for n in SHIFTS if n in args.shifts] if args.shifts else default
     names += combined
-    cells = [(p, name) for p in args.policy for name in names]
+    cells = [(p, name) for p in args.policy for name in names]  # the table's order
+    # run in the order named (the rows a user put first finish first, should the run be stopped), reported in the
+    # table's
+    order = list(range(len(cells)))
+    if args.shifts:
+        order.sort(key=lambda i: args.shifts.index(cells[i][1]))
+    todo = [cells[i] for i in order]
     if args.workers == 1:
-        rows = [cell(p, name, args) for p, name in cells]
+        done = [cell(p, name, args) for p, name in todo]
     else:
         threads = max(1, (os.cpu_count() or 1) // args.workers)
         # spawn: SAPIEN and torch are not fork-safe once the parent has imported them
         with ProcessPoolExecutor(
             args.workers, multiprocessing.get_context("spawn"), _set_torch_threads, (threads,)
         ) as pool:
-            rows = list(pool.map(cell, *zip(*cells), [args] * len(cells)))
+            done = list(pool.map(cell, *zip(*todo), [args] * len(todo)))
+    rows = [row for _, row in sorted(zip(order, done), key=lambda x: x[0])]
     scored = [r for r in rows if r["real_success"] is not None]
     pairs = [r["sim_success"] for r in scored], [r["real_success"] for r in scored]
     agree = agreement(*pairs) if len(scored) > 1 else None

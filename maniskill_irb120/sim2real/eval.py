@@ -12,6 +12,7 @@ exchange log ``logs/real_SEED.npz`` that ``sysid`` fits. Ctrl-C stops the robot 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import select
 import sys
@@ -264,6 +265,13 @@ def evaluate(cfg: EvalConfig) -> dict:
     return report
 
 
+def policy_sha256(policy: str) -> str | None:
+    """The sha256 of the policy file's bytes, which the report keeps so that a finished evaluation is known by the
+    weights it ran, not by a path or a file time; None for a policy that is no file ('expert')."""
+    path = Path(policy)
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+
+
 def _summarise(cfg: EvalConfig, shift: dict, rows: list, latencies: list, interrupted: bool, wall: float) -> dict:
     def rate(side: str, key: str) -> float | None:
         vals = [r[side][key] for r in rows if r[side][key] is not None]
@@ -277,6 +285,7 @@ def _summarise(cfg: EvalConfig, shift: dict, rows: list, latencies: list, interr
     latency = [1000 * x for x in latencies]
     return dict(
         config={k: str(v) for k, v in asdict(cfg).items()},
+        policy_sha256=policy_sha256(cfg.policy),
         shift=shift,
         episodes=len(rows),
         interrupted=interrupted,

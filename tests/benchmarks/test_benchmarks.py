@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -193,22 +194,34 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
         gap.main(gap.Args(shifts=["none"], episodes=2, out=tmp_path, reuse=True))
     with pytest.raises(WouldRun, match="none"):  # and without --reuse nothing is read
         gap.main(gap.Args(shifts=["none"], episodes=1, out=tmp_path))
+    with pytest.raises(WouldRun, match="lighting"):  # rows run in the order named, though reported in the table's
+        gap.main(gap.Args(shifts=["lighting", "none"], episodes=1, out=tmp_path, workers=1))
     policy, moved = tmp_path / "policy.pt", tmp_path / "moved" / "none"  # a checkpoint's cell, its folder moved
     policy.write_bytes(b"weights")
     moved.mkdir(parents=True)
     report = json.loads((tmp_path / "none" / "report.json").read_text())
+    assert report["policy_sha256"] is None  # the expert is no file
     report["config"]["policy"] = str(policy)
+    report["policy_sha256"] = hashlib.sha256(b"weights").hexdigest()
     (moved / "report.json").write_text(json.dumps(report))
-    os.utime(policy, (time.time() - 60, time.time() - 60))
-    read = gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
+    again = dict(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True)
+    read = gap.main(gap.Args(**again))  # the policy file is newer than the report, its weights the same: read
     assert read["rows"][0]["real_success"] == r["rows"][0]["real_success"]
     stale = {k: v for k, v in report.items() if k != "sim_side"}  # from before the sim side's condition was kept
     (moved / "report.json").write_text(json.dumps(stale))
     with pytest.raises(WouldRun, match="none"):
-        gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
-    policy.write_bytes(b"retrained")  # newer than the report: run again
+        gap.main(gap.Args(**again))
+    (moved / "report.json").write_text(json.dumps(report))
+    policy.write_bytes(b"retrained")  # other weights at the same path, older than the report: run again
+    os.utime(policy, (time.time() - 60, time.time() - 60))
     with pytest.raises(WouldRun, match="none"):
-        gap.main(gap.Args(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True))
+        gap.main(gap.Args(**again))
+    older = {k: v for k, v in report.items() if k != "policy_sha256"}  # a report from before the hash was kept:
+    (moved / "report.json").write_text(json.dumps(older))  # read while the policy file is older than it
+    assert gap.main(gap.Args(**again))["rows"][0]["real_success"] == r["rows"][0]["real_success"]
+    policy.write_bytes(b"retrained again")  # and run again once the file is newer
+    with pytest.raises(WouldRun, match="none"):
+        gap.main(gap.Args(**again))
     with pytest.raises(ValueError, match=r"--shifts \['gravity'\]: the rows are"):
         gap.main(gap.Args(shifts=["gravity"], out=tmp_path))
     with pytest.raises(ValueError, match="correct camera frames: --camera twin"):
@@ -254,8 +267,9 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
         gap.folder(n) for n in gap.SHIFTS if n not in gap.MOUNT_ERRORS and n not in gap.COMBINED
     }
     ran.clear()
-    gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
-    assert ran == [("none", None, None), ("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None)]
+    out = gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
+    assert ran == [("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None), ("none", None, None)]  # as named
+    assert [row["shift"] for row in out["rows"]] == ["none", "camera mount x0.1"]  # reported in the table's order
 
 
 def test_learning_recipe_flags_add_a_tasks_own_flags_there_only():
