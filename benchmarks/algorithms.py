@@ -654,31 +654,35 @@ def build_skrl(tuned: Optional[dict], env: Any, seed: int, experiment: dict, tra
     return agent, SequentialTrainer(env=env, agents=agent, cfg=trainer_cfg)
 
 
-def skrl_act(agent: Any, env: Any, obs: str) -> Callable:
+def skrl_act(agent: Any, observation_space: Any, obs: str) -> Callable:
     """The agent's deterministic action (``integrations.skrl.deterministic_action``, as its checkpoint selection
     plays it) from the flattened observation evaluate_on_seeds gives."""
     from maniskill_irb120.integrations.skrl import deterministic_action
 
     def act(flat):
-        return deterministic_action(agent, env.observation_space, library_obs(obs, flat))
+        return deterministic_action(agent, observation_space, library_obs(obs, flat))
 
     return act
 
 
-def validate_skrl(cell: str, args: Args) -> dict:
-    """:func:`validate_sb3` for a skrl cell: its saved agent (models and observation scaler), deterministic, on
-    --eval-episodes validation seeds."""
+def load_skrl_cell(
+    cell: str, agent_path: Path, conf_file: Optional[Path] = None, backend: str = "auto"
+) -> tuple[Any, Any, Optional[dict]]:
+    """A skrl cell's saved agent (``agent.pt``, or its selected ``best/best_agent.pt``: the models and the observation
+    scaler), in evaluation mode, with the observation space it acts on and its tuned config (None: the defaults
+    row's agent): what ``--validate`` and ``scripts/diagnose_policy.py`` play."""
     from agents.configs import loader
     from maniskill_irb120.integrations.skrl import make_skrl_env
 
     obs, task, algo, seed = parse_cell(cell)
     spec, env_id = ALGORITHMS[algo], TASKS[task]
-    agent_path = args.runs_dir / cell.replace("/", "__") / "agent.pt"
+    if spec.runner != "skrl":
+        raise ValueError(f"{cell}: a {spec.library} cell, not a skrl one")
     if not agent_path.is_file():
-        raise ValueError(f"--validate: {cell} has no saved agent at {agent_path} (--runs-dir?)")
-    tuned = loader.skrl_config(spec.config, env_id, args.conf_file) if spec.config else None
+        raise ValueError(f"{cell} has no saved agent at {agent_path} (--runs-dir?)")
+    tuned = loader.skrl_config(spec.config, env_id, conf_file) if spec.config else None
     wrappers = loader.skrl_env_settings(tuned)[1] if tuned is not None else []
-    env = make_skrl_env(env_id, 1, obs, backend=args.backend, seed=train_seed(seed, 0), wrappers=wrappers)
+    env = make_skrl_env(env_id, 1, obs, backend=backend, seed=train_seed(seed, 0), wrappers=wrappers)
     try:
         experiment = dict(directory=str(agent_path.parent), experiment_name="validate", write_interval=0,
                           checkpoint_interval=0)  # fmt: skip
@@ -686,10 +690,22 @@ def validate_skrl(cell: str, args: Args) -> dict:
         agent, _ = build_skrl(tuned, env, seed, experiment, trainer_cfg)
         agent.load(str(agent_path))
         agent.enable_models_training_mode(False)
-        act = skrl_act(agent, env, obs)
+        return agent, env.observation_space, tuned
     finally:
         env.close()
-    return on_validation(act, env_id, obs, args, read_state(agent_path.parent)["env_steps"])
+
+
+def validate_skrl(cell: str, args: Args) -> dict:
+    """:func:`validate_sb3` for a skrl cell: its saved agent (models and observation scaler), deterministic, on
+    --eval-episodes validation seeds."""
+    obs, task = parse_cell(cell)[:2]
+    agent_path = args.runs_dir / cell.replace("/", "__") / "agent.pt"
+    try:
+        agent, space, _ = load_skrl_cell(cell, agent_path, args.conf_file, args.backend)
+    except ValueError as e:
+        raise ValueError(f"--validate: {e}") from None
+    act = skrl_act(agent, space, obs)
+    return on_validation(act, TASKS[task], obs, args, read_state(agent_path.parent)["env_steps"])
 
 
 def run_skrl(
@@ -726,7 +742,7 @@ def run_skrl(
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
     counted = {"steps": steps0}
-    act = skrl_act(agent, env, obs)
+    act = skrl_act(agent, env.observation_space, obs)
     # the config's own hooks (its ``callback:``), e.g. checkpoint selection on validation seeds, keeping their files in
     # the cell's folder, where a rerun finds them; attached first, so they run after the agent's update
     hooks = loader.skrl_callbacks(tuned, ckpt_dir / "best") if tuned is not None else []

@@ -1,8 +1,13 @@
-"""Why a saved SB3 policy stalls: its deterministic episodes stage by stage, its actions, and its critic against the
-return it realises. A probe of issue 91's "one probe of why" for a library cell below 20 % success.
+"""Why a saved SB3 or skrl policy stalls: its deterministic episodes stage by stage, its actions, and its critic
+against the return it realises. A probe of issue 91's "one probe of why" for a library cell below 20 % success.
 
     PYTHONPATH=. .venv/bin/python -m scripts.diagnose_policy --model runs/.../model.zip \\
         --vecnormalize runs/.../vecnormalize.pkl --episodes 10 --out runs/diagnose/td3.json
+    PYTHONPATH=. .venv/bin/python -m scripts.diagnose_policy --skrl-cell state/GraspLift/skrl-ppo-tuned/s3 \\
+        --model runs/full/state__GraspLift__skrl-ppo-tuned__s3/agent.pt --episodes 10
+
+A skrl cell's agent (``--skrl-cell``, from state) is rebuilt from the cell's config by ``benchmarks.algorithms``'
+own loader and scales its observations itself; its critic is ``V(s)``.
 
 Episodes are played as ``benchmarks.algorithms --validate`` plays them (one CPU env, the observation normalised
 with the saved ``VecNormalize``'s ``normalize_obs``, ``predict(deterministic=True)``), on validation seeds
@@ -56,7 +61,10 @@ ALGOS = ("ppo", "sac", "td3", "ddpg")
 @dataclass
 class Args:
     model: Path
-    """an SB3 model.zip"""
+    """an SB3 model.zip; with --skrl-cell, the cell's skrl agent.pt (or its selected best/best_agent.pt)"""
+    skrl_cell: Optional[str] = None
+    """the benchmarks.algorithms cell the skrl --model comes from (e.g. state/GraspLift/skrl-ppo-tuned/s3): its
+    config builds the agent that loads it"""
     vecnormalize: Optional[Path] = None
     """the VecNormalize the model was trained with (a pickle without its envs, as SB3's ``save`` writes it)"""
     env_id: str = "GraspLift-IRB120-v1"
@@ -107,7 +115,15 @@ def check(args: Args) -> None:
         raise ValueError(f"--gamma {args.gamma}: give a discount in [0, 1)")
     if args.algo is not None and args.algo not in ALGOS:
         raise ValueError(f"--algo {args.algo!r}: one of {', '.join(ALGOS)}")
-    if args.algo is None:
+    if args.skrl_cell is not None:
+        from benchmarks.algorithms import ALGORITHMS, parse_cell
+
+        obs, task, algo, _ = parse_cell(args.skrl_cell)
+        if ALGORITHMS[algo].runner != "skrl" or obs != "state":
+            raise ValueError(f"--skrl-cell {args.skrl_cell}: not a skrl cell from state")
+        if args.vecnormalize is not None or args.replay is not None or args.algo is not None:
+            raise ValueError("--skrl-cell: the agent scales its own observations; no --vecnormalize, --replay, --algo")
+    elif args.algo is None:
         model_algo(args.model)
     from maniskill_irb120.envs import check_env_id
 
@@ -135,11 +151,42 @@ def discounted(rewards: np.ndarray, gamma: float) -> np.ndarray:
     return out
 
 
+class SkrlModel:
+    """A benchmarks.algorithms skrl cell's saved PPO agent behind what :func:`play` asks of an SB3 model: its
+    deterministic action (``predict``), its critic's ``V(s)`` (``value``), ``gamma`` and ``num_timesteps``."""
+
+    def __init__(self, cell: str, path: Path):
+        from benchmarks.algorithms import load_skrl_cell, read_state
+
+        self.agent, self.space, tuned = load_skrl_cell(cell, path, backend="cpu")
+        self.gamma = float((tuned or {}).get("agent", {}).get("discount_factor", 0.99))  # skrl PPO_CFG's default
+        best = path.parent / "best.json"  # a selected agent: the env steps it was selected at
+        steps = json.loads(best.read_text())["best"]["env_steps"] if best.is_file() else None
+        self.num_timesteps = int(read_state(path.parent)["env_steps"] if steps is None else steps)
+
+    def predict(self, x, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        from maniskill_irb120.integrations.skrl import deterministic_action
+
+        return deterministic_action(self.agent, self.space, x).cpu().numpy(), None
+
+    def value(self, obs_t) -> tuple[float, float]:
+        import torch
+
+        preprocess = getattr(self.agent, "_observation_preprocessor", None) or (lambda o: o)
+        with torch.no_grad():
+            v, _ = self.agent.value.act({"observations": preprocess(obs_t.float())}, role="value")
+            unscale = getattr(self.agent, "_value_preprocessor", None)
+            v = unscale(v, inverse=True) if unscale is not None else v
+        return float(v.reshape(-1)[0]), float("nan")
+
+
 def value_of(model, obs_t) -> tuple[float, float]:
     """The learner's own estimate from ``obs_t``: min of the twin ``Q(s, pi(s))`` (PPO: ``V(s)``), and the same
     critic's value of holding the arm still (arm components 0, the gripper as ``pi``'s; nan for PPO)."""
     import torch
 
+    if isinstance(model, SkrlModel):
+        return model.value(obs_t)
     policy = model.policy
     with torch.no_grad():
         if hasattr(policy, "critic"):
@@ -348,8 +395,11 @@ def main(args: Args) -> dict:
     from agents.configs import loader
 
     torch.set_num_threads(1)
-    algo = args.algo or model_algo(args.model)
-    model = loader.sb3_class(algo).load(args.model, device="cpu")
+    if args.skrl_cell is not None:
+        algo, model = f"skrl {args.skrl_cell}", SkrlModel(args.skrl_cell, Path(args.model))
+    else:
+        algo = args.algo or model_algo(args.model)
+        model = loader.sb3_class(algo).load(args.model, device="cpu")
     norm = pickle.loads(Path(args.vecnormalize).read_bytes()) if args.vecnormalize else None
     gamma = float(model.gamma if args.gamma is None else args.gamma)
     episodes = play(args, model, norm, gamma)

@@ -4,9 +4,12 @@ extra seeds, --only)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import math
 import os
 import signal
+import sys
 from pathlib import Path
 
 import pytest
@@ -717,8 +720,27 @@ def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, t
         flat, _ = env.reset(seed=3)
     finally:
         env.close()
-    flat = {"state": flat}
-    assert torch.equal(trained_act(flat), validate_act(flat))  # the saved scaler and weights, not fresh ones
+    assert torch.equal(trained_act({"state": flat}), validate_act({"state": flat}))  # the saved scaler and weights
+    # scripts/diagnose_policy.py plays the same saved agent through the same loader, its critic beside it
+    spec = importlib.util.spec_from_file_location(
+        "diagnose_policy", Path(__file__).parents[2] / "scripts" / "diagnose_policy.py"
+    )
+    diagnose = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = diagnose  # its dataclass looks its module up
+    spec.loader.exec_module(diagnose)
+    agent_pt = tmp_path / "runs" / cell.replace("/", "__") / "agent.pt"
+    model = diagnose.SkrlModel(cell, agent_pt)
+    assert torch.equal(torch.as_tensor(model.predict(flat.numpy())[0]), trained_act({"state": flat}))
+    assert model.gamma == 0.8 and model.num_timesteps == trained["env_steps"]  # the YAML's discount_factor
+    assert math.isfinite(model.value(flat.float())[0])
+    out = tmp_path / "diagnosis.json"
+    diagnose.cli(["--model", str(agent_pt), "--skrl-cell", cell, "--episodes", "1", "--max-steps", "3",
+                  "--out", str(out)])  # fmt: skip
+    r = json.loads(out.read_text())
+    assert r["algo"] == f"skrl {cell}" and r["episode_len"] == 3 and r["stages"][0]["steps"] == 3
+    with pytest.raises(SystemExit) as e:  # an SB3 cell is refused by name
+        diagnose.cli(["--model", str(agent_pt), "--skrl-cell", "state/GraspLift/sb3-ppo-tuned/s1"])
+    assert e.value.code == 2
 
 
 def rerun_finished_cell(alg, args, cell: str, one: dict) -> dict:
