@@ -6,7 +6,7 @@ against the return it realises. A probe of issue 91's "one probe of why" for a l
     PYTHONPATH=. .venv/bin/python -m scripts.diagnose_policy --skrl-cell state/GraspLift/skrl-ppo-tuned/s3 \\
         --model runs/full/state__GraspLift__skrl-ppo-tuned__s3/agent.pt --episodes 10
 
-A skrl cell's agent (``--skrl-cell``, from state) is rebuilt from the cell's config by ``benchmarks.algorithms``'
+A skrl PPO cell's agent (``--skrl-cell``, from state) is rebuilt from the cell's config by ``benchmarks.algorithms``'
 own loader and scales its observations itself; its critic is ``V(s)``.
 
 Episodes are played as ``benchmarks.algorithms --validate`` plays them (one CPU env, the observation normalised
@@ -119,8 +119,8 @@ def check(args: Args) -> None:
         from benchmarks.algorithms import ALGORITHMS, parse_cell
 
         obs, task, algo, _ = parse_cell(args.skrl_cell)
-        if ALGORITHMS[algo].runner != "skrl" or obs != "state":
-            raise ValueError(f"--skrl-cell {args.skrl_cell}: not a skrl cell from state")
+        if ALGORITHMS[algo].runner != "skrl" or not algo.startswith("skrl-ppo") or obs != "state":
+            raise ValueError(f"--skrl-cell {args.skrl_cell}: not a skrl PPO cell from state (its critic is V(s))")
         if args.vecnormalize is not None or args.replay is not None or args.algo is not None:
             raise ValueError("--skrl-cell: the agent scales its own observations; no --vecnormalize, --replay, --algo")
     elif args.algo is None:
