@@ -179,8 +179,8 @@ class Args:
     twin's); --no-sim-shift: the nominal sim in every row"""
     reuse: bool = False
     """a cell whose folder under --out already holds a finished report of the same configuration (policy,
-    episodes, seed, shift, camera; the policy by its file's sha256) is read, not run again: a table that was
-    stopped goes on where it stood"""
+    episodes, seed, shift, camera; the policy by its weights' sha256, wherever its file now is) is read, not run
+    again: a table that was stopped goes on where it stood, and a checkpoint's rows are read for its export"""
     section_json: tuple[Path, ...] = SECTION_JSONS
     """the JSONs the section of benchmarks/RESULTS.md shows, a table each (--update-results and --render-only add
     --json where it is not among them)"""
@@ -254,19 +254,22 @@ def task_of(policy: str, args: Args) -> str:
 def _finished_report(cfg: EvalConfig) -> dict | None:
     """The report a cell left in its folder, if it ran this very configuration to the end without an error
     (the folder it was written to may have been moved since: ``out`` is not compared) with the same policy, known by
-    its file's sha256: a checkpoint retrained at the same path is run again, an exported copy of the same weights
-    is not."""
+    its sha256 (``sim2real.eval.policy_sha256``: its weights and settings), not its path: a checkpoint retrained at
+    the same path is run again, the same policy exported to another file is not. A report from before the hash was
+    kept is known by its path, and run again if the policy file is newer than it."""
     path = cfg.out / "report.json"
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    if "policy_sha256" in r:  # the weights it ran, by content: a copy or an export of them is the same policy
+    skip = {"out"}
+    if r.get("policy_sha256") is not None:  # the policy it ran, by content: its file may have moved or been exported
         if r["policy_sha256"] != policy_sha256(cfg.policy):
             return None
+        skip.add("policy")
     elif Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
         return None  # a report from before the hash was kept: a policy file newer than it is run again
-    ours = {k: str(v) for k, v in asdict(cfg).items() if k != "out"}
-    same = {k: v for k, v in r.get("config", {}).items() if k != "out"} == ours
+    ours = {k: str(v) for k, v in asdict(cfg).items() if k not in skip}
+    same = {k: v for k, v in r.get("config", {}).items() if k not in skip} == ours
     sim_side = sim_side_shift(cfg)  # the same configuration with an older sim side (its latency) is run again
     same = same and r.get("sim_side", "absent") == json.loads(json.dumps(sim_side.as_dict() if sim_side else None))
     return (

@@ -6,6 +6,7 @@ before the section existed are read through their ``format``, ``signature`` and 
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Optional
@@ -121,6 +122,33 @@ def read_policy_section(path: Path, where: Optional[str] = None) -> dict:
     """The policy section of the checkpoint file at ``path``, or an error that says why not."""
     where = where or str(path)
     return section_of(read_checkpoint(path, where), where)
+
+
+def section_sha256(section: dict) -> str:
+    """A sha256 of the policy a section holds, its weights and every setting it acts by, and nothing of the file
+    around it: a trainer's checkpoint and ``export-policy``'s copy of it hash the same, other weights do not.
+    Deterministic: dict keys in sorted order, each tensor as its dtype, shape and raw bytes."""
+    h = hashlib.sha256()
+
+    def feed(x: Any) -> None:
+        if torch.is_tensor(x):
+            t = x.detach().cpu().contiguous()
+            h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        elif isinstance(x, dict):
+            h.update(f"D{len(x)}".encode())
+            for k in sorted(x, key=str):
+                h.update(f"K{k!r}".encode())
+                feed(x[k])
+        elif isinstance(x, (list, tuple)):
+            h.update(f"L{len(x)}".encode())
+            for v in x:
+                feed(v)
+        else:
+            h.update(f"V{x!r}".encode())
+
+    feed(section)
+    return h.hexdigest()
 
 
 def policy_module(section: dict, device="cpu") -> nn.Module:

@@ -12,7 +12,6 @@ exchange log ``logs/real_SEED.npz`` that ``sysid`` fits. Ctrl-C stops the robot 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import select
 import sys
@@ -27,6 +26,7 @@ from mani_skill.utils.registration import REGISTERED_ENVS
 import maniskill_irb120  # noqa: F401  (registers the tasks)
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.errors import UsageError
+from maniskill_irb120.policies.section import read_policy_section, section_sha256
 from maniskill_irb120.sim2real.policy import load_policy
 from maniskill_irb120.sim2real.sysid import log_arrays
 
@@ -266,10 +266,12 @@ def evaluate(cfg: EvalConfig) -> dict:
 
 
 def policy_sha256(policy: str) -> str | None:
-    """The sha256 of the policy file's bytes, which the report keeps so that a finished evaluation is known by the
-    weights it ran, not by a path or a file time; None for a policy that is no file ('expert')."""
+    """The sha256 of the policy a file holds (``policies.section.section_sha256``: its weights and settings, not the
+    file's bytes), which the report keeps so that a finished evaluation is known by the policy it ran, not by a path
+    or a file time: a checkpoint and its exported copy are the same policy. None for a policy that is no file
+    ('expert')."""
     path = Path(policy)
-    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    return section_sha256(read_policy_section(path)) if path.is_file() else None
 
 
 def _summarise(cfg: EvalConfig, shift: dict, rows: list, latencies: list, interrupted: bool, wall: float) -> dict:

@@ -196,32 +196,48 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
         gap.main(gap.Args(shifts=["none"], episodes=1, out=tmp_path))
     with pytest.raises(WouldRun, match="lighting"):  # rows run in the order named, though reported in the table's
         gap.main(gap.Args(shifts=["lighting", "none"], episodes=1, out=tmp_path, workers=1))
+    import torch
+
+    def save_policy(path, w: float, **meta) -> None:  # a policy section, as a trainer or export-policy writes one
+        section = dict(kind="dagger", env_id=gap.EvalConfig.env_id, state_dict={"w": torch.full((3,), w)})
+        torch.save(dict(policy=section, **meta), path)
+
     policy, moved = tmp_path / "policy.pt", tmp_path / "moved" / "none"  # a checkpoint's cell, its folder moved
-    policy.write_bytes(b"weights")
+    save_policy(policy, 1.0)
     moved.mkdir(parents=True)
     report = json.loads((tmp_path / "none" / "report.json").read_text())
     assert report["policy_sha256"] is None  # the expert is no file
     report["config"]["policy"] = str(policy)
-    report["policy_sha256"] = hashlib.sha256(b"weights").hexdigest()
+    report["policy_sha256"] = gap.policy_sha256(str(policy))
     (moved / "report.json").write_text(json.dumps(report))
-    again = dict(policy=(str(policy),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True)
-    read = gap.main(gap.Args(**again))  # the policy file is newer than the report, its weights the same: read
+
+    def args(p):
+        return gap.Args(policy=(str(p),), shifts=["none"], episodes=1, out=tmp_path / "moved", reuse=True)
+
+    read = gap.main(args(policy))
     assert read["rows"][0]["real_success"] == r["rows"][0]["real_success"]
+    exported = tmp_path / "exported.pt"  # the same policy exported to another file, newer than the report: read
+    save_policy(exported, 1.0, command="python -m agents.dagger ...", source=str(policy))
+    assert hashlib.sha256(exported.read_bytes()).digest() != hashlib.sha256(policy.read_bytes()).digest()
+    assert gap.main(args(exported))["rows"][0]["policy"] == str(exported)
     stale = {k: v for k, v in report.items() if k != "sim_side"}  # from before the sim side's condition was kept
     (moved / "report.json").write_text(json.dumps(stale))
     with pytest.raises(WouldRun, match="none"):
-        gap.main(gap.Args(**again))
+        gap.main(args(policy))
     (moved / "report.json").write_text(json.dumps(report))
-    policy.write_bytes(b"retrained")  # other weights at the same path, older than the report: run again
+    save_policy(policy, 2.0)  # other weights at the same path, older than the report: run again
     os.utime(policy, (time.time() - 60, time.time() - 60))
     with pytest.raises(WouldRun, match="none"):
-        gap.main(gap.Args(**again))
+        gap.main(args(policy))
     older = {k: v for k, v in report.items() if k != "policy_sha256"}  # a report from before the hash was kept:
-    (moved / "report.json").write_text(json.dumps(older))  # read while the policy file is older than it
-    assert gap.main(gap.Args(**again))["rows"][0]["real_success"] == r["rows"][0]["real_success"]
-    policy.write_bytes(b"retrained again")  # and run again once the file is newer
+    (moved / "report.json").write_text(json.dumps(older))  # read while the policy file at its path is older than it
+    assert gap.main(args(policy))["rows"][0]["real_success"] == r["rows"][0]["real_success"]
+    with pytest.raises(WouldRun, match="none"):  # but not for another path
+        gap.main(args(exported))
+    save_policy(policy, 3.0)  # and run again once the file is newer
+    os.utime(policy, (time.time() + 60, time.time() + 60))  # newer past the file system's clock tick
     with pytest.raises(WouldRun, match="none"):
-        gap.main(gap.Args(**again))
+        gap.main(args(policy))
     with pytest.raises(ValueError, match=r"--shifts \['gravity'\]: the rows are"):
         gap.main(gap.Args(shifts=["gravity"], out=tmp_path))
     with pytest.raises(ValueError, match="correct camera frames: --camera twin"):

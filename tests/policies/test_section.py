@@ -60,7 +60,7 @@ def test_misuse_is_named(tmp_path):
 
 def test_export_keeps_the_policy_alone_and_it_acts_the_same(tmp_path):
     from maniskill_irb120.cli import main as cli
-    from maniskill_irb120.policies.section import export_policy
+    from maniskill_irb120.policies.section import export_policy, section_sha256
 
     dagger, config, fmt = modules()["dagger"]
     dagger.eval()
@@ -74,6 +74,14 @@ def test_export_keeps_the_policy_alone_and_it_acts_the_same(tmp_path):
     assert saved["command"] == "python -m agents.dagger --obs state --seed 7" and "optimizer" not in saved
     with torch.no_grad():
         assert torch.equal(acting(read_policy_section(dst))(OBS), acting(section)(OBS))
+    # the export is the same policy by its hash (sim2real_gap --reuse reads a checkpoint's rows for it), in bf16 too
+    assert section_sha256(read_policy_section(dst)) == section_sha256(read_policy_section(src))
+    half = dict(section, state_dict={k: v.to(torch.bfloat16) for k, v in section["state_dict"].items()})
+    assert section_sha256(half) == section_sha256(dict(half)) != section_sha256(section)
+    nudged = {k: v.clone() for k, v in section["state_dict"].items()}
+    next(iter(nudged.values())).view(-1)[0] += 1e-6  # one weight moved: another policy
+    assert section_sha256(dict(section, state_dict=nudged)) != section_sha256(section)
+    assert section_sha256(dict(section, obs="rgbd")) != section_sha256(section)  # a setting it acts by, too
     with pytest.raises(ValueError, match="--command"):
         export_policy(src, dst, " ")
     assert cli(["export-policy", "--checkpoint", str(tmp_path / "no.pt"), "--out", str(dst), "--command", "x"]) == 2
