@@ -22,6 +22,7 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``object_mass`` | scale of ``object_mass`` | scene build | per env |
 | ``object_friction`` | scale of ``object_friction`` | scene build | per env |
 | ``latency`` | s: how far into a control period new targets reach the drives | each episode | per env, 10 ms steps |
+| ``nominal`` | probability an episode draws none of the above (build fields aside) | each episode | per env |
 
 ``camera_pos`` and ``camera_rot`` take one range for every axis or one per axis (``a:b;c:d;e:f``). Moved back
 (x below about −8 mm) and down (z between about −15 and −5 mm), the lens enters the hand's geometry and up to 86 %
@@ -39,6 +40,13 @@ at the period's end. A deployment whose steps wait for the robot to arrive (the 
 noise and quantisation, edges, occlusion shadow and dark/specular dropout as a RealSense D435 or D405 measures
 them, with the figures and their sources in envs/depth_model.py. ``depth_model=d435|d405|off`` draws one of its
 choices per env each episode, after every other field, so the other draws stay as they were.
+
+``nominal`` mixes the unrandomised view into training: with ``nominal=0.3`` three episodes in ten see the nominal
+camera, light, surfaces and depth, and the rest draw every range as without it. Under the ranges alone a policy
+hardly ever sees the view it is evaluated in with no shift: with each of a task's five surfaces (object, table,
+two trays, ground) textured at ``texture=0.7``, a scene with none textured comes about one episode in 400
+(0.3⁵), and a continuous range never draws its nominal value exactly. Whether an episode is nominal comes from a
+stream of its own, so the other episodes draw what they would without ``nominal``.
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
@@ -62,11 +70,11 @@ Value = float | tuple[float, ...] | None
 VECTOR_FIELDS = ("camera_pos", "camera_rot")
 OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
 OFF.update(texture=0.0, roughness=None, specular=None, depth_model=None)
-OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0)
+OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0, nominal=0.0)
 SCALES = ("light", "object_size", "object_mass", "object_friction")
 BUILD_FIELDS = ("object_size", "object_mass", "object_friction")  # drawn when the scene is built
 APPEARANCE_FIELDS = ("color", "texture", "roughness", "specular")
-UNIT_FIELDS = ("depth_dropout", "texture", "roughness", "specular")  # probabilities and 0..1 material terms
+UNIT_FIELDS = ("depth_dropout", "texture", "roughness", "specular", "nominal")  # probabilities and 0..1 terms
 NONE_FIELDS = ("camera_fov", "roughness", "specular")  # None: off (the nominal camera's, each material's own)
 
 
@@ -103,6 +111,7 @@ class Randomization:
     object_mass: Value = 1.0
     object_friction: Value = 1.0
     latency: Value = 0.0
+    nominal: Value = 0.0
 
     def __post_init__(self):
         for f in fields(self):
@@ -130,6 +139,8 @@ class Randomization:
                 raise ValueError(f"{f.name}={v!r}: must be >= 0")
             if f.name in UNIT_FIELDS and not 0 <= min(vals) <= max(vals) <= 1:
                 raise ValueError(f"{f.name}={v!r}: must lie in [0, 1] (a probability, or a material term)")
+            if f.name == "nominal" and len(vals) != 1:
+                raise ValueError(f"nominal={v!r}: one probability, not a range")
             if f.name == "camera_fov" and not 1 <= min(vals) <= max(vals) < 180:
                 raise ValueError(f"{f.name}={v!r}: degrees in [1, 180)")
             object.__setattr__(self, f.name, vals[0] if len(vals) == 1 else vals)
@@ -197,6 +208,10 @@ class Randomization:
         return out if dim == 3 else out[:, 0]
 
 
+_NOMINAL = Randomization()
+"""what an episode drawn nominal (``nominal``) draws from: nothing"""
+
+
 def _rng(env, i: int) -> np.random.Generator:
     """The randomisation stream of env ``i``'s episode: its own, so the task's draws are untouched."""
     seeds = getattr(env, "_episode_seed", None)
@@ -244,6 +259,7 @@ class RandomizationMixin:
         self._dr_delay: torch.Tensor | None = None
         self._dr_max_delay = 0  # sim steps: the most any env holds its old targets (a Python int, no sync)
         self._dr_substep = 0
+        self._dr_nominal: set[int] = set()  # the envs whose current episode was drawn nominal (``nominal``)
         # nominal light colours per env and material colours per (actor, env, shape), read on first use
         self._dr_light_base: dict = {}
         self._dr_color_base: dict = {}
@@ -296,28 +312,31 @@ class RandomizationMixin:
             return
         idx = env_idx.cpu().numpy()
         rngs = {int(i): _rng(self, int(i)) for i in idx}
+        self._dr_nominal = self._draw_nominal(idx)
+        per_env = {int(i): self._episode_ranges(int(i)) for i in idx}  # r, or OFF for an env drawn nominal
         cam = self._sensors["hand_camera"].camera if "hand_camera" in self._sensors else None
         if cam is not None and {"camera_pos", "camera_rot", "camera_fov"} & set(active):
             base = self.agent.hand_camera_cfg
             for i in idx:
-                pos = r.draw("camera_pos", rngs[i])[0]
-                rot = r.draw("camera_rot", rngs[i])[0]
+                ri = per_env[int(i)]
+                pos = ri.draw("camera_pos", rngs[i])[0]
+                rot = ri.draw("camera_rot", rngs[i])[0]
                 nominal = sapien.Pose(p=[float(x) for x in base["offset"]])  # the mount's own axes: no rotation
                 cam._render_cameras[i].set_local_pose(nominal * camera_mount_offset(pos, rot))
-                fov = base["fov"] if r.camera_fov is None else math.radians(r.draw("camera_fov", rngs[i])[0])
+                fov = base["fov"] if ri.camera_fov is None else math.radians(ri.draw("camera_fov", rngs[i])[0])
                 cam._render_cameras[i].set_fovy(fov, compute_x=True)
                 self._record_draw("camera_pos", i, pos)
                 self._record_draw("camera_rot", i, rot)
                 self._record_draw("camera_fov", i, math.degrees(fov))
             cam._cached_local_pose = None
         if "light" in active:
-            self._scale_lights({int(i): r.draw("light", rngs[i])[0] for i in idx})
+            self._scale_lights({int(i): per_env[int(i)].draw("light", rngs[i])[0] for i in idx})
         if set(APPEARANCE_FIELDS) & set(active):
-            self._randomize_appearance(idx, rngs)
+            self._randomize_appearance(idx, rngs, per_env)
         if "latency" in active:
             if self._dr_delay is None:
                 self._dr_delay = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
-            steps = [round(r.draw("latency", rngs[i])[0] * self.sim_freq) for i in idx]
+            steps = [round(per_env[int(i)].draw("latency", rngs[i])[0] * self.sim_freq) for i in idx]
             self._dr_delay[env_idx] = torch.as_tensor(steps, dtype=torch.long, device=self.device)
             self.randomization_draws["latency"] = self._dr_delay.float() / self.sim_freq
             self._dr_max_delay = max(self._dr_max_delay, max(steps))
@@ -326,8 +345,8 @@ class RandomizationMixin:
                 self._dr_depth = torch.zeros(self.num_envs, 2, device=self.device)  # (std mm, dropout p) per env
                 self._dr_generator = torch.Generator(device=self.device)
             for i in idx:
-                self._dr_depth[i, 0] = float(r.draw("depth_noise", rngs[i])[0])
-                self._dr_depth[i, 1] = float(r.draw("depth_dropout", rngs[i])[0])
+                self._dr_depth[i, 0] = float(per_env[int(i)].draw("depth_noise", rngs[i])[0])
+                self._dr_depth[i, 1] = float(per_env[int(i)].draw("depth_dropout", rngs[i])[0])
             self._dr_generator.manual_seed(int(rngs[int(idx[0])].integers(2**62)))
             if {"depth_noise", "depth_dropout"} & set(active):
                 self._dr_noise = True
@@ -335,6 +354,25 @@ class RandomizationMixin:
                 self.randomization_draws["depth_dropout"] = self._dr_depth[:, 1].clone()
             if "depth_model" in active:
                 self._set_depth_model(idx, rngs)
+
+    def _draw_nominal(self, idx: np.ndarray) -> set[int]:
+        """The reset envs whose episode is nominal (``nominal``), each drawn from its episode seed's own stream
+        (not the ranges' stream, which the other envs then draw from as they would without it)."""
+        p = float(self.randomization.nominal)
+        if p == 0.0:
+            return set()
+        seeds = getattr(self, "_episode_seed", None)
+        out = set()
+        for i in (int(i) for i in idx):
+            rng = np.random.default_rng([int(seeds[i]), 0xD1]) if seeds is not None else np.random.default_rng()
+            if rng.random() < p:
+                out.add(i)
+            self._record_draw("nominal", i, float(i in out))
+        return out
+
+    def _episode_ranges(self, i: int) -> Randomization:
+        """What env ``i`` draws its episode from: the ranges, or nothing (OFF) when it was drawn nominal."""
+        return _NOMINAL if i in self._dr_nominal else self.randomization
 
     def _set_depth_model(self, idx: np.ndarray, rngs: dict) -> None:
         """The model and the sim camera's focal length per env (the shadow's width in sim pixels depends on
@@ -347,12 +385,20 @@ class RandomizationMixin:
             fov = math.radians(float(fovs[i])) if fovs is not None else base["fov"]
             self._dr_focal[i] = base["width"] / 2 / math.tan(fov / 2)
         choices = self.randomization.depth_model
-        if isinstance(choices, tuple):  # drawn after every other field, so a single preset's streams are unchanged
+        if isinstance(choices, tuple) or self.randomization.nominal:
+            # one model per env: drawn after every other field, so a single preset's streams are unchanged; an env
+            # drawn nominal reads the sim's depth ("off", added to the choices when they lack it)
+            models = choices if isinstance(choices, tuple) else (choices,)
+            models = models if "off" in models or not self.randomization.nominal else (*models, "off")
             if self._dr_depth_choice is None:
                 self._dr_depth_choice = torch.zeros(self.num_envs, dtype=torch.long)
-            for i in idx:
-                self._dr_depth_choice[int(i)] = int(rngs[int(i)].integers(len(choices)))
-            self._dr_depth_models = [None if n == "off" else preset(n) for n in choices]
+            for i in (int(i) for i in idx):
+                if i in self._dr_nominal:
+                    k = models.index("off")
+                else:
+                    k = int(rngs[i].integers(len(choices))) if isinstance(choices, tuple) else 0
+                self._dr_depth_choice[i] = k
+            self._dr_depth_models = [None if n == "off" else preset(n) for n in models]
             self.randomization_draws["depth_model"] = self._dr_depth_choice.float()
         else:
             self._dr_depth_model = preset(choices)
@@ -376,27 +422,32 @@ class RandomizationMixin:
             s.render_system.ambient_light = list(base[1] * scale)
             self._record_draw("light", i, scale)
 
-    def _randomize_appearance(self, idx: np.ndarray, rngs: dict) -> None:
-        """Colour jitter, procedural textures and surface materials of each reset env's own materials."""
+    def _randomize_appearance(self, idx: np.ndarray, rngs: dict, per_env: dict) -> None:
+        """Colour jitter, procedural textures and surface materials of each reset env's own materials; an env
+        drawn nominal gets its surfaces' own colours and terms back, untextured."""
         r = self.randomization
         surfaces = [*self._dr_objects, *self.scene_actors]
         if not self._dr_shapes:
             self._dr_shapes = [appearance.render_shapes_per_env(a) for a in surfaces]
         for i in (int(i) for i in idx):
-            rng = rngs[i]
+            rng, ri = rngs[i], per_env[i]
             for actor, shapes in zip(surfaces, self._dr_shapes):
-                jitter = rng.uniform(-1, 1, 3) * r.draw("color", rng)[0]
-                textured = bool(rng.random() < r.draw("texture", rng)[0])
+                jitter = rng.uniform(-1, 1, 3) * ri.draw("color", rng)[0]
+                textured = bool(rng.random() < ri.draw("texture", rng)[0])
                 for j, shape in enumerate(shapes.get(i, [])):
                     mat = shape.material
-                    base = self._dr_color_base.setdefault((actor.name, i, j), np.array(mat.base_color))
-                    rgb = np.clip(base[:3] + jitter, 0, 1)
-                    mat.base_color = [*rgb, base[3]]
+                    # the material as built: colour, roughness, specular (a nominal episode restores them)
+                    base = self._dr_color_base.setdefault(
+                        (actor.name, i, j), (np.array(mat.base_color), mat.roughness, mat.specular)
+                    )
+                    rgb = np.clip(base[0][:3] + jitter, 0, 1)
+                    mat.base_color = [*rgb, base[0][3]]
                     if r.texture != 0.0:
                         appearance.set_texture(mat, appearance.procedural_texture(rng, rgb) if textured else None)
-                    for key in ("roughness", "specular"):
+                    for k, key in enumerate(("roughness", "specular")):
                         if getattr(r, key) is not None:
-                            setattr(mat, key, float(r.draw(key, rng)[0]))
+                            drawn_value = ri.draw(key, rng)[0] if getattr(ri, key) is not None else base[1 + k]
+                            setattr(mat, key, float(drawn_value))
                 self._record_draw("color_" + actor.name, i, jitter)
                 self._record_draw("texture_" + actor.name, i, float(textured))
 

@@ -183,6 +183,49 @@ def test_ranges_follow_the_episode_seed():
     assert all(60 <= f <= 80 and 0.5 <= s <= 1.5 for f, s in draws)
 
 
+NOMINAL_MIX = (
+    "camera_pos=-0.012:0.012,camera_rot=-5:5,camera_fov=70:95,light=0.3:1.6,color=0.3,texture=0.7,"
+    "roughness=0.1:0.9,specular=0.1:0.9,depth_model=d435,depth_noise=0:5,depth_dropout=0:0.06,latency=0:0.03"
+)
+
+
+def _frames(obs) -> tuple[torch.Tensor, torch.Tensor]:
+    cam = obs["sensor_data"]["hand_camera"]
+    return cam["rgb"], cam["depth"]
+
+
+def test_a_nominal_episode_sees_the_unrandomised_scene_and_the_others_draw_as_without_it():
+    """``nominal=0.5``: an episode drawn nominal after a randomised one renders, steps and reads depth bit for bit
+    as the env without randomisation (camera, light, colours, textures, materials, depth model and noise, latency
+    all back); an episode not drawn nominal is the one the ranges alone draw for its seed."""
+    plain, mixed, ranges = make(), make(NOMINAL_MIX + ",nominal=0.5"), make(NOMINAL_MIX)
+    drawn = {}
+    for seed in range(8):
+        mixed.reset(seed=seed)
+        drawn[seed] = float(mixed.unwrapped.randomization_draws["nominal"][0])
+    nominal_seeds = [s for s, v in drawn.items() if v == 1.0]
+    other_seeds = [s for s, v in drawn.items() if v == 0.0]
+    assert nominal_seeds and other_seeds  # seeds 0-7 draw both at 0.5
+    act = torch.tensor([0.5, -0.3, 0.2, 0.4, 1.0])
+    for seed in nominal_seeds[:2]:
+        mixed.reset(seed=other_seeds[0])  # a randomised episode first: textures, materials and mount to undo
+        om, _ = mixed.reset(seed=seed)
+        op, _ = plain.reset(seed=seed)
+        assert all(torch.equal(a, b) for a, b in zip(_frames(om), _frames(op)))
+        for _ in range(2):
+            om, *_ = mixed.step(act)
+            op, *_ = plain.step(act)
+            assert all(torch.equal(a, b) for a, b in zip(_frames(om), _frames(op)))
+            assert torch.equal(om["agent"]["qpos"], op["agent"]["qpos"])  # latency 0: the arm moved as the plain one
+    for seed in other_seeds[:2]:
+        om, _ = mixed.reset(seed=seed)
+        orr, _ = ranges.reset(seed=seed)
+        assert all(torch.equal(a, b) for a, b in zip(_frames(om), _frames(orr)))
+        assert not torch.equal(_frames(om)[0], plain.reset(seed=seed)[0]["sensor_data"]["hand_camera"]["rgb"])
+    for env in (plain, mixed, ranges):
+        env.close()
+
+
 @pytest.mark.parametrize(
     "spec, message",
     [
@@ -200,6 +243,8 @@ def test_ranges_follow_the_episode_seed():
         ("camera_pos=0:1;0;0", "per axis"),
         ("camera_pos=0:1:2", "a range is LOW:HIGH"),
         ("camera_rot=0:1;2:1;0:1", "low > high"),
+        ("nominal=0.2:0.4", "one probability"),
+        ("nominal=1.5", r"\[0, 1\]"),
     ],
 )
 def test_bad_specs_are_named(spec, message):
