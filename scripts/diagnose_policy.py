@@ -170,14 +170,9 @@ class SkrlModel:
         return deterministic_action(self.agent, self.space, x).cpu().numpy(), None
 
     def value(self, obs_t) -> tuple[float, float]:
-        import torch
+        from maniskill_irb120.integrations.skrl import deterministic_value
 
-        preprocess = getattr(self.agent, "_observation_preprocessor", None) or (lambda o: o)
-        with torch.no_grad():
-            v, _ = self.agent.value.act({"observations": preprocess(obs_t.float())}, role="value")
-            unscale = getattr(self.agent, "_value_preprocessor", None)
-            v = unscale(v, inverse=True) if unscale is not None else v
-        return float(v.reshape(-1)[0]), float("nan")
+        return float(deterministic_value(self.agent, self.space, obs_t)[0]), float("nan")
 
 
 def value_of(model, obs_t) -> tuple[float, float]:

@@ -226,11 +226,28 @@ def deterministic_action(agent: Any, observation_space: gym.Space, obs: Any) -> 
     """``agent``'s deterministic action, (n, actions): its Gaussian's mean, clipped to [-1, 1] as the adapter clips
     what reaches the env, for an adapter observation (``make_single_env``'s, unbatched, or a batch of them; numpy or
     torch), flattened as skrl flattens it and scaled by the agent's own observation scaler (without updating it)."""
+    with torch.no_grad():
+        _, out = agent.policy.act({"observations": _scaled_observations(agent, observation_space, obs)}, role="policy")
+    return out["mean_actions"].clamp(-1, 1)
+
+
+def deterministic_value(agent: Any, observation_space: gym.Space, obs: Any) -> torch.Tensor:
+    """``agent``'s critic ``V(s)``, (n,), in return units: the observation prepared as :func:`deterministic_action`
+    prepares it, the value unscaled by the agent's value preprocessor (PPO's ``value_preprocessor``, which the
+    critic's output is trained against) when it has one."""
+    with torch.no_grad():
+        v, _ = agent.value.act({"observations": _scaled_observations(agent, observation_space, obs)}, role="value")
+        unscale = getattr(agent, "_value_preprocessor", None)
+        v = unscale(v, inverse=True) if unscale is not None else v
+    return v.reshape(-1)
+
+
+def _scaled_observations(agent: Any, observation_space: gym.Space, obs: Any) -> torch.Tensor:
+    """An adapter observation (one or a batch; numpy or torch) flattened as skrl flattens it and scaled by the
+    agent's own observation preprocessor, without updating its statistics."""
     preprocess = getattr(agent, "_observation_preprocessor", None) or (lambda o: o)
     flat = flatten_tensorized_space(tensorize_space(observation_space, obs, device=agent.device))
-    with torch.no_grad():
-        _, out = agent.policy.act({"observations": preprocess(flat.float())}, role="policy")
-    return out["mean_actions"].clamp(-1, 1)
+    return preprocess(flat.float())
 
 
 def deterministic_policy(agent: Any, observation_space: gym.Space) -> Callable[[Any], np.ndarray]:

@@ -733,6 +733,11 @@ def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, t
     assert torch.equal(torch.as_tensor(model.predict(flat.numpy())[0]), trained_act({"state": flat}))
     assert model.gamma == 0.8 and model.num_timesteps == trained["env_steps"]  # the YAML's discount_factor
     assert math.isfinite(model.value(flat.float())[0])
+    from maniskill_irb120.integrations.skrl import deterministic_value
+
+    batch = deterministic_value(model.agent, model.space, torch.stack([flat, flat + 0.05]))  # one value per row
+    assert batch.shape == (2,) and batch[0] != batch[1]
+    assert float(batch[0]) == pytest.approx(model.value(flat)[0], rel=1e-5)
     out = tmp_path / "diagnosis.json"
     diagnose.cli(["--model", str(agent_pt), "--skrl-cell", cell, "--episodes", "1", "--max-steps", "3",
                   "--out", str(out)])  # fmt: skip
