@@ -149,6 +149,14 @@ CASES = {
         ["scripts/collision_frames.py", "--policy", "{tmp}/missing.pt"],
         ["collision_frames.py: --policy", "missing.pt"],
     ),
+    "gripper chatter, misspelt env id": (
+        ["scripts/gripper_chatter.py", "--env-id", "GraspLift-v1"],
+        ["gripper_chatter.py: unknown env id 'GraspLift-v1'", "did you mean 'GraspLift-IRB120-v1'"],
+    ),
+    "gripper chatter, another task's policy": (
+        ["scripts/gripper_chatter.py", "--env-id", "GraspLift-IRB120-v1", "--policy", "ppo-state-tableclearing-sel-s1"],
+        ["gripper_chatter.py:", "was trained on TableClearing-IRB120-v1, not GraspLift-IRB120-v1"],
+    ),
     "example, zero envs": (["examples/sb3_ppo.py", "--num-envs", "0"], ["sb3_ppo.py: --num-envs 0: give a whole"]),
     "example, zero steps": (["examples/skrl_ppo.py", "--total-timesteps", "0"], ["--total-timesteps 0: give a whole"]),
     "example, negative held-out episodes": (["examples/sb3_sac.py", "--eval-episodes", "-1"], ["--eval-episodes -1"]),
