@@ -1,10 +1,10 @@
 """How often a policy switches its gripper: per episode, the valve switches it commands (the commanded state
 changing, ``agent.gripper_commanded_closed``) before the first grasp and in all, per second at the task's control
-rate, and the episode's success. A real MetalWork gripper is pneumatic: each switch is a valve stroke, and fingers
-told to reverse every step never finish a stroke, so a policy that alternates its gripper command on the approach
-wears the valve and shows the camera fingers the sim never drew half-way.
+rate, and the episode's success. A real MetalWork gripper is pneumatic: each switch is a valve stroke, so a policy
+that alternates its gripper command on the approach strokes the valve at up to the control rate
+(docs/notes/gripper-chatter.md).
 
-    PYTHONPATH=. .venv/bin/python scripts/gripper_chatter.py --policy expert ppo-state-tableclearing-s1 \\
+    .venv/bin/python scripts/gripper_chatter.py --policy expert ppo-state-tableclearing-sel-s1 \\
         --episodes 6 --seed 5000 --json runs/gripper_chatter.json
 
 Each policy plays in the sim env ``sim2real-eval`` builds for it (``load_policy``, no shift), deterministically:
@@ -13,45 +13,47 @@ the same seeds give the same counts.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
-ENV_ID = "TableClearing-IRB120-v1"
+
+@dataclass
+class Args:
+    policy: list[str] = field(default_factory=lambda: ["expert"])
+    """'expert', checkpoint files or names of a policies MANIFEST.json, each played in turn"""
+    env_id: str = "TableClearing-IRB120-v1"
+    """the task"""
+    episodes: int = 6
+    """deterministic episodes per policy, one a seed"""
+    seed: int = 5000
+    """the first episode's seed (5000: the shift table's first)"""
+    max_steps: int = 200
+    """steps per episode at most"""
+    json: Optional[Path] = None
+    """write the rows here"""
 
 
-def parse(argv: list[str] | None = None) -> argparse.Namespace:
-    class Parser(argparse.ArgumentParser):
-        def error(self, message):  # one line, exit 2
-            print(f"gripper_chatter.py: {message}", file=sys.stderr)
-            raise SystemExit(2)
-
-    p = Parser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--policy", nargs="+", default=["expert"], help="'expert', files or MANIFEST names")
-    p.add_argument("--env-id", default=ENV_ID)
-    p.add_argument("--episodes", type=int, default=6, help="episodes per policy")
-    p.add_argument("--seed", type=int, default=5000, help="first episode seed")
-    p.add_argument("--max-steps", type=int, default=200, help="steps per episode at most")
-    p.add_argument("--json", type=Path, default=None, help="write the rows here")
-    a = p.parse_args(argv)
+def check(a: Args) -> None:
+    """Refuse what cannot run before an env is built: counts, the env id, each policy's file and its task."""
     if a.episodes < 1 or a.max_steps < 1:
-        p.error("--episodes and --max-steps must be at least 1")
+        raise ValueError(f"--episodes {a.episodes}, --max-steps {a.max_steps}: each must be at least 1")
     if a.seed < 0:
-        p.error(f"--seed {a.seed}: episode seeds are 0 or more")
+        raise ValueError(f"--seed {a.seed}: episode seeds are 0 or more")
     from maniskill_irb120.envs import check_env_id
-    from maniskill_irb120.errors import UsageError
-    from maniskill_irb120.sim2real.policy import resolve_policy
+    from maniskill_irb120.sim2real.policy import read_policy_section, resolve_policy
 
-    try:
-        check_env_id(a.env_id)
-        for name in a.policy:
-            resolve_policy(name)
-    except UsageError as e:
-        p.error(str(e))
-    return a
+    check_env_id(a.env_id)
+    for name in a.policy:
+        path = resolve_policy(name)
+        if name != "expert":
+            trained_on = read_policy_section(Path(path), f"--policy {path}")["env_id"]
+            if trained_on != a.env_id:
+                raise ValueError(f"--policy {name}: trained on {trained_on}, not --env-id {a.env_id}")
 
 
 def switches(closed: np.ndarray) -> int:
@@ -111,21 +113,13 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
     )
 
 
-def main(argv: list[str] | None = None) -> list[dict]:
-    from maniskill_irb120.errors import UsageError
-
-    a = parse(argv)
+def main(a: Args) -> list[dict]:
     seeds = list(range(a.seed, a.seed + a.episodes))
     rows = []
+    print("| policy | episodes | valve switches per episode (before the grasp) | switches per s | success |")
+    print("|---|---|---|---|---|")
     for name in a.policy:
-        try:
-            r = play(name, a.env_id, seeds, a.max_steps)
-        except UsageError as e:  # e.g. a policy of another task or control mode, refused by load_policy
-            print(f"gripper_chatter.py: {e}", file=sys.stderr)
-            raise SystemExit(2) from None
-        if not rows:  # the header once the first policy has played (a refused one prints only its line)
-            print("| policy | episodes | valve switches per episode (before the grasp) | switches per s | success |")
-            print("|---|---|---|---|---|")
+        r = play(name, a.env_id, seeds, a.max_steps)
         rows.append(r)
         print(
             f"| {name} | {len(seeds)} | {r['switches_per_episode']:.1f} ({r['switches_before_grasp_per_episode']:.1f})"
@@ -138,5 +132,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     return rows
 
 
+def cli(argv: Optional[list[str]] = None) -> object:
+    """The command line (``argv``, default ``sys.argv[1:]``): bad input is one line and exit status 2."""
+    from benchmarks.lib.cli import entry
+
+    return entry("scripts.gripper_chatter", Args, main, check, argv=argv)
+
+
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    cli()

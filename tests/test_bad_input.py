@@ -151,11 +151,11 @@ CASES = {
     ),
     "gripper chatter, misspelt env id": (
         ["scripts/gripper_chatter.py", "--env-id", "GraspLift-v1"],
-        ["gripper_chatter.py: unknown env id 'GraspLift-v1'", "did you mean 'GraspLift-IRB120-v1'"],
+        ["scripts.gripper_chatter: error: unknown env id 'GraspLift-v1'", "did you mean 'GraspLift-IRB120-v1'"],
     ),
     "gripper chatter, another task's policy": (
         ["scripts/gripper_chatter.py", "--env-id", "GraspLift-IRB120-v1", "--policy", "ppo-state-tableclearing-sel-s1"],
-        ["gripper_chatter.py:", "was trained on TableClearing-IRB120-v1, not GraspLift-IRB120-v1"],
+        ["--policy ppo-state-tableclearing-sel-s1: trained on TableClearing-IRB120-v1, not --env-id GraspLift"],
     ),
     "example, zero envs": (["examples/sb3_ppo.py", "--num-envs", "0"], ["sb3_ppo.py: --num-envs 0: give a whole"]),
     "example, zero steps": (["examples/skrl_ppo.py", "--total-timesteps", "0"], ["--total-timesteps 0: give a whole"]),

@@ -30,7 +30,7 @@ def test_switches_counts_changes_of_the_commanded_state():
 def test_the_expert_switches_once_before_its_grasp_and_the_ppo_teacher_more(tmp_path, capsys):
     chatter = load_script()
     out = tmp_path / "chatter.json"
-    rows = chatter.main(
+    rows = chatter.cli(
         [
             "--env-id",
             "GraspLift-IRB120-v1",
