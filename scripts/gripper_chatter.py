@@ -62,8 +62,35 @@ def switches(closed: np.ndarray) -> int:
     return int((closed[1:] != closed[:-1]).sum())
 
 
+def finger_slots(u, obs) -> list[int] | None:
+    """Where the fingers sit in a flat state observation ``obs`` of the env ``u``: the two finger joints' qpos and
+    qvel and ``gripper_opening``, found in the state dict ManiSkill flattens into it (None: ``obs`` is not that
+    flattening, e.g. a camera policy's or one with keys dropped)."""
+    import torch
+    from mani_skill.utils import common
+
+    if not isinstance(obs, torch.Tensor) or obs.ndim != 2:
+        return None
+    state = u._get_obs_state_dict(u.get_info())
+    if not torch.equal(common.flatten_state_dict(state, use_torch=True).to(obs.device), obs.to(torch.float32)):
+        return None
+    slots, at = [], 0
+    for group, values in state.items():
+        for key, v in values.items() if isinstance(values, dict) else [("", values)]:
+            width = v.reshape(v.shape[0], -1).shape[1]
+            if group == "agent" and key in ("qpos", "qvel"):
+                slots += [at + width - 2, at + width - 1]  # the two finger joints end the robot's joints
+            elif group == "agent" and key == "gripper_opening":
+                slots.append(at)
+            at += width
+    return slots if len(slots) == 5 else None
+
+
 def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
-    """``policy``'s episodes at ``seeds``: per episode the commanded gripper states and events, and their totals."""
+    """``policy``'s episodes at ``seeds``: per episode the commanded gripper states, the finger opening and the
+    events, and their totals. For a state policy, each step before the grasp is also acted on with only its finger
+    observation swapped for the next step's: how often that alone flips the gripper command says whether the
+    command follows the fingers' own state."""
     import torch
 
     from maniskill_irb120.sim2real.policy import load_policy
@@ -76,24 +103,42 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
         for seed in seeds:
             obs, _ = env.reset(seed=seed)
             pol.reset(seed)
+            slots = finger_slots(u, obs) if policy != "expert" else None
             closed = [bool(u.agent.gripper_commanded_closed[0])]
+            opening = [float(u.agent.gripper_opening[0])]
+            seen, grip = [obs], []
             grasped_at, info = None, {}
             for t in range(max_steps):
-                obs, _, term, trunc, info = env.step(pol.act(obs))
+                action = pol.act(obs)
+                grip.append(float(torch.as_tensor(action).reshape(-1)[4]))
+                obs, _, term, trunc, info = env.step(action)
+                seen.append(obs)
                 closed.append(bool(u.agent.gripper_commanded_closed[0]))
+                opening.append(float(u.agent.gripper_opening[0]))
                 if grasped_at is None and bool(info.get("grasped", torch.zeros(1, dtype=torch.bool))[0]):
                     grasped_at = t + 1
                 if bool(term[0]) or bool(trunc[0]):
                     break
             steps = len(closed) - 1
-            before = closed[: (grasped_at if grasped_at is not None else steps) + 1]
+            reach = grasped_at if grasped_at is not None else steps
+            flipped = None
+            if slots is not None:  # the command with the fingers as the next step observed them, all else kept
+                flipped = 0
+                for t in range(reach - 1):
+                    swapped = seen[t].clone()
+                    swapped[:, slots] = seen[t + 1][:, slots]
+                    flipped += int(np.sign(float(torch.as_tensor(pol.act(swapped)).reshape(-1)[4])) != np.sign(grip[t]))
             episodes.append(
                 dict(
                     seed=seed,
                     steps=steps,
                     grasped_at=grasped_at,
-                    switches_before_grasp=switches(before),
+                    switches_before_grasp=switches(closed[: reach + 1]),
                     switches=switches(closed),
+                    opening_start_mm=opening[0] * 1e3,
+                    opening_before_grasp_mm=[min(opening[1:reach]) * 1e3, max(opening[1:reach]) * 1e3],
+                    swap_flips=flipped,
+                    swap_steps=reach - 1 if slots is not None else None,
                     success=bool(info["success"][0]),
                 )
             )
@@ -101,6 +146,7 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
     finally:
         env.close()
     total_steps = sum(e["steps"] for e in episodes)
+    probed = [e for e in episodes if e["swap_flips"] is not None]
     return dict(
         policy=policy,
         env_id=env_id,
@@ -109,6 +155,14 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
         switches_per_episode=float(np.mean([e["switches"] for e in episodes])),
         switches_before_grasp_per_episode=float(np.mean([e["switches_before_grasp"] for e in episodes])),
         switches_per_s=sum(e["switches"] for e in episodes) / total_steps * rate,
+        opening_start_mm=float(np.mean([e["opening_start_mm"] for e in episodes])),
+        opening_before_grasp_mm=[
+            float(min(e["opening_before_grasp_mm"][0] for e in episodes)),
+            float(max(e["opening_before_grasp_mm"][1] for e in episodes)),
+        ],
+        swap_flip_share=(
+            sum(e["swap_flips"] for e in probed) / max(1, sum(e["swap_steps"] for e in probed)) if probed else None
+        ),
         success=float(np.mean([e["success"] for e in episodes])),
     )
 
@@ -116,14 +170,20 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
 def main(a: Args) -> list[dict]:
     seeds = list(range(a.seed, a.seed + a.episodes))
     rows = []
-    print("| policy | episodes | valve switches per episode (before the grasp) | switches per s | success |")
-    print("|---|---|---|---|---|")
+    print(
+        "| policy | episodes | valve switches per episode (before the grasp) | switches per s "
+        "| finger opening before the grasp, mm (at the start) | command flipped by the next step's fingers | success |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for name in a.policy:
         r = play(name, a.env_id, seeds, a.max_steps)
         rows.append(r)
+        lo, hi = r["opening_before_grasp_mm"]
+        swap = "–" if r["swap_flip_share"] is None else f"{r['swap_flip_share']:.0%}"
         print(
             f"| {name} | {len(seeds)} | {r['switches_per_episode']:.1f} ({r['switches_before_grasp_per_episode']:.1f})"
-            f" | {r['switches_per_s']:.1f} | {r['success']:.2f} |",
+            f" | {r['switches_per_s']:.1f} | {lo:.0f}–{hi:.0f} ({r['opening_start_mm']:.0f}) | {swap}"
+            f" | {r['success']:.2f} |",
             flush=True,
         )
     if a.json is not None:

@@ -9,6 +9,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -51,6 +53,10 @@ def test_the_expert_switches_once_before_its_grasp_and_the_ppo_teacher_more(tmp_
     assert expert["control_hz"] == 20.0
     assert expert["switches_per_s"] == ep["switches"] / ep["steps"] * 20.0
     assert ppo["episodes"][0]["switches_before_grasp"] > 1
+    assert expert["opening_start_mm"] == ppo["opening_start_mm"] == pytest.approx(26.0, abs=0.5)  # fingers open
+    # the probe swaps a state policy's finger observation; the expert reads the simulator, not an observation
+    assert expert["swap_flip_share"] is None and 0 <= ppo["swap_flip_share"] <= 1
+    assert ppo["episodes"][0]["swap_steps"] == ppo["episodes"][0]["grasped_at"] - 1
     assert json.loads(out.read_text())["rows"][1]["policy"] == "ppo-state-grasplift-sel-s1"
     table = capsys.readouterr().out
     assert "| expert | 1 | 1.0 (1.0) |" in table
