@@ -46,7 +46,8 @@ camera, light, surfaces and depth, and the rest draw every range as without it. 
 hardly ever sees the view it is evaluated in with no shift: with each of a task's five surfaces (object, table,
 two trays, ground) textured at ``texture=0.7``, a scene with none textured comes about one episode in 400
 (0.3⁵), and a continuous range never draws its nominal value exactly. Whether an episode is nominal comes from a
-stream of its own, so the other episodes draw what they would without ``nominal``.
+stream of its own, so the other episodes draw the values they would without ``nominal`` (in a batch, the per-pixel
+depth noise, one stream seeded from the first reset env's, can differ when that env is nominal).
 
 A range for a scene-build field makes the task rebuild its scene every episode (``reconfiguration_freq=1``,
 as ``object_shape="random"``) unless ``reconfiguration_freq`` is given: drawn once, a "randomised" object
@@ -312,7 +313,7 @@ class RandomizationMixin:
             return
         idx = env_idx.cpu().numpy()
         rngs = {int(i): _rng(self, int(i)) for i in idx}
-        self._dr_nominal = self._draw_nominal(idx)
+        self._dr_nominal = (self._dr_nominal - {int(i) for i in idx}) | self._draw_nominal(idx)
         per_env = {int(i): self._episode_ranges(int(i)) for i in idx}  # r, or OFF for an env drawn nominal
         cam = self._sensors["hand_camera"].camera if "hand_camera" in self._sensors else None
         if cam is not None and {"camera_pos", "camera_rot", "camera_fov"} & set(active):
