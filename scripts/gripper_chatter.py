@@ -121,6 +121,7 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
                     break
             steps = len(closed) - 1
             reach = grasped_at if grasped_at is not None else steps
+            approach = opening[1:reach] or opening[:1]  # the steps before the grasp (the start, for a 1-step one)
             flipped = None
             if slots is not None:  # the command with the fingers as the next step observed them, all else kept
                 flipped = 0
@@ -136,7 +137,7 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
                     switches_before_grasp=switches(closed[: reach + 1]),
                     switches=switches(closed),
                     opening_start_mm=opening[0] * 1e3,
-                    opening_before_grasp_mm=[min(opening[1:reach]) * 1e3, max(opening[1:reach]) * 1e3],
+                    opening_before_grasp_mm=[min(approach) * 1e3, max(approach) * 1e3],
                     swap_flips=flipped,
                     swap_steps=reach - 1 if slots is not None else None,
                     success=bool(info["success"][0]),
@@ -146,7 +147,7 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
     finally:
         env.close()
     total_steps = sum(e["steps"] for e in episodes)
-    probed = [e for e in episodes if e["swap_flips"] is not None]
+    probed = [e for e in episodes if e["swap_flips"] is not None and e["swap_steps"] > 0]
     return dict(
         policy=policy,
         env_id=env_id,
@@ -161,7 +162,7 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
             float(max(e["opening_before_grasp_mm"][1] for e in episodes)),
         ],
         swap_flip_share=(
-            sum(e["swap_flips"] for e in probed) / max(1, sum(e["swap_steps"] for e in probed)) if probed else None
+            sum(e["swap_flips"] for e in probed) / sum(e["swap_steps"] for e in probed) if probed else None
         ),
         success=float(np.mean([e["success"] for e in episodes])),
     )
