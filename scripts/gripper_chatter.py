@@ -99,11 +99,12 @@ def play(policy: str, env_id: str, seeds: list[int], max_steps: int) -> dict:
     try:
         pol = make(env)
         u = env.unwrapped
-        episodes = []
+        episodes, slots = [], None
         for seed in seeds:
             obs, _ = env.reset(seed=seed)
             pol.reset(seed)
-            slots = finger_slots(u, obs) if policy != "expert" else None
+            if seed == seeds[0] and policy != "expert":  # the layout is the policy's, the same every episode
+                slots = finger_slots(u, obs)
             closed = [bool(u.agent.gripper_commanded_closed[0])]
             opening = [float(u.agent.gripper_opening[0])]
             seen, grip = [obs], []
