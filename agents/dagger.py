@@ -22,7 +22,6 @@ import torch.nn.functional as F
 
 import maniskill_irb120  # noqa: F401  (registers the envs)
 from agents.common import (
-    AUX_DIM,
     EVAL_SEED,
     Clock,
     Dataset,
@@ -30,6 +29,7 @@ from agents.common import (
     RunArgs,
     atomic_save,
     autocast,
+    aux_dim,
     check_budget,
     check_resume_signature,
     checkpoint,
@@ -95,6 +95,9 @@ class Args(RunArgs):
     """rgbd: DrQ random-shift augmentation of the images while training"""
     aux_weight: float = 0.0
     """weight of the auxiliary loss on privileged targets (0: off)"""
+    aux_mount: bool = False
+    """the auxiliary targets include the camera's drawn offset from its nominal mount, so the encoder learns to read
+    the mount off where the fingers appear (with a camera_pos/camera_rot randomisation; needs --aux-weight)"""
     capacity: int = 300_000
     """most transitions kept (oldest dropped first); rgbd frames take ~35 kB each"""
     init_policy: Optional[Path] = None
@@ -201,10 +204,10 @@ def policy_for(space, action_dim: int, device, encoder: str = "nature") -> Deter
     return DeterministicActor(image_shape, state_dim, action_dim, encoder=encoder).to(device)
 
 
-def aux_head_for(policy: DeterministicActor, device) -> torch.nn.Module:
+def aux_head_for(policy: DeterministicActor, device, mount: bool = False) -> torch.nn.Module:
     """A small MLP from the policy's features to the :func:`privileged_aux` targets (training only)."""
-    n = policy.encoder.out_dim
-    return torch.nn.Sequential(torch.nn.Linear(n, 256), torch.nn.ReLU(), torch.nn.Linear(256, AUX_DIM)).to(device)
+    n, out = policy.encoder.out_dim, aux_dim(mount)
+    return torch.nn.Sequential(torch.nn.Linear(n, 256), torch.nn.ReLU(), torch.nn.Linear(256, out)).to(device)
 
 
 def save(path: Path, policy, optimizer, data: Dataset, counters: dict, args: Args, aux_head=None, rows=None) -> dict:
@@ -286,6 +289,8 @@ def check_args(args: Args) -> None:
         raise ValueError(f"--encoder {args.encoder} reads the camera; --obs {args.obs} has no image")
     if not (args.aux_weight >= 0 and np.isfinite(args.aux_weight)):
         raise ValueError(f"--aux-weight must be a finite number >= 0, got {args.aux_weight}")
+    if args.aux_mount and args.aux_weight == 0:
+        raise ValueError("--aux-mount adds the camera mount to the auxiliary targets: it needs --aux-weight > 0")
     if args.init_policy is not None and args.resume is not None:
         raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
     if args.initial_updates < 0:
@@ -327,7 +332,7 @@ class DAgger(Algorithm):
             except BaseException:
                 envs.close()
                 raise
-        self.aux_head = aux_head = aux_head_for(policy, device) if args.aux_weight > 0 else None
+        self.aux_head = aux_head = aux_head_for(policy, device, args.aux_mount) if args.aux_weight > 0 else None
         params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
         self.optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
         self.data = Dataset(args.capacity)
@@ -339,6 +344,12 @@ class DAgger(Algorithm):
                 )
             policy.load_state_dict(saved["model"])
             if aux_head is not None:
+                targets = saved["aux_head"]["2.bias"].shape[0]
+                if targets != aux_dim(args.aux_mount):
+                    raise ValueError(
+                        f"--resume {args.resume}: the checkpoint's auxiliary head predicts {targets} targets, this "
+                        f"run's {aux_dim(args.aux_mount)}: they disagree on --aux-mount"
+                    )
                 aux_head.load_state_dict(saved["aux_head"])
             self.optimizer.load_state_dict(saved["optimizer"])
             self.rows = saved.get("data_rows")

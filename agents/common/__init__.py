@@ -18,6 +18,7 @@ from agents.common.envs import (
     AUX_DIM,
     ExpertLabels,
     action_wrappers,
+    aux_dim,
     flatten_obs,
     labelled_envs,
     make_envs,
@@ -58,6 +59,7 @@ from agents.common.run import (
 
 __all__ = [
     "AUX_DIM",
+    "aux_dim",
     "Budget",
     "Clock",
     "EVAL_SEED",

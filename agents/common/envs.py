@@ -40,19 +40,44 @@ def resolve_device(name: str) -> torch.device:
 
 
 AUX_DIM = 5
+MOUNT_AUX_DIM = 6
+"""with ``mount``: the camera's offset from its nominal mount, 3 positions and 3 angles"""
 
 
-def privileged_aux(env: gym.Env, frame: str = "world") -> torch.Tensor:
+def aux_dim(mount: bool = False) -> int:
+    """How many targets :func:`privileged_aux` gives, with or without the mount."""
+    return AUX_DIM + (MOUNT_AUX_DIM if mount else 0)
+
+
+def privileged_aux(env: gym.Env, frame: str = "world", mount: bool = False) -> torch.Tensor:
     """(N, 5) what a camera policy has to find in its image: the object's position relative to the TCP (in the
     learner's action frame: world or tool axes; in decimetres, so about unit scale) and the grasp yaw error as
-    sin/cos of four times it (continuous across the cube's 90° symmetry)."""
+    sin/cos of four times it (continuous across the cube's 90° symmetry). With ``mount``, (N, 11): then the hand
+    camera's offset from its nominal mount, as the randomisation drew it (``camera_pos`` in cm, ``camera_rot`` in
+    units of 5°; zero where the env draws no mount). The object's place relative to the TCP reads the same under
+    any mount, so a student can fit it by assuming the nominal one; the mount itself can only be read off the
+    frame, from where the gripper's fingers appear in it."""
     u = env.unwrapped
+    if mount:
+        return torch.cat([privileged_aux(env, frame), mount_offset(env)], dim=1)
     obj, tcp = u.target_object.pose.raw_pose, u.tcp_pose  # the task's declared interface (envs/base.py)
     rel = (obj[:, :3] - tcp[:, :3]) * 10.0
     if frame == "tool":  # the hand camera's own axes: an offset in the image is one in the tool frame
         rel = (tcp_rotation(tcp).transpose(1, 2) @ rel.unsqueeze(2)).squeeze(2)
     yaw = 4.0 * grasp_yaw_error(obj, tcp)
     return torch.cat([rel, yaw.sin()[:, None], yaw.cos()[:, None]], dim=1).float()
+
+
+def mount_offset(env: gym.Env) -> torch.Tensor:
+    """(N, 6) the hand camera's drawn offset from its nominal mount: position in cm, rotation in units of 5°."""
+    u = env.unwrapped
+    draws = getattr(u, "randomization_draws", {})
+    out = torch.zeros(u.num_envs, MOUNT_AUX_DIM)
+    if "camera_pos" in draws:
+        out[:, :3] = draws["camera_pos"].float() * 100.0
+    if "camera_rot" in draws:
+        out[:, 3:] = draws["camera_rot"].float() / 5.0
+    return out.to(u.device)
 
 
 def privileged_state_obs(env: gym.Env, info: dict) -> torch.Tensor:
@@ -106,15 +131,17 @@ class ActionLabels(gym.Wrapper):
     frame (``world``: its translation rotated out of the tool frame), and with ``aux`` the auxiliary targets
     (:func:`privileged_aux`) into ``info["expert_aux"]``. Subclasses say where the tool-frame action comes from."""
 
-    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
+    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False, aux_mount: bool = False):
         super().__init__(env)
+        if aux_mount and not aux:
+            raise ValueError("the mount is an auxiliary target: --aux-mount needs --aux-weight > 0")
         if frame not in ("tool", "world"):
             raise ValueError(f"unknown action frame {frame!r}; expected 'tool' or 'world'")
         if aux and getattr(env.unwrapped, "target_object", None) is None:
             raise ValueError(
                 f"--aux-weight needs a task that declares a target_object; {env.unwrapped.spec.id} does not"
             )
-        self.frame, self.aux = frame, aux
+        self.frame, self.aux, self.aux_mount = frame, aux, aux_mount
 
     def tool_action(self, info: dict) -> torch.Tensor:
         """(N, 5) the label in the tool frame, for the state just reached (``info``: its step's or reset's)."""
@@ -126,7 +153,7 @@ class ActionLabels(gym.Wrapper):
             tool_to_world(a, tcp_rotation(self.env.unwrapped.agent.tcp_pose.raw_pose)) if self.frame == "world" else a
         )
         if self.aux:
-            info["expert_aux"] = privileged_aux(self.env, self.frame)
+            info["expert_aux"] = privileged_aux(self.env, self.frame, self.aux_mount)
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
@@ -142,8 +169,8 @@ class ActionLabels(gym.Wrapper):
 class ExpertLabels(ActionLabels):
     """Labels from the task's reactive scripted expert (its phase read from the simulator)."""
 
-    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False):
-        super().__init__(env, frame, aux)
+    def __init__(self, env: gym.Env, frame: str = "tool", aux: bool = False, aux_mount: bool = False):
+        super().__init__(env, frame, aux, aux_mount)
         self.expert = expert_for(env, reactive=True)
 
     def tool_action(self, info: dict) -> torch.Tensor:
@@ -161,8 +188,8 @@ class TeacherLabels(ActionLabels):
     state observation (:func:`privileged_state_obs`) while the learner reads its own observation, e.g. the camera.
     With a teacher that learned from the reward alone, nothing in the pipeline is scripted or demonstrated."""
 
-    def __init__(self, env: gym.Env, teacher: Path, frame: str = "tool", aux: bool = False):
-        super().__init__(env, frame, aux)
+    def __init__(self, env: gym.Env, teacher: Path, frame: str = "tool", aux: bool = False, aux_mount: bool = False):
+        super().__init__(env, frame, aux, aux_mount)
         self.section = check_teacher(read_policy_section(teacher, f"--teacher {teacher}"), env, teacher)
         self.act = acting(self.section, device=env.unwrapped.device)
 
@@ -254,15 +281,16 @@ def make_envs(
     aux: bool = False,
     env_kwargs: Optional[dict] = None,
     teacher: Optional[Path] = None,
+    aux_mount: bool = False,
 ):
     """``num_envs`` envs whose info carries a label for every state, the reactive expert's (:class:`ExpertLabels`) or
-    with ``teacher`` a trained state policy's (:class:`TeacherLabels`), with ``aux`` the auxiliary targets too, in
-    the policy's observation and action frame, as host tensors."""
+    with ``teacher`` a trained state policy's (:class:`TeacherLabels`), with ``aux`` the auxiliary targets too (with
+    ``aux_mount`` the camera's mount among them), in the policy's observation and action frame, as host tensors."""
     if teacher is None:
-        labels = partial(ExpertLabels, frame=action_frame, aux=aux)
+        labels = partial(ExpertLabels, frame=action_frame, aux=aux, aux_mount=aux_mount)
     else:
         check_teacher_file(teacher)
-        labels = partial(TeacherLabels, teacher=Path(teacher), frame=action_frame, aux=aux)
+        labels = partial(TeacherLabels, teacher=Path(teacher), frame=action_frame, aux=aux, aux_mount=aux_mount)
     backend = "inprocess" if backend == "cpu" and num_envs == 1 else backend  # auto: make_vec_env's
     envs = one_thread_beside_workers(
         vec_envs(
@@ -297,6 +325,7 @@ def labelled_envs(args, num_envs: int):
         aux=getattr(args, "aux_weight", 0) > 0,
         env_kwargs=env_kwargs,
         teacher=getattr(args, "teacher", None),
+        aux_mount=getattr(args, "aux_mount", False),
     )
 
 

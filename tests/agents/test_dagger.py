@@ -337,6 +337,38 @@ def test_aux_targets_are_the_object_relative_to_the_tcp_and_train_the_encoder(en
     assert ev["episodes"] == 1
 
 
+MOUNT = "camera_pos=0.01;-0.008;0.004,camera_rot=3;-2;5"
+
+
+def test_aux_mount_targets_are_the_drawn_mount_and_a_run_keeps_them_across_resume(env, tmp_path, tiny):
+    """--aux-mount appends the camera's drawn offset from its nominal mount (cm, units of 5 deg) to the targets:
+    zero on an env that draws no mount, the drawn value on one that does; a camera run trains an 11-target head,
+    and a resume that disagrees on --aux-mount is refused by name."""
+    plain = ExpertLabels(env, frame="tool", aux=True, aux_mount=True)
+    _, info = plain.reset(seed=50)
+    assert info["expert_aux"].shape == (1, 11) and not info["expert_aux"][:, 5:].any()
+    assert torch.equal(
+        info["expert_aux"][:, :5], ExpertLabels(env, frame="tool", aux=True).reset(seed=50)[1]["expert_aux"]
+    )
+    shifted = gym.make(ENV, obs_mode="rgbd", randomization=MOUNT)
+    try:
+        _, info = ExpertLabels(shifted, frame="tool", aux=True, aux_mount=True).reset(seed=50)
+        want = torch.tensor([[1.0, -0.8, 0.4, 0.6, -0.4, 1.0]])
+        assert torch.allclose(info["expert_aux"][:, 5:], want, atol=1e-5)
+    finally:
+        shifted.close()
+    with pytest.raises(ValueError, match="--aux-mount needs --aux-weight"):
+        ExpertLabels(env, aux_mount=True)
+    kw = dict(obs="rgbd", encoder="keypoints", updates_per_round=2, batch_size=8, aux_weight=1.0)
+    res = tiny(tmp_path, aux_mount=True, initial_updates=3, env_kwargs=dict(randomization=MOUNT), **kw)
+    saved = torch.load(res["checkpoint"], weights_only=False)
+    data = saved_dataset(res["checkpoint"])
+    assert data.aux.shape[1:] == (11,) and saved["aux_head"]["2.bias"].shape == (11,)
+    assert torch.allclose(data.aux[: data.size, 5:], torch.tensor([1.0, -0.8, 0.4, 0.6, -0.4, 1.0]), atol=1e-5)
+    with pytest.raises(ValueError, match="disagree on --aux-mount"):
+        tiny(tmp_path, resume=Path(res["checkpoint"]), env_kwargs=dict(randomization=MOUNT), **kw)
+
+
 def test_aux_loss_fits_a_target_the_actions_do_not_need():
     torch.manual_seed(0)
     data = Dataset(256)
@@ -370,6 +402,7 @@ def test_keypoint_encoder_needs_a_camera_and_names_itself():
         (dict(encoder="keypoints"), "--obs state has no image"),
         (dict(aux_weight=float("nan")), "--aux-weight"),
         (dict(aux_weight=-1.0), "--aux-weight"),
+        (dict(aux_mount=True), "--aux-mount .* needs --aux-weight"),
         (dict(initial_updates=-5), "--initial-updates"),
     ):
         with pytest.raises(ValueError, match=match):
