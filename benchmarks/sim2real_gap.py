@@ -22,6 +22,9 @@ most to a run that may be stopped come first. ``--workers N`` runs N cells at on
 its own emulator (one torch thread each on a 2-core machine). A real step ends when the robot stands at its target,
 so a busy machine makes the cells slower, not different; the round-trip column, a time, is then the loaded
 machine's.
+Ctrl-C or SIGTERM stops the table: each running cell stops its robot and writes its report, marked
+interrupted (``--reuse`` runs it again), no other cell starts, and the table's process ends once its cell processes
+have (they stop too if it is killed).
 
 The section of benchmarks/RESULTS.md is rendered from JSON alone, a table per JSON in ``--section-json`` (the
 current figures: the expert's table and the committed policies' runs), so several runs (policies, seed ranges)
@@ -40,16 +43,21 @@ import multiprocessing
 import os
 import platform
 import shlex
+import signal
 import sys
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
 from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
+from benchmarks.lib.runner import PRCTL
 from maniskill_irb120.envs.randomization import Randomization
+from maniskill_irb120.errors import terminate_as_interrupt
 from maniskill_irb120.policies import read_policy_section
 from maniskill_irb120.sim2real.eval import EvalConfig, evaluate, policy_sha256, sim_side_shift
 from maniskill_irb120.sim2real.policy import resolve_policy
@@ -217,7 +225,17 @@ def cell(policy: str, name: str, args: Args) -> dict:
     )
     r = _finished_report(cfg) if args.reuse else None
     if r is None:
-        r = evaluate(cfg)
+        if _STOP["asked"]:  # a worker told to stop while this cell was queued: nothing started, nothing written
+            raise KeyboardInterrupt
+        _STOP["in_cell"] = True
+        try:
+            r = evaluate(cfg)
+        finally:
+            _STOP["in_cell"] = False
+            if _STOP["parent"] not in (None, os.getppid()):  # the table's process died: nobody takes the row or
+                os._exit(130)  # the next cell, and the pool's queue would keep this process waiting for ever
+        if r["interrupted"]:  # its report is written, marked interrupted (--reuse runs it again); the table stops
+            raise KeyboardInterrupt
     else:
         print(f"{name!r} of {_short(policy)}: read from {cfg.out / 'report.json'} (--reuse)", file=sys.stderr)
         t0 -= r["wall_clock_s"]
@@ -283,10 +301,67 @@ def _finished_report(cfg: EvalConfig) -> dict | None:
     )
 
 
-def _set_torch_threads(threads: int) -> None:
+_STOP: dict = {"asked": False, "in_cell": False, "parent": None}
+"""a cell process's state: told to stop (SIGINT or SIGTERM), whether a cell is running in it now, and the table's
+process (its parent; None in the table's own process)"""
+
+
+def _worker_start(threads: int) -> None:
+    """A cell process's start: its torch threads, and its stop. SIGINT or SIGTERM ends the cell it runs as a Ctrl-C
+    ends ``sim2real-eval`` (the robot stopped, the report written, marked interrupted) and refuses the cells queued to
+    it; the same when the table's process dies, even by SIGKILL (``prctl(PR_SET_PDEATHSIG)``), so that no cell runs
+    on unwatched beside whatever runs next."""
     import torch
 
     torch.set_num_threads(threads)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _worker_stop)
+    _STOP["parent"] = os.getppid()
+    if PRCTL is not None:
+        PRCTL(1, signal.SIGINT)  # 1: PR_SET_PDEATHSIG
+
+
+def _worker_stop(signum, frame) -> None:
+    """The first stop of a cell process: KeyboardInterrupt in the cell it runs (``evaluate`` stops the robot and writes
+    its report); between cells, or again while the first unwinds, it is only noted."""
+    first = not _STOP["asked"]
+    _STOP["asked"] = True
+    if first and _STOP["in_cell"]:
+        raise KeyboardInterrupt
+
+
+def _run_pool(todo: list[tuple[str, str]], args: Args) -> list[dict]:
+    """The cells in ``args.workers`` processes. A Ctrl-C or SIGTERM of the table, or a cell that was interrupted,
+    stops every cell process (each writes its report, marked interrupted) before the KeyboardInterrupt goes on: the
+    table's process does not end while a cell of it still runs."""
+    threads = max(1, (os.cpu_count() or 1) // args.workers)
+    # spawn: SAPIEN and torch are not fork-safe once the parent has imported them
+    pool = ProcessPoolExecutor(args.workers, multiprocessing.get_context("spawn"), _worker_start, (threads,))
+    try:
+        with terminate_as_interrupt():
+            return list(pool.map(cell, *zip(*todo), [args] * len(todo)))
+    except KeyboardInterrupt:
+        with _signals_held():
+            for child in multiprocessing.active_children():  # the pool's cell processes
+                try:
+                    os.kill(child.pid, signal.SIGINT)
+                except ProcessLookupError:  # it ended meanwhile
+                    pass
+            pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    finally:
+        pool.shutdown()  # after a cell's error, the other cells finish (and --reuse reads them)
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM ignored inside: a second Ctrl-C does not leave the cell processes unwaited for."""
+    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
 
 
 def check(args: Args) -> None:
@@ -339,14 +414,10 @@ def main(args: Args) -> dict:
         order.sort(key=lambda i: args.shifts.index(cells[i][1]))
     todo = [cells[i] for i in order]
     if args.workers == 1:
-        done = [cell(p, name, args) for p, name in todo]
+        with terminate_as_interrupt():  # a SIGTERM stops the table as a Ctrl-C does: the cell's report written
+            done = [cell(p, name, args) for p, name in todo]
     else:
-        threads = max(1, (os.cpu_count() or 1) // args.workers)
-        # spawn: SAPIEN and torch are not fork-safe once the parent has imported them
-        with ProcessPoolExecutor(
-            args.workers, multiprocessing.get_context("spawn"), _set_torch_threads, (threads,)
-        ) as pool:
-            done = list(pool.map(cell, *zip(*todo), [args] * len(todo)))
+        done = _run_pool(todo, args)
     rows = [row for _, row in sorted(zip(order, done), key=lambda x: x[0])]
     scored = [r for r in rows if r["real_success"] is not None]
     pairs = [r["sim_success"] for r in scored], [r["real_success"] for r in scored]

@@ -18,7 +18,14 @@ from typing import Annotated, Any, Literal, Union
 import tyro
 
 from maniskill_irb120.envs.table_clearing import ENV_ID as DEFAULT_ENV_ID
-from maniskill_irb120.errors import UsageError, check_count, nearest, say_usage_error, tyro_error_line
+from maniskill_irb120.errors import (
+    UsageError,
+    check_count,
+    nearest,
+    say_usage_error,
+    terminate_as_interrupt,
+    tyro_error_line,
+)
 
 
 def doctor(json: bool = False, gpu: bool = False, json_path: str | None = None, jobs: int = 1) -> int:
@@ -345,7 +352,7 @@ def sim2real_eval(
     seeded by the episode seed on both sides). ``--step-end``: a real step ends when the robot stands at its target
     (arrived: what the sim's settled drives show; command latency then costs time only, and ``--sim-shift`` leaves
     it out of the sim side) or after one fixed 50 ms period (period: the robot still moving when read).
-    Prints one JSON line; Ctrl-C stops the robot and still writes the report.
+    Prints one JSON line; Ctrl-C or SIGTERM stops the robot and still writes the report.
 
     Args:
         robot: emulator, emulator+serial, tcp://HOST:PORT or serial:///dev/ttyUSB0?baudrate=N
@@ -384,7 +391,8 @@ def sim2real_eval(
         out=Path(out),
         operator_timeout_s=operator_timeout_s,
     )
-    return eval_main(cfg)
+    with terminate_as_interrupt():  # a SIGTERM (a scheduler's stop, a session's end) stops the robot as Ctrl-C does
+        return eval_main(cfg)
 
 
 def export_policy(checkpoint: str, out: str, command: str) -> int:

@@ -274,6 +274,7 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
             command_latency_ms=dict(p50=0.0),
             refused=dict(total=0),
             late_steps=0,
+            interrupted=False,
             per_episode=[episode],
         )
 
