@@ -52,7 +52,7 @@ from agents.common import (
 )
 from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
-from maniskill_irb120.policies.nets import DeterministicActor, random_shift
+from maniskill_irb120.policies.nets import DeterministicActor, drop_rgb, random_shift
 
 FORMAT = "maniskill_irb120.dagger/1"
 
@@ -93,6 +93,9 @@ class Args(RunArgs):
     """rgbd image encoder: nature (NatureCNN) or keypoints (KeypointCNN: conv + spatial softmax)"""
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
+    rgb_dropout: float = 0.0
+    """rgbd: probability a training sample's RGB image is blacked out, its depth kept (modality dropout), so the
+    policy must localise from the depth too (0: off)"""
     aux_weight: float = 0.0
     """weight of the auxiliary loss on privileged targets (0: off)"""
     aux_mount: bool = False
@@ -182,6 +185,8 @@ def train_round(
         obs, act, aux = data.sample_with_aux(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
+        if args.rgb_dropout > 0:
+            obs = drop_rgb(obs, args.rgb_dropout)
         with autocast(precision, device):  # the encoder only: the convolutions are the cost
             feats = policy.features(obs)
         feats = feats.float()
@@ -289,6 +294,10 @@ def check_args(args: Args) -> None:
         raise ValueError(f"--encoder {args.encoder} reads the camera; --obs {args.obs} has no image")
     if not (args.aux_weight >= 0 and np.isfinite(args.aux_weight)):
         raise ValueError(f"--aux-weight must be a finite number >= 0, got {args.aux_weight}")
+    if not 0 <= args.rgb_dropout < 1:
+        raise ValueError(f"--rgb-dropout is a probability in [0, 1), got {args.rgb_dropout}")
+    if args.rgb_dropout > 0 and args.obs != "rgbd":
+        raise ValueError(f"--rgb-dropout blacks out camera images; --obs {args.obs} has none")
     if args.aux_mount and args.aux_weight == 0:
         raise ValueError("--aux-mount adds the camera mount to the auxiliary targets: it needs --aux-weight > 0")
     if args.init_policy is not None and args.resume is not None:

@@ -140,6 +140,18 @@ def random_shift(
     return dict(obs, rgb=crop(rgb), depth=crop(depth))
 
 
+def drop_rgb(
+    obs: dict[str, torch.Tensor], p: float, generator: Optional[torch.Generator] = None
+) -> dict[str, torch.Tensor]:
+    """Modality dropout: each sample's RGB image blacked out with probability ``p`` (its depth and the other keys
+    kept), so that the encoder must localise from the depth as well and cannot rest on colours and textures alone,
+    which a real cell's surfaces and light change and its geometry does not. ``generator``: the draws' stream (on
+    the images' device; default torch's global one)."""
+    rgb = obs["rgb"]
+    gone = torch.rand(rgb.shape[0], device=rgb.device, generator=generator) < p
+    return dict(obs, rgb=rgb.masked_fill(gone.view(-1, *[1] * (rgb.dim() - 1)), 0))
+
+
 CONSTANT_STD = 1e-3
 """a state dimension whose spread in the fitting data is below this (SI units: m, rad, rad/s) carried no
 information there: StateNorm zeroes it instead of scaling it up"""

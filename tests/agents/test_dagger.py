@@ -4,6 +4,7 @@ aggregated dataset, augmentation, a real training round on state and rgbd, resum
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
@@ -16,7 +17,7 @@ from agents.common import Dataset, ExpertLabels
 from agents.dagger import Args, main, make_envs, train_round
 from maniskill_irb120.action import tcp_rotation, tool_to_world
 from maniskill_irb120.experts import expert_for
-from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, random_shift
+from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, drop_rgb, random_shift
 
 ENV = "TableClearing-IRB120-v1"
 
@@ -211,6 +212,40 @@ def test_random_shift_is_drqs_replicate_pad_and_crop():
     assert (dx != 4).any() and (dy != 4).any()  # not all unshifted
 
 
+def test_drop_rgb_blacks_out_whole_rgb_images_and_keeps_their_depth():
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.randint(1, 256, (2000, 8, 8, 3), dtype=torch.uint8)
+    depth = torch.randint(1, 3000, (2000, 8, 8, 1), dtype=torch.int16)
+    state = torch.randn(2000, 6)
+    out = drop_rgb({"rgb": rgb, "depth": depth, "state": state}, 0.3, generator=g)
+    gone = (out["rgb"] == 0).flatten(1).all(1)
+    kept = (out["rgb"] == rgb).flatten(1).all(1)
+    assert torch.equal(gone, ~kept)  # a sample's image is blacked out whole, or left as it was
+    assert 0.26 < gone.float().mean() < 0.34 and out["rgb"].dtype == torch.uint8
+    assert out["depth"] is depth and out["state"] is state  # the depth (and the rest) of every sample kept
+    assert torch.equal(drop_rgb({"rgb": rgb, "depth": depth}, 0.0)["rgb"], rgb)
+
+
+def test_round_updates_black_out_rgb_at_the_rate_asked(monkeypatch):
+    """--rgb-dropout reaches the minibatches the policy learns from, after the random shift."""
+    data = Dataset(64)
+    obs = {"rgb": torch.randint(1, 256, (64, 84, 84, 3), dtype=torch.uint8), "state": torch.randn(64, 6)}
+    data.add({**obs, "depth": torch.randint(1, 3000, (64, 84, 84, 1), dtype=torch.int16)}, torch.rand(64, 5) * 2 - 1)
+    policy = DeterministicActor((84, 84, 4), 6, 5)
+    seen = []
+    features = policy.features
+    monkeypatch.setattr(policy, "features", lambda o: seen.append((o["rgb"] == 0).flatten(1).all(1)) or features(o))
+    args = Args(obs="rgbd", updates_per_round=4, batch_size=64, rgb_dropout=0.5)
+    torch.manual_seed(0)
+    opt, cpu = torch.optim.AdamW(policy.parameters()), torch.device("cpu")
+    train_round(policy, opt, data, args, cpu)
+    dropped = torch.cat(seen).float().mean()
+    assert len(seen) == 4 and 0.35 < dropped < 0.65
+    seen.clear()
+    train_round(policy, opt, data, replace(args, rgb_dropout=0.0), cpu)
+    assert not torch.cat(seen).any()
+
+
 def test_round_updates_stop_at_the_budget():
     data = Dataset(64)
     data.add({"state": torch.randn(64, 6)}, torch.rand(64, 5) * 2 - 1)
@@ -403,6 +438,9 @@ def test_keypoint_encoder_needs_a_camera_and_names_itself():
         (dict(aux_weight=float("nan")), "--aux-weight"),
         (dict(aux_weight=-1.0), "--aux-weight"),
         (dict(aux_mount=True), "--aux-mount .* needs --aux-weight"),
+        (dict(obs="rgbd", rgb_dropout=1.0), "--rgb-dropout is a probability"),
+        (dict(obs="rgbd", rgb_dropout=float("nan")), "--rgb-dropout is a probability"),
+        (dict(rgb_dropout=0.3), "--rgb-dropout .* --obs state has none"),
         (dict(initial_updates=-5), "--initial-updates"),
     ):
         with pytest.raises(ValueError, match=match):
