@@ -191,8 +191,9 @@ class Args:
     twin's); --no-sim-shift: the nominal sim in every row"""
     reuse: bool = False
     """a cell whose folder under --out already holds a finished report of the same configuration (policy,
-    episodes, seed, shift, camera; the policy by its weights' sha256, wherever its file now is) is read, not run
-    again: a table that was stopped goes on where it stood, and a checkpoint's rows are read for its export"""
+    episodes, seed, shift, camera; the policy by its weights' sha256, wherever its file now is), or whose row
+    --json already holds from such a run, is read, not run again: a table that was stopped goes on where it stood,
+    a committed table takes more rows on another machine, and a checkpoint's rows are read for its export"""
     section_json: tuple[Path, ...] = SECTION_JSONS
     """the JSONs the section of benchmarks/RESULTS.md shows, a table each (--update-results and --render-only add
     --json where it is not among them)"""
@@ -224,6 +225,10 @@ def cell(policy: str, name: str, args: Args) -> dict:
         out=args.out / (sub if len(args.policy) == 1 else f"{_short(policy)}_{sub}"),
     )
     r = _finished_report(cfg) if args.reuse else None
+    recorded = _recorded_row(cfg, name, args.json) if args.reuse and r is None else None
+    if recorded is not None:
+        print(f"{name!r} of {_short(policy)}: read from {args.json} (--reuse)", file=sys.stderr)
+        return dict(recorded, policy=policy)
     if r is None:
         if _STOP["asked"]:  # a worker told to stop while this cell was queued: nothing started, nothing written
             raise KeyboardInterrupt
@@ -257,6 +262,7 @@ def cell(policy: str, name: str, args: Args) -> dict:
         late_steps=r["late_steps"],
         paired=paired_gap(r["per_episode"]),
         wall_s=time.time() - t0,
+        run=_run_of(r),
     )
 
 
@@ -273,6 +279,46 @@ def task_of(policy: str, args: Args) -> str:
         return EvalConfig.env_id
 
 
+def _run_of(report: dict) -> dict:
+    """What a cell's row keeps of its report's configuration, so that ``--reuse`` can read the row from ``--json``
+    where the report's folder is gone (another machine, a cleaned ``runs/``): the policy's sha256, the evaluation's
+    configuration and the condition of its sim side."""
+    return {k: report.get(k) for k in ("policy_sha256", "config", "sim_side", "episodes", "interrupted", "error")}
+
+
+def _same_run(run: dict, cfg: EvalConfig, by_hash: bool = True) -> bool:
+    """``run`` (a report, or a row's ``run``) is this cell's configuration: the same policy by its sha256 (wherever
+    its file now is; ``by_hash`` False: by its path, for a report from before the hash was kept), the same
+    configuration but for the output folder, and the same sim side (its latency)."""
+    skip = {"out"}
+    if by_hash:
+        if run.get("policy_sha256") is None or run["policy_sha256"] != policy_sha256(cfg.policy):
+            return False
+        skip.add("policy")
+    ours = {k: str(v) for k, v in asdict(cfg).items() if k not in skip}
+    if {k: v for k, v in (run.get("config") or {}).items() if k not in skip} != ours:
+        return False
+    sim_side = sim_side_shift(cfg)  # the same configuration with an older sim side (its latency) is run again
+    return run.get("sim_side", "absent") == json.loads(json.dumps(sim_side.as_dict() if sim_side else None))
+
+
+def _recorded_row(cfg: EvalConfig, name: str, table: Optional[Path]) -> dict | None:
+    """The row of this very cell in the table ``--json`` already holds (a run of the same policy, configuration and
+    sim side, finished: a row is written only when its whole table is), else None. Rows written before rows kept
+    their ``run`` are never read: they are run again."""
+    if table is None or not table.is_file():
+        return None
+    for row in json.loads(table.read_text()).get("rows", []):
+        run = row.get("run")
+        finished = run and not run.get("interrupted") and run.get("error") is None
+        if row.get("shift") != name or not finished or run.get("episodes") != cfg.episodes:
+            continue
+        by_hash = Path(cfg.policy).exists() or run.get("policy_sha256") is not None  # the expert: by its name
+        if _same_run(run, cfg, by_hash):
+            return row
+    return None
+
+
 def _finished_report(cfg: EvalConfig) -> dict | None:
     """The report a cell left in its folder, if it ran this very configuration to the end without an error
     (the folder it was written to may have been moved since: ``out`` is not compared) with the same policy, known by
@@ -283,17 +329,10 @@ def _finished_report(cfg: EvalConfig) -> dict | None:
     if not path.exists():
         return None
     r = json.loads(path.read_text())
-    skip = {"out"}
-    if r.get("policy_sha256") is not None:  # the policy it ran, by content: its file may have moved or been exported
-        if r["policy_sha256"] != policy_sha256(cfg.policy):
-            return None
-        skip.add("policy")
-    elif Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
+    by_hash = r.get("policy_sha256") is not None  # the policy it ran, by content: its file may have moved
+    if not by_hash and Path(cfg.policy).is_file() and Path(cfg.policy).stat().st_mtime > path.stat().st_mtime:
         return None  # a report from before the hash was kept: a policy file newer than it is run again
-    ours = {k: str(v) for k, v in asdict(cfg).items() if k not in skip}
-    same = {k: v for k, v in r.get("config", {}).items() if k not in skip} == ours
-    sim_side = sim_side_shift(cfg)  # the same configuration with an older sim side (its latency) is run again
-    same = same and r.get("sim_side", "absent") == json.loads(json.dumps(sim_side.as_dict() if sim_side else None))
+    same = _same_run(r, cfg, by_hash)
     return (
         r
         if same and not r.get("interrupted") and r.get("error") is None and r.get("episodes") == cfg.episodes

@@ -196,6 +196,25 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
         gap.main(gap.Args(shifts=["none"], episodes=1, out=tmp_path))
     with pytest.raises(WouldRun, match="lighting"):  # rows run in the order named, though reported in the table's
         gap.main(gap.Args(shifts=["lighting", "none"], episodes=1, out=tmp_path, workers=1))
+    # the rows --json holds are read where the cells' folders are gone (another machine): a committed table takes
+    # more rows without running its old ones again
+    table = out.read_text()
+    elsewhere = tmp_path / "elsewhere"
+    from_json = gap.main(gap.Args(shifts=["none", "lighting"], episodes=1, out=elsewhere, reuse=True, json=out))
+    assert [{k: row[k] for k in keys} for row in from_json["rows"]] == [{k: row[k] for k in keys} for row in r["rows"]]
+    assert not elsewhere.exists() and all(row["run"]["config"] for row in json.loads(out.read_text())["rows"])
+    with pytest.raises(WouldRun, match="none"):  # another configuration is run
+        gap.main(gap.Args(shifts=["none"], episodes=2, out=elsewhere, reuse=True, json=out))
+    with pytest.raises(WouldRun, match="none"):  # and a row is read only with --reuse
+        gap.main(gap.Args(shifts=["none"], episodes=1, out=elsewhere, json=out))
+    for spoil in (lambda row: row.pop("run"), lambda row: row["run"].update(error="RuntimeError: twin")):
+        rows = json.loads(table)
+        for row in rows["rows"]:
+            spoil(row)  # a row from before rows kept their run, or one whose evaluation failed: run again
+        out.write_text(json.dumps(rows))
+        with pytest.raises(WouldRun, match="none"):
+            gap.main(gap.Args(shifts=["none"], episodes=1, out=elsewhere, reuse=True, json=out))
+    out.write_text(table)
     import torch
 
     def save_policy(path, w: float, **meta) -> None:  # a policy section, as a trainer or export-policy writes one
