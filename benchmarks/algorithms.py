@@ -49,7 +49,6 @@ import fnmatch
 import json
 import pickle
 import platform
-import signal
 import sys
 import time
 from collections.abc import Callable
@@ -461,12 +460,8 @@ def train_and_save(train: Callable[[], None], save: Callable[[], None]) -> None:
     try:
         train()
     except KeyboardInterrupt:
-        handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-        try:
+        with runner.signals_held():
             save()
-        finally:
-            for sig, handler in handlers.items():
-                signal.signal(sig, handler)
         raise
     save()
 

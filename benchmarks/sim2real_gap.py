@@ -46,16 +46,14 @@ import shlex
 import signal
 import sys
 import time
-from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Optional
 
 from benchmarks.lib.cli import entry
 from benchmarks.lib.report import RESULTS, argv_command, raw_link, recorded_command, replace_section
-from benchmarks.lib.runner import PRCTL
+from benchmarks.lib.runner import PRCTL, signals_held
 from maniskill_irb120.envs.randomization import Randomization
 from maniskill_irb120.errors import terminate_as_interrupt
 from maniskill_irb120.policies import read_policy_section
@@ -381,7 +379,7 @@ def _run_pool(todo: list[tuple[str, str]], args: Args) -> list[dict]:
         with terminate_as_interrupt():
             return list(pool.map(cell, *zip(*todo), [args] * len(todo)))
     except KeyboardInterrupt:
-        with _signals_held():
+        with signals_held():  # a second Ctrl-C does not leave the cell processes unwaited for
             for child in multiprocessing.active_children():  # the pool's cell processes
                 try:
                     os.kill(child.pid, signal.SIGINT)
@@ -391,17 +389,6 @@ def _run_pool(todo: list[tuple[str, str]], args: Args) -> list[dict]:
         raise
     finally:
         pool.shutdown()  # after a cell's error, the other cells finish (and --reuse reads them)
-
-
-@contextmanager
-def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM ignored inside: a second Ctrl-C does not leave the cell processes unwaited for."""
-    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
 
 
 def check(args: Args) -> None:

@@ -12,6 +12,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -368,14 +370,22 @@ def run_until(cmd: list[str], deadline: Optional[float]) -> tuple[str, str, Opti
 def stopped(proc: subprocess.Popen) -> tuple[str, str]:
     """``proc``'s stdout and stderr after one SIGINT, its checkpoint written (killed if it takes over
     ``SAVE_WAIT_S``), with this process's SIGINT and SIGTERM ignored meanwhile."""
-    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with signals_held():
         proc.send_signal(signal.SIGINT)
         try:
             return proc.communicate(timeout=SAVE_WAIT_S)
         except subprocess.TimeoutExpired:
             proc.kill()
             return proc.communicate()
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM ignored inside, their handlers given back after: a second Ctrl-C cannot cut short what
+    must finish (a checkpoint written, a stopped child waited for)."""
+    handlers = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
     finally:
         for sig, handler in handlers.items():
             signal.signal(sig, handler)

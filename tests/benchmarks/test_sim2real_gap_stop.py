@@ -51,6 +51,20 @@ def test_a_cell_process_told_to_stop_interrupts_its_cell_once_and_starts_no_othe
     gap._STOP.update(asked=False, in_cell=False)
 
 
+LINUX = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from Linux's /proc")
+
+
+def _wait_for_an_episode(proc: subprocess.Popen, outs: list[Path], timeout_s: float = 420) -> None:
+    """Until each ``sim2real-eval`` output folder in ``outs`` holds a finished real episode, ``proc`` still running."""
+    deadline = time.time() + timeout_s
+    while not all(any((out / "logs").glob("real_*.npz")) for out in outs):
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode()[-3000:] if proc.stderr else ""
+            pytest.fail(f"it ended (status {proc.returncode}) before each cell ran an episode: {err}")
+        assert time.time() < deadline, "the cells did not each finish an episode in time"
+        time.sleep(0.5)
+
+
 def _children(pid: int) -> set[int]:
     """The processes whose parent is ``pid`` (Linux's /proc)."""
     out = set()
@@ -73,7 +87,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from Linux's /proc")
+@LINUX
 def test_sigterm_stops_every_cell_process_and_each_writes_its_report(tmp_path):
     """Two cells in two processes, the table SIGTERMed once both have run an episode: it exits 130 having waited for
     both, each cell's report is written and marked interrupted, and no process of it is left running."""
@@ -82,11 +96,7 @@ def test_sigterm_stops_every_cell_process_and_each_writes_its_report(tmp_path):
         [*cmd, "--workers", "2", "--out", str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     try:
-        deadline = time.time() + 420
-        while not all(any((tmp_path / row / "logs").glob("real_*.npz")) for row in ("none", "lighting")):
-            assert proc.poll() is None, proc.communicate()[1].decode()[-3000:]
-            assert time.time() < deadline, "the cells did not both finish an episode in time"
-            time.sleep(1)
+        _wait_for_an_episode(proc, [tmp_path / "none", tmp_path / "lighting"])
         workers = _children(proc.pid)
         assert workers
         proc.send_signal(signal.SIGTERM)
@@ -103,11 +113,10 @@ def test_sigterm_stops_every_cell_process_and_each_writes_its_report(tmp_path):
     assert not [pid for pid in workers if _alive(pid)], "a cell process outlived the table"
 
 
+@LINUX
 def test_a_cell_process_stops_when_the_table_is_killed(tmp_path):
     """SIGKILL leaves the table no time to stop its cells: each stops itself (PR_SET_PDEATHSIG), writes its report
     and ends, where the pool's queue would have kept it waiting for a next cell."""
-    if not Path("/proc/self/stat").exists():
-        pytest.skip("reads the process tree from Linux's /proc")
     cmd = [sys.executable, "-m", "benchmarks.sim2real_gap", "--shifts", "none", "lighting", "--episodes", "40"]
     proc = subprocess.Popen(
         [*cmd, "--workers", "2", "--out", str(tmp_path)],
@@ -116,10 +125,7 @@ def test_a_cell_process_stops_when_the_table_is_killed(tmp_path):
         stderr=subprocess.DEVNULL,
     )
     try:
-        deadline = time.time() + 420
-        while not all(any((tmp_path / row / "logs").glob("real_*.npz")) for row in ("none", "lighting")):
-            assert proc.poll() is None and time.time() < deadline
-            time.sleep(1)
+        _wait_for_an_episode(proc, [tmp_path / "none", tmp_path / "lighting"])
         workers = {pid for pid in _children(proc.pid) if "spawn_main" in _cmdline(pid)}
         assert len(workers) == 2
         os.kill(proc.pid, signal.SIGKILL)
@@ -152,11 +158,7 @@ def test_sigterm_stops_sim2real_eval_as_ctrl_c_does(tmp_path):
         stderr=subprocess.PIPE,
     )
     try:
-        deadline = time.time() + 300
-        while not any((tmp_path / "logs").glob("real_*.npz")):
-            assert proc.poll() is None, proc.communicate()[1].decode()[-3000:]
-            assert time.time() < deadline, "no episode finished in time"
-            time.sleep(0.5)
+        _wait_for_an_episode(proc, [tmp_path])
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
