@@ -336,6 +336,20 @@ def planned(done: dict[str, dict], args: Args) -> list[str]:
     return [c for c in cells if c not in done]
 
 
+def waiting_cells(done: dict[str, dict], args: Args) -> list[str]:
+    """The --only cells when none of them is done or planned now: then they are best-seed cells of a group whose
+    best is not known yet or is another algorithm, and the run would train nothing and end as if it had finished.
+    Empty when any named cell runs or has run (a glob over a group names others' best seeds as well)."""
+    if not args.only or planned(done, args):
+        return []
+    named = [
+        c
+        for c in dict.fromkeys(cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds, *args.seeds])
+        if any(fnmatch.fnmatchcase(c, p) for p in args.only)
+    ]
+    return [] if any(c in done for c in named) else named
+
+
 # ----------------------------------------------------------------------------- evaluation
 def held_out(act: Callable, env_id: str, obs: str, args: Args, episodes: Optional[int] = None) -> dict:
     """``act`` on ``--eval-episodes`` (or ``episodes``) held-out seeds, as every trainer here is scored."""
@@ -1243,7 +1257,8 @@ def writes_the_section(args: Args) -> bool:
 def check(args: Args) -> None:
     """Refuse flags that cannot run, each naming its flag, before any cell (``benchmarks.lib.cli`` makes it one line
     and exit status 2): a budget or guard that is not positive, an unknown backend, a negative reference workload, a
-    --conf-file that is no file or shares the table's folders, an --only that matches no cell, a --render-only or
+    --conf-file that is no file or shares the table's folders, an --only that matches no cell or only cells this run
+    would not run (best seeds not due: ``waiting_cells``), a --render-only or
     --validate with no algorithms.json to read (or, validating, no cell of it named)."""
     if args.render_only:
         if not (args.out_dir / "algorithms.json").is_file():
@@ -1287,6 +1302,17 @@ def check(args: Args) -> None:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
             raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "
                              f"{sorted(known)[0]!r}")  # fmt: skip
+    json_path = args.out_dir / "algorithms.json"
+    if args.only and not args.render_only and not args.validate:
+        done = json.loads(json_path.read_text())["cells"] if json_path.is_file() else {}
+        waiting = waiting_cells(done, args)
+        if waiting:
+            seeds = " ".join(sorted({c.rsplit("/s", 1)[1] for c in waiting}, key=int))
+            raise ValueError(
+                f"--only {' '.join(args.only)} names {', '.join(waiting)}, which this run would not run: a seed of "
+                f"--best-seeds runs only for its group's best algorithm once the group's seed-1 cells are in "
+                f"{json_path}; add --seeds {seeds} to run it now"
+            )
 
 
 def main(args: Args) -> dict:

@@ -848,3 +848,19 @@ def test_the_docs_selection_callback_entry_builds_the_callback():
     (make,) = loader.wrappers_of(yaml.safe_load(block)["GraspLift-IRB120-v1"]["callback"])
     made = make()
     assert isinstance(made, SelectOnValidation) and (made.every, made.episodes) == (12500, 30)
+
+
+def test_an_only_that_names_a_best_seed_not_yet_due_is_refused_before_any_cell(alg, tmp_path):
+    """--only .../s3 on a table whose group has no seed-1 cells: s3 is a best seed, due only for the group's best,
+    so the run would train nothing and end with exit status 0; it is refused with the flag that runs it now."""
+    cell = "state/GraspLift/skrl-ppo-tuned/s3"
+    with pytest.raises(ValueError, match=r"names state/GraspLift/skrl-ppo-tuned/s3, .* add --seeds 3 to run it now"):
+        alg.main(alg.Args(only=[cell], out_dir=tmp_path, runs_dir=tmp_path / "runs"))
+    assert not (tmp_path / "algorithms.json").exists() and not (tmp_path / "runs").exists()
+    with_seeds = alg.Args(only=[cell], seeds=[3], out_dir=tmp_path)
+    assert alg.waiting_cells({}, with_seeds) == [] and alg.planned({}, with_seeds) == [cell]
+    # a glob over the group: its seed-1 cells run, so the others' best seeds waiting is no error
+    group = alg.Args(only=["state/GraspLift/*"], out_dir=tmp_path)
+    assert alg.waiting_cells({}, group) == [] and "state/GraspLift/skrl-ppo-tuned/s1" in alg.planned({}, group)
+    # the cell done already: nothing planned, nothing refused
+    assert alg.waiting_cells({cell: {}}, alg.Args(only=[cell], out_dir=tmp_path)) == []
