@@ -292,6 +292,9 @@ def test_a_ctrl_c_as_a_step_is_sent_leaves_the_workers_to_close_cleanly():
     "close", shut the pipe, and the worker died on a BrokenPipeError traceback (exit status 1, and the traceback on
     the user's terminal). Held, the interrupt arrives after the step is recorded as in flight: close() collects it,
     and every worker exits cleanly."""
+    # Ctrl-C as at a terminal, even where pytest itself was started as a background job (``cmd &`` in a script),
+    # which inherits SIGINT ignored
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     v = make_vec_env(ENV, 2, backend="cpu", obs_mode="state")
     inner = v._venv
     try:
@@ -306,6 +309,7 @@ def test_a_ctrl_c_as_a_step_is_sent_leaves_the_workers_to_close_cleanly():
     finally:
         processes = list(inner.processes)
         v.close()
+        signal.signal(signal.SIGINT, before)
     assert [p.exitcode for p in processes] == [0]
 
 

@@ -86,6 +86,9 @@ def start(tmp_path: Path, mode: str) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, which the Ctrl-C below goes to, as a terminal's does
+        # SIGINT's default, as at a terminal, even where pytest was started as a background job (``cmd &`` in a
+        # script) and so inherited SIGINT ignored: Python then keeps it ignored and the Ctrl-C below would be lost
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
