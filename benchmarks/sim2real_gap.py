@@ -7,7 +7,8 @@ so a row says both what the sim predicts and what the twin does; a policy's targ
 sim row. The camera-mount rows are run again with the frames corrected to the trained mount from the measured offset
 (``sim2real-eval --camera-mount``), exact and off by 2 mm / 1 deg; their sim side keeps the trained mount. The
 rows in MOUNT_ERRORS (the mount's offset scaled, or its position or rotation alone) run only when named: how far
-from the trained mount a camera may sit before the policy fails.
+from the trained mount a camera may sit before the policy fails; those in APPEARANCE_PARTS ("colour only", "texture
+only", "shine only") split the colours/textures row into its parts.
 
     .venv/bin/python -m benchmarks.sim2real_gap --episodes 10 --json benchmarks/results/sim2real_gap.json
     .venv/bin/python -m benchmarks.sim2real_gap --policy CKPT --camera none --shifts none "all together"
@@ -143,6 +144,17 @@ COMBINED = {
     "fov 84 + light 0.35 + D405 + texture 1": "camera_fov=84,light=0.35,depth_model=d405,texture=1",
 }
 SHIFTS.update(COMBINED)
+# the "colours/textures" row in its parts, to find which of them moves a policy: the colour jitter alone, every surface
+# textured in its own colours, and the glossy material alone; run only when named
+APPEARANCE_PARTS = {
+    "colour only": "color=0.25",
+    "texture only": "texture=1",
+    "shine only": "roughness=0.3,specular=0.8",
+}
+assert ",".join(APPEARANCE_PARTS.values()) == SHIFTS["colours/textures"]
+SHIFTS.update(APPEARANCE_PARTS)
+BY_NAME_ONLY = {*MOUNT_ERRORS, *COMBINED, *APPEARANCE_PARTS}
+"""rows the default table leaves out, run when --shifts names them"""
 SHIFTS["camera mount, corrected"] = SHIFTS["camera mount"]
 SHIFTS["camera mount, corrected with 2 mm / 1 deg error"] = SHIFTS["camera mount"]
 SHIFTS["all together, mount corrected"] = SHIFTS["all together"]
@@ -177,8 +189,8 @@ class Args:
     """the task (the twin builds the same one): by default the one each policy was trained on, and
     TableClearing-IRB120-v1 for the expert"""
     shifts: tuple[str, ...] = ()
-    """rows to run, by name (default: SHIFTS but MOUNT_ERRORS and COMBINED; without a camera, those of them that
-    correct none)"""
+    """rows to run, by name (default: SHIFTS but BY_NAME_ONLY's; without a camera, those of them that correct
+    none)"""
     episodes: int = 10
     seed: int = 1000
     out: Path = Path("runs/sim2real_gap")
@@ -428,9 +440,7 @@ def main(args: Args) -> dict:
         return {}
     args.policy = tuple(resolve_policy(p) for p in args.policy)  # short names (MANIFEST.json) become their files
     combined = [n for n in args.shifts if n not in SHIFTS]
-    default = [
-        n for n in SHIFTS if n not in MOUNT_ERRORS and n not in COMBINED and (args.camera != "none" or n not in MOUNTS)
-    ]
+    default = [n for n in SHIFTS if n not in BY_NAME_ONLY and (args.camera != "none" or n not in MOUNTS)]
     names = [n for n in SHIFTS if n in args.shifts] if args.shifts else default
     names += combined
     cells = [(p, name) for p in args.policy for name in names]  # the table's order

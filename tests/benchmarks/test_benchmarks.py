@@ -268,6 +268,22 @@ def test_sim2real_gap_runs_the_named_rows(tmp_path, bench_script):
             gap.main(gap.Args(shifts=["none", bad], out=tmp_path))
 
 
+def test_sim2real_gap_appearance_parts_make_up_the_colours_textures_row(bench_script):
+    """The three rows that split colours/textures: each one field group of it, together exactly it, each parsed to
+    that part alone, and none in the default table."""
+    from maniskill_irb120.envs.randomization import Randomization
+
+    gap = bench_script("sim2real_gap")
+    whole = Randomization.parse(gap.SHIFTS["colours/textures"])
+    parts = {name: Randomization.parse(gap.SHIFTS[name]) for name in ("colour only", "texture only", "shine only")}
+    assert gap.spec_of("colour only & texture only & shine only") == gap.SHIFTS["colours/textures"]
+    assert (parts["colour only"].color, parts["colour only"].texture) == (whole.color, 0.0)
+    assert (parts["texture only"].texture, parts["texture only"].color) == (whole.texture, 0.0)
+    shine = parts["shine only"]
+    assert (shine.roughness, shine.specular, shine.color, shine.texture) == (whole.roughness, whole.specular, 0, 0)
+    assert set(parts) <= gap.BY_NAME_ONLY
+
+
 def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(tmp_path, bench_script):
     from maniskill_irb120.envs.randomization import Randomization
 
@@ -300,7 +316,7 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
     gap.evaluate = evaluate
     gap.main(gap.Args(camera="twin", out=tmp_path))  # the default table: no calibration-error rows
     assert {name for name, _, _ in ran} == {
-        gap.folder(n) for n in gap.SHIFTS if n not in gap.MOUNT_ERRORS and n not in gap.COMBINED
+        gap.folder(n) for n in gap.SHIFTS if n not in gap.BY_NAME_ONLY
     }
     ran.clear()
     out = gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
