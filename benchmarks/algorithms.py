@@ -342,12 +342,13 @@ def waiting_cells(done: dict[str, dict], args: Args) -> list[str]:
     Empty when any named cell runs or has run (a glob over a group names others' best seeds as well)."""
     if not args.only or planned(done, args):
         return []
-    named = [
-        c
-        for c in dict.fromkeys(cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds, *args.seeds])
-        if any(fnmatch.fnmatchcase(c, p) for p in args.only)
-    ]
+    named = [c for c in all_cells(args) if any(fnmatch.fnmatchcase(c, p) for p in args.only)]
     return [] if any(c in done for c in named) else named
+
+
+def all_cells(args: Args) -> list[str]:
+    """Every cell the grid can hold, in its order: seed 1, --best-seeds and --seeds of each (obs, task, algo)."""
+    return list(dict.fromkeys(cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds, *args.seeds]))
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -1297,7 +1298,7 @@ def check(args: Args) -> None:
         raise ValueError(f"seeds are numbered from 1, got --seeds {args.seeds} --best-seeds {args.best_seeds}")
     if args.seeds and not args.only:
         raise ValueError("--seeds adds seeds to the --only cells: name them with --only (e.g. 'state/GraspLift/*')")
-    known = {cell_id(o, t, a, s) for o, t, a in grid() for s in [1, *args.best_seeds, *args.seeds]}
+    known = set(all_cells(args))
     for pattern in args.only:
         if not any(fnmatch.fnmatchcase(c, pattern) for c in known):
             raise ValueError(f"--only {pattern!r} matches no cell; cells are OBS/TASK/ALGORITHM/sSEED, e.g. "

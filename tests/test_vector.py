@@ -295,20 +295,22 @@ def test_a_ctrl_c_as_a_step_is_sent_leaves_the_workers_to_close_cleanly():
     # Ctrl-C as at a terminal, even where pytest itself was started as a background job (``cmd &`` in a script),
     # which inherits SIGINT ignored
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
-    v = make_vec_env(ENV, 2, backend="cpu", obs_mode="state")
-    inner = v._venv
-    try:
-        v.reset(seed=0)
-        real = inner.parent_pipes[0]
-        inner.parent_pipes[0] = _InterruptAfterSend(real)
-        with pytest.raises(KeyboardInterrupt):
-            v.step(torch.zeros(2, 5))
-        inner.parent_pipes[0] = real
-        assert inner._state is AsyncState.DEFAULT  # the step in flight was collected: nothing left for close() to read
-        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+    try:  # the handler is put back even when the env fails to build
+        v = make_vec_env(ENV, 2, backend="cpu", obs_mode="state")
+        inner = v._venv
+        try:
+            v.reset(seed=0)
+            real = inner.parent_pipes[0]
+            inner.parent_pipes[0] = _InterruptAfterSend(real)
+            with pytest.raises(KeyboardInterrupt):
+                v.step(torch.zeros(2, 5))
+            inner.parent_pipes[0] = real
+            assert inner._state is AsyncState.DEFAULT  # the step in flight was collected: nothing left for close()
+            assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is back
+        finally:
+            processes = list(inner.processes)
+            v.close()
     finally:
-        processes = list(inner.processes)
-        v.close()
         signal.signal(signal.SIGINT, before)
     assert [p.exitcode for p in processes] == [0]
 
