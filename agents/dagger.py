@@ -52,7 +52,7 @@ from agents.common import (
 )
 from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
-from maniskill_irb120.policies.nets import DeterministicActor, drop_rgb, random_shift
+from maniskill_irb120.policies.nets import DeterministicActor, drop_rgb, jitter_rgb, random_shift
 
 FORMAT = "maniskill_irb120.dagger/1"
 
@@ -96,6 +96,9 @@ class Args(RunArgs):
     rgb_dropout: float = 0.0
     """rgbd: probability a training sample's RGB image is blacked out, its depth kept (modality dropout), so the
     policy must localise from the depth too (0: off)"""
+    color_jitter: float = 0.0
+    """rgbd: strength of each training sample's own colour jitter (brightness, contrast and saturation in 1 ± it,
+    hue rotated by up to it x 180 deg), so the policy cannot rest on the surfaces' absolute colours (0: off)"""
     aux_weight: float = 0.0
     """weight of the auxiliary loss on privileged targets (0: off)"""
     aux_mount: bool = False
@@ -185,6 +188,8 @@ def train_round(
         obs, act, aux = data.sample_with_aux(args.batch_size, device)
         if args.obs == "rgbd" and args.augment:
             obs = random_shift(obs)
+        if args.color_jitter > 0:
+            obs = jitter_rgb(obs, args.color_jitter)
         if args.rgb_dropout > 0:
             obs = drop_rgb(obs, args.rgb_dropout)
         with autocast(precision, device):  # the encoder only: the convolutions are the cost
@@ -298,6 +303,10 @@ def check_args(args: Args) -> None:
         raise ValueError(f"--rgb-dropout is a probability in [0, 1), got {args.rgb_dropout}")
     if args.rgb_dropout > 0 and args.obs != "rgbd":
         raise ValueError(f"--rgb-dropout blacks out camera images; --obs {args.obs} has none")
+    if not 0 <= args.color_jitter <= 1:  # NaN fails both comparisons
+        raise ValueError(f"--color-jitter is a strength in [0, 1], got {args.color_jitter}")
+    if args.color_jitter > 0 and args.obs != "rgbd":
+        raise ValueError(f"--color-jitter changes camera images' colours; --obs {args.obs} has none")
     if args.aux_mount and args.aux_weight == 0:
         raise ValueError("--aux-mount adds the camera mount to the auxiliary targets: it needs --aux-weight > 0")
     if args.init_policy is not None and args.resume is not None:

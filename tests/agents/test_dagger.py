@@ -17,7 +17,7 @@ from agents.common import Dataset, ExpertLabels
 from agents.dagger import Args, main, make_envs, train_round
 from maniskill_irb120.action import tcp_rotation, tool_to_world
 from maniskill_irb120.experts import expert_for
-from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, drop_rgb, random_shift
+from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, drop_rgb, jitter_rgb, random_shift
 
 ENV = "TableClearing-IRB120-v1"
 
@@ -246,6 +246,69 @@ def test_round_updates_black_out_rgb_at_the_rate_asked(monkeypatch):
     assert not torch.cat(seen).any()
 
 
+def yiq(rgb: torch.Tensor) -> torch.Tensor:
+    """(..., 3) RGB in NTSC YIQ (luma, then the chroma plane)"""
+    m = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]], dtype=torch.float64)
+    return rgb.double() @ m.T
+
+
+def test_jitter_rgb_rotates_each_samples_hue_and_scales_its_saturation_within_the_strength():
+    """On one-colour images each sample's luma is scaled by its brightness alone (contrast scales about the image's
+    own mean luma), its chroma rotated by at most strength x 180 deg and scaled by its saturation and its contrast
+    (which blends towards the mean grey), each 1 +- strength; the draws differ per sample and follow the generator."""
+    n, colour = 4000, torch.tensor([150, 100, 70], dtype=torch.uint8)
+    rgb = colour.expand(n, 6, 6, 3).clone()
+    depth, state = torch.randint(1, 3000, (n, 6, 6, 1), dtype=torch.int16), torch.randn(n, 6)
+    out = jitter_rgb({"rgb": rgb, "depth": depth, "state": state}, 0.3, generator=torch.Generator().manual_seed(0))
+    assert out["depth"] is depth and out["state"] is state and out["rgb"].dtype == torch.uint8
+    assert out["rgb"].shape == rgb.shape and (out["rgb"] == out["rgb"][:, :1, :1]).all()  # still one colour each
+    before, after = yiq(colour), yiq(out["rgb"][:, 0, 0])
+    turn = torch.rad2deg(torch.atan2(after[:, 2], after[:, 1]) - torch.atan2(before[2], before[1]))
+    turn = (turn + 180) % 360 - 180
+    sat = after[:, 1:].norm(dim=1) / before[1:].norm() / (after[:, 0] / before[0])  # chroma over brightness
+    assert turn.abs().max() < 54 + 3 and turn.abs().max() > 45 and turn.std() > 20  # spread over +-54 deg
+    assert 0.49 - 0.02 < sat.min() < 0.6 and 1.5 < sat.max() < 1.69 + 0.03  # within (1 +- 0.3)^2
+    brightness = after[:, 0] / before[0]
+    assert 0.69 < brightness.min() < 0.75 and 1.25 < brightness.max() < 1.31
+    again = jitter_rgb({"rgb": rgb}, 0.3, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(again["rgb"], out["rgb"])
+
+
+def test_jitter_rgb_keeps_grey_grey_scales_contrast_about_the_mean_and_is_off_at_zero():
+    g = torch.Generator().manual_seed(1)
+    grey = torch.randint(60, 190, (500, 8, 8, 1), dtype=torch.uint8).expand(-1, -1, -1, 3).contiguous()
+    out = jitter_rgb({"rgb": grey}, 0.2, generator=g)["rgb"].int()
+    assert (out.amax(3) - out.amin(3)).max() <= 1  # no chroma to rotate or scale: grey stays grey (rounding)
+    spread = out[..., 0].double().flatten(1).std(1) / grey[..., 0].double().flatten(1).std(1)
+    mean = out[..., 0].double().flatten(1).mean(1) / grey[..., 0].double().flatten(1).mean(1)
+    assert 0.64 - 0.03 < spread.min() and spread.max() < 1.44 + 0.03 and spread.std() > 0.1  # brightness x contrast
+    assert 0.8 - 0.01 < mean.min() and mean.max() < 1.2 + 0.01  # the mean moves with the brightness alone
+    obs = {"rgb": grey}
+    assert jitter_rgb(obs, 0.0) is obs
+    assert torch.equal(jitter_rgb(obs, 1e-7)["rgb"], grey)
+
+
+def test_round_updates_jitter_the_colours_only_when_asked(monkeypatch):
+    """--color-jitter reaches the minibatches the policy learns from (one-colour images, which the random shift
+    leaves as they are)."""
+    data = Dataset(64)
+    rgb = torch.tensor([150, 100, 70], dtype=torch.uint8).expand(64, 84, 84, 3).clone()
+    obs = {"rgb": rgb, "depth": torch.randint(1, 3000, (64, 84, 84, 1), dtype=torch.int16), "state": torch.randn(64, 6)}
+    data.add(obs, torch.rand(64, 5) * 2 - 1)
+    policy = DeterministicActor((84, 84, 4), 6, 5)
+    seen = []
+    features = policy.features
+    monkeypatch.setattr(policy, "features", lambda o: seen.append(o["rgb"][:, 0, 0].clone()) or features(o))
+    args = Args(obs="rgbd", updates_per_round=2, batch_size=64, color_jitter=0.5)
+    opt, cpu = torch.optim.AdamW(policy.parameters()), torch.device("cpu")
+    train_round(policy, opt, data, args, cpu)
+    changed = (torch.cat(seen) != rgb[0, 0, 0]).any(1)
+    assert len(seen) == 2 and changed.float().mean() > 0.9
+    seen.clear()
+    train_round(policy, opt, data, replace(args, color_jitter=0.0), cpu)
+    assert (torch.cat(seen) == rgb[0, 0, 0]).all()
+
+
 def test_round_updates_stop_at_the_budget():
     data = Dataset(64)
     data.add({"state": torch.randn(64, 6)}, torch.rand(64, 5) * 2 - 1)
@@ -441,6 +504,9 @@ def test_keypoint_encoder_needs_a_camera_and_names_itself():
         (dict(obs="rgbd", rgb_dropout=1.0), "--rgb-dropout is a probability"),
         (dict(obs="rgbd", rgb_dropout=float("nan")), "--rgb-dropout is a probability"),
         (dict(rgb_dropout=0.3), "--rgb-dropout .* --obs state has none"),
+        (dict(obs="rgbd", color_jitter=1.5), "--color-jitter is a strength in"),
+        (dict(obs="rgbd", color_jitter=float("nan")), "--color-jitter is a strength in"),
+        (dict(color_jitter=0.3), "--color-jitter .* --obs state has none"),
         (dict(initial_updates=-5), "--initial-updates"),
     ):
         with pytest.raises(ValueError, match=match):
