@@ -5,7 +5,6 @@ proprioception encoder, so a checkpoint's encoder means the same thing everywher
 from __future__ import annotations
 
 import math
-
 from typing import Optional
 
 import numpy as np

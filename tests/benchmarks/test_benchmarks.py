@@ -315,9 +315,7 @@ def test_sim2real_gap_mount_error_rows_scale_the_mount_and_run_only_when_named(t
 
     gap.evaluate = evaluate
     gap.main(gap.Args(camera="twin", out=tmp_path))  # the default table: no calibration-error rows
-    assert {name for name, _, _ in ran} == {
-        gap.folder(n) for n in gap.SHIFTS if n not in gap.BY_NAME_ONLY
-    }
+    assert {name for name, _, _ in ran} == {gap.folder(n) for n in gap.SHIFTS if n not in gap.BY_NAME_ONLY}
     ran.clear()
     out = gap.main(gap.Args(camera="twin", shifts=["camera mount x0.1", "none"], out=tmp_path))
     assert ran == [("camera_mount_x0.1", gap.SHIFTS["camera mount x0.1"], None), ("none", None, None)]  # as named
