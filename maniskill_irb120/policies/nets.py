@@ -4,7 +4,6 @@ proprioception encoder, so a checkpoint's encoder means the same thing everywher
 
 from __future__ import annotations
 
-import math
 from typing import Optional
 
 import numpy as np
@@ -179,7 +178,7 @@ def jitter_rgb(
         return (torch.rand(n, device=dev, generator=generator) * 2 - 1) * strength
 
     brightness, contrast, saturation = 1 + factor(), 1 + factor(), (1 + factor()).clamp(min=0)
-    angle = factor() * math.pi
+    angle = factor() * torch.pi
     cos, sin = torch.cos(angle) * saturation, torch.sin(angle) * saturation
     chroma = torch.zeros(n, 3, 3, device=dev)
     chroma[:, 0, 0] = 1
