@@ -154,6 +154,7 @@ def drop_rgb(
 
 _RGB_TO_YIQ = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
 """NTSC YIQ: luma Y and the chroma plane (I, Q), in which a hue shift is a rotation and saturation a scale"""
+_YIQ_TO_RGB = torch.linalg.inv(_RGB_TO_YIQ)
 
 
 def jitter_rgb(
@@ -184,7 +185,7 @@ def jitter_rgb(
     chroma[:, 0, 0] = 1
     chroma[:, 1, 1], chroma[:, 1, 2], chroma[:, 2, 1], chroma[:, 2, 2] = cos, -sin, sin, cos
     to_yiq = _RGB_TO_YIQ.to(dev)
-    colour = torch.linalg.inv(to_yiq) @ chroma @ to_yiq * brightness.view(n, 1, 1)  # (n, 3, 3)
+    colour = _YIQ_TO_RGB.to(dev) @ chroma @ to_yiq * brightness.view(n, 1, 1)  # (n, 3, 3)
     x = rgb.float().reshape(n, -1, 3)  # (n, h*w, 3), 0..255
     mean_luma = (colour @ x.mean(1, keepdim=True).transpose(1, 2)).squeeze(2) @ to_yiq[0]  # (n,) after the colour
     offset = ((1 - contrast) * mean_luma).view(n, 1, 1).expand(n, 1, 3)
