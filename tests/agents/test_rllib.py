@@ -155,6 +155,8 @@ def test_resume_continues_and_evaluate_writes_a_summary(ray_local, tmp_path, mon
         main(Args(algo="SAC", resume=ckpt, iterations=4, runs_dir=tmp_path, **TINY))
 
 
+# Ray's own restart of a killed runner (~33 s on CI's machine); that our config asks for it is checked above, fast
+@SLOW
 def test_a_killed_env_runner_is_restarted_and_training_goes_on(ray_local, tmp_path):
     from agents.rllib.env import register
 

@@ -641,7 +641,12 @@ def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell
     """A ``callback:`` entry of the project's skrl YAML (integrations.skrl.SelectOnValidation) reaches the skrl cell:
     after the agent's own post_interaction it checks the deterministic policy on validation seeds every ``every``
     env steps, saves the best agent in the cell's folder, and the cell's held-out score is the saved agent's (it acts
-    exactly as the policy did when it was checked), the last policy's kept beside it."""
+    exactly as the policy did when it was checked), the last policy's kept beside it.
+
+    The same trained cell then takes --validate (one skrl cell trained for both, as the SB3 test below does): it
+    rebuilds the agent from its config, loads what training saved last (the models and the observation scaler) and
+    plays it on VALIDATION_SEED onwards, acting as the last policy did on the held-out seeds; and
+    scripts/diagnose_policy.py plays the same saved agent through the same loader, its critic beside it."""
     pytest.importorskip("skrl")
     import gymnasium as gym
     import torch
@@ -656,6 +661,7 @@ def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell
         probe, _ = env.reset(seed=3)
     finally:
         env.close()
+    flat = {"state": probe}
     acted = {}  # each check's action on one fixed observation, as the policy was when checked
     real_check = selection.held_out_success
 
@@ -664,10 +670,10 @@ def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell
         return real_check(act, env_id, obs, episodes, seed=seed)
 
     monkeypatch.setattr(selection, "held_out_success", check)
-    final = []
+    final = []  # each evaluation's act, its seeds and its action on the probe when it was called
     real = alg.evaluate_on_seeds
-    monkeypatch.setattr(alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: final.append(act) or real(
-        act, env_id, obs, seeds))  # fmt: skip
+    monkeypatch.setattr(alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: final.append(
+        (act, seeds, act(flat))) or real(act, env_id, obs, seeds))  # fmt: skip
     cfg = loader.skrl_config("ppo", "GraspLift-IRB120-v1")
     cfg["callback"] = [{"maniskill_irb120.integrations.skrl.SelectOnValidation": {"every": 128, "episodes": 1}}]
     conf = tmp_path / "ppo_select.yaml"
@@ -686,41 +692,18 @@ def test_a_skrl_configs_selection_hook_keeps_the_best_on_validation_and_the_cell
     assert one["selected"]["first_seed"] == alg.VALIDATION_SEED
     assert len(one["last_policy_successes"]) == len(one["successes"])
     assert not torch.equal(acted[0], acted[3])  # the update moved the policy, so the two candidates differ
-    flat = {"state": probe}
-    assert torch.equal(final[-1](flat)[0], acted[first_top])  # the cell scores the selected agent, as it was
+    last_policy = final[-2][2]  # the cell scores the last policy, then the selected one
+    assert final[-2][1][0] == alg.EVAL_SEED and torch.equal(final[-1][2][0], acted[first_top])
+    assert torch.equal(final[-1][0](flat)[0], acted[first_top])  # the cell deploys the selected agent, as it was
     rerun_finished_cell(alg, args, cell, one)  # trains nothing and deploys the same kept agent
-    assert torch.equal(final[-1](flat)[0], acted[first_top])
-
-
-def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, tmp_path, monkeypatch):
-    """--validate on a skrl cell rebuilds the agent from its config, loads what training saved (the models and the
-    observation scaler) and plays it on VALIDATION_SEED onwards: it acts as the trained agent did, on other seeds."""
-    pytest.importorskip("skrl")
-    import gymnasium as gym
-    import torch
-
-    import maniskill_irb120  # noqa: F401
-
-    calls = []
-    real = alg.evaluate_on_seeds
-    monkeypatch.setattr(alg, "evaluate_on_seeds", lambda act, env_id, obs, seeds: calls.append((act, seeds)) or real(
-        act, env_id, obs, seeds))  # fmt: skip
-    cell = "state/GraspLift/skrl-ppo-tuned/s1"
-    args = alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", quick=True,
-                    total_env_steps=520, eval_episodes=1, curve_points=1, reference_steps=0)  # fmt: skip
-    trained = alg.main(args)["cells"][cell]
+    assert torch.equal(final[-1][0](flat)[0], acted[first_top])
+    # --validate: the saved last agent on the validation seeds
     report = alg.main(alg.Args(only=[cell], out_dir=tmp_path / "out", runs_dir=tmp_path / "runs", validate=True,
                                eval_episodes=1))  # fmt: skip
     v = report["cells"][cell]["validation"]
-    assert (v["episodes"], v["first_seed"], v["env_steps"]) == (1, alg.VALIDATION_SEED, trained["env_steps"])
-    (trained_act, held_seeds), (validate_act, seeds) = calls[-2], calls[-1]
-    assert held_seeds[0] == alg.EVAL_SEED and seeds == [alg.VALIDATION_SEED]  # --quick scores 2 held-out episodes
-    env = gym.make("GraspLift-IRB120-v1", obs_mode="state", render_backend="none")
-    try:
-        flat, _ = env.reset(seed=3)
-    finally:
-        env.close()
-    assert torch.equal(trained_act({"state": flat}), validate_act({"state": flat}))  # the saved scaler and weights
+    assert (v["episodes"], v["first_seed"], v["env_steps"]) == (1, alg.VALIDATION_SEED, one["env_steps"])
+    validate_act, seeds, _ = final[-1]
+    assert seeds == [alg.VALIDATION_SEED] and torch.equal(validate_act(flat), last_policy)  # its scaler and weights
     # scripts/diagnose_policy.py plays the same saved agent through the same loader, its critic beside it
     spec = importlib.util.spec_from_file_location(
         "diagnose_policy", Path(__file__).parents[2] / "scripts" / "diagnose_policy.py"
@@ -730,14 +713,14 @@ def test_validate_scores_a_skrl_cells_saved_agent_on_the_validation_seeds(alg, t
     spec.loader.exec_module(diagnose)
     agent_pt = tmp_path / "runs" / cell.replace("/", "__") / "agent.pt"
     model = diagnose.SkrlModel(cell, agent_pt)
-    assert torch.equal(torch.as_tensor(model.predict(flat.numpy())[0]), trained_act({"state": flat}))
-    assert model.gamma == 0.8 and model.num_timesteps == trained["env_steps"]  # the YAML's discount_factor
-    assert math.isfinite(model.value(flat.float())[0])
+    assert torch.equal(torch.as_tensor(model.predict(probe.numpy())[0]), last_policy)
+    assert model.gamma == 0.8 and model.num_timesteps == one["env_steps"]  # the YAML's discount_factor
+    assert math.isfinite(model.value(probe.float())[0])
     from maniskill_irb120.integrations.skrl import deterministic_value
 
-    batch = deterministic_value(model.agent, model.space, torch.stack([flat, flat + 0.05]))  # one value per row
+    batch = deterministic_value(model.agent, model.space, torch.stack([probe, probe + 0.05]))  # one value per row
     assert batch.shape == (2,) and batch[0] != batch[1]
-    assert float(batch[0]) == pytest.approx(model.value(flat)[0], rel=1e-5)
+    assert float(batch[0]) == pytest.approx(model.value(probe)[0], rel=1e-5)
     out = tmp_path / "diagnosis.json"
     diagnose.cli(["--model", str(agent_pt), "--skrl-cell", cell, "--episodes", "1", "--max-steps", "3",
                   "--out", str(out)])  # fmt: skip

@@ -114,6 +114,7 @@ def test_sigterm_stops_every_cell_process_and_each_writes_its_report(tmp_path):
 
 
 @LINUX
+@pytest.mark.slow  # a two-worker table started and killed (~33 s on CI's machine); SIGTERM's path runs by default
 def test_a_cell_process_stops_when_the_table_is_killed(tmp_path):
     """SIGKILL leaves the table no time to stop its cells: each stops itself (PR_SET_PDEATHSIG), writes its report
     and ends, where the pool's queue would have kept it waiting for a next cell."""
