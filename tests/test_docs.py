@@ -133,6 +133,35 @@ def test_the_heading_scan_finds_a_wrapped_link_and_a_wrapped_heading():
     ]
 
 
+def fence_errors(text: str) -> list[str]:
+    """``line N: why: text`` for each fence Markdown does not close where it was meant to: a closing fence with text
+    after it (CommonMark and Python-Markdown read it as code, so the block runs on through the prose after it), and
+    a block still open at the end of the page."""
+    found, fence, start = [], None, 0
+    for n, line in enumerate(text.splitlines(), 1):
+        opens = FENCE.match(line)
+        if fence is None:
+            if opens:
+                fence, start = opens.group(1), n
+        elif opens and line.strip().startswith(fence):
+            if line.strip().strip(fence[0]):
+                found.append(f"line {n}: text after a closing fence leaves the block open: {line}")
+            fence = None
+    if fence is not None:
+        found.append(f"line {start}: a fence never closed")
+    return found
+
+
+def test_every_fenced_block_closes_on_a_bare_fence():
+    found = [f"{p.relative_to(REPO)} {hit}" for p in PAGES for hit in fence_errors(p.read_text())]
+    assert found == [], "end each block on a line of the fence alone:\n" + "\n".join(found)
+    text = "Run:\n\n```bash\nls\n``` then it lists.\n\n```\nopen\n"
+    assert fence_errors(text) == [
+        "line 5: text after a closing fence leaves the block open: ``` then it lists.",
+        "line 7: a fence never closed",
+    ]
+
+
 def test_every_section_of_a_page_is_in_its_table_of_contents(built):
     """Each ``<h2>`` of a built page has its entry in the page's table of contents (Material drops the sections
     after a second H1 from it), and the page has one H1."""
