@@ -50,6 +50,7 @@ from agents.common import (
     torch_threads,
     train_seed,
 )
+from agents.common.args import resumed_args
 from agents.common.loop import Algorithm
 from maniskill_irb120.policies import policy_module, policy_section, read_policy_section, section_of
 from maniskill_irb120.policies.nets import DeterministicActor, drop_rgb, jitter_rgb, random_shift
@@ -293,6 +294,11 @@ def initial_weights(args: Args, policy: DeterministicActor) -> dict:
     return section["state_dict"]
 
 
+def started_from(resume: Path) -> Optional[Path]:
+    """The --init-policy the run whose checkpoint is ``resume`` was started with (None: it started fresh)."""
+    return resumed_args(Args, Path(resume)).init_policy
+
+
 def check_args(args: Args) -> None:
     """Flags that would otherwise be ignored or break a long run late are refused up front, by name."""
     if args.encoder != "nature" and args.obs != "rgbd":
@@ -309,7 +315,8 @@ def check_args(args: Args) -> None:
         raise ValueError(f"--color-jitter changes camera images' colours; --obs {args.obs} has none")
     if args.aux_mount and args.aux_weight == 0:
         raise ValueError("--aux-mount adds the camera mount to the auxiliary targets: it needs --aux-weight > 0")
-    if args.init_policy is not None and args.resume is not None:
+    if args.init_policy is not None and args.resume is not None and started_from(args.resume) != args.init_policy:
+        # a run started from --init-policy resumes with it among its own arguments; another one would be ignored
         raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
@@ -344,7 +351,7 @@ class DAgger(Algorithm):
         self.envs = envs = make_envs(args, args.num_envs)
         action_dim = int(np.prod(envs.single_action_space.shape))
         self.policy = policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
-        if args.init_policy is not None:
+        if args.init_policy is not None and saved is None:  # a resumed run has weights of its own
             try:
                 policy.load_state_dict(initial_weights(args, policy))
             except BaseException:

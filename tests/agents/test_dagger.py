@@ -584,6 +584,13 @@ def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_po
         tiny(tmp_path, exp_name="d", init_policy=Path(a["checkpoint"]), action_frame="tool")
     with pytest.raises(ValueError, match="pick one"):
         tiny(tmp_path, exp_name="e", init_policy=Path(a["checkpoint"]), resume=Path(a["checkpoint"]))
+    # a run started from --init-policy resumes with it among its own arguments (as the command line's --resume alone
+    # gives them): it goes on from its own weights and dataset; another --init-policy with --resume is refused
+    resumed = tiny(tmp_path, exp_name="b", init_policy=Path(a["checkpoint"]), resume=Path(b["checkpoint"]),
+                   budget_min=None, total_env_steps=b["env_steps"] + 1, expert_episodes=1)  # fmt: skip
+    assert resumed["rounds"] > b["rounds"] and resumed["dataset"] > b["dataset"]
+    with pytest.raises(ValueError, match="pick one"):
+        tiny(tmp_path, exp_name="b", init_policy=Path(c["checkpoint"]), resume=Path(b["checkpoint"]))
 
 
 def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evaluation_scores_it(
