@@ -110,7 +110,7 @@ class Args(RunArgs):
     init_policy: Optional[Path] = None
     """start the policy from this agents.dagger checkpoint's or exported policy's weights (same task, observation,
     encoder and action frame); optimiser, dataset and counters start fresh, e.g. to train a nominal policy on
-    under --env-kwargs randomization"""
+    under --env-kwargs randomization. Such a run resumes with --resume alone, from its own weights"""
     save_freq: int = 10
     """checkpoint every N rounds, and always at the end; the dataset goes beside it, each save writing only
     the rows new since the last (checkpoints/data/)"""
