@@ -90,8 +90,9 @@ class Args(RunArgs):
     """AdamW learning rate (MSE to the expert's actions)"""
     weight_decay: float = 1e-5
     """AdamW weight decay"""
-    encoder: Literal["nature", "keypoints"] = "nature"
-    """rgbd image encoder: nature (NatureCNN) or keypoints (KeypointCNN: conv + spatial softmax)"""
+    encoder: Literal["nature", "keypoints", "keypoints-depth"] = "nature"
+    """rgbd image encoder: nature (NatureCNN), keypoints (KeypointCNN: conv + spatial softmax) or keypoints-depth (a
+    depth-only keypoint stack beside it; --init-policy widens a keypoints policy into it, acting as that one did)"""
     augment: bool = True
     """rgbd: DrQ random-shift augmentation of the images while training"""
     rgb_dropout: float = 0.0
@@ -110,7 +111,13 @@ class Args(RunArgs):
     init_policy: Optional[Path] = None
     """start the policy from this agents.dagger checkpoint's or exported policy's weights (same task, observation,
     encoder and action frame); optimiser, dataset and counters start fresh, e.g. to train a nominal policy on
-    under --env-kwargs randomization. Such a run resumes with --resume alone, from its own weights"""
+    under --env-kwargs randomization. Such a run resumes with --resume alone, from its own weights. The policy keeps
+    its state normalisation: round 0's episodes do not refit it"""
+    init_data: Optional[Path] = None
+    """start the dataset with another agents.dagger run's (its checkpoints/latest.pt, the row files beside it): the
+    same task, observation, action frame, labeller (--teacher) and auxiliary targets, any randomisation; e.g. a
+    student of another encoder trained on the states a run already collected and labelled. Those rows count toward
+    neither this run's env steps nor its budget. Such a run resumes with --resume alone"""
     save_freq: int = 10
     """checkpoint every N rounds, and always at the end; the dataset goes beside it, each save writing only
     the rows new since the last (checkpoints/data/)"""
@@ -274,8 +281,9 @@ def run_evaluation_only(args: Args) -> dict:
     )
 
 
-def initial_weights(args: Args, policy: DeterministicActor) -> dict:
-    """``--init-policy``'s weights, once its section says it reads and acts as this run's policy does."""
+def load_initial_weights(args: Args, policy: DeterministicActor) -> None:
+    """Load ``--init-policy``'s weights, once its section says it reads and acts as this run's policy does; a
+    ``keypoints`` policy into a ``keypoints-depth`` run is widened (:meth:`DeterministicActor.widen`)."""
     where = f"--init-policy {args.init_policy}"
     section = read_policy_section(args.init_policy, where)
     theirs = dict(
@@ -288,15 +296,44 @@ def initial_weights(args: Args, policy: DeterministicActor) -> dict:
     )
     ours = dict(kind="dagger", env_id=args.env_id, obs=args.obs, action_frame=args.action_frame)
     ours.update(obs_without=tuple(args.obs_without), signature=policy.signature())
+    widens = ours["signature"].get("encoder") == "keypoints-depth" and theirs["signature"].get("encoder") == "keypoints"
+    if widens:
+        theirs["signature"] = dict(theirs["signature"], encoder="keypoints-depth")
     differ = [f"{k}={theirs[k]!r} (this run: {ours[k]!r})" for k in ours if theirs[k] != ours[k]]
     if differ:
         raise ValueError(f"{where} is not this run's policy: " + ", ".join(differ))
-    return section["state_dict"]
+    if widens:
+        policy.widen(section["state_dict"])
+    else:
+        policy.load_state_dict(section["state_dict"])
 
 
-def started_from(resume: Path) -> Optional[Path]:
-    """The --init-policy the run whose checkpoint is ``resume`` was started with (None: it started fresh)."""
-    return resumed_args(Args, Path(resume)).init_policy
+def load_initial_data(args: Args, data: Dataset) -> None:
+    """Fill ``data`` with ``--init-data``'s rows, once that run's arguments say its rows are this run's kind:
+    the same observation and action, labelled by the same labeller, with the same auxiliary targets."""
+    where = f"--init-data {args.init_data}"
+    if not Path(args.init_data).is_file():
+        raise FileNotFoundError(f"{where}: no such checkpoint")
+    theirs = resumed_args(Args, Path(args.init_data))
+    names = ("env_id", "obs", "action_frame", "obs_without", "teacher", "aux_mount")
+    differ = [
+        f"{k}={getattr(theirs, k)!r} (this run: {getattr(args, k)!r})"
+        for k in names
+        if getattr(theirs, k) != getattr(args, k)
+    ]
+    if (theirs.aux_weight > 0) != (args.aux_weight > 0):
+        differ.append(f"aux targets {'on' if theirs.aux_weight > 0 else 'off'} (this run: the other)")
+    if differ:
+        raise ValueError(f"{where} holds rows of another kind: " + ", ".join(differ))
+    saved = load_torch(Path(args.init_data), FORMAT, "agents.dagger")
+    if "optimizer" not in saved:
+        raise ValueError(f"{where} holds a selected policy (best.pt), no dataset: give the run's checkpoints/latest.pt")
+    restore_dataset(data, saved, Path(args.init_data).parent / "data")
+
+
+def started_with(resume: Path) -> Args:
+    """The arguments the run whose checkpoint is ``resume`` was started with."""
+    return resumed_args(Args, Path(resume))
 
 
 def check_args(args: Args) -> None:
@@ -315,9 +352,14 @@ def check_args(args: Args) -> None:
         raise ValueError(f"--color-jitter changes camera images' colours; --obs {args.obs} has none")
     if args.aux_mount and args.aux_weight == 0:
         raise ValueError("--aux-mount adds the camera mount to the auxiliary targets: it needs --aux-weight > 0")
-    if args.init_policy is not None and args.resume is not None and started_from(args.resume) != args.init_policy:
-        # a run started from --init-policy resumes with it among its own arguments; another one would be ignored
-        raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
+    if args.resume is not None and (args.init_policy is not None or args.init_data is not None):
+        # a run started from --init-policy or --init-data resumes with it among its own arguments; another one
+        # would be ignored
+        own = started_with(args.resume)
+        if args.init_policy is not None and own.init_policy != args.init_policy:
+            raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
+        if args.init_data is not None and own.init_data != args.init_data:
+            raise ValueError("--init-data starts a new run from a dataset; --resume continues one: pick one")
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
 
@@ -351,16 +393,19 @@ class DAgger(Algorithm):
         self.envs = envs = make_envs(args, args.num_envs)
         action_dim = int(np.prod(envs.single_action_space.shape))
         self.policy = policy = policy_for(envs.single_observation_space, action_dim, device, args.encoder)
-        if args.init_policy is not None and saved is None:  # a resumed run has weights of its own
-            try:
-                policy.load_state_dict(initial_weights(args, policy))
+        self.data = Dataset(args.capacity)
+        if saved is None and (args.init_policy is not None or args.init_data is not None):
+            try:  # a resumed run has weights and data of its own
+                if args.init_policy is not None:
+                    load_initial_weights(args, policy)
+                if args.init_data is not None:
+                    load_initial_data(args, self.data)
             except BaseException:
                 envs.close()
                 raise
         self.aux_head = aux_head = aux_head_for(policy, device, args.aux_mount) if args.aux_weight > 0 else None
         params = list(policy.parameters()) + (list(aux_head.parameters()) if aux_head is not None else [])
         self.optimizer = torch.optim.AdamW(params, lr=args.learning_rate, weight_decay=args.weight_decay)
-        self.data = Dataset(args.capacity)
         if saved is not None:
             check_resume_signature(saved, policy.signature(), args.resume, args)
             if (saved.get("aux_head") is None) != (aux_head is None):
@@ -399,7 +444,8 @@ class DAgger(Algorithm):
             updates0 = args.initial_updates or args.updates_per_round
             print(f"[dagger] round 0: {args.expert_episodes} labelled episodes, then {updates0} updates", flush=True)
             stats = collect(self.envs, self.state, policy, data, args.expert_episodes, 1.0, args.dart_noise, device)
-            policy.norm.fit(data.obs["state"][: data.size])
+            if args.init_policy is None:  # a loaded policy's weights expect its own normalisation
+                policy.norm.fit(data.obs["state"][: data.size])
             took = time.perf_counter() - t0
             rate = stats["steps"] / took
             print(f"[dagger] round 0: {stats['steps']:,} env steps in {took:.0f} s ({rate:.0f}/s)", flush=True)

@@ -83,13 +83,36 @@ class KeypointCNN(nn.Module):
     """The camera encoder for precise positioning (``encoder="keypoints"``): a small conv stack at 21x21
     resolution and a spatial softmax, so the features are where things are in the image (the cube a few pixels
     wide, the fingers over it) rather than a flattened map; plus the same proprioception MLP as
-    :class:`NatureCNN`. About the Nature CNN's cost per image on a CPU."""
+    :class:`NatureCNN`. About the Nature CNN's cost per image on a CPU.
 
-    def __init__(self, image_shape: tuple[int, int, int], state_dim: int, keypoints: int = 32):
+    ``depth_keypoints`` > 0 (``encoder="keypoints-depth"``) adds a second stack of the same shape that sees the
+    depth image alone, with keypoints of its own: features no texture or colour can move, which the RGB-D stack
+    is free to neglect when the colours tell it more on its training data. Its keypoints come between the RGB-D
+    stack's and the proprioception's, so that a ``keypoints`` actor widens into this one
+    (:meth:`DeterministicActor.widen`)."""
+
+    def __init__(
+        self, image_shape: tuple[int, int, int], state_dim: int, keypoints: int = 32, depth_keypoints: int = 0
+    ):
         super().__init__()
         h, w, c = image_shape
-        self.cnn = nn.Sequential(
-            nn.Conv2d(c, 32, 5, stride=2, padding=2),
+        self.cnn = self.stack(c, keypoints)
+        with torch.no_grad():
+            _, _, fh, fw = self.cnn(torch.zeros(1, c, h, w)).shape
+        self.keypoints = SpatialSoftmax(fh, fw)
+        self.depth_cnn = self.depth_keypoints = None
+        if depth_keypoints > 0:
+            self.depth_cnn = self.stack(1, depth_keypoints)
+            self.depth_keypoints = SpatialSoftmax(fh, fw)
+        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
+        self.image_dim = 2 * keypoints
+        self.depth_dim = 2 * depth_keypoints
+        self.out_dim = self.image_dim + self.depth_dim + 256
+
+    @staticmethod
+    def stack(channels: int, keypoints: int) -> nn.Sequential:
+        return nn.Sequential(
+            nn.Conv2d(channels, 32, 5, stride=2, padding=2),
             nn.ReLU(),
             nn.Conv2d(32, 32, 3, stride=2, padding=1),
             nn.ReLU(),
@@ -97,20 +120,33 @@ class KeypointCNN(nn.Module):
             nn.ReLU(),
             nn.Conv2d(32, keypoints, 1),
         )
-        with torch.no_grad():
-            _, _, fh, fw = self.cnn(torch.zeros(1, c, h, w)).shape
-        self.keypoints = SpatialSoftmax(fh, fw)
-        self.mlp = nn.Sequential(nn.Linear(state_dim, 256), nn.ReLU())
-        self.out_dim = 2 * keypoints + 256
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        keypoints = self.keypoints(self.cnn(image_tensor(obs)))
+        image = image_tensor(obs)
+        feats = [self.keypoints(self.cnn(image))]
+        if self.depth_cnn is not None:
+            feats.append(self.depth_keypoints(self.depth_cnn(image[:, 3:])))
         # the proprioception float32 even under a learner's bf16 autocast (for the convolutions' sake)
-        with torch.autocast(device_type=keypoints.device.type, enabled=False):
-            return torch.cat([keypoints, self.mlp(obs["state"].float())], dim=1)
+        with torch.autocast(device_type=feats[0].device.type, enabled=False):
+            return torch.cat([*feats, self.mlp(obs["state"].float())], dim=1)
 
 
-ENCODERS = ("nature", "keypoints")
+ENCODERS = ("nature", "keypoints", "keypoints-depth")
+"""the camera encoders a trainer can be asked for by name"""
+
+DEPTH_KEYPOINTS = 16
+"""the depth-only stack's keypoints in ``encoder="keypoints-depth"``: half the RGB-D stack's"""
+
+
+def camera_encoder(encoder: str, image_shape: Optional[tuple[int, int, int]], state_dim: int) -> nn.Module:
+    """The encoder named ``encoder`` (one of :data:`ENCODERS`), for every trainer that offers the choice."""
+    if encoder not in ENCODERS:
+        raise ValueError(f"unknown encoder {encoder!r}; expected one of {ENCODERS}")
+    if encoder == "nature":
+        return NatureCNN(image_shape, state_dim)
+    if image_shape is None:
+        raise ValueError(f"encoder {encoder!r} reads the camera; a state policy has no image (use 'nature')")
+    return KeypointCNN(image_shape, state_dim, depth_keypoints=DEPTH_KEYPOINTS if encoder == "keypoints-depth" else 0)
 
 
 def random_shift(
@@ -274,16 +310,10 @@ class DeterministicActor(nn.Module):
         encoder: str = "nature",
     ):
         super().__init__()
-        if encoder not in ENCODERS:
-            raise ValueError(f"unknown encoder {encoder!r}; expected one of {ENCODERS}")
-        if encoder == "keypoints" and image_shape is None:
-            raise ValueError("encoder 'keypoints' reads the camera; a state policy has no image (use 'nature')")
+        self.encoder = camera_encoder(encoder, image_shape, state_dim)
         self.image_shape, self.state_dim, self.action_dim = image_shape, state_dim, action_dim
         self.encoder_kind = encoder
         self.norm = StateNorm(state_dim)
-        self.encoder = (
-            KeypointCNN(image_shape, state_dim) if encoder == "keypoints" else NatureCNN(image_shape, state_dim)
-        )
         self.head = nn.Sequential(
             nn.Linear(self.encoder.out_dim, hidden),
             nn.ReLU(),
@@ -301,6 +331,34 @@ class DeterministicActor(nn.Module):
         if self.encoder_kind != "nature":  # the Nature CNN's signature predates the choice: old checkpoints load
             sig["encoder"] = self.encoder_kind
         return sig
+
+    def widen(self, narrow: dict[str, torch.Tensor]) -> None:
+        """Load a ``keypoints`` actor's weights (its ``state_dict``) into this ``keypoints-depth`` one so that it acts
+        exactly as that actor did: the depth stack keeps its fresh weights, and the head's first layer reads its
+        keypoints through zero columns. Training then grows those columns from their gradient (which is not zero),
+        and with them the depth stack's, from the narrow policy's behaviour rather than from scratch (Net2Net's
+        function-preserving widening)."""
+        if self.encoder_kind != "keypoints-depth":
+            raise ValueError(f"only a 'keypoints-depth' actor widens a narrower one (this one: {self.encoder_kind!r})")
+        own = self.state_dict()
+        extra = {k for k in own if k.startswith(("encoder.depth_cnn.", "encoder.depth_keypoints."))}
+        weight = own["head.0.weight"]
+        begin, end = self.encoder.image_dim, self.encoder.image_dim + self.encoder.depth_dim
+        shapes = {k: v.shape for k, v in own.items() if k not in extra}
+        shapes["head.0.weight"] = torch.Size((weight.shape[0], weight.shape[1] - (end - begin)))
+        if {k: v.shape for k, v in narrow.items()} != shapes:
+            raise ValueError("the weights to widen are not a 'keypoints' actor's of this actor's shapes")
+        wide = dict(narrow)
+        wide["head.0.weight"] = torch.cat(
+            [
+                narrow["head.0.weight"][:, :begin],
+                torch.zeros_like(weight[:, begin:end]),
+                narrow["head.0.weight"][:, begin:],
+            ],
+            dim=1,
+        )
+        wide.update({k: own[k] for k in extra})
+        self.load_state_dict(wide)
 
     def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """The encoder's output: what an auxiliary head (agents.dagger ``--aux-weight``) reads too."""

@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 from torch.distributions.normal import Normal
 
-from maniskill_irb120.policies.nets import ENCODERS, DeterministicActor, KeypointCNN, NatureCNN, RunningNorm, layer_init
+from maniskill_irb120.policies.nets import ENCODERS, DeterministicActor, RunningNorm, camera_encoder, layer_init
 
 STATE_NETS = ("shared", "mlp")
 LOGSTDS = ("param", "state")
@@ -31,9 +31,9 @@ LOGSTD_RANGE = (-5.0, 2.0)
 class Agent(nn.Module):
     """Shared encoder, separate policy and value heads, a state-independent log-std (``logstd="state"``: a head on
     the actor's input); with ``residual`` the mean is a frozen base policy's action plus the actor head's output (a
-    zero-initialised residual). ``encoder``: the camera encoder under the heads, ``nature`` (NatureCNN) or
-    ``keypoints`` (KeypointCNN); a residual's frozen base is built with the same one (a DAgger policy of that
-    encoder)."""
+    zero-initialised residual). ``encoder``: the camera encoder under the heads, ``nature`` (NatureCNN),
+    ``keypoints`` (KeypointCNN) or ``keypoints-depth`` (with a depth-only stack beside it); a residual's frozen
+    base is built with the same one (a DAgger policy of that encoder)."""
 
     def __init__(
         self,
@@ -92,10 +92,7 @@ class Agent(nn.Module):
                 layer_init(nn.Linear(256, action_dim), std=0.01 * np.sqrt(2)),
             )
         else:
-            if encoder == "keypoints":
-                self.encoder = KeypointCNN(image_shape, state_dim)
-            else:
-                self.encoder = NatureCNN(image_shape, state_dim)
+            self.encoder = camera_encoder(encoder, image_shape, state_dim)
             d = self.encoder.out_dim
             self.critic = nn.Sequential(layer_init(nn.Linear(d, 512)), nn.ReLU(), layer_init(nn.Linear(512, 1)))
             self.actor_mean = nn.Sequential(

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 
 import maniskill_irb120  # noqa: F401
 from agents.common import Dataset, ExpertLabels
-from agents.dagger import Args, main, make_envs, train_round
+from agents.dagger import Args, load_policy, main, make_envs, train_round
 from maniskill_irb120.action import tcp_rotation, tool_to_world
 from maniskill_irb120.experts import expert_for
 from maniskill_irb120.policies.nets import DeterministicActor, SpatialSoftmax, drop_rgb, jitter_rgb, random_shift
@@ -513,6 +513,36 @@ def test_keypoint_encoder_needs_a_camera_and_names_itself():
             main(Args(**bad))  # refused before any env starts
 
 
+def test_widening_keeps_the_narrow_actors_actions_and_its_new_columns_learn():
+    torch.manual_seed(0)
+    narrow = DeterministicActor((84, 84, 4), 6, 5, encoder="keypoints")
+    wide = DeterministicActor((84, 84, 4), 6, 5, encoder="keypoints-depth")
+    depth_before = {k: v.clone() for k, v in wide.state_dict().items() if ".depth_" in k}
+    wide.widen(narrow.state_dict())
+    obs = dict(
+        rgb=torch.randint(0, 256, (4, 84, 84, 3), dtype=torch.uint8),
+        depth=torch.randint(0, 2000, (4, 84, 84, 1), dtype=torch.int16),
+        state=torch.randn(4, 6),
+    )
+    assert torch.allclose(narrow(obs), wide(obs), atol=1e-6)
+    after = wide.state_dict()
+    assert all(torch.equal(after[k], v) for k, v in depth_before.items())  # the depth stack keeps its fresh weights
+    begin, end = wide.encoder.image_dim, wide.encoder.image_dim + wide.encoder.depth_dim
+    assert (begin, end) == (64, 96) and not after["head.0.weight"][:, begin:end].any()
+    # the depth image alone reaches the new keypoints: an RGB change moves the RGB-D stack's, not these
+    feats = wide.features(obs)[:, begin:end]
+    assert torch.equal(wide.features(dict(obs, rgb=255 - obs["rgb"]))[:, begin:end], feats)
+    assert not torch.equal(wide.features(dict(obs, depth=obs["depth"].flip(1)))[:, begin:end], feats)
+    wide(obs).square().sum().backward()
+    assert wide.head[0].weight.grad[:, begin:end].abs().sum() > 0  # the zero columns grow from their gradient
+    with pytest.raises(ValueError, match="only a 'keypoints-depth' actor widens"):
+        narrow.widen(narrow.state_dict())
+    with pytest.raises(ValueError, match="not a 'keypoints' actor's"):
+        wide.widen(DeterministicActor((84, 84, 4), 7, 5, encoder="keypoints").state_dict())
+    with pytest.raises(ValueError, match="not a 'keypoints' actor's"):
+        wide.widen(DeterministicActor((84, 84, 4), 6, 5).state_dict())  # the Nature CNN's
+
+
 def test_bad_checkpoints_are_named(tmp_path):
     with pytest.raises(ValueError, match="--checkpoint"):
         main(Args(evaluate=True))
@@ -574,11 +604,13 @@ def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_po
     round0 = dict(budget_min=None, total_env_steps=1)  # round 0 alone: the expert's episode and its 5 updates
     a = tiny(tmp_path, exp_name="a", **round0)
     frozen = dict(learning_rate=0.0, weight_decay=0.0, **round0)  # the updates leave the weights where they started
-    b = tiny(tmp_path, exp_name="b", init_policy=Path(a["checkpoint"]), **frozen)
-    c = tiny(tmp_path, exp_name="c", **frozen)
+    # another seed: round 0's episodes differ from a's, and would give a state normalisation of their own
+    b = tiny(tmp_path, exp_name="b", init_policy=Path(a["checkpoint"]), seed=2, **frozen)
+    c = tiny(tmp_path, exp_name="c", seed=2, **frozen)
     wa, wb, wc = (torch.load(r["checkpoint"], weights_only=False)["model"] for r in (a, b, c))
     params = [k for k, v in wa.items() if v.is_floating_point()]
-    assert all(torch.equal(wa[k], wb[k]) for k in params)
+    assert all(torch.equal(wa[k], wb[k]) for k in params)  # the normalisation's mean and std among them
+    assert not torch.equal(wa["norm.mean"], wc["norm.mean"])  # which another seed's episodes would have moved
     assert not all(torch.equal(wa[k], wc[k]) for k in params)  # without it: a fresh policy
     with pytest.raises(ValueError, match=r"action_frame='world' \(this run: 'tool'\)"):
         tiny(tmp_path, exp_name="d", init_policy=Path(a["checkpoint"]), action_frame="tool")
@@ -591,6 +623,49 @@ def test_init_policy_starts_from_another_runs_weights_and_refuses_a_different_po
     assert resumed["rounds"] > b["rounds"] and resumed["dataset"] > b["dataset"]
     with pytest.raises(ValueError, match="pick one"):
         tiny(tmp_path, exp_name="b", init_policy=Path(c["checkpoint"]), resume=Path(b["checkpoint"]))
+
+
+def test_init_data_starts_the_dataset_with_another_runs_rows_and_refuses_rows_of_another_kind(tmp_path, tiny):
+    round0 = dict(budget_min=None, total_env_steps=1)
+    a = tiny(tmp_path, exp_name="a", **round0)
+    b = tiny(tmp_path, exp_name="b", init_data=Path(a["checkpoint"]), seed=2, **round0)
+    assert b["env_steps"] == a["env_steps"] and b["dataset"] == a["dataset"] + b["env_steps"]  # its own steps only
+    rows_a, rows_b = saved_dataset(a["checkpoint"]), saved_dataset(b["checkpoint"])
+    assert torch.equal(rows_b.obs["state"][: a["dataset"]], rows_a.obs["state"][: a["dataset"]])
+    assert torch.equal(rows_b.act[: a["dataset"]], rows_a.act[: a["dataset"]])
+    assert not torch.equal(rows_b.obs["state"][a["dataset"] :], rows_a.obs["state"])  # then its own episodes
+    # the resumed run goes on from its own dataset, which holds a's rows already
+    resumed = tiny(tmp_path, exp_name="b", init_data=Path(a["checkpoint"]), resume=Path(b["checkpoint"]),
+                   budget_min=None, total_env_steps=b["env_steps"] + 1, expert_episodes=1)  # fmt: skip
+    assert resumed["dataset"] > b["dataset"]
+    for bad, match in (
+        (dict(action_frame="tool"), r"rows of another kind: action_frame='world' \(this run: 'tool'\)"),
+        (dict(aux_weight=1.0), "rows of another kind: aux targets off"),
+        (dict(resume=Path(b["checkpoint"]), init_data=Path(b["checkpoint"])), "--init-data .* pick one"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            tiny(tmp_path, exp_name="d", **{"init_data": Path(a["checkpoint"]), **round0, **bad})
+    with pytest.raises(FileNotFoundError, match="--init-data .*no such checkpoint"):
+        tiny(tmp_path, exp_name="d", init_data=tmp_path / "none.pt", **round0)
+
+
+def test_init_policy_widens_a_keypoints_policy_into_keypoints_depth_acting_as_it_did(tmp_path, tiny):
+    camera = dict(obs="rgbd", action_frame="tool", batch_size=8, updates_per_round=2, budget_min=None,
+                  total_env_steps=1)  # fmt: skip
+    a = tiny(tmp_path, exp_name="a", encoder="keypoints", **camera)
+    frozen = dict(camera, learning_rate=0.0, weight_decay=0.0)
+    b = tiny(tmp_path, exp_name="b", encoder="keypoints-depth", init_policy=Path(a["checkpoint"]), **frozen)
+    (pa, _), (pb, _) = (load_policy(Path(r["checkpoint"]), "cpu") for r in (a, b))
+    assert pb.signature()["encoder"] == "keypoints-depth" and pb.encoder.depth_cnn is not None
+    g = torch.Generator().manual_seed(0)
+    obs = dict(
+        rgb=torch.randint(0, 256, (6, 84, 84, 3), dtype=torch.uint8, generator=g),
+        depth=torch.randint(0, 2000, (6, 84, 84, 1), dtype=torch.int16, generator=g),
+        state=torch.randn(6, pa.state_dim, generator=g),
+    )
+    assert (pa(obs) - pb(obs)).abs().max() < 1e-5, (pa(obs) - pb(obs)).abs().max()
+    with pytest.raises(ValueError, match="is not this run's policy: signature="):  # no narrowing the other way
+        tiny(tmp_path, exp_name="c", encoder="keypoints", init_policy=Path(b["checkpoint"]), **camera)
 
 
 def test_student_selection_keeps_the_best_validated_round_and_the_held_out_evaluation_scores_it(

@@ -35,6 +35,12 @@ def test_the_flag_builds_dagger_s_keypoint_encoder_and_only_then_signs_it():
     }
     assert agent.actor_mean[0].in_features == agent.critic[0].in_features == KeypointCNN(IMAGE, 7).out_dim
     assert agent.signature()["encoder"] == "keypoints"
+    depth = Agent(IMAGE, 7, 5, obs_norm=True, encoder="keypoints-depth")  # the same encoder as DAgger's too
+    assert {k: v.shape for k, v in depth.encoder.state_dict().items()} == {
+        k: v.shape for k, v in DeterministicActor(IMAGE, 7, 5, encoder="keypoints-depth").encoder.state_dict().items()
+    }
+    assert depth.actor_mean[0].in_features == KeypointCNN(IMAGE, 7).out_dim + 32
+    assert depth.signature()["encoder"] == "keypoints-depth"
     nature = Agent(IMAGE, 7, 5, obs_norm=True)
     assert type(nature.encoder) is NatureCNN and "encoder" not in nature.signature()  # the signature it always had
     with pytest.raises(ValueError, match="unknown encoder"):
