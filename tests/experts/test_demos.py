@@ -35,7 +35,17 @@ def test_files_follow_maniskill_format(demos):
             assert "env_states" in g and "success" in g
 
 
-@pytest.mark.parametrize("mode", [[], ["--use-env-states"]])
+@pytest.mark.parametrize(
+    "demos, mode",
+    [
+        # the env-state replay is the same code for every task: one task's by default, the others' with -m slow
+        pytest.param(env_id, mode, marks=[pytest.mark.slow] if mode and env_id != "TableClearing-IRB120-v1" else [])
+        for env_id in ENV_IDS
+        for mode in ([], ["--use-env-states"])
+    ],
+    indirect=["demos"],
+    ids=[f"{env_id}-mode{i}" for env_id in ENV_IDS for i in range(2)],
+)
 def test_maniskill_replay_tool_reproduces_success(demos, mode, tmp_path):
     # a fresh interpreter that never imports maniskill_irb120 itself: the json's env id does it
     out = subprocess.run(
