@@ -308,9 +308,10 @@ def load_initial_weights(args: Args, policy: DeterministicActor) -> None:
         policy.load_state_dict(section["state_dict"])
 
 
-def load_initial_data(args: Args, data: Dataset) -> None:
-    """Fill ``data`` with ``--init-data``'s rows, once that run's arguments say its rows are this run's kind:
-    the same observation and action, labelled by the same labeller, with the same auxiliary targets."""
+def initial_data(args: Args) -> dict:
+    """``--init-data``'s checkpoint, once that run's arguments say its rows are this run's kind (the same
+    observation and action, labelled by the same labeller, with the same auxiliary targets) and it holds a dataset.
+    Read before any env starts: its rows are loaded once the run is built."""
     where = f"--init-data {args.init_data}"
     if not Path(args.init_data).is_file():
         raise FileNotFoundError(f"{where}: no such checkpoint")
@@ -328,7 +329,7 @@ def load_initial_data(args: Args, data: Dataset) -> None:
     saved = load_torch(Path(args.init_data), FORMAT, "agents.dagger")
     if "optimizer" not in saved:
         raise ValueError(f"{where} holds a selected policy (best.pt), no dataset: give the run's checkpoints/latest.pt")
-    restore_dataset(data, saved, Path(args.init_data).parent / "data")
+    return saved
 
 
 def started_with(resume: Path) -> Args:
@@ -360,6 +361,8 @@ def check_args(args: Args) -> None:
             raise ValueError("--init-policy starts a new run from a policy's weights; --resume continues one: pick one")
         if args.init_data is not None and own.init_data != args.init_data:
             raise ValueError("--init-data starts a new run from a dataset; --resume continues one: pick one")
+    elif args.init_data is not None:
+        initial_data(args)
     if args.initial_updates < 0:
         raise ValueError(f"--initial-updates must be >= 0 (0: --updates-per-round), got {args.initial_updates}")
 
@@ -399,7 +402,7 @@ class DAgger(Algorithm):
                 if args.init_policy is not None:
                     load_initial_weights(args, policy)
                 if args.init_data is not None:
-                    load_initial_data(args, self.data)
+                    restore_dataset(self.data, initial_data(args), Path(args.init_data).parent / "data")
             except BaseException:
                 envs.close()
                 raise

@@ -647,6 +647,7 @@ def test_init_data_starts_the_dataset_with_another_runs_rows_and_refuses_rows_of
             tiny(tmp_path, exp_name="d", **{"init_data": Path(a["checkpoint"]), **round0, **bad})
     with pytest.raises(FileNotFoundError, match="--init-data .*no such checkpoint"):
         tiny(tmp_path, exp_name="d", init_data=tmp_path / "none.pt", **round0)
+    assert not (tmp_path / "d").exists()  # each refused before its run began
 
 
 def test_init_policy_widens_a_keypoints_policy_into_keypoints_depth_acting_as_it_did(tmp_path, tiny):
