@@ -23,10 +23,11 @@ those of ``benchmarks/sim2real_gap.py``'s rows for the same seeds. Deterministic
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -34,33 +35,38 @@ BANDS = ((0.15, 1.0), (0.06, 0.15), (0.0, 0.06))
 """TCP heights (m): the approach from afar, the descent, the last 6 cm where the stop must come"""
 
 
-def parse(argv: list[str] | None = None) -> argparse.Namespace:
-    class Parser(argparse.ArgumentParser):
-        def error(self, message):  # one line, exit 2
-            print(f"perception_probe.py: {message}", file=sys.stderr)
-            raise SystemExit(2)
+@dataclass
+class Args:
+    checkpoint: Path
+    """an agents.dagger training checkpoint that keeps its auxiliary head (a run's latest.pt; best.pt drops it)"""
+    shift: str
+    """the shifted condition, in Randomization.parse syntax"""
+    episodes: int = 30
+    """deterministic episodes per condition, one a seed"""
+    seed: int = 5000
+    """the first episode's seed, in both conditions (5000: the shift table's first)"""
+    teacher: Optional[Path] = None
+    """the state teacher whose labels the actions are held to (default: the checkpoint's --teacher)"""
+    out: Path = Path("runs/perception_probe/probe.json")
+    """the summary; the per-step arrays go beside it (.npz)"""
 
-    p = Parser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", type=Path, required=True, help="an agents.dagger checkpoint with its aux head")
-    p.add_argument("--shift", required=True, help="Randomization.parse syntax: the shifted condition")
-    p.add_argument("--episodes", type=int, default=30, help="episodes per condition")
-    p.add_argument("--seed", type=int, default=5000, help="first episode seed (both conditions)")
-    p.add_argument("--teacher", type=Path, default=None, help="state teacher (default: the checkpoint's --teacher)")
-    p.add_argument("--out", type=Path, default=Path("runs/perception_probe/probe.json"))
-    a = p.parse_args(argv)
+
+def check(a: Args) -> None:
+    """Refuse what cannot run before an env is built: counts, seeds, the shift's syntax, a checkpoint without what
+    the probe reads."""
     if a.episodes < 1:
-        p.error(f"--episodes {a.episodes}: at least 1")
+        raise ValueError(f"--episodes {a.episodes}: at least 1")
     if a.seed < 0:
-        p.error(f"--seed {a.seed}: episode seeds are 0 or more")
+        raise ValueError(f"--seed {a.seed}: episode seeds are 0 or more")
     if not a.checkpoint.is_file():
-        p.error(f"--checkpoint {a.checkpoint}: no such file")
+        raise FileNotFoundError(f"--checkpoint {a.checkpoint}: no such file")
     from maniskill_irb120.envs.randomization import Randomization
 
     try:
         Randomization.parse(a.shift)
     except (ValueError, TypeError) as e:
-        p.error(f"--shift {a.shift!r}: {e}")
-    return a
+        raise ValueError(f"--shift {a.shift!r}: {e}") from None
+    load(a.checkpoint, a.teacher)  # its head, frame and teacher, named before an env starts
 
 
 def load(checkpoint: Path, teacher: Path | None):
@@ -71,16 +77,16 @@ def load(checkpoint: Path, teacher: Path | None):
 
     actor, ckpt = load_policy(checkpoint, torch.device("cpu"))
     if ckpt.get("aux_head") is None:
-        raise SystemExit(f"perception_probe.py: {checkpoint} has no auxiliary head (a best.pt drops it: use latest.pt)")
+        raise ValueError(f"--checkpoint {checkpoint} has no auxiliary head (a best.pt drops it: use latest.pt)")
     args = ckpt["args"]
     if args.get("action_frame") != "tool":
-        raise SystemExit(f"perception_probe.py: {checkpoint} acts in the {args.get('action_frame')} frame; tool only")
+        raise ValueError(f"--checkpoint {checkpoint} acts in the {args.get('action_frame')} frame; tool only")
     head = aux_head_for(actor, torch.device("cpu"), bool(args.get("aux_mount")))
     head.load_state_dict(ckpt["aux_head"])
     head.eval()
     teacher = teacher or (Path(args["teacher"]) if args.get("teacher") else None)
     if teacher is None:
-        raise SystemExit(f"perception_probe.py: {checkpoint} was not taught by a state teacher; give --teacher")
+        raise ValueError(f"--checkpoint {checkpoint} was not taught by a state teacher; give --teacher")
     return actor, head, teacher, args["env_id"]
 
 
@@ -157,8 +163,7 @@ def summary(run: dict) -> dict:
     return res
 
 
-def main(argv: list[str] | None = None) -> int:
-    a = parse(argv)
+def main(a: Args) -> dict:
     actor, head, teacher, env_id = load(a.checkpoint, a.teacher)
     seeds = list(range(a.seed, a.seed + a.episodes))
     result = {"checkpoint": str(a.checkpoint), "shift": a.shift, "seeds": [seeds[0], seeds[-1]], "conditions": {}}
@@ -201,8 +206,16 @@ def main(argv: list[str] | None = None) -> int:
                     f"descent (median of the episodes' medians; max {max(errs):.1f})"
                 )
     print(f"wrote {a.out}")
-    return 0
+    return result
+
+
+def cli(argv: Optional[list[str]] = None) -> object:
+    """The command line (``argv``, default ``sys.argv[1:]``): bad input is one line and exit status 2."""
+    from benchmarks.lib.cli import entry
+
+    return entry("scripts.perception_probe", Args, main, check, argv=argv)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    cli()

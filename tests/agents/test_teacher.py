@@ -93,25 +93,33 @@ def test_a_teacher_that_cannot_label_the_run_is_named(teacher, student, tmp_path
         make_envs(ENV, "rgbd", 1, backend="cpu", teacher=camera)
 
 
-def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(student, teacher, tmp_path, capsys):
+def load_probe():
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("perception_probe", "scripts/perception_probe.py")
+    probe = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = probe  # its Args dataclass resolves its module there
+    spec.loader.exec_module(probe)
+    return probe
+
+
+def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(student, tmp_path, capsys):
     """scripts/perception_probe.py: the action it recomputes from the features its auxiliary head reads is the one
     sim2real-eval's policy sends, the truth it scores against is the cube relative to the TCP, and the labels are
     the teacher's, on the same seeds with and without the shift."""
-    import importlib.util
     import json
 
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("perception_probe", "scripts/perception_probe.py")
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
     out = tmp_path / "probe.json"
     argv = ["--checkpoint", str(student["checkpoint"]), "--shift", "color=0.25,texture=1", "--episodes", "2"]
-    assert probe.main([*argv, "--out", str(out)]) == 0
-    res = json.loads(out.read_text())
+    res = load_probe().cli([*argv, "--out", str(out)])
+    assert res == json.loads(out.read_text())
     assert set(res["conditions"]) == {"none", "shifted"}
     for c in res["conditions"].values():
-        assert c["episodes"] == 2 and sum(b["steps"] for k, b in c["bands"].items() if k.startswith("all")) > 0
+        assert c["episodes"] == len(c["ends"]) == 2
+        assert sum(b["steps"] for k, b in c["bands"].items() if k.startswith("all")) > 0
     runs = np.load(out.with_suffix(".npz"))
     for name in ("none", "shifted"):
         np.testing.assert_allclose(runs[f"{name}_act"], runs[f"{name}_head_act"], atol=1e-5)
@@ -122,8 +130,6 @@ def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(stu
     # the same seeds: the first state's truth is the same in both conditions (a shift moves no geometry)
     np.testing.assert_allclose(runs["none_aux_true"][0], runs["shifted_aux_true"][0], atol=1e-4)
     assert "| condition | band |" in capsys.readouterr().out
-    with pytest.raises(SystemExit, match="has no auxiliary head"):
-        probe.main(["--checkpoint", str(teacher), "--shift", "color=0.25"])  # a run without --aux-weight
 
 
 @pytest.mark.parametrize(
@@ -132,16 +138,15 @@ def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(stu
         (["--shift", "colr=0.2"], "--shift 'colr=0.2'"),
         (["--shift", "color=0.2", "--episodes", "0"], "--episodes 0: at least 1"),
         (["--shift", "color=0.2", "--seed", "-1"], "--seed -1: episode seeds are 0 or more"),
+        (["--shift", "color=0.2", "--checkpoint", "{tmp}/missing.pt"], "missing.pt: no such file"),
+        (["--shift", "color=0.2", "--checkpoint", "{teacher}"], "has no auxiliary head"),
     ],
 )
-def test_the_perception_probe_refuses_bad_input_in_one_line(argv, said, tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("perception_probe", "scripts/perception_probe.py")
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
-    (tmp_path / "c.pt").write_bytes(b"")
+def test_the_perception_probe_refuses_bad_input_in_one_line(argv, said, student, teacher, tmp_path, capsys):
+    """Before any env starts; the teacher is a run without --aux-weight."""
+    argv = ["--checkpoint", str(student["checkpoint"]), *argv]
+    argv = [x.format(tmp=tmp_path, teacher=teacher) for x in argv]
     with pytest.raises(SystemExit) as e:
-        probe.parse(["--checkpoint", str(tmp_path / "c.pt"), *argv])
+        load_probe().cli(argv)
     err = capsys.readouterr().err
-    assert e.value.code == 2 and said in err and len(err.strip().splitlines()) == 1
+    assert e.value.code == 2 and said in err and len(err.strip().splitlines()) == 1, err
