@@ -13,18 +13,22 @@ the test.
 ``terminate_group``: ``terminate_group(argv, started)`` runs a command in its own process group, sends the group
 SIGTERM once ``started()`` is true, and returns the exit status and the stderr lines that are not library warnings
 (``sigint_ignored=True``: started as a script's ``cmd &`` starts it).
+``repo_script``: ``repo_script(name)`` is ``scripts/<name>.py`` run afresh as the module ``name`` (registered in
+``sys.modules``, where a dataclass of its CLI looks its module up).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import SimpleNamespace
+from types import ModuleType, SimpleNamespace
 
 import gymnasium as gym
 import numpy as np
@@ -191,6 +195,20 @@ def terminate_group():
     warnings. ``sigint_ignored``: started with SIGINT ignored, as a script's ``cmd &`` starts it. It fails if the
     command ended before the signal, and kills the group if it outlives 120 s after it."""
     return _terminate_group
+
+
+def _repo_script(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # a dataclass looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def repo_script():
+    """``repo_script(name)``: ``scripts/<name>.py``, executed afresh as the module ``name``."""
+    return _repo_script
 
 
 @pytest.fixture

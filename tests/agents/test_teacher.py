@@ -93,18 +93,7 @@ def test_a_teacher_that_cannot_label_the_run_is_named(teacher, student, tmp_path
         make_envs(ENV, "rgbd", 1, backend="cpu", teacher=camera)
 
 
-def load_probe():
-    import importlib.util
-    import sys
-
-    spec = importlib.util.spec_from_file_location("perception_probe", "scripts/perception_probe.py")
-    probe = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = probe  # its Args dataclass resolves its module there
-    spec.loader.exec_module(probe)
-    return probe
-
-
-def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(student, tmp_path, capsys):
+def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(student, tmp_path, capsys, repo_script):
     """scripts/perception_probe.py: the action it recomputes from the features its auxiliary head reads is the one
     sim2real-eval's policy sends, the truth it scores against is the cube relative to the TCP, and the labels are
     the teacher's, on the same seeds with and without the shift."""
@@ -114,7 +103,7 @@ def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(stu
 
     out = tmp_path / "probe.json"
     argv = ["--checkpoint", str(student["checkpoint"]), "--shift", "color=0.25,texture=1", "--episodes", "2"]
-    res = load_probe().cli([*argv, "--out", str(out)])
+    res = repo_script("perception_probe").cli([*argv, "--out", str(out)])
     assert res == json.loads(out.read_text())
     assert set(res["conditions"]) == {"none", "shifted"}
     for c in res["conditions"].values():
@@ -142,11 +131,13 @@ def test_the_perception_probe_reads_the_students_aux_head_beside_its_actions(stu
         (["--shift", "color=0.2", "--checkpoint", "{teacher}"], "has no auxiliary head"),
     ],
 )
-def test_the_perception_probe_refuses_bad_input_in_one_line(argv, said, student, teacher, tmp_path, capsys):
+def test_the_perception_probe_refuses_bad_input_in_one_line(
+    argv, said, student, teacher, tmp_path, capsys, repo_script
+):
     """Before any env starts; the teacher is a run without --aux-weight."""
     argv = ["--checkpoint", str(student["checkpoint"]), *argv]
     argv = [x.format(tmp=tmp_path, teacher=teacher) for x in argv]
     with pytest.raises(SystemExit) as e:
-        load_probe().cli(argv)
+        repo_script("perception_probe").cli(argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and said in err and len(err.strip().splitlines()) == 1, err

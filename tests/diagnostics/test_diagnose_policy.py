@@ -3,10 +3,7 @@ the critic against the realised return and the replay buffer's counts; bad input
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -14,16 +11,7 @@ import pytest
 
 pytest.importorskip("stable_baselines3")
 
-REPO = Path(__file__).resolve().parents[2]
 ENV = "GraspLift-IRB120-v1"
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("diagnose_policy", REPO / "scripts" / "diagnose_policy.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass looks its module up
-    spec.loader.exec_module(module)
-    return module
 
 
 class Spaces(gym.Env):
@@ -61,10 +49,10 @@ def tiny_td3(tmp_path_factory):
     return d
 
 
-def test_one_short_episode_writes_the_stage_table(tiny_td3, tmp_path, capsys):
+def test_one_short_episode_writes_the_stage_table(tiny_td3, tmp_path, capsys, repo_script):
     out = tmp_path / "diagnosis.json"
     d = tiny_td3
-    load_script().cli(["--model", str(d / "model.zip"), "--vecnormalize", str(d / "vecnormalize.pkl"),
+    repo_script("diagnose_policy").cli(["--model", str(d / "model.zip"), "--vecnormalize", str(d / "vecnormalize.pkl"),
                        "--replay", str(d / "replay.pkl"), "--episodes", "1", "--max-steps", "25",
                        "--out", str(out)])  # fmt: skip
     r = json.loads(out.read_text())
@@ -92,10 +80,10 @@ def test_one_short_episode_writes_the_stage_table(tiny_td3, tmp_path, capsys):
         (["--model", "{tmp}/notes.txt"], "is not an SB3 model.zip"),
     ],
 )
-def test_bad_input_is_one_line_and_status_2(tiny_td3, tmp_path, capsys, argv, says):
+def test_bad_input_is_one_line_and_status_2(tiny_td3, tmp_path, capsys, argv, says, repo_script):
     (tmp_path / "notes.txt").write_text("not a zip")
     fill = dict(tmp=str(tmp_path), model=str(tiny_td3 / "model.zip"))
     with pytest.raises(SystemExit) as e:
-        load_script().cli([a.format(**fill) for a in argv])
+        repo_script("diagnose_policy").cli([a.format(**fill) for a in argv])
     err = capsys.readouterr().err
     assert e.value.code == 2 and len(err.strip().splitlines()) == 1 and says.format(**fill) in err, err

@@ -4,33 +4,20 @@ more often before its grasp, and the JSON carries the counts per episode."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
 
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("gripper_chatter", REPO / "scripts" / "gripper_chatter.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_switches_counts_changes_of_the_commanded_state():
-    chatter = load_script()
+def test_switches_counts_changes_of_the_commanded_state(repo_script):
+    chatter = repo_script("gripper_chatter")
     assert chatter.switches([False, False, True, True]) == 1
     assert chatter.switches([False, True, False, True, False]) == 4
     assert chatter.switches([True]) == 0
 
 
-def test_the_expert_switches_once_before_its_grasp_and_the_ppo_teacher_more(tmp_path, capsys):
-    chatter = load_script()
+def test_the_expert_switches_once_before_its_grasp_and_the_ppo_teacher_more(tmp_path, capsys, repo_script):
+    chatter = repo_script("gripper_chatter")
     out = tmp_path / "chatter.json"
     rows = chatter.cli(
         [
