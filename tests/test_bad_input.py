@@ -149,6 +149,14 @@ CASES = {
         ["scripts/collision_frames.py", "--policy", "{tmp}/missing.pt"],
         ["collision_frames.py: --policy", "missing.pt"],
     ),
+    "appearance failures, missing report": (
+        ["scripts/appearance_failures.py", "--reports", "{tmp}/missing/report.json"],
+        ["scripts.appearance_failures: error: --reports", "missing/report.json: no such file"],
+    ),
+    "appearance failures, not a report": (
+        ["scripts/appearance_failures.py", "--reports", "{tmp}/notes.txt"],
+        ["--reports", "notes.txt: not JSON"],
+    ),
     "gripper chatter, misspelt env id": (
         ["scripts/gripper_chatter.py", "--env-id", "GraspLift-v1"],
         ["scripts.gripper_chatter: error: unknown env id 'GraspLift-v1'", "did you mean 'GraspLift-IRB120-v1'"],

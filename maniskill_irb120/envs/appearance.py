@@ -18,6 +18,8 @@ one tile per ``TEXTURE_TILE_M``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import sapien
 
@@ -25,10 +27,28 @@ TEXTURE_SIZE = 64  # texels a side; ~1 texel per hand-camera pixel at the table'
 PATTERNS = ("blotches", "checker", "stripes", "grain")
 
 
+@dataclass(frozen=True)
+class Texture:
+    """One drawn texture and what was drawn for it, so an analysis can tell which patterns a policy fails on."""
+
+    rgba: np.ndarray
+    """(size, size, 4) uint8, the albedo"""
+    pattern: int
+    """its family, an index into PATTERNS"""
+    contrast: float
+    """how far the pattern darkens the colour at its darkest, 0..1"""
+
+
 def procedural_texture(rng: np.random.Generator, rgb, size: int = TEXTURE_SIZE) -> np.ndarray:
     """(size, size, 4) uint8 RGBA: ``rgb`` (0..1) modulated by a random pattern. The pattern tiles seamlessly
     (every family is periodic over the texture), as the texture repeats over a surface."""
-    kind = PATTERNS[int(rng.integers(len(PATTERNS)))]
+    return draw_texture(rng, rgb, size).rgba
+
+
+def draw_texture(rng: np.random.Generator, rgb, size: int = TEXTURE_SIZE) -> Texture:
+    """``procedural_texture`` with its pattern family and contrast (the same draws from ``rng``)."""
+    index = int(rng.integers(len(PATTERNS)))
+    kind = PATTERNS[index]
     y, x = np.mgrid[0:size, 0:size] / size  # [0, 1) on both axes
     if kind == "blotches":
         cells = int(rng.integers(2, 7))
@@ -58,7 +78,8 @@ def procedural_texture(rng: np.random.Generator, rgb, size: int = TEXTURE_SIZE) 
     tint = rng.uniform(0.85, 1.15, size=3)  # a pattern in a slightly other hue, as wood grain or a print
     shade = 1.0 - contrast * pattern[..., None] * tint
     out = np.clip(np.asarray(rgb, dtype=np.float64)[:3] * shade, 0.0, 1.0)
-    return np.concatenate([np.rint(out * 255), np.full((size, size, 1), 255.0)], axis=2).astype(np.uint8)
+    rgba = np.concatenate([np.rint(out * 255), np.full((size, size, 1), 255.0)], axis=2).astype(np.uint8)
+    return Texture(rgba, index, float(contrast))
 
 
 def render_shapes_per_env(actor) -> dict[int, list]:

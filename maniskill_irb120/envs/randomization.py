@@ -435,6 +435,7 @@ class RandomizationMixin:
             for actor, shapes in zip(surfaces, self._dr_shapes):
                 jitter = rng.uniform(-1, 1, 3) * ri.draw("color", rng)[0]
                 textured = bool(rng.random() < ri.draw("texture", rng)[0])
+                drawn = None  # the first shape's texture and colour, for randomization_draws
                 for j, shape in enumerate(shapes.get(i, [])):
                     mat = shape.material
                     # the material as built: colour, roughness, specular (a nominal episode restores them)
@@ -443,14 +444,20 @@ class RandomizationMixin:
                     )
                     rgb = np.clip(base[0][:3] + jitter, 0, 1)
                     mat.base_color = [*rgb, base[0][3]]
+                    tex = appearance.draw_texture(rng, rgb) if r.texture != 0.0 and textured else None
                     if r.texture != 0.0:
-                        appearance.set_texture(mat, appearance.procedural_texture(rng, rgb) if textured else None)
+                        appearance.set_texture(mat, None if tex is None else tex.rgba)
+                    drawn = drawn or (rgb, tex)
                     for k, key in enumerate(("roughness", "specular")):
                         if getattr(r, key) is not None:
                             drawn_value = ri.draw(key, rng)[0] if getattr(ri, key) is not None else base[1 + k]
                             setattr(mat, key, float(drawn_value))
                 self._record_draw("color_" + actor.name, i, jitter)
                 self._record_draw("texture_" + actor.name, i, float(textured))
+                if drawn is not None:  # what the camera sees of it: its colour, its pattern (-1: none), contrast
+                    self._record_draw("rgb_" + actor.name, i, drawn[0])
+                    self._record_draw("pattern_" + actor.name, i, -1.0 if drawn[1] is None else drawn[1].pattern)
+                    self._record_draw("contrast_" + actor.name, i, 0.0 if drawn[1] is None else drawn[1].contrast)
 
     # ------------------------------------------------------------------ each step
     def _randomize_sensor_data(self, data: dict) -> dict:

@@ -12,6 +12,7 @@ import sapien
 import torch
 
 import maniskill_irb120  # noqa: F401
+from maniskill_irb120.envs import appearance
 from maniskill_irb120.envs.randomization import Randomization
 
 ENV_ID = "TableClearing-IRB120-v1"
@@ -95,6 +96,10 @@ def test_textures_colours_and_materials_per_surface_follow_the_seed(pair):
     mat = body.render_shapes[0].material
     assert mat.base_color_texture is not None and 0.2 <= mat.roughness <= 0.8
     assert mat.specular == pytest.approx(0.3)
+    # what was drawn is recorded with it: the surface's colour as its material holds it, its pattern and contrast
+    assert np.allclose(u.randomization_draws["rgb_table"][0].numpy(), mat.base_color[:3], atol=1e-6)
+    assert int(u.randomization_draws["pattern_table"][0]) in range(len(appearance.PATTERNS))
+    assert 0.15 <= float(u.randomization_draws["contrast_table"][0]) <= 0.6
     # each env's surfaces are built with materials of their own (a GPU-batched scene shares a builder's otherwise)
     assert u.own_materials and not nominal.unwrapped.own_materials
     assert len(u.table_scene.table._objs) == u.num_envs
@@ -109,6 +114,7 @@ def test_texture_probability_zero_keeps_the_plain_surfaces():
         body = actor._objs[0].find_component_by_type(sapien.render.RenderBodyComponent)
         assert all(shape.material.base_color_texture is None for shape in body.render_shapes)
     assert float(u.randomization_draws["texture_table"][0]) == 0.0
+    assert float(u.randomization_draws["pattern_table"][0]) == -1.0
     env.close()
 
 
