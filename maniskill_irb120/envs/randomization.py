@@ -12,6 +12,7 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 | ``camera_fov`` | deg (absolute; off: the agent's 90°) | each episode | per env |
 | ``light`` | scale of every light's intensity | each episode | per env on the CPU; GPU: env 0's (shared lights) |
 | ``color`` | max RGB jitter of the objects, trays, table and floor | each episode | per env (see below) |
+| ``object_color`` | max RGB jitter of the objects alone, for them in place of ``color`` | each episode | per env |
 | ``texture`` | probability a surface wears a procedural texture (``appearance.py``) | each episode | env, surface |
 | ``roughness`` | GGX roughness, 0..1 (off: each material's own) | each episode | env, surface |
 | ``specular`` | specular strength, 0..1 (off: each material's own) | each episode | env, surface |
@@ -29,9 +30,14 @@ episode seed, so the same seed draws the same values on CPU and GPU, apart from 
 of the image's top half reads under 15 mm, which no real mount error does: a range for training should keep z above
 −5 mm (measured on seed 0's start pose, x and z on a grid).
 
-The appearance fields (``color``, ``texture``, ``roughness``, ``specular``) change materials. On the CPU an env
-owns its materials; a GPU-batched scene shares one material per builder between its envs, so with an appearance
-field active the scene builds each env's table, trays, floor and objects with materials of their own.
+The appearance fields (``color``, ``object_color``, ``texture``, ``roughness``, ``specular``) change materials. On
+the CPU an env owns its materials; a GPU-batched scene shares one material per builder between its envs, so with an
+appearance field active the scene builds each env's table, trays, floor and objects with materials of their own.
+
+``object_color`` gives the task's objects a jitter of their own, wider than the scene's: a camera policy that finds
+its cube by the cube's red loses it when the cube turns as orange as its tray (docs/notes/collision-under-shift.md),
+and one trained on cubes of many colours has to find it by its shape and depth. Off, the objects jitter as
+``color`` says, and every draw is what it was before the field existed.
 
 ``latency`` is what a robot on a fixed clock shows (``sim2real`` with ``step_end="period"``): the arm read mid-move
 at the period's end. A deployment whose steps wait for the robot to arrive (the default) shows none of it.
@@ -70,13 +76,14 @@ from maniskill_irb120.envs.depth_model import DepthModel, drawn, preset
 Value = float | tuple[float, ...] | None
 VECTOR_FIELDS = ("camera_pos", "camera_rot")
 OFF = dict(camera_pos=0.0, camera_rot=0.0, camera_fov=None, light=1.0, color=0.0, depth_noise=0.0, depth_dropout=0.0)
-OFF.update(texture=0.0, roughness=None, specular=None, depth_model=None)
+OFF.update(texture=0.0, roughness=None, specular=None, depth_model=None, object_color=None)
 OFF.update(object_size=1.0, object_mass=1.0, object_friction=1.0, latency=0.0, nominal=0.0)
 SCALES = ("light", "object_size", "object_mass", "object_friction")
 BUILD_FIELDS = ("object_size", "object_mass", "object_friction")  # drawn when the scene is built
-APPEARANCE_FIELDS = ("color", "texture", "roughness", "specular")
+APPEARANCE_FIELDS = ("color", "texture", "roughness", "specular", "object_color")
 UNIT_FIELDS = ("depth_dropout", "texture", "roughness", "specular", "nominal")  # probabilities and 0..1 terms
-NONE_FIELDS = ("camera_fov", "roughness", "specular")  # None: off (the nominal camera's, each material's own)
+NONE_FIELDS = ("camera_fov", "roughness", "specular", "object_color")  # None: off (the nominal camera's, each
+# material's own, color's)
 
 
 def _depth_models(v) -> str | tuple[str, ...] | None:
@@ -113,6 +120,7 @@ class Randomization:
     object_friction: Value = 1.0
     latency: Value = 0.0
     nominal: Value = 0.0
+    object_color: Value = None
 
     def __post_init__(self):
         for f in fields(self):
@@ -136,7 +144,7 @@ class Randomization:
                 raise ValueError(f"{f.name}={v!r}: low > high")
             if f.name in SCALES and min(vals) <= 0:
                 raise ValueError(f"{f.name}={v!r}: a scale must be > 0")
-            if f.name in ("color", "depth_noise", "latency") and min(vals) < 0:
+            if f.name in ("color", "object_color", "depth_noise", "latency") and min(vals) < 0:
                 raise ValueError(f"{f.name}={v!r}: must be >= 0")
             if f.name in UNIT_FIELDS and not 0 <= min(vals) <= max(vals) <= 1:
                 raise ValueError(f"{f.name}={v!r}: must lie in [0, 1] (a probability, or a material term)")
@@ -432,8 +440,9 @@ class RandomizationMixin:
             self._dr_shapes = [appearance.render_shapes_per_env(a) for a in surfaces]
         for i in (int(i) for i in idx):
             rng, ri = rngs[i], per_env[i]
-            for actor, shapes in zip(surfaces, self._dr_shapes):
-                jitter = rng.uniform(-1, 1, 3) * ri.draw("color", rng)[0]
+            for k, (actor, shapes) in enumerate(zip(surfaces, self._dr_shapes)):
+                own = k < len(self._dr_objects) and ri.object_color is not None  # an object with a range of its own
+                jitter = rng.uniform(-1, 1, 3) * ri.draw("object_color" if own else "color", rng)[0]
                 textured = bool(rng.random() < ri.draw("texture", rng)[0])
                 drawn = None  # the first shape's texture and colour, for randomization_draws
                 for j, shape in enumerate(shapes.get(i, [])):

@@ -106,6 +106,35 @@ def test_textures_colours_and_materials_per_surface_follow_the_seed(pair):
     textured.close()
 
 
+def test_object_color_jitters_the_objects_alone_and_off_leaves_every_draw_as_it_was():
+    """``object_color`` moves the task's object's colour by its own range while the scene keeps ``color``'s; at the
+    same amplitude as ``color`` it draws exactly what ``color`` alone draws (the same stream), so adding the field
+    changed no earlier run's scenes."""
+    seeds = range(6)
+
+    def draws(spec):
+        env = make(spec, obs_mode="state")
+        try:
+            out = []
+            for seed in seeds:
+                env.reset(seed=seed)
+                out.append({k: v[0].clone() for k, v in env.unwrapped.randomization_draws.items()})
+            return out
+        finally:
+            env.close()
+
+    plain, same = draws("color=0.2,texture=0.5"), draws("color=0.2,texture=0.5,object_color=0.2")
+    for a, b in zip(plain, same):
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    wide = draws("color=0.0,object_color=0.6")
+    jitters = torch.stack([d["color_object"] for d in wide])
+    assert jitters.abs().max() > 0.3 and jitters.abs().max() <= 0.6  # beyond color=0.3, within its own range
+    for d in wide:
+        assert all(torch.equal(d["color_" + s], torch.zeros(3)) for s in ("table", "source_tray", "dest_tray"))
+    with pytest.raises(ValueError, match="object_color=-0.1: must be >= 0"):
+        Randomization(object_color=-0.1)
+
+
 def test_texture_probability_zero_keeps_the_plain_surfaces():
     env = make("texture=0.0,color=0.1")
     env.reset(seed=3)
