@@ -97,8 +97,8 @@ def episode_draws(report: dict, seeds: list[int]) -> list[dict]:
         for seed in seeds:
             env.reset(seed=seed)
             u = env.unwrapped
-            d = {k: v[0].tolist() for k, v in u.randomization_draws.items()}
-            d["object_xy"] = u.target_object.pose.p[0, :2].tolist()
+            d = {k: np.round(v[0].numpy().astype(float), 4).tolist() for k, v in u.randomization_draws.items()}
+            d["object_xy"] = np.round(u.target_object.pose.p[0, :2].numpy().astype(float), 4).tolist()  # 0.1 mm
             out.append(d)
     finally:
         env.close()
@@ -199,7 +199,7 @@ def main(a: Args) -> dict:
         episodes=[dict(seed=s, failed=int(failed[:, i].sum()), draws=draws[i]) for i, s in enumerate(seeds)],
     )
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(result, indent=1) + "\n")
+    a.out.write_text(json.dumps(result) + "\n")  # one line: 100 episodes of draws are most of it
     print(
         f"{len(reports)} report(s), {len(seeds)} episodes each (seeds {seeds[0]}..{seeds[-1]}), "
         f"{result['env_id']}: failure {result['failure']:.2f} over all of them"
