@@ -66,15 +66,17 @@ def read_reports(paths: list[Path]) -> tuple[list[dict], list[int], np.ndarray]:
             raise ValueError(f"--reports {p}: its sim side ran with no shift, so there are no draws to join")
         reports.append(r)
     first = reports[0]
-    from maniskill_irb120.envs.randomization import APPEARANCE_FIELDS, OFF
+    from maniskill_irb120.envs.randomization import APPEARANCE_FIELDS, OFF, Randomization
 
     if all(first["sim_side"].get(k, OFF[k]) == OFF[k] for k in APPEARANCE_FIELDS):
         raise ValueError(f"--reports {paths[0]}: its sim side drew no appearance ({', '.join(APPEARANCE_FIELDS)} off)")
     seeds = [e["seed"] for e in first["per_episode"]]
+    condition = Randomization.from_any(first["sim_side"])  # a field added since a report was written reads as off
     for p, r in zip(paths, reports):
-        for key, what in (("env_id", r["config"]["env_id"]), ("sim_side", r["sim_side"])):
-            if what != (first["config"]["env_id"] if key == "env_id" else first["sim_side"]):
-                raise ValueError(f"--reports {p}: another {key} than {paths[0]}'s; join reports of one condition")
+        if r["config"]["env_id"] != first["config"]["env_id"]:
+            raise ValueError(f"--reports {p}: another env_id than {paths[0]}'s; join reports of one condition")
+        if Randomization.from_any(r["sim_side"]) != condition:
+            raise ValueError(f"--reports {p}: another sim_side than {paths[0]}'s; join reports of one condition")
         if [e["seed"] for e in r["per_episode"]] != seeds:
             raise ValueError(f"--reports {p}: other episode seeds than {paths[0]}'s")
         if any(e["sim_success"] is None for e in r["per_episode"]):

@@ -36,6 +36,9 @@ def test_each_seeds_draws_are_what_a_fresh_env_draws_for_it_and_the_failures_are
     another order, so a row's episodes and their scenes are joined right. Two reports pool their failures."""
     a = report(tmp_path, "a", failed_seeds={8, 11})
     b = report(tmp_path, "b", failed_seeds={11})
+    older = json.loads(b.read_text())  # a report written before a randomisation field existed joins as well
+    del older["sim_side"]["object_color"]
+    b.write_text(json.dumps(older))
     out = tmp_path / "joined.json"
     result = tool.cli(["--reports", str(a), str(b), "--out", str(out), "--permutations", "50"])
     assert json.loads(out.read_text())["failure"] == result["failure"] == pytest.approx(3 / 12)
