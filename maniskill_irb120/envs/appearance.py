@@ -6,7 +6,7 @@ a printed mat, never the sim's flat colour; a green screen behind the scene (Man
 be seen from a different angle every step. So the levers are the surfaces themselves (MuJoCo Playground randomises
 ``geom_rgba`` and ``geom_matid`` per world for the same reason).
 
-- ``procedural_texture``: one of four pattern families (smooth blotches like stone or wood, a checker, stripes,
+- ``draw_texture``: one of four pattern families (smooth blotches like stone or wood, a checker, stripes,
   fine grain) at a random scale, orientation and contrast, multiplied onto the surface's colour. Our sensor shader
   (``assets/shaders/rgbd_forward``) takes the texture as the albedo, so the colour goes into the texture: a yellow
   tray stays yellow, patterned.
@@ -39,14 +39,9 @@ class Texture:
     """how far the pattern darkens the colour at its darkest, 0..1"""
 
 
-def procedural_texture(rng: np.random.Generator, rgb, size: int = TEXTURE_SIZE) -> np.ndarray:
-    """(size, size, 4) uint8 RGBA: ``rgb`` (0..1) modulated by a random pattern. The pattern tiles seamlessly
-    (every family is periodic over the texture), as the texture repeats over a surface."""
-    return draw_texture(rng, rgb, size).rgba
-
-
 def draw_texture(rng: np.random.Generator, rgb, size: int = TEXTURE_SIZE) -> Texture:
-    """``procedural_texture`` with its pattern family and contrast (the same draws from ``rng``)."""
+    """``rgb`` (0..1) modulated by a random pattern, with the pattern's family and contrast. The pattern tiles
+    seamlessly (every family is periodic over the texture), as the texture repeats over a surface."""
     index = int(rng.integers(len(PATTERNS)))
     kind = PATTERNS[index]
     y, x = np.mgrid[0:size, 0:size] / size  # [0, 1) on both axes

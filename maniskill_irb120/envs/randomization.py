@@ -440,8 +440,8 @@ class RandomizationMixin:
             self._dr_shapes = [appearance.render_shapes_per_env(a) for a in surfaces]
         for i in (int(i) for i in idx):
             rng, ri = rngs[i], per_env[i]
-            for k, (actor, shapes) in enumerate(zip(surfaces, self._dr_shapes)):
-                own = k < len(self._dr_objects) and ri.object_color is not None  # an object with a range of its own
+            for n, (actor, shapes) in enumerate(zip(surfaces, self._dr_shapes)):
+                own = n < len(self._dr_objects) and ri.object_color is not None  # an object with a range of its own
                 jitter = rng.uniform(-1, 1, 3) * ri.draw("object_color" if own else "color", rng)[0]
                 textured = bool(rng.random() < ri.draw("texture", rng)[0])
                 drawn = None  # the first shape's texture and colour, for randomization_draws
