@@ -69,6 +69,7 @@ from benchmarks.lib.report import replace_section
 from benchmarks.lib.stats import bootstrap_ci, iqm_ci, wilson
 from benchmarks.lib.suspend import Suspensions
 from maniskill_irb120.errors import terminate_as_interrupt
+from maniskill_irb120.integrations.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -250,6 +251,8 @@ class Args:
     """minutes per cell as its budget instead of env steps, as the first cells ran (smoke runs)"""
     checkpoint_min: float = 10.0
     """a library cell saves what a rerun continues from this often"""
+    progress_s: float = 60.0
+    """seconds between a library cell's progress lines (env steps, their rate, ETA)"""
     stop_after_min: Optional[float] = None
     """start no cell whose budget would end after this many minutes of this run (one session's length)"""
     update_results: bool = False
@@ -436,6 +439,15 @@ class Budget:
         return False
 
 
+def progress_of(ckpt_dir: Path, env_steps: Optional[int], state: dict, args: Args) -> Optional[Progress]:
+    """The cell's progress line (env steps of its budget, their rate this session, ETA, training success) every
+    ``--progress-s`` seconds; None for a minute budget, whose cells keep a line every tenth of it."""
+    if env_steps is None:
+        return None
+    cell = ckpt_dir.name.replace("__", "/")  # the run folder is the cell's name with its slashes doubled underscores
+    return Progress(f"algorithms {cell}", env_steps, args.progress_s, start=state["env_steps"])
+
+
 def read_state(ckpt_dir: Path) -> dict:
     path = ckpt_dir / "state.json"
     state = json.loads(path.read_text()) if path.is_file() else {"spent_s": 0.0, "env_steps": 0, "curve": []}
@@ -566,6 +578,7 @@ def run_sb3(
         model = cls(policy, venv, seed=seed, verbose=0, tensorboard_log=str(ckpt_dir / "tb"), **kwargs)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     curve, held = state["curve"], state["held_out"]
+    progress = progress_of(ckpt_dir, env_steps, state, args)
 
     def act(flat):  # model and venv as bound when called: the selected policy is loaded without its envs, and
         # its statistics are the VecNormalize saved beside it (rebound below), not the model's (it has none)
@@ -587,9 +600,11 @@ def run_sb3(
             steps = int(self.num_timesteps)
             if buf and clock.point_due(curve, steps):
                 curve.append([steps, clock.spent_s / 60, float(np.mean(buf))])
-                if len(curve) % 10 == 1:
+                if progress is None and len(curve) % 10 == 1:
                     print(f"[algorithms] {steps:,} env steps, {clock.spent_s / 60:.1f} min: training episodes' "
                           f"success {np.mean(buf):.2f}", flush=True)  # fmt: skip
+            if progress is not None:
+                progress.tick(steps, lambda: f"training episodes' success {np.mean(buf):.2f}" if buf else "")
             if clock.eval_due(held, steps, args.curve_points):
                 held_out_point(act, env_id, obs, args, steps, clock, held)
             if clock.save_due():
@@ -751,6 +766,7 @@ def run_skrl(
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
+    progress = progress_of(ckpt_dir, env_steps, state, args)
     counted = {"steps": steps0}
     act = skrl_act(agent, env.observation_space, obs)
     # the config's own hooks (its ``callback:``), e.g. checkpoint selection on validation seeds, keeping their files in
@@ -781,9 +797,13 @@ def run_skrl(
         post(timestep=timestep, timesteps=timesteps)  # skrl's update, when a rollout is full
         if recent and clock.point_due(curve, counted["steps"]):
             curve.append([counted["steps"], clock.spent_s / 60, float(np.mean(recent))])
-            if len(curve) % 10 == 1:
+            if progress is None and len(curve) % 10 == 1:
                 print(f"[algorithms] {counted['steps']:,} env steps, {clock.spent_s / 60:.1f} min: training "
                       f"episodes' success {np.mean(recent):.2f}", flush=True)  # fmt: skip
+        if progress is not None:
+            progress.tick(
+                counted["steps"], lambda: f"training episodes' success {np.mean(recent):.2f}" if recent else ""
+            )
         if clock.eval_due(held, counted["steps"], args.curve_points):
             held_out_point(act, env_id, obs, args, counted["steps"], clock, held)
         if clock.save_due():
@@ -1279,7 +1299,7 @@ def check(args: Args) -> None:
         if not any(fnmatch.fnmatchcase(c, p) for c in cells for p in args.only):
             raise ValueError(f"--validate: --only {args.only} names no cell of {json_path}")
     for flag, value in (("--total-env-steps", args.total_env_steps), ("--max-minutes", args.max_minutes),
-                        ("--budget-min", args.budget_min)):  # fmt: skip
+                        ("--budget-min", args.budget_min), ("--progress-s", args.progress_s)):  # fmt: skip
         if value is not None and not value > 0:
             raise ValueError(f"{flag} must be positive, got {value}")
     if args.backend not in ("cpu", "gpu", "auto"):

@@ -47,10 +47,14 @@ def clock(seconds: float) -> str:
 
 class Progress:
     """Prints ``[label] steps/total env steps (pct) | rate | elapsed, ETA | note`` at most every ``every_s`` seconds
-    (:meth:`tick`) or at once (:meth:`report`). The rate is over the whole run so far, which an ETA needs."""
+    (:meth:`tick`) or at once (:meth:`report`). The rate is over the whole run so far, which an ETA needs; a run
+    continued from a checkpoint at ``start`` env steps counts its rate from there, since the steps before it took
+    another session's time."""
 
-    def __init__(self, label: str, total: int, every_s: float = EVERY_S, stream: Optional[TextIO] = None):
-        self.label, self.total, self.every_s = label, int(total), float(every_s)
+    def __init__(
+        self, label: str, total: int, every_s: float = EVERY_S, stream: Optional[TextIO] = None, start: int = 0
+    ):
+        self.label, self.total, self.every_s, self.start = label, int(total), float(every_s), int(start)
         self.stream = stream
         self.started = self.last = time.perf_counter()
 
@@ -59,7 +63,7 @@ class Progress:
 
     def line(self, steps: int, note: str = "") -> str:
         elapsed = self.elapsed()
-        rate = steps / elapsed if elapsed > 0 else 0.0
+        rate = (steps - self.start) / elapsed if elapsed > 0 else 0.0
         eta = (self.total - steps) / rate if rate > 0 else float("inf")
         pct = 100.0 * steps / self.total if self.total else 100.0
         text = (

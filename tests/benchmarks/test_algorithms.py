@@ -8,6 +8,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -523,7 +524,7 @@ def test_action_penalty_charges_the_arms_squared_action_not_the_gripper_and_refu
 
 
 @pytest.mark.slow  # four cells' worker start-ups, ten held-out points each and evaluations (2-4 min on 2 cores)
-def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path):
+def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_path, capsys):
     pytest.importorskip("sb3_contrib")
     pytest.importorskip("skrl")
     cells = [
@@ -533,10 +534,13 @@ def test_tuned_cells_run_from_their_configs_and_log_a_held_out_curve(alg, tmp_pa
         "state/GraspLift/skrl-sac/s1",
     ]
     args = alg.Args(only=cells, out_dir=tmp_path, runs_dir=tmp_path / "runs", quick=True, total_env_steps=400,
-                    reference_steps=0)  # fmt: skip
+                    reference_steps=0, progress_s=1e-6)  # fmt: skip
     alg.main(args)
+    out = capsys.readouterr().out
     data = json.loads((tmp_path / "algorithms.json").read_text())
-    for cell in cells:
+    for cell in cells:  # each cell shows its env steps of the budget, their rate and the time left as it trains
+        assert re.search(rf"\[algorithms {re.escape(cell)}\] [\d,]+/400 env steps \(\d+ %\) \| [\d.]+ env steps/s \| "
+                         r"\S+ elapsed, ETA \S+", out), out[-2000:]  # fmt: skip
         one = data["cells"][cell]
         curve = one["held_out_curve"]
         assert one["env_steps"] >= 400 and len(curve["env_steps"]) == 11  # tenths, a quarter, the final evaluation

@@ -25,6 +25,16 @@ def test_a_line_has_steps_rate_eta_and_the_note():
     assert m.group(3) == "training success 0.10 (last 20 episodes)"
 
 
+def test_a_resumed_run_counts_its_rate_from_where_it_continued():
+    out = io.StringIO()
+    p = Progress("sb3 sac", 1000, every_s=3600, stream=out, start=400)
+    p.started -= 10.0  # ten seconds after continuing at 400 env steps
+    p.report(500)
+    m = re.search(r"(\d+\.\d) env steps/s \| 10s elapsed, ETA (\d+)s$", out.getvalue().strip())
+    assert m, out.getvalue()
+    assert float(m.group(1)) == pytest.approx(10.0, abs=0.1) and int(m.group(2)) == pytest.approx(50, abs=1)
+
+
 def test_tick_prints_only_when_due_and_asks_for_the_note_only_then():
     out, asked = io.StringIO(), []
     p = Progress("x", 100, every_s=3600, stream=out)
