@@ -465,16 +465,17 @@ def test_every_probe_config_loads_and_its_run_command_names_itself(alg):
         assert f"--conf-file {rel}" in head and f"benchmarks/results/probes/{path.stem}" in head, path.name
         assert f"runs/probes/{path.stem}" in head, path.name
         cell = head.split("--only ", 1)[1].split()[0]
-        algo = cell.split("/")[2]
-        assert algo in alg.TUNED_ALGOS, (path.name, algo)
+        task, algo = cell.split("/")[1:3]
+        assert algo in alg.TUNED_ALGOS and task in alg.TASKS, (path.name, cell)
+        env_id = alg.TASKS[task]  # the task the probe's cell trains on: its config must carry that task's entry
         if path.suffix == ".yaml":  # skrl's runner YAML
-            cfg = loader.skrl_config(algo, "GraspLift-IRB120-v1", path)
+            cfg = loader.skrl_config(algo, env_id, path)
             defaults = {"PPO": PPO_CFG(), "SAC": SAC_CFG()}[cfg["agent"]["class"]]
             for key in cfg["agent"]:
                 if key != "class":
                     getattr(defaults, key)  # an AttributeError names a key skrl does not know
         else:  # rl-zoo3's hyperparams
-            cfg = loader.sb3_config(algo.split("-")[1], "GraspLift-IRB120-v1", path)
+            cfg = loader.sb3_config(algo.split("-")[1], env_id, path)
             params = inspect.signature(loader.sb3_class(cfg.algo).__init__).parameters
             assert set(cfg.kwargs) <= set(params), (path.name, set(cfg.kwargs) - set(params))
 
