@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import random
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -190,14 +191,22 @@ def close_and_save(bar, envs, counters: dict, clock: Clock, save: Callable[[dict
     progress bar (or None) closed, the training clock read into ``counters["wall_s"]``, ``save(counters)`` writing
     the last checkpoint, so that ``--resume`` continues from where it stopped, and then the envs closed (even if the
     save raised). The checkpoint is written first because a vector env interrupted mid-step may take its close
-    timeout to shut its workers down, or, for an env without one, not return at all."""
+    timeout to shut its workers down, or, for an env without one, not return at all. Closing while a step is pending
+    is the expected way out of a Ctrl-C or SIGTERM that lands mid-step, so gymnasium's warning about it (which would
+    break the interrupted run's one-line message) is silenced; any other warning still shows."""
     try:
         if bar is not None:
             bar.close()
         counters["wall_s"] = clock()
         save(counters)
     finally:
-        envs.close()
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=PENDING_CLOSE_WARNING)
+            envs.close()
+
+
+PENDING_CLOSE_WARNING = r".*Calling `close` while waiting for a pending call"
+"""gymnasium's ``AsyncVectorEnv.close`` warning when a step is still in flight (it then waits for that step)"""
 
 
 def held_out_evaluation(

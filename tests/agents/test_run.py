@@ -135,6 +135,27 @@ def test_a_failed_save_still_closes_the_envs():
     assert closed == [True]
 
 
+def test_closing_envs_interrupted_mid_step_prints_no_gymnasium_warning(recwarn):
+    """A Ctrl-C or SIGTERM that lands while the workers step leaves the async vector env waiting on that step; its
+    close then finishes the step and shuts the workers without the warning that would precede the one-line message."""
+    import gymnasium as gym
+
+    envs = gym.vector.AsyncVectorEnv([lambda: gym.make("CartPole-v1")] * 2)
+    envs.reset(seed=0)
+    envs.step_async(np.zeros(2, dtype=np.int64))  # the step the interrupt landed in
+    close_and_save(None, envs, dict(env_steps=0, wall_s=0.0), Clock(), lambda c: None)
+    assert envs.closed and not [w for w in recwarn if "pending call" in str(w.message)]
+    with pytest.warns(UserWarning, match="unrelated"):  # only that warning is silenced, not the others
+        close_and_save(None, WarnsOnClose(), dict(env_steps=0, wall_s=0.0), Clock(), lambda c: None)
+
+
+class WarnsOnClose:
+    def close(self):
+        import warnings
+
+        warnings.warn("unrelated", UserWarning, stacklevel=1)
+
+
 def test_the_held_out_evaluation_uses_the_runs_task_frame_and_hidden_keys(monkeypatch):
     calls = []
     monkeypatch.setattr(run, "evaluate_on_seeds", lambda *a, **kw: calls.append((a, kw)) or {})
