@@ -26,6 +26,12 @@ with the saved ``VecNormalize``'s ``normalize_obs``, ``predict(deterministic=Tru
   step fewer than ``horizon`` steps before a time-limit truncation is left out of the comparison: its realised
   return is cut short (``horizon``: where ``gamma ** k`` falls below 1 %).
 
+``--action-noise SIGMA`` and ``--stochastic`` play the policy as it acts while training instead: its deterministic
+action plus Gaussian noise of that σ per component, clipped to the bounds (SB3's ``NormalActionNoise`` as TD3 and
+DDPG explore; drawn from a generator seeded with the episode's seed), or a sample of its own distribution
+(``predict(deterministic=False)``: PPO's Gaussian, SAC's squashed one; torch seeded with the episode's seed). Both
+ask why a learner whose deterministic policy succeeds never succeeds in its training episodes.
+
 ``--replay`` (a replay buffer saved by ``save_replay_buffer``) adds what training saw: its transitions by reward
 stage (``floor(reward * 4)`` under ``normalized_dense``), the lifted ones that paid at least a still step's reward
 (GraspLift's settle term at 2 cm/s), the arm's actions in those, and how many carried the absorbing bonus.
@@ -70,7 +76,7 @@ class Args:
     env_id: str = "GraspLift-IRB120-v1"
     """the task"""
     episodes: int = 10
-    """deterministic episodes, one a seed"""
+    """episodes, one a seed (deterministic unless --action-noise or --stochastic)"""
     first_seed: int = 20_000_000
     """the first episode's seed (validation seeds: agents.common.VALIDATION_SEED)"""
     max_steps: Optional[int] = None
@@ -81,6 +87,11 @@ class Args:
     """the discount of the realised return; default: the model's"""
     absorbing_bonus: bool = True
     """add gamma / (1 - gamma) to a success that ends the episode (the configs' AbsorbingSuccess wrapper)"""
+    action_noise: float = 0.0
+    """σ of Gaussian noise added to each action component, then clipped to [-1, 1] (TD3's and DDPG's training
+    exploration); 0: none"""
+    stochastic: bool = False
+    """sample the policy's own distribution (predict(deterministic=False)), as PPO and SAC act in training"""
     replay: Optional[Path] = None
     """a replay buffer the model saved (save_replay_buffer), to count what training saw"""
     out: Path = Path("runs/diagnose_policy/diagnosis.json")
@@ -113,6 +124,10 @@ def check(args: Args) -> None:
         raise ValueError(f"--max-steps {args.max_steps}: give a whole number >= 1")
     if args.gamma is not None and not 0.0 <= args.gamma < 1.0:
         raise ValueError(f"--gamma {args.gamma}: give a discount in [0, 1)")
+    if not math.isfinite(args.action_noise) or args.action_noise < 0:
+        raise ValueError(f"--action-noise {args.action_noise}: give a standard deviation >= 0")
+    if args.action_noise > 0 and args.stochastic:
+        raise ValueError("--action-noise with --stochastic: give one way to explore, not both")
     if args.algo is not None and args.algo not in ALGOS:
         raise ValueError(f"--algo {args.algo!r}: one of {', '.join(ALGOS)}")
     if args.skrl_cell is not None:
@@ -123,8 +138,12 @@ def check(args: Args) -> None:
             raise ValueError(f"--skrl-cell {args.skrl_cell}: not a skrl PPO cell from state (its critic is V(s))")
         if args.vecnormalize is not None or args.replay is not None or args.algo is not None:
             raise ValueError("--skrl-cell: the agent scales its own observations; no --vecnormalize, --replay, --algo")
-    elif args.algo is None:
-        model_algo(args.model)
+        if args.stochastic:
+            raise ValueError("--skrl-cell: --stochastic samples SB3 policies only; --action-noise works for both")
+    else:
+        algo = args.algo or model_algo(args.model)
+        if args.stochastic and algo in ("td3", "ddpg"):
+            raise ValueError(f"--stochastic: {algo}'s actor is deterministic; --action-noise plays its exploration")
     from maniskill_irb120.envs import check_env_id
 
     check_env_id(args.env_id)
@@ -213,6 +232,8 @@ def play(args: Args, model, norm, gamma: float) -> list[dict]:
     try:
         for seed in range(args.first_seed, args.first_seed + args.episodes):
             o, info = env.reset(seed=seed)
+            noise = np.random.default_rng(seed)
+            torch.manual_seed(seed)
             stage, tcp = 0, tool_position(env)
             rows: dict[str, list] = {
                 k: [] for k in ("stage", "reached", "action", "tool_speed", "value", "q_still", "reward")
@@ -225,7 +246,9 @@ def play(args: Args, model, norm, gamma: float) -> list[dict]:
                 q, q_still = value_of(model, obs_t)
                 rows["value"].append(q)
                 rows["q_still"].append(q_still)
-                a = model.predict(x, deterministic=True)[0]
+                a = model.predict(x, deterministic=not args.stochastic)[0]
+                if args.action_noise > 0:
+                    a = np.clip(a + noise.normal(0.0, args.action_noise, np.shape(a)), -1.0, 1.0).astype(np.float32)
                 o, r, term, trunc, info = env.step(torch.as_tensor(a))
                 now = tool_position(env)
                 reward = float(r[0])
@@ -400,7 +423,8 @@ def main(args: Args) -> dict:
     episodes = play(args, model, norm, gamma)
     summary = summarise(episodes, gamma)
     out = dict(model=str(args.model), algo=algo, env_id=args.env_id, first_seed=args.first_seed,
-               absorbing_bonus=args.absorbing_bonus, env_steps=int(model.num_timesteps), **summary)  # fmt: skip
+               absorbing_bonus=args.absorbing_bonus, action_noise=args.action_noise, stochastic=args.stochastic,
+               env_steps=int(model.num_timesteps), **summary)  # fmt: skip
     if args.replay is not None:
         out["replay"] = replay_summary(args.replay)
     out["per_episode"] = [
@@ -417,7 +441,8 @@ def main(args: Args) -> dict:
         )  # fmt: skip
         for ep in episodes
     ]
-    print(table(out, f"{algo} {args.model}:"))
+    explore = f" (action noise σ {args.action_noise:g})" if args.action_noise > 0 else " (sampled)" * args.stochastic
+    print(table(out, f"{algo} {args.model}{explore}:"))
     if "replay" in out:
         print("replay:", json.dumps(out["replay"]))
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,6 @@
-"""``scripts/diagnose_policy.py`` on a tiny untrained SB3 TD3 (one 25-step episode): the JSON has the per-stage table,
-the critic against the realised return and the replay buffer's counts; bad input is one line and exit status 2."""
+"""``scripts/diagnose_policy.py`` on tiny untrained SB3 TD3 and SAC models (short episodes): the JSON has the
+per-stage table, the critic against the realised return and the replay buffer's counts, and the training policy's
+exploration is played on request; bad input is one line and exit status 2."""
 
 from __future__ import annotations
 
@@ -31,7 +32,16 @@ class Spaces(gym.Env):
 
 @pytest.fixture(scope="module")
 def tiny_td3(tmp_path_factory):
-    from stable_baselines3 import TD3
+    return tiny_model(tmp_path_factory, "td3")
+
+
+@pytest.fixture(scope="module")
+def tiny_sac(tmp_path_factory):
+    return tiny_model(tmp_path_factory, "sac")
+
+
+def tiny_model(tmp_path_factory, algo: str):
+    from stable_baselines3 import SAC, TD3
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     import maniskill_irb120  # noqa: F401
@@ -39,9 +49,11 @@ def tiny_td3(tmp_path_factory):
     env = gym.make(ENV, obs_mode="state", control_mode="pd_ee_delta_tool", render_backend="none")
     obs_dim = env.unwrapped.single_observation_space.shape[-1]
     env.close()
-    d = tmp_path_factory.mktemp("tiny_td3")
+    d = tmp_path_factory.mktemp(f"tiny_{algo}")
     venv = VecNormalize(DummyVecEnv([lambda: Spaces(obs_dim)]), norm_reward=False)
-    model = TD3("MlpPolicy", venv, gamma=0.8, learning_starts=100, policy_kwargs=dict(net_arch=[8]), seed=0)
+    model = dict(td3=TD3, sac=SAC)[algo](
+        "MlpPolicy", venv, gamma=0.8, learning_starts=100, policy_kwargs=dict(net_arch=[8]), seed=0
+    )
     model.learn(total_timesteps=6)
     model.save(d / "model.zip")
     model.save_replay_buffer(d / "replay.pkl")
@@ -71,6 +83,31 @@ def test_one_short_episode_writes_the_stage_table(tiny_td3, tmp_path, capsys, re
     assert "reach" in capsys.readouterr().out
 
 
+def test_exploration_noise_plays_the_training_policy_seeded_by_episode(tiny_td3, tiny_sac, tmp_path, repo_script):
+    """--action-noise adds TD3's Gaussian to the deterministic action (clipped to the bounds), --stochastic samples
+    SAC's own distribution; each draws from the episode's seed, so a rerun repeats its actions, and each changes
+    them from the deterministic ones."""
+
+    def play(d, *extra: str) -> tuple[np.ndarray, dict]:
+        out = tmp_path / f"d{len(list(tmp_path.iterdir()))}.json"
+        argv = ["--model", str(d / "model.zip"), "--vecnormalize", str(d / "vecnormalize.pkl"), "--episodes", "1",
+                "--max-steps", "5", *extra, "--out", str(out)]  # fmt: skip
+        r = repo_script("diagnose_policy").cli(argv)
+        return np.asarray(r["stages"][0]["mean_action"]), r
+
+    plain, r0 = play(tiny_td3)
+    noisy, r1 = play(tiny_td3, "--action-noise", "0.5")
+    again, _ = play(tiny_td3, "--action-noise", "0.5")
+    assert r0["action_noise"] == 0.0 and r1["action_noise"] == 0.5 and not r1["stochastic"]
+    assert np.array_equal(noisy, again) and not np.allclose(noisy, plain) and np.abs(noisy).max() <= 1.0
+    assert r1["stages"][0]["tool_speed"] != r0["stages"][0]["tool_speed"]  # the env stepped the noisy actions
+    mean, _ = play(tiny_sac)
+    sampled, r2 = play(tiny_sac, "--stochastic")
+    resampled, _ = play(tiny_sac, "--stochastic")
+    assert r2["stochastic"] and r2["algo"] == "sac" and np.array_equal(sampled, resampled)
+    assert not np.allclose(sampled, mean)
+
+
 @pytest.mark.parametrize(
     "argv, says",
     [
@@ -78,6 +115,10 @@ def test_one_short_episode_writes_the_stage_table(tiny_td3, tmp_path, capsys, re
         (["--model", "{model}", "--episodes", "0"], "--episodes 0: give a whole number >= 1"),
         (["--model", "{model}", "--env-id", "GraspLift-v1"], "unknown env id 'GraspLift-v1'"),
         (["--model", "{tmp}/notes.txt"], "is not an SB3 model.zip"),
+        (["--model", "{model}", "--action-noise", "-0.1"], "--action-noise -0.1: give a standard deviation >= 0"),
+        (["--model", "{model}", "--action-noise", "nan"], "--action-noise nan: give a standard deviation >= 0"),
+        (["--model", "{model}", "--action-noise", "0.1", "--stochastic"], "give one way to explore, not both"),
+        (["--model", "{model}", "--stochastic"], "--stochastic: td3's actor is deterministic; --action-noise plays"),
     ],
 )
 def test_bad_input_is_one_line_and_status_2(tiny_td3, tmp_path, capsys, argv, says, repo_script):
