@@ -233,7 +233,8 @@ def play(args: Args, model, norm, gamma: float) -> list[dict]:
         for seed in range(args.first_seed, args.first_seed + args.episodes):
             o, info = env.reset(seed=seed)
             noise = np.random.default_rng(seed)
-            torch.manual_seed(seed)
+            if args.stochastic:  # the sampled policy's draws, the same for an episode's seed in every run
+                torch.manual_seed(seed)
             stage, tcp = 0, tool_position(env)
             rows: dict[str, list] = {
                 k: [] for k in ("stage", "reached", "action", "tool_speed", "value", "q_still", "reward")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -151,8 +152,6 @@ def test_closing_envs_interrupted_mid_step_prints_no_gymnasium_warning(recwarn):
 
 class WarnsOnClose:
     def close(self):
-        import warnings
-
         warnings.warn("unrelated", UserWarning, stacklevel=1)
 
 
