@@ -97,6 +97,8 @@ class Algorithm:
     from_reward: bool = True
     ablation: bool = False
     """outside the table's rule of each library's defaults (a question about the others' zeros): never a group's best"""
+    camera_settings: str = ""
+    """the camera row's settings where they differ from ``settings`` (a tuned row's camera file)"""
     config: str = ""
     """a tuned row's algorithm in agents/configs (sb3/<config>.yml, skrl/<config>_<task>.yaml; skrl's defaults rows
     other than PPO's: skrl/<algo>_defaults.yaml, as <algo>-defaults); empty: the library's defaults in code"""
@@ -124,6 +126,13 @@ TUNED_SETTINGS = {
     "initial temperature 0.1, 3x256 ReLU, RunningStandardScaler, absorbing success",
 }
 """the tuned rows' settings, as the table prints them (the files in agents/configs are what runs)"""
+TUNED_CAMERA_SETTINGS = {
+    "ppo": "agents/configs/sb3/ppo_rgbd.yml (rl-zoo3's format; each setting's why is its comment): sb3/ppo.yml's "
+    "settings from the camera: MultiInputPolicy (NatureCNN on the 84x84 RGB-D image, the state vector beside it, "
+    "3x256 tanh heads), the state vector normalised and the image not (VecNormalize norm_obs_keys), the checkpoint "
+    "selected on 30 validation episodes every twentieth of the budget",
+}
+"""the camera rows' settings of the tuned configs with a camera file (agents/configs/loader.SB3_CAMERA_ALGOS)"""
 SB3_OFF_POLICY_NOISE = "Gaussian action noise σ 0.1 (SB3's documented TD3/DDPG example; the class default has none)"
 ALGORITHMS = {
     "sb3-ppo": Algorithm(
@@ -170,7 +179,7 @@ ALGORITHMS = {
         f"sb3-{algo}-tuned": Algorithm(
             f"{algo.upper()}, tuned", f"{'sb3-contrib' if algo == 'tqc' else 'Stable-Baselines3'} {SB3_VERSION}",
             "sb3", f"agents/configs/sb3/{algo}.yml (rl-zoo3's format; each setting's why is its comment): "
-            + TUNED_SETTINGS[algo], config=algo,
+            + TUNED_SETTINGS[algo], config=algo, camera_settings=TUNED_CAMERA_SETTINGS.get(algo, ""),
         )
         for algo in ("ppo", "sac", "tqc", "td3", "ddpg")
     },
@@ -212,7 +221,9 @@ TUNED_ALGOS = ("sb3-sac-tuned", "sb3-ppo-tuned", "sb3-tqc-tuned", "sb3-td3-tuned
 """the rows of agents/configs' tuned settings, one per library algorithm, beside the defaults rows"""
 STATE_ALGOS = ("sb3-ppo", "sb3-sac", "sb3-td3", "sb3-ddpg", "sb3-tqc", "skrl-ppo", "skrl-sac", "project-ppo",
                *TUNED_ALGOS)  # fmt: skip
-CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera")
+CAMERA_ALGOS = ("sb3-ppo", "sb3-sac", "project-camera", "sb3-ppo-tuned")
+"""the camera cells (GraspLift): the defaults rows, the project's recipe, and the library configs with a camera file
+(agents/configs/loader.SB3_CAMERA_ALGOS)"""
 ABLATIONS = (("state", "GraspLift", "sb3-ppo-maniskill"),)
 """(obs, task, algorithm) cells run after the grid's others, one seed each"""
 SECTION_HEAD = "## RL libraries — `benchmarks/algorithms.py`"
@@ -308,6 +319,12 @@ def budget_text(minutes: Optional[float], steps: Optional[int]) -> str:
     if steps is None:
         return f"{minutes:g} min"
     return f"{steps:,} env steps" + ("" if minutes is None else f" (guard {minutes:g} min)")
+
+
+def settings_of(obs: str, algo: str) -> str:
+    """The row's settings as the table prints them: a camera row's own where its algorithm has them."""
+    spec = ALGORITHMS[algo]
+    return (obs != "state" and spec.camera_settings) or spec.settings
 
 
 def best_algo(done: dict[str, dict], obs: str, task: str) -> Optional[str]:
@@ -544,7 +561,7 @@ def run_sb3(
     from maniskill_irb120.integrations.sb3 import deterministic_action, make_sb3_vec_env
 
     spec = ALGORITHMS[algo]
-    tuned = loader.sb3_config(spec.config, env_id, args.conf_file) if spec.config else None
+    tuned = loader.sb3_config(spec.config, env_id, args.conf_file, obs) if spec.config else None
     cls = loader.sb3_class(spec.config or algo.split("-")[1])
     policy = "MlpPolicy" if obs == "state" else "MultiInputPolicy"
     kwargs: dict = {}
@@ -974,7 +991,7 @@ def rows_of(cells: dict[str, dict], args: Args) -> list[dict]:
                       key=lambda c: c["seed"])  # fmt: skip
         spec = ALGORITHMS[algo]
         row = dict(obs=obs, task=task, algorithm=algo, name=spec.name, library=spec.library,
-                   settings=spec.settings, from_reward=spec.from_reward, **row_budget(runs, obs, task, args),
+                   settings=settings_of(obs, algo), from_reward=spec.from_reward, **row_budget(runs, obs, task, args),
                    seeds=[r["seed"] for r in runs])  # fmt: skip
         if runs:
             successes = [r["successes"] for r in runs]

@@ -26,8 +26,23 @@ ZOO_KEYS = ("policy", "n_timesteps", "n_envs", "normalize", "env_wrapper", "call
 """rl-zoo3's keys that are not the model's keyword arguments"""
 
 
-def sb3_path(algo: str) -> Path:
-    return CONFIGS / "sb3" / f"{algo}.yml"
+SB3_CAMERA_ALGOS = ("ppo",)
+"""the algorithms with a camera file, ``sb3/<algo>_rgbd.yml``"""
+
+
+def sb3_path(algo: str, obs: str = "state") -> Path:
+    """``sb3/<algo>.yml`` from state; from the camera (``obs="rgbd"``) ``sb3/<algo>_rgbd.yml``: rl-zoo3 keys an
+    entry by env id alone, and the camera's entry (``MultiInputPolicy``, the image left unnormalised) is for the same
+    env ids as the state's."""
+    if obs == "state":
+        return CONFIGS / "sb3" / f"{algo}.yml"
+    if obs != "rgbd":
+        raise ValueError(f"unknown obs {obs!r}: state or rgbd")
+    if algo not in SB3_CAMERA_ALGOS:
+        raise ValueError(
+            f"no camera config for SB3 {algo}: agents/configs/sb3 has one for {', '.join(SB3_CAMERA_ALGOS)} only"
+        )
+    return CONFIGS / "sb3" / f"{algo}_rgbd.yml"
 
 
 def skrl_path(algo: str, env_id: str) -> Path:
@@ -113,8 +128,13 @@ def policy_kwargs_of(text: str) -> dict:
     return eval(text, {"__builtins__": {}}, {"dict": dict, "nn": nn})  # noqa: S307 - a file of this repository
 
 
-def sb3_config(algo: str, env_id: str, path: Optional[Path] = None) -> SB3Config:
-    hp = dict(yaml.safe_load((path or sb3_path(algo)).read_text())[env_id])
+def sb3_config(algo: str, env_id: str, path: Optional[Path] = None, obs: str = "state") -> SB3Config:
+    """``env_id``'s entry of ``path`` (default: :func:`sb3_path` of ``algo`` and ``obs``)."""
+    path = path or sb3_path(algo, obs)
+    entries = yaml.safe_load(path.read_text())
+    if env_id not in entries:
+        raise ValueError(f"{path} has no entry for {env_id}; it has {', '.join(entries)}")
+    hp = dict(entries[env_id])
     normalize = hp.pop("normalize", False)
     if isinstance(normalize, str):
         normalize = ast.literal_eval(normalize)

@@ -7,12 +7,18 @@ tasks need the CPU worker vector env; so this takes rl-zoo3's flags and file for
 skrl train script does.
 
     python -m agents.configs.train --algo sac --env GraspLift-IRB120-v1 -conf agents/configs/sb3/sac.yml
+    python -m agents.configs.train --algo ppo --env GraspLift-IRB120-v1 -conf agents/configs/sb3/ppo_rgbd.yml \
+        --env-kwargs obs_mode:rgbd
     python -m agents.configs.train --library skrl --algo ppo --env GraspLift-IRB120-v1
+
+The observation is an env keyword, as rl-zoo3 passes one (``--env-kwargs obs_mode:rgbd``; ``state`` by default): a
+camera config's ``MultiInputPolicy`` needs it, and a state config's ``MlpPolicy`` refuses it.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 from pathlib import Path
 from typing import Optional
 
@@ -30,14 +36,58 @@ def parse(argv: Optional[list[str]] = None) -> argparse.Namespace:
     p.add_argument("-f", "--log-folder", type=Path, default=Path("runs/configs"))
     p.add_argument("--backend", default="cpu", help="cpu, gpu or auto (make_vec_env's)")
     p.add_argument("--gym-packages", nargs="*", default=[], help="accepted for rl-zoo3's command line; unused")
-    return p.parse_args(argv)
+    p.add_argument("--env-kwargs", nargs="+", default=[], metavar="KEY:VALUE",
+                   help="the env's keywords, as rl-zoo3's (a value is a Python literal, or a word as a string); "
+                   "obs_mode: state (default) or rgbd, the camera's image and state")  # fmt: skip
+    a = p.parse_args(argv)
+    try:
+        a.env_kwargs = env_kwargs_of(a.env_kwargs)
+    except ValueError as e:
+        p.error(str(e))
+    obs = a.env_kwargs.get("obs_mode", "state")
+    if obs not in OBS_MODES:
+        p.error(f"--env-kwargs obs_mode:{obs}: unknown; use one of {', '.join(OBS_MODES)}")
+    if a.library == "skrl" and obs != "state":
+        p.error("--env-kwargs obs_mode:rgbd: the skrl configs are for state observations")
+    if a.library == "sb3":
+        try:
+            policy = loader.sb3_config(a.algo, a.env, a.conf_file, obs).policy
+        except (ValueError, KeyError, OSError) as e:
+            p.error(str(e))
+        if (policy == "MultiInputPolicy") != (obs == "rgbd"):
+            p.error(f"the config's {policy} and obs_mode {obs} disagree: a MultiInputPolicy config reads the camera "
+                    "(--env-kwargs obs_mode:rgbd), an MlpPolicy config the state")  # fmt: skip
+    return a
+
+
+OBS_MODES = ("state", "rgbd")
+"""the observations the adapters give (maniskill_irb120.integrations.observations)"""
+
+
+def env_kwargs_of(items: list[str]) -> dict:
+    """rl-zoo3's ``--env-kwargs key:value ...`` as a dict: a value is read as a Python literal (``0.5``, ``True``,
+    ``'rgbd'``), and a bare word that is none (``rgbd``) as that string."""
+    out = {}
+    for item in items:
+        key, sep, text = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"--env-kwargs {item!r}: give KEY:VALUE, e.g. obs_mode:rgbd")
+        try:
+            out[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            if not text.isidentifier():
+                raise ValueError(f"--env-kwargs {item!r}: {text!r} is neither a Python literal nor a word") from None
+            out[key] = text
+    return out
 
 
 def train_sb3(a: argparse.Namespace) -> Path:
     from stable_baselines3.common.vec_env import VecNormalize
 
-    cfg = loader.sb3_config(a.algo, a.env, a.conf_file)
-    venv = cfg.vec_env(a.env, backend=a.backend, seed=a.seed)
+    env_kwargs = dict(a.env_kwargs)
+    obs = env_kwargs.pop("obs_mode", "state")
+    cfg = loader.sb3_config(a.algo, a.env, a.conf_file, obs)
+    venv = cfg.vec_env(a.env, obs=obs, backend=a.backend, seed=a.seed, env_kwargs=env_kwargs or None)
     out = a.log_folder / a.algo / f"{a.env}_{a.seed}"
     try:
         model = loader.sb3_class(a.algo)(cfg.policy, venv, seed=a.seed, verbose=1, tensorboard_log=str(out),
@@ -60,7 +110,9 @@ def train_skrl(a: argparse.Namespace) -> Path:
 
     cfg = loader.skrl_config(a.algo, a.env, a.conf_file)
     num_envs, wrappers = loader.skrl_env_settings(cfg)
-    env = make_skrl_env(a.env, num_envs, "state", backend=a.backend, seed=a.seed, wrappers=wrappers)
+    env_kwargs = {k: v for k, v in a.env_kwargs.items() if k != "obs_mode"}  # state only (parse says so)
+    env = make_skrl_env(a.env, num_envs, "state", backend=a.backend, seed=a.seed, wrappers=wrappers,
+                        env_kwargs=env_kwargs or None)  # fmt: skip
     out = a.log_folder / f"skrl_{a.algo}"
     run = loader.skrl_runner_config(cfg)
     run["seed"] = a.seed

@@ -47,7 +47,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     lo, hi = row["success_ci95"]
     assert row["seeds"] == [1] and row["interval"] == "Wilson" and 0 <= lo <= row["success_mean"] <= hi <= 1
     assert data["versions"]["stable_baselines3"] == "2.9.2" and "RHPO" in data["not_runnable"]
-    assert len(data["rows"]) == len(alg.grid()) == 34 and sum("success_mean" in r for r in data["rows"]) == 1  # pending
+    assert len(data["rows"]) == len(alg.grid()) == 35 and sum("success_mean" in r for r in data["rows"]) == 1  # pending
     assert (tmp_path / "algorithms.png").stat().st_size > 5000
     text = md.read_text()
     assert text.count(alg.SECTION_HEAD) == 1 and "## Earlier\n\nkept\n" in text and "## Later\n\nkept too" in text
@@ -124,7 +124,7 @@ def test_render_only_derives_the_rows_again_from_the_committed_cells(alg, tmp_pa
     report = alg.main(alg.Args(render_only=True, out_dir=tmp_path, results_md=md))
     again = json.loads((tmp_path / "algorithms.json").read_text())
     assert again == report and again["cells"] == committed["cells"]
-    assert [r["settings"] for r in again["rows"]] == [alg.ALGORITHMS[r["algorithm"]].settings for r in again["rows"]]
+    assert [r["settings"] for r in again["rows"]] == [alg.settings_of(r["obs"], r["algorithm"]) for r in again["rows"]]
     measured = ("success_mean", "success_ci95", "per_seed", "env_steps_mean", "reference_sps_mean", "seeds")
     rows = {(r["obs"], r["task"], r["algorithm"]): r for r in again["rows"]}  # rows added since stay pending
     assert [{k: rows[r["obs"], r["task"], r["algorithm"]].get(k) for k in measured} for r in committed["rows"]] == [
@@ -153,7 +153,7 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     args = alg.Args()
     done: dict[str, dict] = {}
     first = alg.planned(done, args)
-    assert len(first) == len(alg.grid()) == 34 and all(c.endswith("/s1") for c in first)
+    assert len(first) == len(alg.grid()) == 35 and all(c.endswith("/s1") for c in first)
     group = [c for c in first if c.startswith("state/GraspLift/")]
     for i, cell in enumerate(group):
         done[cell] = {"success_rate": {"sb3-sac": 0.4, "project-ppo": 0.3}.get(cell.split("/")[2], 0.1 * i / 10)}
@@ -172,7 +172,7 @@ def test_the_plan_adds_the_best_cells_seeds_once_its_group_is_in(alg):
     done["state/TableClearing/sb3-td3/s1"] = done["state/TableClearing/skrl-ppo/s1"] = {"success_rate": 0.2}
     assert alg.best_algo(done, "state", "TableClearing") == "sb3-td3"
     # every camera cell learns from the reward alone (the project's is teacher-student-rgbd): the best one gets seeds
-    for algo, rate in (("sb3-ppo", 0.1), ("sb3-sac", 0.2), ("project-camera", 0.9)):
+    for algo, rate in (("sb3-ppo", 0.1), ("sb3-sac", 0.2), ("project-camera", 0.9), ("sb3-ppo-tuned", 0.3)):
         done[f"rgbd/GraspLift/{algo}/s1"] = {"success_rate": rate}
     assert alg.best_algo(done, "rgbd", "GraspLift") == "project-camera"
     args.only = ["rgbd/*"]
@@ -442,6 +442,101 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     cfg = loader.skrl_config("sac-defaults", "TableClearing-IRB120-v1")
     assert uncommented_keys(path) == [] and cfg["agent"] == {"class": "SAC"}
     assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
+
+
+def test_the_camera_config_is_the_state_ones_with_what_pixels_change(alg):
+    """sb3/ppo_rgbd.yml: every setting says why and differs from SB3's default; it is sb3/ppo.yml's but for the
+    policy class, the image left out of VecNormalize (which would make it floats SB3 then flattens into the MLP)
+    and a sparser selection; an algorithm with no camera file is refused by name."""
+    import inspect
+
+    from agents.configs import loader
+
+    path = loader.sb3_path("ppo", "rgbd")
+    assert path.name == "ppo_rgbd.yml" and uncommented_keys(path) == []
+    params = inspect.signature(loader.sb3_class("ppo").__init__).parameters
+    for env_id in alg.TASKS.values():
+        cam, state = loader.sb3_config("ppo", env_id, obs="rgbd"), loader.sb3_config("ppo", env_id)
+        assert cam.policy == "MultiInputPolicy" and cam.n_timesteps == alg.CAMERA_ENV_STEPS
+        assert cam.normalize == {"norm_obs": True, "norm_reward": False, "norm_obs_keys": ["state"]}
+        assert cam.kwargs == state.kwargs and cam.n_envs == state.n_envs == 4
+        assert all(key in params and params[key].default != value for key, value in cam.kwargs.items())
+        assert [(w.func, w.keywords) for w in cam.wrappers] == [(w.func, w.keywords) for w in state.wrappers]
+        (select,) = cam.make_callbacks(Path("elsewhere"))
+        assert (select.every, select.episodes) == (alg.CAMERA_ENV_STEPS // 20, 30)
+    with pytest.raises(ValueError, match="no camera config for SB3 sac"):
+        loader.sb3_path("sac", "rgbd")
+    with pytest.raises(ValueError, match="has no entry for Foo-v1; it has GraspLift-IRB120-v1"):
+        loader.sb3_config("ppo", "Foo-v1", obs="rgbd")
+    assert "sb3-ppo-tuned" in alg.CAMERA_ALGOS and "ppo_rgbd.yml" in alg.settings_of("rgbd", "sb3-ppo-tuned")
+    assert alg.settings_of("state", "sb3-ppo-tuned") == alg.ALGORITHMS["sb3-ppo-tuned"].settings
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["-conf", "agents/configs/sb3/ppo_rgbd.yml"], "MultiInputPolicy and obs_mode state disagree"),
+        (["--env-kwargs", "obs_mode"], "give KEY:VALUE, e.g. obs_mode:rgbd"),
+        (["--env-kwargs", "obs_mode:pixels"], "obs_mode:pixels: unknown; use one of state, rgbd"),
+        (["--env-kwargs", "obs_mode:rgbd", "--algo", "sac"], "no camera config for SB3 sac"),
+        (["--env-kwargs", "obs_mode:rgbd", "--library", "skrl"], "the skrl configs are for state observations"),
+        (["--env-kwargs", "reward_mode:a b"], "is neither a Python literal nor a word"),
+    ],
+)
+def test_the_train_command_refuses_an_observation_its_config_does_not_read(argv, message, capsys):
+    """One line and exit code 2 for each, before any env is built."""
+    from agents.configs import train
+
+    with pytest.raises(SystemExit) as e:
+        train.parse(["--algo", "ppo", "--env", "GraspLift-IRB120-v1", *argv])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_every_train_command_of_the_docs_parses(alg):
+    """docs/rl_libraries.md's commands of agents.configs.train, as a user pastes them: each parses and its config
+    agrees with its observation (the check parse makes before any env is built)."""
+    import shlex
+
+    from agents.configs import train
+
+    doc = (alg.ROOT / "docs" / "rl_libraries.md").read_text()
+    commands = [line for line in doc.splitlines() if line.startswith(".venv/bin/python -m agents.configs.train ")]
+    assert len(commands) >= 4 and any("obs_mode:rgbd" in c for c in commands)
+    for command in commands:
+        argv = shlex.split(command.split("#")[0])[3:]
+        assert train.parse(argv).algo, command
+
+
+def test_the_train_command_reads_rl_zoo3s_env_kwargs():
+    from agents.configs import train
+
+    a = train.parse(["--algo", "ppo", "--env", "GraspLift-IRB120-v1", "--env-kwargs", "obs_mode:rgbd",
+                     "reward_mode:'dense'", "sensor_noise:0.5"])  # fmt: skip
+    assert a.env_kwargs == {"obs_mode": "rgbd", "reward_mode": "dense", "sensor_noise": 0.5}
+    assert train.parse(["--algo", "ppo", "--env", "GraspLift-IRB120-v1"]).env_kwargs == {}
+
+
+def test_the_camera_config_builds_a_cnn_policy_on_the_unnormalised_image():
+    """The model the camera cell trains: NatureCNN on the image key, and VecNormalize touching the state only."""
+    import numpy as np
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.torch_layers import NatureCNN
+
+    from agents.configs import loader
+
+    cfg = loader.sb3_config("ppo", "GraspLift-IRB120-v1", obs="rgbd")
+    venv = cfg.vec_env("GraspLift-IRB120-v1", num_envs=1, obs="rgbd", backend="cpu", seed=3)
+    try:
+        model = PPO(cfg.policy, venv, seed=3, **cfg.model_kwargs(5))
+        obs = venv.reset()
+        raw = venv.get_original_obs()
+        assert obs["image"].dtype == np.uint8 and np.array_equal(obs["image"], raw["image"])
+        assert not np.allclose(obs["state"], raw["state"])  # normalised
+        assert isinstance(model.policy.features_extractor.extractors["image"], NatureCNN)
+        action, _ = model.predict(obs, deterministic=True)
+        assert action.shape == (1, 5) and np.isfinite(action).all()
+    finally:
+        venv.close()
 
 
 def test_every_probe_config_loads_and_its_run_command_names_itself(alg):
