@@ -976,7 +976,11 @@ def run_cell(cell: str, args: Args) -> dict:
         r.pop("budget_min", None)
         if r["stopped_early"]:
             print(f"[algorithms] {cell}: stopped early at {r['env_steps']} env steps (of {steps})", flush=True)
-    r.update(cell=cell, seed=seed, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    from maniskill_irb120.vector import TORCH_THREADS
+
+    # torch's threads at import: a camera learner's between steps (learner_threads_for), which a shared machine
+    # makes matter (docs/rl_libraries.md)
+    r.update(cell=cell, seed=seed, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), torch_threads=TORCH_THREADS)
     return r
 
 
