@@ -976,11 +976,12 @@ def run_cell(cell: str, args: Args) -> dict:
         r.pop("budget_min", None)
         if r["stopped_early"]:
             print(f"[algorithms] {cell}: stopped early at {r['env_steps']} env steps (of {steps})", flush=True)
-    from maniskill_irb120.vector import TORCH_THREADS
+    r.update(cell=cell, seed=seed, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    if spec.runner != "project":  # a library learner's threads between steps from the camera (learner_threads_for):
+        # torch's count at import, which a shared machine makes matter (docs/rl_libraries.md)
+        from maniskill_irb120.vector import TORCH_THREADS
 
-    # torch's threads at import: a camera learner's between steps (learner_threads_for), which a shared machine
-    # makes matter (docs/rl_libraries.md)
-    r.update(cell=cell, seed=seed, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), torch_threads=TORCH_THREADS)
+        r["torch_threads"] = TORCH_THREADS
     return r
 
 
