@@ -34,10 +34,10 @@ def sb3_path(algo: str, obs: str = "state") -> Path:
     """``sb3/<algo>.yml`` from state; from the camera (``obs="rgbd"``) ``sb3/<algo>_rgbd.yml``: rl-zoo3 keys an
     entry by env id alone, and the camera's entry (``MultiInputPolicy``, the image left unnormalised) is for the same
     env ids as the state's."""
-    if obs == "state":
+    from maniskill_irb120.integrations.observations import check_obs
+
+    if check_obs(obs) == "state":
         return CONFIGS / "sb3" / f"{algo}.yml"
-    if obs != "rgbd":
-        raise ValueError(f"unknown obs {obs!r}: state or rgbd")
     if algo not in SB3_CAMERA_ALGOS:
         raise ValueError(
             f"no camera config for SB3 {algo}: agents/configs/sb3 has one for {', '.join(SB3_CAMERA_ALGOS)} only"

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Optional
 
 from agents.configs import loader
+from maniskill_irb120.integrations.observations import OBS_KINDS
 
 
 def parse(argv: Optional[list[str]] = None) -> argparse.Namespace:
@@ -44,24 +45,22 @@ def parse(argv: Optional[list[str]] = None) -> argparse.Namespace:
         a.env_kwargs = env_kwargs_of(a.env_kwargs)
     except ValueError as e:
         p.error(str(e))
-    obs = a.env_kwargs.get("obs_mode", "state")
-    if obs not in OBS_MODES:
-        p.error(f"--env-kwargs obs_mode:{obs}: unknown; use one of {', '.join(OBS_MODES)}")
+    a.obs = obs = a.env_kwargs.get("obs_mode", "state")
+    if obs not in OBS_KINDS:
+        p.error(f"--env-kwargs obs_mode:{obs}: unknown; use one of {', '.join(OBS_KINDS)}")
     if a.library == "skrl" and obs != "state":
         p.error("--env-kwargs obs_mode:rgbd: the skrl configs are for state observations")
+    a.sb3_config = None  # the entry train_sb3 builds, read once here to check it against the observation
     if a.library == "sb3":
         try:
-            policy = loader.sb3_config(a.algo, a.env, a.conf_file, obs).policy
+            a.sb3_config = loader.sb3_config(a.algo, a.env, a.conf_file, obs)
         except (ValueError, KeyError, OSError) as e:
             p.error(str(e))
+        policy = a.sb3_config.policy
         if (policy == "MultiInputPolicy") != (obs == "rgbd"):
             p.error(f"the config's {policy} and obs_mode {obs} disagree: a MultiInputPolicy config reads the camera "
                     "(--env-kwargs obs_mode:rgbd), an MlpPolicy config the state")  # fmt: skip
     return a
-
-
-OBS_MODES = ("state", "rgbd")
-"""the observations the adapters give (maniskill_irb120.integrations.observations)"""
 
 
 def env_kwargs_of(items: list[str]) -> dict:
@@ -84,10 +83,9 @@ def env_kwargs_of(items: list[str]) -> dict:
 def train_sb3(a: argparse.Namespace) -> Path:
     from stable_baselines3.common.vec_env import VecNormalize
 
-    env_kwargs = dict(a.env_kwargs)
-    obs = env_kwargs.pop("obs_mode", "state")
-    cfg = loader.sb3_config(a.algo, a.env, a.conf_file, obs)
-    venv = cfg.vec_env(a.env, obs=obs, backend=a.backend, seed=a.seed, env_kwargs=env_kwargs or None)
+    cfg = a.sb3_config
+    env_kwargs = {k: v for k, v in a.env_kwargs.items() if k != "obs_mode"}  # the observation is a.obs
+    venv = cfg.vec_env(a.env, obs=a.obs, backend=a.backend, seed=a.seed, env_kwargs=env_kwargs or None)
     out = a.log_folder / a.algo / f"{a.env}_{a.seed}"
     try:
         model = loader.sb3_class(a.algo)(cfg.policy, venv, seed=a.seed, verbose=1, tensorboard_log=str(out),

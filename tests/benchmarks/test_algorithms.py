@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.lib import runner
+from maniskill_irb120.vector import TORCH_THREADS
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +42,7 @@ def test_one_cell_writes_the_json_png_and_section_and_a_rerun_skips_it(alg, tmp_
     one = data["cells"][cell]
     assert one["env_steps"] > 0 and 0 < one["wall_clock_s"] < 60 and len(one["successes"]) == 2
     assert 0.0 <= one["cpu_steal"] < 1.0  # the share of CPU time the host took while it trained (Linux)
-    assert one["torch_threads"] == __import__("maniskill_irb120.vector").vector.TORCH_THREADS  # the learner's, recorded
+    assert one["torch_threads"] == TORCH_THREADS  # the library learner's count, recorded
     assert len(one["reference_sps"]) == 2 and min(one["reference_sps"]) > 0  # the machine's speed before and after
     assert one["budget_min"] == 0.05 and (tmp_path / "runs" / "state__GraspLift__sb3-ppo__s1" / "model.zip").is_file()
     row = next(r for r in data["rows"] if (r["obs"], r["task"], r["algorithm"]) == ("state", "GraspLift", "sb3-ppo"))
