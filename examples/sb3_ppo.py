@@ -4,10 +4,12 @@ sb3 extra).
     .venv/bin/python examples/sb3_ppo.py --env-id GraspLift-IRB120-v1 --obs state --total-timesteps 200000
     .venv/bin/python examples/sb3_ppo.py --obs rgbd --n-steps 64 --total-timesteps 256 --eval-episodes 2   # a look
 
-From state it trains with ``agents/configs/sb3/ppo.yml`` (rl-zoo3's format, read by ``agents/configs/loader.py``):
-the project's tuned settings, 4 envs, ``VecNormalize`` on the observations and the absorbing value on success, each
-setting's reason beside it in the file. ``--library-defaults`` (and the camera, which the configs were not tuned
-for) takes SB3's PPO as it comes: ``n_steps=2048`` per env, batch 64, 10 epochs, gamma 0.99, lambda 0.95, on 2 envs.
+It trains with the project's tuned config in rl-zoo3's format, read by ``agents/configs/loader.py``: from state
+``agents/configs/sb3/ppo.yml`` (4 envs, ``VecNormalize`` on the observations, the absorbing value on success), from
+the camera ``agents/configs/sb3/ppo_rgbd.yml`` (the same, with SB3's NatureCNN on the image and only the state vector
+normalised), each setting's reason beside it in the file. The configs' checkpoint selection is the benchmark's
+(``benchmarks.algorithms``); this example keeps the last policy. ``--library-defaults`` takes SB3's PPO as it comes:
+``n_steps=2048`` per env, batch 64, 10 epochs, gamma 0.99, lambda 0.95, on 2 envs.
 SB3 bootstraps an episode cut at the step limit from the adapter's ``TimeLimit.truncated``.
 
 A line every 10 s shows the env steps, their rate, the time left and the training episodes' success (SB3's
@@ -28,7 +30,8 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecNormalize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # agents/configs, beside examples/ in the checkout
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # agents/configs, beside examples/ in the checkout
 
 from agents.configs import loader  # noqa: E402
 from maniskill_irb120.envs import check_env_id  # noqa: E402
@@ -45,7 +48,7 @@ class Args:
     obs: str = "state"
     """state (MlpPolicy) or rgbd (MultiInputPolicy: the hand camera's RGB-D image + a state vector)"""
     library_defaults: bool = False
-    """SB3's own PPO settings instead of agents/configs/sb3/ppo.yml (the camera always takes them)"""
+    """SB3's own PPO settings instead of agents/configs/sb3/ppo.yml (ppo_rgbd.yml from the camera)"""
     num_envs: Optional[int] = None
     """envs stepping side by side (default: the config's, 4; with SB3's defaults 2)"""
     backend: str = "auto"
@@ -67,8 +70,8 @@ class Args:
 def build(args: Args) -> tuple[PPO, str, int]:
     """The model on its envs, what it was configured from, and its env-step budget."""
     config = None
-    if not args.library_defaults and args.obs == "state":
-        config = loader.sb3_config("ppo", args.env_id)
+    if not args.library_defaults:
+        config = loader.sb3_config("ppo", args.env_id, obs=args.obs)
     envs, steps = (config.n_envs, config.n_timesteps) if config else (LIBRARY_DEFAULT_ENVS, LIBRARY_DEFAULT_STEPS)
     num_envs = envs if args.num_envs is None else args.num_envs  # a 0 given is refused below, not defaulted
     total = steps if args.total_timesteps is None else args.total_timesteps
@@ -85,7 +88,7 @@ def build(args: Args) -> tuple[PPO, str, int]:
         kwargs["batch_size"] = min(kwargs.get("batch_size", 64), args.n_steps * num_envs)
     policy = config.policy if config else ("MlpPolicy" if args.obs == "state" else "MultiInputPolicy")
     model = PPO(policy, venv, seed=args.seed, tensorboard_log=str(args.out_dir), verbose=0, **kwargs)
-    source = "agents/configs/sb3/ppo.yml" if config else "SB3's defaults"
+    source = loader.sb3_path("ppo", args.obs).relative_to(REPO).as_posix() if config else "SB3's defaults"
     return model, source, total
 
 

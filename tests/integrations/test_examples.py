@@ -1,7 +1,7 @@
 """The RL-library examples run as written, at toy sizes: examples/sb3_ppo.py from the README's command line (the
-camera), sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves; from state
-they train with agents/configs' tuned settings unless told --library-defaults, and show progress and held-out success
-while they run."""
+camera), sb3_sac.py and skrl_ppo.py through their ``main`` (state), each leaving what it says it leaves; they train
+with agents/configs' tuned settings (SB3's PPO from the camera too) unless told --library-defaults, and show
+progress and held-out success while they run."""
 
 from __future__ import annotations
 
@@ -43,6 +43,8 @@ def test_sb3_ppo_example_runs_as_the_readme_writes_it(tmp_path):
     run = tmp_path / "runs" / "sb3_ppo"
     assert (run / "model.zip").is_file() and list(run.glob("PPO_1/events.out.tfevents.*"))
     assert "training-episode success" in out.stdout
+    assert "from rgbd, 4 envs, agents/configs/sb3/ppo_rgbd.yml;" in out.stdout  # the camera's tuned config
+    assert (run / "vecnormalize.pkl").is_file()  # its state-vector statistics, which the policy needs
     # the held-out check after training, and the last line saying it (SB3's ProgressCallback, as sb3_sac.py's)
     last = out.stdout.strip().splitlines()[-1]
     assert last.startswith("256 env steps in ") and re.search(r"held-out success [0-2]/2;", last), last
