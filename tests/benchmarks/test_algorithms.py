@@ -446,6 +446,37 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
 
 
+def test_the_skrl_sac_configs_bound_their_policys_mean(alg):
+    """skrl's GaussianMixin samples an unsquashed Gaussian and, with ``clip_actions``, scores the clipped sample; a
+    mean that leaves [-1, 1] then buys SAC's entropy bonus without end (the clipped action's log-probability falls
+    as the mean moves away), and the critic's targets follow it up (the skrl SAC screening cell with a linear mean:
+    Q ~ 1e8). A tanh on the mean, as skrl's own SAC example has, keeps it within the bounds whatever the input."""
+    import gymnasium as gym
+    import numpy as np
+    import torch
+    from skrl.utils.model_instantiators.torch import gaussian_model
+
+    from agents.configs import loader
+
+    torch.manual_seed(0)
+    obs = torch.randn(256, 30) * 1e3  # far outside anything the scaler passes: only a squashing output bounds it
+    for env_id in alg.TASKS.values():
+        spec = dict(loader.skrl_config("sac", env_id)["models"]["policy"])
+        assert spec.pop("class") == "GaussianMixin" and spec["clip_actions"] is True
+        policy = gaussian_model(observation_space=gym.spaces.Box(-np.inf, np.inf, (30,)),
+                                action_space=gym.spaces.Box(-1.0, 1.0, (5,)), device="cpu", **spec)  # fmt: skip
+        actions, out = policy.act({"observations": obs}, role="policy")
+        assert out["mean_actions"].abs().max() <= 1.0 and actions.abs().max() <= 1.0, env_id
+        # the clipped sample's log-probability stays that of a Gaussian around a mean within the bounds
+        assert out["log_prob"].min() > -50.0, env_id
+        # the same network without the tanh, as the screening cell had it, does leave the bounds
+        linear = gaussian_model(observation_space=gym.spaces.Box(-np.inf, np.inf, (30,)),
+                                action_space=gym.spaces.Box(-1.0, 1.0, (5,)), device="cpu",
+                                **dict(spec, output="ACTIONS"))  # fmt: skip
+        _, out = linear.act({"observations": obs}, role="policy")
+        assert out["mean_actions"].abs().max() > 1.0
+
+
 def test_the_camera_config_is_the_state_ones_with_what_pixels_change(alg):
     """sb3/ppo_rgbd.yml: every setting says why and differs from SB3's default; it is sb3/ppo.yml's but for the
     policy class, the image left out of VecNormalize (which would make it floats SB3 then flattens into the MLP)
