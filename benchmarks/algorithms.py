@@ -763,7 +763,12 @@ def run_skrl(
     from skrl.utils import set_seed
 
     from agents.configs import loader
-    from maniskill_irb120.integrations.skrl import SUCCESS_KEY, make_skrl_env
+    from maniskill_irb120.integrations.skrl import (
+        SUCCESS_KEY,
+        make_skrl_env,
+        off_policy_state,
+        restore_off_policy_state,
+    )
 
     set_seed(seed)
     state = read_state(ckpt_dir)
@@ -777,9 +782,15 @@ def run_skrl(
     left = 10**10 if env_steps is None else max(1, -(-(env_steps - state["env_steps"]) // env.num_envs))
     trainer_cfg = {"timesteps": left, "headless": True, "disable_progressbar": True, "close_environment_at_exit": False}
     agent, trainer = build_skrl(tuned, env, seed, experiment, trainer_cfg)
-    agent_path = ckpt_dir / "agent.pt"
+    agent_path, replay_path = ckpt_dir / "agent.pt", ckpt_dir / "replay.pt"
     if agent_path.is_file():
         agent.load(str(agent_path))
+        # an off-policy agent's replay memory and temperature, which agent.pt lacks (a cell saved before they were
+        # kept has none: it goes on from an empty memory, and says so)
+        if replay_path.is_file():
+            restore_off_policy_state(agent, torch.load(replay_path, weights_only=False), state["env_steps"] // num_envs)
+        elif off_policy_state(agent):
+            print(f"[algorithms] {agent_path} has no replay memory beside it: continuing from an empty one", flush=True)
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))
     steps0, curve, recent, held = state["env_steps"], state["curve"], [], state["held_out"]
@@ -794,6 +805,10 @@ def run_skrl(
 
     def save() -> None:
         agent.save(str(agent_path))
+        kept = off_policy_state(agent)
+        if kept:  # written whole, then moved: a stop mid-write leaves the last one
+            torch.save(kept, replay_path.with_suffix(".tmp"))
+            replay_path.with_suffix(".tmp").replace(replay_path)
         write_state(ckpt_dir, {"spent_s": clock.spent_s, "stopped_s": clock.stopped_s, "env_steps": counted["steps"],
                                "curve": curve, "held_out": held})  # fmt: skip
 

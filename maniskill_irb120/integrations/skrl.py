@@ -289,3 +289,46 @@ class SelectOnValidation(ValidationSelection):
                 agent.track_data("Eval / Validation success", rate)
 
         agent.post_interaction = post_interaction
+
+
+def off_policy_state(agent: Any) -> dict:
+    """What an off-policy skrl agent's run needs to go on as it was and ``agent.save`` leaves out: the replay
+    memory's filled rows (skrl saves models, optimisers and scalers only) and SAC's temperature (a tensor, not a
+    module: skrl saves its optimiser and not its value). Empty for an on-policy agent (no ``learning_starts``): its
+    memory is one rollout, which a resumed run collects again. :func:`restore_off_policy_state` puts it back."""
+    if not hasattr(agent.cfg, "learning_starts"):
+        return {}
+    memory = agent.memory
+    rows = memory.memory_size if memory.filled else memory.memory_index
+    state: dict[str, Any] = dict(
+        rows=rows, memory_index=memory.memory_index, env_index=memory.env_index, filled=memory.filled,
+        tensors={name: tensor[:rows].clone() for name, tensor in memory.tensors.items()},
+    )  # fmt: skip
+    if hasattr(agent, "log_entropy_coefficient"):
+        state["log_entropy_coefficient"] = agent.log_entropy_coefficient.detach().clone()
+    return state
+
+
+def restore_off_policy_state(agent: Any, state: dict, vector_steps_done: int) -> None:
+    """Put :func:`off_policy_state`'s ``state`` back into a freshly built ``agent`` (after ``agent.load``), whose
+    run has trained ``vector_steps_done`` vector steps before. skrl's trainers count their timesteps from 0 in every
+    session, so the random steps and the learning start left are what remains of them, not all of them again. A
+    ``state`` whose memory does not fit the agent's (another config's) raises, naming the difference."""
+    if not state:
+        return
+    memory = agent.memory
+    for name, saved in state["tensors"].items():
+        own = memory.tensors.get(name)
+        if own is None or own.shape[1:] != saved.shape[1:] or saved.shape[0] > own.shape[0]:
+            shape = None if own is None else tuple(own.shape)
+            raise ValueError(f"restore_off_policy_state: saved memory tensor {name!r} {tuple(saved.shape)} does not "
+                             f"fit this agent's memory {shape}")  # fmt: skip
+    for name, saved in state["tensors"].items():
+        memory.tensors[name][: state["rows"]].copy_(saved)
+    memory.memory_index, memory.env_index, memory.filled = state["memory_index"], state["env_index"], state["filled"]
+    if "log_entropy_coefficient" in state and hasattr(agent, "log_entropy_coefficient"):
+        with torch.no_grad():
+            agent.log_entropy_coefficient.copy_(state["log_entropy_coefficient"])
+        agent._entropy_coefficient = torch.exp(agent.log_entropy_coefficient.detach())
+    agent.cfg.random_timesteps = max(0, agent.cfg.random_timesteps - vector_steps_done)
+    agent.cfg.learning_starts = max(0, agent.cfg.learning_starts - vector_steps_done)

@@ -477,6 +477,73 @@ def test_the_skrl_sac_configs_bound_their_policys_mean(alg):
         assert out["mean_actions"].abs().max() > 1.0
 
 
+def test_a_skrl_sac_cell_resumes_with_its_replay_memory_and_temperature(alg, tmp_path, monkeypatch):
+    """skrl's ``agent.save`` keeps the models, optimisers and scaler, not the replay memory or SAC's temperature,
+    and skrl's trainer counts its timesteps from 0 in every session; a resumed skrl SAC cell used to go on from an
+    empty memory, its random steps again and the initial temperature (the first skrl SAC screening cell read α 0.1
+    throughout its second session). The cell keeps ``replay.pt`` beside ``agent.pt``; a rerun restores it, and the
+    memory goes on from the rows the first session filled."""
+    pytest.importorskip("skrl")
+    import math
+    from types import SimpleNamespace
+
+    import torch
+    import yaml
+
+    from agents.configs import loader
+    from maniskill_irb120.integrations import skrl as adapter
+
+    for env_id in alg.TASKS.values():  # the tuned files' memory holds the budget's env steps, no more
+        cfg = loader.skrl_config("sac", env_id)
+        budget = alg.STATE_ENV_STEPS[env_id.split("-")[0]]
+        assert cfg["memory"]["memory_size"] * loader.skrl_env_settings(cfg)[0] == budget
+    cfg = loader.skrl_config("sac", "GraspLift-IRB120-v1")
+    cfg["memory"] = dict(cfg["memory"], memory_size=64)  # a toy memory: the test's 24 rows fit
+    cfg["agent"] = dict(cfg["agent"], random_timesteps=4, learning_starts=8)  # vector steps
+    conf = tmp_path / "sac.yaml"
+    conf.write_text(yaml.safe_dump(cfg))
+    cell = "state/GraspLift/skrl-sac-tuned/s1"
+    ckpt = tmp_path / "runs" / "state__GraspLift__skrl-sac-tuned__s1"
+
+    def run(out: str, env_steps: int) -> None:
+        alg.main(alg.Args(only=[cell], out_dir=tmp_path / out, runs_dir=tmp_path / "runs", quick=True,
+                          conf_file=conf, total_env_steps=env_steps, eval_episodes=1, curve_points=1,
+                          reference_steps=0))  # fmt: skip
+
+    run("first", 64)
+    first = torch.load(ckpt / "replay.pt", weights_only=False)
+    assert first["rows"] == first["memory_index"] == 16 and not first["filled"]  # 64 env steps of 4 envs
+    assert set(first["tensors"]) >= {"observations", "actions", "rewards", "next_observations"}
+    log_alpha = float(first["log_entropy_coefficient"])
+    assert not math.isclose(log_alpha, math.log(0.1), abs_tol=1e-6)  # 8 vector steps of updates moved it
+
+    restored = {}
+    real = adapter.restore_off_policy_state
+
+    def restore(agent, state, done):
+        real(agent, state, done)
+        restored.update(done=done, rows=agent.memory.memory_index, random=agent.cfg.random_timesteps,
+                        starts=agent.cfg.learning_starts, log_alpha=float(agent.log_entropy_coefficient.detach()),
+                        obs=agent.memory.tensors["observations"][:16].clone())  # fmt: skip
+
+    monkeypatch.setattr(adapter, "restore_off_policy_state", restore)
+    run("second", 96)  # another table, the same cell's folder: it continues from 64 env steps
+    assert restored["done"] == 16 and restored["rows"] == 16 and restored["random"] == restored["starts"] == 0
+    assert restored["log_alpha"] == log_alpha
+    assert torch.equal(restored["obs"], first["tensors"]["observations"])
+    second = torch.load(ckpt / "replay.pt", weights_only=False)
+    assert second["rows"] == 24  # the first session's 16 rows and 8 more, not 8 from an empty memory
+    for name, tensor in first["tensors"].items():
+        assert torch.equal(second["tensors"][name][:16], tensor), name
+    # a memory of another shape (another config's) is refused by name, before anything is copied
+    own = torch.zeros(64, 4, 30)
+    agent = SimpleNamespace(memory=SimpleNamespace(tensors={"observations": own}), cfg=None)
+    bad = dict(first, tensors={"observations": torch.ones(16, 4, 3)})
+    with pytest.raises(ValueError, match=r"'observations' \(16, 4, 3\) does not fit this agent's memory \(64, 4, 30\)"):
+        real(agent, bad, 16)
+    assert not own.any()
+
+
 def test_the_camera_config_is_the_state_ones_with_what_pixels_change(alg):
     """sb3/ppo_rgbd.yml: every setting says why and differs from SB3's default; it is sb3/ppo.yml's but for the
     policy class, the image left out of VecNormalize (which would make it floats SB3 then flattens into the MLP)
