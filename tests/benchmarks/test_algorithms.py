@@ -451,6 +451,7 @@ def test_the_skrl_sac_configs_bound_their_policys_mean(alg):
     mean that leaves [-1, 1] then buys SAC's entropy bonus without end (the clipped action's log-probability falls
     as the mean moves away), and the critic's targets follow it up (the skrl SAC screening cell with a linear mean:
     Q ~ 1e8). A tanh on the mean, as skrl's own SAC example has, keeps it within the bounds whatever the input."""
+    pytest.importorskip("skrl")
     import gymnasium as gym
     import numpy as np
     import torch
