@@ -765,6 +765,7 @@ def run_skrl(
     from agents.configs import loader
     from maniskill_irb120.integrations.skrl import (
         SUCCESS_KEY,
+        is_off_policy,
         make_skrl_env,
         off_policy_state,
         restore_off_policy_state,
@@ -789,7 +790,7 @@ def run_skrl(
         # kept has none: it goes on from an empty memory, and says so)
         if replay_path.is_file():
             restore_off_policy_state(agent, torch.load(replay_path, weights_only=False), state["env_steps"] // num_envs)
-        elif off_policy_state(agent):
+        elif is_off_policy(agent):
             print(f"[algorithms] {agent_path} has no replay memory beside it: continuing from an empty one", flush=True)
         print(f"[algorithms] continuing from {agent_path} ({state['spent_s'] / 60:.1f} min spent)", flush=True)
     clock = Budget(budget_s, state["spent_s"], args.checkpoint_min * 60, env_steps, state.get("stopped_s", 0.0))

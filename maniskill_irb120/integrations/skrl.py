@@ -291,12 +291,18 @@ class SelectOnValidation(ValidationSelection):
         agent.post_interaction = post_interaction
 
 
+def is_off_policy(agent: Any) -> bool:
+    """Whether ``agent`` learns from a replay memory (skrl's off-policy configs have ``learning_starts``; its
+    on-policy ones a rollout memory that a resumed run collects again)."""
+    return hasattr(agent.cfg, "learning_starts")
+
+
 def off_policy_state(agent: Any) -> dict:
     """What an off-policy skrl agent's run needs to go on as it was and ``agent.save`` leaves out: the replay
     memory's filled rows (skrl saves models, optimisers and scalers only) and SAC's temperature (a tensor, not a
     module: skrl saves its optimiser and not its value). Empty for an on-policy agent (no ``learning_starts``): its
     memory is one rollout, which a resumed run collects again. :func:`restore_off_policy_state` puts it back."""
-    if not hasattr(agent.cfg, "learning_starts"):
+    if not is_off_policy(agent):
         return {}
     memory = agent.memory
     rows = memory.memory_size if memory.filled else memory.memory_index

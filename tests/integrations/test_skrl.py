@@ -163,3 +163,19 @@ def test_the_policy_scores_its_own_sample_and_the_wrapper_clips_what_reaches_the
     finally:
         env.close()
         ref.close()
+
+
+def test_off_policy_agents_are_told_from_on_policy_ones_by_skrls_own_configs():
+    """The benchmark keeps a replay memory beside ``agent.pt`` only for an off-policy agent, told by skrl's own
+    config classes: SAC's and TD3's have a learning start, PPO's a rollout and none. An on-policy agent has no
+    off-policy state to keep."""
+    from types import SimpleNamespace
+
+    from skrl.agents.torch.sac import SAC_CFG
+    from skrl.agents.torch.td3 import TD3_CFG
+
+    from maniskill_irb120.integrations.skrl import is_off_policy, off_policy_state
+
+    assert is_off_policy(SimpleNamespace(cfg=SAC_CFG())) and is_off_policy(SimpleNamespace(cfg=TD3_CFG()))
+    ppo = SimpleNamespace(cfg=PPO_CFG())
+    assert not is_off_policy(ppo) and off_policy_state(ppo) == {}
