@@ -670,15 +670,14 @@ def build_skrl(tuned: Optional[dict], env: Any, seed: int, experiment: dict, tra
     """A cell's skrl agent and trainer on ``env``: a tuned config (``agents/configs/skrl/<algo>_<task>.yaml``)
     through skrl's own runner, as Isaac Lab runs it, or the PPO defaults row's agent (``tuned`` None)."""
     if tuned is not None:
-        from skrl.utils.runner.torch import Runner
-
         from agents.configs import loader
+        from maniskill_irb120.integrations.skrl import make_runner
 
         tuned = loader.skrl_runner_config(tuned)
         tuned.update(seed=seed)
         tuned["agent"] = dict(tuned["agent"], experiment=experiment)
         tuned["trainer"] = dict(tuned["trainer"], **trainer_cfg)
-        runner = Runner(env, tuned)
+        runner = make_runner(env, tuned)
         return runner.agent, runner.trainer
     from skrl.agents.torch.ppo import PPO, PPO_CFG
     from skrl.memories.torch import RandomMemory

@@ -95,13 +95,13 @@ def build(args: Args) -> tuple[Any, PPO, SequentialTrainer, str, int]:
                    "close_environment_at_exit": False}  # fmt: skip
     try:
         if config is not None:
-            from skrl.utils.runner.torch import Runner
+            from maniskill_irb120.integrations.skrl import make_runner
 
             cfg = loader.skrl_runner_config(config)
             cfg["seed"] = args.seed
             cfg["agent"] = dict(cfg["agent"], experiment=dict(directory=str(args.out_dir), experiment_name=""))
             cfg["trainer"] = dict(cfg["trainer"], **trainer_cfg)
-            runner = Runner(env, cfg)
+            runner = make_runner(env, cfg)
             for hook in loader.skrl_callbacks(config, args.out_dir / "best"):  # the config's checkpoint selection
                 hook.attach(runner.agent, env, args.env_id, args.obs)
             source = f"agents/configs/skrl/ppo_{args.env_id.split('-')[0].lower()}.yaml"

@@ -102,9 +102,7 @@ def train_sb3(a: argparse.Namespace) -> Path:
 
 
 def train_skrl(a: argparse.Namespace) -> Path:
-    from skrl.utils.runner.torch import Runner
-
-    from maniskill_irb120.integrations.skrl import make_skrl_env
+    from maniskill_irb120.integrations.skrl import make_runner, make_skrl_env
 
     cfg = loader.skrl_config(a.algo, a.env, a.conf_file)
     num_envs, wrappers = loader.skrl_env_settings(cfg)
@@ -119,7 +117,7 @@ def train_skrl(a: argparse.Namespace) -> Path:
     if a.n_timesteps > 0:  # skrl counts vector steps
         run["trainer"]["timesteps"] = max(1, a.n_timesteps // num_envs)
     try:
-        runner = Runner(env, run)
+        runner = make_runner(env, run)
         # the config's hooks, e.g. a selected checkpoint: out/best/best_agent.pt (as the SB3 side's best_model.zip)
         for hook in loader.skrl_callbacks(cfg, out / "best"):
             hook.attach(runner.agent, env, a.env)

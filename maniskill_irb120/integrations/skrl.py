@@ -221,11 +221,78 @@ def policy_and_value(env: IRB120SkrlWrapper, device: Optional[torch.device] = No
     }
 
 
+class TanhSquashed:
+    """A Gaussian whose sample goes through a tanh, scored by the change of variables: what SB3's, ManiSkill's and
+    CleanRL's SAC sample from, and what skrl's ``GaussianMixin`` lacks (it clips the sample, ``clip_actions``, and
+    scores the clipped action as the Gaussian's). SAC maximises the entropy it is given, and a clipped Gaussian's
+    grows with σ without end while the clipped actions stay the same, so its log std runs to its clamp (the skrl SAC
+    probe ``skrl_sac_clipped_sample``: σ 7.4, nine actions in ten at a bound). A squashed Gaussian's entropy falls as
+    σ grows past ~1 (the mass piles at ±1 with an infinite density there), so its temperature controls it. Mixed
+    into a model of skrl's ``gaussian_model`` by :func:`squashed_gaussian_model`; its mean is pre-tanh, and
+    ``mean_actions`` is its tanh, what plays deterministically."""
+
+    def act(self, inputs: dict[str, Any], *, role: str = "") -> tuple[torch.Tensor, dict[str, Any]]:
+        mean, outputs = self.compute(inputs, role)
+        log_std = outputs["log_std"]
+        if self._g_clip_log_std:
+            log_std = torch.clamp(log_std, min=self._g_min_log_std, max=self._g_max_log_std)
+        outputs["log_std"] = log_std
+        self._g_distribution = torch.distributions.Normal(mean, log_std.exp())
+        taken = inputs.get("taken_actions")
+        if taken is None:
+            pre = self._g_distribution.rsample()
+            actions = torch.tanh(pre)
+        else:  # a stored action's pre-image; the bound itself has none, so it is read just inside
+            actions = taken
+            pre = torch.atanh(taken.clamp(-1.0 + 1e-6, 1.0 - 1e-6))
+        # log(1 - tanh(x)^2) = 2 (log 2 - x - softplus(-2x)): exact where tanh(x) rounds to ±1 (SpinningUp's form)
+        log_det = 2.0 * (np.log(2.0) - pre - torch.nn.functional.softplus(-2.0 * pre))
+        outputs["log_prob"] = (self._g_distribution.log_prob(pre) - log_det).sum(dim=-1, keepdim=True)
+        outputs["mean_actions"] = torch.tanh(mean)
+        return actions, outputs
+
+
+def squashed_gaussian_model(*, action_space: gym.Space, **kwargs: Any) -> Model:
+    """skrl's ``gaussian_model`` (its network, log std and clamps, from the same YAML keys) sampling through a tanh
+    (:class:`TanhSquashed`): the ``SquashedGaussianMixin`` class of a model in the YAML, which :func:`make_runner`
+    knows. The action space must be [-1, 1], which the tanh covers; ``clip_actions`` (a second bound on a bounded
+    sample) and a ``reduction`` other than the sum (the actions' joint density) are refused by name."""
+    from skrl.utils.model_instantiators.torch import gaussian_model
+
+    low, high = np.asarray(action_space.low), np.asarray(action_space.high)
+    if not (np.all(low == -1.0) and np.all(high == 1.0)):
+        raise ValueError(f"SquashedGaussianMixin samples in [-1, 1]; this action space is [{low.min()}, {high.max()}]")
+    if kwargs.get("clip_actions"):
+        raise ValueError("SquashedGaussianMixin: clip_actions must be False (the tanh bounds the sample already)")
+    if kwargs.get("reduction", "sum") != "sum":
+        raise ValueError(f"SquashedGaussianMixin: reduction {kwargs['reduction']!r}; the sample's density is the sum")
+    if kwargs.get("return_source"):
+        return gaussian_model(action_space=action_space, **kwargs)
+    model = gaussian_model(action_space=action_space, **dict(kwargs, clip_actions=False))
+    model.__class__ = type("SquashedGaussianModel", (TanhSquashed, type(model)), {})
+    return model
+
+
+def make_runner(env: Any, cfg: dict) -> Any:
+    """skrl's own ``Runner`` on ``cfg`` (the YAML's form, as Isaac Lab runs it), knowing one model class more:
+    ``SquashedGaussianMixin`` (:func:`squashed_gaussian_model`), for SAC."""
+    from skrl.utils.runner.torch import Runner
+
+    class _Runner(Runner):
+        def _component(self, name: str) -> Any:
+            if name.lower() == "squashedgaussianmixin":
+                return squashed_gaussian_model
+            return super()._component(name)
+
+    return _Runner(env, cfg)
+
+
 # ---------------------------------------------------------------------------- deploying and selecting
 def deterministic_action(agent: Any, observation_space: gym.Space, obs: Any) -> torch.Tensor:
-    """``agent``'s deterministic action, (n, actions): its Gaussian's mean, clipped to [-1, 1] as the adapter clips
-    what reaches the env, for an adapter observation (``make_single_env``'s, unbatched, or a batch of them; numpy or
-    torch), flattened as skrl flattens it and scaled by the agent's own observation scaler (without updating it)."""
+    """``agent``'s deterministic action, (n, actions): its Gaussian's mean (a squashed one's tanh), clipped to [-1, 1]
+    as the adapter clips what reaches the env, for an adapter observation (``make_single_env``'s, unbatched, or a
+    batch of them; numpy or torch), flattened as skrl flattens it and scaled by the agent's own observation scaler
+    (without updating it)."""
     with torch.no_grad():
         _, out = agent.policy.act({"observations": _scaled_observations(agent, observation_space, obs)}, role="policy")
     return out["mean_actions"].clamp(-1, 1)

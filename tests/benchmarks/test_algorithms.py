@@ -446,36 +446,32 @@ def test_every_config_loads_for_both_tasks_and_every_setting_says_why_and_differ
     assert loader.skrl_env_settings(cfg) == (4, []) and alg.ALGORITHMS["skrl-sac"].config == "sac-defaults"
 
 
-def test_the_skrl_sac_configs_bound_their_policys_mean(alg):
-    """skrl's GaussianMixin samples an unsquashed Gaussian and, with ``clip_actions``, scores the clipped sample; a
-    mean that leaves [-1, 1] then buys SAC's entropy bonus without end (the clipped action's log-probability falls
-    as the mean moves away), and the critic's targets follow it up (the skrl SAC screening cell with a linear mean:
-    Q ~ 1e8). A tanh on the mean, as skrl's own SAC example has, keeps it within the bounds whatever the input."""
+def test_the_skrl_sac_configs_sample_a_squashed_gaussian(alg):
+    """skrl's GaussianMixin samples an unsquashed Gaussian and, with ``clip_actions``, scores the clipped sample by
+    the Gaussian's density. With a linear mean that bought SAC's entropy bonus without end as the mean left [-1, 1]
+    (the probe ``skrl_sac_linear_mean``: Q ~ 1e8); with a tanh mean, as σ grew (``skrl_sac_clipped_sample``: σ at
+    its clamp, 7.4). Each tuned file's policy is a ``SquashedGaussianMixin``, built as ``make_runner`` builds it
+    (the next test runs one through skrl's Runner): its sample and mean stay within the bounds whatever the
+    input, and its log-probability is the squashed density's, finite at the bounds."""
     pytest.importorskip("skrl")
     import gymnasium as gym
     import numpy as np
     import torch
-    from skrl.utils.model_instantiators.torch import gaussian_model
 
     from agents.configs import loader
+    from maniskill_irb120.integrations.skrl import TanhSquashed, squashed_gaussian_model
 
     torch.manual_seed(0)
-    obs = torch.randn(256, 30) * 1e3  # far outside anything the scaler passes: only a squashing output bounds it
+    obs = torch.randn(256, 30) * 1e3  # far outside anything the scaler passes
+    spaces = dict(observation_space=gym.spaces.Box(-np.inf, np.inf, (30,)), action_space=gym.spaces.Box(-1, 1, (5,)))
     for env_id in alg.TASKS.values():
         spec = dict(loader.skrl_config("sac", env_id)["models"]["policy"])
-        assert spec.pop("class") == "GaussianMixin" and spec["clip_actions"] is True
-        policy = gaussian_model(observation_space=gym.spaces.Box(-np.inf, np.inf, (30,)),
-                                action_space=gym.spaces.Box(-1.0, 1.0, (5,)), device="cpu", **spec)  # fmt: skip
+        assert spec.pop("class") == "SquashedGaussianMixin" and not spec.get("clip_actions"), env_id
+        policy = squashed_gaussian_model(device="cpu", **spaces, **spec)
+        assert isinstance(policy, TanhSquashed)
         actions, out = policy.act({"observations": obs}, role="policy")
         assert out["mean_actions"].abs().max() <= 1.0 and actions.abs().max() <= 1.0, env_id
-        # the clipped sample's log-probability stays that of a Gaussian around a mean within the bounds
-        assert out["log_prob"].min() > -50.0, env_id
-        # the same network without the tanh, as the screening cell had it, does leave the bounds
-        linear = gaussian_model(observation_space=gym.spaces.Box(-np.inf, np.inf, (30,)),
-                                action_space=gym.spaces.Box(-1.0, 1.0, (5,)), device="cpu",
-                                **dict(spec, output="ACTIONS"))  # fmt: skip
-        _, out = linear.act({"observations": obs}, role="policy")
-        assert out["mean_actions"].abs().max() > 1.0
+        assert torch.isfinite(out["log_prob"]).all(), env_id
 
 
 def test_a_skrl_sac_cell_resumes_with_its_replay_memory_and_temperature(alg, tmp_path, monkeypatch):
@@ -523,12 +519,14 @@ def test_a_skrl_sac_cell_resumes_with_its_replay_memory_and_temperature(alg, tmp
 
     def restore(agent, state, done):
         real(agent, state, done)
-        restored.update(done=done, rows=agent.memory.memory_index, random=agent.cfg.random_timesteps,
+        restored.update(squashed=isinstance(agent.policy, adapter.TanhSquashed),  # the YAML's, through skrl's Runner
+                        done=done, rows=agent.memory.memory_index, random=agent.cfg.random_timesteps,
                         starts=agent.cfg.learning_starts, log_alpha=float(agent.log_entropy_coefficient.detach()),
                         obs=agent.memory.tensors["observations"][:16].clone())  # fmt: skip
 
     monkeypatch.setattr(adapter, "restore_off_policy_state", restore)
     run("second", 96)  # another table, the same cell's folder: it continues from 64 env steps
+    assert restored["squashed"]
     assert restored["done"] == 16 and restored["rows"] == 16 and restored["random"] == restored["starts"] == 0
     assert restored["log_alpha"] == log_alpha
     assert torch.equal(restored["obs"], first["tensors"]["observations"])

@@ -179,3 +179,81 @@ def test_off_policy_agents_are_told_from_on_policy_ones_by_skrls_own_configs():
     assert is_off_policy(SimpleNamespace(cfg=SAC_CFG())) and is_off_policy(SimpleNamespace(cfg=TD3_CFG()))
     ppo = SimpleNamespace(cfg=PPO_CFG())
     assert not is_off_policy(ppo) and off_policy_state(ppo) == {}
+
+
+def _gaussian(log_std: float, squashed: bool):
+    """A 5-action policy from skrl's instantiator (a linear layer's mean, zeroed), squashed or as skrl's clipped
+    Gaussian, its log std set to ``log_std``."""
+    import gymnasium as gym
+    from skrl.utils.model_instantiators.torch import gaussian_model
+
+    from maniskill_irb120.integrations.skrl import squashed_gaussian_model
+
+    spaces = dict(observation_space=gym.spaces.Box(-np.inf, np.inf, (3,)), action_space=gym.spaces.Box(-1, 1, (5,)))
+    net = dict(network=[dict(name="net", input="OBSERVATIONS", layers=[8], activations="relu")], output="ACTIONS")
+    build = squashed_gaussian_model if squashed else gaussian_model
+    policy = build(device="cpu", clip_actions=not squashed, max_log_std=2.0, **spaces, **net)
+    policy.act({"observations": torch.zeros(1, 3)}, role="policy")  # skrl's layers are lazy: shaped by a first call
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.zero_()
+        policy.log_std_parameter.fill_(log_std)
+    return policy
+
+
+def test_a_squashed_gaussian_scores_its_sample_by_the_change_of_variables():
+    """SquashedGaussianMixin's sample lies in [-1, 1] and its log-probability is torch's own tanh-transformed
+    Gaussian's, whether sampled or given as ``taken_actions``; its deterministic action is the mean's tanh."""
+    torch.manual_seed(0)
+    policy = _gaussian(-0.5, squashed=True)
+    with torch.no_grad():
+        policy.net_container[0].bias.fill_(1.0)
+        policy.net_container[-1].weight.fill_(0.15)  # mean 1.2: tanh 0.83, the sample often near the bound
+    obs = torch.randn(4096, 3)
+    actions, out = policy.act({"observations": obs}, role="policy")
+    assert actions.abs().max() <= 1.0 and actions.shape == (4096, 5) and out["log_prob"].shape == (4096, 1)
+    mean, std = out["mean_actions"].atanh(), out["log_std"].exp()
+    ref = torch.distributions.TransformedDistribution(
+        torch.distributions.Normal(mean, std), [torch.distributions.TanhTransform(cache_size=1)]
+    )
+    inside = actions.abs().amax(-1) < 0.999  # where the reference's atanh is still exact in float32
+    assert inside.float().mean() > 0.5
+    expected = ref.log_prob(actions.clamp(-0.999, 0.999)).sum(-1, keepdim=True)
+    assert torch.allclose(out["log_prob"][inside], expected[inside], atol=2e-2)
+    _, again = policy.act({"observations": obs, "taken_actions": actions}, role="policy")
+    assert torch.allclose(again["log_prob"][inside], out["log_prob"][inside], atol=2e-2)
+    assert torch.allclose(out["mean_actions"], torch.tanh(torch.full((4096, 5), 1.2)), atol=1e-4)
+
+
+def test_a_clipped_gaussians_entropy_grows_with_its_std_and_a_squashed_ones_does_not():
+    """Why SAC's policy is squashed: SAC buys entropy, and skrl's clipped Gaussian scores the clipped action by the
+    Gaussian's density, so its entropy grows as σ does while its actions pile at the bounds; the skrl SAC screening
+    cell's log std ran to its clamp, 2 (σ 7.4). A tanh-squashed Gaussian's entropy is highest near σ 1 and falls
+    beyond, so its temperature holds σ."""
+    torch.manual_seed(0)
+    obs = torch.zeros(20000, 3)
+
+    def entropy(log_std, squashed):
+        _, out = _gaussian(log_std, squashed).act({"observations": obs}, role="policy")
+        return -out["log_prob"].mean().item()
+
+    clipped = [entropy(s, squashed=False) for s in (-1.0, 0.0, 2.0)]
+    squashed = [entropy(s, squashed=True) for s in (-1.0, 0.0, 2.0)]
+    assert clipped[0] < clipped[1] < clipped[2]
+    assert squashed[2] < squashed[1] and squashed[2] < squashed[0]
+
+
+def test_a_squashed_gaussian_refuses_what_it_cannot_mean():
+    import gymnasium as gym
+
+    from maniskill_irb120.integrations.skrl import squashed_gaussian_model
+
+    obs = gym.spaces.Box(-np.inf, np.inf, (3,))
+    net = dict(network=[dict(name="net", input="OBSERVATIONS", layers=[8], activations="relu")], output="ACTIONS")
+    with pytest.raises(ValueError, match=r"\[-1, 1\]"):
+        squashed_gaussian_model(observation_space=obs, action_space=gym.spaces.Box(-2, 2, (5,)), device="cpu", **net)
+    box = gym.spaces.Box(-1, 1, (5,))
+    with pytest.raises(ValueError, match="clip_actions"):
+        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", clip_actions=True, **net)
+    with pytest.raises(ValueError, match="reduction 'mean'"):
+        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", reduction="mean", **net)
