@@ -27,6 +27,9 @@
 
 skrl flattens a Dict observation into one float vector (sorted keys); :func:`policy_and_value`'s models undo it
 with skrl's ``unflatten_tensorized_space`` and read the image through a CNN.
+
+skrl's Gaussian clips its sample rather than squashing it, which SAC cannot use (:class:`TanhSquashed` says why):
+the SAC configs name ``SquashedGaussianMixin``, and :func:`make_runner` is skrl's ``Runner`` that knows it.
 """
 
 from __future__ import annotations
