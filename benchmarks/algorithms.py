@@ -60,6 +60,7 @@ import numpy as np
 import torch
 
 from agents.common import EVAL_SEED, VALIDATION_SEED, evaluate_on_seeds, train_seed
+from agents.common.checkpoints import atomic_save
 from agents.common.evaluation import next_curve_share
 from agents.recipes import RECIPES
 from benchmarks.lib import budget, machine, runner
@@ -807,8 +808,7 @@ def run_skrl(
         agent.save(str(agent_path))
         kept = off_policy_state(agent)
         if kept:  # written whole, then moved: a stop mid-write leaves the last one
-            torch.save(kept, replay_path.with_suffix(".tmp"))
-            replay_path.with_suffix(".tmp").replace(replay_path)
+            atomic_save(kept, replay_path)
         write_state(ckpt_dir, {"spent_s": clock.spent_s, "stopped_s": clock.stopped_s, "env_steps": counted["steps"],
                                "curve": curve, "held_out": held})  # fmt: skip
 

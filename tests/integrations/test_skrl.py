@@ -181,6 +181,10 @@ def test_off_policy_agents_are_told_from_on_policy_ones_by_skrls_own_configs():
     assert not is_off_policy(ppo) and off_policy_state(ppo) == {}
 
 
+_NET = dict(network=[dict(name="net", input="OBSERVATIONS", layers=[8], activations="relu")], output="ACTIONS")
+"""a one-hidden-layer network with a linear output, in skrl's instantiator form"""
+
+
 def _gaussian(log_std: float, squashed: bool):
     """A 5-action policy from skrl's instantiator (a linear layer's mean, zeroed), squashed or as skrl's clipped
     Gaussian, its log std set to ``log_std``."""
@@ -190,9 +194,8 @@ def _gaussian(log_std: float, squashed: bool):
     from maniskill_irb120.integrations.skrl import squashed_gaussian_model
 
     spaces = dict(observation_space=gym.spaces.Box(-np.inf, np.inf, (3,)), action_space=gym.spaces.Box(-1, 1, (5,)))
-    net = dict(network=[dict(name="net", input="OBSERVATIONS", layers=[8], activations="relu")], output="ACTIONS")
     build = squashed_gaussian_model if squashed else gaussian_model
-    policy = build(device="cpu", clip_actions=not squashed, max_log_std=2.0, **spaces, **net)
+    policy = build(device="cpu", clip_actions=not squashed, max_log_std=2.0, **spaces, **_NET)
     policy.act({"observations": torch.zeros(1, 3)}, role="policy")  # skrl's layers are lazy: shaped by a first call
     with torch.no_grad():
         for p in policy.parameters():
@@ -249,11 +252,10 @@ def test_a_squashed_gaussian_refuses_what_it_cannot_mean():
     from maniskill_irb120.integrations.skrl import squashed_gaussian_model
 
     obs = gym.spaces.Box(-np.inf, np.inf, (3,))
-    net = dict(network=[dict(name="net", input="OBSERVATIONS", layers=[8], activations="relu")], output="ACTIONS")
     with pytest.raises(ValueError, match=r"\[-1, 1\]"):
-        squashed_gaussian_model(observation_space=obs, action_space=gym.spaces.Box(-2, 2, (5,)), device="cpu", **net)
+        squashed_gaussian_model(observation_space=obs, action_space=gym.spaces.Box(-2, 2, (5,)), device="cpu", **_NET)
     box = gym.spaces.Box(-1, 1, (5,))
     with pytest.raises(ValueError, match="clip_actions"):
-        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", clip_actions=True, **net)
+        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", clip_actions=True, **_NET)
     with pytest.raises(ValueError, match="reduction 'mean'"):
-        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", reduction="mean", **net)
+        squashed_gaussian_model(observation_space=obs, action_space=box, device="cpu", reduction="mean", **_NET)
